@@ -1,0 +1,352 @@
+/*
+ * nebula_common.h -- the one portable header shared by NebulaRT's OpenCL C and CUDA C kernels.
+ *
+ * Contents
+ *   - portability macros (address spaces, 64-bit types, atomics, math) for OpenCL C 1.2+ and CUDA
+ *   - Philox4x64-10 counter-based random numbers (Salmon et al. 2011, "Parallel random numbers:
+ *     as easy as 1, 2, 3"); bit-identical to numpy.random.Philox for the same key and counter
+ *   - Henyey-Greenstein sampling in a branch-free form that holds for |g| -> 0 and |g| -> 1
+ *   - an orthonormal basis without singularities (Duff et al. 2017)
+ *   - 3D simplex noise (Gustavson 2005), the thesis's smooth turbulence sum and cubic bump
+ *
+ * Units: positions in box units (the domain is [0,1]^3), extinction per box unit.
+ */
+#ifndef NEBULA_COMMON_H
+#define NEBULA_COMMON_H
+
+/* ------------------------------------------------------------------------------------------ */
+/* Portability                                                                                 */
+/* ------------------------------------------------------------------------------------------ */
+#if defined(__OPENCL_VERSION__)
+#pragma OPENCL EXTENSION cl_khr_int64_base_atomics : enable
+#pragma OPENCL EXTENSION cl_khr_fp64 : enable
+#define NRT_KERNEL __kernel
+#define NRT_GLOBAL __global
+#define NRT_CONSTANT __constant
+#define NRT_DEVICE static inline
+typedef ulong nrt_u64;
+typedef uint nrt_u32;
+typedef long nrt_i64;
+#define NRT_GLOBAL_ID() ((nrt_u64)get_global_id(0))
+#define NRT_MULHI64(a, b) mul_hi((ulong)(a), (ulong)(b))
+/* atom_add on 64-bit integers (cl_khr_int64_base_atomics); returns the old value */
+#define NRT_ATOMIC_ADD_U64(p, v) atom_add((volatile __global ulong *)(p), (ulong)(v))
+#define NRT_ATOMIC_OR_U32(p, v) atomic_or((volatile __global uint *)(p), (uint)(v))
+#elif defined(__CUDACC__) || defined(__CUDACC_RTC__)
+#define NRT_KERNEL extern "C" __global__
+#define NRT_GLOBAL
+#define NRT_CONSTANT __constant__
+#define NRT_DEVICE static __device__ __forceinline__
+typedef unsigned long long nrt_u64;
+typedef unsigned int nrt_u32;
+typedef long long nrt_i64;
+#define NRT_GLOBAL_ID() ((nrt_u64)blockIdx.x * (nrt_u64)blockDim.x + (nrt_u64)threadIdx.x)
+#define NRT_MULHI64(a, b) __umul64hi((a), (b))
+#define NRT_ATOMIC_ADD_U64(p, v) atomicAdd((unsigned long long *)(p), (unsigned long long)(v))
+#define NRT_ATOMIC_OR_U32(p, v) atomicOr((unsigned int *)(p), (unsigned int)(v))
+#define fmin fminf
+#define fmax fmaxf
+#define floor floorf
+#define sqrt sqrtf
+#define log logf
+#define cos cosf
+#define sin sinf
+#define copysign copysignf
+#define fabs fabsf
+#define exp2 exp2f
+#else
+#error "nebula_common.h needs OpenCL C or CUDA C"
+#endif
+
+#define NRT_PI_F 3.14159265358979323846f
+
+/* ------------------------------------------------------------------------------------------ */
+/* Philox4x64-10                                                                               */
+/* ------------------------------------------------------------------------------------------ */
+/* Constants of Random123 (and numpy's philox.h). */
+#define NRT_PHILOX_M0 0xD2E7470EE14C6C93UL
+#define NRT_PHILOX_M1 0xCA5A826395121157UL
+#define NRT_PHILOX_W0 0x9E3779B97F4A7C15UL
+#define NRT_PHILOX_W1 0xBB67AE8584CAA73BUL
+
+typedef struct {
+    nrt_u64 v[4];
+} nrt_u64x4;
+
+NRT_DEVICE nrt_u64x4 nrt_philox4x64_10(nrt_u64x4 ctr, nrt_u64 k0, nrt_u64 k1)
+{
+    for (int round = 0; round < 10; ++round) {
+        if (round > 0) {
+            k0 += NRT_PHILOX_W0;
+            k1 += NRT_PHILOX_W1;
+        }
+        nrt_u64 hi0 = NRT_MULHI64(NRT_PHILOX_M0, ctr.v[0]);
+        nrt_u64 lo0 = NRT_PHILOX_M0 * ctr.v[0];
+        nrt_u64 hi1 = NRT_MULHI64(NRT_PHILOX_M1, ctr.v[2]);
+        nrt_u64 lo1 = NRT_PHILOX_M1 * ctr.v[2];
+        nrt_u64x4 out;
+        out.v[0] = hi1 ^ ctr.v[1] ^ k0;
+        out.v[1] = lo1;
+        out.v[2] = hi0 ^ ctr.v[3] ^ k1;
+        out.v[3] = lo0;
+        ctr = out;
+    }
+    return ctr;
+}
+
+/*
+ * One random stream per photon packet: key = (seed, band), counter = (photon, block, 0, 0).
+ * Each Philox call yields 4 x 64 bits, used as 8 x 32 bits (low word first, as numpy's
+ * next_uint32 does). Nothing depends on which thread traces the packet, so results are
+ * independent of scheduling.
+ */
+typedef struct {
+    nrt_u64 key0, key1;
+    nrt_u64 photon;
+    nrt_u64 block;
+    nrt_u64x4 buf;
+    int pos; /* next 32-bit word in buf, 0..8 */
+} nrt_rng;
+
+NRT_DEVICE void nrt_rng_init(nrt_rng *r, nrt_u64 seed, nrt_u64 band, nrt_u64 photon)
+{
+    r->key0 = seed;
+    r->key1 = band;
+    r->photon = photon;
+    r->block = 0;
+    r->pos = 8;
+}
+
+NRT_DEVICE nrt_u32 nrt_rng_u32(nrt_rng *r)
+{
+    if (r->pos >= 8) {
+        nrt_u64x4 c;
+        c.v[0] = r->photon;
+        c.v[1] = r->block;
+        c.v[2] = 0;
+        c.v[3] = 0;
+        r->buf = nrt_philox4x64_10(c, r->key0, r->key1);
+        r->block += 1;
+        r->pos = 0;
+    }
+    nrt_u64 w = r->buf.v[r->pos >> 1];
+    nrt_u32 out = (r->pos & 1) ? (nrt_u32)(w >> 32) : (nrt_u32)(w & 0xFFFFFFFFUL);
+    r->pos += 1;
+    return out;
+}
+
+/* Uniform float in [0, 1): the top 24 bits, so 1.0f is never returned. */
+NRT_DEVICE float nrt_rng_uniform(nrt_rng *r)
+{
+    return (float)(nrt_rng_u32(r) >> 8) * 5.9604644775390625e-8f; /* 2^-24 */
+}
+
+/* Exponential optical depth: -ln(1 - xi) with xi in [0,1), never -ln(xi) (which is inf at 0). */
+NRT_DEVICE float nrt_sample_tau(nrt_rng *r)
+{
+    return -log(1.0f - nrt_rng_uniform(r));
+}
+
+/* ------------------------------------------------------------------------------------------ */
+/* Directions and Henyey-Greenstein                                                            */
+/* ------------------------------------------------------------------------------------------ */
+/* float32 keeps 1 - |g| resolvable only down to about 1e-4 (REFERENCES.md). */
+#define NRT_G_LIMIT (1.0f - 1.0e-4f)
+
+/*
+ * Henyey-Greenstein cosine mu and sin(theta) from xi in [0,1], branch-free:
+ *   d = 1 - g + 2 g xi
+ *   mu = [2 xi (1+g^2)(1-g+g xi) - (1-g)^2] / d^2
+ *   sin(theta) = 2 (1-g^2) sqrt(xi (1-xi) (1-g+g xi) (1+g xi)) / d^2
+ * The textbook (1 + g^2 - f^2)/(2g) cancels catastrophically for small |g|; this form is exact
+ * at g = 0 (mu = 2 xi - 1) and keeps sin(theta) accurate near |mu| = 1. It is evaluated for
+ * |g| only, using the symmetry mu(g, xi) = -mu(-g, 1 - xi): for g < 0, d = 1 - g + 2 g xi
+ * would cancel as xi -> 1 (d -> 1 + g), while with |g| every term is positive. The reflection
+ * is a select, not a divergent branch.
+ */
+NRT_DEVICE void nrt_sample_hg(float g, float xi, float *mu, float *sin_theta)
+{
+    g = fmin(fmax(g, -NRT_G_LIMIT), NRT_G_LIMIT);
+    float ga = fabs(g);
+    float x = (g < 0.0f) ? 1.0f - xi : xi;
+    float a = 1.0f - ga + ga * x;
+    float b = 1.0f + ga * x;
+    float d = a + ga * x;
+    float inv_d2 = 1.0f / (d * d);
+    float omg = 1.0f - ga;
+    float m = (2.0f * x * (1.0f + ga * ga) * a - omg * omg) * inv_d2;
+    float s = 2.0f * (1.0f - ga * ga) * sqrt(fmax(0.0f, x * (1.0f - x) * a * b)) * inv_d2;
+    m = (g < 0.0f) ? -m : m;
+    *mu = fmin(fmax(m, -1.0f), 1.0f);
+    *sin_theta = fmin(s, 1.0f);
+}
+
+/* Orthonormal basis (t1, t2) perpendicular to the unit vector n (Duff et al. 2017, JCGT 6(1)). */
+NRT_DEVICE void nrt_onb(float nx, float ny, float nz, float *t1, float *t2)
+{
+    float sign = copysign(1.0f, nz);
+    float a = -1.0f / (sign + nz);
+    float b = nx * ny * a;
+    t1[0] = 1.0f + sign * nx * nx * a;
+    t1[1] = sign * b;
+    t1[2] = -sign * nx;
+    t2[0] = b;
+    t2[1] = sign + ny * ny * a;
+    t2[2] = -ny;
+}
+
+/* Turn the unit direction d by polar angle (mu, sin_theta) and azimuth phi about itself. */
+NRT_DEVICE void nrt_rotate(float *d, float mu, float sin_theta, float phi)
+{
+    float t1[3], t2[3];
+    nrt_onb(d[0], d[1], d[2], t1, t2);
+    float c = sin_theta * cos(phi);
+    float s = sin_theta * sin(phi);
+    float x = c * t1[0] + s * t2[0] + mu * d[0];
+    float y = c * t1[1] + s * t2[1] + mu * d[1];
+    float z = c * t1[2] + s * t2[2] + mu * d[2];
+    /* renormalise so rounding does not accumulate over many scatterings */
+    float inv = 1.0f / sqrt(x * x + y * y + z * z);
+    d[0] = x * inv;
+    d[1] = y * inv;
+    d[2] = z * inv;
+}
+
+/* Isotropic unit direction. */
+NRT_DEVICE void nrt_sample_isotropic(nrt_rng *r, float *d)
+{
+    float mu = 2.0f * nrt_rng_uniform(r) - 1.0f;
+    float phi = 2.0f * NRT_PI_F * nrt_rng_uniform(r);
+    float st = sqrt(fmax(0.0f, 1.0f - mu * mu));
+    d[0] = st * cos(phi);
+    d[1] = st * sin(phi);
+    d[2] = mu;
+}
+
+/* ------------------------------------------------------------------------------------------ */
+/* Simplex noise (Gustavson 2005, "Simplex noise demystified"), turbulence, cubic bump         */
+/* ------------------------------------------------------------------------------------------ */
+NRT_CONSTANT int nrt_grad3[12][3] = {{1, 1, 0}, {-1, 1, 0}, {1, -1, 0}, {-1, -1, 0},
+                                     {1, 0, 1}, {-1, 0, 1}, {1, 0, -1}, {-1, 0, -1},
+                                     {0, 1, 1}, {0, -1, 1}, {0, 1, -1}, {0, -1, -1}};
+
+/* Ken Perlin's permutation, doubled so that perm[i + perm[j]] never needs a wrap. */
+NRT_CONSTANT int nrt_perm[512] = {
+    151, 160, 137, 91,  90,  15,  131, 13,  201, 95,  96,  53,  194, 233, 7,   225, 140, 36,  103,
+    30,  69,  142, 8,   99,  37,  240, 21,  10,  23,  190, 6,   148, 247, 120, 234, 75,  0,   26,
+    197, 62,  94,  252, 219, 203, 117, 35,  11,  32,  57,  177, 33,  88,  237, 149, 56,  87,  174,
+    20,  125, 136, 171, 168, 68,  175, 74,  165, 71,  134, 139, 48,  27,  166, 77,  146, 158, 231,
+    83,  111, 229, 122, 60,  211, 133, 230, 220, 105, 92,  41,  55,  46,  245, 40,  244, 102, 143,
+    54,  65,  25,  63,  161, 1,   216, 80,  73,  209, 76,  132, 187, 208, 89,  18,  169, 200, 196,
+    135, 130, 116, 188, 159, 86,  164, 100, 109, 198, 173, 186, 3,   64,  52,  217, 226, 250, 124,
+    123, 5,   202, 38,  147, 118, 126, 255, 82,  85,  212, 207, 206, 59,  227, 47,  16,  58,  17,
+    182, 189, 28,  42,  223, 183, 170, 213, 119, 248, 152, 2,   44,  154, 163, 70,  221, 153, 101,
+    155, 167, 43,  172, 9,   129, 22,  39,  253, 19,  98,  108, 110, 79,  113, 224, 232, 178, 185,
+    112, 104, 218, 246, 97,  228, 251, 34,  242, 193, 238, 210, 144, 12,  191, 179, 162, 241, 81,
+    51,  145, 235, 249, 14,  239, 107, 49,  192, 214, 31,  181, 199, 106, 157, 184, 84,  204, 176,
+    115, 121, 50,  45,  127, 4,   150, 254, 138, 236, 205, 93,  222, 114, 67,  29,  24,  72,  243,
+    141, 128, 195, 78,  66,  215, 61,  156, 180,
+    151, 160, 137, 91,  90,  15,  131, 13,  201, 95,  96,  53,  194, 233, 7,   225, 140, 36,  103,
+    30,  69,  142, 8,   99,  37,  240, 21,  10,  23,  190, 6,   148, 247, 120, 234, 75,  0,   26,
+    197, 62,  94,  252, 219, 203, 117, 35,  11,  32,  57,  177, 33,  88,  237, 149, 56,  87,  174,
+    20,  125, 136, 171, 168, 68,  175, 74,  165, 71,  134, 139, 48,  27,  166, 77,  146, 158, 231,
+    83,  111, 229, 122, 60,  211, 133, 230, 220, 105, 92,  41,  55,  46,  245, 40,  244, 102, 143,
+    54,  65,  25,  63,  161, 1,   216, 80,  73,  209, 76,  132, 187, 208, 89,  18,  169, 200, 196,
+    135, 130, 116, 188, 159, 86,  164, 100, 109, 198, 173, 186, 3,   64,  52,  217, 226, 250, 124,
+    123, 5,   202, 38,  147, 118, 126, 255, 82,  85,  212, 207, 206, 59,  227, 47,  16,  58,  17,
+    182, 189, 28,  42,  223, 183, 170, 213, 119, 248, 152, 2,   44,  154, 163, 70,  221, 153, 101,
+    155, 167, 43,  172, 9,   129, 22,  39,  253, 19,  98,  108, 110, 79,  113, 224, 232, 178, 185,
+    112, 104, 218, 246, 97,  228, 251, 34,  242, 193, 238, 210, 144, 12,  191, 179, 162, 241, 81,
+    51,  145, 235, 249, 14,  239, 107, 49,  192, 214, 31,  181, 199, 106, 157, 184, 84,  204, 176,
+    115, 121, 50,  45,  127, 4,   150, 254, 138, 236, 205, 93,  222, 114, 67,  29,  24,  72,  243,
+    141, 128, 195, 78,  66,  215, 61,  156, 180};
+
+NRT_DEVICE float nrt_simplex_corner(int gi, float x, float y, float z)
+{
+    float t = 0.6f - x * x - y * y - z * z;
+    if (t < 0.0f)
+        return 0.0f;
+    t *= t;
+    return t * t * (nrt_grad3[gi][0] * x + nrt_grad3[gi][1] * y + nrt_grad3[gi][2] * z);
+}
+
+/* 3D simplex noise in [-1, 1]. */
+NRT_DEVICE float nrt_simplex3(float xin, float yin, float zin)
+{
+    const float F3 = 1.0f / 3.0f;
+    const float G3 = 1.0f / 6.0f;
+    float s = (xin + yin + zin) * F3;
+    int i = (int)floor(xin + s);
+    int j = (int)floor(yin + s);
+    int k = (int)floor(zin + s);
+    float t = (float)(i + j + k) * G3;
+    float x0 = xin - ((float)i - t);
+    float y0 = yin - ((float)j - t);
+    float z0 = zin - ((float)k - t);
+    int i1, j1, k1, i2, j2, k2;
+    if (x0 >= y0) {
+        if (y0 >= z0) {
+            i1 = 1; j1 = 0; k1 = 0; i2 = 1; j2 = 1; k2 = 0;
+        } else if (x0 >= z0) {
+            i1 = 1; j1 = 0; k1 = 0; i2 = 1; j2 = 0; k2 = 1;
+        } else {
+            i1 = 0; j1 = 0; k1 = 1; i2 = 1; j2 = 0; k2 = 1;
+        }
+    } else {
+        if (y0 < z0) {
+            i1 = 0; j1 = 0; k1 = 1; i2 = 0; j2 = 1; k2 = 1;
+        } else if (x0 < z0) {
+            i1 = 0; j1 = 1; k1 = 0; i2 = 0; j2 = 1; k2 = 1;
+        } else {
+            i1 = 0; j1 = 1; k1 = 0; i2 = 1; j2 = 1; k2 = 0;
+        }
+    }
+    float x1 = x0 - (float)i1 + G3, y1 = y0 - (float)j1 + G3, z1 = z0 - (float)k1 + G3;
+    float x2 = x0 - (float)i2 + 2.0f * G3, y2 = y0 - (float)j2 + 2.0f * G3,
+          z2 = z0 - (float)k2 + 2.0f * G3;
+    float x3 = x0 - 1.0f + 3.0f * G3, y3 = y0 - 1.0f + 3.0f * G3, z3 = z0 - 1.0f + 3.0f * G3;
+    int ii = i & 255, jj = j & 255, kk = k & 255;
+    int gi0 = nrt_perm[ii + nrt_perm[jj + nrt_perm[kk]]] % 12;
+    int gi1 = nrt_perm[ii + i1 + nrt_perm[jj + j1 + nrt_perm[kk + k1]]] % 12;
+    int gi2 = nrt_perm[ii + i2 + nrt_perm[jj + j2 + nrt_perm[kk + k2]]] % 12;
+    int gi3 = nrt_perm[ii + 1 + nrt_perm[jj + 1 + nrt_perm[kk + 1]]] % 12;
+    return 32.0f * (nrt_simplex_corner(gi0, x0, y0, z0) + nrt_simplex_corner(gi1, x1, y1, z1) +
+                    nrt_simplex_corner(gi2, x2, y2, z2) + nrt_simplex_corner(gi3, x3, y3, z3));
+}
+
+/*
+ * Smooth turbulence (thesis Eq. 2.16, listing A.14): sum over octaves of noise(f p) / f with
+ * f = 2^e and the thesis's exponents {0.05, 2, 4, 6, 12, 8, 0} (FSIZE 7; the seventh entry of
+ * its 6-element initialiser is 0). The thesis decorrelates octaves through 4D noise with
+ * w = octave index; we shift the 3D sample point by octave * NRT_OCTAVE_SHIFT instead.
+ */
+#define NRT_TURB_OCTAVES 7
+NRT_CONSTANT float nrt_turb_exponents[NRT_TURB_OCTAVES] = {0.05f, 2.0f, 4.0f, 6.0f,
+                                                           12.0f, 8.0f, 0.0f};
+#define NRT_OCTAVE_SHIFT_X 31.4159265f
+#define NRT_OCTAVE_SHIFT_Y 27.1828183f
+#define NRT_OCTAVE_SHIFT_Z 14.1421356f
+
+NRT_DEVICE float nrt_turbulence(float x, float y, float z)
+{
+    float sum = 0.0f;
+    for (int o = 0; o < NRT_TURB_OCTAVES; ++o) {
+        /* exp2 of the exponent, exact for the integral ones */
+        float f = exp2(nrt_turb_exponents[o]);
+        float so = (float)o;
+        sum += nrt_simplex3(f * x + so * NRT_OCTAVE_SHIFT_X, f * y + so * NRT_OCTAVE_SHIFT_Y,
+                            f * z + so * NRT_OCTAVE_SHIFT_Z) / f;
+    }
+    return sum;
+}
+
+/* The thesis's cubic bump (Eq. 3.3): (1 - d^2/r^2)^3 inside r, else 0. */
+NRT_DEVICE float nrt_cubic(float d2, float r2)
+{
+    if (!(d2 < r2))
+        return 0.0f;
+    float w = 1.0f - d2 / r2;
+    return w * w * w;
+}
+
+#endif /* NEBULA_COMMON_H */

@@ -1,0 +1,71 @@
+/*
+ * sampling.cl -- the header's random-number and direction samplers exposed as kernels, so that
+ * tests check the very code the transport kernel runs (Philox bits against numpy, HG moments).
+ */
+#include "nebula_common.h"
+
+/* out[4 i .. 4 i + 3] = Philox4x64-10(counter = (c0 + i, c1, c2, c3), key = (k0, k1)) */
+NRT_KERNEL void philox_blocks(NRT_GLOBAL nrt_u64 *out, nrt_u64 k0, nrt_u64 k1, nrt_u64 c0,
+                              nrt_u64 c1, nrt_u64 c2, nrt_u64 c3, nrt_u64 n)
+{
+    nrt_u64 i = NRT_GLOBAL_ID();
+    if (i >= n)
+        return;
+    nrt_u64x4 c;
+    c.v[0] = c0 + i;
+    c.v[1] = c1;
+    c.v[2] = c2;
+    c.v[3] = c3;
+    nrt_u64x4 r = nrt_philox4x64_10(c, k0, k1);
+    for (int w = 0; w < 4; ++w)
+        out[4 * i + w] = r.v[w];
+}
+
+/* The first m 32-bit words of the per-photon stream (seed, band, photon): out[m i + w]. */
+NRT_KERNEL void photon_stream_u32(NRT_GLOBAL nrt_u32 *out, nrt_u64 seed, nrt_u64 band,
+                                  nrt_u64 photon0, int m, nrt_u64 n)
+{
+    nrt_u64 i = NRT_GLOBAL_ID();
+    if (i >= n)
+        return;
+    nrt_rng r;
+    nrt_rng_init(&r, seed, band, photon0 + i);
+    for (int w = 0; w < m; ++w)
+        out[(nrt_u64)m * i + w] = nrt_rng_u32(&r);
+}
+
+/*
+ * Henyey-Greenstein scattering as the transport kernel does it: a random old direction, a new
+ * one from nrt_sample_hg + nrt_rotate; out[i] = dot(new, old) measured from the vectors (so a
+ * sign or frame error in the rotation shows), norm[i] = |new|.
+ */
+NRT_KERNEL void hg_cosines(NRT_GLOBAL float *out, NRT_GLOBAL float *norm, float g, nrt_u64 seed,
+                           nrt_u64 n)
+{
+    nrt_u64 i = NRT_GLOBAL_ID();
+    if (i >= n)
+        return;
+    nrt_rng r;
+    nrt_rng_init(&r, seed, 0, i);
+    float d[3];
+    nrt_sample_isotropic(&r, d);
+    float old[3] = {d[0], d[1], d[2]};
+    float mu, st;
+    nrt_sample_hg(g, nrt_rng_uniform(&r), &mu, &st);
+    nrt_rotate(d, mu, st, 2.0f * NRT_PI_F * nrt_rng_uniform(&r));
+    out[i] = d[0] * old[0] + d[1] * old[1] + d[2] * old[2];
+    norm[i] = sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
+}
+
+/* nrt_sample_hg at given xi (tests the extremes xi = 0 and 1 directly). */
+NRT_KERNEL void hg_at(NRT_GLOBAL float *mu, NRT_GLOBAL float *sin_theta,
+                      const NRT_GLOBAL float *xi, float g, nrt_u64 n)
+{
+    nrt_u64 i = NRT_GLOBAL_ID();
+    if (i >= n)
+        return;
+    float m, s;
+    nrt_sample_hg(g, xi[i], &m, &s);
+    mu[i] = m;
+    sin_theta[i] = s;
+}

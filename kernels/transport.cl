@@ -1,0 +1,200 @@
+/*
+ * transport.cl -- Monte Carlo photon packet transport through a piecewise-constant voxel grid.
+ *
+ * One work item traces one packet of one band; all bands go in one launch
+ * (gid = band * batch + i). Packets leave a star isotropically (the star is chosen with
+ * probability L_star,b / L_b), fly an exponentially distributed optical depth -ln(1 - xi)
+ * that is spent exactly voxel by voxel (3D DDA, Amanatides & Woo 1987), and at the interaction
+ * scatter with probability albedo_b (analog: every packet carries the same energy, so energy
+ * tallies are integer packet counts and conservation is exact) into a Henyey-Greenstein
+ * direction, or are absorbed. A packet that would scatter more than max_scatterings times is
+ * terminated and tallied as such.
+ *
+ * Extinction per box unit: sigma_b(v) = sigma_scale[b] * rho(v), sigma_scale[b] = tau * k_b.
+ * (The thesis multiplied the free PATH by k_b, sending blue light farther; physically the
+ * extinction scales with k_b.)
+ *
+ * Estimators (compile-time, only what the scene asks for is built):
+ *   NRT_TRACK_LENGTH: every flight segment adds its length (box units) x NRT fixed-point scale
+ *                     to the voxel it crosses;
+ *   NRT_COLLISION:    every interaction adds 1 to the voxel it happens in (J = count / sigma).
+ *
+ * Accumulation is in unsigned 64-bit fixed point with integer atomics: integer addition is
+ * associative, so the sums are exact and identical whatever the thread order. Every atomic add
+ * checks its headroom against 2^63 and raises *overflow instead of wrapping silently; the host
+ * then re-traces the batch in halves (same photons, same random numbers).
+ *
+ * Tallies per band (tallies[4 b + t]): 0 emitted, 1 absorbed, 2 escaped, 3 terminated.
+ */
+#include "nebula_common.h"
+
+#ifndef NRT_TRACK_LENGTH
+#define NRT_TRACK_LENGTH 0
+#endif
+#ifndef NRT_COLLISION
+#define NRT_COLLISION 0
+#endif
+
+#define NRT_ACC_LIMIT 0x8000000000000000UL /* 2^63: headroom limit of a fixed-point cell */
+#define NRT_INF_F 3.0e38f
+
+NRT_DEVICE void nrt_acc_add(NRT_GLOBAL nrt_u64 *cell, nrt_u64 v, NRT_GLOBAL nrt_u32 *overflow)
+{
+    if (v == 0)
+        return;
+    nrt_u64 old = NRT_ATOMIC_ADD_U64(cell, v);
+    if (old >= NRT_ACC_LIMIT - v)
+        NRT_ATOMIC_OR_U32(overflow, 1u);
+}
+
+/* Distance (box units) from p along d to the exit face of voxel [i h, (i+1) h) on one axis. */
+NRT_DEVICE float nrt_face_distance(float p, float d, float inv_d, int i, float h)
+{
+    if (d > 0.0f)
+        return ((float)(i + 1) * h - p) * inv_d;
+    if (d < 0.0f)
+        return ((float)i * h - p) * inv_d;
+    return NRT_INF_F;
+}
+
+NRT_KERNEL void trace_photons(const NRT_GLOBAL float *density, /* nx*ny*nz, x fastest */
+                              const NRT_GLOBAL float *sigma_scale, /* per band: tau * k_b */
+                              const NRT_GLOBAL float *albedo,      /* per band */
+                              const NRT_GLOBAL float *asym_g,      /* per band */
+                              const NRT_GLOBAL float *stars,       /* per star: x, y, z, pad */
+                              const NRT_GLOBAL float *star_cdf,    /* per band: n_stars cdf */
+                              int nx, int ny, int nz, int n_bands, int n_stars,
+                              nrt_u64 seed, nrt_u64 photon_start, nrt_u64 batch,
+                              int max_scatterings, float track_scale,
+                              NRT_GLOBAL nrt_u64 *acc,     /* n_bands * nvox (estimator) */
+                              NRT_GLOBAL nrt_u64 *tallies, /* n_bands * 4 */
+                              NRT_GLOBAL nrt_u32 *overflow)
+{
+    nrt_u64 gid = NRT_GLOBAL_ID();
+    if (gid >= batch * (nrt_u64)n_bands)
+        return;
+    int band = (int)(gid / batch);
+    nrt_u64 photon = photon_start + gid % batch;
+    nrt_u64 nvox = (nrt_u64)nx * (nrt_u64)ny * (nrt_u64)nz;
+    NRT_GLOBAL nrt_u64 *band_acc = acc + (nrt_u64)band * nvox;
+    NRT_GLOBAL nrt_u64 *band_tally = tallies + 4 * band;
+
+    nrt_rng rng;
+    nrt_rng_init(&rng, seed, (nrt_u64)band, photon);
+
+    const float sig_b = sigma_scale[band];
+    const float alb_b = albedo[band];
+    const float g_b = asym_g[band];
+    const float hx = 1.0f / (float)nx, hy = 1.0f / (float)ny, hz = 1.0f / (float)nz;
+
+    /* choose the emitting star */
+    int s = 0;
+    if (n_stars > 1) {
+        float u = nrt_rng_uniform(&rng);
+        const NRT_GLOBAL float *cdf = star_cdf + band * n_stars;
+        while (s < n_stars - 1 && u >= cdf[s])
+            ++s;
+    }
+    float p[3] = {stars[4 * s], stars[4 * s + 1], stars[4 * s + 2]};
+    int ix = min(max((int)floor(p[0] * (float)nx), 0), nx - 1);
+    int iy = min(max((int)floor(p[1] * (float)ny), 0), ny - 1);
+    int iz = min(max((int)floor(p[2] * (float)nz), 0), nz - 1);
+    float d[3];
+    nrt_sample_isotropic(&rng, d);
+    NRT_ATOMIC_ADD_U64(&band_tally[0], 1UL);
+
+    int scatterings = 0;
+    for (;;) {
+        float tau = nrt_sample_tau(&rng);
+        float inv_d[3] = {1.0f / d[0], 1.0f / d[1], 1.0f / d[2]};
+        int escaped = 0;
+        /* spend tau voxel by voxel */
+        for (;;) {
+            nrt_u64 idx = (nrt_u64)ix + (nrt_u64)nx * ((nrt_u64)iy + (nrt_u64)ny * (nrt_u64)iz);
+            float tx = nrt_face_distance(p[0], d[0], inv_d[0], ix, hx);
+            float ty = nrt_face_distance(p[1], d[1], inv_d[1], iy, hy);
+            float tz = nrt_face_distance(p[2], d[2], inv_d[2], iz, hz);
+            float t_exit = fmax(0.0f, fmin(tx, fmin(ty, tz)));
+            float sigma = sig_b * density[idx];
+            float tau_seg = sigma * t_exit;
+            if (sigma > 0.0f && tau_seg >= tau) {
+                /* the interaction happens inside this voxel */
+                float t = tau / sigma;
+#if NRT_TRACK_LENGTH
+                nrt_acc_add(&band_acc[idx], (nrt_u64)(t * track_scale + 0.5f), overflow);
+#endif
+#if NRT_COLLISION
+                nrt_acc_add(&band_acc[idx], 1UL, overflow);
+#endif
+                p[0] += d[0] * t;
+                p[1] += d[1] * t;
+                p[2] += d[2] * t;
+                break;
+            }
+#if NRT_TRACK_LENGTH
+            nrt_acc_add(&band_acc[idx], (nrt_u64)(t_exit * track_scale + 0.5f), overflow);
+#endif
+            tau -= tau_seg;
+            p[0] += d[0] * t_exit;
+            p[1] += d[1] * t_exit;
+            p[2] += d[2] * t_exit;
+            /* step into the neighbour across the nearest face and put the position exactly on
+               that face, so rounding cannot drift the packet away from its voxel */
+            if (tx <= ty && tx <= tz) {
+                ix += (d[0] > 0.0f) ? 1 : -1;
+                p[0] = (float)((d[0] > 0.0f) ? ix : ix + 1) * hx;
+                if (ix < 0 || ix >= nx) { escaped = 1; break; }
+            } else if (ty <= tz) {
+                iy += (d[1] > 0.0f) ? 1 : -1;
+                p[1] = (float)((d[1] > 0.0f) ? iy : iy + 1) * hy;
+                if (iy < 0 || iy >= ny) { escaped = 1; break; }
+            } else {
+                iz += (d[2] > 0.0f) ? 1 : -1;
+                p[2] = (float)((d[2] > 0.0f) ? iz : iz + 1) * hz;
+                if (iz < 0 || iz >= nz) { escaped = 1; break; }
+            }
+        }
+        if (escaped) {
+            NRT_ATOMIC_ADD_U64(&band_tally[2], 1UL);
+            return;
+        }
+        /* interaction: scatter with probability albedo (analog Russian roulette) */
+        if (nrt_rng_uniform(&rng) >= alb_b) {
+            NRT_ATOMIC_ADD_U64(&band_tally[1], 1UL);
+            return;
+        }
+        if (scatterings >= max_scatterings) {
+            NRT_ATOMIC_ADD_U64(&band_tally[3], 1UL);
+            return;
+        }
+        ++scatterings;
+        float mu, sin_theta;
+        nrt_sample_hg(g_b, nrt_rng_uniform(&rng), &mu, &sin_theta);
+        nrt_rotate(d, mu, sin_theta, 2.0f * NRT_PI_F * nrt_rng_uniform(&rng));
+    }
+}
+
+/*
+ * Fold one batch's fixed-point accumulator into per-cell running sums of the batch totals and
+ * of their squares (for the batch-means error estimate), then clear it for the next batch.
+ * Each cell is folded by one work item in batch order, so the float64 sums are deterministic.
+ */
+NRT_KERNEL void fold_batch(NRT_GLOBAL nrt_u64 *acc, NRT_GLOBAL double *sum1,
+                           NRT_GLOBAL double *sum2, nrt_u64 n)
+{
+    nrt_u64 gid = NRT_GLOBAL_ID();
+    if (gid >= n)
+        return;
+    double x = (double)acc[gid];
+    sum1[gid] += x;
+    sum2[gid] += x * x;
+    acc[gid] = 0;
+}
+
+/* Clear a 64-bit buffer. */
+NRT_KERNEL void clear_u64(NRT_GLOBAL nrt_u64 *buf, nrt_u64 n)
+{
+    nrt_u64 gid = NRT_GLOBAL_ID();
+    if (gid < n)
+        buf[gid] = 0;
+}

@@ -1,0 +1,134 @@
+"""The interface every compute backend implements.
+
+A backend owns one device and compiles the shared kernel sources for it. The
+pipeline stages (density, transport) talk only to this interface, so the
+OpenCL and CUDA paths are interchangeable.
+"""
+
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass
+
+import numpy as np
+
+MODEL_TURBULENCE = 0
+MODEL_UNIFORM = 1
+
+
+@dataclass(frozen=True)
+class TransportSetup:
+    """Everything the transport kernel needs besides the photon range.
+
+    Attributes
+    ----------
+    density : ndarray, float32, shape (nx, ny, nz)
+        Dust density per voxel (index [i, j, k] = x, y, z).
+    sigma_scale, albedo, g : ndarray, float32, shape (n_bands,)
+        Extinction per box unit at density 1 (tau * k_b), albedo, HG asymmetry per band.
+    stars : ndarray, float32, shape (n_stars, 3)
+        Star positions in box units.
+    star_cdf : ndarray, float32, shape (n_bands, n_stars)
+        Cumulative probability of choosing each star, per band.
+    estimator : str
+        ``"track-length"`` or ``"collision-filter"``.
+    max_scatterings : int
+        Packets are terminated when they would scatter more often than this.
+    seed : int
+        Philox key word 0.
+    track_scale : float
+        Fixed-point units per box unit of path length.
+    """
+
+    density: np.ndarray
+    sigma_scale: np.ndarray
+    albedo: np.ndarray
+    g: np.ndarray
+    stars: np.ndarray
+    star_cdf: np.ndarray
+    estimator: str
+    max_scatterings: int
+    seed: int
+    track_scale: float
+
+    @property
+    def n_bands(self) -> int:
+        return int(self.sigma_scale.shape[0])
+
+
+class TransportSession(abc.ABC):
+    """Device-resident state of one transport run (accumulators and batch sums)."""
+
+    @abc.abstractmethod
+    def run_batch(self, photon_start: int, count: int) -> tuple[np.ndarray, bool]:
+        """Trace photons ``[photon_start, photon_start + count)`` of every band.
+
+        Returns the batch's tallies (uint64, shape (n_bands, 4): emitted, absorbed,
+        escaped, terminated) and whether a fixed-point accumulator ran out of headroom
+        (then the batch must be discarded with :meth:`discard_batch`).
+        """
+
+    @abc.abstractmethod
+    def fold_batch(self) -> None:
+        """Add the batch accumulator to the running sums (and its square), then clear it."""
+
+    @abc.abstractmethod
+    def discard_batch(self) -> None:
+        """Clear the batch accumulator without folding it."""
+
+    @abc.abstractmethod
+    def sums(self) -> tuple[np.ndarray, np.ndarray]:
+        """Return (sum of batch totals, sum of squared batch totals), float64, (n_bands, nx, ny, nz)."""
+
+    def close(self) -> None:  # pragma: no cover - default: nothing to release
+        """Release device memory."""
+
+
+class Backend(abc.ABC):
+    """A compute device with the NebulaRT kernels compiled for it."""
+
+    name: str = "abstract"
+
+    @property
+    @abc.abstractmethod
+    def device_name(self) -> str:
+        """Human-readable platform and device name."""
+
+    @abc.abstractmethod
+    def generate_density(
+        self,
+        shape: tuple[int, int, int],
+        model: int,
+        offset: tuple[float, float, float],
+        scale: float,
+        uniform_density: float,
+        floor: float,
+        stars: np.ndarray,
+        subsamples: int = 8,
+    ) -> np.ndarray:
+        """Dust density on the grid (float32, (nx, ny, nz)); ``stars`` is (n, 4): x, y, z, bump radius."""
+
+    @abc.abstractmethod
+    def transport_session(self, setup: TransportSetup, max_batch: int) -> TransportSession:
+        """Allocate the device state for a transport run with batches of up to ``max_batch``."""
+
+    # --- kernels exposed for tests and diagnostics ---------------------------------------
+    @abc.abstractmethod
+    def sample_noise(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Simplex noise and turbulence at points (n, 3) -> two float32 arrays (n,)."""
+
+    @abc.abstractmethod
+    def philox_blocks(self, key: tuple[int, int], counter: tuple[int, int, int, int], n: int) -> np.ndarray:
+        """Philox4x64-10 of counters (c0 + i, c1, c2, c3), i < n -> uint64 (n, 4)."""
+
+    @abc.abstractmethod
+    def photon_stream_u32(self, seed: int, band: int, photon0: int, m: int, n: int) -> np.ndarray:
+        """First ``m`` 32-bit words of the streams of photons photon0..photon0+n-1 -> uint32 (n, m)."""
+
+    @abc.abstractmethod
+    def hg_cosines(self, g: float, seed: int, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """Cosines between new and old directions of n HG scatterings, and |new|."""
+
+    @abc.abstractmethod
+    def hg_at(self, g: float, xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """HG (mu, sin theta) at the given xi values."""

@@ -1,0 +1,285 @@
+"""OpenCL backend (pyopencl): GPUs through their vendors' drivers, CPUs through PoCL."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import BackendUnavailableError
+from ..kernel_source import kernel_source
+from .base import Backend, TransportSession, TransportSetup
+
+try:  # pyopencl is a hard dependency, but give a clear message if the ICD loader is broken
+    import pyopencl as cl
+except Exception as exc:  # pragma: no cover - depends on the machine
+    cl = None
+    _IMPORT_ERROR = exc
+else:
+    _IMPORT_ERROR = None
+
+
+def list_devices() -> list[tuple[int, int, str, bool]]:
+    """All OpenCL devices as (platform index, device index, "platform: device", is_gpu)."""
+    if cl is None:
+        return []
+    out = []
+    try:
+        platforms = cl.get_platforms()
+    except cl.Error:
+        return []
+    for pi, plat in enumerate(platforms):
+        try:
+            devices = plat.get_devices()
+        except cl.Error:
+            continue
+        for di, dev in enumerate(devices):
+            is_gpu = bool(dev.type & cl.device_type.GPU)
+            out.append((pi, di, f"{plat.name.strip()}: {dev.name.strip()}", is_gpu))
+    return out
+
+
+def _usable(dev) -> bool:
+    """The transport kernel needs 64-bit integer atomics and doubles for the batch sums."""
+    ext = dev.extensions
+    return "cl_khr_int64_base_atomics" in ext and "cl_khr_fp64" in ext
+
+
+def select_device(selector: str = ""):
+    """Pick an OpenCL device.
+
+    Parameters
+    ----------
+    selector : str
+        ``""``: the first usable GPU, else the first usable device;
+        ``"P:D"``: platform P, device D (indices as in ``nebula-rt devices``);
+        anything else: the first usable device whose "platform: device" name contains the
+        text (case-insensitive), e.g. ``"Portable Computing Language"`` or ``"NVIDIA"``.
+    """
+    if cl is None:
+        raise BackendUnavailableError(f"transport.backend = 'opencl': pyopencl cannot be imported ({_IMPORT_ERROR})")
+    found = list_devices()
+    if not found:
+        raise BackendUnavailableError(
+            "transport.backend = 'opencl': no OpenCL platform found; install an OpenCL driver "
+            "(for CPUs: pip install pocl-binary-distribution, or Debian's pocl-opencl-icd)"
+        )
+    platforms = cl.get_platforms()
+    candidates = []
+    sel = selector.strip()
+    if sel and ":" in sel and all(part.strip().isdigit() for part in sel.split(":", 1)):
+        pi, di = (int(part) for part in sel.split(":", 1))
+        candidates = [(p, d, n, g) for p, d, n, g in found if p == pi and d == di]
+    elif sel:
+        candidates = [(p, d, n, g) for p, d, n, g in found if sel.lower() in n.lower()]
+    else:
+        candidates = sorted(found, key=lambda t: (not t[3], t[0], t[1]))
+    names = "; ".join(f"{p}:{d} {n}" for p, d, n, _ in found)
+    for p, d, name, _ in candidates:
+        dev = platforms[p].get_devices()[d]
+        if _usable(dev):
+            return dev, name
+    raise BackendUnavailableError(
+        f"transport.device = {selector!r}: no matching OpenCL device with 64-bit atomics and "
+        f"doubles; available: {names}"
+    )
+
+
+class OpenCLTransport(TransportSession):
+    """Device buffers of one transport run."""
+
+    def __init__(self, backend: "OpenCLBackend", setup: TransportSetup, max_batch: int):
+        self.backend = backend
+        self.setup = setup
+        ctx, q = backend.context, backend.queue
+        mf = cl.mem_flags
+        nx, ny, nz = setup.density.shape
+        self.shape = (nx, ny, nz)
+        self.nvox = nx * ny * nz
+        nb = setup.n_bands
+        self.ncell = nb * self.nvox
+        self.max_batch = int(max_batch)
+
+        def ro(a, dtype):
+            return cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(a, dtype=dtype))
+
+        self.d_density = ro(np.asfortranarray(setup.density, dtype=np.float32).ravel(order="F"), np.float32)
+        self.d_sigma = ro(setup.sigma_scale, np.float32)
+        self.d_albedo = ro(setup.albedo, np.float32)
+        self.d_g = ro(setup.g, np.float32)
+        stars4 = np.zeros((setup.stars.shape[0], 4), np.float32)
+        stars4[:, :3] = setup.stars
+        self.d_stars = ro(stars4.ravel(), np.float32)
+        self.d_cdf = ro(setup.star_cdf.ravel(), np.float32)
+        self.d_acc = cl.Buffer(ctx, mf.READ_WRITE, size=8 * self.ncell)
+        self.d_sum1 = cl.Buffer(ctx, mf.READ_WRITE, size=8 * self.ncell)
+        self.d_sum2 = cl.Buffer(ctx, mf.READ_WRITE, size=8 * self.ncell)
+        for buf in (self.d_acc, self.d_sum1, self.d_sum2):
+            cl.enqueue_fill_buffer(q, buf, np.uint64(0), 0, 8 * self.ncell)
+        self.h_tallies = np.zeros((nb, 4), np.uint64)
+        self.d_tallies = cl.Buffer(ctx, mf.READ_WRITE, size=self.h_tallies.nbytes)
+        self.h_overflow = np.zeros(1, np.uint32)
+        self.d_overflow = cl.Buffer(ctx, mf.READ_WRITE, size=4)
+        defines = {"track-length": {"NRT_TRACK_LENGTH": 1}, "collision-filter": {"NRT_COLLISION": 1}}[
+            setup.estimator
+        ]
+        self.k_trace = backend.kernel("transport.cl", "trace_photons", defines)
+        self.k_fold = backend.kernel("transport.cl", "fold_batch", defines)
+        self.k_clear = backend.kernel("transport.cl", "clear_u64", defines)
+
+    def run_batch(self, photon_start, count):
+        q = self.backend.queue
+        s = self.setup
+        nx, ny, nz = self.shape
+        cl.enqueue_fill_buffer(q, self.d_tallies, np.uint64(0), 0, self.h_tallies.nbytes)
+        cl.enqueue_fill_buffer(q, self.d_overflow, np.uint32(0), 0, 4)
+        total = int(count) * s.n_bands
+        local = None
+        self.k_trace(
+            q, (total,), local,
+            self.d_density, self.d_sigma, self.d_albedo, self.d_g, self.d_stars, self.d_cdf,
+            np.int32(nx), np.int32(ny), np.int32(nz), np.int32(s.n_bands), np.int32(s.stars.shape[0]),
+            np.uint64(s.seed), np.uint64(photon_start), np.uint64(count),
+            np.int32(s.max_scatterings), np.float32(s.track_scale),
+            self.d_acc, self.d_tallies, self.d_overflow,
+        )
+        cl.enqueue_copy(q, self.h_tallies, self.d_tallies)
+        cl.enqueue_copy(q, self.h_overflow, self.d_overflow)
+        q.finish()
+        return self.h_tallies.copy(), bool(self.h_overflow[0])
+
+    def fold_batch(self):
+        self.k_fold(self.backend.queue, (self.ncell,), None, self.d_acc, self.d_sum1, self.d_sum2, np.uint64(self.ncell))
+
+    def discard_batch(self):
+        self.k_clear(self.backend.queue, (self.ncell,), None, self.d_acc, np.uint64(self.ncell))
+
+    def sums(self):
+        q = self.backend.queue
+        nb = self.setup.n_bands
+        out = []
+        for buf in (self.d_sum1, self.d_sum2):
+            h = np.empty(self.ncell, np.float64)
+            cl.enqueue_copy(q, h, buf)
+            # device layout: band-major, x fastest within a band
+            out.append(h.reshape((nb,) + self.shape[::-1]).transpose(0, 3, 2, 1))
+        q.finish()
+        return out[0], out[1]
+
+    def close(self):
+        for name in ("d_acc", "d_sum1", "d_sum2", "d_density"):
+            buf = getattr(self, name, None)
+            if buf is not None:
+                buf.release()
+                setattr(self, name, None)
+
+
+class OpenCLBackend(Backend):
+    """Kernels compiled with pyopencl for one OpenCL device."""
+
+    name = "opencl"
+
+    def __init__(self, selector: str = ""):
+        self.device, self._device_name = select_device(selector)
+        self.context = cl.Context([self.device])
+        self.queue = cl.CommandQueue(self.context)
+        self._programs: dict = {}
+        self._kernels: dict = {}
+
+    @property
+    def device_name(self) -> str:
+        return self._device_name
+
+    def program(self, name: str, defines: dict | None = None):
+        """Build (once per backend; pyopencl also caches binaries on disk) a kernel file."""
+        key = (name, tuple(sorted((defines or {}).items())))
+        prog = self._programs.get(key)
+        if prog is None:
+            options = [f"-D{k}={v}" for k, v in sorted((defines or {}).items())]
+            prog = cl.Program(self.context, kernel_source(name)).build(options=options)
+            self._programs[key] = prog
+        return prog
+
+    def kernel(self, prog_name: str, kernel_name: str, defines: dict | None = None):
+        """A kernel object, created once per backend (retrieving one is not free in pyopencl)."""
+        key = (prog_name, kernel_name, tuple(sorted((defines or {}).items())))
+        k = self._kernels.get(key)
+        if k is None:
+            k = cl.Kernel(self.program(prog_name, defines), kernel_name)
+            self._kernels[key] = k
+        return k
+
+    # --- stages ------------------------------------------------------------------------------
+    def generate_density(self, shape, model, offset, scale, uniform_density, floor, stars, subsamples=8):
+        nx, ny, nz = (int(v) for v in shape)
+        n = nx * ny * nz
+        mf = cl.mem_flags
+        out = cl.Buffer(self.context, mf.WRITE_ONLY, size=4 * n)
+        stars = np.zeros((0, 4), np.float32) if len(stars) == 0 else np.asarray(stars, np.float32).reshape(-1, 4)
+        d_stars = cl.Buffer(
+            self.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(stars if len(stars) else np.zeros(4, np.float32))
+        )
+        self.kernel("density.cl", "generate_density")(
+            self.queue, (n,), None, out,
+            np.int32(nx), np.int32(ny), np.int32(nz), np.int32(model),
+            np.float32(offset[0]), np.float32(offset[1]), np.float32(offset[2]),
+            np.float32(scale), np.float32(uniform_density), np.float32(floor),
+            d_stars, np.int32(len(stars)), np.int32(subsamples),
+        )
+        h = np.empty(n, np.float32)
+        cl.enqueue_copy(self.queue, h, out)
+        self.queue.finish()
+        return h.reshape((nz, ny, nx)).transpose(2, 1, 0)
+
+    def transport_session(self, setup, max_batch):
+        return OpenCLTransport(self, setup, max_batch)
+
+    # --- test/diagnostic kernels ----------------------------------------------------------
+    def _run(self, prog_name, kname, n, outputs, *args):
+        bufs = [cl.Buffer(self.context, cl.mem_flags.WRITE_ONLY, size=max(o.nbytes, 1)) for o in outputs]
+        self.kernel(prog_name, kname)(self.queue, (max(int(n), 1),), None, *bufs, *args)
+        for h, b in zip(outputs, bufs):
+            cl.enqueue_copy(self.queue, h, b)
+        self.queue.finish()
+        return outputs
+
+    def sample_noise(self, points):
+        pts = np.ascontiguousarray(points, np.float32).reshape(-1, 3)
+        n = pts.shape[0]
+        d_pts = cl.Buffer(self.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=pts)
+        noise, turb = np.empty(n, np.float32), np.empty(n, np.float32)
+        b1 = cl.Buffer(self.context, cl.mem_flags.WRITE_ONLY, size=4 * n)
+        b2 = cl.Buffer(self.context, cl.mem_flags.WRITE_ONLY, size=4 * n)
+        self.kernel("density.cl", "sample_noise")(self.queue, (n,), None, d_pts, b1, b2, np.int32(n))
+        cl.enqueue_copy(self.queue, noise, b1)
+        cl.enqueue_copy(self.queue, turb, b2)
+        self.queue.finish()
+        return noise, turb
+
+    def philox_blocks(self, key, counter, n):
+        out = np.empty((n, 4), np.uint64)
+        self._run("sampling.cl", "philox_blocks", n, [out],
+                  np.uint64(key[0]), np.uint64(key[1]), *(np.uint64(c) for c in counter), np.uint64(n))
+        return out
+
+    def photon_stream_u32(self, seed, band, photon0, m, n):
+        out = np.empty((n, m), np.uint32)
+        self._run("sampling.cl", "photon_stream_u32", n, [out],
+                  np.uint64(seed), np.uint64(band), np.uint64(photon0), np.int32(m), np.uint64(n))
+        return out
+
+    def hg_cosines(self, g, seed, n):
+        mu, norm = np.empty(n, np.float32), np.empty(n, np.float32)
+        self._run("sampling.cl", "hg_cosines", n, [mu, norm], np.float32(g), np.uint64(seed), np.uint64(n))
+        return mu, norm
+
+    def hg_at(self, g, xi):
+        xi = np.ascontiguousarray(xi, np.float32)
+        n = xi.size
+        d_xi = cl.Buffer(self.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=xi)
+        mu, st = np.empty(n, np.float32), np.empty(n, np.float32)
+        b1 = cl.Buffer(self.context, cl.mem_flags.WRITE_ONLY, size=4 * n)
+        b2 = cl.Buffer(self.context, cl.mem_flags.WRITE_ONLY, size=4 * n)
+        self.kernel("sampling.cl", "hg_at")(self.queue, (n,), None, b1, b2, d_xi, np.float32(g), np.uint64(n))
+        cl.enqueue_copy(self.queue, mu, b1)
+        cl.enqueue_copy(self.queue, st, b2)
+        self.queue.finish()
+        return mu, st

@@ -1,0 +1,142 @@
+"""Command line: ``nebula-rt render SCENE.toml -o out.vti --png out.png``.
+
+Every scene key can be overridden with ``--set dotted.key=value`` (repeatable), e.g.
+``--set grid.shape=[128,128,128] --set transport.photons=2.1e6``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+import time
+from pathlib import Path
+
+from .errors import BackendUnavailableError, CancelledError, NebulaError, SceneError
+
+
+def _render(args) -> int:
+    from .pipeline import Pipeline
+    from .scene import Scene
+
+    scene = Scene.load(args.scene)
+    if args.set:
+        scene = scene.with_overrides(args.set)
+    if args.backend:
+        scene = scene.with_overrides([f"transport.backend={args.backend}"])
+    if args.device is not None:
+        scene = scene.with_overrides([f'transport.device="{args.device}"'])
+    if args.photons is not None:
+        scene = scene.with_overrides([f"transport.photons={args.photons}"])
+    out = Path(args.output)
+    if out.suffix.lower() != ".vti":
+        raise SceneError("--output", str(out), "must end in .vti")
+    if not out.parent.exists():
+        raise SceneError("--output", str(out), f"folder {out.parent} does not exist")
+    if args.png and not Path(args.png).parent.exists():
+        raise SceneError("--png", str(args.png), f"folder {Path(args.png).parent} does not exist")
+
+    interrupted = {"flag": False}
+
+    def on_sigint(signum, frame):  # cancel cleanly between batches; a second Ctrl-C kills
+        if interrupted["flag"]:
+            raise KeyboardInterrupt
+        interrupted["flag"] = True
+        print("\ncancelling after the current batch (Ctrl-C again to abort now)", file=sys.stderr)
+
+    old = signal.signal(signal.SIGINT, on_sigint)
+    bar = None
+    try:
+        from tqdm import tqdm
+
+        bar = tqdm(total=scene.transport.photons, unit="pkt", unit_scale=True, desc="tracing",
+                   disable=args.quiet, file=sys.stderr)
+
+        def progress(done, total):
+            bar.n = done
+            bar.refresh()
+
+        t0 = time.perf_counter()
+        light = Pipeline().run(scene, progress=progress, cancel=lambda: interrupted["flag"])
+    finally:
+        if bar is not None:
+            bar.close()
+        signal.signal(signal.SIGINT, old)
+
+    from .io_vti import write_vti
+
+    write_vti(out, light.point_arrays(), light.field_data(), light.spacing, light.origin)
+    if args.png:
+        from .render import render_rgba_png
+
+        render_rgba_png(args.png, light.rgba, light.spacing, light.origin)
+    elapsed = time.perf_counter() - t0
+    tr = light.transport
+    summary = {
+        "output": str(out),
+        "png": args.png,
+        "device": tr.device,
+        "grid": list(light.density.shape),
+        "bands": [b.name for b in light.bands],
+        "photons_per_band": tr.photons,
+        "wall_s": round(elapsed, 3),
+        "timings_s": {k: round(v, 3) for k, v in light.timings.items()},
+        "escaped_fraction": {b.name: float(tr.counts[i, 2] / tr.photons) for i, b in enumerate(light.bands)},
+    }
+    if not args.quiet:
+        print(json.dumps(summary, indent=2))
+    return 0
+
+
+def _devices(args) -> int:
+    from .backends.opencl import list_devices
+
+    found = list_devices()
+    if not found:
+        print("no OpenCL devices found")
+        return 1
+    for p, d, name, gpu in found:
+        print(f"opencl {p}:{d}  {name}  ({'GPU' if gpu else 'CPU/other'})")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="nebula-rt", description="Radiative transfer in reflection nebulae")
+    sub = ap.add_subparsers(dest="command", required=True)
+    r = sub.add_parser("render", help="trace a scene and write a .vti (and optionally a PNG)")
+    r.add_argument("scene", help="scene file (TOML)")
+    r.add_argument("-o", "--output", default="nebula.vti", help="output .vti file (default nebula.vti)")
+    r.add_argument("--png", default=None, help="also write a volume rendering of rgba to this PNG")
+    r.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a scene key, e.g. transport.photons=1e6 (repeatable)")
+    r.add_argument("--photons", default=None, help="shorthand for --set transport.photons=N")
+    r.add_argument("--backend", default=None, choices=["auto", "opencl", "cuda"])
+    r.add_argument("--device", default=None, help="device selector (name substring or P:D)")
+    r.add_argument("-q", "--quiet", action="store_true", help="no progress bar or summary")
+    r.set_defaults(func=_render)
+    d = sub.add_parser("devices", help="list compute devices")
+    d.set_defaults(func=_devices)
+    return ap
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except SceneError as exc:
+        print(f"nebula-rt: invalid scene: {exc}", file=sys.stderr)
+        return 2
+    except BackendUnavailableError as exc:
+        print(f"nebula-rt: {exc}", file=sys.stderr)
+        return 3
+    except CancelledError as exc:
+        print(f"nebula-rt: {exc}; nothing written", file=sys.stderr)
+        return 130
+    except NebulaError as exc:
+        print(f"nebula-rt: {exc}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

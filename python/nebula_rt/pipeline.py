@@ -1,0 +1,269 @@
+"""The pipeline: density -> transport (+ filter) -> colour, each stage re-run only when its
+inputs change.
+
+A :class:`Pipeline` remembers the last result of each stage together with the part of the
+scene it depends on, so a colour change never re-traces photons and an albedo change never
+regenerates the density. ``Pipeline.executions`` counts how often each stage really ran.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from typing import Callable, Optional
+
+import numpy as np
+
+from . import colour_convert, filtering
+from .backends import Backend, get_backend
+from .bands import Band, reference_band_index
+from .density import generate_density
+from .transport import TALLY_NAMES, TransportResult, batch_standard_error, trace
+
+
+@dataclass
+class LightField:
+    """Everything a run produces, in the shapes of the output contract.
+
+    Arrays are (nx, ny, nz) per band, index [i, j, k] = x, y, z, on the voxel centres.
+    """
+
+    scene: object
+    bands: list[Band]
+    density: np.ndarray  # float32
+    J: np.ndarray  # float32 (nb, nx, ny, nz)
+    rel_error: np.ndarray  # float32 (nb, ...)
+    emissivity: np.ndarray  # float32 (nb, ...)
+    rgba: Optional[np.ndarray]  # uint8 (nx, ny, nz, 4)
+    transport: TransportResult
+    exposure: float
+    reference_band: int
+    timings: dict = field(default_factory=dict)
+
+    @property
+    def spacing(self) -> tuple[float, float, float]:
+        """Voxel edges in box units."""
+        return tuple(1.0 / n for n in self.density.shape)
+
+    @property
+    def origin(self) -> tuple[float, float, float]:
+        """Centre of the first voxel (the VTK point of index 0), box units."""
+        return tuple(0.5 / n for n in self.density.shape)
+
+    def point_arrays(self) -> dict[str, np.ndarray]:
+        """The point-data arrays of the output contract."""
+        out = {"density": self.density.astype(np.float32)}
+        for b, band in enumerate(self.bands):
+            out[f"J_{band.name}"] = self.J[b]
+            out[f"emissivity_{band.name}"] = self.emissivity[b]
+            out[f"rel_error_{band.name}"] = self.rel_error[b]
+        if self.rgba is not None:
+            out["rgba"] = self.rgba
+        return out
+
+    def field_data(self) -> dict[str, object]:
+        """Field data of the output contract: energies per band, photons, seed, the scene."""
+        tr = self.transport
+        energy = tr.energy
+        out: dict[str, object] = {}
+        for b, band in enumerate(self.bands):
+            for t, name in enumerate(TALLY_NAMES):
+                out[f"{name}_{band.name}"] = float(energy[b, t])
+                out[f"packets_{name}_{band.name}"] = int(tr.counts[b, t])
+        out["photons"] = int(tr.photons)
+        out["seed"] = int(self.scene.transport.seed)
+        out["batches"] = int(tr.batches)
+        out["estimator"] = tr.estimator
+        out["device"] = tr.device
+        out["exposure"] = float(self.exposure)
+        out["band_names"] = ",".join(b.name for b in self.bands)
+        out["band_wavelength_nm"] = np.array([b.wavelength for b in self.bands], np.float64)
+        out["band_luminosity"] = np.asarray(tr.band_luminosity, np.float64)
+        out["scene"] = self.scene.to_toml()
+        return out
+
+
+def _key(obj) -> str:
+    return json.dumps(obj, sort_keys=True, default=str)
+
+
+class Pipeline:
+    """Runs scenes, caching each stage on the scene parameters it depends on.
+
+    Parameters
+    ----------
+    backend : Backend, optional
+        Compute backend; by default the one the scene's ``transport.backend`` and
+        ``transport.device`` select.
+    """
+
+    def __init__(self, backend: Optional[Backend] = None):
+        self._backend = backend
+        self._cache: dict[str, tuple[str, object]] = {}
+        self.executions: Counter = Counter()
+
+    def backend_for(self, scene) -> Backend:
+        if self._backend is not None:
+            return self._backend
+        return get_backend(scene.transport.backend, scene.transport.device)
+
+    # --- keys: what each stage depends on ------------------------------------------------
+    @staticmethod
+    def density_key(scene) -> str:
+        d = scene.to_dict()
+        stars = [{"position": s["position"], "bump_radius": s.get("bump_radius", 0.0)} for s in d["stars"]]
+        dust = dict(d["dust"])
+        if dust.get("model") == "file":
+            p = scene.dust_file_path()
+            dust["_file"] = [str(p), p.stat().st_mtime_ns if p.exists() else None]
+        return _key([d["grid"]["shape"], dust, stars])
+
+    def transport_key(self, scene) -> str:
+        d = scene.to_dict()
+        bands = [b.__dict__ for b in scene.bands.resolve()]
+        transport = {k: v for k, v in d["transport"].items()}
+        return _key([self.density_key(scene), d["dust"].get("tau"), d["stars"], bands, transport])
+
+    def _cached(self, stage: str, key: str, compute):
+        hit = self._cache.get(stage)
+        if hit is not None and hit[0] == key:
+            return hit[1]
+        value = compute()
+        self.executions[stage] += 1
+        self._cache[stage] = (key, value)
+        return value
+
+    # --- stages -----------------------------------------------------------------------------
+    def density(self, scene) -> np.ndarray:
+        """Stage 1: the dust density (float32, (nx, ny, nz))."""
+        return self._cached("density", self.density_key(scene), lambda: generate_density(scene, self.backend_for(scene)))
+
+    def light(self, scene, progress=None, cancel=None) -> tuple[TransportResult, np.ndarray, np.ndarray]:
+        """Stage 2: transport and, for collision-filter, the smoothing. Returns (result, J, rel)."""
+
+        def compute():
+            rho = self.density(scene)
+            t = scene.transport
+            res = trace(
+                rho,
+                scene.bands.resolve(),
+                scene.stars,
+                tau=scene.dust.tau,
+                photons=t.photons,
+                estimator=t.estimator,
+                max_scatterings=t.max_scatterings,
+                seed=t.seed,
+                batch_size=t.batch_size,
+                backend=self.backend_for(scene),
+                progress=progress,
+                cancel=cancel,
+            )
+            if t.estimator == "collision-filter":
+                J, rel = filter_collisions(res, t.filter_radius)
+            else:
+                J, rel = res.J, res.rel_error
+            return res, J, rel
+
+        return self._cached("transport", self.transport_key(scene), compute)
+
+    def run(self, scene, progress: Optional[Callable[[int, int], None]] = None,
+            cancel: Optional[Callable[[], bool]] = None, colour: bool = True) -> LightField:
+        """Run every stage that is out of date and return the light field."""
+        t0 = time.perf_counter()
+        rho = self.density(scene)
+        t1 = time.perf_counter()
+        res, J, rel = self.light(scene, progress, cancel)
+        t2 = time.perf_counter()
+        bands = scene.bands.resolve()
+        ref = reference_band_index(bands)
+        tau = scene.dust.tau
+        sig = np.array([tau * b.extinction for b in bands])[:, None, None, None] * rho[None].astype(np.float64)
+        alb = np.array([b.albedo for b in bands])[:, None, None, None]
+        emissivity = alb * sig * J
+        rgba, exposure = (None, float("nan"))
+        if colour:
+            ckey = _key([self.transport_key(scene), scene.to_dict().get("colour", {})])
+            rgba, exposure = self._cached("colour", ckey, lambda: colour_rgba(scene, bands, rho, emissivity, res))
+        t3 = time.perf_counter()
+        return LightField(
+            scene=scene,
+            bands=bands,
+            density=rho,
+            J=J.astype(np.float32),
+            rel_error=rel.astype(np.float32),
+            emissivity=emissivity.astype(np.float32),
+            rgba=rgba,
+            transport=res,
+            exposure=exposure,
+            reference_band=ref,
+            timings={"density_s": t1 - t0, "transport_s": t2 - t1, "colour_s": t3 - t2,
+                     "kernel_s": res.timings.get("kernel_s", 0.0)},
+        )
+
+
+def filter_collisions(res: TransportResult, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """Smooth the collision estimate of J with the normalised cubic kernel of ``radius`` (box units).
+
+    The per-voxel variance of J from the batch means is filtered with the squared kernel, which
+    gives the filtered field's statistical error (the filter's bias is not included).
+    """
+    shape = res.J.shape[1:]
+    kernel = filtering.cubic_kernel(shape, radius)
+    se = batch_standard_error(res.raw_sum, res.raw_sum2, res.batches)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        scale = np.where(res.raw_sum > 0, res.J / np.where(res.raw_sum > 0, res.raw_sum, 1.0), 0.0)
+    var = (se * scale) ** 2
+    J = np.empty_like(res.J)
+    rel = np.empty_like(res.J)
+    for b in range(res.J.shape[0]):
+        jf, vf = filtering.normalised_convolution(res.J[b], kernel, var[b])
+        J[b] = jf
+        with np.errstate(divide="ignore", invalid="ignore"):
+            rel[b] = np.where(jf > 0, np.sqrt(vf) / np.where(jf > 0, jf, 1.0), 1.0)
+    return J, rel
+
+
+def _dominant_temperature(stars):
+    """Temperature of the most luminous star (None: flat spectrum) -- sets the colour matrix."""
+    star = max(stars, key=lambda s: s.luminosity)
+    return star.temperature
+
+
+def colour_rgba(scene, bands, rho, emissivity, res: TransportResult) -> tuple[np.ndarray, float]:
+    """Stage 3: ``rgba`` for direct volume rendering.
+
+    Colour: the emissivity per unit reference-band extinction, j_b / sigma_ref, which has the
+    emissivity's colour; a compositing volume renderer that multiplies it by the voxel opacity
+    alpha = 1 - exp(-sigma_ref h) then integrates the emissivity along the ray with the
+    reference band's attenuation. Bands -> XYZ with the star's spectrum and the 1 nm CIE 1931
+    functions (nebula/star ratio per band), -> linear sRGB (D65, no adaptation), white balance
+    (``colour.white_point``), gamut mapping, one global exposure, sRGB curve.
+    """
+    cfg = scene.colour
+    ref = reference_band_index(bands)
+    sig_ref = scene.dust.tau * bands[ref].extinction * rho.astype(np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        values = np.where(sig_ref[None] > 0, emissivity / np.where(sig_ref[None] > 0, sig_ref[None], 1.0), 0.0)
+    wl = np.array([b.wavelength for b in bands])
+    temperature = _dominant_temperature(scene.stars)
+    ratio = values / res.band_luminosity[:, None, None, None]
+    m = colour_convert.band_to_xyz_matrix(wl, temperature)
+    xyz = np.tensordot(ratio, m, axes=([0], [1]))  # (nx, ny, nz, 3)
+    rgb = colour_convert.xyz_to_linear_srgb(xyz)
+    wp = cfg.white_point
+    if wp != "D65":
+        if wp == "star":
+            white = colour_convert.xyz_to_linear_srgb(m @ np.ones(len(bands)))
+        else:  # "E": the equal-energy white
+            white = colour_convert.xyz_to_linear_srgb(np.ones(3))
+        white = white / white.max()
+        rgb = rgb / white  # white balance in linear sRGB
+    rgb = colour_convert.gamut_map(rgb)
+    exposure = colour_convert.auto_exposure(rgb) if cfg.exposure == "auto" else float(cfg.exposure)
+    srgb8 = colour_convert.encode_srgb(rgb, exposure)
+    h = float(np.prod([1.0 / n for n in rho.shape]) ** (1.0 / 3.0))
+    alpha = 1.0 - np.exp(-sig_ref * h * cfg.opacity_scale)
+    a8 = np.clip(np.rint(alpha * 255.0), 0, 255).astype(np.uint8)
+    return np.concatenate([srgb8, a8[..., None]], axis=-1), float(exposure)

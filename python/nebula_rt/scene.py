@@ -1,0 +1,794 @@
+"""The scene model: plain dataclasses mirroring the TOML scene file.
+
+Every TOML table has a dataclass and every key a field of the same name (the
+keys are public API, see DESIGN.md "Scene file contract")::
+
+    [grid]          -> Grid
+    [dust]          -> Dust
+    [[stars]]       -> Star (one or more)
+    [bands]         -> BandsConfig  (explicit bands: [[bands.list]])
+    [transport]     -> Transport
+    [colour]        -> Colour       (extension table)
+
+Units
+-----
+Positions and lengths are in *box units*: the simulation box is ``[0, 1]^3``
+whatever ``grid.shape`` is.  ``grid.length`` / ``grid.unit`` only label the
+physical size of one box edge.  ``dust.tau`` is the optical depth across one
+box edge at density 1 in the reference band (see
+:func:`nebula_rt.bands.reference_band_index`).
+
+This module never imports VTK.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import numbers
+import re
+import sys
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple, Union
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+from .bands import BAND_KEYS, Band, resolve_bands
+from .errors import SceneError
+
+__all__ = [
+    "Grid",
+    "Dust",
+    "Star",
+    "BandsConfig",
+    "Transport",
+    "Colour",
+    "Scene",
+]
+
+Vec3 = Tuple[float, float, float]
+
+DUST_MODELS = ("turbulence", "uniform", "file")
+ESTIMATORS = ("track-length", "collision-filter")
+BACKENDS = ("auto", "opencl", "cuda")
+WHITE_POINTS = ("D65", "E", "star")
+MAX_PHOTONS = 2**53
+MAX_SEED = 2**64
+
+
+# ---------------------------------------------------------------------------
+# dataclasses
+# ---------------------------------------------------------------------------
+
+
+@dataclass
+class Grid:
+    """The voxel grid, TOML table ``[grid]``.
+
+    Parameters
+    ----------
+    shape : tuple of 3 int
+        Voxels along x, y, z; each >= 2 (non-cubic allowed).  The grid spans
+        the box ``[0, 1]^3``, so voxels need not be cubes.
+    length : float
+        Physical length of one box edge, in `unit` (> 0).  Labels only: the
+        transport works in box units.
+    unit : str
+        Unit of `length` (e.g. ``"pc"``).
+    """
+
+    shape: Tuple[int, int, int] = (64, 64, 64)
+    length: float = 1.0
+    unit: str = "pc"
+
+
+@dataclass
+class Dust:
+    """The dust density field, TOML table ``[dust]``.
+
+    Parameters
+    ----------
+    model : {"turbulence", "uniform", "file"}
+        How the density is made: procedural turbulence noise (the thesis),
+        a constant, or read from `file`.
+    density : float
+        ``"uniform"``: the density everywhere (>= 0, dimensionless).
+    file : str
+        ``"file"``: a ``.npy`` array in (x, y, z) order or a ``.vti`` image;
+        a relative path is relative to the scene file's folder
+        (:meth:`Scene.dust_file_path`).
+    array : str
+        ``"file"`` with ``.vti``: name of the point-data array to read.
+    scale : float
+        ``"turbulence"``: amplitude of the noise (thesis ``densityScale``), >= 0.
+    offset : tuple of 3 float
+        ``"turbulence"``: offset into the noise, box units (a different offset
+        gives a different nebula).
+    floor : float
+        Minimum density (the thesis clamp), >= 0.
+    tau : float
+        Optical depth across one box edge at density 1 in the reference band,
+        >= 0.  Extinction coefficient per box edge:
+        ``sigma_t = tau * extinction_b * density``.
+    """
+
+    model: str = "turbulence"
+    density: float = 1.0
+    file: str = ""
+    array: str = "density"
+    scale: float = 0.15
+    offset: Vec3 = (0.5, 0.5, 0.5)
+    floor: float = 1e-4
+    tau: float = 1.0
+
+
+@dataclass
+class Star:
+    """A point source, one TOML ``[[stars]]`` table.
+
+    Parameters
+    ----------
+    position : tuple of 3 float
+        Box units, inside ``[0, 1]^3``.
+    luminosity : float
+        Total luminosity over all bands, scene units (> 0).
+    temperature : float or None
+        Effective temperature in K (> 0).  If given, a blackbody spectrum sets
+        the split of `luminosity` over the bands; if None (omitted in TOML)
+        the bands get equal shares.
+    bump_radius : float
+        Half-size, box units, of the thesis's cubic dust bump around the star,
+        in ``[0, 1)``; 0 means no bump.
+    """
+
+    position: Vec3 = (0.5, 0.5, 0.5)
+    luminosity: float = 1.0
+    temperature: Optional[float] = None
+    bump_radius: float = 0.0
+
+
+@dataclass
+class BandsConfig:
+    """Band selection, TOML table ``[bands]``.
+
+    Parameters
+    ----------
+    preset : str or None
+        Name of a preset in :data:`nebula_rt.bands.PRESETS`.  Set to None
+        (ignored) whenever `list` is given.
+    albedo : float or None
+        If given, overrides the single-scattering albedo of every band, [0, 1].
+    g : float or None
+        If given, overrides the Henyey-Greenstein asymmetry of every band,
+        [-1, 1].
+    list : list of dict or None
+        Explicit bands, TOML ``[[bands.list]]`` tables with keys ``name``,
+        ``wavelength`` (nm), ``extinction`` (relative to the reference band),
+        ``albedo`` and ``g``.
+    """
+
+    preset: Optional[str] = "thesis-rgb"
+    albedo: Optional[float] = None
+    g: Optional[float] = None
+    list: Optional[List[Dict[str, Any]]] = None
+
+    def __post_init__(self) -> None:
+        if self.list is not None:
+            self.preset = None
+
+    def resolve(self) -> List[Band]:
+        """Return the validated bands (see :func:`nebula_rt.bands.resolve_bands`)."""
+        return resolve_bands(self.preset, self.list, self.albedo, self.g)
+
+
+@dataclass
+class Transport:
+    """Monte Carlo transport settings, TOML table ``[transport]``.
+
+    Parameters
+    ----------
+    photons : int
+        Photon packets per band, in ``[1, 2**53]``.
+    estimator : {"track-length", "collision-filter"}
+        Estimator of the mean intensity J per voxel.
+    filter_radius : float
+        Box units (> 0); radius of the collision-filter kernel
+        (``"collision-filter"`` only).
+    max_scatterings : int
+        Packets are terminated (and tallied) after this many scatterings, >= 0.
+    seed : int
+        Random seed, in ``[0, 2**64)``.
+    backend : {"auto", "opencl", "cuda"}
+        Compute backend.
+    device : str
+        Optional device selector ("" = the backend's default).
+    batch_size : int
+        Packets per kernel launch, >= 0; 0 chooses automatically (extension key).
+    """
+
+    photons: int = 2_100_000
+    estimator: str = "track-length"
+    filter_radius: float = 0.02
+    max_scatterings: int = 1000
+    seed: int = 1
+    backend: str = "auto"
+    device: str = ""
+    batch_size: int = 0
+
+
+@dataclass
+class Colour:
+    """Conversion of the band results to sRGB, TOML table ``[colour]`` (extension).
+
+    Parameters
+    ----------
+    exposure : "auto" or float
+        ``"auto"`` or a finite factor > 0 applied before the sRGB transfer.
+    white_point : {"D65", "E", "star"}
+        White point of the colour conversion (``"star"``: the first star's
+        blackbody colour is white).
+    opacity_scale : float
+        Factor (> 0) on the reference-band extinction used as volume opacity.
+    """
+
+    exposure: Union[float, str] = "auto"
+    white_point: str = "D65"
+    opacity_scale: float = 1.0
+
+
+# ---------------------------------------------------------------------------
+# type coercion and per-key rules
+# ---------------------------------------------------------------------------
+
+
+def _is_real(v: Any) -> bool:
+    return isinstance(v, numbers.Real) and not isinstance(v, bool)
+
+
+def _to_float(v: Any) -> float:
+    if not _is_real(v):
+        raise TypeError
+    return float(v)  # may raise OverflowError for huge ints
+
+
+def _to_int(v: Any) -> int:
+    if isinstance(v, bool):
+        raise TypeError
+    if isinstance(v, numbers.Integral):
+        return int(v)
+    if _is_real(v):
+        f = float(v)
+        if math.isfinite(f) and f == math.floor(f):
+            return int(f)
+    raise TypeError
+
+
+def _to_str(v: Any) -> str:
+    if not isinstance(v, str):
+        raise TypeError
+    return v
+
+
+def _to_opt_str(v: Any) -> Optional[str]:
+    return None if v is None else _to_str(v)
+
+
+def _to_opt_float(v: Any) -> Optional[float]:
+    return None if v is None else _to_float(v)
+
+
+def _three(v: Any) -> list:
+    """The 3 items of a list, tuple or 1-d array; TypeError otherwise."""
+    if isinstance(v, (str, bytes, Mapping)):
+        raise TypeError
+    items = list(v)  # TypeError if not iterable
+    if len(items) != 3:
+        raise TypeError
+    return items
+
+
+def _to_vec3(v: Any) -> Vec3:
+    return tuple(_to_float(x) for x in _three(v))  # type: ignore[return-value]
+
+
+def _to_ivec3(v: Any) -> Tuple[int, int, int]:
+    return tuple(_to_int(x) for x in _three(v))  # type: ignore[return-value]
+
+
+def _to_exposure(v: Any) -> Union[float, str]:
+    if v == "auto" and isinstance(v, str):
+        return v
+    return _to_float(v)
+
+
+def _finite_pos(v: float) -> bool:
+    return math.isfinite(v) and v > 0
+
+
+def _finite_nonneg(v: float) -> bool:
+    return math.isfinite(v) and v >= 0
+
+
+def _one_of(options: Sequence[str]) -> str:
+    return "one of: " + ", ".join(repr(o) for o in options)
+
+
+class _Rule:
+    """How one TOML key is converted (type) and checked (range)."""
+
+    __slots__ = ("convert", "check", "allowed")
+
+    def __init__(
+        self,
+        convert: Callable[[Any], Any],
+        allowed: str,
+        check: Optional[Callable[[Any], bool]] = None,
+    ):
+        self.convert = convert
+        self.allowed = allowed
+        self.check = check
+
+    def coerce(self, param: str, value: Any) -> Any:
+        try:
+            return self.convert(value)
+        except (TypeError, ValueError, OverflowError):
+            raise SceneError(param, value, self.allowed) from None
+
+    def validate(self, param: str, value: Any) -> None:
+        v = self.coerce(param, value)
+        if self.check is not None and not self.check(v):
+            # Report vectors as the TOML writes them: [x, y, z].
+            raise SceneError(param, list(value) if isinstance(value, tuple) else value, self.allowed)
+
+
+_ANY_STR = _Rule(_to_str, "must be a string")
+
+GRID_RULES: Dict[str, _Rule] = {
+    "shape": _Rule(
+        _to_ivec3, "must be a list of 3 integers, each >= 2", lambda v: all(n >= 2 for n in v)
+    ),
+    "length": _Rule(_to_float, "must be a finite number > 0", _finite_pos),
+    "unit": _ANY_STR,
+}
+
+DUST_RULES: Dict[str, _Rule] = {
+    "model": _Rule(_to_str, _one_of(DUST_MODELS), lambda v: v in DUST_MODELS),
+    "density": _Rule(_to_float, "must be a finite number >= 0", _finite_nonneg),
+    "file": _ANY_STR,
+    "array": _ANY_STR,
+    "scale": _Rule(_to_float, "must be a finite number >= 0", _finite_nonneg),
+    "offset": _Rule(
+        _to_vec3,
+        "must be a list of 3 finite numbers (box units)",
+        lambda v: all(math.isfinite(x) for x in v),
+    ),
+    "floor": _Rule(_to_float, "must be a finite number >= 0", _finite_nonneg),
+    "tau": _Rule(_to_float, "must be a finite number >= 0", _finite_nonneg),
+}
+
+STAR_RULES: Dict[str, _Rule] = {
+    "position": _Rule(
+        _to_vec3,
+        "must be a list of 3 finite numbers in [0, 1] (box units)",
+        lambda v: all(0.0 <= x <= 1.0 for x in v),
+    ),
+    "luminosity": _Rule(_to_float, "must be a finite number > 0", _finite_pos),
+    "temperature": _Rule(
+        _to_opt_float,
+        "must be a finite number > 0 (K), or omitted",
+        lambda v: v is None or _finite_pos(v),
+    ),
+    "bump_radius": _Rule(
+        _to_float, "must be a number in [0, 1) (box units)", lambda v: 0.0 <= v < 1.0
+    ),
+}
+
+# Type-only rules for [bands]; ranges are checked by resolve_bands().
+BANDS_RULES: Dict[str, _Rule] = {
+    "preset": _Rule(_to_opt_str, "must be a preset name (string)"),
+    "albedo": _Rule(_to_opt_float, "must be in [0, 1]"),
+    "g": _Rule(_to_opt_float, "must be in [-1, 1]"),
+    # "list" is handled separately (array of tables).
+}
+BAND_ENTRY_RULES: Dict[str, _Rule] = {
+    "name": _ANY_STR,
+    "wavelength": _Rule(_to_float, "must be a wavelength in nm in (0, 1e5]"),
+    "extinction": _Rule(_to_float, "must be a finite number > 0 (relative to the reference band)"),
+    "albedo": _Rule(_to_float, "must be in [0, 1]"),
+    "g": _Rule(_to_float, "must be in [-1, 1]"),
+}
+assert tuple(BAND_ENTRY_RULES) == BAND_KEYS
+
+TRANSPORT_RULES: Dict[str, _Rule] = {
+    "photons": _Rule(
+        _to_int, "must be an integer in [1, 2**53]", lambda v: 1 <= v <= MAX_PHOTONS
+    ),
+    "estimator": _Rule(_to_str, _one_of(ESTIMATORS), lambda v: v in ESTIMATORS),
+    "filter_radius": _Rule(_to_float, "must be a finite number > 0 (box units)", _finite_pos),
+    "max_scatterings": _Rule(_to_int, "must be an integer >= 0", lambda v: v >= 0),
+    "seed": _Rule(_to_int, "must be an integer in [0, 2**64)", lambda v: 0 <= v < MAX_SEED),
+    "backend": _Rule(_to_str, _one_of(BACKENDS), lambda v: v in BACKENDS),
+    "device": _ANY_STR,
+    "batch_size": _Rule(_to_int, "must be an integer >= 0 (0 = automatic)", lambda v: v >= 0),
+}
+
+COLOUR_RULES: Dict[str, _Rule] = {
+    "exposure": _Rule(
+        _to_exposure,
+        "must be 'auto' or a finite number > 0",
+        lambda v: v == "auto" or _finite_pos(v),
+    ),
+    "white_point": _Rule(_to_str, _one_of(WHITE_POINTS), lambda v: v in WHITE_POINTS),
+    "opacity_scale": _Rule(_to_float, "must be a finite number > 0", _finite_pos),
+}
+
+# Schema tree, used by from_dict and with_overrides: a dict is a table, a
+# one-element list an array of tables, a _Rule a leaf value.
+_SCHEMA: Dict[str, Any] = {
+    "grid": GRID_RULES,
+    "dust": DUST_RULES,
+    "stars": [STAR_RULES],
+    "bands": {**BANDS_RULES, "list": [BAND_ENTRY_RULES]},
+    "transport": TRANSPORT_RULES,
+    "colour": COLOUR_RULES,
+}
+_TABLE_NAMES = {
+    "grid": "[grid]",
+    "dust": "[dust]",
+    "stars": "[[stars]]",
+    "bands": "[bands]",
+    "transport": "[transport]",
+    "colour": "[colour]",
+}
+
+
+def _unknown_key(param: str, value: Any, allowed_keys: Sequence[str]) -> SceneError:
+    return SceneError(
+        param, value, "unknown key; allowed keys: " + ", ".join(repr(k) for k in allowed_keys)
+    )
+
+
+def _parse_table(name: str, d: Any, rules: Mapping[str, _Rule]) -> Dict[str, Any]:
+    """Check keys and convert types of one table; ranges are not checked."""
+    if not isinstance(d, Mapping):
+        raise SceneError(name, d, "must be a table")
+    out = {}
+    for key, value in d.items():
+        param = f"{name}.{key}"
+        if key not in rules:
+            raise _unknown_key(param, value, list(rules))
+        out[key] = rules[key].coerce(param, value)
+    return out
+
+
+def _parse_array(name: str, d: Any) -> list:
+    if isinstance(d, (str, bytes, Mapping)) or not isinstance(d, Sequence):
+        raise SceneError(name, d, f"must be an array of tables [[{name}]]")
+    return list(d)
+
+
+def _check_dataclass(prefix: str, obj: Any, rules: Mapping[str, _Rule]) -> None:
+    for f in fields(obj):
+        rules[f.name].validate(f"{prefix}.{f.name}", getattr(obj, f.name))
+
+
+# ---------------------------------------------------------------------------
+# Scene
+# ---------------------------------------------------------------------------
+
+
+@dataclass
+class Scene:
+    """A complete scene: the contents of one TOML scene file.
+
+    Parameters
+    ----------
+    grid : Grid
+    dust : Dust
+    stars : list of Star
+        One or more stars.
+    bands : BandsConfig
+    transport : Transport
+    colour : Colour
+    base_dir : Path or None
+        Folder against which a relative ``dust.file`` is resolved (the scene
+        file's folder for :meth:`load`).  Not part of the TOML, and not
+        compared by ``==``.
+
+    Notes
+    -----
+    Build scenes with :meth:`default`, :meth:`from_dict`, :meth:`load`,
+    :meth:`loads` or :meth:`with_overrides`, which validate.  A scene built
+    field by field should be checked with :meth:`validate`.
+    """
+
+    grid: Grid = field(default_factory=Grid)
+    dust: Dust = field(default_factory=Dust)
+    stars: List[Star] = field(default_factory=lambda: [Star()])
+    bands: BandsConfig = field(default_factory=BandsConfig)
+    transport: Transport = field(default_factory=Transport)
+    colour: Colour = field(default_factory=Colour)
+    base_dir: Optional[Path] = field(default=None, compare=False)
+
+    # -- constructors -------------------------------------------------------
+
+    @classmethod
+    def default(cls) -> "Scene":
+        """The default scene: 64^3 turbulence, one central star, thesis RGB bands."""
+        scene = cls()
+        scene.validate()
+        return scene
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any], base_dir: Optional[Union[str, Path]] = None) -> "Scene":
+        """Build and validate a scene from a dict shaped like the TOML file.
+
+        Missing tables and keys take their defaults; a missing ``stars`` array
+        gives one default star at the box centre.
+
+        Parameters
+        ----------
+        d : mapping
+            ``{"grid": {...}, "dust": {...}, "stars": [{...}, ...], "bands":
+            {..., "list": [{...}, ...]}, "transport": {...}, "colour": {...}}``.
+        base_dir : str or Path, optional
+            Folder for a relative ``dust.file``.
+
+        Raises
+        ------
+        SceneError
+            For unknown tables or keys, wrong types and out-of-range values.
+        """
+        if not isinstance(d, Mapping):
+            raise SceneError("(scene)", d, "must be a table of tables")
+        for key, value in d.items():
+            if key not in _SCHEMA:
+                raise SceneError(
+                    key,
+                    value,
+                    "unknown table; allowed tables: " + ", ".join(_TABLE_NAMES.values()),
+                )
+
+        grid = Grid(**_parse_table("grid", d.get("grid", {}), GRID_RULES))
+        dust = Dust(**_parse_table("dust", d.get("dust", {}), DUST_RULES))
+        if "stars" in d:
+            stars = [
+                Star(**_parse_table(f"stars[{i}]", s, STAR_RULES))
+                for i, s in enumerate(_parse_array("stars", d["stars"]))
+            ]
+        else:
+            stars = [Star()]
+
+        bands_d = d.get("bands", {})
+        if not isinstance(bands_d, Mapping):
+            raise SceneError("bands", bands_d, "must be a table")
+        band_list = None
+        if "list" in bands_d:
+            band_list = []
+            for i, entry in enumerate(_parse_array("bands.list", bands_d["list"])):
+                band_list.append(_parse_table(f"bands.list[{i}]", entry, BAND_ENTRY_RULES))
+        bands_kw = _parse_table("bands", {k: v for k, v in bands_d.items() if k != "list"}, BANDS_RULES)
+        bands = BandsConfig(**bands_kw, list=band_list)
+
+        transport = Transport(**_parse_table("transport", d.get("transport", {}), TRANSPORT_RULES))
+        colour = Colour(**_parse_table("colour", d.get("colour", {}), COLOUR_RULES))
+
+        scene = cls(
+            grid=grid,
+            dust=dust,
+            stars=stars,
+            bands=bands,
+            transport=transport,
+            colour=colour,
+            base_dir=Path(base_dir) if base_dir is not None else None,
+        )
+        scene.validate()
+        return scene
+
+    @classmethod
+    def loads(cls, text: str, base_dir: Optional[Union[str, Path]] = None) -> "Scene":
+        """Parse a scene from TOML text (see :meth:`from_dict`)."""
+        try:
+            d = tomllib.loads(text)
+        except tomllib.TOMLDecodeError as e:
+            raise SceneError("(toml)", "<string>", f"not valid TOML: {e}") from None
+        return cls.from_dict(d, base_dir=base_dir)
+
+    @classmethod
+    def load(cls, path: Union[str, Path]) -> "Scene":
+        """Read a TOML scene file; ``base_dir`` becomes the file's folder."""
+        path = Path(path)
+        with open(path, "rb") as fh:
+            try:
+                d = tomllib.load(fh)
+            except tomllib.TOMLDecodeError as e:
+                raise SceneError("(toml)", str(path), f"not valid TOML: {e}") from None
+        return cls.from_dict(d, base_dir=path.absolute().parent)
+
+    # -- serialisation ------------------------------------------------------
+
+    def to_dict(self) -> Dict[str, Any]:
+        """The scene as a TOML-shaped dict (None values omitted, tuples as lists)."""
+
+        def table(obj: Any) -> Dict[str, Any]:
+            out = {}
+            for f in fields(obj):
+                v = getattr(obj, f.name)
+                if v is None:
+                    continue
+                if isinstance(v, tuple):
+                    v = list(v)
+                elif isinstance(v, list):
+                    v = copy.deepcopy(v)
+                out[f.name] = v
+            return out
+
+        return {
+            "grid": table(self.grid),
+            "dust": table(self.dust),
+            "stars": [table(s) for s in self.stars],
+            "bands": table(self.bands),
+            "transport": table(self.transport),
+            "colour": table(self.colour),
+        }
+
+    def to_toml(self) -> str:
+        """The scene as TOML text; ``Scene.loads(s.to_toml()) == s``."""
+        import tomli_w
+
+        text = tomli_w.dumps(self.to_dict())
+        # Put short numeric arrays (shape, position, offset) on one line.
+        return _NUMERIC_ARRAY.sub(
+            lambda m: "= [" + ", ".join(x.rstrip(",") for x in m.group(1).split()) + "]",
+            text,
+        )
+
+    # -- paths --------------------------------------------------------------
+
+    def dust_file_path(self) -> Path:
+        """``dust.file`` as a path, resolved against `base_dir` if relative.
+
+        Raises
+        ------
+        SceneError
+            If ``dust.file`` is empty.
+        """
+        if not self.dust.file:
+            raise SceneError("dust.file", self.dust.file, "must name a .npy or .vti file")
+        p = Path(self.dust.file).expanduser()
+        if not p.is_absolute() and self.base_dir is not None:
+            p = Path(self.base_dir) / p
+        return p
+
+    # -- validation ---------------------------------------------------------
+
+    def validate(self) -> None:
+        """Check every value; raise :class:`SceneError` on the first bad one.
+
+        The error's ``parameter`` is the dotted TOML name (``"transport.photons"``,
+        ``"stars[0].position"``, ``"bands.list[1].albedo"``), ``value`` the
+        offending value and ``allowed`` what is allowed.
+        """
+        _check_dataclass("grid", self.grid, GRID_RULES)
+        _check_dataclass("dust", self.dust, DUST_RULES)
+        if self.dust.model == "file":
+            if not self.dust.file:
+                raise SceneError(
+                    "dust.file", self.dust.file, "must name a .npy or .vti file when dust.model = 'file'"
+                )
+            if self.dust.file.lower().endswith(".vti") and not self.dust.array:
+                raise SceneError(
+                    "dust.array", self.dust.array, "must name the density array of the .vti file"
+                )
+        if not isinstance(self.stars, list) or len(self.stars) == 0:
+            raise SceneError("stars", self.stars, "must contain at least one [[stars]] table")
+        for i, s in enumerate(self.stars):
+            if not isinstance(s, Star):
+                raise SceneError(f"stars[{i}]", s, "must be a Star")
+            _check_dataclass(f"stars[{i}]", s, STAR_RULES)
+        for key, rule in BANDS_RULES.items():
+            rule.coerce(f"bands.{key}", getattr(self.bands, key))
+        self.bands.resolve()
+        _check_dataclass("transport", self.transport, TRANSPORT_RULES)
+        _check_dataclass("colour", self.colour, COLOUR_RULES)
+
+    # -- overrides ----------------------------------------------------------
+
+    def with_overrides(self, items: Sequence[str]) -> "Scene":
+        """Return a new scene with ``dotted.key=value`` overrides applied.
+
+        Parameters
+        ----------
+        items : sequence of str
+            Each ``"table.key=value"``; ``value`` is parsed as a TOML value
+            (``1e6``, ``[32, 32, 16]``, ``"cuda"``, ``{...}``) and taken as
+            the raw string when it is not valid TOML (``opencl``).  Array
+            elements are addressed by index: ``stars.0.luminosity=2`` (also
+            ``stars[0].luminosity=2``), ``bands.list.1.g=0.3``.  Setting
+            ``bands.preset`` drops an explicit ``bands.list``.
+
+        Returns
+        -------
+        Scene
+            A new, validated scene (this one is unchanged).
+
+        Raises
+        ------
+        SceneError
+            For a malformed item, an unknown key or index, or a bad value.
+        """
+        if isinstance(items, str):
+            items = [items]
+        d = self.to_dict()
+        for item in items:
+            if not isinstance(item, str) or "=" not in item:
+                raise SceneError(str(item), item, "an override has the form dotted.key=value")
+            key, raw = item.split("=", 1)
+            key, raw = key.strip(), raw.strip()
+            _apply_override(d, key, _parse_value(raw))
+        return Scene.from_dict(d, base_dir=self.base_dir)
+
+
+_NUMERIC_ARRAY = re.compile(r"= \[\n((?:[ \t]+[-+0-9.eE_infa]+,\n)+)\]")
+
+
+def _parse_value(raw: str) -> Any:
+    try:
+        parsed = tomllib.loads("v = " + raw)
+    except Exception:
+        return raw
+    if set(parsed) != {"v"}:  # e.g. an embedded newline: not a single value
+        return raw
+    return parsed["v"]
+
+
+def _apply_override(d: Dict[str, Any], key: str, value: Any) -> None:
+    norm = re.sub(r"\[(\d+)\]", r".\1", key)
+    tokens = norm.split(".")
+    if not key or any(t == "" for t in tokens):
+        raise SceneError(key, value, "an override key is dotted, e.g. transport.photons")
+
+    container: Any = d
+    schema: Any = _SCHEMA
+    for depth, tok in enumerate(tokens):
+        last = depth == len(tokens) - 1
+        where = ".".join(tokens[:depth]) or "(scene)"
+        if isinstance(schema, dict):
+            if tok not in schema:
+                if depth == 0:
+                    allowed = "unknown table; allowed tables: " + ", ".join(_TABLE_NAMES.values())
+                else:
+                    allowed = "unknown key; allowed keys: " + ", ".join(repr(k) for k in schema)
+                raise SceneError(key, value, allowed)
+            if last:
+                container[tok] = value
+                if tokens[:depth] == ["bands"] and tok == "preset":
+                    container.pop("list", None)
+                return
+            sub = schema[tok]
+            if isinstance(sub, _Rule):
+                raise SceneError(key, value, f"{'.'.join(tokens[: depth + 1])} is a value, not a table")
+            if tok not in container:
+                container[tok] = {} if isinstance(sub, dict) else []
+            container, schema = container[tok], sub
+            if isinstance(schema, dict) and not isinstance(container, dict):
+                raise SceneError(key, value, f"{'.'.join(tokens[: depth + 1])} is not a table")
+        else:  # array of tables
+            n = len(container) if isinstance(container, list) else 0
+            if not tok.isdigit() or int(tok) >= n:
+                raise SceneError(
+                    key,
+                    value,
+                    f"{where} is an array of {n} table(s): use {where}.N.key with N in 0..{n - 1}",
+                )
+            i = int(tok)
+            if last:
+                container[i] = value
+                return
+            container, schema = container[i], schema[0]
+            if not isinstance(container, dict):
+                raise SceneError(key, value, f"{where}.{i} is not a table")

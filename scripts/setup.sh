@@ -1,0 +1,134 @@
+#!/usr/bin/env bash
+# Idempotent environment set-up for NebulaRT on Debian 12.
+#
+#   bash scripts/setup.sh            # install what is missing, skip what is done
+#   bash scripts/setup.sh --force    # reinstall the package even if the stamp matches
+#
+# (a) System libraries for off-screen rendering (nebula_rt.render), installed
+#     with apt-get only when missing, and only as root (otherwise the command
+#     to run is printed).
+# (b) The virtual environment .venv with `pip install -e ".[io,pocl,test]"`.
+#     .venv/.nebula-setup-stamp holds the sha256 of pyproject.toml; while it
+#     matches, step (b) is skipped.
+#
+# Environment: PYTHON (interpreter that creates the venv, default python3),
+# NEBULA_VENV (venv folder, default <repo>/.venv).
+set -euo pipefail
+
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+cd "$ROOT"
+VENV="${NEBULA_VENV:-$ROOT/.venv}"
+STAMP="$VENV/.nebula-setup-stamp"
+PYTHON="${PYTHON:-python3}"
+FORCE=0
+for arg in "$@"; do
+    case "$arg" in
+        --force) FORCE=1 ;;
+        -h|--help) sed -n '2,16p' "$0"; exit 0 ;;
+        *) echo "setup.sh: unknown argument: $arg" >&2; exit 2 ;;
+    esac
+done
+
+log() { printf '[setup] %s\n' "$*"; }
+
+# --------------------------------------------------------------------------
+# (a) system packages
+#
+# The vtk wheel (9.4+) links no GL or X library: `ldd` on
+# vtkmodules/libvtkRenderingOpenGL2.so, libvtkRenderingVolumeOpenGL2.so,
+# libvtkglad.so and libvtkx11.so lists only libc/libstdc++/libm. At run time
+# libvtkglad dlopens libEGL.so.1 / libGL.so.1 and libvtkx11 dlopens
+# libX11.so.6 / libXcursor.so.1. Without DISPLAY the render goes through
+# EGL, which (per /proc/self/maps of an off-screen render) needs the GLVND
+# loader libEGL.so.1, Mesa's EGL vendor library and Mesa's software
+# rasteriser (swrast_dri.so / llvmpipe); apt pulls in the rest (libgbm1,
+# libdrm2, libglapi-mesa, libllvm15, xcb libraries).
+RENDER_PKGS=(libegl1 libegl-mesa0 libgl1-mesa-dri)
+# With a DISPLAY (e.g. under Xvfb) VTK renders through GLX instead.
+X11_PKGS=(libgl1 libglx-mesa0 libx11-6 libxcursor1)
+
+is_installed() {
+    # dpkg -s also succeeds for removed packages whose config files remain;
+    # the status abbreviation "ii" means installed.
+    [[ "$(dpkg-query -W -f='${db:Status-Abbrev}' "$1" 2>/dev/null)" == ii* ]]
+}
+
+missing=()
+if command -v dpkg-query >/dev/null 2>&1; then
+    for pkg in "${RENDER_PKGS[@]}" "${X11_PKGS[@]}"; do
+        is_installed "$pkg" || missing+=("$pkg")
+    done
+    # The venv needs an interpreter with venv + ensurepip (Debian splits them out).
+    if ! command -v "$PYTHON" >/dev/null 2>&1; then
+        missing+=(python3 python3-venv)
+        PYTHON=python3
+    elif ! "$PYTHON" -c 'import venv, ensurepip' >/dev/null 2>&1; then
+        is_installed python3-venv || missing+=(python3-venv)
+    fi
+else
+    log "no dpkg here: not checking system packages (needed on Debian: ${RENDER_PKGS[*]} ${X11_PKGS[*]})"
+fi
+
+if ((${#missing[@]})); then
+    if [[ "$(id -u)" -eq 0 ]]; then
+        log "installing system packages: ${missing[*]}"
+        export DEBIAN_FRONTEND=noninteractive
+        apt-get update -qq
+        apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
+    else
+        log "missing system packages: ${missing[*]}"
+        log "run as root: apt-get update && apt-get install -y --no-install-recommends ${missing[*]}"
+    fi
+else
+    log "system packages present"
+fi
+
+# --------------------------------------------------------------------------
+# (b) virtual environment
+want="$(sha256sum pyproject.toml | cut -d' ' -f1)"
+if ((FORCE == 0)) && [[ -x "$VENV/bin/python" && -f "$STAMP" && "$(cat "$STAMP")" == "$want" ]]; then
+    log "venv up to date ($VENV)"
+    exit 0
+fi
+
+if [[ ! -x "$VENV/bin/python" ]]; then
+    log "creating venv $VENV with $("$PYTHON" --version 2>&1)"
+    "$PYTHON" -m venv "$VENV"
+fi
+
+log "pip install -e \".[io,pocl,test]\" (this takes a while the first time; log: $VENV/.nebula-setup-pip.log)"
+if ! "$VENV/bin/python" -m pip install --disable-pip-version-check -e ".[io,pocl,test]" \
+        >"$VENV/.nebula-setup-pip.log" 2>&1; then
+    tail -n 30 "$VENV/.nebula-setup-pip.log" >&2
+    log "pip install failed (full log: $VENV/.nebula-setup-pip.log)"
+    exit 1
+fi
+
+# Smoke checks from outside the source tree: the package and its kernel
+# sources import, and an off-screen render works (warning only: rendering is
+# optional for the core library).
+(
+    cd /
+    "$VENV/bin/python" -c "
+import importlib.resources as r, nebula_rt
+n = sum(1 for p in r.files('nebula_rt.kernels').iterdir() if p.name.endswith(('.cl', '.h', '.cu')))
+print('[setup] nebula_rt', nebula_rt.__version__, 'with', n, 'kernel source files')
+"
+)
+if ! (cd / && "$VENV/bin/python" - <<'EOF' >/dev/null 2>&1
+import os, tempfile, numpy as np
+from nebula_rt.render import render_rgba_png
+rgba = np.zeros((4, 4, 4, 4), np.uint8); rgba[..., 2] = 255; rgba[..., 3] = 128
+with tempfile.TemporaryDirectory() as d:
+    render_rgba_png(os.path.join(d, "t.png"), rgba, (1.0, 1.0, 1.0), window_size=(32, 32))
+EOF
+); then
+    log "WARNING: off-screen rendering does not work here (nebula_rt.render); check the system packages above"
+else
+    log "off-screen rendering works"
+fi
+
+tmp_stamp="$STAMP.tmp.$$"
+printf '%s\n' "$want" >"$tmp_stamp"
+mv -f "$tmp_stamp" "$STAMP"
+log "done"

@@ -1,0 +1,38 @@
+"""Shared fixtures: every test runs on PoCL (OpenCL on the CPU), pinned by name.
+
+Two PoCL platforms may be present (the pip wheel and Debian's ICD); the selector picks the
+first usable device whose name contains the text, so results are reproducible on a machine.
+Set NEBULA_RT_TEST_DEVICE to run the suite on another OpenCL device (e.g. "NVIDIA").
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+
+from nebula_rt.backends import get_backend
+from nebula_rt.bands import Band
+from nebula_rt.scene import Star
+
+TEST_DEVICE = os.environ.get("NEBULA_RT_TEST_DEVICE", "Portable Computing Language")
+
+
+@pytest.fixture(scope="session")
+def backend():
+    return get_backend("opencl", TEST_DEVICE)
+
+
+def one_band(albedo=0.6, g=0.6, extinction=1.0, name="V", wavelength=550.0):
+    """A single band; extinction 1 makes it the reference band, so sigma = tau * rho."""
+    return [Band(name=name, wavelength=wavelength, extinction=extinction, albedo=albedo, g=g)]
+
+
+def centre_star(luminosity=1.0, position=(0.5, 0.5, 0.5)):
+    return [Star(position=tuple(position), luminosity=luminosity, temperature=None, bump_radius=0.0)]
+
+
+def voxel_centres(shape):
+    axes = [(np.arange(n) + 0.5) / n for n in shape]
+    return np.meshgrid(*axes, indexing="ij")
