@@ -85,6 +85,11 @@ class LightField:
         return out
 
 
+#: Auto exposure: percentile of the per-voxel max colour component, over voxels at least this opaque.
+AUTO_EXPOSURE_PERCENTILE = 95.0
+AUTO_EXPOSURE_MIN_ALPHA = 0.01
+
+
 def _key(obj) -> str:
     return json.dumps(obj, sort_keys=True, default=str)
 
@@ -261,9 +266,18 @@ def colour_rgba(scene, bands, rho, emissivity, res: TransportResult) -> tuple[np
         white = white / white.max()
         rgb = rgb / white  # white balance in linear sRGB
     rgb = colour_convert.gamut_map(rgb)
-    exposure = colour_convert.auto_exposure(rgb) if cfg.exposure == "auto" else float(cfg.exposure)
-    srgb8 = colour_convert.encode_srgb(rgb, exposure)
     h = float(np.prod([1.0 / n for n in rho.shape]) ** (1.0 / 3.0))
     alpha = 1.0 - np.exp(-sig_ref * h * cfg.opacity_scale)
+    if cfg.exposure == "auto":
+        # J falls as 1/r^2 from the star, so a percentile over all voxels is set by the few
+        # around the star and leaves the nebula dark. Expose for the dust that is visible:
+        # the 95th percentile of the voxels with at least AUTO_EXPOSURE_MIN_ALPHA opacity
+        # maps to full scale (brighter voxels keep their hue and saturate).
+        visible = alpha >= AUTO_EXPOSURE_MIN_ALPHA
+        sample = rgb[visible] if np.any(visible) else rgb.reshape(-1, 3)
+        exposure = colour_convert.auto_exposure(sample, percentile=AUTO_EXPOSURE_PERCENTILE)
+    else:
+        exposure = float(cfg.exposure)
+    srgb8 = colour_convert.encode_srgb(rgb, exposure)
     a8 = np.clip(np.rint(alpha * 255.0), 0, 255).astype(np.uint8)
     return np.concatenate([srgb8, a8[..., None]], axis=-1), float(exposure)

@@ -112,6 +112,15 @@ def render_rgba_png(
         )
 
     nx, ny, nz = rgba.shape[:3]
+    # Render in units of the smallest voxel edge: with dependent RGBA components VTK's GPU
+    # mapper applies the alpha channel as opacity per 1.0 world unit whatever the
+    # ScalarOpacityUnitDistance says (measured with VTK 9.7: a 32^3 box of alpha 20/255 at
+    # spacing 1/32 rendered as one voxel's opacity). Scaling the geometry so one voxel edge is
+    # one unit makes alpha the opacity of one voxel, as the output contract defines it. The
+    # picture does not change otherwise: the camera is reset onto the volume.
+    unit = min(spacing)
+    spacing = tuple(s / unit for s in spacing)
+    origin = tuple(o / unit for o in origin)
     img = pv.ImageData(dimensions=(nx, ny, nz), spacing=spacing, origin=origin)
     # VTK point order is x fastest: point i + nx*(j + ny*k).
     img.point_data["rgba"] = np.ascontiguousarray(rgba.transpose(2, 1, 0, 3)).reshape(-1, 4)
@@ -121,14 +130,19 @@ def render_rgba_png(
         plotter.set_background(background)
         # 2-D uint8 scalars with 4 components are shown directly as RGBA
         # (PyVista sets independent_components=False and a linear opacity ramp).
-        plotter.add_volume(
+        actor = plotter.add_volume(
             img,
             scalars="rgba",
             clim=[0, 255],
             mapper="smart",
-            opacity_unit_distance=min(spacing),
+            opacity_unit_distance=1.0,
             show_scalar_bar=False,
         )
+        # Sample every half voxel (the mapper's default of 1.0 world unit with automatic
+        # adjustment off would skip detail); opacity is corrected to the step by VTK.
+        mapper = actor.GetMapper()
+        mapper.SetAutoAdjustSampleDistances(False)
+        mapper.SetSampleDistance(0.5)
         plotter.view_xy()
         camera = plotter.camera
         camera.Azimuth(float(azimuth))
