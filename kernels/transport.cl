@@ -35,7 +35,11 @@
 #define NRT_COLLISION 0
 #endif
 
-#define NRT_ACC_LIMIT 0x8000000000000000UL /* 2^63: headroom limit of a fixed-point cell */
+/* Headroom limit of a fixed-point cell: 2^63 (tests lower it to exercise the overflow path). */
+#ifndef NRT_ACC_LIMIT_BITS
+#define NRT_ACC_LIMIT_BITS 63
+#endif
+#define NRT_ACC_LIMIT (1UL << NRT_ACC_LIMIT_BITS)
 #define NRT_INF_F 3.0e38f
 
 NRT_DEVICE void nrt_acc_add(NRT_GLOBAL nrt_u64 *cell, nrt_u64 v, NRT_GLOBAL nrt_u32 *overflow)
@@ -43,7 +47,7 @@ NRT_DEVICE void nrt_acc_add(NRT_GLOBAL nrt_u64 *cell, nrt_u64 v, NRT_GLOBAL nrt_
     if (v == 0)
         return;
     nrt_u64 old = NRT_ATOMIC_ADD_U64(cell, v);
-    if (old >= NRT_ACC_LIMIT - v)
+    if (v >= NRT_ACC_LIMIT || old >= NRT_ACC_LIMIT - v)
         NRT_ATOMIC_OR_U32(overflow, 1u);
 }
 

@@ -160,6 +160,7 @@ def trace(
     backend: Backend,
     progress: Optional[Callable[[int, int], None]] = None,
     cancel: Optional[Callable[[], bool]] = None,
+    _acc_limit_bits: int = 63,
 ) -> TransportResult:
     """Trace ``photons`` packets per band through ``density`` and estimate J.
 
@@ -204,6 +205,7 @@ def trace(
         max_scatterings=int(max_scatterings),
         seed=int(seed),
         track_scale=track_scale,
+        acc_limit_bits=int(_acc_limit_bits),
     )
     plan = batch_plan(photons, batch_size)
     nb = len(bands)

@@ -38,6 +38,9 @@ class TransportSetup:
         Philox key word 0.
     track_scale : float
         Fixed-point units per box unit of path length.
+    acc_limit_bits : int
+        A fixed-point cell may hold up to 2^bits before the overflow flag is raised (63; lower
+        only to test the overflow handling).
     """
 
     density: np.ndarray
@@ -50,6 +53,7 @@ class TransportSetup:
     max_scatterings: int
     seed: int
     track_scale: float
+    acc_limit_bits: int = 63
 
     @property
     def n_bands(self) -> int:

@@ -118,9 +118,11 @@ class OpenCLTransport(TransportSession):
         self.d_tallies = cl.Buffer(ctx, mf.READ_WRITE, size=self.h_tallies.nbytes)
         self.h_overflow = np.zeros(1, np.uint32)
         self.d_overflow = cl.Buffer(ctx, mf.READ_WRITE, size=4)
-        defines = {"track-length": {"NRT_TRACK_LENGTH": 1}, "collision-filter": {"NRT_COLLISION": 1}}[
+        defines = dict({"track-length": {"NRT_TRACK_LENGTH": 1}, "collision-filter": {"NRT_COLLISION": 1}}[
             setup.estimator
-        ]
+        ])
+        if setup.acc_limit_bits != 63:
+            defines["NRT_ACC_LIMIT_BITS"] = int(setup.acc_limit_bits)
         self.k_trace = backend.kernel("transport.cl", "trace_photons", defines)
         self.k_fold = backend.kernel("transport.cl", "fold_batch", defines)
         self.k_clear = backend.kernel("transport.cl", "clear_u64", defines)
