@@ -293,6 +293,107 @@ def _unlink_quietly(p: Path) -> None:
         pass
 
 
+# --------------------------------------------------------------------------- in memory
+
+
+def _build_image(flat_arrays: dict, dims, field_data: dict, spacing, origin):
+    from vtkmodules.util import numpy_support
+    from vtkmodules.vtkCommonDataModel import vtkImageData
+
+    img = vtkImageData()
+    img.SetDimensions(*dims)
+    img.SetSpacing(*spacing)
+    img.SetOrigin(*origin)
+    pd = img.GetPointData()
+    for name, flat in flat_arrays.items():
+        varr = numpy_support.numpy_to_vtk(flat, deep=True)
+        varr.SetName(name)
+        pd.AddArray(varr)
+    if len(flat_arrays) == 1:
+        pd.SetActiveScalars(next(iter(flat_arrays)))
+    fd = img.GetFieldData()
+    for name, value in field_data.items():
+        fd.AddArray(_field_value_to_vtk(name, value))
+    return img
+
+
+def add_point_arrays(img, point_arrays: dict[str, np.ndarray]) -> None:
+    """Add (nx, ny, nz[, c]) grids as point-data arrays of ``img`` (x fastest)."""
+    from vtkmodules.util import numpy_support
+
+    pd = img.GetPointData()
+    for name, arr in point_arrays.items():
+        a = np.asarray(arr)
+        _check_numeric_dtype(name, a.dtype, "point array")
+        varr = numpy_support.numpy_to_vtk(_grid_to_vtk_order(name, a), deep=True)
+        varr.SetName(name)
+        pd.AddArray(varr)
+
+
+def add_field_data(img, field_data: dict[str, object]) -> None:
+    """Add scalars, strings and 1-D arrays as field data of ``img`` (replacing same names)."""
+    fd = img.GetFieldData()
+    for name, value in field_data.items():
+        if fd.HasArray(name):
+            fd.RemoveArray(name)
+        fd.AddArray(_field_value_to_vtk(name, value))
+
+
+def to_image_data(point_arrays: dict[str, np.ndarray], field_data: dict[str, object] | None,
+                  spacing, origin=(0.0, 0.0, 0.0)):
+    """A vtkImageData holding ``point_arrays`` (all (nx, ny, nz[, c])) and ``field_data``."""
+    flat, dims = {}, None
+    for name, arr in point_arrays.items():
+        a = np.asarray(arr)
+        _check_numeric_dtype(name, a.dtype, "point array")
+        if dims is None:
+            dims = tuple(int(n) for n in a.shape[:3])
+        flat[name] = _grid_to_vtk_order(name, a)
+    if dims is None:
+        raise ValueError("to_image_data needs at least one point array")
+    return _build_image(flat, dims, field_data or {}, spacing, origin)
+
+
+def point_array(img, name: str) -> np.ndarray:
+    """Point-data array ``name`` of a vtkImageData as an (nx, ny, nz[, c]) grid (a copy)."""
+    from vtkmodules.util import numpy_support
+
+    dims, _, _ = _geometry(img)
+    varr = img.GetPointData().GetArray(name)
+    if varr is None:
+        available = [img.GetPointData().GetArrayName(i) for i in range(img.GetPointData().GetNumberOfArrays())]
+        raise KeyError(f"point array {name!r} not found; available: {available}")
+    return _vtk_order_to_grid(numpy_support.vtk_to_numpy(varr), dims)
+
+
+def cell_array(img, name: str) -> np.ndarray:
+    """Cell-data array ``name`` of a vtkImageData as an (nx-1, ny-1, nz-1[, c]) grid (a copy)."""
+    from vtkmodules.util import numpy_support
+
+    dims, _, _ = _geometry(img)
+    varr = img.GetCellData().GetArray(name)
+    if varr is None:
+        raise KeyError(f"cell array {name!r} not found")
+    return _vtk_order_to_grid(numpy_support.vtk_to_numpy(varr), tuple(max(d - 1, 1) for d in dims))
+
+
+def field_data_dict(img) -> dict[str, object]:
+    """All field data of ``img`` as Python values (see :func:`read_vti`)."""
+    out: dict[str, object] = {}
+    fd = img.GetFieldData()
+    for idx in range(fd.GetNumberOfArrays()):
+        arr = fd.GetAbstractArray(idx)
+        value = _field_value_from_vtk(arr)
+        if value is not None:
+            out[arr.GetName()] = value
+    return out
+
+
+def image_geometry(img):
+    """(dimensions, spacing, origin of the first point) of a vtkImageData."""
+    return _geometry(img)
+
+
 # --------------------------------------------------------------------------- writing
 
 
@@ -392,24 +493,9 @@ def write_vti(
         )
 
     # ---- build the VTK image
-    from vtkmodules.util import numpy_support
-    from vtkmodules.vtkCommonDataModel import vtkImageData
     from vtkmodules.vtkIOXML import vtkXMLImageDataWriter
 
-    img = vtkImageData()
-    img.SetDimensions(*dims)
-    img.SetSpacing(*spacing)
-    img.SetOrigin(*origin)
-    pd = img.GetPointData()
-    for name, flat in flat_arrays.items():
-        varr = numpy_support.numpy_to_vtk(flat, deep=True)
-        varr.SetName(name)
-        pd.AddArray(varr)
-    if len(flat_arrays) == 1:
-        pd.SetActiveScalars(next(iter(flat_arrays)))
-    fd = img.GetFieldData()
-    for name, value in field_data.items():
-        fd.AddArray(_field_value_to_vtk(name, value))
+    img = _build_image(flat_arrays, dims, field_data, spacing, origin)
 
     # ---- write to a temporary file, then rename
     tmp = path.with_name("." + path.name + ".tmp")
@@ -552,15 +638,7 @@ def read_vti(
         flat = _array_to_numpy(path, varr, npts)
         point_arrays[varr.GetName()] = _vtk_order_to_grid(flat, dims)
 
-    field_data: dict[str, object] = {}
-    fd = img.GetFieldData()
-    for idx in range(fd.GetNumberOfArrays()):
-        arr = fd.GetAbstractArray(idx)
-        value = _field_value_from_vtk(arr)
-        if value is not None:
-            field_data[arr.GetName()] = value
-
-    return point_arrays, field_data, spacing, origin, dims
+    return point_arrays, field_data_dict(img), spacing, origin, dims
 
 
 def read_density_array(path: str | os.PathLike, array_name: str) -> np.ndarray:

@@ -81,6 +81,13 @@ class LightField:
         out["band_names"] = ",".join(b.name for b in self.bands)
         out["band_wavelength_nm"] = np.array([b.wavelength for b in self.bands], np.float64)
         out["band_luminosity"] = np.asarray(tr.band_luminosity, np.float64)
+        out["band_extinction"] = np.array([b.extinction for b in self.bands], np.float64)
+        out["band_albedo"] = np.array([b.albedo for b in self.bands], np.float64)
+        out["band_g"] = np.array([b.g for b in self.bands], np.float64)
+        out["reference_band"] = int(self.reference_band)
+        out["tau"] = float(self.scene.dust.tau)
+        t = _dominant_temperature(self.scene.stars)
+        out["colour_temperature"] = float(t) if t is not None else 0.0
         out["scene"] = self.scene.to_toml()
         return out
 
@@ -147,31 +154,11 @@ class Pipeline:
 
     def light(self, scene, progress=None, cancel=None) -> tuple[TransportResult, np.ndarray, np.ndarray]:
         """Stage 2: transport and, for collision-filter, the smoothing. Returns (result, J, rel)."""
-
-        def compute():
-            rho = self.density(scene)
-            t = scene.transport
-            res = trace(
-                rho,
-                scene.bands.resolve(),
-                scene.stars,
-                tau=scene.dust.tau,
-                photons=t.photons,
-                estimator=t.estimator,
-                max_scatterings=t.max_scatterings,
-                seed=t.seed,
-                batch_size=t.batch_size,
-                backend=self.backend_for(scene),
-                progress=progress,
-                cancel=cancel,
-            )
-            if t.estimator == "collision-filter":
-                J, rel = filter_collisions(res, t.filter_radius)
-            else:
-                J, rel = res.J, res.rel_error
-            return res, J, rel
-
-        return self._cached("transport", self.transport_key(scene), compute)
+        return self._cached(
+            "transport",
+            self.transport_key(scene),
+            lambda: compute_light(scene, self.density(scene), self.backend_for(scene), progress, cancel),
+        )
 
     def run(self, scene, progress: Optional[Callable[[int, int], None]] = None,
             cancel: Optional[Callable[[], bool]] = None, colour: bool = True) -> LightField:
@@ -181,31 +168,62 @@ class Pipeline:
         t1 = time.perf_counter()
         res, J, rel = self.light(scene, progress, cancel)
         t2 = time.perf_counter()
-        bands = scene.bands.resolve()
-        ref = reference_band_index(bands)
-        tau = scene.dust.tau
-        sig = np.array([tau * b.extinction for b in bands])[:, None, None, None] * rho[None].astype(np.float64)
-        alb = np.array([b.albedo for b in bands])[:, None, None, None]
-        emissivity = alb * sig * J
-        rgba, exposure = (None, float("nan"))
+        light = assemble_light_field(scene, rho, res, J, rel)
         if colour:
             ckey = _key([self.transport_key(scene), scene.to_dict().get("colour", {})])
-            rgba, exposure = self._cached("colour", ckey, lambda: colour_rgba(scene, bands, rho, emissivity, res))
+            light.rgba, light.exposure = self._cached(
+                "colour", ckey, lambda: colour_rgba(scene, light.bands, rho, light.emissivity, res))
         t3 = time.perf_counter()
-        return LightField(
-            scene=scene,
-            bands=bands,
-            density=rho,
-            J=J.astype(np.float32),
-            rel_error=rel.astype(np.float32),
-            emissivity=emissivity.astype(np.float32),
-            rgba=rgba,
-            transport=res,
-            exposure=exposure,
-            reference_band=ref,
-            timings={"density_s": t1 - t0, "transport_s": t2 - t1, "colour_s": t3 - t2,
-                     "kernel_s": res.timings.get("kernel_s", 0.0)},
-        )
+        light.timings = {"density_s": t1 - t0, "transport_s": t2 - t1, "colour_s": t3 - t2,
+                         "kernel_s": res.timings.get("kernel_s", 0.0)}
+        return light
+
+
+def compute_light(scene, density: np.ndarray, backend: Backend, progress=None, cancel=None):
+    """Transport through ``density`` (and the collision filter if the scene asks for it).
+
+    Returns (TransportResult, J, rel_error) with J and rel_error float64 (n_bands, nx, ny, nz).
+    """
+    t = scene.transport
+    res = trace(
+        density,
+        scene.bands.resolve(),
+        scene.stars,
+        tau=scene.dust.tau,
+        photons=t.photons,
+        estimator=t.estimator,
+        max_scatterings=t.max_scatterings,
+        seed=t.seed,
+        batch_size=t.batch_size,
+        backend=backend,
+        progress=progress,
+        cancel=cancel,
+    )
+    if t.estimator == "collision-filter":
+        J, rel = filter_collisions(res, t.filter_radius)
+    else:
+        J, rel = res.J, res.rel_error
+    return res, J, rel
+
+
+def assemble_light_field(scene, rho, res: TransportResult, J, rel) -> LightField:
+    """The output-contract arrays (emissivity = albedo x extinction x J) without colour."""
+    bands = scene.bands.resolve()
+    tau = scene.dust.tau
+    sig = np.array([tau * b.extinction for b in bands])[:, None, None, None] * rho[None].astype(np.float64)
+    alb = np.array([b.albedo for b in bands])[:, None, None, None]
+    return LightField(
+        scene=scene,
+        bands=bands,
+        density=rho,
+        J=J.astype(np.float32),
+        rel_error=rel.astype(np.float32),
+        emissivity=(alb * sig * J).astype(np.float32),
+        rgba=None,
+        transport=res,
+        exposure=float("nan"),
+        reference_band=reference_band_index(bands),
+    )
 
 
 def filter_collisions(res: TransportResult, radius: float) -> tuple[np.ndarray, np.ndarray]:
@@ -237,38 +255,81 @@ def _dominant_temperature(stars):
 
 
 def colour_rgba(scene, bands, rho, emissivity, res: TransportResult) -> tuple[np.ndarray, float]:
-    """Stage 3: ``rgba`` for direct volume rendering.
+    """Stage 3 for a scene: see :func:`rgba_from_emissivity`."""
+    ref = reference_band_index(bands)
+    cfg = scene.colour
+    return rgba_from_emissivity(
+        emissivity,
+        scene.dust.tau * bands[ref].extinction * rho.astype(np.float64),
+        wavelengths_nm=np.array([b.wavelength for b in bands]),
+        band_luminosity=res.band_luminosity,
+        temperature=_dominant_temperature(scene.stars),
+        exposure=cfg.exposure,
+        white_point=cfg.white_point,
+        opacity_scale=cfg.opacity_scale,
+    )
+
+
+def rgba_from_emissivity(
+    emissivity: np.ndarray,
+    sigma_ref: np.ndarray,
+    *,
+    wavelengths_nm: np.ndarray,
+    band_luminosity: np.ndarray,
+    temperature: Optional[float],
+    exposure="auto",
+    white_point: str = "D65",
+    opacity_scale: float = 1.0,
+    return_linear: bool = False,
+):
+    """The ``rgba`` array for direct volume rendering.
 
     Colour: the emissivity per unit reference-band extinction, j_b / sigma_ref, which has the
     emissivity's colour; a compositing volume renderer that multiplies it by the voxel opacity
     alpha = 1 - exp(-sigma_ref h) then integrates the emissivity along the ray with the
     reference band's attenuation. Bands -> XYZ with the star's spectrum and the 1 nm CIE 1931
     functions (nebula/star ratio per band), -> linear sRGB (D65, no adaptation), white balance
-    (``colour.white_point``), gamut mapping, one global exposure, sRGB curve.
+    (``white_point``), gamut mapping, one global exposure, sRGB curve.
+
+    Parameters
+    ----------
+    emissivity : ndarray (n_bands, nx, ny, nz)
+        a_b sigma_b J_b, luminosity per box-unit volume per steradian.
+    sigma_ref : ndarray (nx, ny, nz)
+        Extinction per box unit in the reference band.
+    wavelengths_nm, band_luminosity : ndarray (n_bands,)
+        Band centres and the stars' total luminosity per band.
+    temperature : float or None
+        K, the spectrum used for the colour matrix (None: flat).
+    exposure : "auto" or float
+    white_point : {"D65", "E", "star"}
+    opacity_scale : float
+        Multiplies the optical depth of a voxel in alpha.
+    return_linear : bool
+        Also return the exposed linear sRGB (float32, (nx, ny, nz, 3)) before the sRGB curve.
+
+    Returns
+    -------
+    rgba : uint8 (nx, ny, nz, 4); exposure used : float; [linear rgb]
     """
-    cfg = scene.colour
-    ref = reference_band_index(bands)
-    sig_ref = scene.dust.tau * bands[ref].extinction * rho.astype(np.float64)
+    shape = sigma_ref.shape
     with np.errstate(divide="ignore", invalid="ignore"):
-        values = np.where(sig_ref[None] > 0, emissivity / np.where(sig_ref[None] > 0, sig_ref[None], 1.0), 0.0)
-    wl = np.array([b.wavelength for b in bands])
-    temperature = _dominant_temperature(scene.stars)
-    ratio = values / res.band_luminosity[:, None, None, None]
-    m = colour_convert.band_to_xyz_matrix(wl, temperature)
+        values = np.where(sigma_ref[None] > 0, emissivity / np.where(sigma_ref[None] > 0, sigma_ref[None], 1.0), 0.0)
+    ratio = values / np.asarray(band_luminosity, np.float64)[:, None, None, None]
+    m = colour_convert.band_to_xyz_matrix(np.asarray(wavelengths_nm, np.float64), temperature)
     xyz = np.tensordot(ratio, m, axes=([0], [1]))  # (nx, ny, nz, 3)
     rgb = colour_convert.xyz_to_linear_srgb(xyz)
-    wp = cfg.white_point
-    if wp != "D65":
-        if wp == "star":
-            white = colour_convert.xyz_to_linear_srgb(m @ np.ones(len(bands)))
+    if white_point != "D65":
+        if white_point == "star":
+            white = colour_convert.xyz_to_linear_srgb(m @ np.ones(len(wavelengths_nm)))
         else:  # "E": the equal-energy white
             white = colour_convert.xyz_to_linear_srgb(np.ones(3))
         white = white / white.max()
         rgb = rgb / white  # white balance in linear sRGB
     rgb = colour_convert.gamut_map(rgb)
-    h = float(np.prod([1.0 / n for n in rho.shape]) ** (1.0 / 3.0))
-    alpha = 1.0 - np.exp(-sig_ref * h * cfg.opacity_scale)
-    if cfg.exposure == "auto":
+    h = float(np.prod([1.0 / n for n in shape]) ** (1.0 / 3.0))
+    alpha = 1.0 - np.exp(-sigma_ref * h * opacity_scale)
+    if exposure == "auto":
         # J falls as 1/r^2 from the star, so a percentile over all voxels is set by the few
         # around the star and leaves the nebula dark. Expose for the dust that is visible:
         # the 95th percentile of the voxels with at least AUTO_EXPOSURE_MIN_ALPHA opacity
@@ -277,7 +338,10 @@ def colour_rgba(scene, bands, rho, emissivity, res: TransportResult) -> tuple[np
         sample = rgb[visible] if np.any(visible) else rgb.reshape(-1, 3)
         exposure = colour_convert.auto_exposure(sample, percentile=AUTO_EXPOSURE_PERCENTILE)
     else:
-        exposure = float(cfg.exposure)
+        exposure = float(exposure)
     srgb8 = colour_convert.encode_srgb(rgb, exposure)
     a8 = np.clip(np.rint(alpha * 255.0), 0, 255).astype(np.uint8)
-    return np.concatenate([srgb8, a8[..., None]], axis=-1), float(exposure)
+    rgba = np.concatenate([srgb8, a8[..., None]], axis=-1)
+    if return_linear:
+        return rgba, float(exposure), (rgb * exposure).astype(np.float32)
+    return rgba, float(exposure)

@@ -1,0 +1,94 @@
+"""Shared behaviour of the NebulaRT VTK algorithms."""
+
+from __future__ import annotations
+
+import math
+
+from vtkmodules.util.vtkAlgorithm import VTKPythonAlgorithmBase
+from vtkmodules.vtkCommonCore import vtkOutputWindow
+
+from nebula_rt.errors import CancelledError, NebulaError
+
+#: Star records in the flat ``Stars`` property: x, y, z (box units), luminosity,
+#: temperature (K; 0 = no spectrum, flat), bump radius (box units).
+STAR_FIELDS = ("x", "y", "z", "luminosity", "temperature", "bump_radius")
+
+
+def stars_from_flat(values) -> list[dict]:
+    """Scene-file star tables from the flat ``Stars`` vector (6 numbers per star)."""
+    vals = [float(v) for v in values]
+    if len(vals) % len(STAR_FIELDS):
+        from nebula_rt.errors import SceneError
+
+        raise SceneError("Stars", vals, "must hold 6 numbers per star: x, y, z, luminosity, temperature, bump radius")
+    out = []
+    for i in range(0, len(vals), 6):
+        x, y, z, lum, temp, bump = vals[i:i + 6]
+        star = {"position": [x, y, z], "luminosity": lum, "bump_radius": bump}
+        if temp > 0 and math.isfinite(temp):
+            star["temperature"] = temp
+        out.append(star)
+    return out
+
+
+class NebulaAlgorithm(VTKPythonAlgorithmBase):
+    """Base class: error reporting, progress, abort and an execution counter."""
+
+    def __init__(self, **kw):
+        super().__init__(**kw)
+        self.execution_count = 0
+        self.last_error: str | None = None
+
+    # -- progress and abort ------------------------------------------------------------------
+    def _report(self, fraction: float, text: str) -> None:
+        self.SetProgressText(text)
+        self.UpdateProgress(min(max(float(fraction), 0.0), 1.0))
+
+    def _abort_requested(self) -> bool:
+        check = getattr(self, "CheckAbort", None)  # VTK >= 9.3 (ParaView >= 5.12 honours it)
+        if check is not None and check():
+            return True
+        return bool(self.GetAbortExecute())
+
+    def _progress_callback(self, what: str):
+        def progress(done: int, total: int) -> None:
+            self._report(done / max(total, 1), f"NebulaRT: {what} {done:,} of {total:,} packets per band")
+        return progress
+
+    # -- execution -----------------------------------------------------------------------------
+    def RequestData(self, request, inInfo, outInfo):
+        self.execution_count += 1
+        self.last_error = None
+        output = self.GetOutputData(outInfo, 0)
+        if self.GetNumberOfInputPorts() > 0:
+            inp = self.GetInputData(inInfo, 0, 0)
+            if inp is None or inp.GetNumberOfPoints() == 0:
+                # an upstream NebulaRT filter failed (it said why): pass the emptiness on
+                # instead of leaving a stale result downstream
+                output.Initialize()
+                return 1
+        try:
+            self._execute(request, inInfo, outInfo)
+            self._report(1.0, "")
+        except (NebulaError, ValueError, KeyError) as exc:
+            kind = "cancelled" if isinstance(exc, CancelledError) else "error"
+            self.last_error = f"{type(self).__name__}: {exc}"
+            output.Initialize()  # no half-made output
+            vtkOutputWindow.GetInstance().DisplayErrorText(f"NebulaRT {kind}: {self.last_error}\n")
+        # Succeed either way: an empty output (with the error on the output window) lets
+        # downstream filters re-execute to empty rather than keep stale data.
+        return 1
+
+    def _execute(self, request, inInfo, outInfo) -> None:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+
+def shallow_copy_image(out, inp) -> None:
+    """``out.ShallowCopy(inp)`` with field data of its own (ShallowCopy shares the container,
+    so adding field data to the output would change the input)."""
+    from vtkmodules.vtkCommonDataModel import vtkFieldData
+
+    out.ShallowCopy(inp)
+    fd = vtkFieldData()
+    fd.ShallowCopy(inp.GetFieldData())
+    out.SetFieldData(fd)

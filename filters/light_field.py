@@ -1,0 +1,203 @@
+"""Nebula Light Field: photon transport through any vtkImageData's density array."""
+
+from __future__ import annotations
+
+import numpy as np
+from vtkmodules.vtkCommonDataModel import vtkDataObject, vtkImageData
+from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
+
+from nebula_rt.backends import get_backend
+from nebula_rt.errors import SceneError
+from nebula_rt.io_vti import add_field_data, add_point_arrays, cell_array, image_geometry, point_array
+from nebula_rt.pipeline import assemble_light_field, compute_light
+from nebula_rt.scene import Scene
+
+from .base import NebulaAlgorithm, shallow_copy_image, stars_from_flat
+
+ESTIMATORS = ("track-length", "collision-filter")
+BACKENDS = ("auto", "opencl", "cuda")
+
+
+def _enum(value, options):
+    return options[value] if isinstance(value, int) and 0 <= value < len(options) else value
+
+
+class NebulaLightField(NebulaAlgorithm):
+    """Trace photon packets from the stars through the input's dust density.
+
+    The input is any vtkImageData; its selected scalar array (``SetInputArrayToProcess``, or
+    ``SetDensityArrayName``; default the point array ``density``) is the dust density, one value
+    per voxel. Its grid spans the box [0, 1]^3 (box units) whatever its spacing: star positions
+    and the filter radius are in box units. A cell-data array gives voxels = cells.
+
+    Output: the input's arrays plus, per band, ``J_<band>``, ``emissivity_<band>``,
+    ``rel_error_<band>``, and the run's field data (energies, photons, seed, scene TOML): the
+    output contract of DESIGN.md.
+    """
+
+    def __init__(self):
+        super().__init__(nInputPorts=1, nOutputPorts=1, inputType="vtkImageData", outputType="vtkImageData")
+        d = Scene.default()
+        self._stars = [0.5, 0.5, 0.5, 1.0, 0.0, 0.0]
+        self._preset = d.bands.preset
+        self._override_optics = True
+        self._albedo = 0.6
+        self._g = 0.6
+        self._tau = d.dust.tau
+        self._photons = 100_000
+        self._estimator = d.transport.estimator
+        self._filter_radius = d.transport.filter_radius
+        self._max_scatterings = d.transport.max_scatterings
+        self._seed = d.transport.seed
+        self._backend = "auto"
+        self._device = ""
+        self._batch_size = 0
+        self._density_name = None
+        self.last_light = None
+
+    # -- properties ----------------------------------------------------------------------------
+    def SetStars(self, *values):
+        """Flat list, 6 numbers per star: x, y, z (box units), luminosity, temperature (K, 0 =
+        flat spectrum), bump radius (ignored here: the density comes from the input)."""
+        self._stars = list(values[0]) if len(values) == 1 and hasattr(values[0], "__len__") else list(values)
+        self.Modified()
+
+    def SetBandPreset(self, name):
+        self._preset = name
+        self.Modified()
+
+    def SetOverrideOptics(self, flag):
+        """Apply Albedo and G to every band (else the preset's own values)."""
+        self._override_optics = bool(flag)
+        self.Modified()
+
+    def SetAlbedo(self, v):
+        self._albedo = v
+        self.Modified()
+
+    def SetG(self, v):
+        self._g = v
+        self.Modified()
+
+    def SetTau(self, v):
+        """Optical depth across one box edge at density 1 in the reference band."""
+        self._tau = v
+        self.Modified()
+
+    def SetPhotons(self, n):
+        self._photons = n
+        self.Modified()
+
+    def SetEstimator(self, name):
+        self._estimator = _enum(name, ESTIMATORS)
+        self.Modified()
+
+    def SetFilterRadius(self, r):
+        self._filter_radius = r
+        self.Modified()
+
+    def SetMaxScatterings(self, n):
+        self._max_scatterings = n
+        self.Modified()
+
+    def SetSeed(self, s):
+        self._seed = s
+        self.Modified()
+
+    def SetBackend(self, name):
+        self._backend = _enum(name, BACKENDS)
+        self.Modified()
+
+    def SetDevice(self, selector):
+        self._device = selector
+        self.Modified()
+
+    def SetBatchSize(self, n):
+        self._batch_size = n
+        self.Modified()
+
+    def SetDensityArrayName(self, name):
+        """Plain-VTK shortcut for ``SetInputArrayToProcess(0, 0, 0, POINTS, name)``."""
+        self.SetInputArrayToProcess(0, 0, 0, vtkDataObject.FIELD_ASSOCIATION_POINTS, name)
+
+    # -- helpers -------------------------------------------------------------------------------
+    def _selected_array(self):
+        """(name, association) of the density array; default the point array "density"."""
+        info = self.GetInputArrayInformation(0)
+        name = info.Get(vtkDataObject.FIELD_NAME()) if info is not None and info.Has(vtkDataObject.FIELD_NAME()) else None
+        assoc = vtkDataObject.FIELD_ASSOCIATION_POINTS
+        if info is not None and info.Has(vtkDataObject.FIELD_ASSOCIATION()):
+            assoc = info.Get(vtkDataObject.FIELD_ASSOCIATION())
+        return (name or "density"), assoc
+
+    def scene(self, shape) -> Scene:
+        bands = {"preset": self._preset}
+        if self._override_optics:
+            bands.update(albedo=self._albedo, g=self._g)
+        return Scene.from_dict({
+            "grid": {"shape": list(shape)},
+            "dust": {"model": "uniform", "tau": self._tau},
+            "stars": stars_from_flat(self._stars),
+            "bands": bands,
+            "transport": {"photons": self._photons, "estimator": self._estimator,
+                          "filter_radius": self._filter_radius, "max_scatterings": self._max_scatterings,
+                          "seed": self._seed, "backend": self._backend, "device": self._device,
+                          "batch_size": self._batch_size},
+        })
+
+    # -- pipeline ------------------------------------------------------------------------------
+    def RequestInformation(self, request, inInfo, outInfo):
+        src = inInfo[0].GetInformationObject(0)
+        dst = outInfo.GetInformationObject(0)
+        ext = list(src.Get(vtkStreamingDemandDrivenPipeline.WHOLE_EXTENT()))
+        spacing = list(src.Get(vtkImageData.SPACING()) or (1.0, 1.0, 1.0))
+        origin = list(src.Get(vtkImageData.ORIGIN()) or (0.0, 0.0, 0.0))
+        _, assoc = self._selected_array()
+        if assoc == vtkDataObject.FIELD_ASSOCIATION_CELLS:
+            # voxels are the input's cells: one point per cell centre
+            for ax in range(3):
+                if ext[2 * ax + 1] > ext[2 * ax]:
+                    ext[2 * ax + 1] -= 1
+                    origin[ax] += 0.5 * spacing[ax]
+        dst.Set(vtkStreamingDemandDrivenPipeline.WHOLE_EXTENT(), *ext)
+        dst.Set(vtkImageData.SPACING(), *spacing)
+        dst.Set(vtkImageData.ORIGIN(), *origin)
+        return 1
+
+    def _execute(self, request, inInfo, outInfo):
+        inp = vtkImageData.GetData(inInfo[0])
+        out = vtkImageData.GetData(outInfo)
+        name, assoc = self._selected_array()
+        cells = assoc == vtkDataObject.FIELD_ASSOCIATION_CELLS
+        try:
+            rho = cell_array(inp, name) if cells else point_array(inp, name)
+        except KeyError as exc:
+            raise SceneError("density array", name, f"must be a {'cell' if cells else 'point'} array of the input ({exc.args[0]})") from None
+        if rho.ndim != 3:
+            raise SceneError("density array", name, f"must have one component (found shape {rho.shape})")
+        rho = rho.astype(np.float64)
+        if not np.all(np.isfinite(rho)):
+            raise SceneError("density array", name, "must be finite (found NaN or infinity)")
+        if np.any(rho < 0):
+            raise SceneError("density array", name, f"must be >= 0 (minimum {rho.min()!r})")
+        scene = self.scene(rho.shape)
+        backend = get_backend(scene.transport.backend, scene.transport.device)
+        self._report(0.0, "NebulaRT: tracing")
+        res, J, rel = compute_light(scene, rho.astype(np.float32), backend,
+                                    progress=self._progress_callback("traced"), cancel=self._abort_requested)
+        light = assemble_light_field(scene, rho.astype(np.float32), res, J, rel)
+        if cells:
+            dims, spacing, origin = image_geometry(inp)
+            out.SetDimensions(*rho.shape)
+            out.SetSpacing(*spacing)
+            out.SetOrigin(*(o + 0.5 * s for o, s in zip(origin, spacing)))
+            add_point_arrays(out, {name: rho.astype(np.float32)})
+        else:
+            shallow_copy_image(out, inp)
+        arrays = light.point_arrays()
+        if name != "density" or cells:
+            arrays.pop("density")  # the input's own array carries it
+        add_point_arrays(out, arrays)
+        add_field_data(out, light.field_data())
+        out.GetPointData().SetActiveScalars(f"J_{light.bands[light.reference_band].name}")
+        self.last_light = light

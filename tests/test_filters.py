@@ -1,0 +1,172 @@
+"""The VTK algorithms of nebula_rt.filters in plain VTK and pyvista (no ParaView)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from vtkmodules.vtkCommonDataModel import vtkDataObject
+
+from conftest import TEST_DEVICE
+from nebula_rt.filters import NebulaColour, NebulaDustDensity, NebulaLightField
+from nebula_rt.io_vti import field_data_dict, point_array, to_image_data
+from nebula_rt.pipeline import Pipeline
+from nebula_rt.scene import Scene
+
+
+def chain(shape=(16, 12, 10), photons=5000):
+    d = NebulaDustDensity()
+    d.SetGridShape(*shape)
+    d.SetDevice(TEST_DEVICE)
+    lf = NebulaLightField()
+    lf.SetInputConnection(d.GetOutputPort())
+    lf.SetPhotons(photons)
+    lf.SetTau(50.0)
+    lf.SetDevice(TEST_DEVICE)
+    c = NebulaColour()
+    c.SetInputConnection(lf.GetOutputPort())
+    return d, lf, c
+
+
+def counts(*algs):
+    return tuple(a.execution_count for a in algs)
+
+
+def test_chain_produces_the_output_contract():
+    d, lf, c = chain()
+    c.Update()
+    out = c.GetOutputDataObject(0)
+    assert out.GetDimensions() == (16, 12, 10)
+    assert out.GetSpacing() == pytest.approx((1 / 16, 1 / 12, 1 / 10))
+    assert out.GetOrigin() == pytest.approx((0.5 / 16, 0.5 / 12, 0.5 / 10))
+    names = {out.GetPointData().GetArrayName(i) for i in range(out.GetPointData().GetNumberOfArrays())}
+    assert names == {"density", "rgba", "rgb_linear"} | {f"{p}_{b}" for p in ("J", "emissivity", "rel_error") for b in "RGB"}
+    fd = field_data_dict(out)
+    for b in "RGB":
+        assert fd[f"emitted_{b}"] == fd[f"absorbed_{b}"] + fd[f"escaped_{b}"] + fd[f"terminated_{b}"]
+    rgba = point_array(out, "rgba")
+    assert rgba.dtype == np.uint8 and rgba.shape == (16, 12, 10, 4)
+    assert d.last_error is None and lf.last_error is None and c.last_error is None
+
+
+def test_filters_match_the_library_pipeline():
+    """Same scene through the VTK algorithms and through Pipeline: identical bits."""
+    d, lf, c = chain()
+    c.Update()
+    out = c.GetOutputDataObject(0)
+    scene = Scene.from_dict({
+        "grid": {"shape": [16, 12, 10]},
+        "dust": {"tau": 50.0},
+        "stars": [{"position": [0.5, 0.5, 0.5], "luminosity": 1.0, "bump_radius": 0.01}],
+        "bands": {"albedo": 0.6, "g": 0.6},
+        "transport": {"photons": 5000, "device": TEST_DEVICE},
+    })
+    light = Pipeline().run(scene)
+    np.testing.assert_array_equal(point_array(out, "density"), light.density)
+    np.testing.assert_array_equal(point_array(out, "J_B"), light.J[2])
+    np.testing.assert_array_equal(point_array(out, "rgba"), light.rgba)
+
+
+def test_only_changed_stages_reexecute():
+    d, lf, c = chain()
+    c.Update()
+    assert counts(d, lf, c) == (1, 1, 1)
+    c.Update()
+    assert counts(d, lf, c) == (1, 1, 1)
+    c.SetAutoExposure(False)
+    c.SetExposure(3.0)
+    c.Update()  # colour change: no re-trace
+    assert counts(d, lf, c) == (1, 1, 2)
+    assert field_data_dict(c.GetOutputDataObject(0))["exposure"] == 3.0
+    # the colour filter's field data is its own: the light field's output is untouched
+    assert np.isnan(field_data_dict(lf.GetOutputDataObject(0))["exposure"])
+    lf.SetAlbedo(0.3)
+    c.Update()  # albedo change: re-trace, no new density
+    assert counts(d, lf, c) == (1, 2, 3)
+    d.SetOffset(1.5, 0.5, 0.5)
+    c.Update()
+    assert counts(d, lf, c) == (2, 3, 4)
+
+
+def test_bad_input_gives_a_clear_error_and_no_output():
+    d, lf, c = chain()
+    lf.SetPhotons(0)
+    c.Update()
+    assert "transport.photons" in lf.last_error and "0" in lf.last_error
+    assert lf.GetOutputDataObject(0).GetNumberOfPoints() == 0
+    assert c.GetOutputDataObject(0).GetNumberOfPoints() == 0
+    lf.SetPhotons(2000)  # and the pipeline recovers
+    c.Update()
+    assert lf.last_error is None and c.GetOutputDataObject(0).GetNumberOfPoints() == 16 * 12 * 10
+    lf.SetOverrideOptics(True)
+    lf.SetG(1.5)
+    c.Update()
+    assert "bands.g" in lf.last_error
+
+
+def test_user_density_array_point_and_cell_data():
+    """Bring your own density: a named point array, or cell data (voxels = cells)."""
+    rng = np.random.default_rng(3)
+    rho = rng.uniform(0, 0.2, size=(10, 8, 6)).astype(np.float32)
+    img = to_image_data({"my_rho": rho, "other": rho * 2}, {}, spacing=(2.0, 2.0, 2.0), origin=(-5, -4, -3))
+    lf = NebulaLightField()
+    lf.SetInputDataObject(0, img)
+    lf.SetInputArrayToProcess(0, 0, 0, vtkDataObject.FIELD_ASSOCIATION_POINTS, "my_rho")
+    lf.SetPhotons(3000)
+    lf.SetDevice(TEST_DEVICE)
+    lf.Update()
+    out = lf.GetOutputDataObject(0)
+    assert lf.last_error is None
+    assert out.GetDimensions() == (10, 8, 6) and out.GetSpacing() == (2.0, 2.0, 2.0)
+    assert out.GetPointData().HasArray("my_rho") and out.GetPointData().HasArray("J_G")
+    assert not out.GetPointData().HasArray("density")
+    # cell data: an image of 11x9x7 points has 10x8x6 cells
+    from vtkmodules.util import numpy_support
+    from vtkmodules.vtkCommonDataModel import vtkImageData
+
+    cimg = vtkImageData()
+    cimg.SetDimensions(11, 9, 7)
+    arr = numpy_support.numpy_to_vtk(np.ravel(rho, order="F"), deep=True)
+    arr.SetName("rho_cells")
+    cimg.GetCellData().AddArray(arr)
+    lf2 = NebulaLightField()
+    lf2.SetInputDataObject(0, cimg)
+    lf2.SetInputArrayToProcess(0, 0, 0, vtkDataObject.FIELD_ASSOCIATION_CELLS, "rho_cells")
+    lf2.SetPhotons(3000)
+    lf2.SetDevice(TEST_DEVICE)
+    lf2.Update()
+    out2 = lf2.GetOutputDataObject(0)
+    assert lf2.last_error is None, lf2.last_error
+    assert out2.GetDimensions() == (10, 8, 6)
+    np.testing.assert_array_equal(point_array(out, "J_G"), point_array(out2, "J_G"))
+    # a missing array is named
+    lf.SetInputArrayToProcess(0, 0, 0, vtkDataObject.FIELD_ASSOCIATION_POINTS, "nope")
+    lf.Update()
+    assert "nope" in lf.last_error and lf.GetOutputDataObject(0).GetNumberOfPoints() == 0
+
+
+def test_progress_and_abort_between_batches():
+    d, lf, c = chain(photons=32_000)
+    seen = []
+
+    def on_progress(obj, event):
+        seen.append(obj.GetProgress())
+        if len(seen) == 3:
+            obj.SetAbortExecute(1)
+
+    lf.AddObserver("ProgressEvent", on_progress)
+    lf.Update()
+    assert "cancelled" in lf.last_error
+    assert lf.GetOutputDataObject(0).GetNumberOfPoints() == 0
+    # stopped after a few of the 16 batches (the executive adds a final 1.0 when it finishes)
+    traced = [p for p in seen if p < 1.0]
+    assert 0 < max(traced) < 0.5 and len(seen) <= 5
+
+
+def test_pyvista_wraps_the_output():
+    import pyvista as pv
+
+    d, lf, c = chain()
+    c.Update()
+    mesh = pv.wrap(c.GetOutputDataObject(0))
+    assert isinstance(mesh, pv.ImageData)
+    assert mesh["rgba"].shape == (16 * 12 * 10, 4) and mesh["J_R"].dtype == np.float32
