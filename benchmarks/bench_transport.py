@@ -36,16 +36,16 @@ CONFIGS = [
 ]
 
 
-def run_single(cfg: dict, device: str) -> dict:
+def run_single(cfg: dict, device: str, backend_name: str = "opencl") -> dict:
     """Run one configuration in this process and return its measurements."""
     from nebula_rt.backends import get_backend
     from nebula_rt.pipeline import Pipeline
     from nebula_rt.scene import Scene
 
     overrides = [f"grid.shape={cfg['shape']}", f"transport.photons={cfg['photons']}",
-                 f'transport.device="{device}"', 'transport.backend="opencl"']
+                 f'transport.device="{device}"', f'transport.backend="{backend_name}"']
     scene = Scene.load(SCENE).with_overrides(overrides)
-    backend = get_backend("opencl", device)
+    backend = get_backend(backend_name, device)
     t0 = time.perf_counter()
     Pipeline(backend).run(scene.with_overrides(["transport.photons=1000", "grid.shape=[8,8,8]"]))
     compile_s = time.perf_counter() - t0
@@ -87,14 +87,15 @@ def git_commit() -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--device", default="", help="OpenCL device selector (default: first GPU, else CPU)")
+    ap.add_argument("--backend", default="opencl", choices=["opencl", "cuda", "auto"])
+    ap.add_argument("--device", default="", help="device selector (default: first GPU, else CPU)")
     ap.add_argument("--quick", action="store_true", help="divide the photon counts by 20")
     ap.add_argument("--only", default=None, help="run only configurations whose name contains this")
     ap.add_argument("--out", default=None, help="JSON output (default benchmarks/results/transport-<device>-<date>.json)")
     ap.add_argument("--single", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.single:
-        print(json.dumps(run_single(json.loads(args.single), args.device)))
+        print(json.dumps(run_single(json.loads(args.single), args.device, args.backend)))
         return 0
     configs = [dict(c) for c in CONFIGS if args.only is None or args.only in c["name"]]
     if args.quick:
@@ -102,7 +103,8 @@ def main(argv=None) -> int:
             c["photons"] //= 20
     rows = []
     for cfg in configs:
-        proc = subprocess.run([sys.executable, __file__, "--single", json.dumps(cfg), "--device", args.device],
+        proc = subprocess.run([sys.executable, __file__, "--single", json.dumps(cfg), "--device", args.device,
+                               "--backend", args.backend],
                               capture_output=True, text=True)
         if proc.returncode != 0:
             print(proc.stderr, file=sys.stderr)

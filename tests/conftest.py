@@ -2,7 +2,9 @@
 
 Two PoCL platforms may be present (the pip wheel and Debian's ICD); the selector picks the
 first usable device whose name contains the text, so results are reproducible on a machine.
-Set NEBULA_RT_TEST_DEVICE to run the suite on another OpenCL device (e.g. "NVIDIA").
+Set NEBULA_RT_TEST_DEVICE to run the suite on another OpenCL device (e.g. "NVIDIA"), or
+NEBULA_RT_TEST_BACKEND=cuda to run the physics tests on the CUDA backend (device selector from
+NEBULA_RT_TEST_DEVICE, default the first CUDA device).
 """
 
 from __future__ import annotations
@@ -16,12 +18,13 @@ from nebula_rt.backends import get_backend
 from nebula_rt.bands import Band
 from nebula_rt.scene import Star
 
-TEST_DEVICE = os.environ.get("NEBULA_RT_TEST_DEVICE", "Portable Computing Language")
+TEST_BACKEND = os.environ.get("NEBULA_RT_TEST_BACKEND", "opencl")
+TEST_DEVICE = os.environ.get("NEBULA_RT_TEST_DEVICE", "Portable Computing Language" if TEST_BACKEND == "opencl" else "")
 
 
 @pytest.fixture(scope="session")
 def backend():
-    return get_backend("opencl", TEST_DEVICE)
+    return get_backend(TEST_BACKEND, TEST_DEVICE)
 
 
 def one_band(albedo=0.6, g=0.6, extinction=1.0, name="V", wavelength=550.0):

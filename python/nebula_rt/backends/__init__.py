@@ -1,7 +1,7 @@
 """Compute backends and their selection.
 
-``get_backend("auto")`` prefers CUDA where a CUDA backend is available, then an
-OpenCL GPU, then OpenCL on the CPU (PoCL). Backends are cached per (name, device),
+``get_backend("auto")`` prefers CUDA where CuPy sees a GPU, then an OpenCL GPU, then
+OpenCL on the CPU (PoCL). Backends are cached per (name, device),
 so repeated runs reuse compiled programs.
 """
 
@@ -29,10 +29,17 @@ def get_backend(name: str = "auto", device: str = "") -> Backend:
     if name not in BACKENDS:
         raise SceneError("transport.backend", name, "one of: " + ", ".join(repr(b) for b in BACKENDS))
     if name == "cuda":
-        raise BackendUnavailableError(
-            "transport.backend = 'cuda': the CUDA backend is not available in this build; "
-            "use 'opencl' (NVIDIA GPUs are reached through their OpenCL driver) or 'auto'"
-        )
+        from .cuda import CUDABackend
+
+        return CUDABackend(device)
+    if name == "auto":
+        from .cuda import CUDABackend, cuda_available
+
+        if cuda_available():
+            try:  # a device selector naming an OpenCL device falls through to OpenCL
+                return CUDABackend(device)
+            except BackendUnavailableError:
+                pass
     from .opencl import OpenCLBackend
 
     return OpenCLBackend(device)

@@ -1,0 +1,211 @@
+"""CUDA backend: the same kernel sources compiled at run time by NVRTC through CuPy.
+
+The ``.cl`` files are written against ``nebula_common.h``, whose macros map OpenCL C onto
+CUDA C (``__kernel`` -> ``extern "C" __global__``, address spaces, 64-bit atomics, math
+functions), so one source serves both backends. CuPy caches compiled modules on disk
+(``~/.cupy/kernel_cache``, keyed by source and options), so only the first run compiles.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import BackendUnavailableError
+from ..kernel_source import kernel_source
+from .base import Backend, TransportSession, TransportSetup
+
+BLOCK = 256
+
+
+def _cupy():
+    try:
+        import cupy as cp
+    except Exception as exc:  # ImportError, or a CUDA runtime that fails to load
+        raise BackendUnavailableError(
+            f"transport.backend = 'cuda': CuPy is not importable here ({exc}); install cupy-cudaXXx "
+            "for your CUDA version, or use backend 'opencl'"
+        ) from None
+    try:
+        n = cp.cuda.runtime.getDeviceCount()
+    except Exception as exc:
+        raise BackendUnavailableError(f"transport.backend = 'cuda': no usable CUDA driver ({exc})") from None
+    if n < 1:
+        raise BackendUnavailableError("transport.backend = 'cuda': no CUDA device found")
+    return cp
+
+
+def cuda_available() -> bool:
+    """True when CuPy imports and sees at least one CUDA device."""
+    try:
+        _cupy()
+        return True
+    except BackendUnavailableError:
+        return False
+
+
+def _grid(n: int) -> tuple[int]:
+    return ((int(n) + BLOCK - 1) // BLOCK,)
+
+
+class CUDATransport(TransportSession):
+    def __init__(self, backend: "CUDABackend", setup: TransportSetup, max_batch: int):
+        cp = backend.cp
+        self.backend = backend
+        self.setup = setup
+        self.shape = tuple(int(n) for n in setup.density.shape)
+        nb = setup.n_bands
+        self.nvox = int(np.prod(self.shape))
+        self.ncell = nb * self.nvox
+        self.d_density = cp.asarray(np.ravel(np.asarray(setup.density, np.float32), order="F"))
+        self.d_sigma = cp.asarray(np.asarray(setup.sigma_scale, np.float32))
+        self.d_albedo = cp.asarray(np.asarray(setup.albedo, np.float32))
+        self.d_g = cp.asarray(np.asarray(setup.g, np.float32))
+        stars4 = np.zeros((setup.stars.shape[0], 4), np.float32)
+        stars4[:, :3] = setup.stars
+        self.d_stars = cp.asarray(stars4.ravel())
+        self.d_cdf = cp.asarray(np.ascontiguousarray(setup.star_cdf, np.float32).ravel())
+        self.d_acc = cp.zeros(self.ncell, cp.uint64)
+        self.d_sum1 = cp.zeros(self.ncell, cp.float64)
+        self.d_sum2 = cp.zeros(self.ncell, cp.float64)
+        self.d_tallies = cp.zeros(nb * 4, cp.uint64)
+        self.d_overflow = cp.zeros(1, cp.uint32)
+        defines = {"track-length": {"NRT_TRACK_LENGTH": 1}, "collision-filter": {"NRT_COLLISION": 1}}[setup.estimator]
+        defines = dict(defines)
+        if setup.acc_limit_bits != 63:
+            defines["NRT_ACC_LIMIT_BITS"] = int(setup.acc_limit_bits)
+        self.k_trace = backend.kernel("transport.cl", "trace_photons", defines)
+        self.k_fold = backend.kernel("transport.cl", "fold_batch", defines)
+
+    def run_batch(self, photon_start, count):
+        s = self.setup
+        nx, ny, nz = self.shape
+        self.d_tallies.fill(0)
+        self.d_overflow.fill(0)
+        total = int(count) * s.n_bands
+        self.k_trace(_grid(total), (BLOCK,), (
+            self.d_density, self.d_sigma, self.d_albedo, self.d_g, self.d_stars, self.d_cdf,
+            np.int32(nx), np.int32(ny), np.int32(nz), np.int32(s.n_bands), np.int32(s.stars.shape[0]),
+            np.uint64(s.seed), np.uint64(photon_start), np.uint64(count),
+            np.int32(s.max_scatterings), np.float32(s.track_scale),
+            self.d_acc, self.d_tallies, self.d_overflow,
+        ))
+        tallies = self.d_tallies.get().reshape(s.n_bands, 4)  # synchronises
+        return tallies, bool(self.d_overflow.get()[0])
+
+    def fold_batch(self):
+        self.k_fold(_grid(self.ncell), (BLOCK,), (self.d_acc, self.d_sum1, self.d_sum2, np.uint64(self.ncell)))
+
+    def discard_batch(self):
+        self.d_acc.fill(0)
+
+    def sums(self):
+        nb = self.setup.n_bands
+        out = []
+        for buf in (self.d_sum1, self.d_sum2):
+            out.append(buf.get().reshape((nb,) + self.shape[::-1]).transpose(0, 3, 2, 1))
+        return out[0], out[1]
+
+    def close(self):
+        for name in ("d_acc", "d_sum1", "d_sum2", "d_density"):
+            setattr(self, name, None)
+
+
+class CUDABackend(Backend):
+    """Kernels compiled with NVRTC (CuPy RawModule) for one CUDA device."""
+
+    name = "cuda"
+
+    def __init__(self, selector: str = ""):
+        cp = _cupy()
+        self.cp = cp
+        index = 0
+        sel = selector.strip()
+        if sel:
+            if sel.isdigit():
+                index = int(sel)
+            else:
+                names = [cp.cuda.runtime.getDeviceProperties(i)["name"].decode() for i in range(cp.cuda.runtime.getDeviceCount())]
+                hits = [i for i, n in enumerate(names) if sel.lower() in n.lower()]
+                if not hits:
+                    raise BackendUnavailableError(f"transport.device = {selector!r}: no matching CUDA device; available: {names}")
+                index = hits[0]
+        self.device = cp.cuda.Device(index)
+        self.device.use()
+        props = cp.cuda.runtime.getDeviceProperties(index)
+        self._device_name = f"CUDA: {props['name'].decode()}"
+        self._modules: dict = {}
+        self._kernels: dict = {}
+
+    @property
+    def device_name(self) -> str:
+        return self._device_name
+
+    def module(self, name: str, defines: dict | None = None):
+        key = (name, tuple(sorted((defines or {}).items())))
+        mod = self._modules.get(key)
+        if mod is None:
+            options = ("--std=c++14",) + tuple(f"-D{k}={v}" for k, v in sorted((defines or {}).items()))
+            mod = self.cp.RawModule(code=kernel_source(name), options=options)
+            self._modules[key] = mod
+        return mod
+
+    def kernel(self, prog_name: str, kernel_name: str, defines: dict | None = None):
+        key = (prog_name, kernel_name, tuple(sorted((defines or {}).items())))
+        k = self._kernels.get(key)
+        if k is None:
+            k = self.module(prog_name, defines).get_function(kernel_name)
+            self._kernels[key] = k
+        return k
+
+    def generate_density(self, shape, model, offset, scale, uniform_density, floor, stars, subsamples=8):
+        cp = self.cp
+        nx, ny, nz = (int(v) for v in shape)
+        n = nx * ny * nz
+        out = cp.empty(n, cp.float32)
+        stars = np.asarray(stars, np.float32).reshape(-1, 4)
+        d_stars = cp.asarray(stars.ravel() if len(stars) else np.zeros(4, np.float32))
+        self.kernel("density.cl", "generate_density")(_grid(n), (BLOCK,), (
+            out, np.int32(nx), np.int32(ny), np.int32(nz), np.int32(model),
+            np.float32(offset[0]), np.float32(offset[1]), np.float32(offset[2]),
+            np.float32(scale), np.float32(uniform_density), np.float32(floor),
+            d_stars, np.int32(len(stars)), np.int32(subsamples)))
+        return out.get().reshape((nz, ny, nx)).transpose(2, 1, 0)
+
+    def transport_session(self, setup, max_batch):
+        return CUDATransport(self, setup, max_batch)
+
+    def sample_noise(self, points):
+        cp = self.cp
+        pts = cp.asarray(np.ascontiguousarray(points, np.float32).reshape(-1, 3))
+        n = pts.shape[0]
+        noise, turb = cp.empty(n, cp.float32), cp.empty(n, cp.float32)
+        self.kernel("density.cl", "sample_noise")(_grid(n), (BLOCK,), (pts, noise, turb, np.int32(n)))
+        return noise.get(), turb.get()
+
+    def philox_blocks(self, key, counter, n):
+        cp = self.cp
+        out = cp.empty(4 * n, cp.uint64)
+        self.kernel("sampling.cl", "philox_blocks")(_grid(n), (BLOCK,), (
+            out, np.uint64(key[0]), np.uint64(key[1]), *(np.uint64(c) for c in counter), np.uint64(n)))
+        return out.get().reshape(n, 4)
+
+    def photon_stream_u32(self, seed, band, photon0, m, n):
+        cp = self.cp
+        out = cp.empty(m * n, cp.uint32)
+        self.kernel("sampling.cl", "photon_stream_u32")(_grid(n), (BLOCK,), (
+            out, np.uint64(seed), np.uint64(band), np.uint64(photon0), np.int32(m), np.uint64(n)))
+        return out.get().reshape(n, m)
+
+    def hg_cosines(self, g, seed, n):
+        cp = self.cp
+        mu, norm = cp.empty(n, cp.float32), cp.empty(n, cp.float32)
+        self.kernel("sampling.cl", "hg_cosines")(_grid(n), (BLOCK,), (mu, norm, np.float32(g), np.uint64(seed), np.uint64(n)))
+        return mu.get(), norm.get()
+
+    def hg_at(self, g, xi):
+        cp = self.cp
+        xi = cp.asarray(np.ascontiguousarray(xi, np.float32))
+        n = xi.size
+        mu, st = cp.empty(n, cp.float32), cp.empty(n, cp.float32)
+        self.kernel("sampling.cl", "hg_at")(_grid(n), (BLOCK,), (mu, st, xi, np.float32(g), np.uint64(n)))
+        return mu.get(), st.get()
