@@ -17,9 +17,6 @@ changed; ``execution_count`` counts real executions.
 from .colour import NebulaColour
 from .dust_density import NebulaDustDensity
 from .light_field import NebulaLightField
-try:  # written with the sky module
-    from .sky_image import NebulaSkyImage
-except ImportError:  # pragma: no cover
-    NebulaSkyImage = None
+from .sky_image import NebulaSkyImage
 
 __all__ = ["NebulaColour", "NebulaDustDensity", "NebulaLightField", "NebulaSkyImage"]

@@ -56,6 +56,18 @@ class NebulaAlgorithm(VTKPythonAlgorithmBase):
         return progress
 
     # -- execution -----------------------------------------------------------------------------
+    def RequestUpdateExtent(self, request, inInfo, outInfo):
+        """Always ask for the whole input: the transport needs every voxel, and a sub-extent
+        request (e.g. from a 2D sky image downstream) would re-execute the upstream filters."""
+        from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline as sddp
+
+        for port in range(self.GetNumberOfInputPorts()):
+            for conn in range(inInfo[port].GetNumberOfInformationObjects()):
+                info = inInfo[port].GetInformationObject(conn)
+                if info.Has(sddp.WHOLE_EXTENT()):
+                    info.Set(sddp.UPDATE_EXTENT(), *info.Get(sddp.WHOLE_EXTENT()))
+        return 1
+
     def RequestData(self, request, inInfo, outInfo):
         self.execution_count += 1
         self.last_error = None

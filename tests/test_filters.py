@@ -170,3 +170,34 @@ def test_pyvista_wraps_the_output():
     mesh = pv.wrap(c.GetOutputDataObject(0))
     assert isinstance(mesh, pv.ImageData)
     assert mesh["rgba"].shape == (16 * 12 * 10, 4) and mesh["J_R"].dtype == np.float32
+
+
+def test_sky_image_filter():
+    """The sky image of a light field: per-band intensities, the star's attenuation, colour;
+    changing the view re-runs only the sky image."""
+    from nebula_rt.filters import NebulaSkyImage
+
+    d, lf, c = chain(shape=(16, 16, 16))
+    sky = NebulaSkyImage()
+    sky.SetInputConnection(lf.GetOutputPort())
+    sky.SetImageSize(40, 30)
+    sky.Update()
+    assert sky.last_error is None, sky.last_error
+    out = sky.GetOutputDataObject(0)
+    assert out.GetDimensions() == (40, 30, 1)
+    fd = field_data_dict(out)
+    I_B, I_R = point_array(out, "I_B")[:, :, 0], point_array(out, "I_R")[:, :, 0]
+    assert np.all(np.isfinite(I_B)) and I_B.sum() > 0
+    # blue is extinguished more on the way from the star to the observer
+    assert fd["tau_star_B"] > fd["tau_star_R"] > 0
+    assert fd["tau_star_B"] / fd["tau_star_R"] == pytest.approx(1.324 / 0.748, rel=1e-6)
+    rgb = point_array(out, "rgb")
+    assert rgb.dtype == np.uint8 and rgb.shape == (40, 30, 1, 3) and rgb.max() > 0
+    n = sky.execution_count
+    sky.SetViewDirection(1.0, 0.0, 0.0)
+    sky.SetViewUp(0.0, 0.0, 1.0)
+    sky.Update()
+    assert sky.execution_count == n + 1 and lf.execution_count == 1
+    sky.SetImageSize(0, 10)
+    sky.Update()
+    assert "size" in sky.last_error.lower() and sky.GetOutputDataObject(0).GetNumberOfPoints() == 0

@@ -1,0 +1,148 @@
+"""Nebula Sky Image: what a telescope sees along a chosen direction."""
+
+from __future__ import annotations
+
+import numpy as np
+from vtkmodules.vtkCommonDataModel import vtkImageData
+from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
+
+from nebula_rt import colour_convert
+from nebula_rt.errors import SceneError
+from nebula_rt.io_vti import add_field_data, add_point_arrays, field_data_dict, point_array
+from nebula_rt.scene import Scene
+from nebula_rt.sky import Camera, sky_image
+from nebula_rt.transport import star_band_luminosities
+
+from .base import NebulaAlgorithm
+
+#: Auto exposure of the sky image: this percentile of the scattered light's max colour
+#: component (among lit pixels) maps to full scale; star pixels saturate.
+SKY_EXPOSURE_PERCENTILE = 99.0
+
+
+class NebulaSkyImage(NebulaAlgorithm):
+    """Orthographic image of the nebula seen from far away along ``ViewDirection``.
+
+    Per band, the scattered emissivity is integrated along each pixel's ray with that band's
+    extinction, and each star adds its attenuated direct light to the pixel it falls in.
+    Output: a W x H x 1 vtkImageData (spacing = pixel size in box units) with ``I_<band>``
+    (total), ``scattered_<band>`` (float32; luminosity per box-unit area per steradian) and
+    ``rgb`` (uint8 x 3, sRGB through the same band -> XYZ matrix as the volume colours).
+    Field data: the camera, ``tau_star_<band>`` (optical depth from the first star to the
+    observer), ``exposure``.
+    """
+
+    def __init__(self):
+        super().__init__(nInputPorts=1, nOutputPorts=1, inputType="vtkImageData", outputType="vtkImageData")
+        self._direction = (0.0, 0.0, -1.0)
+        self._up = (0.0, 1.0, 0.0)
+        self._size = (256, 256)
+        self._extent = 0.0
+        self._include_stars = True
+        self._auto_exposure = True
+        self._exposure = 1.0
+
+    def SetViewDirection(self, x, y, z):
+        self._direction = (x, y, z)
+        self.Modified()
+
+    def SetViewUp(self, x, y, z):
+        self._up = (x, y, z)
+        self.Modified()
+
+    def SetImageSize(self, w, h):
+        self._size = (w, h)
+        self.Modified()
+
+    def SetExtent(self, e):
+        """Field of view (box units); 0 fits the whole box whatever the direction."""
+        self._extent = e
+        self.Modified()
+
+    def SetIncludeStars(self, flag):
+        self._include_stars = bool(flag)
+        self.Modified()
+
+    def SetAutoExposure(self, flag):
+        self._auto_exposure = bool(flag)
+        self.Modified()
+
+    def SetExposure(self, v):
+        self._exposure = v
+        self.Modified()
+
+    def _camera(self) -> Camera:
+        try:
+            w, h = (int(v) for v in self._size)
+            return Camera(direction=tuple(float(v) for v in self._direction), up=tuple(float(v) for v in self._up),
+                          size=(w, h), extent=float(self._extent))
+        except ValueError as exc:
+            raise SceneError("sky image camera", (self._direction, self._up, self._size, self._extent), str(exc)) from None
+
+    def RequestInformation(self, request, inInfo, outInfo):
+        try:
+            cam = self._camera()
+        except SceneError:
+            return 1  # reported in RequestData
+        w, h = cam.size
+        info = outInfo.GetInformationObject(0)
+        info.Set(vtkStreamingDemandDrivenPipeline.WHOLE_EXTENT(), 0, w - 1, 0, h - 1, 0, 0)
+        info.Set(vtkImageData.SPACING(), cam.pixel_size, cam.pixel_size, 1.0)
+        info.Set(vtkImageData.ORIGIN(), 0.5 * cam.pixel_size, 0.5 * cam.pixel_size, 0.0)
+        return 1
+
+    def _execute(self, request, inInfo, outInfo):
+        cam = self._camera()
+        if not self._auto_exposure and not (float(self._exposure) > 0):
+            raise SceneError("Exposure", self._exposure, "must be a positive number (or use AutoExposure)")
+        inp = vtkImageData.GetData(inInfo[0])
+        fd = field_data_dict(inp)
+        need = ("band_names", "band_wavelength_nm", "band_extinction", "tau", "scene")
+        missing = [k for k in need if k not in fd]
+        if missing:
+            raise SceneError("input", "field data", f"must come from Nebula Light Field (missing {', '.join(missing)})")
+        names = str(fd["band_names"]).split(",")
+        wl = np.atleast_1d(fd["band_wavelength_nm"]).astype(np.float64)
+        ext = np.atleast_1d(fd["band_extinction"]).astype(np.float64)
+        emissivity = np.stack([point_array(inp, f"emissivity_{n}") for n in names]).astype(np.float64)
+        rho = point_array(inp, "density").astype(np.float64) if inp.GetPointData().HasArray("density") else None
+        if rho is None:
+            raise SceneError("input", "density", "the light field must carry its density array")
+        sigma = float(fd["tau"]) * ext[:, None, None, None] * rho[None]
+        scene = Scene.loads(str(fd["scene"]))
+        stars = [s.position for s in scene.stars] if self._include_stars else []
+        slum = star_band_luminosities(scene.stars, wl) if self._include_stars else None
+        self._report(0.1, "NebulaRT: ray marching the sky image")
+        img = sky_image(emissivity, sigma, cam, stars=stars, star_band_luminosity=slum)
+        band_lum = star_band_luminosities(scene.stars, wl).sum(axis=0)
+        t = float(fd.get("colour_temperature", 0.0))
+        m = colour_convert.band_to_xyz_matrix(wl, t if t > 0 else None)
+        ratio = img.intensity / band_lum[:, None, None]
+        rgb = colour_convert.gamut_map(colour_convert.xyz_to_linear_srgb(np.tensordot(ratio, m, axes=([0], [1]))))
+        if self._auto_exposure:
+            scat = colour_convert.xyz_to_linear_srgb(
+                np.tensordot(img.scattered / band_lum[:, None, None], m, axes=([0], [1])))
+            exposure = colour_convert.auto_exposure(scat, percentile=SKY_EXPOSURE_PERCENTILE)
+        else:
+            exposure = float(self._exposure)
+        rgb8 = colour_convert.encode_srgb(rgb, exposure)  # (W, H, 3)
+
+        out = vtkImageData.GetData(outInfo)
+        w, h = cam.size
+        out.SetDimensions(w, h, 1)
+        out.SetSpacing(cam.pixel_size, cam.pixel_size, 1.0)
+        out.SetOrigin(0.5 * cam.pixel_size, 0.5 * cam.pixel_size, 0.0)
+        arrays = {}
+        for b, n in enumerate(names):
+            arrays[f"I_{n}"] = img.intensity[b][:, :, None].astype(np.float32)
+            arrays[f"scattered_{n}"] = img.scattered[b][:, :, None].astype(np.float32)
+        arrays["rgb"] = rgb8[:, :, None, :]
+        add_point_arrays(out, arrays)
+        field = {"view_direction": np.array(cam.basis()[0]), "view_up": np.array(img.v_axis),
+                 "pixel_size": float(img.pixel_size), "exposure": float(exposure),
+                 "band_names": ",".join(names), "band_luminosity": band_lum}
+        if len(img.tau_star):
+            for b, n in enumerate(names):
+                field[f"tau_star_{n}"] = float(img.tau_star[0, b])
+        add_field_data(out, field)
+        out.GetPointData().SetActiveScalars("rgb")
