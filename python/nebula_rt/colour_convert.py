@@ -31,6 +31,8 @@ from typing import Union
 import colour
 import numpy as np
 
+from .array_api import array_module
+
 __all__ = [
     "auto_exposure",
     "band_luminosity_fractions",
@@ -52,6 +54,9 @@ LUMINOSITY_RANGE_NM = (380, 780)
 SRGB_LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
 _CMFS_NAME = "CIE 1931 2 Degree Standard Observer"
+
+#: CIE XYZ -> linear sRGB (Rec. 709 primaries, D65 white), from colour-science.
+XYZ_TO_LINEAR_SRGB = np.asarray(colour.RGB_COLOURSPACES["sRGB"].matrix_XYZ_to_RGB, dtype=np.float64)
 
 
 def _wavelength_grid(lo: int, hi: int) -> np.ndarray:
@@ -243,11 +248,11 @@ def xyz_to_linear_srgb(xyz) -> np.ndarray:
         Linear R, G, B; components may be negative for colours outside the
         sRGB gamut (see :func:`gamut_map`).
     """
-    xyz = np.asarray(xyz, dtype=np.float64)
+    xp = array_module(xyz)
+    xyz = xp.asarray(xyz, dtype=xp.float64)
     # Same result as colour.XYZ_to_RGB(..., chromatic_adaptation_transform=None,
     # apply_cctf_encoding=False) but a plain matmul, which is faster for 1e6 voxels.
-    m = colour.RGB_COLOURSPACES["sRGB"].matrix_XYZ_to_RGB
-    return xyz @ np.asarray(m, dtype=np.float64).T
+    return xyz @ xp.asarray(XYZ_TO_LINEAR_SRGB).T
 
 
 def gamut_map(rgb) -> np.ndarray:
@@ -271,21 +276,22 @@ def gamut_map(rgb) -> np.ndarray:
     ndarray, shape (..., 3)
         Linear sRGB with all components >= 0 (float64, new array).
     """
-    rgb = np.array(rgb, dtype=np.float64, copy=True)
-    y = rgb @ SRGB_LUMINANCE  # (...)
+    xp = array_module(rgb)
+    rgb = xp.array(rgb, dtype=xp.float64, copy=True)
+    y = rgb @ xp.asarray(SRGB_LUMINANCE)  # (...)
     mn = rgb.min(axis=-1)
     out_of_gamut = mn < 0.0
-    if not np.any(out_of_gamut):
+    if not bool(xp.any(out_of_gamut)):
         return rgb
     y_pos = y > 0.0
     fix = out_of_gamut & y_pos
     # Denominator Y - min > 0 wherever fix holds; elsewhere use 1 to avoid 0/0.
-    denom = np.where(fix, y - mn, 1.0)
-    t = np.where(fix, y / denom, 1.0)
+    denom = xp.where(fix, y - mn, 1.0)
+    t = xp.where(fix, y / denom, 1.0)
     yy = y[..., None]
     mapped = yy + t[..., None] * (rgb - yy)
     # t is exact only up to rounding: clamp the tiny negative residue at min.
-    mapped = np.where(fix[..., None], np.maximum(mapped, 0.0), mapped)
+    mapped = xp.where(fix[..., None], xp.maximum(mapped, 0.0), mapped)
     black = out_of_gamut & ~y_pos
     mapped[black] = 0.0
     return mapped
@@ -307,8 +313,9 @@ def encode_srgb(linear, exposure: float) -> np.ndarray:
     blue instead of bleaching to white or turning cyan as with per-channel
     clipping), at the cost of compressing their brightness.  Negative values
     (which :func:`gamut_map` should already have removed) are clipped to 0.
-    Then the sRGB transfer curve (``colour.cctf_encoding(x, function="sRGB")``)
-    is applied and values are rounded to 0..255.
+    Then the sRGB transfer curve (IEC 61966-2-1, as ``colour.cctf_encoding(x,
+    function="sRGB")``, written out so it also runs on CuPy arrays) is applied and
+    values are rounded to 0..255.
 
     Parameters
     ----------
@@ -324,11 +331,12 @@ def encode_srgb(linear, exposure: float) -> np.ndarray:
         Encoded sRGB.
     """
     e = _check_exposure(exposure)
-    x = np.clip(np.asarray(linear, dtype=np.float64) * e, 0.0, None)
+    xp = array_module(linear)
+    x = xp.clip(xp.asarray(linear, dtype=xp.float64) * e, 0.0, None)
     mx = x.max(axis=-1, keepdims=True)
-    x = x / np.maximum(mx, 1.0)
-    encoded = colour.cctf_encoding(x, function="sRGB")
-    return np.clip(np.rint(np.asarray(encoded) * 255.0), 0, 255).astype(np.uint8)
+    x = x / xp.maximum(mx, 1.0)
+    encoded = xp.where(x <= 0.0031308, 12.92 * x, 1.055 * xp.power(x, 1.0 / 2.4) - 0.055)
+    return xp.clip(xp.rint(encoded * 255.0), 0, 255).astype(xp.uint8)
 
 
 def auto_exposure(linear_rgb, percentile: float = 99.5) -> float:
@@ -349,11 +357,12 @@ def auto_exposure(linear_rgb, percentile: float = 99.5) -> float:
     """
     if not 0.0 <= float(percentile) <= 100.0:
         raise ValueError(f"percentile must be in [0, 100], got {percentile!r}")
-    mx = np.asarray(linear_rgb, dtype=np.float64).max(axis=-1).reshape(-1)
-    pos = mx[np.isfinite(mx) & (mx > 0.0)]
+    xp = array_module(linear_rgb)
+    mx = xp.asarray(linear_rgb, dtype=xp.float64).max(axis=-1).reshape(-1)
+    pos = mx[xp.isfinite(mx) & (mx > 0.0)]
     if pos.size == 0:
         return 1.0
-    level = float(np.percentile(pos, percentile))
+    level = float(xp.percentile(pos, percentile))
     return 1.0 / level if level > 0.0 else 1.0
 
 

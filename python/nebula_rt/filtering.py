@@ -12,7 +12,8 @@ grows with r: features narrower than r are smeared.
 from __future__ import annotations
 
 import numpy as np
-from scipy import signal
+
+from .array_api import array_module, fftconvolve_same
 
 
 def cubic_kernel(shape: tuple[int, int, int], radius: float) -> np.ndarray:
@@ -34,19 +35,20 @@ def cubic_kernel(shape: tuple[int, int, int], radius: float) -> np.ndarray:
     return k / k.sum()
 
 
-def normalised_convolution(field: np.ndarray, kernel: np.ndarray, variance: np.ndarray | None = None):
+def normalised_convolution(field, kernel: np.ndarray, variance=None):
     """Convolve ``field`` with ``kernel`` inside the box, renormalised by the kernel weight there.
 
     Returns the filtered field and, if ``variance`` (per-voxel, independent voxels) is given,
-    the variance of the filtered field: sum K^2 var / W^2.
+    the variance of the filtered field: sum K^2 var / W^2. NumPy or CuPy arrays (the FFTs run
+    on the array's device).
     """
+    xp = array_module(field)
     if kernel.size == 1:
         return field.copy(), (None if variance is None else variance.copy())
-    ones = np.ones_like(field)
-    w = signal.fftconvolve(ones, kernel, mode="same")
-    w = np.maximum(w, 1e-300)
-    out = np.maximum(signal.fftconvolve(field, kernel, mode="same"), 0.0) / w
+    w = fftconvolve_same(xp, xp.ones_like(field), kernel)
+    w = xp.maximum(w, 1e-300)
+    out = xp.maximum(fftconvolve_same(xp, field, kernel), 0.0) / w
     var = None
     if variance is not None:
-        var = np.maximum(signal.fftconvolve(variance, kernel * kernel, mode="same"), 0.0) / (w * w)
+        var = xp.maximum(fftconvolve_same(xp, variance, kernel * kernel), 0.0) / (w * w)
     return out, var

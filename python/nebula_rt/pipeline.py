@@ -17,6 +17,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from . import colour_convert, filtering
+from .array_api import array_module, to_numpy
 from .backends import Backend, get_backend
 from .bands import Band, reference_band_index
 from .density import generate_density
@@ -157,7 +158,8 @@ class Pipeline:
         return self._cached(
             "transport",
             self.transport_key(scene),
-            lambda: compute_light(scene, self.density(scene), self.backend_for(scene), progress, cancel),
+            lambda: compute_light(scene, self.density(scene), self.backend_for(scene), progress, cancel,
+                                  on_device=True),
         )
 
     def run(self, scene, progress: Optional[Callable[[int, int], None]] = None,
@@ -168,21 +170,22 @@ class Pipeline:
         t1 = time.perf_counter()
         res, J, rel = self.light(scene, progress, cancel)
         t2 = time.perf_counter()
-        light = assemble_light_field(scene, rho, res, J, rel)
+        light, emissivity, rho_x = assemble_light_field(scene, rho, res, J, rel, with_device_emissivity=True)
         if colour:
             ckey = _key([self.transport_key(scene), scene.to_dict().get("colour", {})])
             light.rgba, light.exposure = self._cached(
-                "colour", ckey, lambda: colour_rgba(scene, light.bands, rho, light.emissivity, res))
+                "colour", ckey, lambda: colour_rgba(scene, light.bands, rho_x, emissivity, res))
         t3 = time.perf_counter()
         light.timings = {"density_s": t1 - t0, "transport_s": t2 - t1, "colour_s": t3 - t2,
                          "kernel_s": res.timings.get("kernel_s", 0.0)}
         return light
 
 
-def compute_light(scene, density: np.ndarray, backend: Backend, progress=None, cancel=None):
+def compute_light(scene, density: np.ndarray, backend: Backend, progress=None, cancel=None, on_device=False):
     """Transport through ``density`` (and the collision filter if the scene asks for it).
 
-    Returns (TransportResult, J, rel_error) with J and rel_error float64 (n_bands, nx, ny, nz).
+    Returns (TransportResult, J, rel_error) with J and rel_error float64 (n_bands, nx, ny, nz),
+    arrays of the backend's array module if ``on_device`` (CuPy on CUDA), else NumPy.
     """
     t = scene.transport
     res = trace(
@@ -198,6 +201,7 @@ def compute_light(scene, density: np.ndarray, backend: Backend, progress=None, c
         backend=backend,
         progress=progress,
         cancel=cancel,
+        on_device=on_device,
     )
     if t.estimator == "collision-filter":
         J, rel = filter_collisions(res, t.filter_radius)
@@ -206,45 +210,53 @@ def compute_light(scene, density: np.ndarray, backend: Backend, progress=None, c
     return res, J, rel
 
 
-def assemble_light_field(scene, rho, res: TransportResult, J, rel) -> LightField:
-    """The output-contract arrays (emissivity = albedo x extinction x J) without colour."""
+def assemble_light_field(scene, rho, res: TransportResult, J, rel, with_device_emissivity=False):
+    """The output-contract arrays (emissivity = albedo x extinction x J) without colour.
+
+    J and rel may live on the device (CuPy); the LightField holds NumPy float32 copies. With
+    ``with_device_emissivity`` also return the emissivity on J's device (for the colour stage).
+    """
+    xp = array_module(J)
     bands = scene.bands.resolve()
     tau = scene.dust.tau
-    sig = np.array([tau * b.extinction for b in bands])[:, None, None, None] * rho[None].astype(np.float64)
-    alb = np.array([b.albedo for b in bands])[:, None, None, None]
-    return LightField(
+    rho_x = xp.asarray(rho, dtype=xp.float64)
+    sig = xp.asarray([tau * b.extinction for b in bands])[:, None, None, None] * rho_x[None]
+    alb = xp.asarray([b.albedo for b in bands])[:, None, None, None]
+    emissivity = alb * sig * J
+    light = LightField(
         scene=scene,
         bands=bands,
-        density=rho,
-        J=J.astype(np.float32),
-        rel_error=rel.astype(np.float32),
-        emissivity=(alb * sig * J).astype(np.float32),
+        density=np.asarray(rho),
+        J=to_numpy(J.astype(xp.float32)),
+        rel_error=to_numpy(rel.astype(xp.float32)),
+        emissivity=to_numpy(emissivity.astype(xp.float32)),
         rgba=None,
         transport=res,
         exposure=float("nan"),
         reference_band=reference_band_index(bands),
     )
+    return (light, emissivity, rho_x) if with_device_emissivity else light
 
 
-def filter_collisions(res: TransportResult, radius: float) -> tuple[np.ndarray, np.ndarray]:
+def filter_collisions(res: TransportResult, radius: float):
     """Smooth the collision estimate of J with the normalised cubic kernel of ``radius`` (box units).
 
     The per-voxel variance of J from the batch means is filtered with the squared kernel, which
-    gives the filtered field's statistical error (the filter's bias is not included).
+    gives the filtered field's statistical error (the filter's bias is not included). Runs on
+    the device of ``res.J`` (CuPy FFTs on CUDA).
     """
+    xp = array_module(res.J)
     shape = res.J.shape[1:]
     kernel = filtering.cubic_kernel(shape, radius)
     se = batch_standard_error(res.raw_sum, res.raw_sum2, res.batches)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        scale = np.where(res.raw_sum > 0, res.J / np.where(res.raw_sum > 0, res.raw_sum, 1.0), 0.0)
+    scale = xp.where(res.raw_sum > 0, res.J / xp.where(res.raw_sum > 0, res.raw_sum, 1.0), 0.0)
     var = (se * scale) ** 2
-    J = np.empty_like(res.J)
-    rel = np.empty_like(res.J)
+    J = xp.empty_like(res.J)
+    rel = xp.empty_like(res.J)
     for b in range(res.J.shape[0]):
         jf, vf = filtering.normalised_convolution(res.J[b], kernel, var[b])
         J[b] = jf
-        with np.errstate(divide="ignore", invalid="ignore"):
-            rel[b] = np.where(jf > 0, np.sqrt(vf) / np.where(jf > 0, jf, 1.0), 1.0)
+        rel[b] = xp.where(jf > 0, xp.sqrt(vf) / xp.where(jf > 0, jf, 1.0), 1.0)
     return J, rel
 
 
@@ -260,7 +272,7 @@ def colour_rgba(scene, bands, rho, emissivity, res: TransportResult) -> tuple[np
     cfg = scene.colour
     return rgba_from_emissivity(
         emissivity,
-        scene.dust.tau * bands[ref].extinction * rho.astype(np.float64),
+        scene.dust.tau * bands[ref].extinction * rho,
         wavelengths_nm=np.array([b.wavelength for b in bands]),
         band_luminosity=res.band_luminosity,
         temperature=_dominant_temperature(scene.stars),
@@ -312,36 +324,37 @@ def rgba_from_emissivity(
     -------
     rgba : uint8 (nx, ny, nz, 4); exposure used : float; [linear rgb]
     """
+    xp = array_module(emissivity, sigma_ref)
     shape = sigma_ref.shape
-    with np.errstate(divide="ignore", invalid="ignore"):
-        values = np.where(sigma_ref[None] > 0, emissivity / np.where(sigma_ref[None] > 0, sigma_ref[None], 1.0), 0.0)
-    ratio = values / np.asarray(band_luminosity, np.float64)[:, None, None, None]
+    sigma_ref = xp.asarray(sigma_ref, dtype=xp.float64)
+    safe = xp.where(sigma_ref > 0, sigma_ref, 1.0)
     m = colour_convert.band_to_xyz_matrix(np.asarray(wavelengths_nm, np.float64), temperature)
-    xyz = np.tensordot(ratio, m, axes=([0], [1]))  # (nx, ny, nz, 3)
-    rgb = colour_convert.xyz_to_linear_srgb(xyz)
+    # one (3, nb) matrix: band values / (sigma_ref L_b) -> XYZ -> linear sRGB (D65)
+    to_rgb = colour_convert.XYZ_TO_LINEAR_SRGB @ m / np.asarray(band_luminosity, np.float64)[None, :]
     if white_point != "D65":
         if white_point == "star":
             white = colour_convert.xyz_to_linear_srgb(m @ np.ones(len(wavelengths_nm)))
         else:  # "E": the equal-energy white
             white = colour_convert.xyz_to_linear_srgb(np.ones(3))
-        white = white / white.max()
-        rgb = rgb / white  # white balance in linear sRGB
+        to_rgb = to_rgb / (white / white.max())[:, None]  # white balance in linear sRGB
+    rgb = xp.tensordot(emissivity, xp.asarray(to_rgb), axes=([0], [1]))  # (nx, ny, nz, 3)
+    rgb = xp.where(sigma_ref[..., None] > 0, rgb / safe[..., None], 0.0)
     rgb = colour_convert.gamut_map(rgb)
     h = float(np.prod([1.0 / n for n in shape]) ** (1.0 / 3.0))
-    alpha = 1.0 - np.exp(-sigma_ref * h * opacity_scale)
+    alpha = 1.0 - xp.exp(-sigma_ref * h * opacity_scale)
     if exposure == "auto":
         # J falls as 1/r^2 from the star, so a percentile over all voxels is set by the few
         # around the star and leaves the nebula dark. Expose for the dust that is visible:
         # the 95th percentile of the voxels with at least AUTO_EXPOSURE_MIN_ALPHA opacity
         # maps to full scale (brighter voxels keep their hue and saturate).
         visible = alpha >= AUTO_EXPOSURE_MIN_ALPHA
-        sample = rgb[visible] if np.any(visible) else rgb.reshape(-1, 3)
+        sample = rgb[visible] if bool(xp.any(visible)) else rgb.reshape(-1, 3)
         exposure = colour_convert.auto_exposure(sample, percentile=AUTO_EXPOSURE_PERCENTILE)
     else:
         exposure = float(exposure)
     srgb8 = colour_convert.encode_srgb(rgb, exposure)
-    a8 = np.clip(np.rint(alpha * 255.0), 0, 255).astype(np.uint8)
-    rgba = np.concatenate([srgb8, a8[..., None]], axis=-1)
+    a8 = xp.clip(xp.rint(alpha * 255.0), 0, 255).astype(xp.uint8)
+    rgba = to_numpy(xp.concatenate([srgb8, a8[..., None]], axis=-1))
     if return_linear:
-        return rgba, float(exposure), (rgb * exposure).astype(np.float32)
+        return rgba, float(exposure), to_numpy((rgb * exposure).astype(xp.float32))
     return rgba, float(exposure)

@@ -37,6 +37,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from . import colour_convert
+from .array_api import array_module
 from .backends import Backend, TransportSetup
 from .errors import AccumulatorOverflowError, CancelledError
 
@@ -138,12 +139,13 @@ def star_band_luminosities(stars, wavelengths_nm) -> np.ndarray:
     return out
 
 
-def batch_standard_error(s1: np.ndarray, s2: np.ndarray, m: int) -> np.ndarray:
+def batch_standard_error(s1, s2, m: int):
     """Standard error of a total of ``m`` batch totals from their sum and sum of squares."""
+    xp = array_module(s1)
     if m < 2:
-        return np.abs(s1)  # one batch: no spread to measure, report 100 %
+        return xp.abs(s1)  # one batch: no spread to measure, report 100 %
     var = (s2 - s1 * s1 / m) * (m / (m - 1.0))
-    return np.sqrt(np.maximum(var, 0.0))
+    return xp.sqrt(xp.maximum(var, 0.0))
 
 
 def trace(
@@ -161,6 +163,7 @@ def trace(
     progress: Optional[Callable[[int, int], None]] = None,
     cancel: Optional[Callable[[], bool]] = None,
     _acc_limit_bits: int = 63,
+    on_device: bool = False,
 ) -> TransportResult:
     """Trace ``photons`` packets per band through ``density`` and estimate J.
 
@@ -182,6 +185,9 @@ def trace(
         Called after every batch with packets per band done so far.
     cancel : callable() -> bool, optional
         Polled between batches; True raises :class:`~nebula_rt.errors.CancelledError`.
+    on_device : bool
+        Leave J, rel_error and the raw sums as arrays of the backend's array module (CuPy on the
+        CUDA backend: no copy to the host). Default: NumPy arrays.
     """
     t0 = time.perf_counter()
     density = np.asarray(density, dtype=np.float32)
@@ -242,22 +248,21 @@ def trace(
             done += count
             if progress is not None:
                 progress(done, photons)
-        s1, s2 = session.sums()
+        s1, s2 = session.sums_on_device() if on_device else session.sums()
+        xp = array_module(s1)
+        counts_i64 = np.array(counts.tolist(), dtype=np.int64)
+        q = np.array([exact_packet_energy(L, photons) for L in band_lum])
+        se = batch_standard_error(s1, s2, folded)
+        rel = xp.where(s1 > 0, se / xp.where(s1 > 0, s1, 1.0), 1.0)
+        if estimator == "track-length":
+            J = s1 * xp.asarray(q / (track_scale * 4.0 * np.pi * nvox_inv))[:, None, None, None]
+        else:
+            rho = xp.asarray(density, dtype=xp.float64)
+            sigma = xp.asarray(sigma_scale)[:, None, None, None] * rho[None]
+            J = xp.where(sigma > 0, s1 / xp.where(sigma > 0, sigma, 1.0), 0.0)
+            J *= xp.asarray(q / (4.0 * np.pi * nvox_inv))[:, None, None, None]
     finally:
         session.close()
-
-    counts_i64 = np.array(counts.tolist(), dtype=np.int64)
-    q = np.array([exact_packet_energy(L, photons) for L in band_lum])
-    se = batch_standard_error(s1, s2, folded)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        rel = np.where(s1 > 0, se / np.where(s1 > 0, s1, 1.0), 1.0)
-    if estimator == "track-length":
-        J = s1 * (q / (track_scale * 4.0 * np.pi * nvox_inv))[:, None, None, None]
-    else:
-        sigma = sigma_scale[:, None, None, None] * density[None].astype(np.float64)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            J = np.where(sigma > 0, s1 / np.where(sigma > 0, sigma, 1.0), 0.0)
-        J *= (q / (4.0 * np.pi * nvox_inv))[:, None, None, None]
     return TransportResult(
         J=J,
         rel_error=rel,

@@ -84,6 +84,11 @@ class TransportSession(abc.ABC):
     def sums(self) -> tuple[np.ndarray, np.ndarray]:
         """Return (sum of batch totals, sum of squared batch totals), float64, (n_bands, nx, ny, nz)."""
 
+    def sums_on_device(self):
+        """The same sums as arrays of the backend's array module (CuPy arrays stay on the GPU).
+        Default: the host arrays of :meth:`sums`."""
+        return self.sums()
+
     def close(self) -> None:  # pragma: no cover - default: nothing to release
         """Release device memory."""
 
@@ -92,6 +97,8 @@ class Backend(abc.ABC):
     """A compute device with the NebulaRT kernels compiled for it."""
 
     name: str = "abstract"
+    #: array module the post-processing runs with on this backend (numpy or cupy)
+    array_module = np
 
     @property
     @abc.abstractmethod

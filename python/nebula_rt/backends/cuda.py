@@ -98,12 +98,13 @@ class CUDATransport(TransportSession):
     def discard_batch(self):
         self.d_acc.fill(0)
 
-    def sums(self):
+    def sums_on_device(self):
         nb = self.setup.n_bands
-        out = []
-        for buf in (self.d_sum1, self.d_sum2):
-            out.append(buf.get().reshape((nb,) + self.shape[::-1]).transpose(0, 3, 2, 1))
-        return out[0], out[1]
+        # device layout: band-major, x fastest; as (nb, nx, ny, nz) views
+        return tuple(buf.reshape((nb,) + self.shape[::-1]).transpose(0, 3, 2, 1) for buf in (self.d_sum1, self.d_sum2))
+
+    def sums(self):
+        return tuple(a.get() for a in self.sums_on_device())
 
     def close(self):
         for name in ("d_acc", "d_sum1", "d_sum2", "d_density"):
@@ -118,6 +119,7 @@ class CUDABackend(Backend):
     def __init__(self, selector: str = ""):
         cp = _cupy()
         self.cp = cp
+        self.array_module = cp
         index = 0
         sel = selector.strip()
         if sel:
