@@ -2,15 +2,19 @@
 # GPU verification and benchmarks, as run on a borrowed NVIDIA machine (H100/H200 with CUDA,
 # CuPy and NVIDIA's OpenCL driver; no network). Results go to the folder given as $1.
 #
-#   bash benchmarks/run_gpu.sh OUTDIR [WHEELDIR]
+#   bash benchmarks/run_gpu.sh OUTDIR [WHEELDIR] [STEPS]
 #
 # WHEELDIR holds wheels for what the machine lacks (pyopencl and its pure-Python needs,
 # colour-science, tomli-w; pmcx for the MCX comparison), fetched elsewhere with
 # `pip download --only-binary=:all: --python-version 3.12 ...`.
+# STEPS (default "tests bench neb128 compare profile") selects what runs. Everything printed
+# goes to OUTDIR/log.txt as well; JSON and .npz results beside it.
 set -uo pipefail
 out="${1:?output folder}"
 wheels="${2:-.whl}"
+steps="${3:-tests bench neb128 compare profile}"
 mkdir -p "$out"
+exec > >(tee -a "$out/log.txt") 2>&1
 export PYTHONUNBUFFERED=1
 if compgen -G "$wheels/*.whl" >/dev/null; then
     python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site "$wheels"/*.whl || exit 1
@@ -19,13 +23,30 @@ fi
 # NVIDIA's OpenCL through the ICD loader bundled with pyopencl
 mkdir -p /tmp/icd && echo libnvidia-opencl.so.1 > /tmp/icd/nvidia.icd && export OCL_ICD_VENDORS=/tmp/icd
 python3 -m pip install -q --no-deps --no-build-isolation --no-index -e . >/dev/null || exit 1
-nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader | tee "$out/gpu.txt"
-python3 -m nebula_rt.cli devices | tee -a "$out/gpu.txt"
+nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader
+python3 -m nebula_rt.cli devices
+git rev-parse --short HEAD 2>/dev/null || true
 
 physics="tests/test_rng.py tests/test_hg.py tests/test_density_kernel.py tests/test_transport_physics.py tests/test_estimators.py"
-NEBULA_RT_TEST_BACKEND=cuda python3 -m pytest -q -p no:cacheprovider $physics 2>&1 | tail -n 15 | tee "$out/tests-cuda.txt"
-NEBULA_RT_TEST_DEVICE=NVIDIA python3 -m pytest -q -p no:cacheprovider $physics 2>&1 | tail -n 15 | tee "$out/tests-nvidia-opencl.txt"
-
-python3 benchmarks/bench_transport.py --backend cuda --out "$out/transport-cuda.json" 2>&1 | tee "$out/bench-cuda.txt"
-python3 benchmarks/bench_transport.py --backend opencl --device NVIDIA --out "$out/transport-nvidia-opencl.json" 2>&1 | tee "$out/bench-nvidia-opencl.txt"
-python3 benchmarks/compare_backends.py --run cuda: --run opencl:NVIDIA --save-dir "$out" --out "$out/compare.json" 2>&1 | tail -n 40
+if [[ " $steps " == *" tests "* ]]; then
+    echo "== physics tests, CUDA"; NEBULA_RT_TEST_BACKEND=cuda python3 -m pytest -q -p no:cacheprovider $physics 2>&1 | tail -n 3
+    echo "== physics tests, NVIDIA OpenCL"; NEBULA_RT_TEST_DEVICE=NVIDIA python3 -m pytest -q -p no:cacheprovider $physics 2>&1 | tail -n 3
+fi
+if [[ " $steps " == *" bench "* ]]; then
+    echo "== thesis scene, CUDA"; python3 benchmarks/bench_transport.py --backend cuda --out "$out/transport-cuda.json"
+    echo "== thesis scene, NVIDIA OpenCL"; python3 benchmarks/bench_transport.py --backend opencl --device NVIDIA --out "$out/transport-nvidia-opencl.json"
+fi
+if [[ " $steps " == *" neb128 "* ]]; then
+    echo "== neb128, CUDA vs pmcx"; python3 benchmarks/bench_neb128.py --backend cuda --mcx pmcx --out "$out/neb128-cuda.json"
+    echo "== neb128, NVIDIA OpenCL"; python3 benchmarks/bench_neb128.py --backend opencl --device NVIDIA --mcx none --out "$out/neb128-nvidia-opencl.json"
+fi
+if [[ " $steps " == *" compare "* ]]; then
+    echo "== same seed on CUDA and NVIDIA OpenCL"
+    python3 benchmarks/compare_backends.py --run cuda: --run opencl:NVIDIA --save-dir "$out" --out "$out/compare.json" | grep -E '"(a|b|max_count|median|z_std)'
+fi
+if [[ " $steps " == *" profile "* ]] && command -v ncu >/dev/null; then
+    echo "== ncu: transport kernel, neb128 2.1M photons (one batch)"
+    ncu --target-processes all -k regex:trace_photons -s 20 -c 1 --section SpeedOfLight --section Occupancy \
+        --section LaunchStats --section MemoryWorkloadAnalysis --section WarpStateStats \
+        python3 benchmarks/bench_neb128.py --backend cuda --photons 2.1e6 --mcx none 2>&1 | grep -v "^==PROF==" | tail -n 120
+fi

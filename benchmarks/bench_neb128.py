@@ -1,0 +1,128 @@
+#!/usr/bin/env python
+"""The MCX-equivalent scene "neb128" (REFERENCES.md) side by side with MCX.
+
+    python benchmarks/bench_neb128.py [--backend cuda|opencl] [--device SEL] [--photons 2100000 21000000]
+                                      [--mcx pmcx|pmcxcl|none] [--out FILE]
+
+128^3 voxels of uniform dust, an isotropic source at the centre, optical depth 1 from the
+centre to a face (mu_t = 2 per box unit = 0.015625 per voxel), albedo 0.6, g 0.6, one band,
+no reflection. Reported per photon count: NebulaRT's transport kernel time (sum over its
+batches, compile excluded after a warm-up) and photons per ms, its end-to-end wall time
+(transport + normalisation + error estimate; a one-band scene does no colour work), the
+absorbed fraction (MCX reports 0.4078), and, when the MCX package is importable, MCX's own
+kernel runtime, photons per ms and absorbed fraction on the same scene in the same process.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import json
+import math
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+N = 128
+
+
+def nebula_scene(photons: int, backend: str, device: str):
+    from nebula_rt.scene import Scene
+
+    return Scene.from_dict({
+        "grid": {"shape": [N, N, N]},
+        "dust": {"model": "uniform", "density": 1.0, "floor": 0.0, "tau": 2.0},
+        "stars": [{"position": [0.5, 0.5, 0.5], "luminosity": 1.0}],
+        "bands": {"list": [{"name": "V", "wavelength": 550.0, "extinction": 1.0, "albedo": 0.6, "g": 0.6}]},
+        "transport": {"photons": int(photons), "max_scatterings": 100000, "seed": 1,
+                      "backend": backend, "device": device},
+    })
+
+
+def run_nebula(photons: int, backend_name: str, device: str) -> dict:
+    from nebula_rt.backends import get_backend
+    from nebula_rt.pipeline import Pipeline
+
+    backend = get_backend(backend_name, device)
+    Pipeline(backend).run(nebula_scene(10_000, backend_name, device), colour=False)  # compile, warm up
+    scene = nebula_scene(photons, backend_name, device)
+    t0 = time.perf_counter()
+    light = Pipeline(backend).run(scene, colour=False)
+    wall = time.perf_counter() - t0
+    c = light.transport.counts[0]
+    kernel_ms = light.timings["kernel_s"] * 1e3
+    p_abs = c[1] / photons
+    return {
+        "code": "NebulaRT", "device": backend.device_name, "photons": photons,
+        "kernel_ms": round(kernel_ms, 3), "photons_per_ms": round(photons / kernel_ms),
+        "end_to_end_ms": round(wall * 1e3, 3), "absorbed_fraction": p_abs,
+        "absorbed_sigma": math.sqrt(p_abs * (1 - p_abs) / photons),
+        "terminated": int(c[3]),
+    }
+
+
+def mcx_config(photons: int) -> dict:
+    return dict(nphoton=int(photons), vol=np.ones([N] * 3, "uint8"), tstart=0, tend=1e-6, tstep=1e-6,
+                srctype="isotropic", srcpos=[64, 64, 64], srcdir=[0, 0, 1], issrcfrom0=0,
+                prop=[[0, 0, 1, 1], [0.00625, 0.009375, 0.6, 1.0]], isreflect=0, seed=1648335518)
+
+
+def run_mcx(photons: int, module: str) -> dict | None:
+    try:
+        mcx = __import__(module)
+    except ImportError:
+        return None
+    mcx.run(mcx_config(10_000))  # first call JIT-compiles (no Hopper code in the wheel)
+    t0 = time.perf_counter()
+    res = mcx.run(mcx_config(photons))
+    wall = time.perf_counter() - t0
+    stat = res.get("stat", {})
+    runtime = float(stat.get("runtime", float("nan")))  # ms, MCX's own kernel timer
+    e_abs, e_tot = stat.get("energyabs"), stat.get("energytot")
+    return {
+        "code": module, "device": "same GPU", "photons": photons, "kernel_ms": runtime,
+        "photons_per_ms": round(photons / runtime) if runtime > 0 else None,
+        "end_to_end_ms": round(wall * 1e3, 3),
+        "absorbed_fraction": (float(e_abs) / float(e_tot)) if e_abs is not None and e_tot else None,
+    }
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--backend", default="cuda")
+    ap.add_argument("--device", default="")
+    ap.add_argument("--photons", type=float, nargs="+", default=[2.1e6, 2.1e7])
+    ap.add_argument("--mcx", default="pmcx", help="pmcx (CUDA), pmcxcl (OpenCL) or none")
+    ap.add_argument("--out", default=None)
+    args = ap.parse_args(argv)
+    rows = []
+    for p in (int(x) for x in args.photons):
+        ours = run_nebula(p, args.backend, args.device)
+        rows.append(ours)
+        theirs = run_mcx(p, args.mcx) if args.mcx != "none" else None
+        if theirs:
+            rows.append(theirs)
+            ours["ratio_vs_mcx"] = round(ours["photons_per_ms"] / theirs["photons_per_ms"], 3) if theirs["photons_per_ms"] else None
+        for r in rows[-2 if theirs else -1:]:
+            print(f"{r['code']:9s} {r['photons']:>11,d} photons  kernel {r['kernel_ms']:9.2f} ms  "
+                  f"{r['photons_per_ms']!s:>9} photons/ms  end to end {r['end_to_end_ms']:9.2f} ms  "
+                  f"absorbed {r['absorbed_fraction']}", flush=True)
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+    except Exception:
+        commit = "unknown"
+    result = {"benchmark": "neb128", "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+              "commit": commit, "command": " ".join(["benchmarks/bench_neb128.py"] + (argv or sys.argv[1:])),
+              "reference_absorbed_fraction_mcx": 0.4078, "rows": rows}
+    if args.out:
+        Path(args.out).write_text(json.dumps(result, indent=2) + "\n")
+        print(f"saved {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
