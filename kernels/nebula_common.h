@@ -28,6 +28,7 @@ typedef ulong nrt_u64;
 typedef uint nrt_u32;
 typedef long nrt_i64;
 #define NRT_GLOBAL_ID() ((nrt_u64)get_global_id(0))
+#define NRT_GLOBAL_SIZE() ((nrt_u64)get_global_size(0))
 #define NRT_MULHI64(a, b) mul_hi((ulong)(a), (ulong)(b))
 /* atom_add on 64-bit integers (cl_khr_int64_base_atomics); returns the old value */
 #define NRT_ATOMIC_ADD_U64(p, v) atom_add((volatile __global ulong *)(p), (ulong)(v))
@@ -41,6 +42,7 @@ typedef unsigned long long nrt_u64;
 typedef unsigned int nrt_u32;
 typedef long long nrt_i64;
 #define NRT_GLOBAL_ID() ((nrt_u64)blockIdx.x * (nrt_u64)blockDim.x + (nrt_u64)threadIdx.x)
+#define NRT_GLOBAL_SIZE() ((nrt_u64)gridDim.x * (nrt_u64)blockDim.x)
 #define NRT_MULHI64(a, b) __umul64hi((a), (b))
 #define NRT_ATOMIC_ADD_U64(p, v) atomicAdd((unsigned long long *)(p), (unsigned long long)(v))
 #define NRT_ATOMIC_OR_U32(p, v) atomicOr((unsigned int *)(p), (unsigned int)(v))

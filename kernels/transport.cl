@@ -61,41 +61,27 @@ NRT_DEVICE float nrt_face_distance(float p, float d, float inv_d, int i, float h
     return NRT_INF_F;
 }
 
-NRT_KERNEL void trace_photons(const NRT_GLOBAL float *density, /* nx*ny*nz, x fastest */
-                              const NRT_GLOBAL float *sigma_scale, /* per band: tau * k_b */
-                              const NRT_GLOBAL float *albedo,      /* per band */
-                              const NRT_GLOBAL float *asym_g,      /* per band */
-                              const NRT_GLOBAL float *stars,       /* per star: x, y, z, pad */
-                              const NRT_GLOBAL float *star_cdf,    /* per band: n_stars cdf */
-                              int nx, int ny, int nz, int n_bands, int n_stars,
-                              nrt_u64 seed, nrt_u64 photon_start, nrt_u64 batch,
-                              int max_scatterings, float track_scale,
-                              NRT_GLOBAL nrt_u64 *acc,     /* n_bands * nvox (estimator) */
-                              NRT_GLOBAL nrt_u64 *tallies, /* n_bands * 4 */
-                              NRT_GLOBAL nrt_u32 *overflow)
+/*
+ * Trace one packet of one band to its end. Deposits go to band_acc (this batch's slot, this
+ * band), the outcome to band_tally[1..3] (emitted is counted by the caller).
+ */
+NRT_DEVICE void nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, float alb_b,
+                                 float g_b, const NRT_GLOBAL float *stars,
+                                 const NRT_GLOBAL float *cdf, int nx, int ny, int nz,
+                                 int n_stars, nrt_u64 seed, int band, nrt_u64 photon,
+                                 int max_scatterings, float track_scale,
+                                 NRT_GLOBAL nrt_u64 *band_acc, NRT_GLOBAL nrt_u64 *band_tally,
+                                 NRT_GLOBAL nrt_u32 *overflow)
 {
-    nrt_u64 gid = NRT_GLOBAL_ID();
-    if (gid >= batch * (nrt_u64)n_bands)
-        return;
-    int band = (int)(gid / batch);
-    nrt_u64 photon = photon_start + gid % batch;
-    nrt_u64 nvox = (nrt_u64)nx * (nrt_u64)ny * (nrt_u64)nz;
-    NRT_GLOBAL nrt_u64 *band_acc = acc + (nrt_u64)band * nvox;
-    NRT_GLOBAL nrt_u64 *band_tally = tallies + 4 * band;
-
     nrt_rng rng;
     nrt_rng_init(&rng, seed, (nrt_u64)band, photon);
 
-    const float sig_b = sigma_scale[band];
-    const float alb_b = albedo[band];
-    const float g_b = asym_g[band];
     const float hx = 1.0f / (float)nx, hy = 1.0f / (float)ny, hz = 1.0f / (float)nz;
 
     /* choose the emitting star */
     int s = 0;
     if (n_stars > 1) {
         float u = nrt_rng_uniform(&rng);
-        const NRT_GLOBAL float *cdf = star_cdf + band * n_stars;
         while (s < n_stars - 1 && u >= cdf[s])
             ++s;
     }
@@ -105,7 +91,6 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL float *density, /* nx*ny*nz, x fa
     int iz = min(max((int)floor(p[2] * (float)nz), 0), nz - 1);
     float d[3];
     nrt_sample_isotropic(&rng, d);
-    NRT_ATOMIC_ADD_U64(&band_tally[0], 1UL);
 
     int scatterings = 0;
     for (;;) {
@@ -179,20 +164,80 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL float *density, /* nx*ny*nz, x fa
 }
 
 /*
- * Fold one batch's fixed-point accumulator into per-cell running sums of the batch totals and
- * of their squares (for the batch-means error estimate), then clear it for the next batch.
- * Each cell is folded by one work item in batch order, so the float64 sums are deterministic.
+ * Batch index of a packet in a plan of n_batches batches whose sizes differ by at most one:
+ * the first `extra` batches hold base + 1 packets, the others base.
  */
-NRT_KERNEL void fold_batch(NRT_GLOBAL nrt_u64 *acc, NRT_GLOBAL double *sum1,
-                           NRT_GLOBAL double *sum2, nrt_u64 n)
+NRT_DEVICE nrt_u64 nrt_batch_of(nrt_u64 photon, nrt_u64 base, nrt_u64 extra)
+{
+    nrt_u64 big = extra * (base + 1);
+    return (photon < big) ? photon / (base + 1) : extra + (photon - big) / base;
+}
+
+/*
+ * Trace packets [photon_start, photon_start + count) of every band. They belong to the
+ * consecutive batches first_batch, first_batch + 1, ... of the plan (base, extra); each batch
+ * accumulates into its own slot (slot = batch - first_batch) of acc, tallies and overflow, so
+ * the batch totals stay separable for the error estimate while many batches share one launch.
+ * Work items loop over packets with a grid stride (persistent threads): a thread whose packet
+ * ends early takes the next one instead of idling until the slowest packet of its warp ends.
+ */
+NRT_KERNEL void trace_photons(const NRT_GLOBAL float *density, /* nx*ny*nz, x fastest */
+                              const NRT_GLOBAL float *sigma_scale, /* per band: tau * k_b */
+                              const NRT_GLOBAL float *albedo,      /* per band */
+                              const NRT_GLOBAL float *asym_g,      /* per band */
+                              const NRT_GLOBAL float *stars,       /* per star: x, y, z, pad */
+                              const NRT_GLOBAL float *star_cdf,    /* per band: n_stars cdf */
+                              int nx, int ny, int nz, int n_bands, int n_stars,
+                              nrt_u64 seed, nrt_u64 photon_start, nrt_u64 count,
+                              nrt_u64 batch_base, nrt_u64 batch_extra, nrt_u64 first_batch,
+                              int max_scatterings, float track_scale,
+                              NRT_GLOBAL nrt_u64 *acc,     /* slots * n_bands * nvox */
+                              NRT_GLOBAL nrt_u64 *tallies, /* slots * n_bands * 4 */
+                              NRT_GLOBAL nrt_u32 *overflow /* slots */)
+{
+    nrt_u64 nvox = (nrt_u64)nx * (nrt_u64)ny * (nrt_u64)nz;
+    nrt_u64 total = count * (nrt_u64)n_bands;
+    nrt_u64 stride = NRT_GLOBAL_SIZE();
+    for (nrt_u64 t = NRT_GLOBAL_ID(); t < total; t += stride) {
+        int band = (int)(t / count);
+        nrt_u64 photon = photon_start + t % count;
+        nrt_u64 slot = nrt_batch_of(photon, batch_base, batch_extra) - first_batch;
+        nrt_u64 cell = slot * (nrt_u64)n_bands + (nrt_u64)band;
+        NRT_GLOBAL nrt_u64 *band_tally = tallies + 4 * cell;
+        NRT_ATOMIC_ADD_U64(&band_tally[0], 1UL);
+        nrt_trace_packet(density, sigma_scale[band], albedo[band], asym_g[band], stars,
+                         star_cdf + band * n_stars, nx, ny, nz, n_stars, seed, band, photon,
+                         max_scatterings, track_scale, acc + cell * nvox, band_tally,
+                         overflow + slot);
+    }
+}
+
+/*
+ * Fold the batch slots 0..n_slots-1 of the accumulator, in batch order, into per-cell running
+ * sums of the batch totals and of their squares (for the batch-means error estimate), and
+ * clear them. A slot whose overflow flag is set is cleared without folding (the host re-traces
+ * that batch in halves). Each cell is folded by one work item in a fixed order, so the float64
+ * sums are deterministic.
+ */
+NRT_KERNEL void fold_batches(NRT_GLOBAL nrt_u64 *acc, NRT_GLOBAL double *sum1,
+                             NRT_GLOBAL double *sum2, const NRT_GLOBAL nrt_u32 *overflow,
+                             int n_slots, nrt_u64 n)
 {
     nrt_u64 gid = NRT_GLOBAL_ID();
     if (gid >= n)
         return;
-    double x = (double)acc[gid];
-    sum1[gid] += x;
-    sum2[gid] += x * x;
-    acc[gid] = 0;
+    double s1 = sum1[gid], s2 = sum2[gid];
+    for (int g = 0; g < n_slots; ++g) {
+        nrt_u64 i = (nrt_u64)g * n + gid;
+        if (!overflow[g]) {
+            double x = (double)acc[i];
+            s1 += x;
+            s2 += x * x;
+        }
+        acc[i] = 0;
+    }
+    sum1[gid] = s1;
+    sum2[gid] = s2;
 }
 
 /* Clear a 64-bit buffer. */

@@ -25,6 +25,6 @@ def test_kernel_compiles_as_cuda(tmp_path, name, defines):
                           capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
     ptx = (tmp_path / "k.ptx").read_text()
-    for kernel in {"transport.cl": ["trace_photons", "fold_batch"], "density.cl": ["generate_density"],
+    for kernel in {"transport.cl": ["trace_photons", "fold_batches"], "density.cl": ["generate_density"],
                    "sampling.cl": ["philox_blocks", "hg_at"]}[name]:
         assert f".entry {kernel}" in ptx

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from vtkmodules.vtkCommonDataModel import vtkDataObject
 
-from conftest import TEST_DEVICE
+from conftest import TEST_BACKEND, TEST_DEVICE
 from nebula_rt.filters import NebulaColour, NebulaDustDensity, NebulaLightField
 from nebula_rt.io_vti import field_data_dict, point_array, to_image_data
 from nebula_rt.pipeline import Pipeline
@@ -17,11 +17,13 @@ def chain(shape=(16, 12, 10), photons=5000):
     d = NebulaDustDensity()
     d.SetGridShape(*shape)
     d.SetDevice(TEST_DEVICE)
+    d.SetBackend(TEST_BACKEND)
     lf = NebulaLightField()
     lf.SetInputConnection(d.GetOutputPort())
     lf.SetPhotons(photons)
     lf.SetTau(50.0)
     lf.SetDevice(TEST_DEVICE)
+    lf.SetBackend(TEST_BACKEND)  # the same (cached) backend object as the fixture
     c = NebulaColour()
     c.SetInputConnection(lf.GetOutputPort())
     return d, lf, c
@@ -144,7 +146,8 @@ def test_user_density_array_point_and_cell_data():
     assert "nope" in lf.last_error and lf.GetOutputDataObject(0).GetNumberOfPoints() == 0
 
 
-def test_progress_and_abort_between_batches():
+def test_progress_and_abort_between_batches(backend, monkeypatch):
+    monkeypatch.setattr(backend, "launch_packets", 6000)  # one batch per launch
     d, lf, c = chain(photons=32_000)
     seen = []
 

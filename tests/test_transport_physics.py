@@ -250,7 +250,10 @@ def test_overflow_is_detected_and_recovered(backend, cloud):
         trace(cloud, thesis_bands(), centre_star(), _acc_limit_bits=20, **kw)
 
 
-def test_progress_and_cancel(backend, cloud):
+def test_progress_and_cancel(backend, cloud, monkeypatch):
+    """Progress is reported and cancellation polled between launches; a launch holds as many
+    batches as fill the device (here one batch each: 2000 packets x 3 bands)."""
+    monkeypatch.setattr(backend, "launch_packets", 6000)
     seen = []
     trace(cloud, thesis_bands(), centre_star(), tau=60.0, photons=32_000, seed=1, backend=backend,
           progress=lambda done, total: seen.append((done, total)))
@@ -266,6 +269,18 @@ def test_progress_and_cancel(backend, cloud):
         trace(cloud, thesis_bands(), centre_star(), tau=60.0, photons=32_000, seed=1, backend=backend,
               cancel=cancel)
     assert calls["n"] == 4
+
+
+def test_launch_grouping_does_not_change_the_bits(backend, cloud, monkeypatch):
+    """Batches traced one per launch or all in one launch (separate slots): same sums."""
+    kw = dict(tau=60.0, photons=24_000, seed=4, backend=backend)
+    grouped = trace(cloud, thesis_bands(), centre_star(), **kw)
+    monkeypatch.setattr(backend, "launch_packets", 1)
+    single = trace(cloud, thesis_bands(), centre_star(), **kw)
+    assert single.batches == grouped.batches == 16
+    assert single.raw_sum.tobytes() == grouped.raw_sum.tobytes()
+    assert single.raw_sum2.tobytes() == grouped.raw_sum2.tobytes()
+    assert np.array_equal(single.counts, grouped.counts)
 
 
 def test_multiple_stars_share_luminosity(backend):

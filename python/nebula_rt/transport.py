@@ -215,39 +215,62 @@ def trace(
     )
     plan = batch_plan(photons, batch_size)
     nb = len(bands)
+    base, extra = divmod(int(photons), len(plan))
     counts = np.zeros((nb, 4), dtype=object)  # python ints: exact whatever the photon count
-    session = backend.transport_session(setup, max(c for _, c in plan))
+    slots = backend.launch_plan(nb * int(np.prod(shape)), (base + 1) * nb, len(plan))
+    session = backend.transport_session(setup, slots)
     folded = 0
     t_kernel = 0.0
     done = 0
+    redo: list[tuple[int, int]] = []
     try:
-        pending = list(reversed(plan))
-        while pending:
+        # groups of consecutive batches, one launch each
+        for first in range(0, len(plan), slots):
+            group = plan[first:first + slots]
             if cancel is not None and cancel():
                 raise CancelledError(f"transport cancelled after {done} of {photons} packets per band")
-            start, count = pending.pop()
+            start = group[0][0]
+            count = sum(c for _, c in group)
             tk = time.perf_counter()
-            tallies, overflow = session.run_batch(start, count)
+            tallies, overflow = session.run_group(start, count, base, extra, first, len(group))
+            session.fold(len(group))
             t_kernel += time.perf_counter() - tk
-            if overflow:
-                # Same packets, same random numbers: tracing them in two halves gives the same
-                # integer deposits with more headroom per batch.
-                session.discard_batch()
-                if count == 1:
-                    raise AccumulatorOverflowError(
-                        "a single packet overflowed a 64-bit fixed-point voxel tally; "
-                        "reduce dust.tau or transport.max_scatterings"
-                    )
-                half = count // 2
-                pending.append((start + half, count - half))
-                pending.append((start, half))
-                continue
-            session.fold_batch()
-            folded += 1
-            counts += tallies.astype(object)
-            done += count
+            for k, (b_start, b_count) in enumerate(group):
+                if overflow[k]:
+                    redo.append((b_start, b_count))
+                    continue
+                folded += 1
+                counts += tallies[k].astype(object)
+                done += b_count
             if progress is not None:
                 progress(done, photons)
+        # A batch whose fixed-point cell would have passed 2^63 was not folded. Same packets,
+        # same random numbers: tracing it in two halves gives the same integer deposits with
+        # more headroom each (each half then counts as a batch of the error estimate).
+        while redo:
+            if cancel is not None and cancel():
+                raise CancelledError(f"transport cancelled after {done} of {photons} packets per band")
+            b_start, b_count = redo.pop()
+            if b_count == 1:
+                raise AccumulatorOverflowError(
+                    "a single packet overflowed a 64-bit fixed-point voxel tally; "
+                    "reduce dust.tau or transport.max_scatterings"
+                )
+            half = b_count // 2
+            for h_start, h_count in ((b_start, half), (b_start + half, b_count - half)):
+                tk = time.perf_counter()
+                # one batch covering the whole range: base 2^62 puts every packet in batch 0
+                tallies, overflow = session.run_group(h_start, h_count, 1 << 62, 0, 0, 1)
+                session.fold(1)
+                t_kernel += time.perf_counter() - tk
+                if overflow[0]:
+                    redo.append((h_start, h_count))
+                    continue
+                folded += 1
+                counts += tallies[0].astype(object)
+                done += h_count
+                if progress is not None:
+                    progress(done, photons)
         s1, s2 = session.sums_on_device() if on_device else session.sums()
         xp = array_module(s1)
         counts_i64 = np.array(counts.tolist(), dtype=np.int64)

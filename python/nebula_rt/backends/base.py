@@ -60,25 +60,38 @@ class TransportSetup:
         return int(self.sigma_scale.shape[0])
 
 
+def transport_defines(setup: TransportSetup) -> dict:
+    """Compile-time options of the transport kernel: only the estimator the scene asks for is
+    built, and the accumulator headroom (lowered only by tests)."""
+    defines = {"track-length": {"NRT_TRACK_LENGTH": 1}, "collision-filter": {"NRT_COLLISION": 1}}[setup.estimator]
+    defines = dict(defines)
+    if setup.acc_limit_bits != 63:
+        defines["NRT_ACC_LIMIT_BITS"] = int(setup.acc_limit_bits)
+    return defines
+
+
 class TransportSession(abc.ABC):
-    """Device-resident state of one transport run (accumulators and batch sums)."""
+    """Device-resident state of one transport run: ``slots`` batch accumulators and the
+    running sums of the batch totals."""
+
+    slots: int = 1
 
     @abc.abstractmethod
-    def run_batch(self, photon_start: int, count: int) -> tuple[np.ndarray, bool]:
-        """Trace photons ``[photon_start, photon_start + count)`` of every band.
+    def run_group(self, photon_start: int, count: int, batch_base: int, batch_extra: int,
+                  first_batch: int, n_slots: int) -> tuple[np.ndarray, np.ndarray]:
+        """Trace packets ``[photon_start, photon_start + count)`` of every band in one launch.
 
-        Returns the batch's tallies (uint64, shape (n_bands, 4): emitted, absorbed,
-        escaped, terminated) and whether a fixed-point accumulator ran out of headroom
-        (then the batch must be discarded with :meth:`discard_batch`).
+        They belong to batches ``first_batch .. first_batch + n_slots - 1`` of a plan whose
+        first ``batch_extra`` batches hold ``batch_base + 1`` packets and the rest
+        ``batch_base``; batch ``first_batch + k`` accumulates into slot ``k``.
+        Returns the tallies (uint64, (n_slots, n_bands, 4): emitted, absorbed, escaped,
+        terminated) and the per-slot overflow flags (bool, (n_slots,)).
         """
 
     @abc.abstractmethod
-    def fold_batch(self) -> None:
-        """Add the batch accumulator to the running sums (and its square), then clear it."""
-
-    @abc.abstractmethod
-    def discard_batch(self) -> None:
-        """Clear the batch accumulator without folding it."""
+    def fold(self, n_slots: int) -> None:
+        """Add slots 0..n_slots-1 (in order, except those that overflowed) to the running sums
+        (and their squares) and clear them."""
 
     @abc.abstractmethod
     def sums(self) -> tuple[np.ndarray, np.ndarray]:
@@ -120,8 +133,21 @@ class Backend(abc.ABC):
         """Dust density on the grid (float32, (nx, ny, nz)); ``stars`` is (n, 4): x, y, z, bump radius."""
 
     @abc.abstractmethod
-    def transport_session(self, setup: TransportSetup, max_batch: int) -> TransportSession:
-        """Allocate the device state for a transport run with batches of up to ``max_batch``."""
+    def transport_session(self, setup: TransportSetup, slots: int) -> TransportSession:
+        """Allocate the device state for a transport run with ``slots`` batch accumulators."""
+
+    def launch_plan(self, cells: int, packets_per_batch: int, n_batches: int) -> int:
+        """How many batches to trace per launch: enough packets to fill the device (and to
+        keep launches few), within a memory budget for the slots (8 bytes per cell each) and
+        at most 32 (the fold kernel's order). Subclasses set ``launch_packets`` and
+        ``slot_memory_budget``."""
+        by_work = max(1, -(-int(self.launch_packets) // max(int(packets_per_batch), 1)))
+        by_memory = max(1, int(self.slot_memory_budget) // (8 * max(int(cells), 1)))
+        return int(max(1, min(32, n_batches, by_work, by_memory)))
+
+    #: packets (all bands) worth one launch, and bytes the batch slots may take
+    launch_packets: int = 1 << 21
+    slot_memory_budget: int = 1 << 30
 
     # --- kernels exposed for tests and diagnostics ---------------------------------------
     @abc.abstractmethod

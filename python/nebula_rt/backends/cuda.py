@@ -12,7 +12,7 @@ import numpy as np
 
 from ..errors import BackendUnavailableError
 from ..kernel_source import kernel_source
-from .base import Backend, TransportSession, TransportSetup
+from .base import Backend, TransportSession, TransportSetup, transport_defines
 
 BLOCK = 256
 
@@ -48,7 +48,7 @@ def _grid(n: int) -> tuple[int]:
 
 
 class CUDATransport(TransportSession):
-    def __init__(self, backend: "CUDABackend", setup: TransportSetup, max_batch: int):
+    def __init__(self, backend: "CUDABackend", setup: TransportSetup, slots: int):
         cp = backend.cp
         self.backend = backend
         self.setup = setup
@@ -56,6 +56,7 @@ class CUDATransport(TransportSession):
         nb = setup.n_bands
         self.nvox = int(np.prod(self.shape))
         self.ncell = nb * self.nvox
+        self.slots = int(slots)
         self.d_density = cp.asarray(np.ravel(np.asarray(setup.density, np.float32), order="F"))
         self.d_sigma = cp.asarray(np.asarray(setup.sigma_scale, np.float32))
         self.d_albedo = cp.asarray(np.asarray(setup.albedo, np.float32))
@@ -64,39 +65,35 @@ class CUDATransport(TransportSession):
         stars4[:, :3] = setup.stars
         self.d_stars = cp.asarray(stars4.ravel())
         self.d_cdf = cp.asarray(np.ascontiguousarray(setup.star_cdf, np.float32).ravel())
-        self.d_acc = cp.zeros(self.ncell, cp.uint64)
+        self.d_acc = cp.zeros(self.ncell * self.slots, cp.uint64)
         self.d_sum1 = cp.zeros(self.ncell, cp.float64)
         self.d_sum2 = cp.zeros(self.ncell, cp.float64)
-        self.d_tallies = cp.zeros(nb * 4, cp.uint64)
-        self.d_overflow = cp.zeros(1, cp.uint32)
-        defines = {"track-length": {"NRT_TRACK_LENGTH": 1}, "collision-filter": {"NRT_COLLISION": 1}}[setup.estimator]
-        defines = dict(defines)
-        if setup.acc_limit_bits != 63:
-            defines["NRT_ACC_LIMIT_BITS"] = int(setup.acc_limit_bits)
+        self.d_tallies = cp.zeros(self.slots * nb * 4, cp.uint64)
+        self.d_overflow = cp.zeros(self.slots, cp.uint32)
+        defines = transport_defines(setup)
         self.k_trace = backend.kernel("transport.cl", "trace_photons", defines)
-        self.k_fold = backend.kernel("transport.cl", "fold_batch", defines)
+        self.k_fold = backend.kernel("transport.cl", "fold_batches", defines)
 
-    def run_batch(self, photon_start, count):
+    def run_group(self, photon_start, count, batch_base, batch_extra, first_batch, n_slots):
         s = self.setup
         nx, ny, nz = self.shape
         self.d_tallies.fill(0)
         self.d_overflow.fill(0)
         total = int(count) * s.n_bands
-        self.k_trace(_grid(total), (BLOCK,), (
+        self.k_trace(_grid(self.backend.work_items(total)), (BLOCK,), (
             self.d_density, self.d_sigma, self.d_albedo, self.d_g, self.d_stars, self.d_cdf,
             np.int32(nx), np.int32(ny), np.int32(nz), np.int32(s.n_bands), np.int32(s.stars.shape[0]),
             np.uint64(s.seed), np.uint64(photon_start), np.uint64(count),
+            np.uint64(batch_base), np.uint64(batch_extra), np.uint64(first_batch),
             np.int32(s.max_scatterings), np.float32(s.track_scale),
             self.d_acc, self.d_tallies, self.d_overflow,
         ))
-        tallies = self.d_tallies.get().reshape(s.n_bands, 4)  # synchronises
-        return tallies, bool(self.d_overflow.get()[0])
+        tallies = self.d_tallies.get().reshape(self.slots, s.n_bands, 4)  # synchronises
+        return tallies[:n_slots], self.d_overflow.get()[:n_slots].astype(bool)
 
-    def fold_batch(self):
-        self.k_fold(_grid(self.ncell), (BLOCK,), (self.d_acc, self.d_sum1, self.d_sum2, np.uint64(self.ncell)))
-
-    def discard_batch(self):
-        self.d_acc.fill(0)
+    def fold(self, n_slots):
+        self.k_fold(_grid(self.ncell), (BLOCK,), (self.d_acc, self.d_sum1, self.d_sum2, self.d_overflow,
+                                                 np.int32(n_slots), np.uint64(self.ncell)))
 
     def sums_on_device(self):
         nb = self.setup.n_bands
@@ -135,6 +132,10 @@ class CUDABackend(Backend):
         self.device.use()
         props = cp.cuda.runtime.getDeviceProperties(index)
         self._device_name = f"CUDA: {props['name'].decode()}"
+        self.sm_count = int(props["multiProcessorCount"])
+        self.launch_packets = 1 << 23
+        free, _total = cp.cuda.runtime.memGetInfo()
+        self.slot_memory_budget = int(free) // 4
         self._modules: dict = {}
         self._kernels: dict = {}
 
@@ -173,8 +174,12 @@ class CUDABackend(Backend):
             d_stars, np.int32(len(stars)), np.int32(subsamples)))
         return out.get().reshape((nz, ny, nx)).transpose(2, 1, 0)
 
-    def transport_session(self, setup, max_batch):
-        return CUDATransport(self, setup, max_batch)
+    def transport_session(self, setup, slots):
+        return CUDATransport(self, setup, slots)
+
+    def work_items(self, packets: int) -> int:
+        """Persistent threads: a few waves' worth (each thread loops over packets)."""
+        return int(min(packets, self.sm_count * 2048 * 4))
 
     def sample_noise(self, points):
         cp = self.cp

@@ -6,7 +6,7 @@ import numpy as np
 
 from ..errors import BackendUnavailableError
 from ..kernel_source import kernel_source
-from .base import Backend, TransportSession, TransportSetup
+from .base import Backend, TransportSession, TransportSetup, transport_defines
 
 try:  # pyopencl is a hard dependency, but give a clear message if the ICD loader is broken
     import pyopencl as cl
@@ -86,7 +86,7 @@ def select_device(selector: str = ""):
 class OpenCLTransport(TransportSession):
     """Device buffers of one transport run."""
 
-    def __init__(self, backend: "OpenCLBackend", setup: TransportSetup, max_batch: int):
+    def __init__(self, backend: "OpenCLBackend", setup: TransportSetup, slots: int):
         self.backend = backend
         self.setup = setup
         ctx, q = backend.context, backend.queue
@@ -96,7 +96,7 @@ class OpenCLTransport(TransportSession):
         self.nvox = nx * ny * nz
         nb = setup.n_bands
         self.ncell = nb * self.nvox
-        self.max_batch = int(max_batch)
+        self.slots = int(slots)
 
         def ro(a, dtype):
             return cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(a, dtype=dtype))
@@ -109,50 +109,44 @@ class OpenCLTransport(TransportSession):
         stars4[:, :3] = setup.stars
         self.d_stars = ro(stars4.ravel(), np.float32)
         self.d_cdf = ro(setup.star_cdf.ravel(), np.float32)
-        self.d_acc = cl.Buffer(ctx, mf.READ_WRITE, size=8 * self.ncell)
+        self.d_acc = cl.Buffer(ctx, mf.READ_WRITE, size=8 * self.ncell * self.slots)
         self.d_sum1 = cl.Buffer(ctx, mf.READ_WRITE, size=8 * self.ncell)
         self.d_sum2 = cl.Buffer(ctx, mf.READ_WRITE, size=8 * self.ncell)
-        for buf in (self.d_acc, self.d_sum1, self.d_sum2):
+        cl.enqueue_fill_buffer(q, self.d_acc, np.uint64(0), 0, 8 * self.ncell * self.slots)
+        for buf in (self.d_sum1, self.d_sum2):
             cl.enqueue_fill_buffer(q, buf, np.uint64(0), 0, 8 * self.ncell)
-        self.h_tallies = np.zeros((nb, 4), np.uint64)
+        self.h_tallies = np.zeros((self.slots, nb, 4), np.uint64)
         self.d_tallies = cl.Buffer(ctx, mf.READ_WRITE, size=self.h_tallies.nbytes)
-        self.h_overflow = np.zeros(1, np.uint32)
-        self.d_overflow = cl.Buffer(ctx, mf.READ_WRITE, size=4)
-        defines = dict({"track-length": {"NRT_TRACK_LENGTH": 1}, "collision-filter": {"NRT_COLLISION": 1}}[
-            setup.estimator
-        ])
-        if setup.acc_limit_bits != 63:
-            defines["NRT_ACC_LIMIT_BITS"] = int(setup.acc_limit_bits)
+        self.h_overflow = np.zeros(self.slots, np.uint32)
+        self.d_overflow = cl.Buffer(ctx, mf.READ_WRITE, size=self.h_overflow.nbytes)
+        defines = transport_defines(setup)
         self.k_trace = backend.kernel("transport.cl", "trace_photons", defines)
-        self.k_fold = backend.kernel("transport.cl", "fold_batch", defines)
-        self.k_clear = backend.kernel("transport.cl", "clear_u64", defines)
+        self.k_fold = backend.kernel("transport.cl", "fold_batches", defines)
 
-    def run_batch(self, photon_start, count):
+    def run_group(self, photon_start, count, batch_base, batch_extra, first_batch, n_slots):
         q = self.backend.queue
         s = self.setup
         nx, ny, nz = self.shape
         cl.enqueue_fill_buffer(q, self.d_tallies, np.uint64(0), 0, self.h_tallies.nbytes)
-        cl.enqueue_fill_buffer(q, self.d_overflow, np.uint32(0), 0, 4)
+        cl.enqueue_fill_buffer(q, self.d_overflow, np.uint32(0), 0, self.h_overflow.nbytes)
         total = int(count) * s.n_bands
-        local = None
         self.k_trace(
-            q, (total,), local,
+            q, (self.backend.work_items(total),), None,
             self.d_density, self.d_sigma, self.d_albedo, self.d_g, self.d_stars, self.d_cdf,
             np.int32(nx), np.int32(ny), np.int32(nz), np.int32(s.n_bands), np.int32(s.stars.shape[0]),
             np.uint64(s.seed), np.uint64(photon_start), np.uint64(count),
+            np.uint64(batch_base), np.uint64(batch_extra), np.uint64(first_batch),
             np.int32(s.max_scatterings), np.float32(s.track_scale),
             self.d_acc, self.d_tallies, self.d_overflow,
         )
         cl.enqueue_copy(q, self.h_tallies, self.d_tallies)
         cl.enqueue_copy(q, self.h_overflow, self.d_overflow)
         q.finish()
-        return self.h_tallies.copy(), bool(self.h_overflow[0])
+        return self.h_tallies[:n_slots].copy(), self.h_overflow[:n_slots].astype(bool)
 
-    def fold_batch(self):
-        self.k_fold(self.backend.queue, (self.ncell,), None, self.d_acc, self.d_sum1, self.d_sum2, np.uint64(self.ncell))
-
-    def discard_batch(self):
-        self.k_clear(self.backend.queue, (self.ncell,), None, self.d_acc, np.uint64(self.ncell))
+    def fold(self, n_slots):
+        self.k_fold(self.backend.queue, (self.ncell,), None, self.d_acc, self.d_sum1, self.d_sum2,
+                    self.d_overflow, np.int32(n_slots), np.uint64(self.ncell))
 
     def sums(self):
         q = self.backend.queue
@@ -183,6 +177,12 @@ class OpenCLBackend(Backend):
         self.device, self._device_name = select_device(selector)
         self.context = cl.Context([self.device])
         self.queue = cl.CommandQueue(self.context)
+        self.is_gpu = bool(self.device.type & cl.device_type.GPU)
+        mem = int(self.device.global_mem_size)
+        # a GPU launch should hold millions of packets; a CPU launch ~2M (a few seconds on PoCL,
+        # so progress and cancellation stay responsive)
+        self.launch_packets = (1 << 23) if self.is_gpu else (1 << 21)
+        self.slot_memory_budget = mem // 4 if self.is_gpu else min(mem // 4, 1 << 30)
         self._programs: dict = {}
         self._kernels: dict = {}
 
@@ -231,8 +231,15 @@ class OpenCLBackend(Backend):
         self.queue.finish()
         return h.reshape((nz, ny, nx)).transpose(2, 1, 0)
 
-    def transport_session(self, setup, max_batch):
-        return OpenCLTransport(self, setup, max_batch)
+    def transport_session(self, setup, slots):
+        return OpenCLTransport(self, setup, slots)
+
+    def work_items(self, packets: int) -> int:
+        """Launch size for ``packets`` packets: on GPUs a few waves of persistent threads (each
+        loops over packets), on CPUs one work item per packet (PoCL schedules them itself)."""
+        if self.is_gpu:
+            return int(min(packets, self.device.max_compute_units * 2048 * 4))
+        return int(packets)
 
     # --- test/diagnostic kernels ----------------------------------------------------------
     def _run(self, prog_name, kname, n, outputs, *args):
