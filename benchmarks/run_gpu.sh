@@ -46,7 +46,7 @@ if [[ " $steps " == *" compare "* ]]; then
 fi
 if [[ " $steps " == *" profile "* ]] && command -v ncu >/dev/null; then
     echo "== ncu: transport kernel, neb128 2.1M photons (one batch)"
-    ncu --target-processes all -k regex:trace_photons -s 20 -c 1 --section SpeedOfLight --section Occupancy \
+    ncu --target-processes all -k regex:trace_photons -s 1 -c 1 --section SpeedOfLight --section Occupancy \
         --section LaunchStats --section MemoryWorkloadAnalysis --section WarpStateStats \
         python3 benchmarks/bench_neb128.py --backend cuda --photons 2.1e6 --mcx none 2>&1 | grep -v "^==PROF==" | tail -n 120
 fi

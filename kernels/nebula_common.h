@@ -106,8 +106,9 @@ typedef struct {
     nrt_u64 key0, key1;
     nrt_u64 photon;
     nrt_u64 block;
-    nrt_u64x4 buf;
-    int pos; /* next 32-bit word in buf, 0..8 */
+    nrt_u64 b0, b1, b2, b3; /* the current block's 4 outputs, kept as scalars so that the
+                               state stays in registers (an indexed array goes to local memory) */
+    int pos;                 /* next 32-bit word, 0..8 */
 } nrt_rng;
 
 NRT_DEVICE void nrt_rng_init(nrt_rng *r, nrt_u64 seed, nrt_u64 band, nrt_u64 photon)
@@ -116,6 +117,7 @@ NRT_DEVICE void nrt_rng_init(nrt_rng *r, nrt_u64 seed, nrt_u64 band, nrt_u64 pho
     r->key1 = band;
     r->photon = photon;
     r->block = 0;
+    r->b0 = r->b1 = r->b2 = r->b3 = 0;
     r->pos = 8;
 }
 
@@ -127,11 +129,16 @@ NRT_DEVICE nrt_u32 nrt_rng_u32(nrt_rng *r)
         c.v[1] = r->block;
         c.v[2] = 0;
         c.v[3] = 0;
-        r->buf = nrt_philox4x64_10(c, r->key0, r->key1);
+        nrt_u64x4 o = nrt_philox4x64_10(c, r->key0, r->key1);
+        r->b0 = o.v[0];
+        r->b1 = o.v[1];
+        r->b2 = o.v[2];
+        r->b3 = o.v[3];
         r->block += 1;
         r->pos = 0;
     }
-    nrt_u64 w = r->buf.v[r->pos >> 1];
+    int q = r->pos >> 1;
+    nrt_u64 w = (q == 0) ? r->b0 : (q == 1) ? r->b1 : (q == 2) ? r->b2 : r->b3;
     nrt_u32 out = (r->pos & 1) ? (nrt_u32)(w >> 32) : (nrt_u32)(w & 0xFFFFFFFFUL);
     r->pos += 1;
     return out;

@@ -80,7 +80,7 @@ class CUDATransport(TransportSession):
         self.d_tallies.fill(0)
         self.d_overflow.fill(0)
         total = int(count) * s.n_bands
-        self.k_trace(_grid(self.backend.work_items(total)), (BLOCK,), (
+        self.k_trace(_grid(self.backend.work_items(total, self.k_trace)), (BLOCK,), (
             self.d_density, self.d_sigma, self.d_albedo, self.d_g, self.d_stars, self.d_cdf,
             np.int32(nx), np.int32(ny), np.int32(nz), np.int32(s.n_bands), np.int32(s.stars.shape[0]),
             np.uint64(s.seed), np.uint64(photon_start), np.uint64(count),
@@ -177,9 +177,14 @@ class CUDABackend(Backend):
     def transport_session(self, setup, slots):
         return CUDATransport(self, setup, slots)
 
-    def work_items(self, packets: int) -> int:
-        """Persistent threads: a few waves' worth (each thread loops over packets)."""
-        return int(min(packets, self.sm_count * 2048 * 4))
+    def work_items(self, packets: int, kernel=None) -> int:
+        """Persistent threads: exactly the threads the GPU holds at once (one wave), each
+        looping over packets. More would queue further waves behind blocks whose threads trace
+        many packets one after another; fewer would leave SMs idle."""
+        regs = int(getattr(kernel, "num_regs", 64) or 64)
+        regs = -(-regs // 8) * 8  # allocation granularity
+        blocks_per_sm = max(1, min(2048 // BLOCK, 32, 65536 // (regs * BLOCK)))
+        return int(min(packets, self.sm_count * blocks_per_sm * BLOCK))
 
     def sample_noise(self, points):
         cp = self.cp
