@@ -178,8 +178,8 @@ NRT_DEVICE nrt_u64 nrt_batch_of(nrt_u64 photon, nrt_u64 base, nrt_u64 extra)
  * consecutive batches first_batch, first_batch + 1, ... of the plan (base, extra); each batch
  * accumulates into its own slot (slot = batch - first_batch) of acc, tallies and overflow, so
  * the batch totals stay separable for the error estimate while many batches share one launch.
- * Work items loop over packets with a grid stride (persistent threads): a thread whose packet
- * ends early takes the next one instead of idling until the slowest packet of its warp ends.
+ * The backends launch one work item per packet; the grid-stride loop keeps the kernel correct
+ * for smaller launches too.
  */
 NRT_KERNEL void trace_photons(const NRT_GLOBAL float *density, /* nx*ny*nz, x fastest */
                               const NRT_GLOBAL float *sigma_scale, /* per band: tau * k_b */

@@ -235,11 +235,7 @@ class OpenCLBackend(Backend):
         return OpenCLTransport(self, setup, slots)
 
     def work_items(self, packets: int) -> int:
-        """Launch size for ``packets`` packets: on GPUs one wave of persistent threads (each
-        loops over packets; ~1024 resident per compute unit at the transport kernel's ~64
-        registers), on CPUs one work item per packet (PoCL schedules them itself)."""
-        if self.is_gpu:
-            return int(min(packets, self.device.max_compute_units * 1024))
+        """One work item per packet (see the CUDA backend for why not persistent threads)."""
         return int(packets)
 
     # --- test/diagnostic kernels ----------------------------------------------------------
