@@ -84,6 +84,10 @@ class NebulaAlgorithm(VTKPythonAlgorithmBase):
             self._report(1.0, "")
         except (NebulaError, ValueError, KeyError) as exc:
             kind = "cancelled" if isinstance(exc, CancelledError) else "error"
+            if isinstance(exc, CancelledError):
+                # VTK 9.2 (ParaView 5.11) does not clear the flag before the next execution:
+                # without this every later update would be cancelled at once
+                self.SetAbortExecute(0)
             self.last_error = f"{type(self).__name__}: {exc}"
             output.Initialize()  # no half-made output
             vtkOutputWindow.GetInstance().DisplayErrorText(f"NebulaRT {kind}: {self.last_error}\n")

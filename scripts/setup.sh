@@ -7,12 +7,21 @@
 # (a) System libraries for off-screen rendering (nebula_rt.render), installed
 #     with apt-get only when missing, and only as root (otherwise the command
 #     to run is printed).
+#     Also ParaView 5.11 (paraview, python3-paraview), Xvfb and Debian's PoCL
+#     OpenCL driver for the ParaView plugin and its tests.
 # (b) The virtual environment .venv with `pip install -e ".[io,pocl,test]"`.
 #     .venv/.nebula-setup-stamp holds the sha256 of pyproject.toml; while it
 #     matches, step (b) is skipped.
+# (c) The virtual environment .venv-pv for ParaView's Python (/usr/bin/python3,
+#     --system-site-packages): NebulaRT's dependencies WITHOUT the vtk wheel
+#     (a vtk wheel in front of ParaView's own VTK crashes it) and NebulaRT as an
+#     editable install (--no-deps). scripts/pv-env.sh puts it on ParaView's path.
+#     Stamped like (b) (sha256 of pyproject.toml and the package list).
 #
 # Environment: PYTHON (interpreter that creates the venv, default python3),
-# NEBULA_VENV (venv folder, default <repo>/.venv).
+# NEBULA_VENV (venv folder, default <repo>/.venv), NEBULA_PV_PYTHON (ParaView's
+# Python, default /usr/bin/python3), NEBULA_PV_VENV (default <repo>/.venv-pv),
+# NEBULA_SKIP_PARAVIEW=1 (skip ParaView, Xvfb and .venv-pv).
 set -euo pipefail
 
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -20,11 +29,15 @@ cd "$ROOT"
 VENV="${NEBULA_VENV:-$ROOT/.venv}"
 STAMP="$VENV/.nebula-setup-stamp"
 PYTHON="${PYTHON:-python3}"
+PV_PYTHON="${NEBULA_PV_PYTHON:-/usr/bin/python3}"
+PV_VENV="${NEBULA_PV_VENV:-$ROOT/.venv-pv}"
+PV_STAMP="$PV_VENV/.nebula-setup-stamp"
+SKIP_PV="${NEBULA_SKIP_PARAVIEW:-0}"
 FORCE=0
 for arg in "$@"; do
     case "$arg" in
         --force) FORCE=1 ;;
-        -h|--help) sed -n '2,16p' "$0"; exit 0 ;;
+        -h|--help) sed -n '2,27p' "$0"; exit 0 ;;
         *) echo "setup.sh: unknown argument: $arg" >&2; exit 2 ;;
     esac
 done
@@ -46,6 +59,11 @@ log() { printf '[setup] %s\n' "$*"; }
 RENDER_PKGS=(libegl1 libegl-mesa0 libgl1-mesa-dri)
 # With a DISPLAY (e.g. under Xvfb) VTK renders through GLX instead.
 X11_PKGS=(libgl1 libglx-mesa0 libx11-6 libxcursor1)
+# The ParaView plugin (plugin/) and its tests: ParaView 5.11 with its Python
+# modules, an X server for pvpython/pvbatch renders, and Debian's PoCL ICD
+# (the OpenCL device ParaView's Python sees through the pyopencl wheel).
+PV_PKGS=(paraview python3-paraview xvfb pocl-opencl-icd)
+if [[ "$SKIP_PV" == 1 ]]; then PV_PKGS=(); fi
 
 is_installed() {
     # dpkg -s also succeeds for removed packages whose config files remain;
@@ -55,7 +73,7 @@ is_installed() {
 
 missing=()
 if command -v dpkg-query >/dev/null 2>&1; then
-    for pkg in "${RENDER_PKGS[@]}" "${X11_PKGS[@]}"; do
+    for pkg in "${RENDER_PKGS[@]}" "${X11_PKGS[@]}" "${PV_PKGS[@]}"; do
         is_installed "$pkg" || missing+=("$pkg")
     done
     # The venv needs an interpreter with venv + ensurepip (Debian splits them out).
@@ -64,6 +82,10 @@ if command -v dpkg-query >/dev/null 2>&1; then
         PYTHON=python3
     elif ! "$PYTHON" -c 'import venv, ensurepip' >/dev/null 2>&1; then
         is_installed python3-venv || missing+=(python3-venv)
+    fi
+    # .venv-pv is made with ParaView's (the system's) Python: it needs venv + ensurepip too
+    if ((${#PV_PKGS[@]})) && [[ -x "$PV_PYTHON" ]] && ! "$PV_PYTHON" -c 'import venv, ensurepip' >/dev/null 2>&1; then
+        is_installed python3-venv || [[ " ${missing[*]} " == *" python3-venv "* ]] || missing+=(python3-venv)
     fi
 else
     log "no dpkg here: not checking system packages (needed on Debian: ${RENDER_PKGS[*]} ${X11_PKGS[*]})"
@@ -75,6 +97,10 @@ if ((${#missing[@]})); then
         export DEBIAN_FRONTEND=noninteractive
         apt-get update -qq
         apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
+        # python3-venv was needed before the system python3 existed (it comes with paraview)
+        if ((${#PV_PKGS[@]})) && [[ -x "$PV_PYTHON" ]] && ! "$PV_PYTHON" -c 'import venv, ensurepip' >/dev/null 2>&1; then
+            apt-get install -y -qq --no-install-recommends python3-venv >/dev/null
+        fi
     else
         log "missing system packages: ${missing[*]}"
         log "run as root: apt-get update && apt-get install -y --no-install-recommends ${missing[*]}"
@@ -86,11 +112,7 @@ fi
 # --------------------------------------------------------------------------
 # (b) virtual environment
 want="$(sha256sum pyproject.toml | cut -d' ' -f1)"
-if ((FORCE == 0)) && [[ -x "$VENV/bin/python" && -f "$STAMP" && "$(cat "$STAMP")" == "$want" ]]; then
-    log "venv up to date ($VENV)"
-    exit 0
-fi
-
+setup_main_venv() {  # (body not indented: it holds here-documents and python -c code)
 if [[ ! -x "$VENV/bin/python" ]]; then
     log "creating venv $VENV with $("$PYTHON" --version 2>&1)"
     "$PYTHON" -m venv "$VENV"
@@ -131,4 +153,68 @@ fi
 tmp_stamp="$STAMP.tmp.$$"
 printf '%s\n' "$want" >"$tmp_stamp"
 mv -f "$tmp_stamp" "$STAMP"
-log "done"
+log "venv done"
+}
+
+if ((FORCE == 0)) && [[ -x "$VENV/bin/python" && -f "$STAMP" && "$(cat "$STAMP")" == "$want" ]]; then
+    log "venv up to date ($VENV)"
+else
+    setup_main_venv
+fi
+
+# --------------------------------------------------------------------------
+# (c) ParaView's Python packages: .venv-pv
+#
+# ParaView 5.11 (Debian) embeds the system Python 3.11 and ships its own VTK as
+# Python modules in /usr/lib/python3/dist-packages. NebulaRT's dependencies go
+# into a venv of that Python, WITHOUT the vtk wheel (it would be imported
+# instead of ParaView's VTK and crash); matplotlib >= 3.7 because Debian's 3.6
+# is built for numpy 1 and colour-science imports it (numpy 2 comes with
+# pyopencl). plugin/site/sitecustomize.py, through scripts/pv-env.sh, puts the
+# venv's site-packages in front inside pvpython, pvbatch and paraview.
+PV_REQS=(pyopencl colour-science scipy tqdm tomli-w "matplotlib>=3.7")
+pv_want="$( (sha256sum pyproject.toml | cut -d' ' -f1; printf '%s\n' "${PV_REQS[@]}"; "$PV_PYTHON" --version 2>&1) | sha256sum | cut -d' ' -f1)"
+
+setup_pv_venv() {  # (body not indented: it holds python -c code)
+if [[ ! -x "$PV_VENV/bin/python" ]]; then
+    log "creating $PV_VENV with $("$PV_PYTHON" --version 2>&1) (--system-site-packages: ParaView's modules)"
+    "$PV_PYTHON" -m venv --system-site-packages "$PV_VENV"
+fi
+log "pip install into $PV_VENV: ${PV_REQS[*]} and NebulaRT (--no-deps -e .) (log: $PV_VENV/.nebula-setup-pip.log)"
+if ! { "$PV_VENV/bin/python" -m pip install --disable-pip-version-check "${PV_REQS[@]}" &&
+       "$PV_VENV/bin/python" -m pip install --disable-pip-version-check --no-deps -e . ; } \
+        >"$PV_VENV/.nebula-setup-pip.log" 2>&1; then
+    tail -n 30 "$PV_VENV/.nebula-setup-pip.log" >&2
+    log "pip install into $PV_VENV failed (full log: $PV_VENV/.nebula-setup-pip.log)"
+    exit 1
+fi
+if "$PV_VENV/bin/python" -c "import vtkmodules, sys; sys.exit(0 if '$PV_VENV' in vtkmodules.__file__ else 1)" >/dev/null 2>&1; then
+    log "WARNING: $PV_VENV holds a vtk wheel: it will shadow ParaView's VTK (pip uninstall vtk there)"
+fi
+# smoke check: pvpython imports NebulaRT and loads the plugin (warning only)
+if command -v pvpython >/dev/null 2>&1; then
+    if (cd / && source "$ROOT/scripts/pv-env.sh" && timeout 120 pvpython -c "
+import nebula_rt.filters
+from paraview.simple import NebulaLightField
+print('[setup] pvpython: NebulaRT plugin loads')
+" 2>/dev/null | grep -q 'plugin loads'); then
+        log "pvpython loads the NebulaRT plugin"
+    else
+        log "WARNING: pvpython cannot load the NebulaRT plugin; try: source scripts/pv-env.sh && pvpython -c 'import nebula_rt.filters'"
+    fi
+fi
+tmp_stamp="$PV_STAMP.tmp.$$"
+printf '%s\n' "$pv_want" >"$tmp_stamp"
+mv -f "$tmp_stamp" "$PV_STAMP"
+log "ParaView venv done"
+}
+
+if [[ "$SKIP_PV" == 1 ]]; then
+    log "skipping ParaView's venv (NEBULA_SKIP_PARAVIEW=1)"
+elif [[ ! -x "$PV_PYTHON" ]]; then
+    log "WARNING: $PV_PYTHON (ParaView's Python) is missing: not making $PV_VENV (install the system packages above)"
+elif ((FORCE == 0)) && [[ -x "$PV_VENV/bin/python" && -f "$PV_STAMP" && "$(cat "$PV_STAMP")" == "$pv_want" ]]; then
+    log "ParaView venv up to date ($PV_VENV)"
+else
+    setup_pv_venv
+fi

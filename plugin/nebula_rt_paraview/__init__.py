@@ -1,0 +1,24 @@
+"""ParaView proxies of NebulaRT (``plugin/NebulaRT.py`` is the plugin's entry file).
+
+Each proxy is a thin ``paraview.util.vtkAlgorithm``-decorated subclass of the VTK algorithm of
+the same name in ``nebula_rt.filters``: the decorators describe the properties and their
+widgets; the setters are the base class's (they store the value and call ``Modified()``;
+validation happens when the pipeline executes).
+
+Proxy names (``NebulaDustDensity``, ``NebulaLightField``, ``NebulaColour``, ``NebulaSkyImage``)
+and property names are API: state files (.pvsm) store them.
+
+``nebula_rt_paraview.view`` holds pvpython helpers (showing ``rgba`` as a volume, loading
+state files safely); it imports ``paraview.simple`` and is not imported here.
+"""
+
+# Import ParaView proxies from the Python files; keep helpers internal.
+from .colour import NebulaColour
+from .dust_density import NebulaDustDensity
+from .light_field import NebulaLightField
+from .sky_image import NebulaSkyImage
+
+#: proxy names (group "sources" for the dust density, "filters" for the others)
+PROXY_NAMES = ("NebulaDustDensity", "NebulaLightField", "NebulaColour", "NebulaSkyImage")
+
+__all__ = ["NebulaColour", "NebulaDustDensity", "NebulaLightField", "NebulaSkyImage", "PROXY_NAMES"]

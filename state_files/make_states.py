@@ -1,0 +1,168 @@
+"""Regenerate the ParaView state files of the thesis's result figures (run with pvpython).
+
+    source scripts/pv-env.sh
+    pvpython state_files/make_states.py                      # writes state_files/*.pvsm
+    pvpython state_files/make_states.py --grid 128 --photons 2100000 --out /tmp/big
+    pvpython state_files/make_states.py --screenshots docs/images   # + paraview-fig4_*.png
+
+States (each: one Nebula Dust Density feeding four Nebula Light Field -> Nebula Colour
+branches, albedo 0.2 / 0.4 / 0.6 / 0.8, shown side by side as rgba volumes, one shared fixed
+exposure so brightness can be compared across the series):
+
+- fig4_3_homogeneous_albedo.pvsm   uniform dust (density 0.02), tau 128, star at the centre
+                                   (20 000 K, bump radius 0.01)       -- thesis Fig. 4.3
+- fig4_4_nebula_offset_a.pvsm      turbulence, scale 0.15, tau 128, noise offset (0.5, 0.5, 0.5)
+- fig4_5_nebula_offset_b.pvsm      the same with noise offset (3.5, 1.5, 0.5)  -- Figs. 4.4/4.5
+
+The defaults (48^3 voxels, 200 000 packets per band) load and render in a few seconds on two
+CPU cores; the thesis used 128^3 voxels and 2.1 million packets (--grid 128 --photons 2100000,
+or change GridShape / Photons in ParaView after loading: the properties panel of the dust
+source and of each light field). The states leave Device empty and Backend "auto": a GPU is
+used where there is one, else the CPU OpenCL device.
+
+The shared exposure is the automatic exposure of the albedo-0.8 branch (the brightest),
+measured while generating; the Exposure property of each Nebula Colour holds it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+from paraview import simple
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.join(os.path.dirname(HERE), "plugin"))
+from nebula_rt_paraview.view import load_plugin, show_rgba_volume  # noqa: E402
+
+ALBEDOS = (0.2, 0.4, 0.6, 0.8)
+STAR = [0.5, 0.5, 0.5, 1.0, 20000.0, 0.01]
+#: gap between the volumes of the series (box units)
+PITCH = 1.25
+
+FIGURES = {
+    "fig4_3_homogeneous_albedo": dict(
+        title="Homogeneous dust, tau 128: albedo series (thesis Fig. 4.3)",
+        density=dict(Model="uniform", UniformDensity=0.02),
+    ),
+    "fig4_4_nebula_offset_a": dict(
+        title="Nebula, noise offset (0.5, 0.5, 0.5): albedo series (thesis Fig. 4.4)",
+        density=dict(Model="turbulence", Scale=0.15, Offset=[0.5, 0.5, 0.5]),
+    ),
+    "fig4_5_nebula_offset_b": dict(
+        title="Nebula, noise offset (3.5, 1.5, 0.5): albedo series (thesis Fig. 4.5)",
+        density=dict(Model="turbulence", Scale=0.15, Offset=[3.5, 1.5, 0.5]),
+    ),
+}
+
+
+def reset_session():
+    for px in reversed(list(simple.GetSources().values())):  # consumers first
+        simple.Delete(px)
+    for view in list(simple.GetViews()):
+        simple.Delete(view)
+    for layout in list(simple.GetLayouts().values()):
+        simple.RemoveLayout(layout)
+
+
+def build(name, spec, grid, photons, tau, device):
+    """The pipeline and view of one figure; returns (view, colour proxies)."""
+    reset_session()
+    layout = simple.CreateLayout(name)
+    view = simple.CreateView("RenderView")
+    simple.AssignViewToLayout(view=view, layout=layout, hint=0)
+    view.ViewSize = [1600, 540]
+    view.OrientationAxesVisibility = 0
+    if "UseColorPaletteForBackground" in view.ListProperties():
+        view.UseColorPaletteForBackground = 0
+    view.Background = [0.0, 0.0, 0.0]
+
+    dust = simple.NebulaDustDensity(registrationName="Dust density", GridShape=[grid] * 3, Stars=STAR,
+                                    Device=device, **spec["density"])
+    colours = []
+    for i, albedo in enumerate(ALBEDOS):
+        # the input positionally: paraview.simple picks the DensityArray default from it
+        light = simple.NebulaLightField(dust, registrationName=f"Light field, albedo {albedo}")
+        light.DensityArray = ["POINTS", "density"]
+        light.Stars = STAR
+        light.Tau = tau
+        light.Photons = photons
+        light.BandPreset = "thesis-rgb"
+        light.OverrideOptics = 1
+        light.Albedo = albedo
+        light.G = 0.6
+        light.Seed = 1 + i
+        light.Device = device
+        colour = simple.NebulaColour(light, registrationName=f"Colour, albedo {albedo}")
+        display = show_rgba_volume(colour, view)
+        display.Position = [i * PITCH, 0.0, 0.0]
+        colours.append(colour)
+
+        # label under the cube, anchored in the scene (follows the camera)
+        label = simple.Text(registrationName=f"Label, albedo {albedo}", Text=f"albedo {albedo}")
+        ld = simple.Show(label, view)
+        ld.TextPropMode = "Billboard 3D Text"
+        ld.BillboardPosition = [i * PITCH + 0.38, -0.1, 0.5]
+        ld.FontSize = 15
+        ld.Color = [0.8, 0.8, 0.8]
+    title = simple.Text(registrationName="Title", Text=spec["title"])
+    td = simple.Show(title, view)
+    td.WindowLocation = "Upper Center"
+    td.FontSize = 14
+    td.Color = [0.8, 0.8, 0.8]
+
+    # one exposure for the whole series: the automatic one of the brightest branch
+    colours[-1].UpdatePipeline()
+    exposure = float(colours[-1].FieldData["exposure"].GetRange(0)[0])
+    for c in colours:
+        c.AutoExposure = 0
+        c.Exposure = exposure
+
+    # camera: look down -z at the row of cubes (box units), parallel projection (render once
+    # first: paraview.simple resets the camera on a session's first render)
+    simple.Render(view)
+    width = (len(ALBEDOS) - 1) * PITCH + 1.0
+    view.CameraParallelProjection = 1
+    view.CameraFocalPoint = [0.5 * width, 0.42, 0.5]
+    view.CameraPosition = [0.5 * width, 0.42, 6.0]
+    view.CameraViewUp = [0.0, 1.0, 0.0]
+    view.CameraParallelScale = 0.87
+    simple.SetActiveView(view)
+    simple.SetActiveSource(colours[0])
+    return view, colours
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--grid", type=int, default=48, help="voxels per axis (default 48; thesis 128)")
+    ap.add_argument("--photons", type=int, default=200_000, help="packets per band (default 2e5; thesis 2.1e6)")
+    ap.add_argument("--tau", type=float, default=128.0, help="optical depth across the box at density 1")
+    ap.add_argument("--out", default=HERE, help="folder for the .pvsm files (default: state_files/)")
+    ap.add_argument("--only", nargs="*", default=None, help="figure names to make (default: all)")
+    ap.add_argument("--device", default="", help="Device property stored in the states (default: empty = auto)")
+    ap.add_argument("--screenshots", default=None, help="also save paraview-<figure>.png into this folder")
+    args = ap.parse_args(argv)
+
+    load_plugin()
+    os.makedirs(args.out, exist_ok=True)
+    for name, spec in FIGURES.items():
+        if args.only and name not in args.only:
+            continue
+        view, colours = build(name, spec, args.grid, args.photons, args.tau, args.device)
+        simple.Render(view)
+        errors = [c.GetClientSideObject().last_error for c in colours]
+        if any(errors):
+            raise SystemExit(f"{name}: {errors}")
+        path = os.path.join(args.out, name + ".pvsm")
+        simple.SaveState(path)
+        print(f"wrote {path} (exposure {colours[0].Exposure[0] if hasattr(colours[0].Exposure, '__len__') else colours[0].Exposure:.4g})")
+        if args.screenshots:
+            os.makedirs(args.screenshots, exist_ok=True)
+            png = os.path.join(args.screenshots, f"paraview-{name}.png")
+            simple.SaveScreenshot(png, view, ImageResolution=[1600, 540])
+            print(f"wrote {png}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,48 @@
+"""Shared bits of the pvpython/pvbatch scripts of tests/test_paraview.py.
+
+The scripts run in ParaView's Python with the environment of scripts/pv-env.sh; each prints
+one line ``RESULT <json>`` that the test parses (exceptions inside a VTK algorithm's
+RequestData do not reach pvpython, so the scripts report what they find and the tests judge).
+"""
+
+import json
+import os
+import sys
+
+REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+sys.path.insert(0, os.path.join(REPO, "plugin"))
+
+#: every test pins the CPU OpenCL device by name (as tests/conftest.py does)
+TEST_DEVICE = os.environ.get("NEBULA_RT_TEST_DEVICE", "Portable Computing Language")
+
+
+def result(**kw):
+    sys.stdout.flush()
+    print("RESULT " + json.dumps(kw, default=float), flush=True)
+
+
+def array_stats(dataset, name):
+    """(number of tuples, components, all finite, min, max) of a point array, via numpy."""
+    import numpy as np
+    from vtkmodules.util.numpy_support import vtk_to_numpy
+
+    arr = dataset.GetPointData().GetArray(name)
+    if arr is None:
+        return None
+    a = vtk_to_numpy(arr).astype(np.float64)
+    return {"tuples": int(arr.GetNumberOfTuples()), "components": int(arr.GetNumberOfComponents()),
+            "finite": bool(np.all(np.isfinite(a))), "min": float(a.min()) if a.size else None,
+            "max": float(a.max()) if a.size else None}
+
+
+def output_summary(proxy):
+    """Points and point arrays (with stats) of a proxy's output, fetched to the client."""
+    from paraview import servermanager
+
+    proxy.UpdatePipeline()
+    data = servermanager.Fetch(proxy)
+    pd = data.GetPointData()
+    names = [pd.GetArrayName(i) for i in range(pd.GetNumberOfArrays())]
+    return {"points": int(data.GetNumberOfPoints()), "dimensions": list(data.GetDimensions()),
+            "arrays": {n: array_stats(data, n) for n in names},
+            "field": [data.GetFieldData().GetArrayName(i) for i in range(data.GetFieldData().GetNumberOfArrays())]}

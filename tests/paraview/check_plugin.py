@@ -1,0 +1,89 @@
+"""The plugin loads, its proxies have the expected names, and each executes on a small grid.
+
+    pvpython|pvbatch check_plugin.py
+
+RESULT: per proxy its group/label/menu/representation hints and property facts; the outputs
+(points, arrays with their stats, field data) of a 16^3 pipeline: density -> light field
+(two stars) -> colour, light field -> sky image, and a light field on a cell-data density.
+"""
+
+import _common
+from paraview import servermanager, simple
+from nebula_rt_paraview import PROXY_NAMES
+from nebula_rt_paraview.view import PROXY_GROUPS, load_plugin, plugin_loaded
+
+loaded_at_start = plugin_loaded()  # PV_PLUGIN_PATH loads it at start-up
+load_plugin()
+
+spm = servermanager.vtkSMProxyManager.GetProxyManager().GetActiveSessionProxyManager()
+definitions = {}
+for name in PROXY_NAMES:
+    group = PROXY_GROUPS[name]
+    proto = spm.GetPrototypeProxy(group, name) if spm.HasDefinition(group, name) else None
+    info = {"group": group, "defined": proto is not None}
+    if proto is not None:
+        info["label"] = proto.GetXMLLabel()
+        hints = proto.GetHints()
+        menu = hints.FindNestedElementByName("ShowInMenu") if hints else None
+        rep = hints.FindNestedElementByName("RepresentationType") if hints else None
+        info["menu"] = menu.GetAttribute("category") if menu else None
+        info["representation"] = rep.GetAttribute("type") if rep else None
+        props = {}
+        it = proto.NewPropertyIterator()
+        it.Begin()
+        while not it.IsAtEnd():
+            prop = it.GetProperty()
+            doc = prop.GetDocumentation()
+            entry = {"class": prop.GetClassName(), "doc": bool(doc and doc.GetDescription()),
+                     "panel_visibility": prop.GetPanelVisibility()}
+            if hasattr(prop, "GetRepeatCommand"):
+                entry["repeat"] = int(prop.GetRepeatCommand())
+                entry["per_command"] = int(prop.GetNumberOfElementsPerCommand())
+            domains = []
+            dit = prop.NewDomainIterator()
+            dit.Begin()
+            while not dit.IsAtEnd():
+                domains.append(dit.GetDomain().GetClassName())
+                dit.Next()
+            entry["domains"] = domains
+            props[it.GetKey()] = entry
+            it.Next()
+        info["properties"] = props
+        groups = [proto.GetPropertyGroup(i).GetXMLLabel() for i in range(proto.GetNumberOfPropertyGroups())]
+        info["property_groups"] = groups
+    definitions[name] = info
+
+# -- execute each proxy on a small grid -------------------------------------------------------
+dev = _common.TEST_DEVICE
+two_stars = [0.4, 0.5, 0.5, 1.0, 20000.0, 0.01, 0.7, 0.6, 0.5, 0.5, 6000.0, 0.02]
+dust = simple.NebulaDustDensity(GridShape=[16, 16, 16], Model="turbulence", Stars=two_stars, Device=dev)
+light = simple.NebulaLightField(dust, Photons=20000, Stars=two_stars, Device=dev)
+light.DensityArray = ["POINTS", "density"]
+colour = simple.NebulaColour(light, WhitePoint="star")
+sky = simple.NebulaSkyImage(light, ImageSize=[40, 30], ViewDirection=[0.0, 0.0, -1.0])
+# any vtkImageData, a cell array as the density: 15^3 cells
+cells = simple.PointDatatoCellData(dust)
+light_cells = simple.NebulaLightField(cells, Photons=20000, Device=dev)
+light_cells.DensityArray = ["CELLS", "density"]
+
+outputs = {}
+for label, px in [("NebulaDustDensity", dust), ("NebulaLightField", light), ("NebulaColour", colour),
+                  ("NebulaSkyImage", sky), ("NebulaLightField(cells)", light_cells)]:
+    summary = _common.output_summary(px)
+    summary["last_error"] = px.GetClientSideObject().last_error
+    summary["execution_count"] = px.GetClientSideObject().execution_count
+    outputs[label] = summary
+outputs["NebulaLightField"]["stars_in_scene"] = len(light.GetClientSideObject().last_light.scene.stars)
+outputs["NebulaLightField"]["device"] = light.GetClientSideObject().last_light.transport.device
+
+# changing a colour property re-runs the colour only, not the trace
+before = light.GetClientSideObject().execution_count
+colour.Exposure = 2.0
+colour.AutoExposure = 0
+colour.UpdatePipeline()
+rerun = {"light_executions_added": light.GetClientSideObject().execution_count - before,
+         "colour_executions": colour.GetClientSideObject().execution_count}
+
+_common.result(loaded_at_start=loaded_at_start, definitions=definitions, outputs=outputs, rerun=rerun,
+               functions=[n for n in ("NebulaDustDensity", "NebulaLightField", "NebulaColour", "NebulaSkyImage")
+                          if hasattr(simple, n)])
