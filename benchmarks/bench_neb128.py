@@ -71,23 +71,43 @@ def mcx_config(photons: int) -> dict:
                 prop=[[0, 0, 1, 1], [0.00625, 0.009375, 0.6, 1.0]], isreflect=0, seed=1648335518)
 
 
+_MCX_CHILD = """
+import json, sys, time
+import numpy as np
+sys.path.insert(0, {here!r})
+from bench_neb128 import mcx_config
+mcx = __import__({module!r})
+mcx.run(mcx_config(10_000))  # first call JIT-compiles (pmcx has no Hopper code; pmcxcl builds its kernel)
+t0 = time.perf_counter()
+res = mcx.run(mcx_config({photons}))
+wall = time.perf_counter() - t0
+stat = {{k: (float(v) if isinstance(v, (int, float)) else None) for k, v in res.get("stat", {{}}).items()}}
+print("MCXRESULT" + json.dumps({{"wall": wall, "stat": stat}}))
+"""
+
+
 def run_mcx(photons: int, module: str) -> dict | None:
+    """Run MCX in a child process of this benchmark (pmcxcl and NebulaRT's pyopencl load two
+    different PoCL builds, which abort when they share a process). None if not installed."""
     try:
-        mcx = __import__(module)
-    except ImportError:
+        __import__("importlib.util").util.find_spec(module).name
+    except AttributeError:
         return None
-    mcx.run(mcx_config(10_000))  # first call JIT-compiles (no Hopper code in the wheel)
-    t0 = time.perf_counter()
-    res = mcx.run(mcx_config(photons))
-    wall = time.perf_counter() - t0
-    stat = res.get("stat", {})
-    runtime = float(stat.get("runtime", float("nan")))  # ms, MCX's own kernel timer
+    code = _MCX_CHILD.format(here=str(Path(__file__).parent), module=module, photons=int(photons))
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    line = next((l for l in proc.stdout.splitlines() if l.startswith("MCXRESULT")), None)
+    if line is None:
+        print(proc.stdout[-2000:], proc.stderr[-2000:], file=sys.stderr)
+        raise RuntimeError(f"{module} failed (exit {proc.returncode})")
+    out = json.loads(line[len("MCXRESULT"):])
+    stat = out["stat"]
+    runtime = stat.get("runtime") or float("nan")  # ms, MCX's own kernel timer
     e_abs, e_tot = stat.get("energyabs"), stat.get("energytot")
     return {
-        "code": module, "device": "same GPU", "photons": photons, "kernel_ms": runtime,
+        "code": module, "device": "same device", "photons": photons, "kernel_ms": runtime,
         "photons_per_ms": round(photons / runtime) if runtime > 0 else None,
-        "end_to_end_ms": round(wall * 1e3, 3),
-        "absorbed_fraction": (float(e_abs) / float(e_tot)) if e_abs is not None and e_tot else None,
+        "end_to_end_ms": round(out["wall"] * 1e3, 3),
+        "absorbed_fraction": (e_abs / e_tot) if e_abs is not None and e_tot else None,
     }
 
 

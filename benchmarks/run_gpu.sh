@@ -7,7 +7,7 @@
 # WHEELDIR holds wheels for what the machine lacks (pyopencl and its pure-Python needs,
 # colour-science, tomli-w; pmcx for the MCX comparison), fetched elsewhere with
 # `pip download --only-binary=:all: --python-version 3.12 ...`.
-# STEPS (default "tests bench neb128 compare profile") selects what runs. Everything printed
+# STEPS (default "tests bench neb128 compare profile"; also "scaling") selects what runs. Everything printed
 # goes to OUTDIR/log.txt as well; JSON and .npz results beside it.
 set -uo pipefail
 out="${1:?output folder}"
@@ -39,6 +39,9 @@ fi
 if [[ " $steps " == *" neb128 "* ]]; then
     echo "== neb128, CUDA vs pmcx"; python3 benchmarks/bench_neb128.py --backend cuda --mcx pmcx --out "$out/neb128-cuda.json"
     echo "== neb128, NVIDIA OpenCL"; python3 benchmarks/bench_neb128.py --backend opencl --device NVIDIA --mcx none --out "$out/neb128-nvidia-opencl.json"
+fi
+if [[ " $steps " == *" scaling "* ]]; then
+    echo "== scaling, CUDA"; python3 benchmarks/bench_scaling.py --backend cuda --out "$out/scaling-cuda.json"
 fi
 if [[ " $steps " == *" compare "* ]]; then
     echo "== same seed on CUDA and NVIDIA OpenCL"
