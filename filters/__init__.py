@@ -9,7 +9,7 @@ through the thin wrappers of ``plugin/``, ParaView.
 Each is a ``VTKPythonAlgorithmBase``: setters only store the value and call ``Modified()``;
 validation happens in ``RequestData`` with the library's errors (an invalid value produces an
 empty output, a VTK error message naming the parameter, and ``last_error``); progress is
-reported per batch through ``UpdateProgress``/``SetProgressText`` and ``CheckAbort`` cancels
+reported per kernel launch through ``UpdateProgress``/``SetProgressText`` and ``CheckAbort`` cancels
 between batches. VTK's pipeline re-executes only the algorithms whose inputs or properties
 changed; ``execution_count`` counts real executions.
 """

@@ -62,7 +62,9 @@ class NebulaLightField(_base.NebulaLightField):
 
     @smproperty.intvector(name="BatchSize", label="Batch Size", default_values=0, panel_visibility="advanced")
     @smdomain.intrange(min=0, max=10000000)
-    @_xml.doc("Packets per kernel launch (0 = automatic). Progress and cancelling happen between batches.")
+    @_xml.doc("Packets per band in one batch, the unit of the Monte Carlo error estimate (0 = automatic: "
+              "at least 16 batches). A kernel launch holds one or more batches; progress and cancelling "
+              "happen between launches.")
     def SetBatchSize(self, n):
         return super().SetBatchSize(n)
 
