@@ -114,9 +114,35 @@ class Backend(abc.ABC):
     array_module = np
 
     @property
-    @abc.abstractmethod
     def device_name(self) -> str:
         """Human-readable platform and device name."""
+        return self._device_name
+
+    # --- compiled programs, cached per backend ------------------------------------------------
+    @abc.abstractmethod
+    def _compile(self, name: str, defines: dict):
+        """Compile kernel file ``name`` with ``-D`` ``defines`` (the backend's program object)."""
+
+    @abc.abstractmethod
+    def _get_kernel(self, program, kernel_name: str):
+        """One kernel of a compiled program."""
+
+    def program(self, name: str, defines: dict | None = None):
+        """The compiled kernel file ``name``, built once per backend and option set (the
+        OpenCL and CUDA toolchains also cache binaries on disk across processes)."""
+        programs = self.__dict__.setdefault("_programs", {})
+        key = (name, tuple(sorted((defines or {}).items())))
+        if key not in programs:
+            programs[key] = self._compile(name, dict(defines or {}))
+        return programs[key]
+
+    def kernel(self, prog_name: str, kernel_name: str, defines: dict | None = None):
+        """A kernel object, created once per backend (retrieving one is not free)."""
+        kernels = self.__dict__.setdefault("_kernels", {})
+        key = (prog_name, kernel_name, tuple(sorted((defines or {}).items())))
+        if key not in kernels:
+            kernels[key] = self._get_kernel(self.program(prog_name, defines), kernel_name)
+        return kernels[key]
 
     @abc.abstractmethod
     def generate_density(

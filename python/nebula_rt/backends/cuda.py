@@ -136,29 +136,13 @@ class CUDABackend(Backend):
         self.launch_packets = 1 << 23
         free, _total = cp.cuda.runtime.memGetInfo()
         self.slot_memory_budget = int(free) // 4
-        self._modules: dict = {}
-        self._kernels: dict = {}
 
-    @property
-    def device_name(self) -> str:
-        return self._device_name
+    def _compile(self, name, defines):
+        options = ("--std=c++14",) + tuple(f"-D{k}={v}" for k, v in sorted(defines.items()))
+        return self.cp.RawModule(code=kernel_source(name), options=options)
 
-    def module(self, name: str, defines: dict | None = None):
-        key = (name, tuple(sorted((defines or {}).items())))
-        mod = self._modules.get(key)
-        if mod is None:
-            options = ("--std=c++14",) + tuple(f"-D{k}={v}" for k, v in sorted((defines or {}).items()))
-            mod = self.cp.RawModule(code=kernel_source(name), options=options)
-            self._modules[key] = mod
-        return mod
-
-    def kernel(self, prog_name: str, kernel_name: str, defines: dict | None = None):
-        key = (prog_name, kernel_name, tuple(sorted((defines or {}).items())))
-        k = self._kernels.get(key)
-        if k is None:
-            k = self.module(prog_name, defines).get_function(kernel_name)
-            self._kernels[key] = k
-        return k
+    def _get_kernel(self, module, kernel_name):
+        return module.get_function(kernel_name)
 
     def generate_density(self, shape, model, offset, scale, uniform_density, floor, stars, subsamples=8):
         cp = self.cp

@@ -183,31 +183,13 @@ class OpenCLBackend(Backend):
         # so progress and cancellation stay responsive)
         self.launch_packets = (1 << 23) if self.is_gpu else (1 << 21)
         self.slot_memory_budget = mem // 4 if self.is_gpu else min(mem // 4, 1 << 30)
-        self._programs: dict = {}
-        self._kernels: dict = {}
 
-    @property
-    def device_name(self) -> str:
-        return self._device_name
+    def _compile(self, name, defines):
+        options = [f"-D{k}={v}" for k, v in sorted(defines.items())]
+        return cl.Program(self.context, kernel_source(name)).build(options=options)
 
-    def program(self, name: str, defines: dict | None = None):
-        """Build (once per backend; pyopencl also caches binaries on disk) a kernel file."""
-        key = (name, tuple(sorted((defines or {}).items())))
-        prog = self._programs.get(key)
-        if prog is None:
-            options = [f"-D{k}={v}" for k, v in sorted((defines or {}).items())]
-            prog = cl.Program(self.context, kernel_source(name)).build(options=options)
-            self._programs[key] = prog
-        return prog
-
-    def kernel(self, prog_name: str, kernel_name: str, defines: dict | None = None):
-        """A kernel object, created once per backend (retrieving one is not free in pyopencl)."""
-        key = (prog_name, kernel_name, tuple(sorted((defines or {}).items())))
-        k = self._kernels.get(key)
-        if k is None:
-            k = cl.Kernel(self.program(prog_name, defines), kernel_name)
-            self._kernels[key] = k
-        return k
+    def _get_kernel(self, program, kernel_name):
+        return cl.Kernel(program, kernel_name)
 
     # --- stages ------------------------------------------------------------------------------
     def generate_density(self, shape, model, offset, scale, uniform_density, floor, stars, subsamples=8):
