@@ -99,6 +99,31 @@ class NebulaAlgorithm(VTKPythonAlgorithmBase):
         raise NotImplementedError
 
 
+class ExposureMixin:
+    """``AutoExposure`` / ``Exposure`` properties shared by the colour and sky-image filters."""
+
+    _auto_exposure = True
+    _exposure = 1.0
+
+    def SetAutoExposure(self, flag):
+        self._auto_exposure = bool(flag)
+        self.Modified()
+
+    def SetExposure(self, v):
+        self._exposure = v
+        self.Modified()
+
+
+def require_light_field(fd: dict, keys) -> None:
+    """Raise a clear error unless the input's field data holds ``keys`` (it must come from
+    Nebula Light Field)."""
+    from nebula_rt.errors import SceneError
+
+    missing = [k for k in keys if k not in fd]
+    if missing:
+        raise SceneError("input", "field data", f"must come from Nebula Light Field (missing {', '.join(missing)})")
+
+
 def shallow_copy_image(out, inp) -> None:
     """``out.ShallowCopy(inp)`` with field data of its own (ShallowCopy shares the container,
     so adding field data to the output would change the input)."""

@@ -9,12 +9,12 @@ from nebula_rt.errors import SceneError
 from nebula_rt.io_vti import add_field_data, add_point_arrays, field_data_dict, point_array
 from nebula_rt.pipeline import rgba_from_emissivity
 
-from .base import NebulaAlgorithm, shallow_copy_image
+from .base import ExposureMixin, NebulaAlgorithm, require_light_field, shallow_copy_image
 
 WHITE_POINTS = ("D65", "E", "star")
 
 
-class NebulaColour(NebulaAlgorithm):
+class NebulaColour(ExposureMixin, NebulaAlgorithm):
     """sRGB colour of the scattered emissivity and the reference band's voxel opacity.
 
     Reads the arrays and field data that Nebula Light Field writes; changing exposure, white
@@ -29,14 +29,6 @@ class NebulaColour(NebulaAlgorithm):
         self._exposure = 1.0
         self._white_point = "D65"
         self._opacity_scale = 1.0
-
-    def SetAutoExposure(self, flag):
-        self._auto_exposure = bool(flag)
-        self.Modified()
-
-    def SetExposure(self, v):
-        self._exposure = v
-        self.Modified()
 
     def SetWhitePoint(self, wp):
         self._white_point = WHITE_POINTS[wp] if isinstance(wp, int) and 0 <= wp < 3 else wp
@@ -55,9 +47,7 @@ class NebulaColour(NebulaAlgorithm):
         inp = vtkImageData.GetData(inInfo[0])
         fd = field_data_dict(inp)
         need = ("band_names", "band_wavelength_nm", "band_luminosity", "band_extinction", "tau", "reference_band")
-        missing = [k for k in need if k not in fd]
-        if missing:
-            raise SceneError("input", "field data", f"must come from Nebula Light Field (missing {', '.join(missing)})")
+        require_light_field(fd, need)
         names = str(fd["band_names"]).split(",")
         emissivity = np.stack([point_array(inp, f"emissivity_{n}") for n in names]).astype(np.float64)
         density = point_array(inp, "density") if inp.GetPointData().HasArray("density") else None

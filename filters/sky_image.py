@@ -13,14 +13,14 @@ from nebula_rt.scene import Scene
 from nebula_rt.sky import Camera, sky_image
 from nebula_rt.transport import star_band_luminosities
 
-from .base import NebulaAlgorithm
+from .base import ExposureMixin, NebulaAlgorithm, require_light_field
 
 #: Auto exposure of the sky image: this percentile of the scattered light's max colour
 #: component (among lit pixels) maps to full scale; star pixels saturate.
 SKY_EXPOSURE_PERCENTILE = 99.0
 
 
-class NebulaSkyImage(NebulaAlgorithm):
+class NebulaSkyImage(ExposureMixin, NebulaAlgorithm):
     """Orthographic image of the nebula seen from far away along ``ViewDirection``.
 
     Per band, the scattered emissivity is integrated along each pixel's ray with that band's
@@ -63,14 +63,6 @@ class NebulaSkyImage(NebulaAlgorithm):
         self._include_stars = bool(flag)
         self.Modified()
 
-    def SetAutoExposure(self, flag):
-        self._auto_exposure = bool(flag)
-        self.Modified()
-
-    def SetExposure(self, v):
-        self._exposure = v
-        self.Modified()
-
     def _camera(self) -> Camera:
         try:
             w, h = (int(v) for v in self._size)
@@ -98,9 +90,7 @@ class NebulaSkyImage(NebulaAlgorithm):
         inp = vtkImageData.GetData(inInfo[0])
         fd = field_data_dict(inp)
         need = ("band_names", "band_wavelength_nm", "band_extinction", "tau", "scene")
-        missing = [k for k in need if k not in fd]
-        if missing:
-            raise SceneError("input", "field data", f"must come from Nebula Light Field (missing {', '.join(missing)})")
+        require_light_field(fd, need)
         names = str(fd["band_names"]).split(",")
         wl = np.atleast_1d(fd["band_wavelength_nm"]).astype(np.float64)
         ext = np.atleast_1d(fd["band_extinction"]).astype(np.float64)
