@@ -150,10 +150,17 @@ NRT_DEVICE float nrt_rng_uniform(nrt_rng *r)
     return (float)(nrt_rng_u32(r) >> 8) * 5.9604644775390625e-8f; /* 2^-24 */
 }
 
-/* Exponential optical depth: -ln(1 - xi) with xi in [0,1), never -ln(xi) (which is inf at 0). */
+/* Exponential optical depth: -ln(1 - xi) with xi in [0,1), never -ln(xi) (which is inf at 0).
+   The formula on its own, so that the test kernel sample_tau_at checks the very code the
+   transport runs at xi = 0 (tau = 0) and at the largest xi, 1 - 2^-24 (tau = 24 ln 2). */
+NRT_DEVICE float nrt_tau_of_xi(float xi)
+{
+    return -log(1.0f - xi);
+}
+
 NRT_DEVICE float nrt_sample_tau(nrt_rng *r)
 {
-    return -log(1.0f - nrt_rng_uniform(r));
+    return nrt_tau_of_xi(nrt_rng_uniform(r));
 }
 
 /* ------------------------------------------------------------------------------------------ */

@@ -69,3 +69,12 @@ NRT_KERNEL void hg_at(NRT_GLOBAL float *mu, NRT_GLOBAL float *sin_theta,
     mu[i] = m;
     sin_theta[i] = s;
 }
+
+/* nrt_tau_of_xi (the free-path optical depth) at given xi (tests xi = 0 and the largest xi). */
+NRT_KERNEL void sample_tau_at(NRT_GLOBAL float *tau, const NRT_GLOBAL float *xi, nrt_u64 n)
+{
+    nrt_u64 i = NRT_GLOBAL_ID();
+    if (i >= n)
+        return;
+    tau[i] = nrt_tau_of_xi(xi[i]);
+}

@@ -195,3 +195,7 @@ class Backend(abc.ABC):
     @abc.abstractmethod
     def hg_at(self, g: float, xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """HG (mu, sin theta) at the given xi values."""
+
+    @abc.abstractmethod
+    def sample_tau_at(self, xi: np.ndarray) -> np.ndarray:
+        """Free-path optical depth -ln(1 - xi) as the transport kernel computes it, at given xi."""

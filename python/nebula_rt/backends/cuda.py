@@ -203,3 +203,11 @@ class CUDABackend(Backend):
         mu, st = cp.empty(n, cp.float32), cp.empty(n, cp.float32)
         self.kernel("sampling.cl", "hg_at")(_grid(n), (BLOCK,), (mu, st, xi, np.float32(g), np.uint64(n)))
         return mu.get(), st.get()
+
+    def sample_tau_at(self, xi):
+        cp = self.cp
+        xi = cp.asarray(np.ascontiguousarray(xi, np.float32))
+        n = xi.size
+        tau = cp.empty(n, cp.float32)
+        self.kernel("sampling.cl", "sample_tau_at")(_grid(n), (BLOCK,), (tau, xi, np.uint64(n)))
+        return tau.get()

@@ -271,3 +271,14 @@ class OpenCLBackend(Backend):
         cl.enqueue_copy(self.queue, st, b2)
         self.queue.finish()
         return mu, st
+
+    def sample_tau_at(self, xi):
+        xi = np.ascontiguousarray(xi, np.float32)
+        n = xi.size
+        d_xi = cl.Buffer(self.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=xi)
+        tau = np.empty(n, np.float32)
+        b1 = cl.Buffer(self.context, cl.mem_flags.WRITE_ONLY, size=4 * n)
+        self.kernel("sampling.cl", "sample_tau_at")(self.queue, (n,), None, b1, d_xi, np.uint64(n))
+        cl.enqueue_copy(self.queue, tau, b1)
+        self.queue.finish()
+        return tau
