@@ -48,7 +48,7 @@ def run_nebula(photons: int, backend_name: str, device: str) -> dict:
     from nebula_rt.pipeline import Pipeline
 
     backend = get_backend(backend_name, device)
-    Pipeline(backend).run(nebula_scene(10_000, backend_name, device), colour=False)  # compile, warm up
+    Pipeline(backend).run(nebula_scene(10_000, backend_name, device), colour=False)  # compile, warm up (same grid)
     scene = nebula_scene(photons, backend_name, device)
     t0 = time.perf_counter()
     light = Pipeline(backend).run(scene, colour=False)
