@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# GPU verification and benchmarks, as run on a borrowed NVIDIA machine (H100/H200 with CUDA,
+# GPU verification and benchmarks, as run on an NVIDIA GPU machine (H100/H200 with CUDA,
 # CuPy and NVIDIA's OpenCL driver; no network). Results go to the folder given as $1.
 #
 #   bash benchmarks/run_gpu.sh OUTDIR [WHEELDIR] [STEPS]
