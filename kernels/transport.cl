@@ -96,16 +96,24 @@ NRT_DEVICE void nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, f
     for (;;) {
         float tau = nrt_sample_tau(&rng);
         float inv_d[3] = {1.0f / d[0], 1.0f / d[1], 1.0f / d[2]};
+        /* Distances are measured from the flight's start point p0: each face crossing is
+           ((face index) h - p0) / d, computed afresh, so float32 rounding does not accumulate
+           along the flight (advancing the position voxel by voxel drifted the transverse
+           coordinates by up to k 2^-25 after k voxels), and the segment lengths telescope to
+           the flight's length. */
+        const float p0[3] = {p[0], p[1], p[2]};
+        float t_cur = 0.0f;
         int escaped = 0;
         /* spend tau voxel by voxel */
         for (;;) {
             nrt_u64 idx = (nrt_u64)ix + (nrt_u64)nx * ((nrt_u64)iy + (nrt_u64)ny * (nrt_u64)iz);
-            float tx = nrt_face_distance(p[0], d[0], inv_d[0], ix, hx);
-            float ty = nrt_face_distance(p[1], d[1], inv_d[1], iy, hy);
-            float tz = nrt_face_distance(p[2], d[2], inv_d[2], iz, hz);
-            float t_exit = fmax(0.0f, fmin(tx, fmin(ty, tz)));
+            float tx = nrt_face_distance(p0[0], d[0], inv_d[0], ix, hx);
+            float ty = nrt_face_distance(p0[1], d[1], inv_d[1], iy, hy);
+            float tz = nrt_face_distance(p0[2], d[2], inv_d[2], iz, hz);
+            float t_next = fmin(tx, fmin(ty, tz));
+            float seg = fmax(0.0f, t_next - t_cur);
             float sigma = sig_b * density[idx];
-            float tau_seg = sigma * t_exit;
+            float tau_seg = sigma * seg;
             if (sigma > 0.0f && tau_seg >= tau) {
                 /* the interaction happens inside this voxel */
                 float t = tau / sigma;
@@ -115,31 +123,26 @@ NRT_DEVICE void nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, f
 #if NRT_COLLISION
                 nrt_acc_add(&band_acc[idx], 1UL, overflow);
 #endif
-                p[0] += d[0] * t;
-                p[1] += d[1] * t;
-                p[2] += d[2] * t;
+                float t_int = t_cur + t;
+                p[0] = p0[0] + d[0] * t_int;
+                p[1] = p0[1] + d[1] * t_int;
+                p[2] = p0[2] + d[2] * t_int;
                 break;
             }
 #if NRT_TRACK_LENGTH
-            nrt_acc_add(&band_acc[idx], (nrt_u64)(t_exit * track_scale + 0.5f), overflow);
+            nrt_acc_add(&band_acc[idx], (nrt_u64)(seg * track_scale + 0.5f), overflow);
 #endif
             tau -= tau_seg;
-            p[0] += d[0] * t_exit;
-            p[1] += d[1] * t_exit;
-            p[2] += d[2] * t_exit;
-            /* step into the neighbour across the nearest face and put the position exactly on
-               that face, so rounding cannot drift the packet away from its voxel */
+            t_cur = fmax(t_cur, t_next);
+            /* step into the neighbour across the nearest face */
             if (tx <= ty && tx <= tz) {
                 ix += (d[0] > 0.0f) ? 1 : -1;
-                p[0] = (float)((d[0] > 0.0f) ? ix : ix + 1) * hx;
                 if (ix < 0 || ix >= nx) { escaped = 1; break; }
             } else if (ty <= tz) {
                 iy += (d[1] > 0.0f) ? 1 : -1;
-                p[1] = (float)((d[1] > 0.0f) ? iy : iy + 1) * hy;
                 if (iy < 0 || iy >= ny) { escaped = 1; break; }
             } else {
                 iz += (d[2] > 0.0f) ? 1 : -1;
-                p[2] = (float)((d[2] > 0.0f) ? iz : iz + 1) * hz;
                 if (iz < 0 || iz >= nz) { escaped = 1; break; }
             }
         }

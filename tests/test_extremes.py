@@ -576,6 +576,11 @@ def test_float32_positions_on_1024_voxels(backend):
     exit_drift = np.bincount(idx, weights=steps * 2.0**-25 / d_exit, minlength=1024)
     bound = 12 * U32 * slab_host + yz_shift + exit_drift + n * 16 * 0.5 / scale
     assert np.all(slab_err <= bound), np.max(slab_err / bound)
+    # The kernel measures every face crossing from the flight's start point, so the
+    # accumulated drift term must not be needed: the bound without it holds too.
+    bound_no_drift = 12 * U32 * slab_host + yz_shift + n * 16 * 0.5 / scale
+    print(f"1024x4x4: max slab err / bound without drift term {np.max(slab_err / bound_no_drift):.3f}")
+    assert np.all(slab_err <= bound_no_drift), np.max(slab_err / bound_no_drift)
     slab_rel = slab_err / slab_host
     # J per group of 64 slabs against the analytic field; SE from the per-packet lengths
     gb = np.arange(17) / 16.0
