@@ -46,31 +46,38 @@ def main() -> None:
             times[name] = (time.perf_counter() - t) * 1e3
             return out
 
+        light = None  # free the previous run's host buffers (pinned memory goes back to the pool)
         t0 = time.perf_counter()
         rho = step("density", lambda: pl.generate_density(scene, backend))
         res, J, rel = step("transport", lambda: pl.compute_light(scene, rho, backend, on_device=True))
-        light, emis, rho_x = step("assemble (emissivity, float32 copies to host)",
-                                  lambda: pl.assemble_light_field(scene, rho, res, J, rel, with_device_emissivity=True))
-        step("colour (rgba to host)", lambda: pl.colour_rgba(scene, light.bands, rho_x, emis, res))
+        light = step("finish on the device (+ arrays to the host)",
+                     lambda: pl.finish_light_field(scene, rho, res, J, rel, colour=True))
         total = (time.perf_counter() - t0) * 1e3
-        print(f"run {rep}: total {total:.1f} ms, kernels {res.timings['kernel_s'] * 1e3:.1f} ms")
+        print(f"run {rep}: total {total:.1f} ms, kernels {res.timings['kernel_s'] * 1e3:.1f} ms, "
+              f"transport set-up {res.timings['setup_s'] * 1e3:.1f} ms")
         for k, v in times.items():
             print(f"   {k:50s} {v:8.1f} ms")
-    # finer: the colour stage's pieces
+    # finer: the pieces of the finishing step
+    from nebula_rt import postprocess as pp
+
+    ds = res.device_sums
     bands = light.bands
-    sig_ref = scene.dust.tau * bands[1].extinction * rho_x
+    params = np.stack([res.j_scale, res.sigma_scale, [b.albedo for b in bands]], axis=1)
+    nb, nvox = ds.n_bands, ds.nvox
     for name, fn in [
-        ("to_numpy of one float32 band (8 MiB)", lambda: pl.to_numpy(J[0].astype(cp.float32))),
-        ("astype float32 of J", lambda: J.astype(cp.float32)),
-        ("tensordot emissivity x (3, nb)", lambda: cp.tensordot(emis, cp.ones((3, 3)), axes=([0], [1]))),
-        ("percentile of 1M", lambda: cp.percentile(cp.random.random(1_000_000), 95)),
-        ("rgba_from_emissivity", lambda: pl.rgba_from_emissivity(emis, sig_ref, wavelengths_nm=np.array([677., 550., 439.]),
-                                                                  band_luminosity=res.band_luminosity, temperature=20000.0)),
+        ("finish without colour (3 float32 arrays to host)",
+         lambda: pp.finish(ds, params, batches=res.batches, collision=False)),
+        ("one float32 band to pinned host memory (8 MiB)",
+         lambda: backend.to_host(cp.zeros(nvox, cp.float32), backend.host_empty(nvox, np.float32))),
+        ("one float32 band to pageable host memory (8 MiB)", lambda: cp.zeros(nvox, cp.float32).get()),
+        ("auto exposure radix select",
+         lambda: pp.auto_exposure_on_device(backend, cp.random.random(nvox, dtype=cp.float32), nvox, 95.0)),
     ]:
-        cp.cuda.Device().synchronize()
-        t = time.perf_counter()
-        fn()
-        cp.cuda.Device().synchronize()
+        for _ in range(2):
+            cp.cuda.Device().synchronize()
+            t = time.perf_counter()
+            fn()
+            cp.cuda.Device().synchronize()
         print(f"   {name:50s} {(time.perf_counter() - t) * 1e3:8.1f} ms")
 
 

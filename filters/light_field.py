@@ -9,7 +9,7 @@ from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
 from nebula_rt.backends import get_backend
 from nebula_rt.errors import SceneError
 from nebula_rt.io_vti import add_field_data, add_point_arrays, cell_array, image_geometry, point_array
-from nebula_rt.pipeline import assemble_light_field, compute_light
+from nebula_rt.pipeline import compute_light, finish_light_field
 from nebula_rt.scene import Scene
 
 from .base import NebulaAlgorithm, shallow_copy_image, stars_from_flat
@@ -183,9 +183,9 @@ class NebulaLightField(NebulaAlgorithm):
         scene = self.scene(rho.shape)
         backend = get_backend(scene.transport.backend, scene.transport.device)
         self._report(0.0, "NebulaRT: tracing")
-        res, J, rel = compute_light(scene, rho.astype(np.float32), backend,
+        res, J, rel = compute_light(scene, rho.astype(np.float32), backend, on_device=True,
                                     progress=self._progress_callback("traced"), cancel=self._abort_requested)
-        light = assemble_light_field(scene, rho.astype(np.float32), res, J, rel)
+        light = finish_light_field(scene, rho.astype(np.float32), res, J, rel, colour=False)
         if cells:
             dims, spacing, origin = image_geometry(inp)
             out.SetDimensions(*rho.shape)

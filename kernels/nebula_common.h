@@ -33,6 +33,11 @@ typedef long nrt_i64;
 /* atom_add on 64-bit integers (cl_khr_int64_base_atomics); returns the old value */
 #define NRT_ATOMIC_ADD_U64(p, v) atom_add((volatile __global ulong *)(p), (ulong)(v))
 #define NRT_ATOMIC_OR_U32(p, v) atomic_or((volatile __global uint *)(p), (uint)(v))
+#define NRT_ATOMIC_ADD_U32(p, v) atomic_add((volatile __global uint *)(p), (uint)(v))
+typedef uchar nrt_u8;
+#define NRT_FLOAT_AS_UINT(x) as_uint(x)
+/* double-precision sqrt, correctly rounded in both languages */
+#define NRT_DSQRT(x) sqrt((double)(x))
 #elif defined(__CUDACC__) || defined(__CUDACC_RTC__)
 #define NRT_KERNEL extern "C" __global__
 #define NRT_GLOBAL
@@ -46,6 +51,13 @@ typedef long long nrt_i64;
 #define NRT_MULHI64(a, b) __umul64hi((a), (b))
 #define NRT_ATOMIC_ADD_U64(p, v) atomicAdd((unsigned long long *)(p), (unsigned long long)(v))
 #define NRT_ATOMIC_OR_U32(p, v) atomicOr((unsigned int *)(p), (unsigned int)(v))
+#define NRT_ATOMIC_ADD_U32(p, v) atomicAdd((unsigned int *)(p), (unsigned int)(v))
+typedef unsigned char nrt_u8;
+#define NRT_FLOAT_AS_UINT(x) __float_as_uint(x)
+/* (sqrt is mapped to sqrtf below, for the float code) */
+#define NRT_DSQRT(x) __dsqrt_rn((double)(x))
+/* single-precision functions under the OpenCL names, for the float code; double-precision
+   code (postprocess.cl) uses NRT_DSQRT, exp, pow and rint, which are not remapped */
 #define fmin fminf
 #define fmax fmaxf
 #define floor floorf

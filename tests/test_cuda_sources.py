@@ -17,6 +17,7 @@ NVCC = shutil.which("nvcc")
     ("transport.cl", ["-DNRT_COLLISION=1", "-DNRT_ACC_LIMIT_BITS=40"]),
     ("density.cl", []),
     ("sampling.cl", []),
+    ("postprocess.cl", []),
 ])
 def test_kernel_compiles_as_cuda(tmp_path, name, defines):
     src = tmp_path / (name.replace(".cl", ".cu"))
@@ -26,5 +27,6 @@ def test_kernel_compiles_as_cuda(tmp_path, name, defines):
     assert proc.returncode == 0, proc.stderr
     ptx = (tmp_path / "k.ptx").read_text()
     for kernel in {"transport.cl": ["trace_photons", "fold_batches"], "density.cl": ["generate_density"],
-                   "sampling.cl": ["philox_blocks", "hg_at"]}[name]:
+                   "sampling.cl": ["philox_blocks", "hg_at"],
+                   "postprocess.cl": ["finish_voxels", "key_histogram"]}[name]:
         assert f".entry {kernel}" in ptx

@@ -16,12 +16,12 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from . import colour_convert, filtering
+from . import colour_convert, filtering, postprocess
 from .array_api import array_module, to_numpy
 from .backends import Backend, get_backend
 from .bands import Band, reference_band_index
 from .density import generate_density
-from .transport import TALLY_NAMES, TransportResult, batch_standard_error, trace
+from .transport import TALLY_NAMES, TransportResult, batch_standard_error, light_from_sums, trace
 
 
 @dataclass
@@ -164,19 +164,28 @@ class Pipeline:
 
     def run(self, scene, progress: Optional[Callable[[int, int], None]] = None,
             cancel: Optional[Callable[[], bool]] = None, colour: bool = True) -> LightField:
-        """Run every stage that is out of date and return the light field."""
+        """Run every stage that is out of date and return the light field.
+
+        The arrays are finished on the compute device (:mod:`nebula_rt.postprocess`); the colour
+        stage runs only when the transport or the colour settings changed (or ``colour`` is
+        False: no rgba).
+        """
         t0 = time.perf_counter()
         rho = self.density(scene)
         t1 = time.perf_counter()
         res, J, rel = self.light(scene, progress, cancel)
         t2 = time.perf_counter()
-        light, emissivity, rho_x = assemble_light_field(scene, rho, res, J, rel, with_device_emissivity=True)
-        if colour:
-            ckey = _key([self.transport_key(scene), scene.to_dict().get("colour", {})])
-            light.rgba, light.exposure = self._cached(
-                "colour", ckey, lambda: colour_rgba(scene, light.bands, rho_x, emissivity, res))
+        ckey = _key([self.transport_key(scene), scene.to_dict().get("colour", {})])
+        hit = self._cache.get("colour")
+        need_colour = colour and not (hit is not None and hit[0] == ckey)
+        light = finish_light_field(scene, rho, res, J, rel, colour=need_colour)
+        if need_colour:
+            self.executions["colour"] += 1
+            self._cache["colour"] = (ckey, (light.rgba, light.exposure))
+        elif colour:
+            light.rgba, light.exposure = hit[1]
         t3 = time.perf_counter()
-        light.timings = {"density_s": t1 - t0, "transport_s": t2 - t1, "colour_s": t3 - t2,
+        light.timings = {"density_s": t1 - t0, "transport_s": t2 - t1, "finish_s": t3 - t2,
                          "kernel_s": res.timings.get("kernel_s", 0.0)}
         return light
 
@@ -184,8 +193,11 @@ class Pipeline:
 def compute_light(scene, density: np.ndarray, backend: Backend, progress=None, cancel=None, on_device=False):
     """Transport through ``density`` (and the collision filter if the scene asks for it).
 
-    Returns (TransportResult, J, rel_error) with J and rel_error float64 (n_bands, nx, ny, nz),
-    arrays of the backend's array module if ``on_device`` (CuPy on CUDA), else NumPy.
+    Returns (TransportResult, J, rel_error). Without ``on_device``: J and rel_error are NumPy
+    float64 (n_bands, nx, ny, nz). With ``on_device``: the sums stay on the device
+    (``result.device_sums``) and J, rel_error are None, except for the collision filter, whose
+    smoothed J and error are arrays of the backend's array module (CuPy FFTs on CUDA; NumPy
+    on the host for OpenCL).
     """
     t = scene.transport
     res = trace(
@@ -204,10 +216,65 @@ def compute_light(scene, density: np.ndarray, backend: Backend, progress=None, c
         on_device=on_device,
     )
     if t.estimator == "collision-filter":
-        J, rel = filter_collisions(res, t.filter_radius)
+        if res.device_sums is not None:
+            s1, s2 = res.device_sums.host_sums()
+            J0, _ = light_from_sums(s1, s2, res.batches, res.estimator, res.j_scale, res.sigma_scale, density)
+            J, rel = filter_collisions(J0, s1, s2, res.batches, t.filter_radius)
+        else:
+            J, rel = filter_collisions(res.J, res.raw_sum, res.raw_sum2, res.batches, t.filter_radius)
     else:
         J, rel = res.J, res.rel_error
     return res, J, rel
+
+
+def finish_light_field(scene, rho, res: TransportResult, J=None, rel=None, colour: bool = True) -> LightField:
+    """The light field of a transport result: on the device when the sums are there
+    (:func:`nebula_rt.postprocess.finish`), else with the NumPy reference functions.
+
+    ``J``, ``rel``: the (filtered) light from :func:`compute_light`, or None to take it from the
+    device sums.
+    """
+    bands = scene.bands.resolve()
+    ds = res.device_sums
+    if ds is None:
+        light, emissivity, rho_x = assemble_light_field(scene, rho, res, J, rel, with_device_emissivity=True)
+        if colour:
+            light.rgba, light.exposure = colour_rgba(scene, bands, rho_x, emissivity, res)
+        return light
+    params = np.stack([res.j_scale, res.sigma_scale, [b.albedo for b in bands]], axis=1)
+    csetup = None
+    if colour:
+        ref = reference_band_index(bands)
+        cfg = scene.colour
+        csetup = postprocess.ColourSetup(
+            to_rgb=colour_matrix([b.wavelength for b in bands], res.band_luminosity,
+                                 _dominant_temperature(scene.stars), cfg.white_point),
+            sigma_ref_scale=scene.dust.tau * bands[ref].extinction,
+            voxel_edge=_voxel_edge(ds.shape),
+            opacity_scale=cfg.opacity_scale,
+            exposure=cfg.exposure,
+            percentile=AUTO_EXPOSURE_PERCENTILE,
+            min_alpha=AUTO_EXPOSURE_MIN_ALPHA,
+        )
+    out = postprocess.finish(ds, params, batches=res.batches, collision=res.estimator != "track-length",
+                             light=None if J is None else (J, rel), colour=csetup)
+    return LightField(
+        scene=scene,
+        bands=bands,
+        density=np.asarray(rho),
+        J=out.J,
+        rel_error=out.rel_error,
+        emissivity=out.emissivity,
+        rgba=out.rgba,
+        transport=res,
+        exposure=out.exposure,
+        reference_band=reference_band_index(bands),
+    )
+
+
+def _voxel_edge(shape) -> float:
+    """Geometric-mean voxel edge (box units): the length alpha = 1 - exp(-sigma h) uses."""
+    return float(np.prod([1.0 / n for n in shape]) ** (1.0 / 3.0))
 
 
 def assemble_light_field(scene, rho, res: TransportResult, J, rel, with_device_emissivity=False):
@@ -238,26 +305,27 @@ def assemble_light_field(scene, rho, res: TransportResult, J, rel, with_device_e
     return (light, emissivity, rho_x) if with_device_emissivity else light
 
 
-def filter_collisions(res: TransportResult, radius: float):
+def filter_collisions(J, s1, s2, batches: int, radius: float):
     """Smooth the collision estimate of J with the normalised cubic kernel of ``radius`` (box units).
 
-    The per-voxel variance of J from the batch means is filtered with the squared kernel, which
-    gives the filtered field's statistical error (the filter's bias is not included). Runs on
-    the device of ``res.J`` (CuPy FFTs on CUDA).
+    ``s1``, ``s2``: the sums of the batch totals (collision counts) and of their squares, from
+    which the per-voxel variance of J is filtered with the squared kernel: the filtered
+    field's statistical error (the filter's bias is not included). Runs on the device of ``J``
+    (CuPy FFTs on CUDA).
     """
-    xp = array_module(res.J)
-    shape = res.J.shape[1:]
+    xp = array_module(J)
+    shape = J.shape[1:]
     kernel = filtering.cubic_kernel(shape, radius)
-    se = batch_standard_error(res.raw_sum, res.raw_sum2, res.batches)
-    scale = xp.where(res.raw_sum > 0, res.J / xp.where(res.raw_sum > 0, res.raw_sum, 1.0), 0.0)
+    se = batch_standard_error(s1, s2, batches)
+    scale = xp.where(s1 > 0, J / xp.where(s1 > 0, s1, 1.0), 0.0)
     var = (se * scale) ** 2
-    J = xp.empty_like(res.J)
-    rel = xp.empty_like(res.J)
-    for b in range(res.J.shape[0]):
-        jf, vf = filtering.normalised_convolution(res.J[b], kernel, var[b])
-        J[b] = jf
+    Jf = xp.empty_like(J)
+    rel = xp.empty_like(J)
+    for b in range(J.shape[0]):
+        jf, vf = filtering.normalised_convolution(J[b], kernel, var[b])
+        Jf[b] = jf
         rel[b] = xp.where(jf > 0, xp.sqrt(vf) / xp.where(jf > 0, jf, 1.0), 1.0)
-    return J, rel
+    return Jf, rel
 
 
 def _dominant_temperature(stars):
@@ -280,6 +348,24 @@ def colour_rgba(scene, bands, rho, emissivity, res: TransportResult) -> tuple[np
         white_point=cfg.white_point,
         opacity_scale=cfg.opacity_scale,
     )
+
+
+def colour_matrix(wavelengths_nm, band_luminosity, temperature: Optional[float], white_point: str = "D65") -> np.ndarray:
+    """The (3, n_bands) matrix from band emissivities / (sigma_ref L_b) to linear sRGB.
+
+    Bands -> XYZ with the star's spectrum and the 1 nm CIE 1931 functions (nebula/star ratio
+    per band), -> linear sRGB (D65, no adaptation), then the white balance ``white_point``
+    ("D65": none; "E": equal-energy white; "star": the star's own colour is white).
+    """
+    m = colour_convert.band_to_xyz_matrix(np.asarray(wavelengths_nm, np.float64), temperature)
+    to_rgb = colour_convert.XYZ_TO_LINEAR_SRGB @ m / np.asarray(band_luminosity, np.float64)[None, :]
+    if white_point != "D65":
+        if white_point == "star":
+            white = colour_convert.xyz_to_linear_srgb(m @ np.ones(len(wavelengths_nm)))
+        else:  # "E": the equal-energy white
+            white = colour_convert.xyz_to_linear_srgb(np.ones(3))
+        to_rgb = to_rgb / (white / white.max())[:, None]  # white balance in linear sRGB
+    return to_rgb
 
 
 def rgba_from_emissivity(
@@ -328,19 +414,11 @@ def rgba_from_emissivity(
     shape = sigma_ref.shape
     sigma_ref = xp.asarray(sigma_ref, dtype=xp.float64)
     safe = xp.where(sigma_ref > 0, sigma_ref, 1.0)
-    m = colour_convert.band_to_xyz_matrix(np.asarray(wavelengths_nm, np.float64), temperature)
-    # one (3, nb) matrix: band values / (sigma_ref L_b) -> XYZ -> linear sRGB (D65)
-    to_rgb = colour_convert.XYZ_TO_LINEAR_SRGB @ m / np.asarray(band_luminosity, np.float64)[None, :]
-    if white_point != "D65":
-        if white_point == "star":
-            white = colour_convert.xyz_to_linear_srgb(m @ np.ones(len(wavelengths_nm)))
-        else:  # "E": the equal-energy white
-            white = colour_convert.xyz_to_linear_srgb(np.ones(3))
-        to_rgb = to_rgb / (white / white.max())[:, None]  # white balance in linear sRGB
+    to_rgb = colour_matrix(wavelengths_nm, band_luminosity, temperature, white_point)
     rgb = xp.tensordot(emissivity, xp.asarray(to_rgb), axes=([0], [1]))  # (nx, ny, nz, 3)
     rgb = xp.where(sigma_ref[..., None] > 0, rgb / safe[..., None], 0.0)
     rgb = colour_convert.gamut_map(rgb)
-    h = float(np.prod([1.0 / n for n in shape]) ** (1.0 / 3.0))
+    h = _voxel_edge(shape)
     alpha = 1.0 - xp.exp(-sigma_ref * h * opacity_scale)
     if exposure == "auto":
         # J falls as 1/r^2 from the star, so a percentile over all voxels is set by the few

@@ -40,6 +40,7 @@ from . import colour_convert
 from .array_api import array_module
 from .backends import Backend, TransportSetup
 from .errors import AccumulatorOverflowError, CancelledError
+from .postprocess import DeviceSums
 
 #: Default largest batch (packets per band per kernel launch). Larger batches amortise launch
 #: overhead; smaller ones report progress more often. 16 batches at least, for the error estimate.
@@ -76,8 +77,15 @@ class TransportResult:
         Number of batches folded (for the error estimate).
     estimator : str
     raw_sum, raw_sum2 : ndarray
-        The device sums (fixed-point track units or collision counts) per batch total, kept for
-        the collision-filter stage and for diagnostics.
+        The sums (fixed-point track units or collision counts) of the batch totals and of their
+        squares, kept for the collision-filter stage and for diagnostics.
+    j_scale : ndarray (n_bands,)
+        J per unit of raw_sum (track-length), or per unit of raw_sum / sigma (collision).
+    sigma_scale : ndarray (n_bands,)
+        Extinction per box unit at density 1, tau k_b.
+    device_sums : DeviceSums or None
+        With ``trace(on_device=True)``: the sums left on the device for
+        :mod:`nebula_rt.postprocess`; J, rel_error and the raw sums are then None.
     timings : dict
         Seconds spent in the kernel launches and in total.
     """
@@ -91,8 +99,11 @@ class TransportResult:
     photons: int
     batches: int
     estimator: str
-    raw_sum: np.ndarray
-    raw_sum2: np.ndarray
+    raw_sum: Optional[np.ndarray]
+    raw_sum2: Optional[np.ndarray]
+    j_scale: Optional[np.ndarray] = None
+    sigma_scale: Optional[np.ndarray] = None
+    device_sums: Optional[DeviceSums] = None
     device: str = ""
     timings: dict = field(default_factory=dict)
 
@@ -148,6 +159,25 @@ def batch_standard_error(s1, s2, m: int):
     return xp.sqrt(xp.maximum(var, 0.0))
 
 
+def light_from_sums(s1, s2, batches: int, estimator: str, j_scale, sigma_scale, density):
+    """J and its batch-means relative error from the sums of the batch totals.
+
+    NumPy or CuPy arrays (n_bands, nx, ny, nz); the reference for the device kernel
+    ``finish_voxels`` (kernels/postprocess.cl).
+    """
+    xp = array_module(s1)
+    se = batch_standard_error(s1, s2, batches)
+    rel = xp.where(s1 > 0, se / xp.where(s1 > 0, s1, 1.0), 1.0)
+    if estimator == "track-length":
+        J = s1 * xp.asarray(j_scale)[:, None, None, None]
+    else:
+        rho = xp.asarray(density, dtype=xp.float64)
+        sigma = xp.asarray(sigma_scale)[:, None, None, None] * rho[None]
+        J = xp.where(sigma > 0, s1 / xp.where(sigma > 0, sigma, 1.0), 0.0)
+        J *= xp.asarray(j_scale)[:, None, None, None]
+    return J, rel
+
+
 def trace(
     density: np.ndarray,
     bands,
@@ -186,8 +216,8 @@ def trace(
     cancel : callable() -> bool, optional
         Polled between batches; True raises :class:`~nebula_rt.errors.CancelledError`.
     on_device : bool
-        Leave J, rel_error and the raw sums as arrays of the backend's array module (CuPy on the
-        CUDA backend: no copy to the host). Default: NumPy arrays.
+        Leave the sums on the device (``result.device_sums``, for
+        :func:`nebula_rt.postprocess.finish`) instead of computing J and rel_error on the host.
     """
     t0 = time.perf_counter()
     density = np.asarray(density, dtype=np.float32)
@@ -219,6 +249,7 @@ def trace(
     counts = np.zeros((nb, 4), dtype=object)  # python ints: exact whatever the photon count
     slots = backend.launch_plan(nb * int(np.prod(shape)), (base + 1) * nb, len(plan))
     session = backend.transport_session(setup, slots)
+    t_setup = time.perf_counter() - t0
     folded = 0
     t_kernel = 0.0
     done = 0
@@ -271,19 +302,21 @@ def trace(
                 done += h_count
                 if progress is not None:
                     progress(done, photons)
-        s1, s2 = session.sums_on_device() if on_device else session.sums()
-        xp = array_module(s1)
         counts_i64 = np.array(counts.tolist(), dtype=np.int64)
         q = np.array([exact_packet_energy(L, photons) for L in band_lum])
-        se = batch_standard_error(s1, s2, folded)
-        rel = xp.where(s1 > 0, se / xp.where(s1 > 0, s1, 1.0), 1.0)
+        # J per unit of the sums: fixed-point track units, or (collision) counts / sigma
         if estimator == "track-length":
-            J = s1 * xp.asarray(q / (track_scale * 4.0 * np.pi * nvox_inv))[:, None, None, None]
+            j_scale = q / (track_scale * 4.0 * np.pi * nvox_inv)
         else:
-            rho = xp.asarray(density, dtype=xp.float64)
-            sigma = xp.asarray(sigma_scale)[:, None, None, None] * rho[None]
-            J = xp.where(sigma > 0, s1 / xp.where(sigma > 0, sigma, 1.0), 0.0)
-            J *= xp.asarray(q / (4.0 * np.pi * nvox_inv))[:, None, None, None]
+            j_scale = q / (4.0 * np.pi * nvox_inv)
+        if on_device:
+            s1, s2, d_rho = session.release_sums()
+            device_sums = DeviceSums(backend, shape, nb, s1, s2, d_rho)
+            J = rel = None
+        else:
+            device_sums = None
+            s1, s2 = session.sums()
+            J, rel = light_from_sums(s1, s2, folded, estimator, j_scale, sigma_scale, density)
     finally:
         session.close()
     return TransportResult(
@@ -296,8 +329,11 @@ def trace(
         photons=int(photons),
         batches=folded,
         estimator=estimator,
-        raw_sum=s1,
-        raw_sum2=s2,
+        raw_sum=None if on_device else s1,
+        raw_sum2=None if on_device else s2,
+        j_scale=j_scale,
+        sigma_scale=sigma_scale,
+        device_sums=device_sums,
         device=backend.device_name,
-        timings={"kernel_s": t_kernel, "total_s": time.perf_counter() - t0},
+        timings={"setup_s": t_setup, "kernel_s": t_kernel, "total_s": time.perf_counter() - t0},
     )

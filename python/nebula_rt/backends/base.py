@@ -102,6 +102,11 @@ class TransportSession(abc.ABC):
         Default: the host arrays of :meth:`sums`."""
         return self.sums()
 
+    @abc.abstractmethod
+    def release_sums(self) -> tuple:
+        """Hand the sums and the density over as device arrays (flat; the sums band-major, x
+        fastest) for the device post-processing; :meth:`close` then leaves them alone."""
+
     def close(self) -> None:  # pragma: no cover - default: nothing to release
         """Release device memory."""
 
@@ -171,9 +176,34 @@ class Backend(abc.ABC):
         by_memory = max(1, int(self.slot_memory_budget) // (8 * max(int(cells), 1)))
         return int(max(1, min(32, n_batches, by_work, by_memory)))
 
+    #: kernel file of the transport (benchmarks swap in variants to compare them)
+    transport_program: str = "transport.cl"
     #: packets (all bands) worth one launch, and bytes the batch slots may take
     launch_packets: int = 1 << 21
     slot_memory_budget: int = 1 << 30
+
+    # --- device arrays, for the post-processing on the device -------------------------------
+    # Device arrays are CuPy arrays (CUDA) or pyopencl.array.Array (OpenCL), always flat.
+    @abc.abstractmethod
+    def to_device(self, host: np.ndarray):
+        """Copy a host array to a new flat device array."""
+
+    @abc.abstractmethod
+    def device_zeros(self, n: int, dtype):
+        """A zeroed flat device array of ``n`` elements."""
+
+    def host_empty(self, shape, dtype) -> np.ndarray:
+        """A host array for results coming back from the device (page-locked where the
+        backend benefits from it)."""
+        return np.empty(shape, dtype)
+
+    @abc.abstractmethod
+    def to_host(self, dev, out: np.ndarray | None = None) -> np.ndarray:
+        """Copy a device array to the host (into ``out``, contiguous, if given)."""
+
+    @abc.abstractmethod
+    def launch(self, prog_name: str, kernel_name: str, n: int, *args, defines: dict | None = None) -> None:
+        """Run a kernel over ``n`` work items; device arrays and NumPy scalars as arguments."""
 
     # --- kernels exposed for tests and diagnostics ---------------------------------------
     @abc.abstractmethod

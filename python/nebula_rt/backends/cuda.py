@@ -71,8 +71,8 @@ class CUDATransport(TransportSession):
         self.d_tallies = cp.zeros(self.slots * nb * 4, cp.uint64)
         self.d_overflow = cp.zeros(self.slots, cp.uint32)
         defines = transport_defines(setup)
-        self.k_trace = backend.kernel("transport.cl", "trace_photons", defines)
-        self.k_fold = backend.kernel("transport.cl", "fold_batches", defines)
+        self.k_trace = backend.kernel(backend.transport_program, "trace_photons", defines)
+        self.k_fold = backend.kernel(backend.transport_program, "fold_batches", defines)
 
     def run_group(self, photon_start, count, batch_base, batch_extra, first_batch, n_slots):
         s = self.setup
@@ -80,7 +80,8 @@ class CUDATransport(TransportSession):
         self.d_tallies.fill(0)
         self.d_overflow.fill(0)
         total = int(count) * s.n_bands
-        self.k_trace(_grid(self.backend.work_items(total, self.k_trace)), (BLOCK,), (
+        tb = self.backend.trace_block
+        self.k_trace(((self.backend.work_items(total, self.k_trace) + tb - 1) // tb,), (tb,), (
             self.d_density, self.d_sigma, self.d_albedo, self.d_g, self.d_stars, self.d_cdf,
             np.int32(nx), np.int32(ny), np.int32(nz), np.int32(s.n_bands), np.int32(s.stars.shape[0]),
             np.uint64(s.seed), np.uint64(photon_start), np.uint64(count),
@@ -103,6 +104,11 @@ class CUDATransport(TransportSession):
     def sums(self):
         return tuple(a.get() for a in self.sums_on_device())
 
+    def release_sums(self):
+        out = (self.d_sum1, self.d_sum2, self.d_density)
+        self.d_sum1 = self.d_sum2 = self.d_density = None
+        return out
+
     def close(self):
         for name in ("d_acc", "d_sum1", "d_sum2", "d_density"):
             setattr(self, name, None)
@@ -113,8 +119,13 @@ class CUDABackend(Backend):
 
     name = "cuda"
 
-    def __init__(self, selector: str = ""):
+    def __init__(self, selector: str = "", *, compile_options: tuple = (), trace_block: int = BLOCK):
+        """``compile_options``: extra NVRTC options (e.g. ``("--maxrregcount=40",)``) and
+        ``trace_block``: threads per block of the transport kernel -- tuning knobs measured by
+        ``benchmarks/tune_cuda.py``."""
         cp = _cupy()
+        self.compile_options = tuple(compile_options)
+        self.trace_block = int(trace_block)
         self.cp = cp
         self.array_module = cp
         index = 0
@@ -138,7 +149,7 @@ class CUDABackend(Backend):
         self.slot_memory_budget = int(free) // 4
 
     def _compile(self, name, defines):
-        options = ("--std=c++14",) + tuple(f"-D{k}={v}" for k, v in sorted(defines.items()))
+        options = ("--std=c++14",) + self.compile_options + tuple(f"-D{k}={v}" for k, v in sorted(defines.items()))
         return self.cp.RawModule(code=kernel_source(name), options=options)
 
     def _get_kernel(self, module, kernel_name):
@@ -167,6 +178,29 @@ class CUDABackend(Backend):
         (Persistent threads looping over packets were measured slower on an H100: 151k vs 288k
         packets/ms on neb128, as threads drifted apart over several slots.)"""
         return int(packets)
+
+    # --- device arrays ------------------------------------------------------------------------
+    def to_device(self, host):
+        return self.cp.asarray(np.ascontiguousarray(host).reshape(-1))
+
+    def device_zeros(self, n, dtype):
+        return self.cp.zeros(int(n), dtype)
+
+    def host_empty(self, shape, dtype):
+        """Page-locked host memory (from CuPy's pinned pool): device-to-host copies run at the
+        bus's full rate instead of through a staging buffer."""
+        import cupyx
+
+        return cupyx.empty_pinned(shape, dtype)
+
+    def to_host(self, dev, out=None):
+        if out is None:
+            return dev.get()
+        dev.get(out=out.reshape(dev.shape))
+        return out
+
+    def launch(self, prog_name, kernel_name, n, *args, defines=None):
+        self.kernel(prog_name, kernel_name, defines)(_grid(max(int(n), 1)), (BLOCK,), args)
 
     def sample_noise(self, points):
         cp = self.cp

@@ -17,6 +17,13 @@ else:
     _IMPORT_ERROR = None
 
 
+def _cl_array():
+    """pyopencl.array (device arrays for the post-processing), imported on first use."""
+    import pyopencl.array as cl_array
+
+    return cl_array
+
+
 def list_devices() -> list[tuple[int, int, str, bool]]:
     """All OpenCL devices as (platform index, device index, "platform: device", is_gpu)."""
     if cl is None:
@@ -120,8 +127,8 @@ class OpenCLTransport(TransportSession):
         self.h_overflow = np.zeros(self.slots, np.uint32)
         self.d_overflow = cl.Buffer(ctx, mf.READ_WRITE, size=self.h_overflow.nbytes)
         defines = transport_defines(setup)
-        self.k_trace = backend.kernel("transport.cl", "trace_photons", defines)
-        self.k_fold = backend.kernel("transport.cl", "fold_batches", defines)
+        self.k_trace = backend.kernel(backend.transport_program, "trace_photons", defines)
+        self.k_fold = backend.kernel(backend.transport_program, "fold_batches", defines)
 
     def run_group(self, photon_start, count, batch_base, batch_extra, first_batch, n_slots):
         q = self.backend.queue
@@ -159,6 +166,15 @@ class OpenCLTransport(TransportSession):
             out.append(h.reshape((nb,) + self.shape[::-1]).transpose(0, 3, 2, 1))
         q.finish()
         return out[0], out[1]
+
+    def release_sums(self):
+        cl_array = _cl_array()
+        q = self.backend.queue
+        out = (cl_array.Array(q, (self.ncell,), np.float64, data=self.d_sum1),
+               cl_array.Array(q, (self.ncell,), np.float64, data=self.d_sum2),
+               cl_array.Array(q, (self.nvox,), np.float32, data=self.d_density))
+        self.d_sum1 = self.d_sum2 = self.d_density = None
+        return out
 
     def close(self):
         for name in ("d_acc", "d_sum1", "d_sum2", "d_density"):
@@ -219,6 +235,25 @@ class OpenCLBackend(Backend):
     def work_items(self, packets: int) -> int:
         """One work item per packet (see the CUDA backend for why not persistent threads)."""
         return int(packets)
+
+    # --- device arrays ------------------------------------------------------------------------
+    def to_device(self, host):
+        return _cl_array().to_device(self.queue, np.ascontiguousarray(host).reshape(-1))
+
+    def device_zeros(self, n, dtype):
+        return _cl_array().zeros(self.queue, int(n), dtype)
+
+    def to_host(self, dev, out=None):
+        if out is None:
+            return dev.get()
+        cl.enqueue_copy(self.queue, out.reshape(-1), dev.data)
+        self.queue.finish()
+        return out
+
+    def launch(self, prog_name, kernel_name, n, *args, defines=None):
+        array_type = _cl_array().Array
+        args = [a.data if isinstance(a, array_type) else a for a in args]
+        self.kernel(prog_name, kernel_name, defines)(self.queue, (max(int(n), 1),), None, *args)
 
     # --- test/diagnostic kernels ----------------------------------------------------------
     def _run(self, prog_name, kname, n, outputs, *args):

@@ -1,0 +1,167 @@
+/*
+ * postprocess.cl -- from the transport's batch sums to the output arrays, on the device.
+ *
+ * One work item per voxel runs over all bands, so the per-band arrays, the colour and the
+ * opacity come out of one pass over the sums and only the final arrays travel to the host:
+ *
+ *   finish_voxels, pass 0: J, its relative error and the emissivity (float32, band-major,
+ *       x fastest), the opacity byte of rgba, and a brightness key per voxel for the exposure;
+ *   key_histogram:          histograms of the keys' bit patterns, from which the host picks
+ *       the exposure percentile exactly (two passes of 2^16 bins: a radix select);
+ *   finish_voxels, pass 1:  the colour bytes of rgba at the chosen exposure (the colour is
+ *       recomputed rather than stored: reading the sums again costs less memory than a
+ *       float colour buffer on large grids).
+ *
+ * The arithmetic follows the NumPy reference (nebula_rt.transport.trace,
+ * nebula_rt.pipeline.assemble_light_field and rgba_from_emissivity) operation by operation,
+ * in double precision; only the band sum of the colour matrix may round differently.
+ */
+#include "nebula_common.h"
+
+/* Luminance weights of linear sRGB (Rec. 709), for the gamut mapping. */
+#define NRT_LUMA_R 0.2126
+#define NRT_LUMA_G 0.7152
+#define NRT_LUMA_B 0.0722
+/* Visible voxels (alpha >= this) set the auto exposure (pipeline.AUTO_EXPOSURE_MIN_ALPHA). */
+#ifndef NRT_MIN_ALPHA
+#define NRT_MIN_ALPHA 0.01
+#endif
+
+/* (fmin/fmax are the float versions under CUDA: see nebula_common.h) */
+NRT_DEVICE double nrt_dmax(double a, double b) { return a > b ? a : b; }
+NRT_DEVICE double nrt_dmin(double a, double b) { return a < b ? a : b; }
+
+/* sRGB transfer curve (IEC 61966-2-1) of x in [0, 1] -> 0..255. */
+NRT_DEVICE nrt_u8 nrt_srgb8(double x)
+{
+    double e = (x <= 0.0031308) ? 12.92 * x : 1.055 * pow(x, 1.0 / 2.4) - 0.055;
+    double v = rint(e * 255.0);
+    v = v < 0.0 ? 0.0 : (v > 255.0 ? 255.0 : v);
+    return (nrt_u8)v;
+}
+
+/*
+ * band_params: per band 4 doubles: J scale (J = sum x scale, or for the collision estimator
+ * J = sum / sigma x scale), extinction per box unit at density 1 (tau k_b), albedo, unused.
+ * to_rgb: 3 x n_bands (row-major), band emissivity / (L_b sigma_ref) -> linear sRGB, white
+ * balance included.
+ * mode 0: a, b are the sums of the batch totals and of their squares (batches of them);
+ * mode 1: a, b are J and its relative error (already filtered).
+ */
+NRT_KERNEL void finish_voxels(const NRT_GLOBAL double *a, const NRT_GLOBAL double *b,
+                              const NRT_GLOBAL float *density,
+                              const NRT_GLOBAL double *band_params,
+                              const NRT_GLOBAL double *to_rgb, int n_bands, nrt_u64 nvox,
+                              int mode, int collision, int batches, int pass, int colour,
+                              double sigma_ref_scale, double voxel_edge, double opacity_scale,
+                              double exposure,
+                              NRT_GLOBAL float *J32, NRT_GLOBAL float *rel32,
+                              NRT_GLOBAL float *emis32, NRT_GLOBAL float *key,
+                              NRT_GLOBAL nrt_u8 *rgba)
+{
+    nrt_u64 v = NRT_GLOBAL_ID();
+    if (v >= nvox)
+        return;
+    double rho = (double)density[v];
+    double rgb[3] = {0.0, 0.0, 0.0};
+    for (int k = 0; k < n_bands; ++k) {
+        nrt_u64 i = (nrt_u64)k * nvox + v;
+        double j_scale = band_params[4 * k], sig_k = band_params[4 * k + 1];
+        double alb = band_params[4 * k + 2];
+        double J, rel;
+        if (mode == 0) {
+            double x1 = a[i], x2 = b[i];
+            double se;
+            if (batches < 2) {
+                se = x1 < 0.0 ? -x1 : x1;
+            } else {
+                double m = (double)batches;
+                double var = (x2 - x1 * x1 / m) * (m / (m - 1.0));
+                se = NRT_DSQRT(nrt_dmax(var, 0.0));
+            }
+            rel = (x1 > 0.0) ? se / x1 : 1.0;
+            if (collision) {
+                double sig = sig_k * rho;
+                J = (sig > 0.0) ? x1 / sig : 0.0;
+                J *= j_scale;
+            } else {
+                J = x1 * j_scale;
+            }
+        } else {
+            J = a[i];
+            rel = b[i];
+        }
+        double emis = alb * (sig_k * rho) * J;
+        if (pass == 0) {
+            J32[i] = (float)J;
+            rel32[i] = (float)rel;
+            emis32[i] = (float)emis;
+        }
+        if (colour) {
+            rgb[0] += emis * to_rgb[k];
+            rgb[1] += emis * to_rgb[n_bands + k];
+            rgb[2] += emis * to_rgb[2 * n_bands + k];
+        }
+    }
+    if (!colour)
+        return;
+    /* colour of the emissivity per unit reference extinction, gamut-mapped towards grey */
+    double sigma_ref = sigma_ref_scale * rho;
+    for (int c = 0; c < 3; ++c)
+        rgb[c] = (sigma_ref > 0.0) ? rgb[c] / sigma_ref : 0.0;
+    double mn = nrt_dmin(rgb[0], nrt_dmin(rgb[1], rgb[2]));
+    if (mn < 0.0) {
+        double y = NRT_LUMA_R * rgb[0] + NRT_LUMA_G * rgb[1] + NRT_LUMA_B * rgb[2];
+        if (y > 0.0) {
+            double t = y / (y - mn);
+            for (int c = 0; c < 3; ++c)
+                rgb[c] = nrt_dmax(y + t * (rgb[c] - y), 0.0);
+        } else {
+            rgb[0] = rgb[1] = rgb[2] = 0.0;
+        }
+    }
+    if (pass == 0) {
+        double alpha = 1.0 - exp(-(sigma_ref * voxel_edge * opacity_scale));
+        double a8 = rint(alpha * 255.0);
+        rgba[4 * v + 3] = (nrt_u8)(a8 < 0.0 ? 0.0 : (a8 > 255.0 ? 255.0 : a8));
+        /* brightness key: the largest component; its sign bit marks voxels too transparent
+           to set the exposure (-0.0 stays distinguishable from +0.0 in the bit pattern) */
+        float mx = (float)nrt_dmax(rgb[0], nrt_dmax(rgb[1], rgb[2]));
+        key[v] = (alpha >= NRT_MIN_ALPHA) ? mx : -mx;
+        return;
+    }
+    /* pass 1: expose; an over-exposed colour is scaled down as a whole (keeps its hue) */
+    double x[3];
+    for (int c = 0; c < 3; ++c)
+        x[c] = nrt_dmax(rgb[c] * exposure, 0.0);
+    double mxe = nrt_dmax(nrt_dmax(x[0], nrt_dmax(x[1], x[2])), 1.0);
+    for (int c = 0; c < 3; ++c)
+        rgba[4 * v + c] = nrt_srgb8(x[c] / mxe);
+}
+
+/*
+ * Radix-select histograms of the brightness keys. Keys are non-negative floats (with the
+ * sign bit as the visibility flag), whose bit patterns sort like their values, so the high
+ * 16 bits pick a bin and the low 16 bits the value inside it.
+ *   hi_bin < 0: hist[bits >> 16] counts positive finite keys, hist[65536] the zeros;
+ *   hi_bin >= 0: hist[bits & 0xffff] counts the positive keys whose high bits are hi_bin.
+ * all_voxels 0 takes only visible voxels, 1 every voxel.
+ */
+NRT_KERNEL void key_histogram(const NRT_GLOBAL float *key, nrt_u64 n, int all_voxels, int hi_bin,
+                              NRT_GLOBAL nrt_u32 *hist)
+{
+    nrt_u64 v = NRT_GLOBAL_ID();
+    if (v >= n)
+        return;
+    nrt_u32 bits = NRT_FLOAT_AS_UINT(key[v]);
+    if ((bits >> 31) && !all_voxels)
+        return;
+    bits &= 0x7FFFFFFFu;
+    if (bits >= 0x7F800000u) /* inf or nan: no exposure from these */
+        return;
+    if (hi_bin < 0) {
+        NRT_ATOMIC_ADD_U32(&hist[bits == 0u ? 65536u : (bits >> 16)], 1u);
+    } else if (bits != 0u && (int)(bits >> 16) == hi_bin) {
+        NRT_ATOMIC_ADD_U32(&hist[bits & 0xFFFFu], 1u);
+    }
+}

@@ -1,0 +1,198 @@
+"""Post-processing on the compute device: batch sums -> J, error, emissivity, rgba.
+
+The transport leaves the running sums of the batch totals on the device. One kernel pass
+(``kernels/postprocess.cl``, shared by the OpenCL and CUDA backends) turns them into the
+float32 output arrays and the opacity, a radix select on the device picks the exposure
+percentile, and a second pass writes the colour bytes; only the final arrays are copied back
+(into page-locked memory on CUDA). The NumPy functions in :mod:`nebula_rt.transport` and
+:mod:`nebula_rt.pipeline` are the reference this module is tested against.
+
+Device layout: flat arrays, band-major, x fastest (the VTK point order); the host arrays
+returned are (n_bands, nx, ny, nz) and (nx, ny, nz, 4) views of that layout, so writing them to
+VTK needs no copy.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+
+#: Bins of one radix-select pass (16 bits of the float32 key) plus one for exact zeros.
+_HI_BINS = 1 << 16
+
+
+@dataclass
+class DeviceSums:
+    """Transport sums left on the device.
+
+    Attributes
+    ----------
+    backend : Backend
+    shape : (nx, ny, nz)
+    n_bands : int
+    sum1, sum2 : device arrays, float64, n_bands * nx * ny * nz
+        Sum of the batch totals and of their squares (fixed-point track units or collision
+        counts), band-major, x fastest.
+    density : device array, float32, nx * ny * nz
+    """
+
+    backend: object
+    shape: tuple
+    n_bands: int
+    sum1: object
+    sum2: object
+    density: object
+
+    @property
+    def nvox(self) -> int:
+        return int(np.prod(self.shape))
+
+    def host_sums(self):
+        """The sums as (n_bands, nx, ny, nz) arrays of the backend's array module (CuPy views on
+        CUDA, NumPy copies otherwise)."""
+        shape = (self.n_bands,) + tuple(self.shape[::-1])
+        out = []
+        for a in (self.sum1, self.sum2):
+            if type(a).__module__.startswith("cupy"):
+                out.append(a.reshape(shape).transpose(0, 3, 2, 1))
+            else:
+                out.append(self.backend.to_host(a).reshape(shape).transpose(0, 3, 2, 1))
+        return out[0], out[1]
+
+
+@dataclass
+class ColourSetup:
+    """What the colour pass needs (see :func:`nebula_rt.pipeline.rgba_from_emissivity`)."""
+
+    to_rgb: np.ndarray  # (3, n_bands)
+    sigma_ref_scale: float  # extinction per box unit at density 1, reference band
+    voxel_edge: float  # geometric-mean voxel edge, box units
+    opacity_scale: float
+    exposure: object  # "auto" or float
+    percentile: float
+    min_alpha: float
+
+
+@dataclass
+class FinishedArrays:
+    """Host arrays of the output contract."""
+
+    J: np.ndarray  # float32 (nb, nx, ny, nz)
+    rel_error: np.ndarray
+    emissivity: np.ndarray
+    rgba: Optional[np.ndarray]  # uint8 (nx, ny, nz, 4)
+    exposure: float
+
+
+def _device_layout(xp, a):
+    """(nb, nx, ny, nz) -> flat band-major, x fastest."""
+    return xp.ascontiguousarray(a.transpose(0, 3, 2, 1)).reshape(-1)
+
+
+def finish(ds: DeviceSums, band_params: np.ndarray, *, batches: int, collision: bool,
+           light=None, colour: Optional[ColourSetup] = None) -> FinishedArrays:
+    """Turn device sums (or a filtered J and error) into the output arrays.
+
+    Parameters
+    ----------
+    ds : DeviceSums
+    band_params : ndarray (n_bands, 3)
+        J scale, extinction per box unit at density 1 (tau k_b), albedo, per band.
+    batches : int
+        Batch totals summed (for the batch-means error).
+    collision : bool
+        The sums are collision counts (J = sum / sigma x scale), else track lengths.
+    light : (J, rel_error), optional
+        Already computed (e.g. filtered) J and relative error, (n_bands, nx, ny, nz) NumPy or
+        CuPy arrays; used instead of the sums.
+    colour : ColourSetup, optional
+        Also compute rgba (else ``rgba`` is None).
+    """
+    be = ds.backend
+    nb, nvox = ds.n_bands, ds.nvox
+    nx, ny, nz = ds.shape
+    if light is not None:
+        from .array_api import array_module
+
+        xp = array_module(light[0])
+        a = _device_layout(xp, xp.asarray(light[0], dtype=xp.float64))
+        b = _device_layout(xp, xp.asarray(light[1], dtype=xp.float64))
+        if xp is np:
+            a, b = be.to_device(a), be.to_device(b)
+        mode = 1
+    else:
+        a, b, mode = ds.sum1, ds.sum2, 0
+    params = np.zeros((nb, 4), np.float64)
+    params[:, :3] = band_params
+    d_params = be.to_device(params)
+    c = colour
+    d_rgb = be.to_device(np.ascontiguousarray(c.to_rgb, np.float64) if c else np.zeros(3 * nb))
+    J32, rel32, emis32 = (be.device_zeros(nb * nvox, np.float32) for _ in range(3))
+    key = be.device_zeros(nvox if c else 1, np.float32)
+    rgba = be.device_zeros(4 * nvox if c else 1, np.uint8)
+    const = (np.float64(c.sigma_ref_scale if c else 0.0), np.float64(c.voxel_edge if c else 0.0),
+             np.float64(c.opacity_scale if c else 0.0))
+
+    def run(pass_, exposure):
+        be.launch("postprocess.cl", "finish_voxels", nvox, a, b, ds.density, d_params, d_rgb,
+                  np.int32(nb), np.uint64(nvox), np.int32(mode), np.int32(bool(collision)),
+                  np.int32(batches), np.int32(pass_), np.int32(c is not None), *const,
+                  np.float64(exposure), J32, rel32, emis32, key, rgba)
+
+    run(0, 1.0)
+    exposure = float("nan")
+    h_rgba = None
+    if c is not None:
+        exposure = auto_exposure_on_device(be, key, nvox, c.percentile) if c.exposure == "auto" else float(c.exposure)
+        run(1, exposure)
+        h_rgba = be.to_host(rgba, be.host_empty((nz, ny, nx, 4), np.uint8)).transpose(2, 1, 0, 3)
+    out = [be.to_host(arr, be.host_empty((nb, nz, ny, nx), np.float32)).transpose(0, 3, 2, 1)
+           for arr in (J32, rel32, emis32)]
+    return FinishedArrays(J=out[0], rel_error=out[1], emissivity=out[2], rgba=h_rgba, exposure=exposure)
+
+
+def _histogram(be, key, n, all_voxels, hi_bin):
+    hist = be.device_zeros(_HI_BINS + 1, np.uint32)
+    be.launch("postprocess.cl", "key_histogram", n, key, np.uint64(n), np.int32(all_voxels),
+              np.int32(hi_bin), hist)
+    return be.to_host(hist).astype(np.int64)
+
+
+def auto_exposure_on_device(be, key, n: int, percentile: float) -> float:
+    """1 / (the ``percentile`` of the positive brightness keys of the visible voxels, or of all
+    voxels if none is visible), interpolated linearly between order statistics as
+    ``numpy.percentile`` does; 1.0 when no key is positive.
+
+    The order statistics are found exactly by a radix select on the keys' bit patterns: a
+    histogram of the high 16 bits finds the bin holding the rank, a histogram of the low 16
+    bits inside that bin the value. Only histograms (256 KiB) come to the host.
+    """
+    all_voxels = 0
+    hist = _histogram(be, key, n, 0, -1)
+    if hist.sum() == 0:  # nothing visible: expose for every voxel
+        all_voxels = 1
+        hist = _histogram(be, key, n, 1, -1)
+    pos = hist[:_HI_BINS]
+    npos = int(pos.sum())
+    if npos == 0:
+        return 1.0
+    cum = np.cumsum(pos)
+    low_cache: dict[int, np.ndarray] = {}
+
+    def order_statistic(r: int) -> float:
+        hi = int(np.searchsorted(cum, r, side="right"))
+        r_in = r - (int(cum[hi - 1]) if hi else 0)
+        if hi not in low_cache:
+            low_cache[hi] = np.cumsum(_histogram(be, key, n, all_voxels, hi)[:_HI_BINS])
+        lo = int(np.searchsorted(low_cache[hi], r_in, side="right"))
+        return float(np.array([(hi << 16) | lo], np.uint32).view(np.float32)[0])
+
+    idx = float(percentile) / 100.0 * (npos - 1)
+    k = int(math.floor(idx))
+    frac = idx - k
+    v0 = order_statistic(k)
+    level = v0 if frac == 0.0 else v0 + frac * (order_statistic(min(k + 1, npos - 1)) - v0)
+    return 1.0 / level if level > 0.0 else 1.0
