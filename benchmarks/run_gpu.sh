@@ -7,7 +7,7 @@
 # WHEELDIR holds wheels for what the machine lacks (pyopencl and its pure-Python needs,
 # colour-science, tomli-w; pmcx for the MCX comparison), fetched elsewhere with
 # `pip download --only-binary=:all: --python-version 3.12 ...`.
-# STEPS (default "tests bench neb128 compare profile"; also "scaling", "tune", "stages") selects what runs. Everything printed
+# STEPS (default "tests bench neb128 compare profile"; also "scaling", "tune", "stages", "trade", "fft") selects what runs. Everything printed
 # goes to OUTDIR/log.txt as well; JSON and .npz results beside it.
 set -uo pipefail
 out="${1:?output folder}"
@@ -27,7 +27,7 @@ nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader
 python3 -m nebula_rt.cli devices
 git rev-parse --short HEAD 2>/dev/null || true
 
-physics="tests/test_rng.py tests/test_hg.py tests/test_density_kernel.py tests/test_transport_physics.py tests/test_estimators.py tests/test_postprocess.py"
+physics="tests/test_rng.py tests/test_hg.py tests/test_density_kernel.py tests/test_transport_physics.py tests/test_estimators.py tests/test_postprocess.py tests/test_target_error.py"
 if [[ " $steps " == *" tests "* ]]; then
     echo "== physics tests, CUDA"; NEBULA_RT_TEST_BACKEND=cuda python3 -m pytest -q -p no:cacheprovider $physics tests/test_cuda_sources.py 2>&1 | tail -n 8
     echo "== physics tests, NVIDIA OpenCL"; NEBULA_RT_TEST_DEVICE=NVIDIA python3 -m pytest -q -p no:cacheprovider $physics 2>&1 | tail -n 3
@@ -47,6 +47,13 @@ if [[ " $steps " == *" tune "* ]]; then
 fi
 if [[ " $steps " == *" stages "* ]]; then
     echo "== stage profile, thesis 128^3, CUDA"; python3 benchmarks/profile_stages.py
+fi
+if [[ " $steps " == *" trade "* ]]; then
+    echo "== speed vs accuracy, CUDA"; python3 benchmarks/trade_study.py --backend cuda --out "$out/trade-study-cuda.json"
+fi
+if [[ " $steps " == *" fft "* ]]; then
+    echo "== collision filter FFT on NVIDIA OpenCL: host vs pyvkfft"
+    python3 benchmarks/bench_fft.py --device NVIDIA --grid 64 128 --out "$out/fft-nvidia-opencl.json"
 fi
 if [[ " $steps " == *" scaling "* ]]; then
     echo "== scaling, CUDA"; python3 benchmarks/bench_scaling.py --backend cuda --out "$out/scaling-cuda.json"

@@ -18,6 +18,10 @@ ESTIMATORS = ("track-length", "collision-filter")
 BACKENDS = ("auto", "opencl", "cuda")
 
 
+#: ParaView's Quality enumeration ("custom" = no preset)
+QUALITY_NAMES = ("custom", "preview", "balanced", "reference")
+
+
 def _enum(value, options):
     return options[value] if isinstance(value, int) and 0 <= value < len(options) else value
 
@@ -52,6 +56,8 @@ class NebulaLightField(NebulaAlgorithm):
         self._backend = "auto"
         self._device = ""
         self._batch_size = 0
+        self._quality = ""
+        self._target_error = 0.0
         self._density_name = None
         self.last_light = None
 
@@ -86,6 +92,20 @@ class NebulaLightField(NebulaAlgorithm):
 
     def SetPhotons(self, n):
         self._photons = n
+        self.Modified()
+
+    def SetQuality(self, name):
+        """Quality preset ("" or "custom": Photons and TargetError as set; "preview", "balanced",
+        "reference": a target error with a photon budget, see nebula_rt.scene.QUALITY_PRESETS),
+        by name or index in that order."""
+        name = _enum(name, QUALITY_NAMES)
+        self._quality = "" if name == "custom" else name
+        self.Modified()
+
+    def SetTargetError(self, e):
+        """0: trace Photons packets; in (0, 1): trace until the lit region's relative error is at
+        most this, with Photons as the budget."""
+        self._target_error = e
         self.Modified()
 
     def SetEstimator(self, name):
@@ -142,7 +162,8 @@ class NebulaLightField(NebulaAlgorithm):
             "transport": {"photons": self._photons, "estimator": self._estimator,
                           "filter_radius": self._filter_radius, "max_scatterings": self._max_scatterings,
                           "seed": self._seed, "backend": self._backend, "device": self._device,
-                          "batch_size": self._batch_size},
+                          "batch_size": self._batch_size, "quality": self._quality,
+                          "target_error": self._target_error},
         })
 
     # -- pipeline ------------------------------------------------------------------------------

@@ -165,3 +165,47 @@ NRT_KERNEL void key_histogram(const NRT_GLOBAL float *key, nrt_u64 n, int all_vo
         NRT_ATOMIC_ADD_U32(&hist[bits & 0xFFFFu], 1u);
     }
 }
+
+/*
+ * Collision estimator before the filter: the unfiltered J and its variance per cell, from the
+ * sums of the batch totals (as nebula_rt.pipeline.filter_collisions computes them):
+ * J = sum / sigma x scale, var = (SE x J / sum)^2. n = n_bands * nvox cells.
+ */
+NRT_KERNEL void collision_light(const NRT_GLOBAL double *s1, const NRT_GLOBAL double *s2,
+                                const NRT_GLOBAL float *density,
+                                const NRT_GLOBAL double *band_params, int batches, nrt_u64 nvox,
+                                nrt_u64 n, NRT_GLOBAL double *J, NRT_GLOBAL double *var)
+{
+    nrt_u64 i = NRT_GLOBAL_ID();
+    if (i >= n)
+        return;
+    int k = (int)(i / nvox);
+    double rho = (double)density[i - (nrt_u64)k * nvox];
+    double x1 = s1[i], x2 = s2[i];
+    double se;
+    if (batches < 2) {
+        se = x1 < 0.0 ? -x1 : x1;
+    } else {
+        double m = (double)batches;
+        double v = (x2 - x1 * x1 / m) * (m / (m - 1.0));
+        se = NRT_DSQRT(nrt_dmax(v, 0.0));
+    }
+    double sig = band_params[4 * k + 1] * rho;
+    double j = (sig > 0.0) ? x1 / sig : 0.0;
+    j *= band_params[4 * k];
+    double scale = (x1 > 0.0) ? j / x1 : 0.0;
+    double e = se * scale;
+    J[i] = j;
+    var[i] = e * e;
+}
+
+/* Relative error of a filtered J from its filtered variance (1 where J is 0). */
+NRT_KERNEL void relative_error(const NRT_GLOBAL double *J, const NRT_GLOBAL double *var, nrt_u64 n,
+                               NRT_GLOBAL double *rel)
+{
+    nrt_u64 i = NRT_GLOBAL_ID();
+    if (i >= n)
+        return;
+    double j = J[i];
+    rel[i] = (j > 0.0) ? NRT_DSQRT(var[i]) / j : 1.0;
+}

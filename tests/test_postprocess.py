@@ -94,3 +94,29 @@ def test_exposure_radix_select_is_exact(backend, case, q):
 def test_exposure_without_positive_keys(backend):
     keys = np.array([0.0, -0.0, np.nan, -np.inf], np.float32)
     assert postprocess.auto_exposure_on_device(backend, backend.to_device(keys), keys.size, 95.0) == 1.0
+
+
+def test_collision_filter_on_the_opencl_device(backend):
+    """With pyvkfft, an OpenCL run filters the collisions on the device (VkFFT); the result is
+    the host filter's up to FFT round-off (~1e-15 relative, here allowed 1e-9)."""
+    from nebula_rt import filtering_opencl
+    from nebula_rt.pipeline import _opencl_fft
+
+    if backend.name != "opencl" or not filtering_opencl.available():
+        pytest.skip("needs the OpenCL backend and pyvkfft (optional: no wheels on PyPI)")
+    assert _opencl_fft(backend)
+    scene = _scene(['transport.estimator="collision-filter"', "transport.filter_radius=0.15"])
+    rho = Pipeline(backend).density(scene)
+    r_ref, J_ref, rel_ref = compute_light(scene, rho, backend)
+    ref = finish_light_field(scene, rho, r_ref, J_ref, rel_ref)
+    r_dev, J_dev, rel_dev = compute_light(scene, rho, backend, on_device=True)
+    assert J_dev.ndim == 1  # device layout: filtered on the device
+    dev = finish_light_field(scene, rho, r_dev, J_dev, rel_dev)
+    np.testing.assert_allclose(dev.J, ref.J, rtol=1e-9, atol=1e-9 * float(ref.J.max()))
+    # the error where J is round-off (~1e-16 of the peak, far from any collision) is a ratio of
+    # round-off values in both paths: compare where J means something
+    lit = ref.J > 1e-9 * ref.J.max(axis=(1, 2, 3), keepdims=True)
+    # (the variance spans many decades: FFT round-off of the largest values, ~1e-16 of them,
+    # shows at ~1e-5 relative in the smallest; an error estimate needs no more digits)
+    np.testing.assert_allclose(dev.rel_error[lit], ref.rel_error[lit], rtol=1e-4)
+    assert np.abs(dev.rgba.astype(int) - ref.rgba.astype(int)).max() <= 1

@@ -16,30 +16,13 @@ import pytest
 
 from conftest import centre_star, one_band, voxel_centres
 from nebula_rt.errors import AccumulatorOverflowError, CancelledError
+from nebula_rt.analytic import voxel_average_point_source  # noqa: F401 (also used by other tests)
 from nebula_rt.transport import trace
 
 # --------------------------------------------------------------------------------------------
 # Pure absorber: J(r) = L exp(-kappa r) / (16 pi^2 r^2)
 # --------------------------------------------------------------------------------------------
 GL_NODES, GL_WEIGHTS = np.polynomial.legendre.leggauss(6)
-
-
-def voxel_average_point_source(shape, star, kappa, luminosity, mask, order=6):
-    """Average of the analytic J over each masked voxel by Gauss-Legendre quadrature (order^3)."""
-    nodes, weights = np.polynomial.legendre.leggauss(order)
-    h = 1.0 / np.asarray(shape, float)
-    X, Y, Z = voxel_centres(shape)
-    cx, cy, cz = X[mask], Y[mask], Z[mask]
-    total = np.zeros(cx.size)
-    for a, wa in zip(nodes, weights):
-        for b, wb in zip(nodes, weights):
-            for c, wc in zip(nodes, weights):
-                dx = cx + 0.5 * a * h[0] - star[0]
-                dy = cy + 0.5 * b * h[1] - star[1]
-                dz = cz + 0.5 * c * h[2] - star[2]
-                r = np.sqrt(dx * dx + dy * dy + dz * dz)
-                total += wa * wb * wc * luminosity * np.exp(-kappa * r) / (16 * np.pi**2 * r * r)
-    return total / 8.0
 
 
 def shell_means(field, r, edges):

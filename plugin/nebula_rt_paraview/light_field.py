@@ -109,6 +109,22 @@ class NebulaLightField(_base.NebulaLightField):
     def SetOverrideOptics(self, flag):
         return super().SetOverrideOptics(flag)
 
+    @smproperty.intvector(name="Quality", default_values=0)
+    @_xml.enumeration("custom", "preview", "balanced", "reference")
+    @_xml.doc("custom: trace Photons packets (or up to Photons with Target Error); preview / balanced / "
+              "reference: trace until the lit region's error is 10 % / 3 % / 1 % (budgets of 10M / 100M / "
+              "1000M packets per band).")
+    def SetQuality(self, name):
+        return super().SetQuality(name)
+
+    @smproperty.doublevector(name="TargetError", label="Target Error", default_values=0.0)
+    @smdomain.doublerange(min=0.0, max=0.5)
+    @_xml.shown_when("Quality", 0, mode="enabled_state")
+    @_xml.doc("0: trace Photons packets. Above 0: trace until the relative error (RMS over the lit "
+              "voxels, 1 sigma) is at most this, Photons being the budget.")
+    def SetTargetError(self, e):
+        return super().SetTargetError(e)
+
     @smproperty.intvector(name="Photons", default_values=100000)
     @smdomain.intrange(min=1, max=10000000)
     @_xml.doc("Photon packets per band. Noise falls as 1/sqrt(Photons); the thesis used 2.1 million.")
@@ -132,7 +148,7 @@ class NebulaLightField(_base.NebulaLightField):
         ("Dust", ["DensityArray", "Tau"]),
         ("Stars", ["Stars"]),
         ("Dust optics", ["BandPreset", "OverrideOptics", "Albedo", "G"]),
-        ("Photon transport", ["Photons", "Estimator", "FilterRadius", "MaxScatterings", "Seed"]),
+        ("Photon transport", ["Quality", "TargetError", "Photons", "Estimator", "FilterRadius", "MaxScatterings", "Seed"]),
         ("Compute device", ["Backend", "Device", "BatchSize"]),
     ))
     def zz_property_groups(self):

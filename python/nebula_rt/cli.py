@@ -29,6 +29,10 @@ def _render(args) -> int:
         scene = scene.with_overrides([f'transport.device="{args.device}"'])
     if args.photons is not None:
         scene = scene.with_overrides([f"transport.photons={args.photons}"])
+    if args.target_error is not None:
+        scene = scene.with_overrides([f"transport.target_error={args.target_error}"])
+    if args.quality is not None:
+        scene = scene.with_overrides([f'transport.quality="{args.quality}"'])
     out = Path(args.output)
     if out.suffix.lower() != ".vti":
         raise SceneError("--output", str(out), "must end in .vti")
@@ -50,7 +54,7 @@ def _render(args) -> int:
     try:
         from tqdm import tqdm
 
-        bar = tqdm(total=scene.transport.photons, unit="pkt", unit_scale=True, desc="tracing",
+        bar = tqdm(total=scene.transport.effective()[0], unit="pkt", unit_scale=True, desc="tracing",
                    disable=args.quiet, file=sys.stderr)
 
         def progress(done, total):
@@ -80,6 +84,7 @@ def _render(args) -> int:
         "grid": list(light.density.shape),
         "bands": [b.name for b in light.bands],
         "photons_per_band": tr.photons,
+        "achieved_error": None if tr.achieved_error != tr.achieved_error else round(tr.achieved_error, 5),
         "wall_s": round(elapsed, 3),
         "timings_s": {k: round(v, 3) for k, v in light.timings.items()},
         "escaped_fraction": {b.name: float(tr.counts[i, 2] / tr.photons) for i, b in enumerate(light.bands)},
@@ -111,6 +116,10 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a scene key, e.g. transport.photons=1e6 (repeatable)")
     r.add_argument("--photons", default=None, help="shorthand for --set transport.photons=N")
+    r.add_argument("--target-error", default=None,
+                   help="trace until the lit region's relative error is at most this (photons = budget)")
+    r.add_argument("--quality", default=None, choices=["preview", "balanced", "reference"],
+                   help="quality preset: a target error with a photon budget (overrides --photons)")
     r.add_argument("--backend", default=None, choices=["auto", "opencl", "cuda"])
     r.add_argument("--device", default=None, help="device selector (name substring or P:D)")
     r.add_argument("-q", "--quiet", action="store_true", help="no progress bar or summary")

@@ -208,6 +208,16 @@ class Transport:
         Optional device selector ("" = the backend's default).
     batch_size : int
         Packets per kernel launch, >= 0; 0 chooses automatically (extension key).
+    target_error : float
+        0 (off), or in (0, 1): trace until the relative error in the lit region (see
+        ``nebula_rt.transport.lit_region_error``) is at most this; ``photons`` is then the
+        budget (extension key).
+    time_limit : float
+        Seconds, >= 0; > 0 also ends an error-targeted run after this long (extension key).
+    quality : str
+        ``""`` (use photons and target_error as given) or a preset of ``QUALITY_PRESETS``:
+        ``"preview"``, ``"balanced"``, ``"reference"``, each a target error with a photon
+        budget; a preset replaces photons and target_error (extension key).
     """
 
     photons: int = 2_100_000
@@ -218,6 +228,30 @@ class Transport:
     backend: str = "auto"
     device: str = ""
     batch_size: int = 0
+    target_error: float = 0.0
+    time_limit: float = 0.0
+    quality: str = ""
+
+    def effective(self) -> tuple[int, float]:
+        """(photons per band or budget, target error) after applying the quality preset."""
+        if self.quality:
+            preset = QUALITY_PRESETS[self.quality]
+            return int(preset["photons"]), float(preset["target_error"])
+        return int(self.photons), float(self.target_error)
+
+
+#: Quality presets: a target for the lit-region error (1 sigma, brightness-weighted RMS over the
+#: lit voxels; nebula_rt.transport.lit_region_error) with a photon budget per band. From the
+#: measured curves (docs/trade_study.md, track-length on the thesis nebula): the error falls
+#: as 127 / sqrt(N) at 64^3 and 240 / sqrt(N) at 128^3, so 10 % takes 1.6M packets per band at
+#: 64^3 (5.8M at 128^3), 3 % 18M (64M) and 1 % 160M (580M); the budgets cover 128^3. At 10 %
+#: a rendering is grainy, at 3 % clean, at 1 % indistinguishable from a 10x longer run.
+QUALITY_PRESETS = {
+    "preview": {"target_error": 0.10, "photons": 10_000_000},
+    "balanced": {"target_error": 0.03, "photons": 100_000_000},
+    "reference": {"target_error": 0.01, "photons": 1_000_000_000},
+}
+QUALITIES = ("",) + tuple(QUALITY_PRESETS)
 
 
 @dataclass
@@ -414,6 +448,11 @@ TRANSPORT_RULES: Dict[str, _Rule] = {
     "backend": _Rule(_to_str, _one_of(BACKENDS), lambda v: v in BACKENDS),
     "device": _ANY_STR,
     "batch_size": _Rule(_to_int, "must be an integer >= 0 (0 = automatic)", lambda v: v >= 0),
+    "target_error": _Rule(_to_float, "must be 0 (off) or a number in (0, 1)", lambda v: v == 0 or 0 < v < 1),
+    "time_limit": _Rule(_to_float, "must be a finite number >= 0 (seconds; 0 = none)",
+                        lambda v: math.isfinite(v) and v >= 0),
+    "quality": _Rule(_to_str, "must be one of: '' (none), " + ", ".join(repr(q) for q in QUALITY_PRESETS),
+                     lambda v: v in QUALITIES),
 }
 
 COLOUR_RULES: Dict[str, _Rule] = {

@@ -83,6 +83,11 @@ class TransportResult:
         J per unit of raw_sum (track-length), or per unit of raw_sum / sigma (collision).
     sigma_scale : ndarray (n_bands,)
         Extinction per box unit at density 1, tau k_b.
+    achieved_error : float
+        Error-targeted runs: the :func:`lit_region_error` reached (NaN otherwise).
+    photons_budget : int
+        The packets per band asked for (``photons`` is what was traced; they differ when an
+        error-targeted run stopped early).
     device_sums : DeviceSums or None
         With ``trace(on_device=True)``: the sums left on the device for
         :mod:`nebula_rt.postprocess`; J, rel_error and the raw sums are then None.
@@ -104,6 +109,8 @@ class TransportResult:
     j_scale: Optional[np.ndarray] = None
     sigma_scale: Optional[np.ndarray] = None
     device_sums: Optional[DeviceSums] = None
+    achieved_error: float = float("nan")
+    photons_budget: int = 0
     device: str = ""
     timings: dict = field(default_factory=dict)
 
@@ -159,6 +166,66 @@ def batch_standard_error(s1, s2, m: int):
     return xp.sqrt(xp.maximum(var, 0.0))
 
 
+#: Error-targeted runs: batches planned for the photon budget, so that the error can be checked
+#: (and the run stopped) after every launch once MIN_BATCHES batches are in.
+TARGET_BATCHES = 256
+#: Lit region: voxels whose intercepted light sigma_b J_b is at least LIT_FRACTION of the
+#: LIT_PERCENTILE-th percentile of the positive values (the brightness the colour's auto
+#: exposure maps to full scale), i.e. what a rendering shows above about 1 % of full scale.
+LIT_FRACTION = 0.01
+LIT_PERCENTILE = 95.0
+
+
+def lit_region(J, sigma):
+    """Boolean mask (n_bands, nx, ny, nz) of the lit region of each band.
+
+    ``sigma``: extinction per box unit (n_bands, nx, ny, nz) or broadcastable. Where a band has
+    no dust at all the light itself (J) decides. NumPy or CuPy arrays.
+    """
+    xp = array_module(J)
+    masks = []
+    for b in range(J.shape[0]):
+        x = J[b] * sigma[b] if sigma is not None else J[b]
+        if not bool(xp.any(x > 0)):
+            x = J[b]
+        pos = x[x > 0]
+        if pos.size == 0:
+            masks.append(xp.zeros(J.shape[1:], dtype=bool))
+            continue
+        level = LIT_FRACTION * float(xp.percentile(pos, LIT_PERCENTILE))
+        masks.append(x >= level)
+    return xp.stack(masks)
+
+
+def lit_region_error(J, rel, sigma) -> float:
+    """The run's relative error: over each band's lit region, the brightness-weighted RMS of the
+    per-voxel batch-means relative standard errors (1 sigma), the largest over the bands; 1.0
+    where nothing is lit.
+
+    Weights w = sigma_b J_b (the light the dust intercepts, which a rendering shows): a dim
+    voxel's large relative error counts for what the eye sees of it, so the figure tracks the
+    graininess of an image rather than the noise of its faintest corner.
+    """
+    xp = array_module(J)
+    mask = lit_region(J, sigma)
+    worst = 0.0
+    for b in range(J.shape[0]):
+        m = mask[b]
+        if not bool(xp.any(m)):
+            return 1.0
+        w = _weights(J[b], None if sigma is None else sigma[b])[m]
+        err = float(xp.sqrt(xp.sum(w * rel[b][m] ** 2) / xp.sum(w)))
+        worst = max(worst, err)
+    return worst
+
+
+def _weights(J_b, sigma_b):
+    """Brightness weights sigma J (J alone where there is no dust at all)."""
+    xp = array_module(J_b)
+    x = J_b * sigma_b if sigma_b is not None else J_b
+    return x if bool(xp.any(x > 0)) else J_b
+
+
 def light_from_sums(s1, s2, batches: int, estimator: str, j_scale, sigma_scale, density):
     """J and its batch-means relative error from the sums of the batch totals.
 
@@ -178,6 +245,20 @@ def light_from_sums(s1, s2, batches: int, estimator: str, j_scale, sigma_scale, 
     return J, rel
 
 
+def _current_error(session, folded, estimator, band_lum, photons, track_scale, nvox_inv,
+                   sigma_scale, density, sigma_host, device_sums=None) -> float:
+    """The lit-region error of the batches folded so far (on the device's array module)."""
+    if device_sums is not None:
+        s1, s2 = device_sums.host_sums()
+    else:
+        s1, s2 = session.sums_on_device()
+    xp = array_module(s1)
+    q = np.array([exact_packet_energy(L, photons) for L in band_lum])
+    j_scale = q / (track_scale * 4.0 * np.pi * nvox_inv) if estimator == "track-length" else q / (4.0 * np.pi * nvox_inv)
+    J, rel = light_from_sums(s1, s2, folded, estimator, j_scale, sigma_scale, density)
+    return lit_region_error(J, rel, xp.asarray(sigma_host))
+
+
 def trace(
     density: np.ndarray,
     bands,
@@ -194,6 +275,8 @@ def trace(
     cancel: Optional[Callable[[], bool]] = None,
     _acc_limit_bits: int = 63,
     on_device: bool = False,
+    target_error: float = 0.0,
+    time_limit: float = 0.0,
 ) -> TransportResult:
     """Trace ``photons`` packets per band through ``density`` and estimate J.
 
@@ -215,6 +298,14 @@ def trace(
         Called after every batch with packets per band done so far.
     cancel : callable() -> bool, optional
         Polled between batches; True raises :class:`~nebula_rt.errors.CancelledError`.
+    target_error : float
+        0: trace ``photons`` packets. In (0, 1): trace batch after batch (the plan is made for
+        ``photons``, now a budget) until :func:`lit_region_error` is at most this, checked after
+        every launch once ``MIN_BATCHES`` batches are in; ``result.photons`` is what was used
+        and ``result.achieved_error`` the error reached.
+    time_limit : float
+        Seconds; > 0 also stops an error-targeted run after this long (the photon count then
+        depends on the machine's speed).
     on_device : bool
         Leave the sums on the device (``result.device_sums``, for
         :func:`nebula_rt.postprocess.finish`) instead of computing J and rel_error on the host.
@@ -243,9 +334,14 @@ def trace(
         track_scale=track_scale,
         acc_limit_bits=int(_acc_limit_bits),
     )
+    targeted = target_error > 0.0
+    if targeted and not batch_size:
+        batch_size = max(1, math.ceil(photons / TARGET_BATCHES))
     plan = batch_plan(photons, batch_size)
     nb = len(bands)
     base, extra = divmod(int(photons), len(plan))
+    sigma_host = sigma_scale[:, None, None, None] * density.astype(np.float64)[None] if targeted else None
+    achieved = float("nan")
     counts = np.zeros((nb, 4), dtype=object)  # python ints: exact whatever the photon count
     slots = backend.launch_plan(nb * int(np.prod(shape)), (base + 1) * nb, len(plan))
     session = backend.transport_session(setup, slots)
@@ -275,6 +371,11 @@ def trace(
                 done += b_count
             if progress is not None:
                 progress(done, photons)
+            if targeted and folded >= MIN_BATCHES and first + slots < len(plan):
+                achieved = _current_error(session, folded, estimator, band_lum, done, track_scale,
+                                          nvox_inv, sigma_scale, density, sigma_host)
+                if achieved <= target_error or (time_limit > 0 and time.perf_counter() - t0 >= time_limit):
+                    break
         # A batch whose fixed-point cell would have passed 2^63 was not folded. Same packets,
         # same random numbers: tracing it in two halves gives the same integer deposits with
         # more headroom each (each half then counts as a batch of the error estimate).
@@ -303,6 +404,7 @@ def trace(
                 if progress is not None:
                     progress(done, photons)
         counts_i64 = np.array(counts.tolist(), dtype=np.int64)
+        budget, photons = int(photons), int(done)
         q = np.array([exact_packet_energy(L, photons) for L in band_lum])
         # J per unit of the sums: fixed-point track units, or (collision) counts / sigma
         if estimator == "track-length":
@@ -317,6 +419,10 @@ def trace(
             device_sums = None
             s1, s2 = session.sums()
             J, rel = light_from_sums(s1, s2, folded, estimator, j_scale, sigma_scale, density)
+        if targeted:
+            achieved = (lit_region_error(J, rel, sigma_host) if device_sums is None else
+                        _current_error(session, folded, estimator, band_lum, photons, track_scale,
+                                       nvox_inv, sigma_scale, density, sigma_host, device_sums))
     finally:
         session.close()
     return TransportResult(
@@ -334,6 +440,8 @@ def trace(
         j_scale=j_scale,
         sigma_scale=sigma_scale,
         device_sums=device_sums,
+        achieved_error=achieved,
+        photons_budget=budget,
         device=backend.device_name,
         timings={"setup_s": t_setup, "kernel_s": t_kernel, "total_s": time.perf_counter() - t0},
     )
