@@ -7,7 +7,7 @@
 # WHEELDIR holds wheels for what the machine lacks (pyopencl and its pure-Python needs,
 # colour-science, tomli-w; pmcx for the MCX comparison), fetched elsewhere with
 # `pip download --only-binary=:all: --python-version 3.12 ...`.
-# STEPS (default "tests bench neb128 compare profile"; also "scaling", "tune", "stages", "trade", "fft") selects what runs. Everything printed
+# STEPS (default "tests bench neb128 compare profile"; also "scaling", "tune", "stages", "trade", "presets", "empty", "fft") selects what runs. Everything printed
 # goes to OUTDIR/log.txt as well; JSON and .npz results beside it.
 set -uo pipefail
 out="${1:?output folder}"
@@ -50,6 +50,12 @@ if [[ " $steps " == *" stages "* ]]; then
 fi
 if [[ " $steps " == *" trade "* ]]; then
     echo "== speed vs accuracy, CUDA"; python3 benchmarks/trade_study.py --backend cuda --out "$out/trade-study-cuda.json"
+fi
+if [[ " $steps " == *" presets "* ]]; then
+    echo "== quality presets, CUDA"; python3 benchmarks/trade_study.py --presets --backend cuda --out "$out/quality-presets-cuda.json"
+fi
+if [[ " $steps " == *" empty "* ]]; then
+    echo "== empty space, CUDA"; python3 benchmarks/bench_empty_space.py --backend cuda --grid 128 --photons 2.1e7 --out "$out/empty-space-cuda.json"
 fi
 if [[ " $steps " == *" fft "* ]]; then
     echo "== collision filter FFT on NVIDIA OpenCL: host vs pyvkfft"

@@ -4,6 +4,7 @@
     python benchmarks/trade_study.py [--backend cuda|opencl] [--device SEL] [--max-photons 1e8]
                                      [--out benchmarks/results/trade-study-<device>.json]
     python benchmarks/trade_study.py --plot RESULT.json      # -> docs/trade_study.{png,md}
+    python benchmarks/trade_study.py --presets [--out F]     # the quality presets, measured
 
 Scenes with known answers:
   absorber  uniform dust, tau 3 across the box, albedo 0, one band, star at the centre: the
@@ -147,6 +148,41 @@ def study(args) -> dict:
             "command": " ".join(["benchmarks/trade_study.py"] + sys.argv[1:]), "rows": rows}
 
 
+def presets(args) -> dict:
+    """Each quality preset on the thesis nebula: photons used, reported and true error, time."""
+    from nebula_rt.backends import get_backend
+    from nebula_rt.pipeline import Pipeline, compute_light
+    from nebula_rt.scene import QUALITY_PRESETS
+    from nebula_rt.transport import lit_region
+
+    backend = get_backend(args.backend, args.device)
+    rows = []
+    for n, names, ref_photons in ((64, ("preview", "balanced", "reference"), 1_000_000_000),
+                                  (128, ("preview", "balanced"), 1_000_000_000)):
+        base = thesis_scene(n, 1000, args.backend, args.device)
+        truth, ref_rel, sigma, _, _, ref_err = run(base.with_overrides([f"transport.photons={ref_photons}"]),
+                                                   backend, "track-length", 0.0, 987654321, 1)
+        mask = lit_region(truth, sigma) & (truth > 0)
+        rho = Pipeline(backend).density(base)
+        for name in names:
+            scene = base.with_overrides([f'transport.quality="{name}"'])
+            compute_light(scene.with_overrides(['transport.quality=""', "transport.photons=10000"]), rho, backend)
+            t0 = time.perf_counter()
+            res, J, rel = compute_light(scene, rho, backend)
+            wall = time.perf_counter() - t0
+            err = rms_error(J, truth, sigma, mask, ref_rel)
+            row = {"grid": n, "quality": name, "target_error": QUALITY_PRESETS[name]["target_error"],
+                   "budget": QUALITY_PRESETS[name]["photons"], "photons_used": int(res.photons),
+                   "reported_error": res.achieved_error, "true_error": err, "wall_s": round(wall, 4),
+                   "reference": f"{ref_photons} photons, error {ref_err:.2e}"}
+            rows.append(row)
+            print(f"{n}^3 {name:9s} target {row['target_error']:.2f}: {row['photons_used']:>11,d} photons, "
+                  f"reported {row['reported_error']:.4f}, true {err:.4f}, {wall * 1e3:8.1f} ms", flush=True)
+    return {"benchmark": "quality_presets", "device": backend.device_name,
+            "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+            "command": " ".join(["benchmarks/trade_study.py"] + sys.argv[1:]), "rows": rows}
+
+
 def label(row) -> str:
     return "track-length" if row["estimator"] == "track-length" else f"collision filter r={row['filter_radius']}"
 
@@ -205,7 +241,14 @@ def main(argv=None) -> int:
     ap.add_argument("--base-grid", type=int, default=64, help="grid of the photon sweep")
     ap.add_argument("--out", default=None)
     ap.add_argument("--plot", default=None, help="plot a saved result into docs/ instead of running")
+    ap.add_argument("--presets", action="store_true", help="measure the quality presets instead")
     args = ap.parse_args(argv)
+    if args.presets:
+        result = presets(args)
+        out = Path(args.out) if args.out else ROOT / "benchmarks" / "results" / f"quality-presets-{_dt.date.today()}.json"
+        out.write_text(json.dumps(result, indent=2) + "\n")
+        print(f"saved {out}")
+        return 0
     if args.plot:
         plot(json.loads(Path(args.plot).read_text()), ROOT / "docs" / "trade_study.png", ROOT / "docs" / "trade_study.md")
         print("wrote docs/trade_study.png and docs/trade_study.md")

@@ -72,9 +72,16 @@ def _render(args) -> int:
 
     write_vti(out, light.point_arrays(), light.field_data(), light.spacing, light.origin)
     if args.png:
+        import numpy as np
+
+        from .pipeline import colour_rgba
         from .render import render_rgba_png
 
-        render_rgba_png(args.png, light.rgba, light.spacing, light.origin)
+        rgba = light.rgba
+        if rgba is None:  # one band: no colour stage ran; the PNG asks for one (star's colour)
+            rho = light.density.astype(np.float64)
+            rgba, _ = colour_rgba(scene, light.bands, rho, light.emissivity.astype(np.float64), light.transport)
+        render_rgba_png(args.png, rgba, light.spacing, light.origin)
     elapsed = time.perf_counter() - t0
     tr = light.transport
     summary = {
@@ -87,6 +94,8 @@ def _render(args) -> int:
         "achieved_error": None if tr.achieved_error != tr.achieved_error else round(tr.achieved_error, 5),
         "wall_s": round(elapsed, 3),
         "timings_s": {k: round(v, 3) for k, v in light.timings.items()},
+        "peak_device_mib": round(light.memory.get("device_peak_bytes", 0) / 2**20, 1),
+        "peak_host_rss_mib": round(light.memory.get("host_peak_rss_bytes", 0) / 2**20, 1),
         "escaped_fraction": {b.name: float(tr.counts[i, 2] / tr.photons) for i, b in enumerate(light.bands)},
     }
     if not args.quiet:

@@ -42,6 +42,8 @@ class LightField:
     exposure: float
     reference_band: int
     timings: dict = field(default_factory=dict)
+    #: peak device memory of the run and peak host RSS of the process (bytes)
+    memory: dict = field(default_factory=dict)
 
     @property
     def spacing(self) -> tuple[float, float, float]:
@@ -88,6 +90,8 @@ class LightField:
         out["band_albedo"] = np.array([b.albedo for b in self.bands], np.float64)
         out["band_g"] = np.array([b.g for b in self.bands], np.float64)
         out["reference_band"] = int(self.reference_band)
+        if self.memory:
+            out["device_memory_peak_bytes"] = int(self.memory.get("device_peak_bytes", 0))
         out["tau"] = float(self.scene.dust.tau)
         t = _dominant_temperature(self.scene.stars)
         out["colour_temperature"] = float(t) if t is not None else 0.0
@@ -177,6 +181,9 @@ class Pipeline:
         t1 = time.perf_counter()
         res, J, rel = self.light(scene, progress, cancel)
         t2 = time.perf_counter()
+        # one band has no colour to show: no colour stage, no rgba (render the emissivity
+        # with a colour map, or ask for colour explicitly, as the CLI does for a PNG)
+        colour = colour and len(scene.bands.resolve()) > 1
         ckey = _key([self.transport_key(scene), scene.to_dict().get("colour", {})])
         hit = self._cache.get("colour")
         need_colour = colour and not (hit is not None and hit[0] == ckey)
@@ -190,6 +197,18 @@ class Pipeline:
         light.timings = {"density_s": t1 - t0, "transport_s": t2 - t1, "finish_s": t3 - t2,
                          "kernel_s": res.timings.get("kernel_s", 0.0)}
         return light
+
+
+def _memory(res: TransportResult, finish_bytes: int) -> dict:
+    """Peak device memory of a run: the transport's buffers, or, later, the sums and density it
+    hands over plus the finishing's outputs, whichever is larger; and the process's peak RSS."""
+    import resource
+
+    ds = res.device_sums
+    handed = 0 if ds is None else 8 * 2 * ds.n_bands * ds.nvox + 4 * ds.nvox
+    return {"device_peak_bytes": int(max(res.device_bytes, handed + finish_bytes)),
+            "transport_device_bytes": int(res.device_bytes), "finish_device_bytes": int(finish_bytes),
+            "host_peak_rss_bytes": int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024}
 
 
 def compute_light(scene, density: np.ndarray, backend: Backend, progress=None, cancel=None, on_device=False):
@@ -260,6 +279,7 @@ def finish_light_field(scene, rho, res: TransportResult, J=None, rel=None, colou
         light, emissivity, rho_x = assemble_light_field(scene, rho, res, J, rel, with_device_emissivity=True)
         if colour:
             light.rgba, light.exposure = colour_rgba(scene, bands, rho_x, emissivity, res)
+        light.memory = _memory(res, 0)
         return light
     params = np.stack([res.j_scale, res.sigma_scale, [b.albedo for b in bands]], axis=1)
     csetup = None
@@ -278,7 +298,7 @@ def finish_light_field(scene, rho, res: TransportResult, J=None, rel=None, colou
         )
     out = postprocess.finish(ds, params, batches=res.batches, collision=res.estimator != "track-length",
                              light=None if J is None else (J, rel), colour=csetup)
-    return LightField(
+    light = LightField(
         scene=scene,
         bands=bands,
         density=np.asarray(rho),
@@ -290,6 +310,8 @@ def finish_light_field(scene, rho, res: TransportResult, J=None, rel=None, colou
         exposure=out.exposure,
         reference_band=reference_band_index(bands),
     )
+    light.memory = _memory(res, out.device_bytes)
+    return light
 
 
 def _voxel_edge(shape) -> float:

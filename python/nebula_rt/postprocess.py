@@ -85,6 +85,7 @@ class FinishedArrays:
     emissivity: np.ndarray
     rgba: Optional[np.ndarray]  # uint8 (nx, ny, nz, 4)
     exposure: float
+    device_bytes: int = 0  # device memory the finishing allocated (outputs; colour only if asked)
 
 
 def _device_layout(xp, a):
@@ -154,7 +155,9 @@ def finish(ds: DeviceSums, band_params: np.ndarray, *, batches: int, collision: 
         h_rgba = be.to_host(rgba, be.host_empty((nz, ny, nx, 4), np.uint8)).transpose(2, 1, 0, 3)
     out = [be.to_host(arr, be.host_empty((nb, nz, ny, nx), np.float32)).transpose(0, 3, 2, 1)
            for arr in (J32, rel32, emis32)]
-    return FinishedArrays(J=out[0], rel_error=out[1], emissivity=out[2], rgba=h_rgba, exposure=exposure)
+    nbytes = sum(int(x.nbytes) for x in (J32, rel32, emis32, key, rgba, d_params, d_rgb))
+    return FinishedArrays(J=out[0], rel_error=out[1], emissivity=out[2], rgba=h_rgba, exposure=exposure,
+                          device_bytes=nbytes)
 
 
 def filter_collisions_opencl(ds: DeviceSums, band_params: np.ndarray, batches: int, radius: float):

@@ -85,6 +85,8 @@ class TransportResult:
         Extinction per box unit at density 1, tau k_b.
     achieved_error : float
         Error-targeted runs: the :func:`lit_region_error` reached (NaN otherwise).
+    device_bytes : int
+        Device memory the transport held (see ``TransportSession.device_bytes``).
     photons_budget : int
         The packets per band asked for (``photons`` is what was traced; they differ when an
         error-targeted run stopped early).
@@ -111,6 +113,7 @@ class TransportResult:
     device_sums: Optional[DeviceSums] = None
     achieved_error: float = float("nan")
     photons_budget: int = 0
+    device_bytes: int = 0
     device: str = ""
     timings: dict = field(default_factory=dict)
 
@@ -345,6 +348,7 @@ def trace(
     counts = np.zeros((nb, 4), dtype=object)  # python ints: exact whatever the photon count
     slots = backend.launch_plan(nb * int(np.prod(shape)), (base + 1) * nb, len(plan))
     session = backend.transport_session(setup, slots)
+    device_bytes = session.device_bytes()
     t_setup = time.perf_counter() - t0
     folded = 0
     t_kernel = 0.0
@@ -442,6 +446,7 @@ def trace(
         device_sums=device_sums,
         achieved_error=achieved,
         photons_budget=budget,
+        device_bytes=device_bytes,
         device=backend.device_name,
         timings={"setup_s": t_setup, "kernel_s": t_kernel, "total_s": time.perf_counter() - t0},
     )

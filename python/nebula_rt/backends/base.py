@@ -107,6 +107,14 @@ class TransportSession(abc.ABC):
         """Hand the sums and the density over as device arrays (flat; the sums band-major, x
         fastest) for the device post-processing; :meth:`close` then leaves them alone."""
 
+    def device_bytes(self) -> int:
+        """Device memory this run holds: the batch slots (8 B per cell each), the two running
+        sums (8 B per cell each), the density (4 B per voxel) and the per-slot tallies; a cell
+        is one voxel of one band, and only the requested bands have cells."""
+        nb = self.setup.n_bands
+        return (8 * self.ncell * self.slots + 16 * self.ncell + 4 * self.nvox
+                + 32 * nb * self.slots + 4 * self.slots)
+
     def close(self) -> None:  # pragma: no cover - default: nothing to release
         """Release device memory."""
 
