@@ -152,6 +152,11 @@ def test_plugin_loads_and_every_proxy_executes(pv_env, xdisplay, exe):
     assert "vtkSMStringListDomain" in lf["Backend"]["domains"]
     assert "vtkSMDoubleRangeDomain" in lf["Albedo"]["domains"]
     assert "vtkSMIntRangeDomain" in lf["Photons"]["domains"]
+    assert "vtkSMEnumerationDomain" in lf["Quality"]["domains"]
+    assert "vtkSMDoubleRangeDomain" in lf["TargetError"]["domains"]
+    q = r["outputs"]["NebulaLightField(preview)"]
+    assert q["photons_budget"] == 10_000_000 and q["photons"] < q["photons_budget"]
+    assert 0 < q["achieved_error"] <= 0.10
     assert "vtkSMEnumerationDomain" in r["definitions"]["NebulaColour"]["properties"]["WhitePoint"]["domains"]
     assert r["definitions"]["NebulaLightField"]["property_groups"][:2] == ["Dust", "Stars"]
 

@@ -76,6 +76,14 @@ for label, px in [("NebulaDustDensity", dust), ("NebulaLightField", light), ("Ne
 outputs["NebulaLightField"]["stars_in_scene"] = len(light.GetClientSideObject().last_light.scene.stars)
 outputs["NebulaLightField"]["device"] = light.GetClientSideObject().last_light.transport.device
 
+# error-targeted: the Quality preset (10 % with a 10M budget) stops early
+light_q = simple.NebulaLightField(dust, Quality="preview", Stars=two_stars, Device=dev)
+light_q.DensityArray = ["POINTS", "density"]
+light_q.UpdatePipeline()
+fd = light_q.GetClientSideObject().GetOutputDataObject(0).GetFieldData()
+outputs["NebulaLightField(preview)"] = {
+    name: float(fd.GetArray(name).GetValue(0)) for name in ("photons", "photons_budget", "achieved_error")}
+
 # changing a colour property re-runs the colour only, not the trace
 before = light.GetClientSideObject().execution_count
 colour.Exposure = 2.0
