@@ -78,12 +78,48 @@ def _thesis_rgb() -> List[Band]:
     ]
 
 
-#: Named band sets.  ``"thesis-rgb"``: the three bands of the 2010 thesis
-#: (R 677 nm, G 550 nm, B 439 nm; extinction relative to G; albedo 0.6 and
-#: g 0.6 in every band), in the order R, G, B.
-PRESETS: Dict[str, List[Band]] = {
-    "thesis-rgb": _thesis_rgb(),
-}
+class _Presets(Mapping):
+    """Named band sets, built on first use (the spectral ones read Draine's dust tables)."""
+
+    _makers = {
+        "thesis-rgb": _thesis_rgb,
+        "spectral-8": lambda: _spectral(8, "3.1"),
+        "spectral-16": lambda: _spectral(16, "3.1"),
+        "spectral-8-dense": lambda: _spectral(8, "5.5"),
+    }
+
+    def __init__(self):
+        self._built: Dict[str, List[Band]] = {}
+
+    def __getitem__(self, name: str) -> List[Band]:
+        if name not in self._makers:
+            raise KeyError(name)
+        if name not in self._built:
+            self._built[name] = self._makers[name]()
+        return self._built[name]
+
+    def __iter__(self):
+        return iter(self._makers)
+
+    def __len__(self) -> int:
+        return len(self._makers)
+
+
+def _spectral(n: int, rv: str) -> List[Band]:
+    from .dust_tables import spectral_bands
+
+    return spectral_bands(n, rv)
+
+
+#: Named band sets:
+#:
+#: - ``"thesis-rgb"``: the three bands of the 2010 thesis (R 677 nm, G 550 nm, B 439 nm;
+#:   extinction relative to G; albedo 0.6 and g 0.6 in every band), in the order R, G, B;
+#: - ``"spectral-8"``, ``"spectral-16"``: 8 or 16 equal bands across 380-780 nm with Milky Way
+#:   dust, R_V = 3.1 (Draine 2003; :mod:`nebula_rt.dust_tables`), band-averaged extinction
+#:   (relative to the band holding 550 nm), albedo and g;
+#: - ``"spectral-8-dense"``: 8 bands with the dense-cloud dust, R_V = 5.5.
+PRESETS: Mapping[str, List[Band]] = _Presets()
 
 
 def _allowed_presets() -> str:

@@ -1,0 +1,106 @@
+"""Milky Way dust optical properties per band, from Draine's (2003) tables.
+
+Data: the carbonaceous-silicate grain models of Weingartner & Draine (2001, ApJ 548, 296) with
+the abundances renormalised by Draine (2003, ARA&A 41, 241; ApJ 598, 1017) -- tables computed
+by B. T. Draine (Princeton University, 2003) of albedo, <cos theta> (= the Henyey-Greenstein g)
+and the extinction cross-section per H nucleon versus wavelength, for R_V = 3.1 (diffuse
+interstellar medium), 4.0 and 5.5 (dense clouds, larger grains). They are read from the copies
+shipped in the ``dust_extinction`` package (K. Gordon, JOSS 9, 7023, 2024; BSD-3-Clause),
+``dust_extinction/data/kext_albedo_WD_MW_*_D03.dat``; its classes expose only the extinction,
+so the files are parsed here.
+
+Band averages (never point samples): on a 1 nm grid over the band [lo, hi], with the table
+interpolated linearly,
+
+    C_ext,b = mean C_ext,     albedo_b = mean(a C_ext) / mean(C_ext),
+    g_b = mean(g a C_ext) / mean(a C_ext),
+
+i.e. the band's extinction, its scattering over its extinction, and the scattering-weighted
+mean cosine, for light spread evenly over the band.
+"""
+
+from __future__ import annotations
+
+import functools
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+
+from .errors import SceneError
+
+#: R_V -> file name in dust_extinction/data
+DRAINE_FILES = {
+    "3.1": "kext_albedo_WD_MW_3.1_60_D03.dat",
+    "4.0": "kext_albedo_WD_MW_4.0A_40_D03.dat",
+    "5.5": "kext_albedo_WD_MW_5.5A_30_D03.dat",
+}
+
+CITATION = (
+    "Draine (2003, ARA&A 41, 241; ApJ 598, 1017) Milky Way dust, Weingartner & Draine (2001, "
+    "ApJ 548, 296) grain models, tables kext_albedo_WD_MW_*_D03.dat as shipped in the "
+    "dust_extinction package (Gordon 2024, JOSS 9, 7023)"
+)
+
+
+def _data_dir() -> Path:
+    spec = importlib.util.find_spec("dust_extinction")  # locate without importing astropy
+    if spec is None or not spec.submodule_search_locations:
+        raise SceneError("bands.preset", "spectral", "needs the dust_extinction package "
+                         "(pip install dust_extinction), which ships Draine's dust tables")
+    return Path(list(spec.submodule_search_locations)[0]) / "data"
+
+
+@functools.lru_cache(maxsize=None)
+def draine_table(rv: str = "3.1") -> dict:
+    """Draine's table for ``rv`` ("3.1", "4.0" or "5.5") as arrays in ascending wavelength.
+
+    Returns
+    -------
+    dict with ``wavelength_nm``, ``albedo``, ``g`` (<cos theta>), ``cext`` (cm^2 per H
+    nucleon), float64 arrays.
+    """
+    if rv not in DRAINE_FILES:
+        raise ValueError(f"rv must be one of {sorted(DRAINE_FILES)}, got {rv!r}")
+    lines = (_data_dir() / DRAINE_FILES[rv]).read_text().splitlines()
+    start = next(i for i, line in enumerate(lines) if line.startswith("-----------")) + 1
+    rows = []
+    for line in lines[start:]:
+        parts = line.split()
+        if len(parts) < 4:
+            if rows:
+                break
+            continue
+        rows.append([float(x) for x in parts[:4]])
+    a = np.array(rows)[::-1]  # the file runs from long to short wavelengths
+    return {"wavelength_nm": a[:, 0] * 1e3, "albedo": a[:, 1], "g": a[:, 2], "cext": a[:, 3]}
+
+
+def band_average(rv: str, lo_nm: float, hi_nm: float) -> tuple[float, float, float]:
+    """(C_ext, albedo, g) of the dust averaged over the band [lo_nm, hi_nm] (module docstring)."""
+    t = draine_table(rv)
+    wl = np.arange(float(lo_nm), float(hi_nm) + 0.5, 1.0)
+    cext = np.interp(wl, t["wavelength_nm"], t["cext"])
+    alb = np.interp(wl, t["wavelength_nm"], t["albedo"])
+    g = np.interp(wl, t["wavelength_nm"], t["g"])
+    sca = alb * cext
+    return float(cext.mean()), float(sca.mean() / cext.mean()), float((g * sca).mean() / sca.mean())
+
+
+def spectral_bands(n: int, rv: str = "3.1", lo_nm: float = 380.0, hi_nm: float = 780.0):
+    """``n`` equal bands across [lo_nm, hi_nm] with Draine dust of ``rv``.
+
+    Band names are their centre wavelengths ("405nm"); extinction is relative to the band
+    holding 550 nm (V), which is then the reference band (extinction 1.0).
+    """
+    from .bands import Band
+
+    edges = np.linspace(lo_nm, hi_nm, n + 1)
+    props = [band_average(rv, a, b) for a, b in zip(edges[:-1], edges[1:])]
+    ref = int(np.searchsorted(edges, 550.0, side="right")) - 1
+    c_ref = props[ref][0]
+    bands = []
+    for (a, b), (cext, alb, g) in zip(zip(edges[:-1], edges[1:]), props):
+        centre = 0.5 * (a + b)
+        bands.append(Band(f"{centre:g}nm".replace(".", "p"), float(centre), cext / c_ref, alb, g))
+    return bands
