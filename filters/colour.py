@@ -7,7 +7,7 @@ from vtkmodules.vtkCommonDataModel import vtkImageData
 
 from nebula_rt.errors import SceneError
 from nebula_rt.io_vti import add_field_data, add_point_arrays, field_data_dict, point_array
-from nebula_rt.pipeline import rgba_from_emissivity
+from nebula_rt.pipeline import colour_source_from_field_data, rgba_from_emissivity
 
 from .base import ExposureMixin, NebulaAlgorithm, require_light_field, shallow_copy_image
 
@@ -61,12 +61,12 @@ class NebulaColour(ExposureMixin, NebulaAlgorithm):
                 sigma_ref = np.where(J > 0, emissivity[ref] / (alb * J), 0.0)
         else:
             sigma_ref = float(fd["tau"]) * float(ext[ref]) * density.astype(np.float64)
-        t = float(fd.get("colour_temperature", 0.0))
+        source = colour_source_from_field_data(fd)
         rgba, used, linear = rgba_from_emissivity(
             emissivity, sigma_ref,
             wavelengths_nm=np.atleast_1d(fd["band_wavelength_nm"]),
             band_luminosity=np.atleast_1d(fd["band_luminosity"]),
-            temperature=t if t > 0 else None,
+            temperature=source,
             exposure=exposure, white_point=self._white_point, opacity_scale=self._opacity_scale,
             return_linear=True,
         )

@@ -9,6 +9,7 @@ from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
 from nebula_rt import colour_convert
 from nebula_rt.errors import SceneError
 from nebula_rt.io_vti import add_field_data, add_point_arrays, field_data_dict, point_array
+from nebula_rt.pipeline import colour_source_from_field_data
 from nebula_rt.scene import Scene
 from nebula_rt.sky import Camera, sky_image
 from nebula_rt.transport import star_band_luminosities
@@ -105,8 +106,7 @@ class NebulaSkyImage(ExposureMixin, NebulaAlgorithm):
         self._report(0.1, "NebulaRT: ray marching the sky image")
         img = sky_image(emissivity, sigma, cam, stars=stars, star_band_luminosity=slum)
         band_lum = star_band_luminosities(scene.stars, wl).sum(axis=0)
-        t = float(fd.get("colour_temperature", 0.0))
-        m = colour_convert.band_to_xyz_matrix(wl, t if t > 0 else None)
+        m = colour_convert.band_to_xyz_matrix(wl, colour_source_from_field_data(fd))
         ratio = img.intensity / band_lum[:, None, None]
         rgb = colour_convert.gamut_map(colour_convert.xyz_to_linear_srgb(np.tensordot(ratio, m, axes=([0], [1]))))
         if self._auto_exposure:

@@ -35,6 +35,7 @@ from .array_api import array_module
 
 __all__ = [
     "auto_exposure",
+    "band_edges",
     "band_luminosity_fractions",
     "band_to_xyz_matrix",
     "bands_to_srgb8",
@@ -100,15 +101,17 @@ def _check_bands(band_wavelengths_nm) -> np.ndarray:
     return bands
 
 
-def star_spectrum(temperature: float | None, wavelengths_nm: np.ndarray) -> np.ndarray:
+def star_spectrum(source, wavelengths_nm: np.ndarray) -> np.ndarray:
     """Relative spectral power of the star.
 
     Parameters
     ----------
-    temperature : float or None
-        Effective temperature in K: Planck blackbody
+    source : float, None, or array_like (n, 2)
+        A number: effective temperature in K, Planck blackbody
         (``colour.colorimetry.planck_law``, the law behind ``colour.sd_blackbody``).
         ``None``: flat, equal-energy spectrum (CIE illuminant E).
+        (n, 2) pairs: a measured spectrum, wavelength in nm (increasing) and relative power
+        per unit wavelength, interpolated linearly and 0 outside its range.
     wavelengths_nm : array_like
         Wavelengths in nm, any shape.
 
@@ -117,18 +120,23 @@ def star_spectrum(temperature: float | None, wavelengths_nm: np.ndarray) -> np.n
     ndarray, same shape as ``wavelengths_nm``
         Spectral power per unit wavelength, relative (dimensionless): the
         blackbody is scaled to 1 at 560 nm (a fixed reference, so the scale does
-        not depend on the sampling grid); the flat spectrum is 1 everywhere.
-        Only ratios matter downstream, all consumers renormalise.
+        not depend on the sampling grid); the flat spectrum is 1 everywhere, a
+        measured one 1 at its peak. Only ratios matter downstream, all consumers
+        renormalise.
     """
-    t = _check_temperature(temperature)
     wl = np.asarray(wavelengths_nm, dtype=np.float64)
+    if source is not None and not np.isscalar(source):
+        table = np.asarray(source, dtype=np.float64).reshape(-1, 2)
+        power = np.interp(wl, table[:, 0], table[:, 1], left=0.0, right=0.0)
+        return power / table[:, 1].max()
+    t = _check_temperature(source)
     if t is None:
         return np.ones_like(wl)
     # planck_law takes metres and returns W sr^-1 m^-2 m^-1; the absolute value
     # is irrelevant, and ~1e13 numbers are awkward, hence the 560 nm reference.
     spd = colour.colorimetry.planck_law(wl * 1e-9, t)
     ref = colour.colorimetry.planck_law(560e-9, t)
-    return np.asarray(spd / ref, dtype=np.float64)
+    return np.asarray(spd / ref, dtype=np.float64).reshape(wl.shape)  # (planck_law squeezes)
 
 
 def hat_basis(band_wavelengths_nm, wavelengths_nm) -> np.ndarray:
@@ -168,35 +176,57 @@ def hat_basis(band_wavelengths_nm, wavelengths_nm) -> np.ndarray:
     return h
 
 
-def band_luminosity_fractions(band_wavelengths_nm, temperature: float | None) -> np.ndarray:
-    """Fraction of the star's visible luminosity carried by each band.
+def band_edges(band_wavelengths_nm) -> np.ndarray:
+    """Edges (nm) of the bands, in increasing wavelength: each band holds the wavelengths
+    nearer its centre than any other's, over 380-780 nm (widened to the outermost centres when
+    they lie outside). Returns nb + 1 edges for the bands sorted by wavelength."""
+    bands = np.sort(_check_bands(band_wavelengths_nm))
+    lo = min(float(LUMINOSITY_RANGE_NM[0]), float(bands[0]))
+    hi = max(float(LUMINOSITY_RANGE_NM[1]), float(bands[-1]))
+    return np.concatenate([[lo], 0.5 * (bands[1:] + bands[:-1]), [hi]])
 
-    ``f_b = int h_b(lambda) S(lambda) dlambda / int S(lambda) dlambda`` over
-    380..780 nm sampled at 1 nm (trapezoid rule, exact for the piecewise-linear
-    hats with integer-nm centres on a flat spectrum).
+
+def band_luminosity_fractions(band_wavelengths_nm, source) -> np.ndarray:
+    """Fraction of the star's luminosity carried by each band.
+
+    ``f_b = int_{band b} S(lambda) dlambda / int S(lambda) dlambda``: the spectrum integrated
+    over each band (:func:`band_edges`: the wavelengths nearest the band's centre, over
+    380-780 nm), with the trapezoid rule on a 1 nm grid; the fractions sum to 1, i.e. the
+    bands share the star's luminosity over the covered range.
 
     Parameters
     ----------
     band_wavelengths_nm : array_like, shape (nb,)
         Band centres in nm, any order.
-    temperature : float or None
-        Star temperature in K, or ``None`` for a flat spectrum.
+    source : float, None or (n, 2) array
+        The star's spectrum (see :func:`star_spectrum`).
 
     Returns
     -------
     ndarray, shape (nb,)
         Dimensionless fractions in input band order; they sum to 1.
     """
-    wl = _wavelength_grid(*LUMINOSITY_RANGE_NM)
-    h = hat_basis(band_wavelengths_nm, wl)
-    s = star_spectrum(temperature, wl)
-    per_band = np.trapezoid(h * s, wl, axis=1)
-    # Dividing by the sum of the band integrals (equal to int S since the hats
-    # partition unity) makes the fractions sum to 1 up to rounding only.
-    return per_band / per_band.sum()
+    bands = _check_bands(band_wavelengths_nm)
+    edges = band_edges(bands)
+    wl = np.arange(np.floor(edges[0]), np.ceil(edges[-1]) + 1.0)
+    s = star_spectrum(source, wl)
+    # cumulative trapezoid integral on the grid, continued to each edge inside its 1 nm cell
+    # (exact for the piecewise-linear S of the grid)
+    cum = np.concatenate([[0.0], np.cumsum(0.5 * (s[1:] + s[:-1]) * np.diff(wl))])
+    s_edges = np.interp(edges, wl, s)
+    k = np.clip(np.searchsorted(wl, edges, side="right") - 1, 0, wl.size - 1)
+    x = edges - wl[k]
+    at = cum[k] + 0.5 * (s[k] + s_edges) * x
+    per_band = np.diff(at)
+    total = per_band.sum()
+    if not total > 0:
+        raise ValueError("the star's spectrum has no power in the bands' range")
+    out = np.empty(bands.size)
+    out[np.argsort(bands)] = per_band / total
+    return out
 
 
-def band_to_xyz_matrix(band_wavelengths_nm, temperature: float | None) -> np.ndarray:
+def band_to_xyz_matrix(band_wavelengths_nm, source) -> np.ndarray:
     """Matrix taking per-band nebula/star ratios to CIE XYZ.
 
     ``M[:, b] = sum_lambda h_b(lambda) S(lambda) cmf(lambda)`` over 360..830 nm
@@ -212,8 +242,9 @@ def band_to_xyz_matrix(band_wavelengths_nm, temperature: float | None) -> np.nda
     ----------
     band_wavelengths_nm : array_like, shape (nb,)
         Band centres in nm, any order.
-    temperature : float or None
-        Star temperature in K, or ``None`` for a flat spectrum.
+    source : float, None or (n, 2) array
+        The star's spectrum: temperature in K, None (flat) or measured pairs
+        (see :func:`star_spectrum`).
 
     Returns
     -------
@@ -222,7 +253,7 @@ def band_to_xyz_matrix(band_wavelengths_nm, temperature: float | None) -> np.nda
     """
     wl, cmf = _cmfs_1nm()
     h = hat_basis(band_wavelengths_nm, wl)  # (nb, nw)
-    s = star_spectrum(temperature, wl)  # (nw,)
+    s = star_spectrum(source, wl)  # (nw,)
     weighted = cmf * s[:, None]  # (nw, 3)
     m = (h @ weighted).T  # (3, nb)
     y_star = float(s @ cmf[:, 1])  # = m[1].sum() since sum_b h_b = 1

@@ -288,7 +288,7 @@ def finish_light_field(scene, rho, res: TransportResult, J=None, rel=None, colou
         cfg = scene.colour
         csetup = postprocess.ColourSetup(
             to_rgb=colour_matrix([b.wavelength for b in bands], res.band_luminosity,
-                                 _dominant_temperature(scene.stars), cfg.white_point),
+                                 _dominant_source(scene.stars), cfg.white_point),
             sigma_ref_scale=scene.dust.tau * bands[ref].extinction,
             voxel_edge=_voxel_edge(ds.shape),
             opacity_scale=cfg.opacity_scale,
@@ -371,9 +371,28 @@ def filter_collisions(J, s1, s2, batches: int, radius: float):
 
 
 def _dominant_temperature(stars):
-    """Temperature of the most luminous star (None: flat spectrum) -- sets the colour matrix."""
+    """Temperature of the most luminous star (None: flat spectrum or a measured one)."""
     star = max(stars, key=lambda s: s.luminosity)
     return star.temperature
+
+
+def colour_source_from_field_data(fd: dict):
+    """The star spectrum a light field's colours use, from its field data: the scene's most
+    luminous star (measured spectrum, temperature or flat) when the scene TOML is there, else
+    ``colour_temperature`` (0: flat)."""
+    if "scene" in fd:
+        from .scene import Scene
+
+        return _dominant_source(Scene.loads(str(fd["scene"])).stars)
+    t = float(fd.get("colour_temperature", 0.0))
+    return t if t > 0 else None
+
+
+def _dominant_source(stars):
+    """The spectrum of the most luminous star (measured pairs, temperature or None) -- sets
+    the colour matrix (the white the nebula's colours are measured against)."""
+    star = max(stars, key=lambda s: s.luminosity)
+    return star.spectral_source()
 
 
 def colour_rgba(scene, bands, rho, emissivity, res: TransportResult) -> tuple[np.ndarray, float]:
@@ -385,7 +404,7 @@ def colour_rgba(scene, bands, rho, emissivity, res: TransportResult) -> tuple[np
         scene.dust.tau * bands[ref].extinction * rho,
         wavelengths_nm=np.array([b.wavelength for b in bands]),
         band_luminosity=res.band_luminosity,
-        temperature=_dominant_temperature(scene.stars),
+        temperature=_dominant_source(scene.stars),
         exposure=cfg.exposure,
         white_point=cfg.white_point,
         opacity_scale=cfg.opacity_scale,
@@ -439,8 +458,9 @@ def rgba_from_emissivity(
         Extinction per box unit in the reference band.
     wavelengths_nm, band_luminosity : ndarray (n_bands,)
         Band centres and the stars' total luminosity per band.
-    temperature : float or None
-        K, the spectrum used for the colour matrix (None: flat).
+    temperature : float, None or (n, 2) array
+        The star spectrum used for the colour matrix: K (blackbody), None (flat) or measured
+        (wavelength nm, power) pairs.
     exposure : "auto" or float
     white_point : {"D65", "E", "star"}
     opacity_scale : float

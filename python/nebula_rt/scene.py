@@ -143,12 +143,21 @@ class Star:
     bump_radius : float
         Half-size, box units, of the thesis's cubic dust bump around the star,
         in ``[0, 1)``; 0 means no bump.
+    spectrum : tuple of (wavelength nm, relative power) pairs, or None
+        A measured spectrum (at least 2 pairs, wavelengths increasing); it replaces the
+        blackbody of `temperature` for the split over the bands and for the colour.
     """
 
     position: Vec3 = (0.5, 0.5, 0.5)
     luminosity: float = 1.0
     temperature: Optional[float] = None
     bump_radius: float = 0.0
+    spectrum: Optional[Tuple[Tuple[float, float], ...]] = None
+
+    def spectral_source(self):
+        """What sets the star's spectrum: the measured pairs, else the temperature (K), else
+        None (flat); see :func:`nebula_rt.colour_convert.star_spectrum`."""
+        return self.spectrum if self.spectrum else self.temperature
 
 
 @dataclass
@@ -301,6 +310,29 @@ def _to_int(v: Any) -> int:
     raise TypeError
 
 
+def _to_spectrum(v: Any):
+    if v is None:
+        return None
+    if isinstance(v, (str, bytes)) or not isinstance(v, (list, tuple)):
+        raise TypeError
+    pairs = []
+    for p in v:
+        if isinstance(p, (str, bytes)) or not isinstance(p, (list, tuple)) or len(p) != 2:
+            raise TypeError
+        pairs.append((_to_float(p[0]), _to_float(p[1])))
+    return tuple(pairs)
+
+
+def _valid_spectrum(v) -> bool:
+    if v is None:
+        return True
+    wl = [p[0] for p in v]
+    power = [p[1] for p in v]
+    return (len(v) >= 2 and all(math.isfinite(x) and 0.0 < x <= 1e5 for x in wl)
+            and all(b > a for a, b in zip(wl, wl[1:]))
+            and all(math.isfinite(x) and x >= 0.0 for x in power) and any(x > 0.0 for x in power))
+
+
 def _to_str(v: Any) -> str:
     if not isinstance(v, str):
         raise TypeError
@@ -418,6 +450,12 @@ STAR_RULES: Dict[str, _Rule] = {
     ),
     "bump_radius": _Rule(
         _to_float, "must be a number in [0, 1) (box units)", lambda v: 0.0 <= v < 1.0
+    ),
+    "spectrum": _Rule(
+        _to_spectrum,
+        "must be a list of at least 2 [wavelength nm, relative power] pairs, wavelengths "
+        "increasing in (0, 1e5], powers finite, >= 0 and not all 0 (or omitted)",
+        _valid_spectrum,
     ),
 }
 
@@ -660,7 +698,7 @@ class Scene:
                 if v is None:
                     continue
                 if isinstance(v, tuple):
-                    v = list(v)
+                    v = [list(x) if isinstance(x, tuple) else x for x in v]
                 elif isinstance(v, list):
                     v = copy.deepcopy(v)
                 out[f.name] = v

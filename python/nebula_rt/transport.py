@@ -153,10 +153,12 @@ def batch_plan(photons: int, batch_size: int = 0) -> list[tuple[int, int]]:
 
 
 def star_band_luminosities(stars, wavelengths_nm) -> np.ndarray:
-    """(n_stars, n_bands) luminosity of each star in each band (blackbody or flat spectrum)."""
+    """(n_stars, n_bands) luminosity of each star in each band: its spectrum (measured,
+    blackbody or flat) integrated over each band; a star's bands add up to its luminosity."""
     out = np.empty((len(stars), len(wavelengths_nm)))
     for i, s in enumerate(stars):
-        out[i] = s.luminosity * colour_convert.band_luminosity_fractions(wavelengths_nm, s.temperature)
+        source = s.spectral_source() if hasattr(s, "spectral_source") else s.temperature
+        out[i] = s.luminosity * colour_convert.band_luminosity_fractions(wavelengths_nm, source)
     return out
 
 
