@@ -16,8 +16,8 @@ from pathlib import Path
 from .errors import BackendUnavailableError, CancelledError, NebulaError, SceneError
 
 
-def _render(args) -> int:
-    from .pipeline import Pipeline
+def _scene_from_args(args):
+    """The scene file with the command line's overrides applied."""
     from .scene import Scene
 
     scene = Scene.load(args.scene)
@@ -33,6 +33,13 @@ def _render(args) -> int:
         scene = scene.with_overrides([f"transport.target_error={args.target_error}"])
     if args.quality is not None:
         scene = scene.with_overrides([f'transport.quality="{args.quality}"'])
+    return scene
+
+
+def _render(args) -> int:
+    from .pipeline import Pipeline
+
+    scene = _scene_from_args(args)
     out = Path(args.output)
     if out.suffix.lower() != ".vti":
         raise SceneError("--output", str(out), "must end in .vti")
@@ -103,6 +110,41 @@ def _render(args) -> int:
     return 0
 
 
+def _compare(args) -> int:
+    """Trace a scene and measure its colours as an observer would, beside observed values."""
+    import numpy as np
+
+    from . import observe
+    from .pipeline import Pipeline
+
+    scene = _scene_from_args(args)
+    try:
+        direction = tuple(float(x) for x in args.direction.split(","))
+        assert len(direction) == 3 and any(direction)
+    except (ValueError, AssertionError):
+        raise SceneError("--direction", args.direction, "must be three numbers x,y,z, not all 0") from None
+    png = Path(args.png)
+    if not png.parent.exists():
+        raise SceneError("--png", str(png), f"folder {png.parent} does not exist")
+    light = Pipeline().run(scene, colour=False)
+    prof = observe.profiles(light, direction=direction, size=args.size)
+    observe.plot(prof, png, title=f"{Path(args.scene).stem}: {len(light.bands)} bands, "
+                                  f"{light.transport.photons:,} packets per band")
+    summary = {
+        "scene": str(args.scene), "png": str(png),
+        "offset": [round(float(x), 4) for x in prof.offset],
+        "delta_bv_mag": [None if not np.isfinite(x) else round(float(x), 4) for x in prof.delta_bv],
+        "wavelength_nm": [float(x) for x in prof.wavelength_nm],
+        "ratio_rel_550nm": [[None if not np.isfinite(x) else round(float(x), 4) for x in row] for row in prof.ratio],
+        "observed_mean_delta_bv_mag": observe.observations()["mean_delta_bv"]["value"],
+        "single_scattering_delta_bv_mag": observe.observations()["single_scattering_delta_bv"]["range"],
+    }
+    if args.json:
+        Path(args.json).write_text(json.dumps(summary, indent=2) + "\n")
+    print(json.dumps(summary, indent=2))
+    return 0
+
+
 def _devices(args) -> int:
     from .backends.opencl import list_devices
 
@@ -133,6 +175,19 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--device", default=None, help="device selector (name substring or P:D)")
     r.add_argument("-q", "--quiet", action="store_true", help="no progress bar or summary")
     r.set_defaults(func=_render)
+    c = sub.add_parser("compare", help="a scene's colours (Delta(B-V), nebula/star ratio) against observed nebulae")
+    c.add_argument("scene", help="scene file (TOML)")
+    c.add_argument("--png", default="compare.png", help="plot (default compare.png)")
+    c.add_argument("--json", default=None, help="also write the measured profiles as JSON")
+    c.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a scene key")
+    c.add_argument("--photons", default=None, help="shorthand for --set transport.photons=N")
+    c.add_argument("--target-error", default=None, help="trace until this lit-region error")
+    c.add_argument("--quality", default=None, choices=["preview", "balanced", "reference"])
+    c.add_argument("--backend", default=None, choices=["auto", "opencl", "cuda"])
+    c.add_argument("--device", default=None, help="device selector (name substring or P:D)")
+    c.add_argument("--direction", default="0,0,-1", help="viewing direction x,y,z (default 0,0,-1)")
+    c.add_argument("--size", type=int, default=128, help="sky image pixels per side")
+    c.set_defaults(func=_compare)
     d = sub.add_parser("devices", help="list compute devices")
     d.set_defaults(func=_devices)
     return ap
