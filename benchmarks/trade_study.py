@@ -143,9 +143,7 @@ def study(args) -> dict:
                     rows.append(row)
                     print(f"  {photons:>11,d} {estimator:16s} r={radius:<5} wall {wall * 1e3:9.1f} ms  "
                           f"error {err:.4f}  reported {reported:.4f}", flush=True)
-    return {"benchmark": "trade_study", "device": backend.device_name,
-            "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-            "command": " ".join(["benchmarks/trade_study.py"] + sys.argv[1:]), "rows": rows}
+    return _result("trade_study", backend, rows)
 
 
 def presets(args) -> dict:
@@ -178,7 +176,11 @@ def presets(args) -> dict:
             rows.append(row)
             print(f"{n}^3 {name:9s} target {row['target_error']:.2f}: {row['photons_used']:>11,d} photons, "
                   f"reported {row['reported_error']:.4f}, true {err:.4f}, {wall * 1e3:8.1f} ms", flush=True)
-    return {"benchmark": "quality_presets", "device": backend.device_name,
+    return _result("quality_presets", backend, rows)
+
+
+def _result(name: str, backend, rows) -> dict:
+    return {"benchmark": name, "device": backend.device_name,
             "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
             "command": " ".join(["benchmarks/trade_study.py"] + sys.argv[1:]), "rows": rows}
 

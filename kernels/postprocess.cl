@@ -31,6 +31,17 @@
 NRT_DEVICE double nrt_dmax(double a, double b) { return a > b ? a : b; }
 NRT_DEVICE double nrt_dmin(double a, double b) { return a < b ? a : b; }
 
+/* Standard error of a total of `batches` batch totals from their sum x1 and sum of squares x2
+   (batch means; nebula_rt.transport.batch_standard_error). */
+NRT_DEVICE double nrt_batch_se(double x1, double x2, int batches)
+{
+    if (batches < 2)
+        return x1 < 0.0 ? -x1 : x1; /* one batch: no spread to measure, report 100 % */
+    double m = (double)batches;
+    double var = (x2 - x1 * x1 / m) * (m / (m - 1.0));
+    return NRT_DSQRT(nrt_dmax(var, 0.0));
+}
+
 /* sRGB transfer curve (IEC 61966-2-1) of x in [0, 1] -> 0..255. */
 NRT_DEVICE nrt_u8 nrt_srgb8(double x)
 {
@@ -70,15 +81,8 @@ NRT_KERNEL void finish_voxels(const NRT_GLOBAL double *a, const NRT_GLOBAL doubl
         double alb = band_params[4 * k + 2];
         double J, rel;
         if (mode == 0) {
-            double x1 = a[i], x2 = b[i];
-            double se;
-            if (batches < 2) {
-                se = x1 < 0.0 ? -x1 : x1;
-            } else {
-                double m = (double)batches;
-                double var = (x2 - x1 * x1 / m) * (m / (m - 1.0));
-                se = NRT_DSQRT(nrt_dmax(var, 0.0));
-            }
+            double x1 = a[i];
+            double se = nrt_batch_se(x1, b[i], batches);
             rel = (x1 > 0.0) ? se / x1 : 1.0;
             if (collision) {
                 double sig = sig_k * rho;
@@ -181,15 +185,8 @@ NRT_KERNEL void collision_light(const NRT_GLOBAL double *s1, const NRT_GLOBAL do
         return;
     int k = (int)(i / nvox);
     double rho = (double)density[i - (nrt_u64)k * nvox];
-    double x1 = s1[i], x2 = s2[i];
-    double se;
-    if (batches < 2) {
-        se = x1 < 0.0 ? -x1 : x1;
-    } else {
-        double m = (double)batches;
-        double v = (x2 - x1 * x1 / m) * (m / (m - 1.0));
-        se = NRT_DSQRT(nrt_dmax(v, 0.0));
-    }
+    double x1 = s1[i];
+    double se = nrt_batch_se(x1, s2[i], batches);
     double sig = band_params[4 * k + 1] * rho;
     double j = (sig > 0.0) ? x1 / sig : 0.0;
     j *= band_params[4 * k];

@@ -259,9 +259,16 @@ def _current_error(session, folded, estimator, band_lum, photons, track_scale, n
         s1, s2 = session.sums_on_device()
     xp = array_module(s1)
     q = np.array([exact_packet_energy(L, photons) for L in band_lum])
-    j_scale = q / (track_scale * 4.0 * np.pi * nvox_inv) if estimator == "track-length" else q / (4.0 * np.pi * nvox_inv)
-    J, rel = light_from_sums(s1, s2, folded, estimator, j_scale, sigma_scale, density)
+    J, rel = light_from_sums(s1, s2, folded, estimator, _j_scale(q, estimator, track_scale, nvox_inv),
+                             sigma_scale, density)
     return lit_region_error(J, rel, xp.asarray(sigma_host))
+
+
+def _j_scale(q, estimator: str, track_scale: float, nvox_inv: float):
+    """J per unit of the sums: per fixed-point track unit, or per collision count / sigma."""
+    if estimator == "track-length":
+        return q / (track_scale * 4.0 * np.pi * nvox_inv)
+    return q / (4.0 * np.pi * nvox_inv)
 
 
 def trace(
@@ -412,11 +419,7 @@ def trace(
         counts_i64 = np.array(counts.tolist(), dtype=np.int64)
         budget, photons = int(photons), int(done)
         q = np.array([exact_packet_energy(L, photons) for L in band_lum])
-        # J per unit of the sums: fixed-point track units, or (collision) counts / sigma
-        if estimator == "track-length":
-            j_scale = q / (track_scale * 4.0 * np.pi * nvox_inv)
-        else:
-            j_scale = q / (4.0 * np.pi * nvox_inv)
+        j_scale = _j_scale(q, estimator, track_scale, nvox_inv)
         if on_device:
             s1, s2, d_rho = session.release_sums()
             device_sums = DeviceSums(backend, shape, nb, s1, s2, d_rho)
