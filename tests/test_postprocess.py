@@ -117,6 +117,29 @@ def test_collision_filter_on_the_opencl_device(backend):
     # round-off values in both paths: compare where J means something
     lit = ref.J > 1e-9 * ref.J.max(axis=(1, 2, 3), keepdims=True)
     # (the variance spans many decades: FFT round-off of the largest values, ~1e-16 of them,
-    # shows at ~1e-5 relative in the smallest; an error estimate needs no more digits)
-    np.testing.assert_allclose(dev.rel_error[lit], ref.rel_error[lit], rtol=1e-4)
+    # shows at 1e-5 (PoCL) to 2e-4 (an H100's VkFFT) relative in the smallest; an error
+    # estimate needs no more than 3 digits)
+    np.testing.assert_allclose(dev.rel_error[lit], ref.rel_error[lit], rtol=1e-3)
     assert np.abs(dev.rgba.astype(int) - ref.rgba.astype(int)).max() <= 1
+
+
+def test_page_locked_result_buffers_are_reused(backend, monkeypatch):
+    """The OpenCL backend hands out mapped page-locked buffers on GPUs and reuses one only when
+    no array refers to it; the results are the ordinary ones (forced on here for any device)."""
+    if backend.name != "opencl":
+        pytest.skip("OpenCL page-locked buffers")
+    monkeypatch.setattr(backend, "pinned_host", True)
+    monkeypatch.setattr(backend, "_pinned_pool", [], raising=False)
+    scene = _scene([])
+    rho = Pipeline(backend).density(scene)
+    res, J, rel = compute_light(scene, rho, backend)
+    ref = finish_light_field(scene, rho, res, J, rel)
+    first = Pipeline(backend).run(scene)
+    n_after_first = len(backend._pinned_pool)
+    second = Pipeline(backend).run(scene)  # the first run's arrays are alive: new buffers
+    assert len(backend._pinned_pool) == 2 * n_after_first
+    np.testing.assert_array_equal(first.J, ref.J)
+    np.testing.assert_array_equal(second.rgba, first.rgba)
+    del first
+    Pipeline(backend).run(scene)  # reuses the freed ones
+    assert len(backend._pinned_pool) == 2 * n_after_first

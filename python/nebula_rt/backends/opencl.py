@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 
 from ..errors import BackendUnavailableError
@@ -198,6 +200,8 @@ class OpenCLBackend(Backend):
         # a GPU launch should hold millions of packets; a CPU launch ~2M (a few seconds on PoCL,
         # so progress and cancellation stay responsive)
         self.launch_packets = (1 << 23) if self.is_gpu else (1 << 21)
+        # page-locked result buffers on GPUs (host_empty); on a CPU device memory is host memory
+        self.pinned_host = self.is_gpu
         self.slot_memory_budget = mem // 4 if self.is_gpu else min(mem // 4, 1 << 30)
 
     def _compile(self, name, defines):
@@ -242,6 +246,30 @@ class OpenCLBackend(Backend):
 
     def device_zeros(self, n, dtype):
         return _cl_array().zeros(self.queue, int(n), dtype)
+
+    #: most page-locked result buffers kept for reuse
+    PINNED_POOL_MAX = 16
+
+    def host_empty(self, shape, dtype):
+        """On a GPU: host memory of a mapped ``ALLOC_HOST_PTR`` buffer (page-locked, so the
+        device writes it at the bus's full rate), reused once no array refers to it any more
+        (allocating page-locked memory is slow); elsewhere an ordinary array."""
+        if not self.pinned_host:
+            return np.empty(shape, dtype)
+        nbytes = max(1, int(np.prod(shape)) * np.dtype(dtype).itemsize)
+        pool = self.__dict__.setdefault("_pinned_pool", [])
+        for i in range(len(pool)):
+            # free: referred to only by the pool's tuple and getrefcount's own argument
+            if pool[i][0] == nbytes and sys.getrefcount(pool[i][2]) <= 2:
+                return pool[i][2].view(dtype).reshape(shape)
+        if len(pool) >= self.PINNED_POOL_MAX:
+            return np.empty(shape, dtype)
+        mf = cl.mem_flags
+        buf = cl.Buffer(self.context, mf.ALLOC_HOST_PTR | mf.READ_WRITE, size=nbytes)
+        arr, _ = cl.enqueue_map_buffer(self.queue, buf, cl.map_flags.READ | cl.map_flags.WRITE, 0,
+                                       (nbytes,), np.uint8)
+        pool.append((nbytes, buf, arr))
+        return arr.view(dtype).reshape(shape)
 
     def to_host(self, dev, out=None):
         if out is None:
