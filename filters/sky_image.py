@@ -27,7 +27,9 @@ class NebulaSkyImage(ExposureMixin, NebulaAlgorithm):
     Per band, the scattered emissivity is integrated along each pixel's ray with that band's
     extinction, and each star adds its attenuated direct light to the pixel it falls in.
     Output: a W x H x 1 vtkImageData (spacing = pixel size in box units) with ``I_<band>``
-    (total), ``scattered_<band>`` (float32; luminosity per box-unit area per steradian) and
+    (total), ``scattered_<band>`` (float32; luminosity per box-unit area per steradian),
+    ``relative_<band>`` (surface brightness relative to the star, I_b / (L_b / 4 pi): the star's
+    luminosity per steradian in the band as the unit, per box-unit^2 of sky) and
     ``rgb`` (uint8 x 3, sRGB through the same band -> XYZ matrix as the volume colours).
     Field data: the camera, ``tau_star_<band>`` (optical depth from the first star to the
     observer), ``exposure``.
@@ -126,6 +128,8 @@ class NebulaSkyImage(ExposureMixin, NebulaAlgorithm):
         for b, n in enumerate(names):
             arrays[f"I_{n}"] = img.intensity[b][:, :, None].astype(np.float32)
             arrays[f"scattered_{n}"] = img.scattered[b][:, :, None].astype(np.float32)
+            # surface brightness relative to the star: I_b / (L_b / 4 pi), per box-unit^2 of sky
+            arrays[f"relative_{n}"] = (img.intensity[b] * (4.0 * np.pi / band_lum[b]))[:, :, None].astype(np.float32)
         arrays["rgb"] = rgb8[:, :, None, :]
         add_point_arrays(out, arrays)
         field = {"view_direction": np.array(cam.basis()[0]), "view_up": np.array(img.v_axis),

@@ -191,6 +191,9 @@ def test_sky_image_filter():
     fd = field_data_dict(out)
     I_B, I_R = point_array(out, "I_B")[:, :, 0], point_array(out, "I_R")[:, :, 0]
     assert np.all(np.isfinite(I_B)) and I_B.sum() > 0
+    rel_B = point_array(out, "relative_B")[:, :, 0]
+    L_B = np.atleast_1d(fd["band_luminosity"])[2]
+    np.testing.assert_allclose(rel_B, I_B * 4 * np.pi / L_B, rtol=1e-6)
     # blue is extinguished more on the way from the star to the observer
     assert fd["tau_star_B"] > fd["tau_star_R"] > 0
     assert fd["tau_star_B"] / fd["tau_star_R"] == pytest.approx(1.324 / 0.748, rel=1e-6)

@@ -4,8 +4,8 @@ What an observer measures of a reflection nebula is its colour relative to the s
 it. From a sky image (:func:`nebula_rt.sky.sky_image`, scattered light only) this module
 measures, in annuli of projected offset from the star:
 
-- Delta(B-V) = (B-V)_nebula - (B-V)_star in the Bessell B and V passbands (the curves shipped
-  by ``speclite``): with r_b the nebula/star ratio of band b, r(lambda) its hat-function
+- Delta(B-V) = (B-V)_nebula - (B-V)_star in the Bessell B and V passbands (Bessell 1990,
+  PASP 102, 1181; the curves shipped by ``speclite``): with r_b the nebula/star ratio of band b, r(lambda) its hat-function
   interpolation (as the colour conversion does) and S the star's spectrum,
 
       Delta(B-V) = -2.5 log10[ (int r S B dl / int S B dl) / (int r S V dl / int S V dl) ];
