@@ -63,6 +63,80 @@ NRT_DEVICE float nrt_face_distance(float p, float d, float inv_d, int i, float h
     return NRT_INF_F;
 }
 
+#ifndef NRT_PEEL
+#define NRT_PEEL 0
+#endif
+
+#if NRT_PEEL
+/*
+ * Peel-off images (Yusef-Zadeh, Morris & White 1984, ApJ 278, 186): at every scattering the
+ * packet's probability per steradian of leaving towards the observer, the Henyey-Greenstein
+ * phase function at the angle between its incoming direction and the line of sight times
+ * exp(-tau) to the box's edge along that line, is added to the image pixel the scattering
+ * point projects to. The image then has the phase function's full angle dependence, which
+ * ray marching an isotropic emissivity cannot have.
+ *
+ * peel[15]: direction to the observer o (3), image axes u and v (3 + 3), centre of pixel
+ * (0, 0) (3), pixel size, W, H.
+ */
+NRT_DEVICE float nrt_hg_phase(float g, float mu)
+{
+    g = fmin(fmax(g, -NRT_G_LIMIT), NRT_G_LIMIT); /* as the sampling clamps it */
+    float gg = g * g;
+    float den = 1.0f + gg - 2.0f * g * mu;
+    return (1.0f - gg) / (4.0f * NRT_PI_F * den * sqrt(den));
+}
+
+/* Optical depth from x (in voxel ix, iy, iz) along o to the edge of the box. */
+NRT_DEVICE float nrt_tau_to_edge(const NRT_GLOBAL float *density, float sig_b, const float *x,
+                                 const float *o, int ix, int iy, int iz, int nx, int ny, int nz)
+{
+    const float hx = 1.0f / (float)nx, hy = 1.0f / (float)ny, hz = 1.0f / (float)nz;
+    float inv_o[3] = {1.0f / o[0], 1.0f / o[1], 1.0f / o[2]};
+    float t_cur = 0.0f, tau = 0.0f;
+    for (;;) {
+        nrt_u64 idx = (nrt_u64)ix + (nrt_u64)nx * ((nrt_u64)iy + (nrt_u64)ny * (nrt_u64)iz);
+        float tx = nrt_face_distance(x[0], o[0], inv_o[0], ix, hx);
+        float ty = nrt_face_distance(x[1], o[1], inv_o[1], iy, hy);
+        float tz = nrt_face_distance(x[2], o[2], inv_o[2], iz, hz);
+        float t_next = fmin(tx, fmin(ty, tz));
+        tau += sig_b * density[idx] * fmax(0.0f, t_next - t_cur);
+        t_cur = fmax(t_cur, t_next);
+        if (tx <= ty && tx <= tz) {
+            ix += (o[0] > 0.0f) ? 1 : -1;
+            if (ix < 0 || ix >= nx)
+                return tau;
+        } else if (ty <= tz) {
+            iy += (o[1] > 0.0f) ? 1 : -1;
+            if (iy < 0 || iy >= ny)
+                return tau;
+        } else {
+            iz += (o[2] > 0.0f) ? 1 : -1;
+            if (iz < 0 || iz >= nz)
+                return tau;
+        }
+    }
+}
+
+NRT_DEVICE void nrt_peel(const NRT_GLOBAL float *density, float sig_b, float g_b,
+                         const NRT_GLOBAL float *peel, float peel_scale, const float *x,
+                         const float *d, int ix, int iy, int iz, int nx, int ny, int nz,
+                         NRT_GLOBAL nrt_u64 *band_image, NRT_GLOBAL nrt_u32 *overflow)
+{
+    const float o[3] = {peel[0], peel[1], peel[2]};
+    float rx = x[0] - peel[9], ry = x[1] - peel[10], rz = x[2] - peel[11];
+    float a = (rx * peel[3] + ry * peel[4] + rz * peel[5]) / peel[12];
+    float b = (rx * peel[6] + ry * peel[7] + rz * peel[8]) / peel[12];
+    int pi = (int)floor(a + 0.5f), qi = (int)floor(b + 0.5f);
+    int w = (int)peel[13], h = (int)peel[14];
+    if (pi < 0 || pi >= w || qi < 0 || qi >= h)
+        return;
+    float mu = d[0] * o[0] + d[1] * o[1] + d[2] * o[2];
+    float wgt = nrt_hg_phase(g_b, mu) * exp(-nrt_tau_to_edge(density, sig_b, x, o, ix, iy, iz, nx, ny, nz));
+    nrt_acc_add(&band_image[(nrt_u64)pi * (nrt_u64)h + (nrt_u64)qi], (nrt_u64)(wgt * peel_scale + 0.5f), overflow);
+}
+#endif
+
 /*
  * Trace one packet of one band to its end. Deposits go to band_acc (this batch's slot, this
  * band), the outcome to band_tally[1..3] (emitted is counted by the caller).
@@ -73,7 +147,8 @@ NRT_DEVICE void nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, f
                                  int n_stars, nrt_u64 seed, int band, nrt_u64 photon,
                                  int max_scatterings, float track_scale,
                                  NRT_GLOBAL nrt_u64 *band_acc, NRT_GLOBAL nrt_u64 *band_tally,
-                                 NRT_GLOBAL nrt_u32 *overflow)
+                                 NRT_GLOBAL nrt_u32 *overflow, const NRT_GLOBAL float *peel,
+                                 float peel_scale, NRT_GLOBAL nrt_u64 *band_image)
 {
     nrt_rng rng;
     nrt_rng_init(&rng, seed, (nrt_u64)band, photon);
@@ -141,6 +216,10 @@ NRT_DEVICE void nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, f
                 return;
             }
             ++scatterings;
+#if NRT_PEEL
+            nrt_peel(density, sig_b, g_b, peel, peel_scale, p0, d, ix, iy, iz, nx, ny, nz, band_image,
+                     overflow);
+#endif
             float mu, sin_theta;
             nrt_sample_hg(g_b, nrt_rng_uniform(&rng), &mu, &sin_theta);
             nrt_rotate(d, mu, sin_theta, 2.0f * NRT_PI_F * nrt_rng_uniform(&rng));
@@ -206,7 +285,10 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL float *density, /* nx*ny*nz, x fa
                               int max_scatterings, float track_scale,
                               NRT_GLOBAL nrt_u64 *acc,     /* slots * n_bands * nvox */
                               NRT_GLOBAL nrt_u64 *tallies, /* slots * n_bands * 4 */
-                              NRT_GLOBAL nrt_u32 *overflow /* slots */)
+                              NRT_GLOBAL nrt_u32 *overflow, /* slots */
+                              const NRT_GLOBAL float *peel, /* NRT_PEEL: camera (15) */
+                              float peel_scale,             /* fixed-point units per 1/sr */
+                              NRT_GLOBAL nrt_u64 *image)    /* slots * n_bands * W * H */
 {
     nrt_u64 nvox = (nrt_u64)nx * (nrt_u64)ny * (nrt_u64)nz;
     nrt_u64 total = count * (nrt_u64)n_bands;
@@ -221,7 +303,8 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL float *density, /* nx*ny*nz, x fa
         nrt_trace_packet(density, sigma_scale[band], albedo[band], asym_g[band], stars,
                          star_cdf + band * n_stars, nx, ny, nz, n_stars, seed, band, photon,
                          max_scatterings, track_scale, acc + cell * nvox, band_tally,
-                         overflow + slot);
+                         overflow + slot, peel, peel_scale,
+                         image + (NRT_PEEL ? cell * (nrt_u64)peel[13] * (nrt_u64)peel[14] : 0));
     }
 }
 

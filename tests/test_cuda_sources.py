@@ -15,6 +15,7 @@ NVCC = shutil.which("nvcc")
 @pytest.mark.parametrize("name,defines", [
     ("transport.cl", ["-DNRT_TRACK_LENGTH=1"]),
     ("transport.cl", ["-DNRT_COLLISION=1", "-DNRT_ACC_LIMIT_BITS=40"]),
+    ("transport.cl", ["-DNRT_TRACK_LENGTH=1", "-DNRT_PEEL=1"]),
     ("density.cl", []),
     ("sampling.cl", []),
     ("postprocess.cl", []),

@@ -115,7 +115,6 @@ def _compare(args) -> int:
     import numpy as np
 
     from . import observe
-    from .pipeline import Pipeline
 
     scene = _scene_from_args(args)
     try:
@@ -126,10 +125,9 @@ def _compare(args) -> int:
     png = Path(args.png)
     if not png.parent.exists():
         raise SceneError("--png", str(png), f"folder {png.parent} does not exist")
-    light = Pipeline().run(scene, colour=False)
-    prof = observe.profiles(light, direction=direction, size=args.size)
-    observe.plot(prof, png, title=f"{Path(args.scene).stem}: {len(light.bands)} bands, "
-                                  f"{light.transport.photons:,} packets per band")
+    prof, res = observe.observe_scene(scene, direction=direction, size=args.size)
+    observe.plot(prof, png, title=f"{Path(args.scene).stem}: {len(res.band_luminosity)} bands, "
+                                  f"{res.photons:,} packets per band, peel-off image")
     summary = {
         "scene": str(args.scene), "png": str(png),
         "offset": [round(float(x), 4) for x in prof.offset],

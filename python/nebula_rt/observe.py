@@ -13,9 +13,10 @@ measures, in annuli of projected offset from the star:
 - the nebula/star ratio r_b per band, relative to the band nearest 550 nm.
 
 Observed values and model predictions to compare with ship in ``data/observations.toml``,
-each with its source. The sky image takes the scattered light as isotropic per voxel (the
-emissivity from J), so the angle dependence of the phase function is averaged out: the
-simulated colours correspond to the middle of the single-scattering range.
+each with its source. :func:`observe_scene` (used by ``nebula-rt compare``) images the
+scattered light by peel-off during the transport, so the phase function's dependence on the
+scattering angle (and on wavelength through g) is in the colours; :func:`profiles` measures an
+existing light field through its isotropic-emissivity sky image instead.
 """
 
 from __future__ import annotations
@@ -98,44 +99,85 @@ class Profiles:
     pixels: np.ndarray
 
 
-def profiles(light, direction=(0.0, 0.0, -1.0), size: int = 128, edges=None) -> Profiles:
-    """Measure a light field (:class:`nebula_rt.pipeline.LightField`) as an observer would.
+def _annuli(scattered, img_origin, pixel_size, u, v, star_pos, direction, band_lum, wl, source, edges):
+    """Profiles from a scattered-light image (n_bands, W, H) whose pixel (p, q) is centred at
+    img_origin + pixel_size (p u + q v)."""
+    nb, w, h = scattered.shape
+    P, Q = np.meshgrid(np.arange(w), np.arange(h), indexing="ij")
+    centres = img_origin[None, None, :] + pixel_size * (P[..., None] * u + Q[..., None] * v)
+    dvec = np.asarray(direction, float) / np.linalg.norm(direction)
+    rel = np.asarray(star_pos) - centres
+    offset = np.linalg.norm(rel - (rel @ dvec)[..., None] * dvec, axis=-1)
+    edges = np.linspace(0.0, 0.5, 9) if edges is None else np.asarray(edges, float)
+    nbins = len(edges) - 1
+    summed = np.zeros((nb, nbins))
+    pixels = np.zeros(nbins, int)
+    lit = scattered.sum(axis=0) > 0
+    for k in range(nbins):
+        m = (offset >= edges[k]) & (offset < edges[k + 1]) & lit
+        pixels[k] = int(m.sum())
+        summed[:, k] = scattered[:, m].sum(axis=1)
+    r = summed / np.asarray(band_lum)[:, None]
+    vb = int(np.argmin(np.abs(wl - 550.0)))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.where(r[vb] > 0, r / r[vb], np.nan)
+    return Profiles(offset=0.5 * (edges[1:] + edges[:-1]), delta_bv=delta_b_minus_v(r, wl, source),
+                    ratio=ratio, wavelength_nm=wl, pixels=pixels)
 
-    The sky image of the scattered light (looking along ``direction``) is summed over annuli
-    of projected distance from the most luminous star (``edges``, box units; default 8 annuli
-    out to 0.5), each band divided by the stars' luminosity in that band.
+
+def _camera(star, direction, size):
+    from .sky import Camera
+
+    return Camera(direction=tuple(direction), size=(size, size), extent=1.0, center=tuple(star.position))
+
+
+def profiles(light, direction=(0.0, 0.0, -1.0), size: int = 128, edges=None) -> Profiles:
+    """Measure a light field (:class:`nebula_rt.pipeline.LightField`) as an observer would,
+    from its sky image (ray marching the emissivity, which treats each voxel's scattered
+    light as isotropic: exact for g = 0 only; :func:`observe_scene` has the phase function).
+
+    The scattered light is summed over annuli of projected distance from the most luminous star
+    (``edges``, box units; default 8 annuli out to 0.5), each band divided by the stars'
+    luminosity in that band.
     """
     from .pipeline import _dominant_source
-    from .sky import Camera, sky_image
+    from .sky import sky_image
 
     bands = light.bands
     wl = np.array([b.wavelength for b in bands])
     rho = light.density.astype(np.float64)
     sigma = np.array([light.scene.dust.tau * b.extinction for b in bands])[:, None, None, None] * rho[None]
     star = max(light.scene.stars, key=lambda s: s.luminosity)
-    cam = Camera(direction=tuple(direction), size=(size, size), extent=1.0, center=tuple(star.position))
-    img = sky_image(light.emissivity.astype(np.float64), sigma, cam)
-    p = np.arange(size)
-    P, Q = np.meshgrid(p, p, indexing="ij")
-    centres = img.origin[None, None, :] + img.pixel_size * (P[..., None] * img.u_axis + Q[..., None] * img.v_axis)
-    d = np.asarray(star.position) - centres
-    along = d @ (np.asarray(direction, float) / np.linalg.norm(direction))
-    offset = np.linalg.norm(d - along[..., None] * (np.asarray(direction, float) / np.linalg.norm(direction)), axis=-1)
-    edges = np.linspace(0.0, 0.5, 9) if edges is None else np.asarray(edges, float)
-    lum = light.transport.band_luminosity
-    nb, nbins = len(bands), len(edges) - 1
-    summed = np.zeros((nb, nbins))
-    pixels = np.zeros(nbins, int)
-    for k in range(nbins):
-        m = (offset >= edges[k]) & (offset < edges[k + 1]) & (img.scattered.sum(axis=0) > 0)
-        pixels[k] = int(m.sum())
-        summed[:, k] = img.scattered[:, m].sum(axis=1)
-    r = summed / lum[:, None]
-    v = int(np.argmin(np.abs(wl - 550.0)))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        rel = np.where(r[v] > 0, r / r[v], np.nan)
-    return Profiles(offset=0.5 * (edges[1:] + edges[:-1]), delta_bv=delta_b_minus_v(r, wl, _dominant_source(light.scene.stars)),
-                    ratio=rel, wavelength_nm=wl, pixels=pixels)
+    img = sky_image(light.emissivity.astype(np.float64), sigma, _camera(star, direction, size))
+    return _annuli(img.scattered, img.origin, img.pixel_size, img.u_axis, img.v_axis, star.position, direction,
+                   light.transport.band_luminosity, wl, _dominant_source(light.scene.stars), edges)
+
+
+def observe_scene(scene, direction=(0.0, 0.0, -1.0), size: int = 128, edges=None, backend=None,
+                  progress=None) -> tuple[Profiles, object]:
+    """Trace ``scene`` with a peel-off image seen along ``direction`` (the phase function at
+    every scattering towards the observer: forward and backward scattering as they are) and
+    measure it as :func:`profiles` does. Returns (profiles, transport result)."""
+    from .backends import get_backend
+    from .density import generate_density
+    from .pipeline import _dominant_source
+    from .transport import trace
+
+    backend = backend or get_backend(scene.transport.backend, scene.transport.device)
+    bands = scene.bands.resolve()
+    wl = np.array([b.wavelength for b in bands])
+    star = max(scene.stars, key=lambda s: s.luminosity)
+    cam = _camera(star, direction, size)
+    t = scene.transport
+    photons, target = t.effective()
+    res = trace(generate_density(scene, backend), bands, scene.stars, tau=scene.dust.tau, photons=photons,
+                estimator=t.estimator, max_scatterings=t.max_scatterings, seed=t.seed,
+                batch_size=t.batch_size, backend=backend, target_error=target, time_limit=t.time_limit,
+                progress=progress, peel=cam)
+    d, u, v = cam.basis()
+    prof = _annuli(res.peel_image, cam.origin(), cam.pixel_size, u, v, star.position, direction,
+                   res.band_luminosity, wl, _dominant_source(scene.stars), edges)
+    return prof, res
 
 
 def plot(prof: Profiles, path, title: str = "") -> None:

@@ -29,6 +29,7 @@ and 1.0 where nothing was tallied.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -85,6 +86,9 @@ class TransportResult:
         Extinction per box unit at density 1, tau k_b.
     achieved_error : float
         Error-targeted runs: the :func:`lit_region_error` reached (NaN otherwise).
+    peel_image : ndarray or None
+        With ``trace(peel=camera)``: the peel-off image of the scattered light, (n_bands, W, H),
+        luminosity per box-unit area per steradian.
     device_bytes : int
         Device memory the transport held (see ``TransportSession.device_bytes``).
     photons_budget : int
@@ -114,6 +118,7 @@ class TransportResult:
     achieved_error: float = float("nan")
     photons_budget: int = 0
     device_bytes: int = 0
+    peel_image: Optional[np.ndarray] = None
     device: str = ""
     timings: dict = field(default_factory=dict)
 
@@ -160,6 +165,23 @@ def star_band_luminosities(stars, wavelengths_nm) -> np.ndarray:
         source = s.spectral_source() if hasattr(s, "spectral_source") else s.temperature
         out[i] = s.luminosity * colour_convert.band_luminosity_fractions(wavelengths_nm, source)
     return out
+
+
+def _peel_camera(camera) -> np.ndarray:
+    """The 15 floats the kernel's peel-off reads: direction to the observer, image axes u and
+    v, centre of pixel (0, 0), pixel size, W, H (box units)."""
+    d, u, v = camera.basis()
+    w, h = camera.size
+    return np.concatenate([-d, u, v, camera.origin(), [camera.pixel_size, w, h]]).astype(np.float32)
+
+
+def _peel_scale(gs) -> float:
+    """Fixed-point units per 1/sr of a peel-off deposit: 2^24 at the largest phase function
+    value of the bands (forward, |g| clamped as the sampling does), so one deposit is at most
+    2^24 units and a launch of 2^23 packets scattering up to 2^15 times each cannot reach 2^63."""
+    g = min(max(abs(float(x)) for x in gs), 1.0 - 1.0e-4)
+    phi_max = (1.0 + g) / (4.0 * math.pi * (1.0 - g) ** 2)
+    return float(2.0**24 / phi_max)
 
 
 def batch_standard_error(s1, s2, m: int):
@@ -289,6 +311,7 @@ def trace(
     on_device: bool = False,
     target_error: float = 0.0,
     time_limit: float = 0.0,
+    peel=None,
 ) -> TransportResult:
     """Trace ``photons`` packets per band through ``density`` and estimate J.
 
@@ -318,6 +341,11 @@ def trace(
     time_limit : float
         Seconds; > 0 also stops an error-targeted run after this long (the photon count then
         depends on the machine's speed).
+    peel : nebula_rt.sky.Camera, optional
+        Also make a peel-off image of the scattered light seen by this camera (the phase
+        function at every scattering towards the observer, attenuated to the box's edge):
+        ``result.peel_image``, luminosity per box-unit area per steradian, (n_bands, W, H),
+        the layout of :class:`nebula_rt.sky.SkyImage`.
     on_device : bool
         Leave the sums on the device (``result.device_sums``, for
         :func:`nebula_rt.postprocess.finish`) instead of computing J and rel_error on the host.
@@ -346,6 +374,9 @@ def trace(
         track_scale=track_scale,
         acc_limit_bits=int(_acc_limit_bits),
     )
+    if peel is not None:
+        setup = dataclasses.replace(setup, peel=_peel_camera(peel),
+                                    peel_scale=_peel_scale([b.g for b in bands]))
     targeted = target_error > 0.0
     if targeted and not batch_size:
         batch_size = max(1, math.ceil(photons / TARGET_BATCHES))
@@ -353,6 +384,7 @@ def trace(
     nb = len(bands)
     base, extra = divmod(int(photons), len(plan))
     sigma_host = sigma_scale[:, None, None, None] * density.astype(np.float64)[None] if targeted else None
+    peel_sum = 0.0 if peel is None else np.zeros((nb,) + tuple(peel.size), np.float64)
     achieved = float("nan")
     counts = np.zeros((nb, 4), dtype=object)  # python ints: exact whatever the photon count
     slots = backend.launch_plan(nb * int(np.prod(shape)), (base + 1) * nb, len(plan))
@@ -375,10 +407,13 @@ def trace(
             tallies, overflow = session.run_group(start, count, base, extra, first, len(group))
             session.fold(len(group))
             t_kernel += time.perf_counter() - tk
+            images = session.take_images(len(group)) if peel is not None else None
             for k, (b_start, b_count) in enumerate(group):
                 if overflow[k]:
                     redo.append((b_start, b_count))
                     continue
+                if images is not None:
+                    peel_sum += images[k]
                 folded += 1
                 counts += tallies[k].astype(object)
                 done += b_count
@@ -408,9 +443,12 @@ def trace(
                 tallies, overflow = session.run_group(h_start, h_count, 1 << 62, 0, 0, 1)
                 session.fold(1)
                 t_kernel += time.perf_counter() - tk
+                images = session.take_images(1) if peel is not None else None
                 if overflow[0]:
                     redo.append((h_start, h_count))
                     continue
+                if images is not None:
+                    peel_sum += images[0]
                 folded += 1
                 counts += tallies[0].astype(object)
                 done += h_count
@@ -420,6 +458,9 @@ def trace(
         budget, photons = int(photons), int(done)
         q = np.array([exact_packet_energy(L, photons) for L in band_lum])
         j_scale = _j_scale(q, estimator, track_scale, nvox_inv)
+        peel_image = None
+        if peel is not None:  # packet energy x (phase x attenuation) per pixel area
+            peel_image = peel_sum * (q / (setup.peel_scale * peel.pixel_size**2))[:, None, None]
         if on_device:
             s1, s2, d_rho = session.release_sums()
             device_sums = DeviceSums(backend, shape, nb, s1, s2, d_rho)
@@ -452,6 +493,7 @@ def trace(
         achieved_error=achieved,
         photons_budget=budget,
         device_bytes=device_bytes,
+        peel_image=peel_image,
         device=backend.device_name,
         timings={"setup_s": t_setup, "kernel_s": t_kernel, "total_s": time.perf_counter() - t0},
     )

@@ -54,6 +54,15 @@ class TransportSetup:
     seed: int
     track_scale: float
     acc_limit_bits: int = 63
+    #: peel-off image: camera (15 float32: direction to the observer, u, v, centre of pixel
+    #: (0, 0), pixel size, W, H), fixed-point units per 1/sr, or None for no image
+    peel: object = None
+    peel_scale: float = 0.0
+
+    @property
+    def peel_pixels(self) -> int:
+        """W x H of the peel-off image (0 without one)."""
+        return 0 if self.peel is None else int(self.peel[13]) * int(self.peel[14])
 
     @property
     def n_bands(self) -> int:
@@ -67,6 +76,8 @@ def transport_defines(setup: TransportSetup) -> dict:
     defines = dict(defines)
     if setup.acc_limit_bits != 63:
         defines["NRT_ACC_LIMIT_BITS"] = int(setup.acc_limit_bits)
+    if setup.peel is not None:
+        defines["NRT_PEEL"] = 1
     return defines
 
 
@@ -101,6 +112,11 @@ class TransportSession(abc.ABC):
         """The same sums as arrays of the backend's array module (CuPy arrays stay on the GPU).
         Default: the host arrays of :meth:`sums`."""
         return self.sums()
+
+    @abc.abstractmethod
+    def take_images(self, n_slots: int) -> np.ndarray:
+        """The peel-off images of slots 0..n_slots-1 (uint64 fixed point, (n_slots, n_bands, W,
+        H)), clearing them; an empty array without a peel-off camera."""
 
     @abc.abstractmethod
     def release_sums(self) -> tuple:

@@ -70,6 +70,8 @@ class CUDATransport(TransportSession):
         self.d_sum2 = cp.zeros(self.ncell, cp.float64)
         self.d_tallies = cp.zeros(self.slots * nb * 4, cp.uint64)
         self.d_overflow = cp.zeros(self.slots, cp.uint32)
+        self.d_peel = cp.asarray(np.zeros(15, np.float32) if setup.peel is None else np.asarray(setup.peel, np.float32))
+        self.d_image = cp.zeros(max(1, self.slots * nb * setup.peel_pixels), cp.uint64)
         defines = transport_defines(setup)
         self.k_trace = backend.kernel(backend.transport_program, "trace_photons", defines)
         self.k_fold = backend.kernel(backend.transport_program, "fold_batches", defines)
@@ -87,7 +89,7 @@ class CUDATransport(TransportSession):
             np.uint64(s.seed), np.uint64(photon_start), np.uint64(count),
             np.uint64(batch_base), np.uint64(batch_extra), np.uint64(first_batch),
             np.int32(s.max_scatterings), np.float32(s.track_scale),
-            self.d_acc, self.d_tallies, self.d_overflow,
+            self.d_acc, self.d_tallies, self.d_overflow, self.d_peel, np.float32(s.peel_scale), self.d_image,
         ))
         tallies = self.d_tallies.get().reshape(self.slots, s.n_bands, 4)  # synchronises
         return tallies[:n_slots], self.d_overflow.get()[:n_slots].astype(bool)
@@ -103,6 +105,15 @@ class CUDATransport(TransportSession):
 
     def sums(self):
         return tuple(a.get() for a in self.sums_on_device())
+
+    def take_images(self, n_slots):
+        s = self.setup
+        if s.peel is None:
+            return np.zeros((n_slots, s.n_bands, 0, 0), np.uint64)
+        w, h = int(s.peel[13]), int(s.peel[14])
+        out = self.d_image.get().reshape(self.slots, s.n_bands, w, h)[:n_slots]
+        self.d_image.fill(0)
+        return out
 
     def release_sums(self):
         out = (self.d_sum1, self.d_sum2, self.d_density)

@@ -128,6 +128,10 @@ class OpenCLTransport(TransportSession):
         self.d_tallies = cl.Buffer(ctx, mf.READ_WRITE, size=self.h_tallies.nbytes)
         self.h_overflow = np.zeros(self.slots, np.uint32)
         self.d_overflow = cl.Buffer(ctx, mf.READ_WRITE, size=self.h_overflow.nbytes)
+        self.d_peel = ro(np.zeros(15, np.float32) if setup.peel is None else setup.peel, np.float32)
+        self.image_cells = max(1, self.slots * nb * setup.peel_pixels)
+        self.d_image = cl.Buffer(ctx, mf.READ_WRITE, size=8 * self.image_cells)
+        cl.enqueue_fill_buffer(q, self.d_image, np.uint64(0), 0, 8 * self.image_cells)
         defines = transport_defines(setup)
         self.k_trace = backend.kernel(backend.transport_program, "trace_photons", defines)
         self.k_fold = backend.kernel(backend.transport_program, "fold_batches", defines)
@@ -146,7 +150,7 @@ class OpenCLTransport(TransportSession):
             np.uint64(s.seed), np.uint64(photon_start), np.uint64(count),
             np.uint64(batch_base), np.uint64(batch_extra), np.uint64(first_batch),
             np.int32(s.max_scatterings), np.float32(s.track_scale),
-            self.d_acc, self.d_tallies, self.d_overflow,
+            self.d_acc, self.d_tallies, self.d_overflow, self.d_peel, np.float32(s.peel_scale), self.d_image,
         )
         cl.enqueue_copy(q, self.h_tallies, self.d_tallies)
         cl.enqueue_copy(q, self.h_overflow, self.d_overflow)
@@ -168,6 +172,18 @@ class OpenCLTransport(TransportSession):
             out.append(h.reshape((nb,) + self.shape[::-1]).transpose(0, 3, 2, 1))
         q.finish()
         return out[0], out[1]
+
+    def take_images(self, n_slots):
+        s = self.setup
+        if s.peel is None:
+            return np.zeros((n_slots, s.n_bands, 0, 0), np.uint64)
+        w, h = int(s.peel[13]), int(s.peel[14])
+        out = np.empty(self.image_cells, np.uint64)
+        q = self.backend.queue
+        cl.enqueue_copy(q, out, self.d_image)
+        cl.enqueue_fill_buffer(q, self.d_image, np.uint64(0), 0, 8 * self.image_cells)
+        q.finish()
+        return out.reshape(self.slots, s.n_bands, w, h)[:n_slots]
 
     def release_sums(self):
         cl_array = _cl_array()
