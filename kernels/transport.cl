@@ -63,6 +63,23 @@ NRT_DEVICE float nrt_face_distance(float p, float d, float inv_d, int i, float h
     return NRT_INF_F;
 }
 
+/* Step (ix, iy, iz) across the nearest of the faces at distances tx, ty, tz along d (ties: x,
+   then y); returns 1 when the step leaves the box. */
+NRT_DEVICE int nrt_step_voxel(int *ix, int *iy, int *iz, float tx, float ty, float tz,
+                              const float *d, int nx, int ny, int nz)
+{
+    if (tx <= ty && tx <= tz) {
+        *ix += (d[0] > 0.0f) ? 1 : -1;
+        return *ix < 0 || *ix >= nx;
+    }
+    if (ty <= tz) {
+        *iy += (d[1] > 0.0f) ? 1 : -1;
+        return *iy < 0 || *iy >= ny;
+    }
+    *iz += (d[2] > 0.0f) ? 1 : -1;
+    return *iz < 0 || *iz >= nz;
+}
+
 #ifndef NRT_PEEL
 #define NRT_PEEL 0
 #endif
@@ -102,19 +119,8 @@ NRT_DEVICE float nrt_tau_to_edge(const NRT_GLOBAL float *density, float sig_b, c
         float t_next = fmin(tx, fmin(ty, tz));
         tau += sig_b * density[idx] * fmax(0.0f, t_next - t_cur);
         t_cur = fmax(t_cur, t_next);
-        if (tx <= ty && tx <= tz) {
-            ix += (o[0] > 0.0f) ? 1 : -1;
-            if (ix < 0 || ix >= nx)
-                return tau;
-        } else if (ty <= tz) {
-            iy += (o[1] > 0.0f) ? 1 : -1;
-            if (iy < 0 || iy >= ny)
-                return tau;
-        } else {
-            iz += (o[2] > 0.0f) ? 1 : -1;
-            if (iz < 0 || iz >= nz)
-                return tau;
-        }
+        if (nrt_step_voxel(&ix, &iy, &iz, tx, ty, tz, o, nx, ny, nz))
+            return tau;
     }
 }
 
@@ -237,18 +243,7 @@ NRT_DEVICE void nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, f
         tau -= tau_seg;
         t_cur = fmax(t_cur, t_next);
         /* step into the neighbour across the nearest face */
-        int out;
-        if (tx <= ty && tx <= tz) {
-            ix += (d[0] > 0.0f) ? 1 : -1;
-            out = (ix < 0 || ix >= nx);
-        } else if (ty <= tz) {
-            iy += (d[1] > 0.0f) ? 1 : -1;
-            out = (iy < 0 || iy >= ny);
-        } else {
-            iz += (d[2] > 0.0f) ? 1 : -1;
-            out = (iz < 0 || iz >= nz);
-        }
-        if (out) {
+        if (nrt_step_voxel(&ix, &iy, &iz, tx, ty, tz, d, nx, ny, nz)) {
             NRT_ATOMIC_ADD_U64(&band_tally[2], 1UL);
             return;
         }
