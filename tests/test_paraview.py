@@ -172,6 +172,8 @@ def test_plugin_loads_and_every_proxy_executes(pv_env, xdisplay, exe):
     assert "vtkSMIntRangeDomain" in lf["Photons"]["domains"]
     assert "vtkSMEnumerationDomain" in lf["Quality"]["domains"]
     assert "vtkSMDoubleRangeDomain" in lf["TargetError"]["domains"]
+    sp = r["outputs"]["NebulaLightField(spectral-8)"]
+    assert sp["last_error"] is None and len(sp["J_arrays"]) == 8 and "J_555nm" in sp["J_arrays"], sp
     q = r["outputs"]["NebulaLightField(preview)"]
     assert q["photons_budget"] == 10_000_000 and q["photons"] < q["photons_budget"]
     assert 0 < q["achieved_error"] <= 0.10

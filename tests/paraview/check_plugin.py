@@ -84,6 +84,15 @@ fd = light_q.GetClientSideObject().GetOutputDataObject(0).GetFieldData()
 outputs["NebulaLightField(preview)"] = {
     name: float(fd.GetArray(name).GetValue(0)) for name in ("photons", "photons_budget", "achieved_error")}
 
+# a spectral band preset (Draine dust read through dust_extinction inside ParaView)
+light_s = simple.NebulaLightField(dust, BandPreset="spectral-8", Photons=2000, Stars=two_stars, Device=dev)
+light_s.DensityArray = ["POINTS", "density"]
+light_s.UpdatePipeline()
+pd = light_s.GetClientSideObject().GetOutputDataObject(0).GetPointData()
+outputs["NebulaLightField(spectral-8)"] = {
+    "J_arrays": sorted(pd.GetArrayName(i) for i in range(pd.GetNumberOfArrays()) if pd.GetArrayName(i).startswith("J_")),
+    "last_error": light_s.GetClientSideObject().last_error}
+
 # changing a colour property re-runs the colour only, not the trace
 before = light.GetClientSideObject().execution_count
 colour.Exposure = 2.0
