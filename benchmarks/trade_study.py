@@ -234,6 +234,14 @@ def plot(result: dict, png: Path, md: Path) -> None:
     md.write_text("\n".join(lines) + "\n")
 
 
+def _save(result: dict, out, stem: str) -> None:
+    """Write a result as JSON to ``out`` (default benchmarks/results/<stem>-<date>.json)."""
+    out = Path(out) if out else ROOT / "benchmarks" / "results" / f"{stem}-{_dt.date.today()}.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=2) + "\n")
+    print(f"saved {out}")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--backend", default="auto")
@@ -246,20 +254,13 @@ def main(argv=None) -> int:
     ap.add_argument("--presets", action="store_true", help="measure the quality presets instead")
     args = ap.parse_args(argv)
     if args.presets:
-        result = presets(args)
-        out = Path(args.out) if args.out else ROOT / "benchmarks" / "results" / f"quality-presets-{_dt.date.today()}.json"
-        out.write_text(json.dumps(result, indent=2) + "\n")
-        print(f"saved {out}")
+        _save(presets(args), args.out, "quality-presets")
         return 0
     if args.plot:
         plot(json.loads(Path(args.plot).read_text()), ROOT / "docs" / "trade_study.png", ROOT / "docs" / "trade_study.md")
         print("wrote docs/trade_study.png and docs/trade_study.md")
         return 0
-    result = study(args)
-    out = Path(args.out) if args.out else ROOT / "benchmarks" / "results" / f"trade-study-{_dt.date.today()}.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=2) + "\n")
-    print(f"saved {out}")
+    _save(study(args), args.out, "trade-study")
     return 0
 
 
