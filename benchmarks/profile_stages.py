@@ -57,6 +57,20 @@ def main() -> None:
               f"transport set-up {res.timings['setup_s'] * 1e3:.1f} ms")
         for k, v in times.items():
             print(f"   {k:50s} {v:8.1f} ms")
+    # host side: which Python functions the transport and the finishing spend their time in
+    # (time in a synchronising call includes the device work it waits for)
+    import cProfile
+    import pstats
+
+    for name, fn in [("transport", lambda: pl.compute_light(scene, rho, backend, on_device=True)),
+                     ("finish", lambda: pl.finish_light_field(scene, rho, res, J, rel, colour=True))]:
+        prof = cProfile.Profile()
+        prof.enable()
+        fn()
+        sync()
+        prof.disable()
+        print(f"-- {name}: functions by own time")
+        pstats.Stats(prof).sort_stats("tottime").print_stats(14)
     # finer: the pieces of the finishing step
     from nebula_rt import postprocess as pp
 

@@ -3,10 +3,12 @@
 
     python benchmarks/tune_cuda.py [--variant FILE.cl ...] [--out FILE.json]
 
-Times the transport kernels (median of repeats, after a warm-up) as built, with NVRTC
-register caps (32, 40, 48), with 128-thread blocks, and each extra kernel named with
-``--variant`` (a transport source in ``kernels/``, e.g. an older version kept aside for
-comparison). Scenes:
+Times the transport kernels (median of repeats, after a warm-up) as built, with each of the
+kernel's performance options (``TRANSPORT_TUNING``: unchecked adds, density prefetch,
+work-group tallies) switched off alone and all together, with 128-thread blocks, and each
+extra kernel named with ``--variant`` (a transport source in ``kernels/``, e.g. an older
+version kept aside for comparison). Every configuration must give the same bits: the sums of
+each scene are compared with the first configuration's. Scenes:
 
   - neb128 (uniform, tau 1 centre to face, a = g = 0.6, one band) with 2.1M and 21M photons;
   - the thesis nebula at 128^3, 3 bands x 2.1M packets.
@@ -17,6 +19,7 @@ The kernel time is the sum over the launches (trace + fold), as the other benchm
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import statistics
 import sys
@@ -27,7 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).parent))
 
 
-def kernel_ms(backend, scene, repeats: int) -> float:
+def kernel_ms(backend, scene, repeats: int):
     from nebula_rt.pipeline import Pipeline
     from nebula_rt.transport import trace
 
@@ -39,8 +42,13 @@ def kernel_ms(backend, scene, repeats: int) -> float:
                      max_scatterings=t.max_scatterings, seed=t.seed, backend=backend, on_device=True)
 
     once(10_000)  # compile
-    times = [once(t.photons).timings["kernel_s"] * 1e3 for _ in range(repeats)]
-    return statistics.median(times)
+    times, digest = [], None
+    for _ in range(repeats):
+        res = once(t.photons)
+        times.append(res.timings["kernel_s"] * 1e3)
+        s1, s2 = (a.get() for a in res.device_sums.host_sums())
+        digest = hashlib.sha256(s1.tobytes() + s2.tobytes() + res.counts.tobytes()).hexdigest()[:16]
+    return statistics.median(times), digest
 
 
 def main(argv=None) -> int:
@@ -58,22 +66,30 @@ def main(argv=None) -> int:
     scenes = {"neb128 2.1M": (nebula_scene(2_100_000, "cuda", ""), 2_100_000),
               "neb128 21M": (nebula_scene(21_000_000, "cuda", ""), 21_000_000),
               "thesis 128^3 3x2.1M": (thesis, 3 * 2_100_000)}
-    configs = [("transport.cl", (), 256)]
-    configs += [("transport.cl", (f"--maxrregcount={r}",), 256) for r in (32, 40, 48)]
-    configs += [("transport.cl", (), 128)]
-    configs += [(v, (), 256) for v in args.variant]
-    rows = []
-    for source, opts, block in configs:
-        be = CUDABackend("", compile_options=opts, trace_block=block)
+    from nebula_rt.backends.base import TRANSPORT_TUNING
+
+    none = {k: 0 for k in TRANSPORT_TUNING}
+    block = CUDABackend("").trace_block
+    configs = [("transport.cl", {}, block)]
+    configs += [("transport.cl", {k: 0}, block) for k in TRANSPORT_TUNING]
+    configs += [("transport.cl", dict(none, **{k: 1}), block) for k in TRANSPORT_TUNING]
+    configs += [("transport.cl", none, 256), ("transport.cl", {}, 64), ("transport.cl", {}, 256)]
+    configs += [("transport.cl", {}, -block)]  # negative: with contracted a * b + c (--fmad=true)
+    configs += [(v, none, 256) for v in args.variant]
+    rows, digests = [], {}
+    for source, tuning, block in configs:
+        be = CUDABackend("", trace_block=abs(block), transport_tuning=tuning, fmad=block < 0)
         be.transport_program = source
-        row = {"source": source, "options": list(opts), "block": block}
+        label = ",".join(f"{k[4:].lower()}={v}" for k, v in tuning.items()) or "default"
+        row = {"source": source, "tuning": tuning, "block": abs(block), "fmad": block < 0}
         for name, (scene, packets) in scenes.items():
-            ms = kernel_ms(be, scene, args.repeats if "21M" not in name else max(1, args.repeats // 2))
-            row[name] = {"kernel_ms": round(ms, 3), "packets_per_ms": round(packets / ms)}
+            ms, digest = kernel_ms(be, scene, args.repeats if "21M" not in name else max(1, args.repeats // 2))
+            same = digests.setdefault(name, digest) == digest
+            row[name] = {"kernel_ms": round(ms, 3), "packets_per_ms": round(packets / ms), "same_bits": same}
         rows.append(row)
-        print(f"{source:20s} {' '.join(opts) or '(default)':19s} block {block:3d} " + "  ".join(
-            f"{k}: {v['kernel_ms']:7.2f} ms ({v['packets_per_ms'] / 1e3:6.1f}k/ms)" for k, v in row.items()
-            if isinstance(v, dict)), flush=True)
+        print(f"{source:18s} {label:44s} block {abs(block):3d}{' fmad' if block < 0 else ''} " + "  ".join(
+            f"{k}: {v['kernel_ms']:7.2f} ms ({v['packets_per_ms'] / 1e3:6.1f}k/ms{'' if v['same_bits'] else ' BITS DIFFER'})"
+            for k, v in row.items() if isinstance(v, dict) and "kernel_ms" in v), flush=True)
     if args.out:
         import cupy as cp
 

@@ -44,13 +44,83 @@
 #define NRT_ACC_LIMIT (1UL << NRT_ACC_LIMIT_BITS)
 #define NRT_INF_F 3.0e38f
 
-NRT_DEVICE void nrt_acc_add(NRT_GLOBAL nrt_u64 *cell, nrt_u64 v, NRT_GLOBAL nrt_u32 *overflow)
+/*
+ * Performance options (all give the same bits; benchmarks/tune_cuda.py measures them):
+ *   NRT_ACC_RED      deposits are added without reading the old value back (a reduction the
+ *                    GPU need not wait for); the fold then flags any cell at or past the
+ *                    headroom limit. The host enables it only where no cell can wrap past
+ *                    2^64 within one launch, so "final >= limit" is exactly "some partial
+ *                    sum reached the limit" (deposits are non-negative), and on a flag it
+ *                    re-runs with checked adds.
+ *   NRT_PREFETCH     load the density of the voxel the packet steps into next while the
+ *                    current voxel is being scored (the DDA path does not depend on the
+ *                    density, so the load's latency overlaps this voxel's work).
+ *   NRT_GROUP_TALLY  per work group, the packet tallies and the deposits into the emitting
+ *                    star's voxel (every packet's first segment: the hottest cells of a point
+ *                    source) are summed in local memory and added to global memory once.
+ *   NRT_IDX32        32-bit voxel indices (grids below 2^32 voxels).
+ */
+#ifndef NRT_ACC_RED
+#define NRT_ACC_RED 0
+#endif
+#ifndef NRT_PREFETCH
+#define NRT_PREFETCH 0
+#endif
+#ifndef NRT_GROUP_TALLY
+#define NRT_GROUP_TALLY 0
+#endif
+#ifndef NRT_IDX32
+#define NRT_IDX32 0
+#endif
+#if NRT_IDX32
+typedef nrt_u32 nrt_idx;
+#else
+typedef nrt_u64 nrt_idx;
+#endif
+/* stars whose voxel gets a work-group accumulator */
+#define NRT_HOT_STARS 4
+#define NRT_NO_VOXEL ((nrt_idx)(-1))
+
+/* Add v to a fixed-point cell, raising *overflow if the cell reaches the headroom limit. */
+NRT_DEVICE void nrt_acc_add_checked(NRT_GLOBAL nrt_u64 *cell, nrt_u64 v, NRT_GLOBAL nrt_u32 *overflow)
 {
     if (v == 0)
         return;
     nrt_u64 old = NRT_ATOMIC_ADD_U64(cell, v);
     if (v >= NRT_ACC_LIMIT || old >= NRT_ACC_LIMIT - v)
         NRT_ATOMIC_OR_U32(overflow, 1u);
+}
+
+/* A transport deposit: checked, or (NRT_ACC_RED) a reduction checked by the fold. */
+NRT_DEVICE void nrt_acc_add(NRT_GLOBAL nrt_u64 *cell, nrt_u64 v, NRT_GLOBAL nrt_u32 *overflow)
+{
+#if NRT_ACC_RED
+    if (v != 0)
+        NRT_ATOMIC_ADD_U64(cell, v);
+#else
+    nrt_acc_add_checked(cell, v, overflow);
+#endif
+}
+
+/* Fixed-point units of x at `scale` units per 1, rounded to nearest with one rounding (an
+   explicit fused multiply-add: the same bits whatever a compiler would contract). */
+NRT_DEVICE nrt_u64 nrt_fixed(float x, float scale)
+{
+    return (nrt_u64)NRT_FMAF(x, scale, 0.5f);
+}
+
+/* Flat index (x fastest) of voxel (ix, iy, iz). */
+NRT_DEVICE nrt_idx nrt_voxel_index(int ix, int iy, int iz, int nx, int ny)
+{
+    return (nrt_idx)ix + (nrt_idx)nx * ((nrt_idx)iy + (nrt_idx)ny * (nrt_idx)iz);
+}
+
+/* Voxel of a point (clamped into the box). */
+NRT_DEVICE void nrt_voxel_of(const float *p, int nx, int ny, int nz, int *ix, int *iy, int *iz)
+{
+    *ix = min(max((int)floor(p[0] * (float)nx), 0), nx - 1);
+    *iy = min(max((int)floor(p[1] * (float)ny), 0), ny - 1);
+    *iz = min(max((int)floor(p[2] * (float)nz), 0), nz - 1);
 }
 
 /* Distance (box units) from p along d to the exit face of voxel [i h, (i+1) h) on one axis. */
@@ -101,7 +171,8 @@ NRT_DEVICE float nrt_hg_phase(float g, float mu)
     g = fmin(fmax(g, -NRT_G_LIMIT), NRT_G_LIMIT); /* as the sampling clamps it */
     float gg = g * g;
     float den = 1.0f + gg - 2.0f * g * mu;
-    return (1.0f - gg) / (4.0f * NRT_PI_F * den * sqrt(den));
+    /* 1 - g^2 as (1 - |g|)(1 + |g|): no cancellation as |g| -> 1 */
+    return ((1.0f - fabs(g)) * (1.0f + fabs(g))) / (4.0f * NRT_PI_F * den * sqrt(den));
 }
 
 /* Optical depth from x (in voxel ix, iy, iz) along o to the edge of the box. */
@@ -112,7 +183,7 @@ NRT_DEVICE float nrt_tau_to_edge(const NRT_GLOBAL float *density, float sig_b, c
     float inv_o[3] = {1.0f / o[0], 1.0f / o[1], 1.0f / o[2]};
     float t_cur = 0.0f, tau = 0.0f;
     for (;;) {
-        nrt_u64 idx = (nrt_u64)ix + (nrt_u64)nx * ((nrt_u64)iy + (nrt_u64)ny * (nrt_u64)iz);
+        nrt_idx idx = nrt_voxel_index(ix, iy, iz, nx, ny);
         float tx = nrt_face_distance(x[0], o[0], inv_o[0], ix, hx);
         float ty = nrt_face_distance(x[1], o[1], inv_o[1], iy, hy);
         float tz = nrt_face_distance(x[2], o[2], inv_o[2], iz, hz);
@@ -139,20 +210,57 @@ NRT_DEVICE void nrt_peel(const NRT_GLOBAL float *density, float sig_b, float g_b
         return;
     float mu = d[0] * o[0] + d[1] * o[1] + d[2] * o[2];
     float wgt = nrt_hg_phase(g_b, mu) * exp(-nrt_tau_to_edge(density, sig_b, x, o, ix, iy, iz, nx, ny, nz));
-    nrt_acc_add(&band_image[(nrt_u64)pi * (nrt_u64)h + (nrt_u64)qi], (nrt_u64)(wgt * peel_scale + 0.5f), overflow);
+    nrt_acc_add_checked(&band_image[(nrt_u64)pi * (nrt_u64)h + (nrt_u64)qi], nrt_fixed(wgt, peel_scale),
+                        overflow);
 }
 #endif
 
 /*
+ * Where a packet's tallies and its deposits into its star's voxel go: global memory, or, for
+ * the packets of a work group's home cell (NRT_GROUP_TALLY), the group's local sums.
+ */
+typedef struct {
+    NRT_GLOBAL nrt_u64 *tally;  /* this cell's 4 global tallies */
+    NRT_LOCAL nrt_u64 *l_tally; /* the group's 4 local tallies (home cell) */
+    NRT_LOCAL nrt_u64 *l_hot;   /* the group's sum for this packet's star voxel (home cell) */
+    int home;                   /* the packet belongs to the group's home cell */
+} nrt_sink;
+
+NRT_DEVICE void nrt_count(const nrt_sink *k, int which)
+{
+#if NRT_GROUP_TALLY
+    if (k->home) {
+        NRT_ATOMIC_ADD_U64_LOCAL(&k->l_tally[which], 1UL);
+        return;
+    }
+#endif
+    NRT_ATOMIC_ADD_U64(&k->tally[which], 1UL);
+}
+
+/* Deposit v into voxel idx of this band's slot (hot: the voxel whose sum is kept locally). */
+NRT_DEVICE void nrt_deposit(const nrt_sink *k, NRT_GLOBAL nrt_u64 *band_acc, nrt_idx idx, nrt_idx hot,
+                            nrt_u64 v, NRT_GLOBAL nrt_u32 *overflow)
+{
+#if NRT_GROUP_TALLY
+    if (idx == hot) {
+        if (v != 0)
+            NRT_ATOMIC_ADD_U64_LOCAL(k->l_hot, v);
+        return;
+    }
+#endif
+    nrt_acc_add(&band_acc[idx], v, overflow);
+}
+
+/*
  * Trace one packet of one band to its end. Deposits go to band_acc (this batch's slot, this
- * band), the outcome to band_tally[1..3] (emitted is counted by the caller).
+ * band), the outcome to tally 1..3 of the sink (emitted is counted by the caller).
  */
 NRT_DEVICE void nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, float alb_b,
                                  float g_b, const NRT_GLOBAL float *stars,
                                  const NRT_GLOBAL float *cdf, int nx, int ny, int nz,
                                  int n_stars, nrt_u64 seed, int band, nrt_u64 photon,
                                  int max_scatterings, float track_scale,
-                                 NRT_GLOBAL nrt_u64 *band_acc, NRT_GLOBAL nrt_u64 *band_tally,
+                                 NRT_GLOBAL nrt_u64 *band_acc, nrt_sink *sink,
                                  NRT_GLOBAL nrt_u32 *overflow, const NRT_GLOBAL float *peel,
                                  float peel_scale, NRT_GLOBAL nrt_u64 *band_image)
 {
@@ -169,9 +277,16 @@ NRT_DEVICE void nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, f
             ++s;
     }
     float p[3] = {stars[4 * s], stars[4 * s + 1], stars[4 * s + 2]};
-    int ix = min(max((int)floor(p[0] * (float)nx), 0), nx - 1);
-    int iy = min(max((int)floor(p[1] * (float)ny), 0), ny - 1);
-    int iz = min(max((int)floor(p[2] * (float)nz), 0), nz - 1);
+    int ix, iy, iz;
+    nrt_voxel_of(p, nx, ny, nz, &ix, &iy, &iz);
+    nrt_idx idx = nrt_voxel_index(ix, iy, iz, nx, ny);
+    nrt_idx hot = NRT_NO_VOXEL;
+#if NRT_GROUP_TALLY
+    if (sink->home && s < NRT_HOT_STARS) {
+        hot = idx;
+        sink->l_hot += s;
+    }
+#endif
     float d[3];
     nrt_sample_isotropic(&rng, d);
 
@@ -190,23 +305,30 @@ NRT_DEVICE void nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, f
        the flight's length. */
     float p0[3] = {p[0], p[1], p[2]};
     float t_cur = 0.0f;
+    float rho = density[idx];
     for (;;) {
-        nrt_u64 idx = (nrt_u64)ix + (nrt_u64)nx * ((nrt_u64)iy + (nrt_u64)ny * (nrt_u64)iz);
         float tx = nrt_face_distance(p0[0], d[0], inv_d[0], ix, hx);
         float ty = nrt_face_distance(p0[1], d[1], inv_d[1], iy, hy);
         float tz = nrt_face_distance(p0[2], d[2], inv_d[2], iz, hz);
         float t_next = fmin(tx, fmin(ty, tz));
         float seg = fmax(0.0f, t_next - t_cur);
-        float sigma = sig_b * density[idx];
+        /* the neighbour across the nearest face */
+        int jx = ix, jy = iy, jz = iz;
+        int leaving = nrt_step_voxel(&jx, &jy, &jz, tx, ty, tz, d, nx, ny, nz);
+        nrt_idx jdx = leaving ? idx : nrt_voxel_index(jx, jy, jz, nx, ny);
+#if NRT_PREFETCH
+        float rho_next = density[jdx];
+#endif
+        float sigma = sig_b * rho;
         float tau_seg = sigma * seg;
         if (sigma > 0.0f && tau_seg >= tau) {
             /* the interaction happens inside this voxel */
             float t = tau / sigma;
 #if NRT_TRACK_LENGTH
-            nrt_acc_add(&band_acc[idx], (nrt_u64)(t * track_scale + 0.5f), overflow);
+            nrt_deposit(sink, band_acc, idx, hot, nrt_fixed(t, track_scale), overflow);
 #endif
 #if NRT_COLLISION
-            nrt_acc_add(&band_acc[idx], 1UL, overflow);
+            nrt_deposit(sink, band_acc, idx, hot, 1UL, overflow);
 #endif
             float t_int = t_cur + t;
             p0[0] = p0[0] + d[0] * t_int;
@@ -214,11 +336,11 @@ NRT_DEVICE void nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, f
             p0[2] = p0[2] + d[2] * t_int;
             /* scatter with probability albedo (analog Russian roulette), else absorbed */
             if (nrt_rng_uniform(&rng) >= alb_b) {
-                NRT_ATOMIC_ADD_U64(&band_tally[1], 1UL);
+                nrt_count(sink, 1);
                 return;
             }
             if (scatterings >= max_scatterings) {
-                NRT_ATOMIC_ADD_U64(&band_tally[3], 1UL);
+                nrt_count(sink, 3);
                 return;
             }
             ++scatterings;
@@ -238,15 +360,23 @@ NRT_DEVICE void nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, f
             continue;
         }
 #if NRT_TRACK_LENGTH
-        nrt_acc_add(&band_acc[idx], (nrt_u64)(seg * track_scale + 0.5f), overflow);
+        nrt_deposit(sink, band_acc, idx, hot, nrt_fixed(seg, track_scale), overflow);
 #endif
         tau -= tau_seg;
         t_cur = fmax(t_cur, t_next);
-        /* step into the neighbour across the nearest face */
-        if (nrt_step_voxel(&ix, &iy, &iz, tx, ty, tz, d, nx, ny, nz)) {
-            NRT_ATOMIC_ADD_U64(&band_tally[2], 1UL);
+        if (leaving) {
+            nrt_count(sink, 2);
             return;
         }
+        ix = jx;
+        iy = jy;
+        iz = jz;
+        idx = jdx;
+#if NRT_PREFETCH
+        rho = rho_next;
+#else
+        rho = density[idx];
+#endif
     }
 }
 
@@ -288,19 +418,59 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL float *density, /* nx*ny*nz, x fa
     nrt_u64 nvox = (nrt_u64)nx * (nrt_u64)ny * (nrt_u64)nz;
     nrt_u64 total = count * (nrt_u64)n_bands;
     nrt_u64 stride = NRT_GLOBAL_SIZE();
+    /* the home cell (batch slot and band) of the group: that of its first packet */
+    nrt_u64 home_cell = 0, home_slot = 0;
+    nrt_sink sink;
+#if NRT_GROUP_TALLY
+    NRT_LOCAL_MEM nrt_u64 l_tally[4];
+    NRT_LOCAL_MEM nrt_u64 l_hot[NRT_HOT_STARS];
+    nrt_u64 lid = NRT_LOCAL_ID();
+    if (lid < 4)
+        l_tally[lid] = 0;
+    if (lid < NRT_HOT_STARS)
+        l_hot[lid] = 0;
+    {
+        nrt_u64 t0 = NRT_GROUP_FIRST_ID();
+        home_slot = nrt_batch_of(photon_start + t0 % count, batch_base, batch_extra) - first_batch;
+        home_cell = home_slot * (nrt_u64)n_bands + (nrt_u64)(t0 / count);
+    }
+    sink.l_tally = l_tally;
+    NRT_BARRIER();
+#else
+    sink.l_tally = 0;
+#endif
     for (nrt_u64 t = NRT_GLOBAL_ID(); t < total; t += stride) {
         int band = (int)(t / count);
         nrt_u64 photon = photon_start + t % count;
         nrt_u64 slot = nrt_batch_of(photon, batch_base, batch_extra) - first_batch;
         nrt_u64 cell = slot * (nrt_u64)n_bands + (nrt_u64)band;
-        NRT_GLOBAL nrt_u64 *band_tally = tallies + 4 * cell;
-        NRT_ATOMIC_ADD_U64(&band_tally[0], 1UL);
+        sink.tally = tallies + 4 * cell;
+        sink.home = NRT_GROUP_TALLY && cell == home_cell;
+#if NRT_GROUP_TALLY
+        sink.l_hot = l_hot;
+#else
+        sink.l_hot = 0;
+#endif
+        nrt_count(&sink, 0);
         nrt_trace_packet(density, sigma_scale[band], albedo[band], asym_g[band], stars,
                          star_cdf + band * n_stars, nx, ny, nz, n_stars, seed, band, photon,
-                         max_scatterings, track_scale, acc + cell * nvox, band_tally,
+                         max_scatterings, track_scale, acc + cell * nvox, &sink,
                          overflow + slot, peel, peel_scale,
                          image + (NRT_PEEL ? cell * (nrt_u64)peel[13] * (nrt_u64)peel[14] : 0));
     }
+#if NRT_GROUP_TALLY
+    /* the group's local sums go to global memory once */
+    NRT_BARRIER();
+    if (lid < 4 && l_tally[lid] != 0)
+        NRT_ATOMIC_ADD_U64(&tallies[4 * home_cell + lid], l_tally[lid]);
+    if (lid < NRT_HOT_STARS && (int)lid < n_stars && l_hot[lid] != 0) {
+        float p[3] = {stars[4 * lid], stars[4 * lid + 1], stars[4 * lid + 2]};
+        int ix, iy, iz;
+        nrt_voxel_of(p, nx, ny, nz, &ix, &iy, &iz);
+        nrt_acc_add(&acc[home_cell * nvox + (nrt_u64)nrt_voxel_index(ix, iy, iz, nx, ny)], l_hot[lid],
+                    overflow + home_slot);
+    }
+#endif
 }
 
 /*
@@ -308,20 +478,24 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL float *density, /* nx*ny*nz, x fa
  * sums of the batch totals and of their squares (for the batch-means error estimate), and
  * clear them. A slot whose overflow flag is set is cleared without folding (the host re-traces
  * that batch in halves). Each cell is folded by one work item in a fixed order, so the float64
- * sums are deterministic.
+ * sums are deterministic. With NRT_ACC_RED the deposits were not checked as they were added:
+ * a cell at or past the headroom limit raises *seen (the host then re-runs with checked adds).
  */
 NRT_KERNEL void fold_batches(NRT_GLOBAL nrt_u64 *acc, NRT_GLOBAL double *sum1,
                              NRT_GLOBAL double *sum2, const NRT_GLOBAL nrt_u32 *overflow,
-                             int n_slots, nrt_u64 n)
+                             int n_slots, nrt_u64 n, NRT_GLOBAL nrt_u32 *seen)
 {
     nrt_u64 gid = NRT_GLOBAL_ID();
     if (gid >= n)
         return;
     double s1 = sum1[gid], s2 = sum2[gid];
+    int past = 0;
     for (int g = 0; g < n_slots; ++g) {
         nrt_u64 i = (nrt_u64)g * n + gid;
+        nrt_u64 a = acc[i];
+        past |= a >= NRT_ACC_LIMIT;
         if (!overflow[g]) {
-            double x = (double)acc[i];
+            double x = (double)a;
             s1 += x;
             s2 += x * x;
         }
@@ -329,6 +503,8 @@ NRT_KERNEL void fold_batches(NRT_GLOBAL nrt_u64 *acc, NRT_GLOBAL double *sum1,
     }
     sum1[gid] = s1;
     sum2[gid] = s2;
+    if (NRT_ACC_RED && past)
+        NRT_ATOMIC_OR_U32(seen, 1u);
 }
 
 /* Clear a 64-bit buffer. */

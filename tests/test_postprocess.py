@@ -134,12 +134,14 @@ def test_page_locked_result_buffers_are_reused(backend, monkeypatch):
     rho = Pipeline(backend).density(scene)
     res, J, rel = compute_light(scene, rho, backend)
     ref = finish_light_field(scene, rho, res, J, rel)
+    n0 = len(backend._pinned_pool)  # rho and ref hold theirs
     first = Pipeline(backend).run(scene)
-    n_after_first = len(backend._pinned_pool)
+    per_run = len(backend._pinned_pool) - n0  # density, J, rel_error, emissivity, rgba
+    assert per_run == 5
     second = Pipeline(backend).run(scene)  # the first run's arrays are alive: new buffers
-    assert len(backend._pinned_pool) == 2 * n_after_first
+    assert len(backend._pinned_pool) == n0 + 2 * per_run
     np.testing.assert_array_equal(first.J, ref.J)
     np.testing.assert_array_equal(second.rgba, first.rgba)
     del first
     Pipeline(backend).run(scene)  # reuses the freed ones
-    assert len(backend._pinned_pool) == 2 * n_after_first
+    assert len(backend._pinned_pool) == n0 + 2 * per_run

@@ -147,14 +147,18 @@ def finish(ds: DeviceSums, band_params: np.ndarray, *, batches: int, collision: 
                   np.float64(exposure), J32, rel32, emis32, key, rgba)
 
     run(0, 1.0)
+    # the float32 outputs are final now: their copies overlap the exposure and colour pass
+    hosts = [be.host_empty((nb, nz, ny, nx), np.float32) for _ in range(3)]
+    copies = [be.to_host_async(arr, h) for arr, h in zip((J32, rel32, emis32), hosts)]
     exposure = float("nan")
     h_rgba = None
     if c is not None:
         exposure = auto_exposure_on_device(be, key, nvox, c.percentile) if c.exposure == "auto" else float(c.exposure)
         run(1, exposure)
         h_rgba = be.to_host(rgba, be.host_empty((nz, ny, nx, 4), np.uint8)).transpose(2, 1, 0, 3)
-    out = [be.to_host(arr, be.host_empty((nb, nz, ny, nx), np.float32)).transpose(0, 3, 2, 1)
-           for arr in (J32, rel32, emis32)]
+    for handle in copies:
+        be.wait_copy(handle)
+    out = [h.transpose(0, 3, 2, 1) for h in hosts]
     nbytes = sum(int(x.nbytes) for x in (J32, rel32, emis32, key, rgba, d_params, d_rgb))
     return FinishedArrays(J=out[0], rel_error=out[1], emissivity=out[2], rgba=h_rgba, exposure=exposure,
                           device_bytes=nbytes)

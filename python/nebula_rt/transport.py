@@ -286,6 +286,23 @@ def _current_error(session, folded, estimator, band_lum, photons, track_scale, n
     return lit_region_error(J, rel, xp.asarray(sigma_host))
 
 
+def _no_wrap(packets_per_batch: int, max_scatterings: int, estimator: str, track_scale: float,
+             shape) -> bool:
+    """Whether no fixed-point cell of a batch slot can pass 2^64 within one launch, so that
+    deposits may be added unchecked and the headroom checked afterwards.
+
+    A flight is a straight segment: it crosses a (convex) voxel at most once and ends once, so
+    a packet makes at most max_scatterings + 1 deposits into one cell, each at most one voxel
+    diagonal of track (or 1 collision).
+    """
+    if estimator == "track-length":
+        diagonal = math.sqrt(sum((1.0 / n) ** 2 for n in shape))
+        per_deposit = track_scale * diagonal * 1.001 + 1.0  # float32 segment rounding
+    else:
+        per_deposit = 1.0
+    return packets_per_batch * (max_scatterings + 1) * per_deposit < 2.0**64
+
+
 def _j_scale(q, estimator: str, track_scale: float, nvox_inv: float):
     """J per unit of the sums: per fixed-point track unit, or per collision count / sigma."""
     if estimator == "track-length":
@@ -312,6 +329,7 @@ def trace(
     target_error: float = 0.0,
     time_limit: float = 0.0,
     peel=None,
+    _checked_adds: bool = False,
 ) -> TransportResult:
     """Trace ``photons`` packets per band through ``density`` and estimate J.
 
@@ -350,6 +368,7 @@ def trace(
         Leave the sums on the device (``result.device_sums``, for
         :func:`nebula_rt.postprocess.finish`) instead of computing J and rel_error on the host.
     """
+    call = dict(locals())
     t0 = time.perf_counter()
     density = np.asarray(density, dtype=np.float32)
     shape = density.shape
@@ -383,6 +402,9 @@ def trace(
     plan = batch_plan(photons, batch_size)
     nb = len(bands)
     base, extra = divmod(int(photons), len(plan))
+    if not _checked_adds:
+        setup = dataclasses.replace(setup, unchecked_adds=_no_wrap(base + 1, max_scatterings, estimator,
+                                                                   track_scale, shape))
     sigma_host = sigma_scale[:, None, None, None] * density.astype(np.float64)[None] if targeted else None
     peel_sum = 0.0 if peel is None else np.zeros((nb,) + tuple(peel.size), np.float64)
     achieved = float("nan")
@@ -454,6 +476,11 @@ def trace(
                 done += h_count
                 if progress is not None:
                     progress(done, photons)
+        if setup.unchecked_adds and session.overflow_seen():
+            # a cell reached the headroom limit unnoticed during a launch: trace again with
+            # every add checked (same packets, same bits as a checked run)
+            session.close()
+            return trace(**dict(call, _checked_adds=True))
         counts_i64 = np.array(counts.tolist(), dtype=np.int64)
         budget, photons = int(photons), int(done)
         q = np.array([exact_packet_energy(L, photons) for L in band_lum])

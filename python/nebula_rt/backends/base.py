@@ -8,6 +8,7 @@ OpenCL and CUDA paths are interchangeable.
 from __future__ import annotations
 
 import abc
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -58,6 +59,9 @@ class TransportSetup:
     #: (0, 0), pixel size, W, H), fixed-point units per 1/sr, or None for no image
     peel: object = None
     peel_scale: float = 0.0
+    #: no fixed-point cell can wrap past 2^64 within one launch (see ``trace``), so deposits may
+    #: be added without reading the old value back and checked by the fold instead
+    unchecked_adds: bool = False
 
     @property
     def peel_pixels(self) -> int:
@@ -69,15 +73,27 @@ class TransportSetup:
         return int(self.sigma_scale.shape[0])
 
 
-def transport_defines(setup: TransportSetup) -> dict:
+#: Performance options of the transport kernel (kernels/transport.cl; all give the same bits),
+#: on by default where they were measured faster (benchmarks/tune_cuda.py). A backend's
+#: ``transport_tuning`` overrides them (the tuning benchmark switches them one by one).
+TRANSPORT_TUNING = {"NRT_ACC_RED": 1, "NRT_PREFETCH": 1, "NRT_GROUP_TALLY": 1}
+
+
+def transport_defines(setup: TransportSetup, tuning: dict | None = None) -> dict:
     """Compile-time options of the transport kernel: only the estimator the scene asks for is
-    built, and the accumulator headroom (lowered only by tests)."""
+    built, the accumulator headroom (lowered only by tests) and the performance options."""
     defines = {"track-length": {"NRT_TRACK_LENGTH": 1}, "collision-filter": {"NRT_COLLISION": 1}}[setup.estimator]
     defines = dict(defines)
     if setup.acc_limit_bits != 63:
         defines["NRT_ACC_LIMIT_BITS"] = int(setup.acc_limit_bits)
     if setup.peel is not None:
         defines["NRT_PEEL"] = 1
+    opts = dict(TRANSPORT_TUNING, **(tuning or {}))
+    if not setup.unchecked_adds:
+        opts["NRT_ACC_RED"] = 0
+    if int(np.prod(setup.density.shape)) < 2**32:
+        opts.setdefault("NRT_IDX32", 1)
+    defines.update({k: int(v) for k, v in opts.items() if v})
     return defines
 
 
@@ -103,6 +119,11 @@ class TransportSession(abc.ABC):
     def fold(self, n_slots: int) -> None:
         """Add slots 0..n_slots-1 (in order, except those that overflowed) to the running sums
         (and their squares) and clear them."""
+
+    @abc.abstractmethod
+    def overflow_seen(self) -> bool:
+        """Whether a fold found a cell at or past the headroom limit (only adds that were not
+        checked as they happened, ``TransportSetup.unchecked_adds``, leave this to the fold)."""
 
     @abc.abstractmethod
     def sums(self) -> tuple[np.ndarray, np.ndarray]:
@@ -205,6 +226,23 @@ class Backend(abc.ABC):
     #: packets (all bands) worth one launch, and bytes the batch slots may take
     launch_packets: int = 1 << 21
     slot_memory_budget: int = 1 << 30
+    #: overrides of ``TRANSPORT_TUNING`` for this backend (benchmarks)
+    transport_tuning: dict = {}
+
+    # --- the density stays on the device ------------------------------------------------------
+    def _keep_resident(self, host: np.ndarray, dev) -> np.ndarray:
+        """Remember ``dev`` as the device copy of the (now read-only) host density ``host``, so
+        that a transport through the same array uses it instead of uploading it again."""
+        host.flags.writeable = False  # the device copy must stay a copy of it
+        self._resident_density = (weakref.ref(host), dev)
+        return host
+
+    def resident_density(self, host: np.ndarray):
+        """The device copy of ``host`` made by :meth:`generate_density`, or None."""
+        entry = getattr(self, "_resident_density", None)
+        if entry is not None and entry[0]() is host and not host.flags.writeable:
+            return entry[1]
+        return None
 
     # --- device arrays, for the post-processing on the device -------------------------------
     # Device arrays are CuPy arrays (CUDA) or pyopencl.array.Array (OpenCL), always flat.
@@ -224,6 +262,17 @@ class Backend(abc.ABC):
     @abc.abstractmethod
     def to_host(self, dev, out: np.ndarray | None = None) -> np.ndarray:
         """Copy a device array to the host (into ``out``, contiguous, if given)."""
+
+    def to_host_async(self, dev, out: np.ndarray):
+        """Start copying a device array into the host array ``out`` (page-locked, from
+        :meth:`host_empty`) once the work queued so far is done, without waiting for it; work
+        queued afterwards may overlap the copy. Returns a handle for :meth:`wait_copy`.
+        Default: a synchronous copy."""
+        self.to_host(dev, out)
+        return None
+
+    def wait_copy(self, handle) -> None:
+        """Wait until the copy started by :meth:`to_host_async` has arrived."""
 
     @abc.abstractmethod
     def launch(self, prog_name: str, kernel_name: str, n: int, *args, defines: dict | None = None) -> None:

@@ -15,6 +15,9 @@ from ..kernel_source import kernel_source
 from .base import Backend, TransportSession, TransportSetup, transport_defines
 
 BLOCK = 256
+#: threads per block of the transport kernel: smaller blocks retire sooner after their slowest
+#: packet (H100, thesis 128^3 3 x 2.1M: 11.8 ms at 128 against 14.0 ms at 256)
+TRACE_BLOCK = 128
 
 
 def _cupy():
@@ -57,7 +60,9 @@ class CUDATransport(TransportSession):
         self.nvox = int(np.prod(self.shape))
         self.ncell = nb * self.nvox
         self.slots = int(slots)
-        self.d_density = cp.asarray(np.ravel(np.asarray(setup.density, np.float32), order="F"))
+        resident = backend.resident_density(setup.density)
+        self.d_density = (resident if resident is not None else
+                          cp.asarray(np.ravel(np.asarray(setup.density, np.float32), order="F")))
         self.d_sigma = cp.asarray(np.asarray(setup.sigma_scale, np.float32))
         self.d_albedo = cp.asarray(np.asarray(setup.albedo, np.float32))
         self.d_g = cp.asarray(np.asarray(setup.g, np.float32))
@@ -70,9 +75,10 @@ class CUDATransport(TransportSession):
         self.d_sum2 = cp.zeros(self.ncell, cp.float64)
         self.d_tallies = cp.zeros(self.slots * nb * 4, cp.uint64)
         self.d_overflow = cp.zeros(self.slots, cp.uint32)
+        self.d_seen = cp.zeros(1, cp.uint32)
         self.d_peel = cp.asarray(np.zeros(15, np.float32) if setup.peel is None else np.asarray(setup.peel, np.float32))
         self.d_image = cp.zeros(max(1, self.slots * nb * setup.peel_pixels), cp.uint64)
-        defines = transport_defines(setup)
+        defines = transport_defines(setup, backend.transport_tuning)
         self.k_trace = backend.kernel(backend.transport_program, "trace_photons", defines)
         self.k_fold = backend.kernel(backend.transport_program, "fold_batches", defines)
 
@@ -96,7 +102,10 @@ class CUDATransport(TransportSession):
 
     def fold(self, n_slots):
         self.k_fold(_grid(self.ncell), (BLOCK,), (self.d_acc, self.d_sum1, self.d_sum2, self.d_overflow,
-                                                 np.int32(n_slots), np.uint64(self.ncell)))
+                                                 np.int32(n_slots), np.uint64(self.ncell), self.d_seen))
+
+    def overflow_seen(self):
+        return bool(self.d_seen.get()[0])
 
     def sums_on_device(self):
         nb = self.setup.n_bands
@@ -130,11 +139,16 @@ class CUDABackend(Backend):
 
     name = "cuda"
 
-    def __init__(self, selector: str = "", *, compile_options: tuple = (), trace_block: int = BLOCK):
-        """``compile_options``: extra NVRTC options (e.g. ``("--maxrregcount=40",)``) and
-        ``trace_block``: threads per block of the transport kernel -- tuning knobs measured by
-        ``benchmarks/tune_cuda.py``."""
+    def __init__(self, selector: str = "", *, compile_options: tuple = (), trace_block: int = TRACE_BLOCK,
+                 transport_tuning: dict | None = None, fmad: bool = False):
+        """``compile_options``: extra NVRTC options (e.g. ``("--maxrregcount=40",)``),
+        ``trace_block``: threads per block of the transport kernel and ``transport_tuning``:
+        overrides of the kernel's performance options (``base.TRANSPORT_TUNING``) -- tuning
+        knobs measured by ``benchmarks/tune_cuda.py``; ``fmad``: let NVRTC contract a * b + c
+        (off by default, see ``_compile``)."""
         cp = _cupy()
+        self.fmad = bool(fmad)
+        self.transport_tuning = dict(transport_tuning or {})
         self.compile_options = tuple(compile_options)
         self.trace_block = int(trace_block)
         self.cp = cp
@@ -160,7 +174,11 @@ class CUDABackend(Backend):
         self.slot_memory_budget = int(free) // 4
 
     def _compile(self, name, defines):
-        options = ("--std=c++14",) + self.compile_options + tuple(f"-D{k}={v}" for k, v in sorted(defines.items()))
+        # --fmad=false: no contraction of a * b + c into one rounding (as OpenCL's FP_CONTRACT
+        # OFF in nebula_common.h), so the float arithmetic is the same whatever the compiler
+        # makes of the surrounding code: every kernel option and both GPU backends give the
+        # same bits, and CUDA, NVIDIA OpenCL and PoCL differ only in their math functions
+        options = ("--std=c++14", f"--fmad={'true' if self.fmad else 'false'}") + self.compile_options + tuple(f"-D{k}={v}" for k, v in sorted(defines.items()))
         return self.cp.RawModule(code=kernel_source(name), options=options)
 
     def _get_kernel(self, module, kernel_name):
@@ -178,7 +196,10 @@ class CUDABackend(Backend):
             np.float32(offset[0]), np.float32(offset[1]), np.float32(offset[2]),
             np.float32(scale), np.float32(uniform_density), np.float32(floor),
             d_stars, np.int32(len(stars)), np.int32(subsamples)))
-        return out.get().reshape((nz, ny, nx)).transpose(2, 1, 0)
+        # into page-locked memory (4x faster than pageable); the device copy stays for the transport
+        host = self.host_empty((nz, ny, nx), np.float32)
+        out.get(out=host.reshape(-1))
+        return self._keep_resident(host.transpose(2, 1, 0), out)
 
     def transport_session(self, setup, slots):
         return CUDATransport(self, setup, slots)
@@ -209,6 +230,26 @@ class CUDABackend(Backend):
             return dev.get()
         dev.get(out=out.reshape(dev.shape))
         return out
+
+    def to_host_async(self, dev, out):
+        """On a second stream, after an event on the current one: copies of the finished
+        arrays overlap the exposure and colour kernels."""
+        cp = self.cp
+        if getattr(self, "_copy_stream", None) is None:
+            self._copy_stream = cp.cuda.Stream(non_blocking=True)
+        ready = cp.cuda.Event(disable_timing=True)
+        ready.record()
+        self._copy_stream.wait_event(ready)
+        assert out.flags.c_contiguous and out.nbytes == dev.nbytes
+        cp.cuda.runtime.memcpyAsync(out.ctypes.data, dev.data.ptr, dev.nbytes,
+                                    cp.cuda.runtime.memcpyDeviceToHost, self._copy_stream.ptr)
+        done = cp.cuda.Event(disable_timing=True)
+        done.record(self._copy_stream)
+        return done, dev  # the device array must live until the copy is done
+
+    def wait_copy(self, handle):
+        if handle is not None:
+            handle[0].synchronize()
 
     def launch(self, prog_name, kernel_name, n, *args, defines=None):
         self.kernel(prog_name, kernel_name, defines)(_grid(max(int(n), 1)), (BLOCK,), args)

@@ -110,7 +110,10 @@ class OpenCLTransport(TransportSession):
         def ro(a, dtype):
             return cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(a, dtype=dtype))
 
-        self.d_density = ro(np.asfortranarray(setup.density, dtype=np.float32).ravel(order="F"), np.float32)
+        resident = backend.resident_density(setup.density)
+        self.own_density = resident is None
+        self.d_density = (resident if resident is not None else
+                          ro(np.asfortranarray(setup.density, dtype=np.float32).ravel(order="F"), np.float32))
         self.d_sigma = ro(setup.sigma_scale, np.float32)
         self.d_albedo = ro(setup.albedo, np.float32)
         self.d_g = ro(setup.g, np.float32)
@@ -132,7 +135,9 @@ class OpenCLTransport(TransportSession):
         self.image_cells = max(1, self.slots * nb * setup.peel_pixels)
         self.d_image = cl.Buffer(ctx, mf.READ_WRITE, size=8 * self.image_cells)
         cl.enqueue_fill_buffer(q, self.d_image, np.uint64(0), 0, 8 * self.image_cells)
-        defines = transport_defines(setup)
+        self.d_seen = cl.Buffer(ctx, mf.READ_WRITE, size=4)
+        cl.enqueue_fill_buffer(q, self.d_seen, np.uint32(0), 0, 4)
+        defines = transport_defines(setup, backend.transport_tuning)
         self.k_trace = backend.kernel(backend.transport_program, "trace_photons", defines)
         self.k_fold = backend.kernel(backend.transport_program, "fold_batches", defines)
 
@@ -159,7 +164,13 @@ class OpenCLTransport(TransportSession):
 
     def fold(self, n_slots):
         self.k_fold(self.backend.queue, (self.ncell,), None, self.d_acc, self.d_sum1, self.d_sum2,
-                    self.d_overflow, np.int32(n_slots), np.uint64(self.ncell))
+                    self.d_overflow, np.int32(n_slots), np.uint64(self.ncell), self.d_seen)
+
+    def overflow_seen(self):
+        h = np.zeros(1, np.uint32)
+        cl.enqueue_copy(self.backend.queue, h, self.d_seen)
+        self.backend.queue.finish()
+        return bool(h[0])
 
     def sums(self):
         q = self.backend.queue
@@ -198,7 +209,8 @@ class OpenCLTransport(TransportSession):
         for name in ("d_acc", "d_sum1", "d_sum2", "d_density"):
             buf = getattr(self, name, None)
             if buf is not None:
-                buf.release()
+                if name != "d_density" or self.own_density:  # not the backend's resident copy
+                    buf.release()
                 setattr(self, name, None)
 
 
@@ -207,11 +219,17 @@ class OpenCLBackend(Backend):
 
     name = "opencl"
 
-    def __init__(self, selector: str = ""):
+    def __init__(self, selector: str = "", *, transport_tuning: dict | None = None):
+        """``transport_tuning``: overrides of the transport kernel's performance options
+        (``base.TRANSPORT_TUNING``), for benchmarks."""
         self.device, self._device_name = select_device(selector)
         self.context = cl.Context([self.device])
         self.queue = cl.CommandQueue(self.context)
         self.is_gpu = bool(self.device.type & cl.device_type.GPU)
+        # On a CPU the work-group tallies cost more (barriers split PoCL's work-item loops) than
+        # the contention they save: neb128 2e5 packets, 2-core PoCL, 665 vs 567 ms.
+        self.transport_tuning = {} if self.is_gpu else {"NRT_GROUP_TALLY": 0}
+        self.transport_tuning.update(transport_tuning or {})
         mem = int(self.device.global_mem_size)
         # a GPU launch should hold millions of packets; a CPU launch ~2M (a few seconds on PoCL,
         # so progress and cancellation stay responsive)
@@ -244,10 +262,11 @@ class OpenCLBackend(Backend):
             np.float32(scale), np.float32(uniform_density), np.float32(floor),
             d_stars, np.int32(len(stars)), np.int32(subsamples),
         )
-        h = np.empty(n, np.float32)
+        h = self.host_empty((nz, ny, nx), np.float32)
         cl.enqueue_copy(self.queue, h, out)
         self.queue.finish()
-        return h.reshape((nz, ny, nx)).transpose(2, 1, 0)
+        # the device copy stays for the transport
+        return self._keep_resident(h.transpose(2, 1, 0), out)
 
     def transport_session(self, setup, slots):
         return OpenCLTransport(self, setup, slots)
@@ -293,6 +312,21 @@ class OpenCLBackend(Backend):
         cl.enqueue_copy(self.queue, out.reshape(-1), dev.data)
         self.queue.finish()
         return out
+
+    def to_host_async(self, dev, out):
+        """On a second command queue, after a marker on the first: copies of the finished
+        arrays overlap the exposure and colour kernels."""
+        if getattr(self, "_copy_queue", None) is None:
+            self._copy_queue = cl.CommandQueue(self.context)
+        ready = cl.enqueue_marker(self.queue)
+        self.queue.flush()
+        assert out.flags.c_contiguous and out.nbytes == dev.nbytes
+        return cl.enqueue_copy(self._copy_queue, out.reshape(-1), dev.data, is_blocking=False,
+                               wait_for=[ready]), dev
+
+    def wait_copy(self, handle):
+        if handle is not None:
+            handle[0].wait()
 
     def launch(self, prog_name, kernel_name, n, *args, defines=None):
         array_type = _cl_array().Array

@@ -1,0 +1,145 @@
+"""The transport kernel's performance options change where sums are formed, never their value.
+
+``TRANSPORT_TUNING`` (kernels/transport.cl): unchecked adds checked by the fold, the next
+voxel's density loaded ahead, work-group sums of the tallies and of the star voxels. Integer
+addition is associative, so every combination must give the same bits as every other; the
+unchecked adds must detect an overflow as surely as checked ones (and then re-run checked);
+and the density made on the device must be used there without a second upload.
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+from conftest import TEST_BACKEND, TEST_DEVICE, centre_star, one_band
+
+from nebula_rt import sky
+from nebula_rt.backends.base import TRANSPORT_TUNING, transport_defines
+from nebula_rt.bands import Band
+from nebula_rt.scene import Star
+from nebula_rt.transport import FIXED_POINT_BITS, _no_wrap, trace
+
+OPTIONS = tuple(TRANSPORT_TUNING)
+
+
+def _bands():
+    return [Band(name="B", wavelength=450.0, extinction=1.3, albedo=0.6, g=0.5),
+            Band(name="R", wavelength=650.0, extinction=0.8, albedo=0.7, g=-0.3)]
+
+
+def _stars():
+    # two stars, one on a voxel face: the work-group sums cover both star voxels
+    return [Star(position=(0.5, 0.5, 0.5), luminosity=1.0, temperature=None, bump_radius=0.0),
+            Star(position=(0.25, 0.625, 0.4), luminosity=0.6, temperature=None, bump_radius=0.0)]
+
+
+@pytest.fixture(scope="module")
+def cloud():
+    rng = np.random.default_rng(11)
+    return (rng.random((20, 16, 12)) ** 3).astype(np.float32)
+
+
+def _backend(tuning):
+    if TEST_BACKEND == "cuda":
+        from nebula_rt.backends.cuda import CUDABackend
+
+        return CUDABackend(TEST_DEVICE, transport_tuning=tuning)
+    from nebula_rt.backends.opencl import OpenCLBackend
+
+    return OpenCLBackend(TEST_DEVICE, transport_tuning=tuning)
+
+
+@pytest.mark.parametrize("estimator", ["track-length", "collision-filter"])
+def test_every_option_combination_gives_the_same_bits(cloud, estimator):
+    """All 2^3 combinations: identical batch sums, sums of squares and packet counts (with a
+    batch plan of several launches and a peel-off image, which keeps checked adds); the images
+    agree to the rounding of their float weights."""
+    camera = sky.Camera(direction=(0.0, 0.0, -1.0), size=(12, 10))
+    results = []
+    for combo in itertools.product((0, 1), repeat=len(OPTIONS)):
+        be = _backend(dict(zip(OPTIONS, combo)))
+        be.launch_packets = 3 * 2 * 1500  # several launches of 3 batches
+        results.append(trace(cloud, _bands(), _stars(), tau=25.0, photons=9000, batch_size=1500,
+                             seed=4, estimator=estimator, backend=be, peel=camera))
+    ref = results[0]
+    assert ref.counts[:, 0].tolist() == [9000, 9000]
+    for res in results[1:]:
+        np.testing.assert_array_equal(res.raw_sum, ref.raw_sum)
+        np.testing.assert_array_equal(res.raw_sum2, ref.raw_sum2)
+        np.testing.assert_array_equal(res.counts, ref.counts)
+        # Peel-off weights (phase x exp(-tau) to the edge) and pixel positions are float
+        # expressions. With contraction of a * b + c off (CUDA --fmad=false, PoCL honouring
+        # FP_CONTRACT OFF) every build rounds them alike and the images match bit for bit.
+        # NVIDIA's OpenCL compiler contracts them differently in different builds (54 of 240
+        # pixels differed): a deposit may round to the next unit or land in the neighbouring
+        # pixel, which conserves the image's total.
+        if TEST_BACKEND == "cuda" or "Portable" in be.device_name:
+            np.testing.assert_array_equal(res.peel_image, ref.peel_image)
+        else:
+            np.testing.assert_allclose(res.peel_image.sum(axis=(1, 2)), ref.peel_image.sum(axis=(1, 2)), rtol=1e-6)
+
+
+def test_unchecked_adds_detect_overflow_and_rerun_checked(cloud):
+    """Headroom lowered to 2^36 (16 crossings of the smallest voxel): the hot cells pass it.
+    With unchecked adds the fold sees it and the run is repeated with checked adds; the result
+    equals a run checked from the start, and both equal the run with full headroom."""
+    kw = dict(tau=25.0, photons=12_000, seed=6)
+    fast = trace(cloud, one_band(), centre_star(), _acc_limit_bits=36, backend=_backend({"NRT_ACC_RED": 1}), **kw)
+    checked = trace(cloud, one_band(), centre_star(), _acc_limit_bits=36, backend=_backend({"NRT_ACC_RED": 0}), **kw)
+    normal = trace(cloud, one_band(), centre_star(), backend=_backend({}), **kw)
+    assert checked.batches > normal.batches  # the overflow happened and was split
+    for res in (fast, checked):
+        np.testing.assert_array_equal(res.raw_sum, normal.raw_sum)
+        np.testing.assert_array_equal(res.counts, normal.counts)
+    assert fast.batches == checked.batches
+
+
+def test_unchecked_adds_only_within_the_no_wrap_bound():
+    """The bound: packets per batch x (max_scatterings + 1) flights x one voxel diagonal of
+    track must stay below 2^64; beyond it the kernel is built with checked adds."""
+    scale = 2.0**FIXED_POINT_BITS * 128
+    assert _no_wrap(2**20, 1000, "track-length", scale, (128, 128, 128))  # the defaults: 2^62.8
+    assert not _no_wrap(2**22, 1000, "track-length", scale, (128, 128, 128))  # 2^64.8
+    assert not _no_wrap(2**20, 10_000, "track-length", scale, (128, 128, 128))
+    assert _no_wrap(2**40, 1000, "collision-filter", scale, (128, 128, 128))  # 1 per interaction
+    # a flat box: the diagonal is measured in units of the smallest edge
+    assert not _no_wrap(2**20, 1000, "track-length", 2.0**32 * 1024, (1024, 2, 2))
+    from nebula_rt.backends.base import TransportSetup
+
+    setup = TransportSetup(density=np.zeros((4, 4, 4), np.float32), sigma_scale=np.ones(1, np.float32),
+                           albedo=np.ones(1, np.float32), g=np.zeros(1, np.float32),
+                           stars=np.zeros((1, 3), np.float32), star_cdf=np.ones((1, 1), np.float32),
+                           estimator="track-length", max_scatterings=10, seed=1, track_scale=1.0)
+    assert "NRT_ACC_RED" not in transport_defines(setup)  # unchecked_adds defaults to False
+    import dataclasses
+
+    assert transport_defines(dataclasses.replace(setup, unchecked_adds=True))["NRT_ACC_RED"] == 1
+    assert "NRT_ACC_RED" not in transport_defines(dataclasses.replace(setup, unchecked_adds=True),
+                                                  {"NRT_ACC_RED": 0})
+
+
+def test_device_density_is_used_without_a_second_upload(backend):
+    """generate_density leaves its result on the device and hands back a read-only host copy;
+    the transport uses the device copy for exactly that array, uploads any other array, and
+    both give the same bits."""
+    from nebula_rt import density as dens
+    from nebula_rt.scene import Scene
+
+    scene = Scene.from_dict({"grid": {"shape": [12, 10, 8]}, "dust": {"model": "turbulence", "tau": 30.0},
+                             "transport": {"photons": 4000}})
+    rho = dens.generate_density(scene, backend)
+    assert not rho.flags.writeable
+    with pytest.raises(ValueError):
+        rho[0, 0, 0] = 1.0
+    assert backend.resident_density(rho) is not None
+    copy = np.array(rho)  # writable: not the resident array
+    assert backend.resident_density(copy) is None
+    kw = dict(tau=30.0, photons=4000, seed=3, backend=backend)
+    a = trace(rho, one_band(), centre_star(), **kw)
+    b = trace(copy, one_band(), centre_star(), **kw)
+    np.testing.assert_array_equal(a.raw_sum, b.raw_sum)
+    # the resident copy survives a transport (its session does not free it)
+    c = trace(rho, one_band(), centre_star(), **kw)
+    np.testing.assert_array_equal(c.raw_sum, a.raw_sum)
