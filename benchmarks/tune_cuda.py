@@ -5,9 +5,10 @@
 
 Times the transport kernels (median of repeats, after a warm-up) as built, with each of the
 kernel's performance options (``TRANSPORT_TUNING``: unchecked adds, density prefetch,
-work-group tallies) switched off alone and all together, with 128-thread blocks, and each
-extra kernel named with ``--variant`` (a transport source in ``kernels/``, e.g. an older
-version kept aside for comparison). Every configuration must give the same bits: the sums of
+work-group tallies) switched off alone, on alone and all off, with 64- and 256-thread blocks
+(default 128), with contracted a * b + c (``--fmad=true``), and each extra kernel named with
+``--variant`` (a transport source in ``kernels/``, e.g. an older version kept aside for
+comparison). Every configuration without contraction must give the same bits: the sums of
 each scene are compared with the first configuration's. Scenes:
 
   - neb128 (uniform, tau 1 centre to face, a = g = 0.6, one band) with 2.1M and 21M photons;
