@@ -20,11 +20,10 @@
  *   NRT_COLLISION:    every interaction adds 1 to the voxel it happens in (J = count / sigma).
  *
  * Accumulation is in unsigned 64-bit fixed point with integer atomics: integer addition is
- * associative, so the sums are exact and identical whatever the thread order. Every atomic add
- * checks its headroom against 2^63 and raises *overflow instead of wrapping silently; the host
- * then re-traces the batch in halves (same photons, same random numbers). (Adding without
- * reading the old value back, with one check after the launch, was measured: no faster on an
- * H100, 30.8 vs 30.9 ms for the thesis headline's kernels.)
+ * associative, so the sums are exact and identical whatever the thread order. A cell that
+ * reaches 2^63 raises *overflow instead of wrapping silently (checked as it is added, or by the
+ * fold with NRT_ACC_RED, see below); the host then re-traces the batch in halves (same photons,
+ * same random numbers).
  *
  * Tallies per band (tallies[4 b + t]): 0 emitted, 1 absorbed, 2 escaped, 3 terminated.
  */
