@@ -39,3 +39,26 @@ def centre_star(luminosity=1.0, position=(0.5, 0.5, 0.5)):
 def voxel_centres(shape):
     axes = [(np.arange(n) + 0.5) / n for n in shape]
     return np.meshgrid(*axes, indexing="ij")
+
+
+@pytest.fixture
+def small_fs(tmp_path):
+    """A real 256 KiB file system (tmpfs) to fill up, and a read-only one; root only (mount),
+    skipped elsewhere with the reason. Yields (writable folder, read-only folder)."""
+    import subprocess
+
+    if os.geteuid() != 0:
+        pytest.skip("mounting a small tmpfs needs root")
+    rw, ro = tmp_path / "small", tmp_path / "readonly"
+    rw.mkdir()
+    ro.mkdir()
+    for path, opts in ((rw, "size=256k"), (ro, "size=64k,ro")):
+        r = subprocess.run(["mount", "-t", "tmpfs", "-o", opts, "tmpfs", str(path)], capture_output=True, text=True)
+        if r.returncode != 0:
+            subprocess.run(["umount", str(rw)], capture_output=True)
+            pytest.skip(f"cannot mount a tmpfs here: {r.stderr.strip()}")
+    try:
+        yield rw, ro
+    finally:
+        for path in (rw, ro):
+            subprocess.run(["umount", "-l", str(path)], capture_output=True)

@@ -134,14 +134,54 @@ def test_failed_writes_leave_no_file(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["good.vti"]
 
 
-def test_vtk_writer_failure_raises_oserror(tmp_path, capfd):
-    # The temporary file cannot be created (a directory has its name): the
-    # VTK writer itself fails, and its error becomes an OSError.
-    (tmp_path / ".e.vti.tmp").mkdir()
-    with pytest.raises(OSError, match="e.vti"):
-        write_vti(tmp_path / "e.vti", {"a": _index_grid()}, {}, SPACING)
-    assert not (tmp_path / "e.vti").exists()
+def test_vtk_writer_failure_raises_oserror(small_fs, capfd):
+    """A full disk: the VTK writer itself fails half way; its error becomes an OSError that says
+    "No space left on device", the old file stays as it was and no temporary file remains."""
+    import errno
+
+    folder, readonly = small_fs
+    old = folder / "e.vti"
+    write_vti(old, {"a": _index_grid()}, {}, SPACING)
+    before = old.read_bytes()
+    noise = np.random.default_rng(1).random((64, 64, 32)).astype(np.float32)  # 512 KiB, incompressible
+    with pytest.raises(OSError, match="No space left on device") as err:
+        write_vti(old, {"a": noise}, {}, SPACING)
+    assert err.value.errno == errno.ENOSPC and err.value.filename == str(old)
+    assert old.read_bytes() == before
+    assert sorted(p.name for p in folder.iterdir()) == ["e.vti"]
+    # a read-only file system: refused as it is, nothing created
+    with pytest.raises(OSError):
+        write_vti(readonly / "r.vti", {"a": _index_grid()}, {}, SPACING)
+    assert list(readonly.iterdir()) == []
     assert "ERR" not in capfd.readouterr().err
+
+
+def test_concurrent_writers_never_share_a_file(tmp_path):
+    """Writers of one path in several threads: each uses its own temporary file, the survivor
+    is one complete file (one writer's data, bit for bit) and nothing temporary remains."""
+    import threading
+
+    target = tmp_path / "same.vti"
+    grids = [_index_grid() + 1000 * k for k in range(4)]
+    errors = []
+
+    def write(k):
+        try:
+            for _ in range(3):
+                write_vti(target, {"a": grids[k]}, {"k": k}, SPACING)
+        except Exception as exc:  # pragma: no cover - reported below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=write, args=(k,)) for k in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors
+    arrays, fd = read_vti(target)[:2]
+    k = int(fd["k"])
+    np.testing.assert_array_equal(arrays["a"], grids[k])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["same.vti"]
 
 
 def test_read_errors(tmp_path, capfd):

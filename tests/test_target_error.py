@@ -75,8 +75,28 @@ def test_budget_ends_a_run_that_cannot_reach_its_target(backend):
 
 def test_time_limit_ends_a_run(backend):
     res = absorber_run(backend, target_error=1e-4, time_limit=1e-9)
-    # stopped at the first check, after MIN_BATCHES of the TARGET_BATCHES batches
-    assert MIN_BATCHES <= res.batches < 256 and res.photons < res.photons_budget
+    # stopped after the first launch: its finished batches are the result, the error is theirs
+    assert 1 <= res.batches < 256 and res.photons < res.photons_budget
+    assert res.counts[0, 0] == res.photons and 0 < res.achieved_error < 1
+
+
+@pytest.mark.parametrize("target", [0.0, 1e-3])
+def test_time_limit_holds_whatever_the_budget(backend, target):
+    """A budget of 10^12 packets per band with a 2 s limit ends after about 2 s (launches are
+    sized to LAUNCH_SECONDS by the measured speed; the batch plan costs O(1) memory), with or
+    without a target error, and keeps only finished batches (exact energies)."""
+    import time
+
+    from nebula_rt.transport import LAUNCH_SECONDS
+
+    t0 = time.perf_counter()
+    res = absorber_run(backend, photons=10**12, target_error=target, time_limit=2.0)
+    wall = time.perf_counter() - t0
+    # the limit plus one launch, plus the finishing of a 16^3 grid (generous for a loaded CPU)
+    assert wall < 2.0 + 2 * LAUNCH_SECONDS + 1.5, wall
+    assert 1 <= res.batches and res.photons < res.photons_budget == 10**12
+    e = res.energy[0]
+    assert res.counts[0, 0] == res.photons and e[0] == e[1] + e[2] + e[3]
 
 
 def test_quality_presets():

@@ -8,12 +8,17 @@ from __future__ import annotations
 
 import argparse
 import json
-import signal
+import os
 import sys
 import time
 from pathlib import Path
 
-from .errors import BackendUnavailableError, CancelledError, NebulaError, SceneError
+from .errors import (BackendUnavailableError, CancelledError, NebulaError, OutputError, ResourceError,
+                     SceneError)
+from .interrupts import SignalCancel
+
+#: pixels per side of the sky image of ``nebula-rt compare``
+MIN_SKY_SIZE, MAX_SKY_SIZE = 8, 4096
 
 
 def _scene_from_args(args):
@@ -36,59 +41,109 @@ def _scene_from_args(args):
     return scene
 
 
-def _render(args) -> int:
+#: upper bound of a PNG volume rendering (800 x 800 RGBA plus headers), for the free-space check
+PNG_BYTES = 800 * 800 * 4 + 65536
+
+
+def _vti_bytes(scene) -> int:
+    """Upper bound of the ``.vti`` a scene writes (uncompressed arrays plus headers)."""
+    import math
+
+    nvox = math.prod(scene.grid.shape)
+    nb = len(scene.bands.resolve())
+    return nvox * (4 + 12 * nb + (4 if nb > 1 else 0)) + (1 << 20)
+
+
+def _require_io(option: str, path, png: bool = False) -> None:
+    """VTK (and pyvista for a PNG) must import before a trace whose output needs them."""
+    import importlib.util
+
+    missing = [m for m in (("vtkmodules", "pyvista") if png else ("vtkmodules",))
+               if importlib.util.find_spec(m) is None]
+    if missing:
+        raise OutputError(option, path, f"writing it needs {', '.join(missing)}: "
+                                        "pip install 'nebula-rt[io]'")
+
+
+def _backend_for(scene):
+    from .backends import get_backend
+
+    backend = get_backend(scene.transport.backend, scene.transport.device)
+    check = getattr(backend, "check_build", None)
+    if check is not None:
+        check()
+    return backend
+
+
+def _print_summary(summary: dict) -> None:
+    """Print the run's summary; a closed or broken stdout loses only the summary (the outputs
+    are already published)."""
+    if sys.stdout is None:
+        return
+    try:
+        print(json.dumps(summary, indent=2), flush=True)
+    except (OSError, ValueError):
+        try:  # keep the interpreter's own flush at exit quiet too
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        except (OSError, ValueError):
+            pass
+
+
+def _render(args, cancel) -> int:
+    from .outputs import Output, Publication, check_outputs
     from .pipeline import Pipeline
 
     scene = _scene_from_args(args)
     out = Path(args.output)
-    if out.suffix.lower() != ".vti":
-        raise SceneError("--output", str(out), "must end in .vti")
-    if not out.parent.exists():
-        raise SceneError("--output", str(out), f"folder {out.parent} does not exist")
-    if args.png and not Path(args.png).parent.exists():
-        raise SceneError("--png", str(args.png), f"folder {Path(args.png).parent} does not exist")
-
-    interrupted = {"flag": False}
-
-    def on_sigint(signum, frame):  # cancel cleanly between batches; a second Ctrl-C kills
-        if interrupted["flag"]:
-            raise KeyboardInterrupt
-        interrupted["flag"] = True
-        print("\ncancelling after the current batch (Ctrl-C again to abort now)", file=sys.stderr)
-
-    old = signal.signal(signal.SIGINT, on_sigint)
-    bar = None
-    try:
-        from tqdm import tqdm
-
-        bar = tqdm(total=scene.transport.effective()[0], unit="pkt", unit_scale=True, desc="tracing",
-                   disable=args.quiet, file=sys.stderr)
-
-        def progress(done, total):
-            bar.n = done
-            bar.refresh()
-
-        t0 = time.perf_counter()
-        light = Pipeline().run(scene, progress=progress, cancel=lambda: interrupted["flag"])
-    finally:
-        if bar is not None:
-            bar.close()
-        signal.signal(signal.SIGINT, old)
-
-    from .io_vti import write_vti
-
-    write_vti(out, light.point_arrays(), light.field_data(), light.spacing, light.origin)
+    outputs = [Output("--output", out, ".vti", _vti_bytes(scene))]
+    _require_io("--output", out)
     if args.png:
-        import numpy as np
+        outputs.append(Output("--png", Path(args.png), ".png", PNG_BYTES))
+        _require_io("--png", args.png, png=True)
+    check_outputs(outputs)
+    backend = _backend_for(scene)
+    pipe = Pipeline(backend)
+    from . import resources
 
-        from .pipeline import colour_rgba
-        from .render import render_rgba_png
+    resources.check(scene, backend)
+    cancel.check("start-up")
 
-        rgba = light.rgba
-        if rgba is None:  # one band: no colour stage ran; the PNG asks for one (star's colour)
-            rho = light.density.astype(np.float64)
-            rgba, _ = colour_rgba(scene, light.bands, rho, light.emissivity.astype(np.float64), light.transport)
-        render_rgba_png(args.png, rgba, light.spacing, light.origin)
+    bar = None
+    t0 = time.perf_counter()
+    with Publication() as pub:
+        try:
+            from tqdm import tqdm
+
+            bar = tqdm(total=scene.transport.effective()[0], unit="pkt", unit_scale=True, desc="tracing",
+                       disable=args.quiet, file=sys.stderr)
+
+            def progress(done, total):
+                bar.n = done
+                bar.refresh()
+
+            light = pipe.run(scene, progress=progress, cancel=cancel)
+        finally:
+            if bar is not None:
+                bar.close()
+        cancel.check("run")  # a cancel after the last launch publishes nothing either
+
+        from .io_vti import write_vti
+
+        write_vti(pub.stage(out), light.point_arrays(), light.field_data(), light.spacing, light.origin)
+        cancel.check("run")
+        if args.png:
+            import numpy as np
+
+            from .pipeline import colour_rgba
+            from .render import render_rgba_png
+
+            rgba = light.rgba
+            if rgba is None:  # one band: no colour stage ran; the PNG asks for one (star's colour)
+                rho = light.density.astype(np.float64)
+                rgba, _ = colour_rgba(scene, light.bands, rho, light.emissivity.astype(np.float64), light.transport)
+            render_rgba_png(pub.stage(args.png), rgba, light.spacing, light.origin)
+            cancel.check("run")
+        pub.publish()  # both outputs or neither
     elapsed = time.perf_counter() - t0
     tr = light.transport
     summary = {
@@ -98,6 +153,7 @@ def _render(args) -> int:
         "grid": list(light.density.shape),
         "bands": [b.name for b in light.bands],
         "photons_per_band": tr.photons,
+        "batches": tr.batches,
         "achieved_error": None if tr.achieved_error != tr.achieved_error else round(tr.achieved_error, 5),
         "wall_s": round(elapsed, 3),
         "timings_s": {k: round(v, 3) for k, v in light.timings.items()},
@@ -106,28 +162,42 @@ def _render(args) -> int:
         "escaped_fraction": {b.name: float(tr.counts[i, 2] / tr.photons) for i, b in enumerate(light.bands)},
     }
     if not args.quiet:
-        print(json.dumps(summary, indent=2))
+        _print_summary(summary)
     return 0
 
 
-def _compare(args) -> int:
+def _compare(args, cancel) -> int:
     """Trace a scene and measure its colours as an observer would, beside observed values."""
+    import math
+
     import numpy as np
 
-    from . import observe
+    from . import observe, resources
+    from .outputs import Output, Publication, check_outputs
 
     scene = _scene_from_args(args)
     try:
         direction = tuple(float(x) for x in args.direction.split(","))
-        assert len(direction) == 3 and any(direction)
+        assert len(direction) == 3 and any(direction) and all(math.isfinite(x) for x in direction)
     except (ValueError, AssertionError):
-        raise SceneError("--direction", args.direction, "must be three numbers x,y,z, not all 0") from None
+        raise SceneError("--direction", args.direction, "must be three finite numbers x,y,z, not all 0") from None
+    if not MIN_SKY_SIZE <= args.size <= MAX_SKY_SIZE:
+        raise SceneError("--size", args.size, f"must be an integer in [{MIN_SKY_SIZE}, {MAX_SKY_SIZE}] (pixels per side)")
+    wl = sorted(b.wavelength for b in scene.bands.resolve())
+    if len(wl) < 2 or wl[0] > 480.0 or wl[-1] < 520.0:
+        raise SceneError("bands", [round(w, 1) for w in wl],
+                         "nebula-rt compare measures B-V: it needs at least 2 bands, one at or "
+                         "below 480 nm and one at or above 520 nm (e.g. bands.preset = 'spectral-8')")
     png = Path(args.png)
-    if not png.parent.exists():
-        raise SceneError("--png", str(png), f"folder {png.parent} does not exist")
-    prof, res = observe.observe_scene(scene, direction=direction, size=args.size)
-    observe.plot(prof, png, title=f"{Path(args.scene).stem}: {len(res.band_luminosity)} bands, "
-                                  f"{res.photons:,} packets per band, peel-off image")
+    outputs = [Output("--png", png, ".png", 4 << 20)]
+    if args.json:
+        outputs.append(Output("--json", Path(args.json), ".json", 1 << 20))
+    check_outputs(outputs)
+    backend = _backend_for(scene)
+    resources.check(scene, backend, peel_pixels=args.size * args.size, peel_option="--size", peel_value=args.size)
+    cancel.check("start-up")
+    prof, res = observe.observe_scene(scene, direction=direction, size=args.size, backend=backend, cancel=cancel)
+    cancel.check("run")
     summary = {
         "scene": str(args.scene), "png": str(png),
         "offset": [round(float(x), 4) for x in prof.offset],
@@ -137,21 +207,28 @@ def _compare(args) -> int:
         "observed_mean_delta_bv_mag": observe.observations()["mean_delta_bv"]["value"],
         "single_scattering_delta_bv_mag": observe.observations()["single_scattering_delta_bv"]["range"],
     }
-    if args.json:
-        Path(args.json).write_text(json.dumps(summary, indent=2) + "\n")
-    print(json.dumps(summary, indent=2))
+    with Publication() as pub:  # the plot and the JSON, both or neither
+        observe.plot(prof, pub.stage(png), title=f"{Path(args.scene).stem}: {len(res.band_luminosity)} bands, "
+                                                 f"{res.photons:,} packets per band, peel-off image")
+        if args.json:
+            pub.stage(args.json).write_text(json.dumps(summary, indent=2) + "\n")
+        cancel.check("run")
+        pub.publish()
+    _print_summary(summary)
     return 0
 
 
-def _devices(args) -> int:
-    from .backends.opencl import list_devices
+def _devices(args, cancel) -> int:
+    from .backends.opencl import list_devices, probe_device
 
     found = list_devices()
     if not found:
         print("no OpenCL devices found")
         return 1
     for p, d, name, gpu in found:
-        print(f"opencl {p}:{d}  {name}  ({'GPU' if gpu else 'CPU/other'})")
+        problem = probe_device(f"{p}:{d}")
+        state = "usable" if problem is None else f"NOT usable: {problem}"
+        print(f"opencl {p}:{d}  {name}  ({'GPU' if gpu else 'CPU/other'}; {state})", flush=True)
     return 0
 
 
@@ -184,7 +261,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--backend", default=None, choices=["auto", "opencl", "cuda"])
     c.add_argument("--device", default=None, help="device selector (name substring or P:D)")
     c.add_argument("--direction", default="0,0,-1", help="viewing direction x,y,z (default 0,0,-1)")
-    c.add_argument("--size", type=int, default=128, help="sky image pixels per side")
+    c.add_argument("--size", type=int, default=128,
+                   help=f"sky image pixels per side ({MIN_SKY_SIZE}-{MAX_SKY_SIZE})")
     c.set_defaults(func=_compare)
     d = sub.add_parser("devices", help="list compute devices")
     d.set_defaults(func=_devices)
@@ -192,21 +270,56 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
+    """Run the command line; returns the exit status.
+
+    0 done; 1 a run that failed (an output that could not be written, an internal error); 2
+    bad input (a scene value, an option, an output path, more memory than there is: nothing
+    was written); 3 the backend or device cannot be used; 130 / 143 cancelled by SIGINT /
+    SIGTERM (nothing was written).
+    """
+    cancel = SignalCancel()
+    with cancel:
+        try:
+            args = build_parser().parse_args(argv)
+            cancel.quiet = bool(getattr(args, "quiet", False))
+            return args.func(args, cancel)
+        except SceneError as exc:
+            _error(f"invalid scene: {exc}; nothing written")
+            return 2
+        except (OutputError, ResourceError) as exc:
+            _error(f"{exc}; nothing written")
+            return 2
+        except BackendUnavailableError as exc:
+            _error(str(exc))
+            return 3
+        except CancelledError as exc:
+            _error(f"{exc}; nothing written")
+            return cancel.exit_status
+        except KeyboardInterrupt:
+            _error("aborted; nothing written")
+            return 130
+        except OSError as exc:
+            from .outputs import describe_os_error
+
+            where = f"{exc.filename}: " if exc.filename else ""
+            _error(f"{where}{describe_os_error(exc)}; nothing written")
+            return 1
+        except NebulaError as exc:
+            _error(str(exc))
+            return 1
+        except Exception as exc:  # a defect: one line, not a traceback (NEBULA_RT_DEBUG=1 shows it)
+            if os.environ.get("NEBULA_RT_DEBUG"):
+                raise
+            _error(f"internal error: {type(exc).__name__}: {exc} (set NEBULA_RT_DEBUG=1 for the "
+                   "traceback; nothing written)")
+            return 1
+
+
+def _error(message: str) -> None:
     try:
-        return args.func(args)
-    except SceneError as exc:
-        print(f"nebula-rt: invalid scene: {exc}", file=sys.stderr)
-        return 2
-    except BackendUnavailableError as exc:
-        print(f"nebula-rt: {exc}", file=sys.stderr)
-        return 3
-    except CancelledError as exc:
-        print(f"nebula-rt: {exc}; nothing written", file=sys.stderr)
-        return 130
-    except NebulaError as exc:
-        print(f"nebula-rt: {exc}", file=sys.stderr)
-        return 1
+        print(f"nebula-rt: {message}", file=sys.stderr, flush=True)
+    except (OSError, ValueError):
+        pass
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -71,8 +71,11 @@ def load_density_file(path: Path, array: str, shape: tuple[int, int, int]) -> np
 
 def generate_density(scene, backend: Backend) -> np.ndarray:
     """Density of ``scene`` on its grid, float32 (nx, ny, nz) (index [i, j, k] = x, y, z)."""
+    from .resources import check_density
+
     dust = scene.dust
     shape = tuple(scene.grid.shape)
+    check_density(shape, backend)
     stars = _stars_array(scene.stars)
     if dust.model == "turbulence":
         return backend.generate_density(

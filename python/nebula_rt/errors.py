@@ -27,12 +27,53 @@ class SceneError(NebulaError, ValueError):
         super().__init__(f"{parameter} = {value!r}: {allowed}")
 
 
+class OutputError(NebulaError, ValueError):
+    """An output file cannot be written as asked (checked before any work starts).
+
+    Parameters
+    ----------
+    option : str
+        The option naming the file (``--output``, ``--png``).
+    path : object
+        The path given.
+    reason : str
+        Why it cannot be written.
+    """
+
+    def __init__(self, option: str, path: object, reason: str):
+        self.option, self.path, self.reason = option, str(path), reason
+        super().__init__(f"{option} {str(path)!r}: {reason}")
+
+
+class ResourceError(NebulaError, MemoryError):
+    """A run would need more memory than the host or the device has (estimated before any
+    allocation).
+
+    Parameters
+    ----------
+    parameter : str
+        The scene parameter (or option) that drives the need, e.g. ``grid.shape``.
+    value : object
+        Its value.
+    detail : str
+        The estimate, its parts and the limit.
+    """
+
+    def __init__(self, parameter: str, value: object, detail: str):
+        self.parameter, self.value, self.detail = parameter, value, detail
+        super().__init__(f"{parameter} = {value!r}: {detail}")
+
+
 class BackendUnavailableError(NebulaError, RuntimeError):
     """The requested compute backend or device cannot be used here."""
 
 
 class CancelledError(NebulaError):
     """A run was cancelled between batches by its progress callback."""
+
+
+class TimeLimitError(NebulaError):
+    """A run's time limit passed before any batch of packets finished."""
 
 
 class AccumulatorOverflowError(NebulaError, OverflowError):

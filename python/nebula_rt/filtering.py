@@ -11,9 +11,22 @@ grows with r: features narrower than r are smeared.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from .array_api import array_module, fftconvolve_same
+
+
+def kernel_half_widths(shape: tuple[int, int, int], radius: float) -> tuple[int, int, int]:
+    """Voxels the kernel reaches on each side along x, y, z: floor(r / h), at most n - 1.
+
+    A same-size convolution never pairs voxels further apart than n - 1, so the kernel beyond
+    that is never used: cutting it there changes nothing in the normalised convolution (which
+    divides by the same kernel's in-box weight) and bounds its memory whatever the radius.
+    """
+    h = 1.0 / np.asarray(shape, dtype=np.float64)
+    return tuple(int(min(math.floor(radius / hh), n - 1)) for hh, n in zip(h, shape))
 
 
 def cubic_kernel(shape: tuple[int, int, int], radius: float) -> np.ndarray:
@@ -27,7 +40,7 @@ def cubic_kernel(shape: tuple[int, int, int], radius: float) -> np.ndarray:
         Kernel radius in box units. A radius under half a voxel gives the identity kernel.
     """
     h = 1.0 / np.asarray(shape, dtype=np.float64)
-    half = np.floor(radius / h).astype(int)
+    half = kernel_half_widths(shape, radius)
     axes = [np.arange(-m, m + 1) * hh for m, hh in zip(half, h)]
     dx, dy, dz = np.meshgrid(*axes, indexing="ij")
     d2 = (dx * dx + dy * dy + dz * dz) / (radius * radius)

@@ -32,6 +32,7 @@ Field data
 
 from __future__ import annotations
 
+import errno
 import math
 import numbers
 import os
@@ -438,9 +439,10 @@ def write_vti(
 
     Notes
     -----
-    The data go first to ``.<name>.tmp`` in the target's directory, which is
-    then renamed onto the target with :func:`os.replace`, so readers never see
-    a half-written file.
+    The data go first to a temporary file unique to this call in the target's
+    directory (``.nrt-<random>.tmp.vti``), which is then renamed onto the
+    target, so readers never see a half-written file and concurrent writers
+    never share one.
     """
     path = _as_path(path)
     field_data = {} if field_data is None else dict(field_data)
@@ -497,13 +499,13 @@ def write_vti(
 
     img = _build_image(flat_arrays, dims, field_data, spacing, origin)
 
-    # ---- write to a temporary file, then rename
-    tmp = path.with_name("." + path.name + ".tmp")
+    # ---- write to a temporary file unique to this call, then rename
+    from .outputs import Publication
+
     writer = vtkXMLImageDataWriter()
     catcher = _ErrorCatcher()
     catcher.attach(writer)
     writer.SetInputData(img)
-    writer.SetFileName(str(tmp))
     writer.SetDataModeToAppended()
     writer.EncodeAppendedDataOff()  # raw binary, not base64
     writer.SetHeaderTypeToUInt64()  # arrays larger than 4 GiB
@@ -511,20 +513,22 @@ def write_vti(
         writer.SetCompressorTypeToZLib()
     else:
         writer.SetCompressorTypeToNone()
-    try:
+    with Publication() as pub:
+        tmp = pub.stage(path)
+        writer.SetFileName(str(tmp))
         with _CapturedVtkMessages() as captured:
             ok = writer.Write()
         errors = catcher.errors + captured.errors
         if ok != 1 or writer.GetErrorCode() != 0 or errors:
             detail = "; ".join(errors) or f"VTK error code {writer.GetErrorCode()}"
+            # VTK reports the system error (errno) or its own OutOfDiskSpaceError (20007)
+            if writer.GetErrorCode() in (errno.ENOSPC, 20007):
+                raise OSError(errno.ENOSPC, f"No space left on device ({detail})", str(path))
             raise OSError(f"could not write {path}: {detail}")
         # Make the data durable before the rename makes them visible.
         with open(tmp, "rb") as fh:
             os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        _unlink_quietly(tmp)
-        raise
+        pub.publish()
     return path
 
 

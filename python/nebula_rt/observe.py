@@ -154,7 +154,7 @@ def profiles(light, direction=(0.0, 0.0, -1.0), size: int = 128, edges=None) -> 
 
 
 def observe_scene(scene, direction=(0.0, 0.0, -1.0), size: int = 128, edges=None, backend=None,
-                  progress=None) -> tuple[Profiles, object]:
+                  progress=None, cancel=None) -> tuple[Profiles, object]:
     """Trace ``scene`` with a peel-off image seen along ``direction`` (the phase function at
     every scattering towards the observer: forward and backward scattering as they are) and
     measure it as :func:`profiles` does. Returns (profiles, transport result)."""
@@ -173,7 +173,7 @@ def observe_scene(scene, direction=(0.0, 0.0, -1.0), size: int = 128, edges=None
     res = trace(generate_density(scene, backend), bands, scene.stars, tau=scene.dust.tau, photons=photons,
                 estimator=t.estimator, max_scatterings=t.max_scatterings, seed=t.seed,
                 batch_size=t.batch_size, backend=backend, target_error=target, time_limit=t.time_limit,
-                progress=progress, peel=cam)
+                progress=progress, cancel=cancel, peel=cam)
     d, u, v = cam.basis()
     prof = _annuli(res.peel_image, cam.origin(), cam.pixel_size, u, v, star.position, direction,
                    res.band_luminosity, wl, _dominant_source(scene.stars), edges)

@@ -176,7 +176,10 @@ class Pipeline:
         stage runs only when the transport or the colour settings changed (or ``colour`` is
         False: no rgba).
         """
+        from . import resources
+
         t0 = time.perf_counter()
+        resources.check(scene, self.backend_for(scene))  # before the density is allocated
         rho = self.density(scene)
         t1 = time.perf_counter()
         res, J, rel = self.light(scene, progress, cancel)
@@ -220,7 +223,10 @@ def compute_light(scene, density: np.ndarray, backend: Backend, progress=None, c
     smoothed J and error are CuPy arrays on CUDA, flat device arrays on OpenCL with pyvkfft
     (VkFFT), else NumPy arrays filtered on the host.
     """
+    from . import resources
+
     t = scene.transport
+    resources.check(scene, backend)
     photons, target_error = t.effective()
     res = trace(
         density,

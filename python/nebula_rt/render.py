@@ -40,19 +40,16 @@ def _prefer_egl_without_display() -> None:
 
 
 def _write_bytes_atomic(path: Path, data: bytes) -> None:
-    tmp = path.with_name("." + path.name + ".tmp")
-    try:
+    from .outputs import Publication
+
+    # a temporary file unique to this call, renamed onto the target once complete
+    with Publication() as pub:
+        tmp = pub.stage(path)
         with open(tmp, "wb") as fh:
             fh.write(data)
             fh.flush()
             os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            tmp.unlink()
-        except OSError:
-            pass
-        raise
+        pub.publish()
 
 
 def render_rgba_png(

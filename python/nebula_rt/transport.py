@@ -33,6 +33,7 @@ import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
+from collections.abc import Sequence
 from typing import Callable, Optional
 
 import numpy as np
@@ -40,7 +41,7 @@ import numpy as np
 from . import colour_convert
 from .array_api import array_module
 from .backends import Backend, TransportSetup
-from .errors import AccumulatorOverflowError, CancelledError
+from .errors import AccumulatorOverflowError, CancelledError, TimeLimitError
 from .postprocess import DeviceSums
 
 #: Default largest batch (packets per band per kernel launch). Larger batches amortise launch
@@ -135,8 +136,63 @@ def exact_packet_energy(luminosity: float, photons: int) -> float:
     return math.ldexp(math.floor(m * 2.0**bits) / 2.0**bits, e)
 
 
-def batch_plan(photons: int, batch_size: int = 0) -> list[tuple[int, int]]:
-    """Split ``photons`` packets into batches [(start, count), ...].
+class BatchPlan(Sequence):
+    """``photons`` packets split into ``m`` batches of (nearly) equal size, as a sequence of
+    (start, count), computed on demand: O(1) memory whatever the photon count (2**53 packets
+    are 2**33 batches).
+
+    The first ``extra`` batches hold ``base + 1`` packets, the rest ``base``
+    (``base, extra = divmod(photons, m)``), the layout the kernel's ``nrt_batch_of`` assumes.
+    """
+
+    __slots__ = ("photons", "m", "base", "extra")
+
+    def __init__(self, photons: int, m: int):
+        self.photons, self.m = int(photons), int(m)
+        self.base, self.extra = divmod(self.photons, self.m)
+
+    def __len__(self) -> int:
+        return self.m
+
+    def start(self, k: int) -> int:
+        """First packet of batch ``k`` (``k == len(self)`` gives ``photons``)."""
+        return k * self.base + min(k, self.extra)
+
+    def __getitem__(self, k):
+        if isinstance(k, slice):
+            return [self[i] for i in range(*k.indices(self.m))]
+        if k < 0:
+            k += self.m
+        if not 0 <= k < self.m:
+            raise IndexError(k)
+        return self.start(k), self.base + (1 if k < self.extra else 0)
+
+    def batches_within(self, first: int, end_packet: int) -> int:
+        """How many batches from ``first`` on end at or before packet ``end_packet``."""
+        k = first
+        # batches are at most base + 1 long: jump close, then step
+        if self.base > 0:
+            k = max(first, min(self.m, (end_packet - self.extra) // self.base) - 1)
+        while k < self.m and self.start(k + 1) <= end_packet:
+            k += 1
+        while k > first and self.start(k) > end_packet:
+            k -= 1
+        return k - first
+
+    def __eq__(self, other) -> bool:
+        if isinstance(other, BatchPlan):
+            return (self.photons, self.m) == (other.photons, other.m)
+        return NotImplemented
+
+    def __hash__(self) -> int:
+        return hash((self.photons, self.m))
+
+    def __repr__(self) -> str:
+        return f"BatchPlan(photons={self.photons}, batches={self.m})"
+
+
+def batch_plan(photons: int, batch_size: int = 0) -> BatchPlan:
+    """Split ``photons`` packets into batches: a :class:`BatchPlan` of (start, count).
 
     ``batch_size`` 0 chooses at least ``MIN_BATCHES`` batches of at most ``MAX_AUTO_BATCH``.
     Counts differ by at most one, so the batch totals are comparable for the error estimate.
@@ -144,17 +200,10 @@ def batch_plan(photons: int, batch_size: int = 0) -> list[tuple[int, int]]:
     """
     photons = int(photons)
     if batch_size and batch_size > 0:
-        m = max(1, math.ceil(photons / batch_size))
+        m = max(1, -(-photons // int(batch_size)))
     else:
-        m = max(MIN_BATCHES, math.ceil(photons / MAX_AUTO_BATCH))
-    m = min(m, photons)
-    base, extra = divmod(photons, m)
-    plan, start = [], 0
-    for k in range(m):
-        c = base + (1 if k < extra else 0)
-        plan.append((start, c))
-        start += c
-    return plan
+        m = max(MIN_BATCHES, -(-photons // MAX_AUTO_BATCH))
+    return BatchPlan(photons, min(m, photons))
 
 
 def star_band_luminosities(stars, wavelengths_nm) -> np.ndarray:
@@ -310,6 +359,57 @@ def _j_scale(q, estimator: str, track_scale: float, nvox_inv: float):
     return q / (4.0 * np.pi * nvox_inv)
 
 
+#: A launch lasts at most about this long (sized by the speed measured on the run's earlier
+#: launches), so that a cancel (Ctrl-C) or a time limit is honoured within it; a group of
+#: batches is then traced in several launches, which gives the same bits (absolute packet
+#: indices, integer deposits).
+LAUNCH_SECONDS = 0.25
+
+
+class _Launcher:
+    """Traces a group of batches in launches of at most about ``LAUNCH_SECONDS``, polling the
+    cancel callback before each and the deadline between them."""
+
+    def __init__(self, session, n_bands: int, backend, cancel, deadline: float):
+        self.session, self.nb, self.cancel, self.deadline = session, n_bands, cancel, deadline
+        self.first = max(1, int(getattr(backend, "first_launch_packets", 1 << 21)))
+        self.rate = None  # packets (all bands) per second of the latest launch
+        self.kernel_s = 0.0
+
+    def poll(self) -> None:
+        if self.cancel is not None and self.cancel():
+            raise CancelledError("transport cancelled")
+
+    def run(self, start: int, count: int, base: int, extra: int, first_batch: int, n_slots: int,
+            on_progress=None):
+        """Trace packets [start, start + count) into slots 0..n_slots-1; ``on_progress(traced)``
+        after each launch but the last (a group traced in several launches reports as it goes).
+
+        Returns (tallies, overflow, traced): the group's tallies and overflow flags so far and
+        the packets per band traced from ``start`` (less than ``count`` only when the deadline
+        passed between two launches).
+        """
+        traced = 0
+        tallies = overflow = None
+        while traced < count:
+            self.poll()
+            if traced and time.perf_counter() >= self.deadline:
+                break
+            budget = self.first if self.rate is None else max(self.nb, int(self.rate * LAUNCH_SECONDS))
+            chunk = max(1, min(count - traced, budget // self.nb))
+            tk = time.perf_counter()
+            tallies, overflow = self.session.run_group(start + traced, chunk, base, extra, first_batch,
+                                                       n_slots, fresh=traced == 0)
+            dt = time.perf_counter() - tk
+            self.kernel_s += dt
+            self.rate = chunk * self.nb / max(dt, 1e-6)
+            traced += chunk
+            if on_progress is not None and traced < count:
+                on_progress(traced)
+        self.poll()  # a cancel that came during the last launch
+        return tallies, overflow, traced
+
+
 def trace(
     density: np.ndarray,
     bands,
@@ -398,10 +498,12 @@ def trace(
                                     peel_scale=_peel_scale([b.g for b in bands]))
     targeted = target_error > 0.0
     if targeted and not batch_size:
-        batch_size = max(1, math.ceil(photons / TARGET_BATCHES))
+        # small enough batches that the error can be checked (and a time limit honoured) early
+        # whatever the budget: at most MAX_AUTO_BATCH packets per band
+        batch_size = min(MAX_AUTO_BATCH, max(1, math.ceil(photons / TARGET_BATCHES)))
     plan = batch_plan(photons, batch_size)
     nb = len(bands)
-    base, extra = divmod(int(photons), len(plan))
+    base, extra = plan.base, plan.extra
     if not _checked_adds:
         setup = dataclasses.replace(setup, unchecked_adds=_no_wrap(base + 1, max_scatterings, estimator,
                                                                    track_scale, shape))
@@ -413,45 +515,66 @@ def trace(
     session = backend.transport_session(setup, slots)
     device_bytes = session.device_bytes()
     t_setup = time.perf_counter() - t0
+    deadline = t0 + time_limit if time_limit > 0 else math.inf
+    launcher = _Launcher(session, nb, backend, cancel, deadline)
     folded = 0
-    t_kernel = 0.0
     done = 0
+    next_check = 0  # packets per band after which the error is checked next (targeted runs)
     redo: list[tuple[int, int]] = []
+
+    def take(tallies, overflow, images, ranges):
+        """Fold the finished batches ``ranges`` [(start, count)] of a launch's slots."""
+        nonlocal folded, done, peel_sum
+        for k, (b_start, b_count) in enumerate(ranges):
+            if overflow[k]:
+                redo.append((b_start, b_count))
+                continue
+            if images is not None:
+                peel_sum = peel_sum + images[k]
+            folded += 1
+            counts[...] += tallies[k].astype(object)
+            done += b_count
+        if progress is not None:
+            progress(done, photons)
+
     try:
-        # groups of consecutive batches, one launch each
-        for first in range(0, len(plan), slots):
-            group = plan[first:first + slots]
-            if cancel is not None and cancel():
-                raise CancelledError(f"transport cancelled after {done} of {photons} packets per band")
-            start = group[0][0]
-            count = sum(c for _, c in group)
-            tk = time.perf_counter()
-            tallies, overflow = session.run_group(start, count, base, extra, first, len(group))
-            session.fold(len(group))
-            t_kernel += time.perf_counter() - tk
-            images = session.take_images(len(group)) if peel is not None else None
-            for k, (b_start, b_count) in enumerate(group):
-                if overflow[k]:
-                    redo.append((b_start, b_count))
-                    continue
-                if images is not None:
-                    peel_sum += images[k]
-                folded += 1
-                counts += tallies[k].astype(object)
-                done += b_count
-            if progress is not None:
-                progress(done, photons)
-            if targeted and folded >= MIN_BATCHES and first + slots < len(plan):
+        # groups of consecutive batches, each traced in one or more launches
+        first = 0
+        while first < len(plan):
+            n = min(slots, len(plan) - first)
+            start = plan.start(first)
+            count = plan.start(first + n) - start
+            tallies, overflow, traced = launcher.run(
+                start, count, base, extra, first, n,
+                None if progress is None else (lambda k: progress(done + k, photons)))
+            if traced < count:
+                finished = plan.batches_within(first, start + traced)  # the time limit came within the group: keep its finished batches
+                session.fold(finished)
+                images = session.take_images(n)[:finished] if peel is not None else None
+                take(tallies, overflow, images, plan[first:first + finished])
+                redo.clear()  # no time left to re-trace
+                break
+            session.fold(n)
+            images = session.take_images(n) if peel is not None else None
+            take(tallies, overflow, images, plan[first:first + n])
+            first += n
+            if first >= len(plan):
+                break
+            if time.perf_counter() >= deadline:
+                break
+            if targeted and folded >= MIN_BATCHES and done >= next_check:
                 achieved = _current_error(session, folded, estimator, band_lum, done, track_scale,
                                           nvox_inv, sigma_scale, density, sigma_host)
-                if achieved <= target_error or (time_limit > 0 and time.perf_counter() - t0 >= time_limit):
+                if achieved <= target_error:
                     break
+                # the error falls as 1/sqrt(N): check again near where it should reach the
+                # target (never before 10 % more packets), so the checks cost O(log N)
+                predicted = done * (achieved / target_error) ** 2
+                next_check = max(int(done * 1.1), int(0.9 * predicted))
         # A batch whose fixed-point cell would have passed 2^63 was not folded. Same packets,
         # same random numbers: tracing it in two halves gives the same integer deposits with
         # more headroom each (each half then counts as a batch of the error estimate).
         while redo:
-            if cancel is not None and cancel():
-                raise CancelledError(f"transport cancelled after {done} of {photons} packets per band")
             b_start, b_count = redo.pop()
             if b_count == 1:
                 raise AccumulatorOverflowError(
@@ -460,22 +583,20 @@ def trace(
                 )
             half = b_count // 2
             for h_start, h_count in ((b_start, half), (b_start + half, b_count - half)):
-                tk = time.perf_counter()
                 # one batch covering the whole range: base 2^62 puts every packet in batch 0
-                tallies, overflow = session.run_group(h_start, h_count, 1 << 62, 0, 0, 1)
+                tallies, overflow, traced = launcher.run(h_start, h_count, 1 << 62, 0, 0, 1)
+                if traced < h_count:  # the time limit came: what is folded is the result
+                    redo.clear()
+                    break
                 session.fold(1)
-                t_kernel += time.perf_counter() - tk
                 images = session.take_images(1) if peel is not None else None
-                if overflow[0]:
-                    redo.append((h_start, h_count))
-                    continue
-                if images is not None:
-                    peel_sum += images[0]
-                folded += 1
-                counts += tallies[0].astype(object)
-                done += h_count
-                if progress is not None:
-                    progress(done, photons)
+                take(tallies, overflow, images, [(h_start, h_count)])
+        if done == 0:
+            raise TimeLimitError(
+                f"transport.time_limit = {time_limit!r}: no batch of {base} packets per band "
+                "finished within the time limit; raise it or lower transport.batch_size"
+            )
+        t_kernel = launcher.kernel_s
         if setup.unchecked_adds and session.overflow_seen():
             # a cell reached the headroom limit unnoticed during a launch: trace again with
             # every add checked (same packets, same bits as a checked run)

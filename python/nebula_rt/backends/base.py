@@ -105,7 +105,7 @@ class TransportSession(abc.ABC):
 
     @abc.abstractmethod
     def run_group(self, photon_start: int, count: int, batch_base: int, batch_extra: int,
-                  first_batch: int, n_slots: int) -> tuple[np.ndarray, np.ndarray]:
+                  first_batch: int, n_slots: int, fresh: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """Trace packets ``[photon_start, photon_start + count)`` of every band in one launch.
 
         They belong to batches ``first_batch .. first_batch + n_slots - 1`` of a plan whose
@@ -113,6 +113,10 @@ class TransportSession(abc.ABC):
         ``batch_base``; batch ``first_batch + k`` accumulates into slot ``k``.
         Returns the tallies (uint64, (n_slots, n_bands, 4): emitted, absorbed, escaped,
         terminated) and the per-slot overflow flags (bool, (n_slots,)).
+
+        ``fresh`` False continues the previous launch's group: tallies and overflow flags are
+        not cleared, so a group may be traced in several shorter launches (packet indices are
+        absolute and deposits integer: the same bits) and the results are the group's so far.
         """
 
     @abc.abstractmethod
@@ -221,11 +225,19 @@ class Backend(abc.ABC):
         by_memory = max(1, int(self.slot_memory_budget) // (8 * max(int(cells), 1)))
         return int(max(1, min(32, n_batches, by_work, by_memory)))
 
+    def memory_limits(self) -> tuple[int, int]:
+        """(device memory, largest single allocation) in bytes, for the estimates of
+        :mod:`nebula_rt.resources`."""
+        return 1 << 62, 1 << 62
+
     #: kernel file of the transport (benchmarks swap in variants to compare them)
     transport_program: str = "transport.cl"
     #: packets (all bands) worth one launch, and bytes the batch slots may take
     launch_packets: int = 1 << 21
     slot_memory_budget: int = 1 << 30
+    #: packets (all bands) of a run's first launch, before its speed is measured; later
+    #: launches are sized by the measured speed to last at most ``LAUNCH_SECONDS``
+    first_launch_packets: int = 1 << 21
     #: overrides of ``TRANSPORT_TUNING`` for this backend (benchmarks)
     transport_tuning: dict = {}
 

@@ -82,11 +82,12 @@ class CUDATransport(TransportSession):
         self.k_trace = backend.kernel(backend.transport_program, "trace_photons", defines)
         self.k_fold = backend.kernel(backend.transport_program, "fold_batches", defines)
 
-    def run_group(self, photon_start, count, batch_base, batch_extra, first_batch, n_slots):
+    def run_group(self, photon_start, count, batch_base, batch_extra, first_batch, n_slots, fresh=True):
         s = self.setup
         nx, ny, nz = self.shape
-        self.d_tallies.fill(0)
-        self.d_overflow.fill(0)
+        if fresh:
+            self.d_tallies.fill(0)
+            self.d_overflow.fill(0)
         total = int(count) * s.n_bands
         tb = self.backend.trace_block
         self.k_trace(((self.backend.work_items(total, self.k_trace) + tb - 1) // tb,), (tb,), (
@@ -203,6 +204,13 @@ class CUDABackend(Backend):
 
     def transport_session(self, setup, slots):
         return CUDATransport(self, setup, slots)
+
+    def memory_limits(self):
+        cp = self.cp
+        # free memory plus what CuPy's pool holds for reuse
+        free, _total = cp.cuda.runtime.memGetInfo()
+        avail = int(free) + int(cp.get_default_memory_pool().free_bytes())
+        return avail, avail
 
     def work_items(self, packets: int, kernel=None) -> int:
         """One thread per packet. Blocks start roughly in packet order, so the packets in flight

@@ -92,6 +92,18 @@ def select_device(selector: str = ""):
     )
 
 
+def probe_device(selector: str):
+    """None if the device ``selector`` can build and run the NebulaRT kernels, else why not
+    (one line)."""
+    try:
+        OpenCLBackend(selector).check_build()
+    except BackendUnavailableError as exc:
+        return str(exc)
+    except Exception as exc:  # a driver that fails in its own way
+        return f"{type(exc).__name__}: {str(exc).strip().splitlines()[0] if str(exc).strip() else ''}"
+    return None
+
+
 class OpenCLTransport(TransportSession):
     """Device buffers of one transport run."""
 
@@ -141,12 +153,13 @@ class OpenCLTransport(TransportSession):
         self.k_trace = backend.kernel(backend.transport_program, "trace_photons", defines)
         self.k_fold = backend.kernel(backend.transport_program, "fold_batches", defines)
 
-    def run_group(self, photon_start, count, batch_base, batch_extra, first_batch, n_slots):
+    def run_group(self, photon_start, count, batch_base, batch_extra, first_batch, n_slots, fresh=True):
         q = self.backend.queue
         s = self.setup
         nx, ny, nz = self.shape
-        cl.enqueue_fill_buffer(q, self.d_tallies, np.uint64(0), 0, self.h_tallies.nbytes)
-        cl.enqueue_fill_buffer(q, self.d_overflow, np.uint32(0), 0, self.h_overflow.nbytes)
+        if fresh:
+            cl.enqueue_fill_buffer(q, self.d_tallies, np.uint64(0), 0, self.h_tallies.nbytes)
+            cl.enqueue_fill_buffer(q, self.d_overflow, np.uint32(0), 0, self.h_overflow.nbytes)
         total = int(count) * s.n_bands
         self.k_trace(
             q, (self.backend.work_items(total),), None,
@@ -222,6 +235,7 @@ class OpenCLBackend(Backend):
     def __init__(self, selector: str = "", *, transport_tuning: dict | None = None):
         """``transport_tuning``: overrides of the transport kernel's performance options
         (``base.TRANSPORT_TUNING``), for benchmarks."""
+        self._selector = selector
         self.device, self._device_name = select_device(selector)
         self.context = cl.Context([self.device])
         self.queue = cl.CommandQueue(self.context)
@@ -234,6 +248,9 @@ class OpenCLBackend(Backend):
         # a GPU launch should hold millions of packets; a CPU launch ~2M (a few seconds on PoCL,
         # so progress and cancellation stay responsive)
         self.launch_packets = (1 << 23) if self.is_gpu else (1 << 21)
+        # the first launch of a run, before its speed is known, is kept short on a CPU (PoCL
+        # traces about 1-3M packets/s on two cores) so that a cancel is honoured at once
+        self.first_launch_packets = self.launch_packets if self.is_gpu else (1 << 16)
         # page-locked result buffers on GPUs (host_empty); on a CPU device memory is host memory
         self.pinned_host = self.is_gpu
         self.slot_memory_budget = mem // 4 if self.is_gpu else min(mem // 4, 1 << 30)
@@ -270,6 +287,22 @@ class OpenCLBackend(Backend):
 
     def transport_session(self, setup, slots):
         return OpenCLTransport(self, setup, slots)
+
+    def memory_limits(self):
+        return int(self.device.global_mem_size), int(self.device.max_mem_alloc_size)
+
+    def check_build(self) -> None:
+        """Build the density kernel (it includes the shared header the others use) and run it
+        on a 2^3 grid, so that a device that cannot build the kernels is refused before a run
+        starts, not in the middle of it."""
+        try:
+            self.generate_density((2, 2, 2), 1, (0.0, 0.0, 0.0), 0.0, 1.0, 0.0, np.zeros((0, 4), np.float32))
+        except cl.Error as exc:
+            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            raise BackendUnavailableError(
+                f"transport.device = {self._selector!r} ({self.device_name}): this OpenCL device "
+                f"cannot build the NebulaRT kernels ({first}); `nebula-rt devices` lists the usable ones"
+            ) from None
 
     def work_items(self, packets: int) -> int:
         """One work item per packet (see the CUDA backend for why not persistent threads)."""

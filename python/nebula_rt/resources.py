@@ -1,0 +1,192 @@
+"""Memory a run will need, estimated from the scene before anything is allocated.
+
+A grid of 2000^3 voxels, a collision filter wider than the box or a sky image of 10^5 pixels
+a side must be refused at once, with the estimate and the limit, not after a minute of work
+or deep inside the OpenCL driver. The estimate follows the allocations of the stages:
+
+device (the larger of the tracing and the finishing)
+    the density (4 B per voxel), the batch slots (8 B per cell each, a cell being one voxel of
+    one band; the slot count is the launch plan's), the two running sums (16 B per cell), the
+    peel-off images (8 B per pixel, band and slot), the finishing outputs (float32 J, error and
+    emissivity, 12 B per cell; the exposure key and rgba, 8 B per voxel) and, for the
+    collision filter on the device, its FFT work arrays;
+host
+    the density, the output arrays and a second copy of them while the ``.vti`` is written
+    (VTK's point order), the host sums of error-targeted runs and of the collision filter on
+    the host, and its FFT work arrays.
+
+The FFT work of the collision filter is taken as four complex128 arrays of the padded shape
+(the inputs' transforms, their product and the inverse), per band in turn.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+from .errors import ResourceError
+
+#: bytes per FFT point of the collision filter's convolutions (4 complex128 work arrays)
+FFT_BYTES_PER_POINT = 4 * 16
+
+
+@dataclass
+class Estimate:
+    """Estimated peak memory of a run, in bytes, with its main parts."""
+
+    device: dict = field(default_factory=dict)
+    host: dict = field(default_factory=dict)
+    largest_buffer: int = 0
+
+    @property
+    def device_bytes(self) -> int:
+        return int(sum(self.device.values()))
+
+    @property
+    def host_bytes(self) -> int:
+        return int(sum(self.host.values()))
+
+
+def _gib(n: float) -> str:
+    return f"{n / 2**30:.2f} GiB" if n >= 2**28 else f"{n / 2**20:.1f} MiB"
+
+
+def _parts(d: dict) -> str:
+    return ", ".join(f"{k} {_gib(v)}" for k, v in sorted(d.items(), key=lambda kv: -kv[1]) if v)
+
+
+def filter_fft_points(shape, radius: float) -> int:
+    """Points of the padded FFT of the collision filter's convolution on ``shape``."""
+    from .filtering import kernel_half_widths
+
+    half = kernel_half_widths(shape, radius)
+    return int(math.prod(n + 2 * h for n, h in zip(shape, half)))
+
+
+def estimate(scene, backend, peel_pixels: int = 0) -> Estimate:
+    """The memory a run of ``scene`` on ``backend`` will need (see the module notes).
+
+    Parameters
+    ----------
+    peel_pixels : int
+        Pixels of a peel-off image traced with it (0: none).
+    """
+    from .transport import MAX_AUTO_BATCH, TARGET_BATCHES, batch_plan
+
+    t = scene.transport
+    shape = tuple(int(n) for n in scene.grid.shape)
+    nvox = math.prod(shape)
+    nb = len(scene.bands.resolve())
+    ncell = nb * nvox
+    photons, target = t.effective()
+    batch_size = t.batch_size
+    if target > 0 and not batch_size:
+        batch_size = min(MAX_AUTO_BATCH, max(1, math.ceil(photons / TARGET_BATCHES)))
+    plan = batch_plan(photons, batch_size)
+    slots = backend.launch_plan(ncell, (plan.base + 1) * nb, len(plan))
+    colour = nb > 1
+    collision = t.estimator == "collision-filter"
+    fft = FFT_BYTES_PER_POINT * filter_fft_points(shape, t.filter_radius) if collision else 0
+    on_device_fft = collision and getattr(backend, "name", "") == "cuda"
+    if collision and getattr(backend, "name", "") == "opencl":
+        from . import filtering_opencl
+
+        on_device_fft = filtering_opencl.available()
+
+    est = Estimate()
+    # the device peak: the transport (slots, sums, images), or later the sums it hands over with
+    # the finishing's outputs or the filter's work arrays, whichever is larger
+    tracing = {
+        "density": 4 * nvox,
+        "batch slots": 8 * ncell * slots,
+        "running sums": 16 * ncell,
+        "peel-off images": 8 * slots * nb * int(peel_pixels),
+    }
+    finishing = {
+        "density": 4 * nvox,
+        "running sums": 16 * ncell,
+        "outputs": 12 * ncell + (8 * nvox if colour else 0),
+        "filter FFT": fft if on_device_fft else 0,
+    }
+    est.device = max(tracing, finishing, key=lambda d: sum(d.values()))
+    outputs = 4 * nvox + 12 * ncell + (4 * nvox if colour else 0)
+    est.host = {
+        "density": 4 * nvox,
+        "outputs": outputs,
+        "output copy for writing": outputs,
+        "error checks": 40 * ncell if target > 0 else 0,
+        "filter": (16 * ncell + 16 * nvox + (0 if on_device_fft else fft)) if collision else 0,
+    }
+    est.largest_buffer = max(8 * ncell * slots, 8 * slots * nb * int(peel_pixels), 8 * ncell)
+    return est
+
+
+def _driver(est: Estimate, peel_option: str, peel_value, scene):
+    """The parameter that drives the largest part of the estimate, and its value."""
+    parts = {**{f"d:{k}": v for k, v in est.device.items()}, **{f"h:{k}": v for k, v in est.host.items()}}
+    top = max(parts, key=parts.get).split(":", 1)[1]
+    if top == "peel-off images":
+        return peel_option, peel_value
+    if top in ("filter FFT", "filter"):
+        return "transport.filter_radius", scene.transport.filter_radius
+    return "grid.shape", list(scene.grid.shape)
+
+
+def host_available_bytes() -> int:
+    """Memory the host can give a new allocation now: MemAvailable (Linux), else the physical
+    memory."""
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    import os
+
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):  # pragma: no cover - not POSIX
+        return 1 << 62
+
+
+def check(scene, backend, peel_pixels: int = 0, peel_option: str = "--size", peel_value=None) -> Estimate:
+    """Estimate the run's memory and refuse it if the device or the host cannot hold it.
+
+    Raises
+    ------
+    ResourceError
+        Naming the parameter that drives the need (``grid.shape``, ``transport.filter_radius``
+        or the sky image size), with the estimate, its parts and the limit.
+    """
+    est = estimate(scene, backend, peel_pixels)
+    total, max_alloc = backend.memory_limits()
+    param, value = _driver(est, peel_option, peel_value, scene)
+    where = f"the device ({backend.device_name})"
+    if est.device_bytes > total:
+        raise ResourceError(param, value, f"needs about {_gib(est.device_bytes)} of device memory "
+                                          f"({_parts(est.device)}); {where} has {_gib(total)}")
+    if est.largest_buffer > max_alloc:
+        raise ResourceError(param, value, f"needs a single device buffer of {_gib(est.largest_buffer)}; "
+                                          f"{where} allocates at most {_gib(max_alloc)} at once")
+    avail = host_available_bytes()
+    if est.host_bytes > avail:
+        raise ResourceError(param, value, f"needs about {_gib(est.host_bytes)} of host memory "
+                                          f"({_parts(est.host)}); {_gib(avail)} is available")
+    return est
+
+
+def check_density(shape, backend) -> None:
+    """Refuse a density grid the device or the host cannot hold (4 B per voxel on each, a
+    single device buffer)."""
+    nvox = math.prod(int(n) for n in shape)
+    total, max_alloc = backend.memory_limits()
+    need = 4 * nvox
+    if need > min(total, max_alloc):
+        raise ResourceError("grid.shape", [int(n) for n in shape],
+                            f"the density alone needs {_gib(need)} in one device buffer; the device "
+                            f"({backend.device_name}) allocates at most {_gib(min(total, max_alloc))} at once")
+    if 2 * need > host_available_bytes():
+        raise ResourceError("grid.shape", [int(n) for n in shape],
+                            f"the density needs about {_gib(2 * need)} of host memory; "
+                            f"{_gib(host_available_bytes())} is available")
