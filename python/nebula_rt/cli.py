@@ -51,15 +51,19 @@ def _vti_bytes(scene) -> int:
 
     nvox = math.prod(scene.grid.shape)
     nb = len(scene.bands.resolve())
-    return nvox * (4 + 12 * nb + (4 if nb > 1 else 0)) + (1 << 20)
+    return nvox * (4 + 12 * nb + (4 if nb > 1 else 0)) + (64 << 10)
 
 
 def _require_io(option: str, path, png: bool = False) -> None:
     """VTK (and pyvista for a PNG) must import before a trace whose output needs them."""
-    import importlib.util
+    import importlib
 
-    missing = [m for m in (("vtkmodules", "pyvista") if png else ("vtkmodules",))
-               if importlib.util.find_spec(m) is None]
+    missing = []
+    for module in ("vtkmodules.vtkIOXML", "pyvista") if png else ("vtkmodules.vtkIOXML",):
+        try:
+            importlib.import_module(module)
+        except ImportError:
+            missing.append(module.split(".")[0])
     if missing:
         raise OutputError(option, path, f"writing it needs {', '.join(missing)}: "
                                         "pip install 'nebula-rt[io]'")

@@ -1,0 +1,101 @@
+"""Run ``nebula-rt`` with a fault injected at a named point (the fault-injection tests).
+
+    python cli_with_fault.py POINT SIGNAL -- nebula-rt arguments...
+
+POINT is where the process sends itself a real SIGNAL (SIGINT or SIGTERM; "SIGINTx2" sends
+two), or where a failure is made real:
+
+startup            while the scene file is read
+mid-launch         during the transport's second launch
+after-last-batch   when the trace has returned (the progress bar at 100 %)
+during-write       inside the .vti writer, before VTK writes
+during-png         inside the PNG rendering
+fill-disk          the output's file system is filled just before the .vti is written
+png-fails          the PNG rendering raises after the .vti was staged
+
+The functions are wrapped, not replaced: the real pipeline, kernels and writers run.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import sys
+
+
+def main() -> int:
+    point, signame = sys.argv[1], sys.argv[2]
+    argv = sys.argv[sys.argv.index("--") + 1:]
+    repeat = 2 if signame.endswith("x2") else 1
+    sig = getattr(signal, signame.replace("x2", ""), None)
+
+    def fire():
+        for _ in range(repeat):
+            os.kill(os.getpid(), sig)
+
+    from nebula_rt import cli, io_vti, pipeline, render, scene
+    from nebula_rt.backends import opencl
+
+    if point == "startup":
+        load = scene.Scene.load.__func__
+
+        def loading(cls, path):
+            fire()
+            return load(cls, path)
+        scene.Scene.load = classmethod(loading)
+    elif point == "mid-launch":
+        run_group = opencl.OpenCLTransport.run_group
+        calls = {"n": 0}
+
+        def launching(self, *a, **kw):
+            calls["n"] += 1
+            if calls["n"] == 2:
+                fire()
+            return run_group(self, *a, **kw)
+        opencl.OpenCLTransport.run_group = launching
+    elif point == "after-last-batch":
+        run = pipeline.Pipeline.run
+
+        def running(self, *a, **kw):
+            out = run(self, *a, **kw)
+            fire()
+            return out
+        pipeline.Pipeline.run = running
+    elif point == "during-write":
+        enter = io_vti._CapturedVtkMessages.__enter__
+
+        def entering(self):
+            fire()
+            return enter(self)
+        io_vti._CapturedVtkMessages.__enter__ = entering
+    elif point == "during-png":
+        png = render.render_rgba_png
+
+        def rendering(*a, **kw):
+            fire()
+            return png(*a, **kw)
+        render.render_rgba_png = rendering
+    elif point == "fill-disk":
+        write = io_vti.write_vti
+
+        def filling(path, *a, **kw):
+            with open(os.path.join(os.path.dirname(path), "filler"), "wb") as fh:
+                try:
+                    while True:
+                        fh.write(b"\0" * 4096)
+                        fh.flush()
+                except OSError:
+                    pass
+            return write(path, *a, **kw)
+        io_vti.write_vti = filling
+    elif point == "png-fails":
+        def failing(*a, **kw):
+            raise RuntimeError("the PNG renderer failed")
+        render.render_rgba_png = failing
+    else:
+        raise SystemExit(f"unknown fault point {point!r}")
+    return cli.main(argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
