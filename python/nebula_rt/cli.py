@@ -104,12 +104,12 @@ def _render(args, cancel) -> int:
     if args.png:
         outputs.append(Output("--png", Path(args.png), ".png", PNG_BYTES))
         _require_io("--png", args.png, png=True)
-    check_outputs(outputs)
-    backend = _backend_for(scene)
-    pipe = Pipeline(backend)
     from . import resources
 
-    resources.check(scene, backend)
+    backend = _backend_for(scene)
+    resources.check(scene, backend)  # memory first: an impossible run is refused as such
+    check_outputs(outputs)
+    pipe = Pipeline(backend)
     cancel.check("start-up")
 
     bar = None
@@ -196,9 +196,9 @@ def _compare(args, cancel) -> int:
     outputs = [Output("--png", png, ".png", 4 << 20)]
     if args.json:
         outputs.append(Output("--json", Path(args.json), ".json", 1 << 20))
-    check_outputs(outputs)
     backend = _backend_for(scene)
     resources.check(scene, backend, peel_pixels=args.size * args.size, peel_option="--size", peel_value=args.size)
+    check_outputs(outputs)
     cancel.check("start-up")
     prof, res = observe.observe_scene(scene, direction=direction, size=args.size, backend=backend, cancel=cancel)
     cancel.check("run")

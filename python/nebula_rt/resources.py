@@ -101,12 +101,14 @@ def estimate(scene, backend, peel_pixels: int = 0) -> Estimate:
         "batch slots": 8 * ncell * slots,
         "running sums": 16 * ncell,
         "peel-off images": 8 * slots * nb * int(peel_pixels),
+        "tallies and parameters": 36 * nb * slots + 4096,
     }
     finishing = {
         "density": 4 * nvox,
         "running sums": 16 * ncell,
         "outputs": 12 * ncell + (8 * nvox if colour else 0),
         "filter FFT": fft if on_device_fft else 0,
+        "parameters": 64 * nb + 4096,
     }
     est.device = max(tracing, finishing, key=lambda d: sum(d.values()))
     outputs = 4 * nvox + 12 * ncell + (4 * nvox if colour else 0)
