@@ -241,3 +241,32 @@ def test_missing_vtk_is_found_before_tracing(scene_dir):
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=_env())
     assert r.returncode == 2 and "nebula-rt[io]" in r.stderr, r.stderr
     assert not (scene_dir / "v.vti").exists()
+
+
+def test_device_that_cannot_build_the_kernels(monkeypatch, capsys, tmp_path):
+    """A device whose compiler rejects the kernels is refused before a run (exit 3, the device
+    and the reason named) and marked in ``nebula-rt devices``. The failure is real: the real
+    PoCL compiler is given a source it cannot build."""
+    from nebula_rt import cli
+    from nebula_rt.backends import opencl
+
+    real = opencl.kernel_source
+    monkeypatch.setattr(opencl, "kernel_source", lambda name: real(name) + "\n#error this device cannot build\n")
+    assert opencl.probe_device("0:0") is not None
+    assert cli.main(["devices"]) == 0
+    assert "NOT usable" in capsys.readouterr().out
+    s = Path(__file__).resolve().parents[1] / "examples/scenes/thesis-default.toml"
+    assert cli.main(["render", str(s), "-o", str(tmp_path / "x.vti"), "--device", TEST_DEVICE,
+                     "--set", "grid.shape=[8,8,8]"]) == 3
+    err = capsys.readouterr().err
+    assert "cannot build the NebulaRT kernels" in err and TEST_DEVICE in err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_internal_errors_are_one_line(scene_dir):
+    """An exception that is not NebulaRT's own (here raised inside the PNG renderer) is one line
+    on stderr, not a traceback, and nothing is written."""
+    r = run_fault("png-fails", "-", "render", str(scene_dir / "s.toml"), "-o", str(scene_dir / "new.vti"),
+                  "--png", str(scene_dir / "new.png"), "-q")
+    assert r.returncode == 1 and r.stderr.strip().count("\n") == 0, r.stderr
+    assert "RuntimeError" in r.stderr and not (scene_dir / "new.vti").exists()

@@ -424,8 +424,16 @@ def colour_matrix(wavelengths_nm, band_luminosity, temperature: Optional[float],
     per band), -> linear sRGB (D65, no adaptation), then the white balance ``white_point``
     ("D65": none; "E": equal-energy white; "star": the star's own colour is white).
     """
+    lum = np.asarray(band_luminosity, np.float64)
+    if not (lum.size and np.all(np.isfinite(lum)) and np.all(lum > 0)):
+        # colours are nebula/star ratios per band: a band without starlight has none
+        from .errors import SceneError
+
+        raise SceneError("band_luminosity", [float(x) for x in np.atleast_1d(lum)],
+                         "must be finite and > 0 in every band: a band without starlight has no "
+                         "colour (the stars' spectra must emit in every band)")
     m = colour_convert.band_to_xyz_matrix(np.asarray(wavelengths_nm, np.float64), temperature)
-    to_rgb = colour_convert.XYZ_TO_LINEAR_SRGB @ m / np.asarray(band_luminosity, np.float64)[None, :]
+    to_rgb = colour_convert.XYZ_TO_LINEAR_SRGB @ m / lum[None, :]
     if white_point != "D65":
         if white_point == "star":
             white = colour_convert.xyz_to_linear_srgb(m @ np.ones(len(wavelengths_nm)))
