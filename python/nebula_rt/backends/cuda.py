@@ -171,6 +171,8 @@ class CUDABackend(Backend):
         self._device_name = f"CUDA: {props['name'].decode()}"
         self.sm_count = int(props["multiProcessorCount"])
         self.launch_packets = 1 << 23
+        # a GPU traces a full launch in milliseconds: the first needs no shortening
+        self.first_launch_packets = self.launch_packets
         free, _total = cp.cuda.runtime.memGetInfo()
         self.slot_memory_budget = int(free) // 4
 
