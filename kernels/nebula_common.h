@@ -44,6 +44,7 @@ typedef long nrt_i64;
 #define NRT_ATOMIC_ADD_U64_LOCAL(p, v) atom_add((volatile __local ulong *)(p), (ulong)(v))
 #define NRT_BARRIER() barrier(CLK_LOCAL_MEM_FENCE)
 #define NRT_LOCAL_ID() ((nrt_u64)get_local_id(0))
+#define NRT_LOCAL_SIZE() ((nrt_u64)get_local_size(0))
 #define NRT_GROUP_FIRST_ID() ((nrt_u64)get_group_id(0) * (nrt_u64)get_local_size(0))
 typedef uchar nrt_u8;
 #define NRT_FLOAT_AS_UINT(x) as_uint(x)
@@ -69,6 +70,7 @@ typedef long long nrt_i64;
 #define NRT_ATOMIC_ADD_U64_LOCAL(p, v) atomicAdd((unsigned long long *)(p), (unsigned long long)(v))
 #define NRT_BARRIER() __syncthreads()
 #define NRT_LOCAL_ID() ((nrt_u64)threadIdx.x)
+#define NRT_LOCAL_SIZE() ((nrt_u64)blockDim.x)
 #define NRT_GROUP_FIRST_ID() ((nrt_u64)blockIdx.x * (nrt_u64)blockDim.x)
 typedef unsigned char nrt_u8;
 #define NRT_FLOAT_AS_UINT(x) __float_as_uint(x)

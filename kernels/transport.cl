@@ -424,10 +424,12 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL float *density, /* nx*ny*nz, x fa
     NRT_LOCAL_MEM nrt_u64 l_tally[4];
     NRT_LOCAL_MEM nrt_u64 l_hot[NRT_HOT_STARS];
     nrt_u64 lid = NRT_LOCAL_ID();
-    if (lid < 4)
-        l_tally[lid] = 0;
-    if (lid < NRT_HOT_STARS)
-        l_hot[lid] = 0;
+    /* strided: a runtime may choose groups of fewer than 4 (or NRT_HOT_STARS) work items,
+       e.g. OpenCL's own choice of local size for a global size with no small factor */
+    for (nrt_u64 i = lid; i < 4; i += NRT_LOCAL_SIZE())
+        l_tally[i] = 0;
+    for (nrt_u64 i = lid; i < NRT_HOT_STARS; i += NRT_LOCAL_SIZE())
+        l_hot[i] = 0;
     {
         nrt_u64 t0 = NRT_GROUP_FIRST_ID();
         home_slot = nrt_batch_of(photon_start + t0 % count, batch_base, batch_extra) - first_batch;
@@ -460,13 +462,16 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL float *density, /* nx*ny*nz, x fa
 #if NRT_GROUP_TALLY
     /* the group's local sums go to global memory once */
     NRT_BARRIER();
-    if (lid < 4 && l_tally[lid] != 0)
-        NRT_ATOMIC_ADD_U64(&tallies[4 * home_cell + lid], l_tally[lid]);
-    if (lid < NRT_HOT_STARS && (int)lid < n_stars && l_hot[lid] != 0) {
-        float p[3] = {stars[4 * lid], stars[4 * lid + 1], stars[4 * lid + 2]};
+    for (nrt_u64 i = lid; i < 4; i += NRT_LOCAL_SIZE())
+        if (l_tally[i] != 0)
+            NRT_ATOMIC_ADD_U64(&tallies[4 * home_cell + i], l_tally[i]);
+    for (nrt_u64 i = lid; i < NRT_HOT_STARS && (int)i < n_stars; i += NRT_LOCAL_SIZE()) {
+        if (l_hot[i] == 0)
+            continue;
+        float p[3] = {stars[4 * i], stars[4 * i + 1], stars[4 * i + 2]};
         int ix, iy, iz;
         nrt_voxel_of(p, nx, ny, nz, &ix, &iy, &iz);
-        nrt_acc_add(&acc[home_cell * nvox + (nrt_u64)nrt_voxel_index(ix, iy, iz, nx, ny)], l_hot[lid],
+        nrt_acc_add(&acc[home_cell * nvox + (nrt_u64)nrt_voxel_index(ix, iy, iz, nx, ny)], l_hot[i],
                     overflow + home_slot);
     }
 #endif

@@ -174,15 +174,21 @@ def test_concurrent_renders_to_one_output(scene_dir):
     (["-o", "{d}/missing/x.vti"], "does not exist"),
     (["-o", "{d}/" + "n" * 300 + ".vti"], "file name is"),
     (["-o", "{d}/x.vti", "--png", "{d}/link.png"], "same file"),
+    (["-o", "{d}/dust.vti", "--set", 'dust.model="file"', "--set", 'dust.file="dust.vti"'], "input of the run"),
 ])
 def test_bad_outputs_refused_before_tracing(scene_dir, args, needle):
     (scene_dir / "folder.vti").mkdir()
     (scene_dir / "x.vti").write_bytes(b"old")
     (scene_dir / "link.png").symlink_to(scene_dir / "x.vti")
+    from nebula_rt.io_vti import write_vti
+
+    write_vti(scene_dir / "dust.vti", {"density": np.ones((16, 16, 16), np.float32)}, {}, (1 / 16,) * 3)
+    dust = (scene_dir / "dust.vti").read_bytes()
     r = run_cli("render", str(scene_dir / "s.toml"), "-q", *[a.format(d=scene_dir) for a in args])
     assert r.returncode == 2, r.stderr
     assert needle in r.stderr and "nothing written" in r.stderr, r.stderr
     assert (scene_dir / "x.vti").read_bytes() == b"old" and leftovers(scene_dir) == []
+    assert (scene_dir / "dust.vti").read_bytes() == dust
 
 
 def test_full_and_read_only_disks(scene_dir, small_fs):

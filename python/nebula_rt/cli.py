@@ -69,6 +69,14 @@ def _require_io(option: str, path, png: bool = False) -> None:
                                         "pip install 'nebula-rt[io]'")
 
 
+def _inputs(args, scene) -> list[tuple[str, Path]]:
+    """The files a run reads, which no output may replace."""
+    inputs = [("scene", Path(args.scene))]
+    if scene.dust.model == "file":
+        inputs.append(("dust.file", scene.dust_file_path()))
+    return inputs
+
+
 def _backend_for(scene):
     from .backends import get_backend
 
@@ -108,7 +116,7 @@ def _render(args, cancel) -> int:
 
     backend = _backend_for(scene)
     resources.check(scene, backend)  # memory first: an impossible run is refused as such
-    check_outputs(outputs)
+    check_outputs(outputs, _inputs(args, scene))
     pipe = Pipeline(backend)
     cancel.check("start-up")
 
@@ -198,7 +206,7 @@ def _compare(args, cancel) -> int:
         outputs.append(Output("--json", Path(args.json), ".json", 1 << 20))
     backend = _backend_for(scene)
     resources.check(scene, backend, peel_pixels=args.size * args.size, peel_option="--size", peel_value=args.size)
-    check_outputs(outputs)
+    check_outputs(outputs, _inputs(args, scene))
     cancel.check("start-up")
     prof, res = observe.observe_scene(scene, direction=direction, size=args.size, backend=backend, cancel=cancel)
     cancel.check("run")

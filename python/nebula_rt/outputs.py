@@ -64,8 +64,11 @@ def _umask() -> int:
     return mask
 
 
-def check_outputs(outputs: Iterable[Output]) -> list[Output]:
+def check_outputs(outputs: Iterable[Output], inputs: Iterable[tuple[str, object]] = ()) -> list[Output]:
     """Check every output before any work starts (see the module notes).
+
+    ``inputs``: (parameter, path) of the files the run reads (the scene file, ``dust.file``);
+    an output may not replace one of them.
 
     Raises
     ------
@@ -74,6 +77,12 @@ def check_outputs(outputs: Iterable[Output]) -> list[Output]:
     """
     outputs = list(outputs)
     seen: dict[str, Output] = {}
+    read = {}
+    for param, path in inputs:
+        try:
+            read[os.path.normcase(os.path.realpath(path))] = (param, path)
+        except (OSError, ValueError):
+            pass
     need: dict[str, int] = {}  # bytes per folder
     for o in outputs:
         p = Path(o.path)
@@ -94,6 +103,8 @@ def check_outputs(outputs: Iterable[Output]) -> list[Output]:
             raise OutputError(o.option, p, exc.strerror or str(exc)) from None
         if key in seen:
             raise OutputError(o.option, p, f"is the same file as {seen[key].option} {seen[key].path}")
+        if key in read:
+            raise OutputError(o.option, p, f"would replace an input of the run ({read[key][0]} {read[key][1]})")
         for other in seen.values():  # hard links, or a path reached two ways
             try:
                 same = exists and Path(other.path).exists() and os.path.samefile(p, other.path)
