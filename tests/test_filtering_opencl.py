@@ -13,8 +13,9 @@ import pytest
 
 pytest.importorskip(
     "pyvkfft.opencl",
-    reason="pyvkfft (VkFFT) is optional and has no wheels on PyPI: build it from source "
-    "(pip install pyvkfft, needs an OpenCL ICD loader and headers) to test the OpenCL FFT filter",
+    reason="pyvkfft (VkFFT) is optional and has no wheels on PyPI: scripts/setup.sh builds it "
+    "from source (VKFFT_BACKEND=opencl pip install pyvkfft; needs opencl-headers, "
+    "ocl-icd-opencl-dev and g++) to test the OpenCL FFT filter",
 )
 
 import pyopencl as cl  # noqa: E402
