@@ -8,7 +8,7 @@ For ``--bands`` fields (and their variances) of grid^3 float64 held as pyopencl 
 chosen OpenCL device, times the smoothing of all bands by:
 
 (a) host   -- what an OpenCL run does today: copy field and variance device->host,
-              ``filtering.normalised_convolution`` (scipy.signal.fftconvolve) per band with
+              ``filtering.normalised_convolution`` (SciPy FFTs) per band with
               variance, copy both results host->device;
 (b) device -- ``filtering_opencl.normalised_convolution_cl`` per band (pyvkfft float64
               R2C/C2R FFTs and small pyopencl kernels; nothing but the kernel crosses the bus).

@@ -12,6 +12,14 @@
 # (b) The virtual environment .venv with `pip install -e ".[io,pocl,test]"`.
 #     .venv/.nebula-setup-stamp holds the sha256 of pyproject.toml; while it
 #     matches, step (b) is skipped.
+# (b2) pyvkfft (VkFFT), the optional OpenCL FFTs of the collision filter: it has no
+#     wheels on PyPI, so it is built from source into .venv (VKFFT_BACKEND=opencl: its
+#     CUDA module would need the CUDA toolkit's NVRTC headers), against the OpenCL headers
+#     and ICD loader of (a) (opencl-headers, ocl-icd-opencl-dev, g++); about 30 s on 2
+#     cores. Skipped while `import pyvkfft.opencl` works; a failed build is noted in
+#     .venv/.nebula-pyvkfft-failed and not retried until pyproject.toml changes (or
+#     --force). Without it the filter runs on the host and its device tests are skipped.
+#     NEBULA_SKIP_PYVKFFT=1 skips this step.
 # (c) The virtual environment .venv-pv for ParaView's Python (/usr/bin/python3,
 #     --system-site-packages): NebulaRT's dependencies WITHOUT the vtk wheel
 #     (a vtk wheel in front of ParaView's own VTK crashes it) and NebulaRT as an
@@ -21,7 +29,8 @@
 # Environment: PYTHON (interpreter that creates the venv, default python3),
 # NEBULA_VENV (venv folder, default <repo>/.venv), NEBULA_PV_PYTHON (ParaView's
 # Python, default /usr/bin/python3), NEBULA_PV_VENV (default <repo>/.venv-pv),
-# NEBULA_SKIP_PARAVIEW=1 (skip ParaView, Xvfb and .venv-pv).
+# NEBULA_SKIP_PARAVIEW=1 (skip ParaView, Xvfb and .venv-pv), NEBULA_SKIP_PYVKFFT=1 (skip
+# pyvkfft and its build packages).
 set -euo pipefail
 
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -33,11 +42,14 @@ PV_PYTHON="${NEBULA_PV_PYTHON:-/usr/bin/python3}"
 PV_VENV="${NEBULA_PV_VENV:-$ROOT/.venv-pv}"
 PV_STAMP="$PV_VENV/.nebula-setup-stamp"
 SKIP_PV="${NEBULA_SKIP_PARAVIEW:-0}"
+SKIP_VKFFT="${NEBULA_SKIP_PYVKFFT:-0}"
+PYVKFFT_SPEC="pyvkfft==2025.1.1"
+PYVKFFT_FAILED="$VENV/.nebula-pyvkfft-failed"
 FORCE=0
 for arg in "$@"; do
     case "$arg" in
         --force) FORCE=1 ;;
-        -h|--help) sed -n '2,27p' "$0"; exit 0 ;;
+        -h|--help) sed -n '2,33p' "$0"; exit 0 ;;
         *) echo "setup.sh: unknown argument: $arg" >&2; exit 2 ;;
     esac
 done
@@ -64,6 +76,9 @@ X11_PKGS=(libgl1 libglx-mesa0 libx11-6 libxcursor1)
 # (the OpenCL device ParaView's Python sees through the pyopencl wheel).
 PV_PKGS=(paraview python3-paraview xvfb pocl-opencl-icd)
 if [[ "$SKIP_PV" == 1 ]]; then PV_PKGS=(); fi
+# Building pyvkfft (b2): the OpenCL headers, the ICD loader's libOpenCL.so and a C++ compiler.
+FFT_PKGS=(opencl-headers ocl-icd-opencl-dev g++)
+if [[ "$SKIP_VKFFT" == 1 ]]; then FFT_PKGS=(); fi
 
 is_installed() {
     # dpkg -s also succeeds for removed packages whose config files remain;
@@ -73,7 +88,7 @@ is_installed() {
 
 missing=()
 if command -v dpkg-query >/dev/null 2>&1; then
-    for pkg in "${RENDER_PKGS[@]}" "${X11_PKGS[@]}" "${PV_PKGS[@]}"; do
+    for pkg in "${RENDER_PKGS[@]}" "${X11_PKGS[@]}" "${PV_PKGS[@]}" "${FFT_PKGS[@]}"; do
         is_installed "$pkg" || missing+=("$pkg")
     done
     # The venv needs an interpreter with venv + ensurepip (Debian splits them out).
@@ -82,6 +97,12 @@ if command -v dpkg-query >/dev/null 2>&1; then
         PYTHON=python3
     elif ! "$PYTHON" -c 'import venv, ensurepip' >/dev/null 2>&1; then
         is_installed python3-venv || missing+=(python3-venv)
+    fi
+    # building pyvkfft (b2) with Debian's own Python needs its C headers (python3-dev)
+    if ((${#FFT_PKGS[@]})) && command -v "$PYTHON" >/dev/null 2>&1 &&
+       [[ "$(readlink -f "$(command -v "$PYTHON")")" == /usr/bin/* ]] &&
+       ! "$PYTHON" -c 'import os, sys, sysconfig; sys.exit(not os.path.exists(os.path.join(sysconfig.get_paths()["include"], "Python.h")))' >/dev/null 2>&1; then
+        is_installed python3-dev || missing+=(python3-dev)
     fi
     # .venv-pv is made with ParaView's (the system's) Python: it needs venv + ensurepip too
     if ((${#PV_PKGS[@]})) && [[ -x "$PV_PYTHON" ]] && ! "$PV_PYTHON" -c 'import venv, ensurepip' >/dev/null 2>&1; then
@@ -160,6 +181,28 @@ if ((FORCE == 0)) && [[ -x "$VENV/bin/python" && -f "$STAMP" && "$(cat "$STAMP")
     log "venv up to date ($VENV)"
 else
     setup_main_venv
+fi
+
+# --------------------------------------------------------------------------
+# (b2) pyvkfft, built from source for the OpenCL FFTs of the collision filter
+if [[ "$SKIP_VKFFT" == 1 ]]; then
+    log "skipping pyvkfft (NEBULA_SKIP_PYVKFFT=1)"
+elif "$VENV/bin/python" -c 'import pyvkfft.opencl' >/dev/null 2>&1; then
+    log "pyvkfft present (OpenCL FFTs of the collision filter)"
+elif ((FORCE == 0)) && [[ -f "$PYVKFFT_FAILED" && "$(cat "$PYVKFFT_FAILED")" == "$want" ]]; then
+    log "pyvkfft: its build failed before (log: $VENV/.nebula-pyvkfft-pip.log); not retrying (--force does)"
+else
+    log "building $PYVKFFT_SPEC from source (about 30 s; log: $VENV/.nebula-pyvkfft-pip.log)"
+    if VKFFT_BACKEND=opencl "$VENV/bin/python" -m pip install --disable-pip-version-check "$PYVKFFT_SPEC" \
+            >"$VENV/.nebula-pyvkfft-pip.log" 2>&1 &&
+       "$VENV/bin/python" -c 'import pyvkfft.opencl' >/dev/null 2>&1; then
+        rm -f "$PYVKFFT_FAILED"
+        log "pyvkfft built: the collision filter's OpenCL FFT path and its tests are on"
+    else
+        printf '%s\n' "$want" >"$PYVKFFT_FAILED"
+        log "WARNING: pyvkfft did not build (needs ${FFT_PKGS[*]}; log: $VENV/.nebula-pyvkfft-pip.log):" \
+            "the collision filter runs on the host and tests/test_filtering_opencl.py is skipped"
+    fi
 fi
 
 # --------------------------------------------------------------------------

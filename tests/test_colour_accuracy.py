@@ -9,7 +9,9 @@ conversion interpolates r_b across wavelength (hat functions) and multiplies by 
   thin:  r = a C / (a C)_V            (single scattering, optically thin)
   thick: r = thin x exp(-tau_V (C / C_V - 1)), tau_V = 2 (extinction reddens the light)
 Colours are compared in CIELAB with the star as the white, both scaled so that the reference
-has L* = 50; the issue's bound is Delta E 2000 < 0.5 for 8 and more bands.
+has L* = 50. No Monte Carlo here: the numbers are exact for the band layout, so the tests
+assert the README's figures (measured: worst 0.149 for 8 bands, 0.037 for 16, 0.572 for the
+thesis's 3, over the stars and scenes below).
 """
 
 from __future__ import annotations
@@ -62,16 +64,21 @@ def delta_e(preset, temperature, scene):
     return float(colour.delta_E(lab[0], lab[1], method="CIE 2000"))
 
 
+# the README's claims: Delta E 2000 <= 0.15 with 8 bands, <= 0.04 with 16, 0.57 with 3
+BOUND = {"spectral-8": 0.15, "spectral-16": 0.04}
+
+
 @pytest.mark.parametrize("preset", ["spectral-8", "spectral-16"])
 @pytest.mark.parametrize("temperature", [5800.0, 14000.0, 20000.0])
 @pytest.mark.parametrize("scene", ["thin", "thick"])
 def test_eight_or_more_bands_match_the_full_spectrum(preset, temperature, scene):
     de = delta_e(preset, temperature, scene)
-    assert de < 0.5, de
+    assert de <= BOUND[preset], de
 
 
 def test_three_bands_are_coarser_but_close():
-    # the thesis's three bands: REFERENCES.md reports up to 2.5 in thick dust
+    # the thesis's three bands: 0.57 at worst here (REFERENCES.md reports up to 2.5 in
+    # thicker dust); more bands are better
     worst = max(delta_e("thesis-rgb", t, s) for t in (5800.0, 20000.0) for s in ("thin", "thick"))
-    assert worst < 3.0
+    assert round(worst, 2) == 0.57, worst
     assert worst > max(delta_e("spectral-8", t, s) for t in (5800.0, 20000.0) for s in ("thin", "thick"))

@@ -1,8 +1,9 @@
 """The OpenCL/VkFFT collision filter against the host (SciPy) one, on PoCL.
 
 ``normalised_convolution_cl`` must reproduce ``filtering.normalised_convolution`` to FFT
-round-off (1e-12 relative in float64) for a 1-voxel-radius and a larger kernel, with and without
-variance, and keep a uniform field uniform up to the faces (the weight renormalisation).
+round-off (1e-12 relative in float64) for a 1-voxel-radius and a larger kernel, one wider than
+the grid and one flat along an axis, with and without variance, and keep a uniform field
+uniform up to the faces (the local linear fit there).
 """
 
 from __future__ import annotations
@@ -12,8 +13,9 @@ import pytest
 
 pytest.importorskip(
     "pyvkfft.opencl",
-    reason="pyvkfft (VkFFT) is optional and has no wheels on PyPI: build it from source "
-    "(pip install pyvkfft, needs an OpenCL ICD loader and headers) to test the OpenCL FFT filter",
+    reason="pyvkfft (VkFFT) is optional and has no wheels on PyPI: scripts/setup.sh builds it "
+    "from source (VKFFT_BACKEND=opencl pip install pyvkfft; needs opencl-headers, "
+    "ocl-icd-opencl-dev and g++) to test the OpenCL FFT filter",
 )
 
 import pyopencl as cl  # noqa: E402
@@ -32,6 +34,10 @@ RTOL = 1e-12
 SHAPES = [(16, 12, 10), (33, 20, 17)]
 # 0.1 box units is a 1-voxel radius on the (16, 12, 10) grid (a 3x3x3 kernel); 0.25 is larger
 RADII = [0.1, 0.25]
+# and the local linear fit's special cases: a kernel wider than the grid along an axis, one flat
+# along an axis (1 voxel: no slope fitted there)
+EXTRA = [((9, 30, 4), 0.3), ((2, 12, 12), 0.2)]
+CASES = [(s, r) for s in SHAPES for r in RADII] + EXTRA
 
 
 @pytest.fixture(scope="module")
@@ -62,8 +68,7 @@ def test_available():
     assert available()
 
 
-@pytest.mark.parametrize("shape", SHAPES)
-@pytest.mark.parametrize("radius", RADII)
+@pytest.mark.parametrize("shape, radius", CASES)
 @pytest.mark.parametrize("with_variance", [False, True])
 def test_matches_host(queue, shape, radius, with_variance):
     kernel = cubic_kernel(shape, radius)
@@ -87,10 +92,9 @@ def test_matches_host(queue, shape, radius, with_variance):
     np.testing.assert_array_equal(d_field.get(), field)
 
 
-@pytest.mark.parametrize("shape", SHAPES)
-@pytest.mark.parametrize("radius", RADII)
+@pytest.mark.parametrize("shape, radius", CASES)
 def test_uniform_field_stays_uniform(queue, shape, radius):
-    """The renormalisation by the kernel weight inside the box: no darkening at the faces."""
+    """The fit inside the box: no darkening at the faces."""
     kernel = cubic_kernel(shape, radius)
     out, _ = normalised_convolution_cl(queue, np.full(shape, 3.7), kernel)
     np.testing.assert_allclose(out.get(), 3.7, rtol=1e-12, atol=0.0)

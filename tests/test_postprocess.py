@@ -113,12 +113,14 @@ def test_collision_filter_on_the_opencl_device(backend):
     assert J_dev.ndim == 1  # device layout: filtered on the device
     dev = finish_light_field(scene, rho, r_dev, J_dev, rel_dev)
     np.testing.assert_allclose(dev.J, ref.J, rtol=1e-9, atol=1e-9 * float(ref.J.max()))
-    # the error where J is round-off (~1e-16 of the peak, far from any collision) is a ratio of
-    # round-off values in both paths: compare where J means something
-    lit = ref.J > 1e-9 * ref.J.max(axis=(1, 2, 3), keepdims=True)
-    # (the variance spans many decades: FFT round-off of the largest values, ~1e-16 of them,
-    # shows at 1e-5 (PoCL) to 2e-4 (an H100's VkFFT) relative in the smallest; an error
-    # estimate needs no more than 3 digits)
+    # FFT round-off is ~1e-16 of a field's largest value, so a filtered variance is meaningful
+    # only where it is well above 1e-16 of the band's largest variance (the variance spans
+    # twice the decades of J; the local linear fit near the faces adds terms that cancel by up
+    # to ~100x): compare the errors where the variance is above 1e-10 of its maximum (so the
+    # round-off is under ~1e-4 relative; an error estimate needs no more than 3 digits)
+    var = (ref.J.astype(np.float64) * ref.rel_error) ** 2
+    lit = var > 1e-10 * var.max(axis=(1, 2, 3), keepdims=True)
+    assert lit.mean() > 0.8  # most voxels (the rest are hardly reached by light in this dense dust)
     np.testing.assert_allclose(dev.rel_error[lit], ref.rel_error[lit], rtol=1e-3)
     assert np.abs(dev.rgba.astype(int) - ref.rgba.astype(int)).max() <= 1
 

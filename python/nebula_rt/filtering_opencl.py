@@ -4,27 +4,30 @@
 host or CuPy on a CUDA GPU. An OpenCL run had to copy every band's deposit and variance to the
 host, convolve there and copy the result back. This module does the same computation on the
 OpenCL device, with pyvkfft (VkFFT) for the FFTs and a few small pyopencl kernels for the
-zero padding, the spectrum product and the cropping/normalisation, so nothing but the small
-kernel crosses the bus.
+zero padding, the spectrum products and the cropping/weighting, so nothing but the small
+kernel terms and the fit's coefficient table cross the bus.
 
-The result matches ``filtering.normalised_convolution`` (which is
-``scipy.signal.fftconvolve(..., mode="same")`` renormalised by the kernel weight inside the
-box) to FFT round-off, ~1e-15 relative in float64:
+The arithmetic is that of ``filtering.normalised_convolution`` (the kernel-weighted mean in
+the interior, a local linear fit within the kernel's radius of a face; see
+``nebula_rt.filtering``), with the same terms, coefficients and padded box, so the results
+agree to FFT round-off (1e-12 relative in float64, tests/test_filtering_opencl.py):
 
-    w   = conv(1, K)                       (clamped below at 1e-300)
-    out = max(conv(field, K), 0) / w
-    var = max(conv(variance, K*K), 0) / w^2
+    out = max(sum_t c_t conv(field, K u^t), 0)            t over the fit's field terms
+    var = max(sum_t d_t conv(variance, K^2 u^t), 0)       t over its variance terms
+
+with c_t, d_t from ``filtering.boundary_fit`` (a small per-class table, looked up per voxel).
 
 pyvkfft is an optional dependency (it has no wheels on PyPI; it is built from source against
-an OpenCL ICD loader). ``available()`` says whether it can be imported.
+an OpenCL ICD loader: scripts/setup.sh does so with ``VKFFT_BACKEND=opencl``). ``available()``
+says whether it can be imported.
 
 Layout of the padded problem (why it is linear, not circular): the field is placed at the
-origin of a zero-filled box of shape P = (px, py, pz) and the kernel is placed *centred on the
-origin* with its negative offsets wrapped to the far end of the box. A circular convolution of
-size P then equals the "same"-cropped linear convolution at the voxels 0..n-1 of every axis,
-provided that P >= n + k//2 (and P >= k): the wrapped contributions land in the zero padding,
-never in the kept window. This needs a little less padding than the full linear length
-n + k - 1, and the "same" crop is a plain copy of the first n voxels of every axis (no offset).
+origin of a zero-filled box of shape P = ``filtering.padded_shape`` and each term kernel is
+placed *centred on the origin* with its negative offsets wrapped to the far end of the box. A
+circular convolution of size P then equals the "same"-cropped linear convolution at the voxels
+0..n-1 of every axis, provided that P >= n + k//2 (and P >= k): the wrapped contributions land
+in the zero padding, never in the kept window. The "same" crop is a plain copy of the first n
+voxels of every axis (no offset).
 """
 
 from __future__ import annotations
@@ -32,6 +35,8 @@ from __future__ import annotations
 import functools
 
 import numpy as np
+
+from .filtering import boundary_fit, padded_shape
 
 try:  # pyopencl is a hard dependency of the project, but keep the import error readable
     import pyopencl as cl
@@ -45,11 +50,6 @@ else:
 
 __all__ = ["available", "normalised_convolution_cl", "padded_shape"]
 
-# Radices VkFFT handles with its fast (non-Bluestein) code paths; a size with a larger prime
-# factor falls back to Bluestein's algorithm, which is slower and loses a few bits.
-_RADICES = (2, 3, 5, 7, 11, 13)
-
-
 def available() -> bool:
     """Whether the OpenCL FFT path can be used: pyopencl and ``pyvkfft.opencl`` import."""
     if cl is None:
@@ -59,37 +59,6 @@ def available() -> bool:
     except Exception:  # ImportError, or OSError when the VkFFT shared library cannot load
         return False
     return True
-
-
-def _is_smooth(n: int) -> bool:
-    for p in _RADICES:
-        while n % p == 0:
-            n //= p
-    return n == 1
-
-
-def _next_smooth(n: int, even: bool = False) -> int:
-    """The smallest m >= n whose prime factors are all <= 13 (and even, if asked)."""
-    m = max(int(n), 1)
-    while not (_is_smooth(m) and (not even or m % 2 == 0)):
-        m += 1
-    return m
-
-
-def padded_shape(shape: tuple[int, int, int], kshape: tuple[int, int, int]) -> tuple[int, int, int]:
-    """The FFT box for a field of ``shape`` (voxels) and a kernel of ``kshape`` (voxels).
-
-    Each axis gets at least ``n + k//2`` voxels (enough for the "same" window to be free of
-    circular wrap-around with a kernel centred on the origin, see the module docstring) and at
-    least ``k`` (so the wrapped kernel does not overlap itself), rounded up to a 13-smooth size
-    for VkFFT's fast radices. The last axis, the one the real-to-complex transform halves, is
-    also made even: VkFFT's R2C/C2R paths are the best tested for even sizes.
-    """
-    out = []
-    for axis, (n, k) in enumerate(zip(shape, kshape)):
-        need = max(n + k // 2, k)
-        out.append(_next_smooth(need, even=(axis == len(shape) - 1)))
-    return tuple(out)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -109,67 +78,52 @@ __kernel void pad_real(__global const double *src, __global double *dst,
     dst[d] = (i < nx && j < ny && l < nz) ? src[((size_t)i * ny + j) * nz + l] : 0.0;
 }
 
-/* The indicator of the (nx, ny, nz) box inside the (px, py, pz) box: the field "ones" whose
-   convolution with the kernel is the weight w. */
-__kernel void pad_ones(__global double *dst, const int nx, const int ny, const int nz,
-                       const int py, const int pz)
-{
-    const int l = get_global_id(0), j = get_global_id(1), i = get_global_id(2);
-    dst[((size_t)i * py + j) * pz + l] = (i < nx && j < ny && l < nz) ? 1.0 : 0.0;
-}
-
 /* Scatter a C-ordered (kx, ky, kz) kernel into a zero-filled (px, py, pz) box with its "same"
-   centre (sx, sy, sz) = ((kx-1)/2, ...) at the origin; negative offsets wrap to the far end.
-   When square != 0 the kernel is squared on the way (the variance kernel K*K). */
+   centre (sx, sy, sz) = ((kx-1)/2, ...) at the origin; negative offsets wrap to the far end. */
 __kernel void scatter_kernel(__global const double *k, __global double *dst,
                              const int kx, const int ky, const int kz,
                              const int sx, const int sy, const int sz,
-                             const int px, const int py, const int pz, const int square)
+                             const int px, const int py, const int pz)
 {
     const int c = get_global_id(0), b = get_global_id(1), a = get_global_id(2);
     int i = a - sx, j = b - sy, l = c - sz;
     if (i < 0) i += px;
     if (j < 0) j += py;
     if (l < 0) l += pz;
-    const double v = k[((size_t)a * ky + b) * kz + c];
-    dst[((size_t)i * py + j) * pz + l] = square ? v * v : v;
+    dst[((size_t)i * py + j) * pz + l] = k[((size_t)a * ky + b) * kz + c];
 }
 
-/* In-place complex product a *= b of two half-spectra (complex128 stored as double2). */
-__kernel void cmul(__global double2 *a, __global const double2 *b)
+/* out = a * b for two half-spectra (complex128 stored as double2); a and b are kept. */
+__kernel void cmul_to(__global const double2 *a, __global const double2 *b, __global double2 *out)
 {
     const size_t g = get_global_id(0);
     const double2 x = a[g], y = b[g];
-    a[g] = (double2)(x.x * y.x - x.y * y.y, x.x * y.y + x.y * y.x);
+    out[g] = (double2)(x.x * y.x - x.y * y.y, x.x * y.y + x.y * y.x);
 }
 
-/* Crop the convolution of the box indicator to (nx, ny, nz): the weight w, clamped below at
-   1e-300 like filtering.normalised_convolution (written so that a NaN stays a NaN, as with
-   numpy.maximum). */
-__kernel void crop_weight(__global const double *conv, __global double *w,
-                          const int ny, const int nz, const int py, const int pz)
-{
-    const int l = get_global_id(0), j = get_global_id(1), i = get_global_id(2);
-    const double c = conv[((size_t)i * py + j) * pz + l];
-    w[((size_t)i * ny + j) * nz + l] = (c < 1e-300) ? 1e-300 : c;
-}
-
-/* Crop a convolution to (nx, ny, nz), clamp it at 0 and divide by w (square == 0, the field)
-   or by w^2 (square != 0, the variance). */
-__kernel void crop_normalise(__global const double *conv, __global const double *w,
-                             __global double *out, const int ny, const int nz,
-                             const int py, const int pz, const int square)
+/* out += coef * conv on the (nx, ny, nz) crop of a (px, py, pz) convolution (out = when first):
+   coef is term `term` of the fit's class table (ncx, ncy, ncz, n_terms), looked up through
+   the per-axis class index of each voxel (filtering.BoundaryFit). With last != 0 the sum is
+   clamped below at 0 (written so that a NaN stays a NaN, as with numpy.maximum). */
+__kernel void crop_accumulate(__global const double *conv, __global const double *coef,
+                              __global const int *cls_x, __global const int *cls_y,
+                              __global const int *cls_z, __global double *out,
+                              const int ny, const int nz, const int py, const int pz,
+                              const int ncy, const int ncz, const int n_terms, const int term,
+                              const int first, const int last)
 {
     const int l = get_global_id(0), j = get_global_id(1), i = get_global_id(2);
     const size_t o = ((size_t)i * ny + j) * nz + l;
-    const double c = conv[((size_t)i * py + j) * pz + l];
-    const double v = (c < 0.0) ? 0.0 : c;
-    const double ww = w[o];
-    out[o] = square ? v / (ww * ww) : v / ww;
+    const size_t cls = ((size_t)cls_x[i] * ncy + cls_y[j]) * ncz + cls_z[l];
+    const double v = coef[cls * n_terms + term] * conv[((size_t)i * py + j) * pz + l];
+    double s = first ? v : out[o] + v;
+    if (last)
+        s = (s < 0.0) ? 0.0 : s;
+    out[o] = s;
 }
 """
 
-_KERNEL_NAMES = ("pad_real", "pad_ones", "scatter_kernel", "cmul", "crop_weight", "crop_normalise")
+_KERNEL_NAMES = ("pad_real", "scatter_kernel", "cmul_to", "crop_accumulate")
 
 
 def _require_fp64(device) -> None:
@@ -224,43 +178,40 @@ def _i32(*values):
     return [np.int32(v) for v in values]
 
 
-@functools.lru_cache(maxsize=8)
-def _kernel_terms(queue, shape, pshape, kshape, kbytes):
-    """Device data that depends only on the grid and the kernel, computed once per pair.
+class _FitOnDevice:
+    """Device data that depends only on the grid and the kernel, made once per pair: the
+    half-spectra (complex128, shape ``_half(pshape)``) of the origin-centred term kernels of
+    the field (K u^t) and of the variance (K^2 u^t), the coefficient tables and the per-axis
+    class indices of ``filtering.boundary_fit``. The term kernels (a few kB each) are uploaded
+    and padded on the device, so no box-sized array is transformed or copied on the host."""
 
-    Returns (K_hat, K2_hat, w): the half-spectra (complex128, shape ``_half(pshape)``) of the
-    origin-centred kernel and of its square, and the weight w = max(conv(1, K), 1e-300) of
-    shape ``shape`` (float64). The kernel is uploaded (a few kB) and padded on the device, so
-    no box-sized array is transformed or copied on the host.
-    """
-    knl = _kernels(queue.context)
-    app = _plan(queue, pshape)
+    def __init__(self, queue, fit, kernel):
+        knl = _kernels(queue.context)
+        app = _plan(queue, fit.pshape)
+        real = cla.empty(queue, fit.pshape, np.float64)
+        kgrid = (fit.kshape[2], fit.kshape[1], fit.kshape[0])
+        self.spectra = {}
+        for which, terms in (("mean", fit.mean_terms), ("var", fit.var_terms)):
+            spectra = []
+            for exps in terms:
+                d_k = cla.to_device(queue, np.ascontiguousarray(fit.term_kernel(kernel, exps, which == "var")))
+                real.fill(0.0)
+                knl.scatter_kernel(queue, kgrid, None, d_k.data, real.data,
+                                   *_i32(*fit.kshape, *fit.centre, *fit.pshape))
+                spec = cla.empty(queue, _half(fit.pshape), np.complex128)
+                app.fft(real, spec, queue=queue)
+                spectra.append(spec)
+            self.spectra[which] = spectra
+        self.coef = {"mean": cla.to_device(queue, np.ascontiguousarray(fit.mean_coef)),
+                     "var": cla.to_device(queue, np.ascontiguousarray(fit.var_coef))}
+        self.ncls = fit.mean_coef.shape[:3]
+        self.classes = [cla.to_device(queue, c.astype(np.int32)) for c in fit.classes]
+
+
+@functools.lru_cache(maxsize=4)
+def _fit_on_device(queue, shape, kshape, kbytes) -> _FitOnDevice:
     kernel = np.frombuffer(kbytes, dtype=np.float64).reshape(kshape)
-    d_k = cla.to_device(queue, kernel)
-    real = cla.empty(queue, pshape, np.float64)
-    centre = [(k - 1) // 2 for k in kshape]  # scipy's "same" crop starts at (k-1)//2
-    kgrid = (kshape[2], kshape[1], kshape[0])
-    spectra = []
-    for square in (0, 1):
-        real.fill(0.0)
-        knl.scatter_kernel(queue, kgrid, None, d_k.data, real.data,
-                           *_i32(*kshape, *centre, *pshape, square))
-        spec = cla.empty(queue, _half(pshape), np.complex128)
-        app.fft(real, spec, queue=queue)
-        spectra.append(spec)
-    k_hat, k2_hat = spectra
-
-    # w = conv(box indicator, K), cropped and clamped
-    pgrid = (pshape[2], pshape[1], pshape[0])
-    knl.pad_ones(queue, pgrid, None, real.data, *_i32(*shape, pshape[1], pshape[2]))
-    tmp = cla.empty(queue, _half(pshape), np.complex128)
-    app.fft(real, tmp, queue=queue)
-    knl.cmul(queue, (tmp.size,), None, tmp.data, k_hat.data)
-    app.ifft(tmp, real, queue=queue)
-    w = cla.empty(queue, shape, np.float64)
-    knl.crop_weight(queue, (shape[2], shape[1], shape[0]), None, real.data, w.data,
-                    *_i32(shape[1], shape[2], pshape[1], pshape[2]))
-    return k_hat, k2_hat, w
+    return _FitOnDevice(queue, boundary_fit(shape, kernel), kernel)
 
 
 def _as_device_array(queue, a, name: str):
@@ -306,9 +257,10 @@ def normalised_convolution_cl(queue, field, kernel: np.ndarray, variance=None):
     Returns
     -------
     out : pyopencl.array.Array, float64, shape (nx, ny, nz)
-        max(conv(field, K), 0) / w, w = conv(1, K) the kernel weight inside the box.
+        The smoothed field (the fit of ``filtering.normalised_convolution``), clamped at 0.
     var : pyopencl.array.Array, float64, shape (nx, ny, nz), or None
-        max(conv(variance, K*K), 0) / w^2; None when ``variance`` is None.
+        Its variance (the fit's equivalent kernel squared, applied to ``variance``); None when
+        ``variance`` is None.
 
     Raises
     ------
@@ -320,12 +272,12 @@ def normalised_convolution_cl(queue, field, kernel: np.ndarray, variance=None):
     Notes
     -----
     A kernel of one voxel is the identity: copies are returned, as on the host. The FFT box is
-    ``padded_shape(field.shape, kernel.shape)``; plans, compiled helper kernels and the kernel
-    spectra and weight are cached (functools.lru_cache), so repeated calls on one grid pay
-    two R2C and two C2R transforms (one of each without variance). The caches keep device
-    memory alive: about 3 half-spectra plus one grid per cached (grid, kernel) pair. The
-    helper Kernel objects are shared, so do not call this from several host threads at once
-    on the same context.
+    ``filtering.padded_shape(field.shape, kernel.shape)``; plans, compiled helper kernels, the
+    term spectra and the coefficient tables are cached (functools.lru_cache), so repeated calls
+    on one grid pay one R2C transform and one C2R per term: 1 + 4 for the field, 1 + 10 for
+    the variance (fewer where the kernel is flat along an axis). The caches keep device memory
+    alive: 14 half-spectra per cached (grid, kernel) pair. The helper Kernel objects are
+    shared, so do not call this from several host threads at once on the same context.
     """
     if cl is None:
         raise ImportError(f"normalised_convolution_cl needs pyopencl ({_CL_IMPORT_ERROR})")
@@ -352,27 +304,34 @@ def normalised_convolution_cl(queue, field, kernel: np.ndarray, variance=None):
     import pyvkfft.opencl  # noqa: F401  (a clear ImportError here when pyvkfft is missing)
 
     kshape = tuple(int(k) for k in kernel.shape)
-    pshape = padded_shape(shape, kshape)
+    fit = boundary_fit(shape, kernel)
+    pshape = fit.pshape
     knl = _kernels(queue.context)
     app = _plan(queue, pshape)
-    k_hat, k2_hat, w = _kernel_terms(queue, shape, pshape, kshape, kernel.tobytes())
+    dev = _fit_on_device(queue, shape, kshape, kernel.tobytes())
 
     pgrid = (pshape[2], pshape[1], pshape[0])
     ngrid = (shape[2], shape[1], shape[0])
     real = cla.empty(queue, pshape, np.float64)
     spec = cla.empty(queue, _half(pshape), np.complex128)
+    prod = cla.empty(queue, _half(pshape), np.complex128)
+    cx, cy, cz = dev.classes
 
-    def convolve(src, k_spec, square):
+    def smooth(src, which):
         knl.pad_real(queue, pgrid, None, src.data, real.data, *_i32(*shape, pshape[1], pshape[2]))
         app.fft(real, spec, queue=queue)
-        knl.cmul(queue, (spec.size,), None, spec.data, k_spec.data)
-        # C2R of a multi-dimensional transform overwrites its complex input: spec is scratch
-        app.ifft(spec, real, queue=queue)
         res = cla.empty(queue, shape, np.float64)
-        knl.crop_normalise(queue, ngrid, None, real.data, w.data, res.data,
-                           *_i32(shape[1], shape[2], pshape[1], pshape[2], square))
+        spectra = dev.spectra[which]
+        for t, k_spec in enumerate(spectra):
+            knl.cmul_to(queue, (spec.size,), None, spec.data, k_spec.data, prod.data)
+            # C2R of a multi-dimensional transform overwrites its complex input: prod is scratch
+            app.ifft(prod, real, queue=queue)
+            knl.crop_accumulate(queue, ngrid, None, real.data, dev.coef[which].data, cx.data, cy.data,
+                                cz.data, res.data,
+                                *_i32(shape[1], shape[2], pshape[1], pshape[2], dev.ncls[1], dev.ncls[2],
+                                      len(spectra), t, t == 0, t == len(spectra) - 1))
         return res
 
-    out = convolve(d_field, k_hat, 0)
-    var = None if d_var is None else convolve(d_var, k2_hat, 1)
+    out = smooth(d_field, "mean")
+    var = None if d_var is None else smooth(d_var, "var")
     return out, var

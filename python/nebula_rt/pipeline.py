@@ -264,7 +264,9 @@ def compute_light(scene, density: np.ndarray, backend: Backend, progress=None, c
 def _opencl_fft(backend) -> bool:
     """Filter collisions on the OpenCL device: when the backend is OpenCL and pyvkfft imports
     (chosen by measurement, benchmarks/bench_fft.py: 3.9 ms on the device against 1320 ms
-    through the host for 3 bands at 128^3 on an H100; 1.35-3x faster even on PoCL)."""
+    through the host for 3 bands at 128^3 on an H100, with the former 4 transforms per band;
+    with the 16 of the local linear fit at the faces, PoCL is 2.6x faster on the device at
+    64^3 but 0.5x at 128^3)."""
     if getattr(backend, "name", "") != "opencl":
         return False
     from . import filtering_opencl

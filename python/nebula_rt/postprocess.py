@@ -172,7 +172,8 @@ def filter_collisions_opencl(ds: DeviceSums, band_params: np.ndarray, batches: i
     Returns flat float64 device arrays (J, rel_error) in the device layout, for :func:`finish`.
     Same arithmetic as :func:`nebula_rt.pipeline.filter_collisions` up to FFT round-off.
     Measured against the host FFT on an H100's OpenCL (3 bands, 128^3, radius 0.05): 3.9 ms
-    against 1320 ms (benchmarks/bench_fft.py).
+    against 1320 ms (benchmarks/bench_fft.py), before the local linear fit at the faces
+    quadrupled the transforms.
     """
     from . import filtering
     from .filtering_opencl import normalised_convolution_cl

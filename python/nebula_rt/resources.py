@@ -15,8 +15,10 @@ host
     (VTK's point order), the host sums of error-targeted runs and of the collision filter on
     the host, and its FFT work arrays.
 
-The FFT work of the collision filter is taken as four complex128 arrays of the padded shape
-(the inputs' transforms, their product and the inverse), per band in turn.
+The FFT work of the collision filter is taken as 20 complex128 half-spectra of the padded box
+(8 B per point each): the 14 cached spectra of the kernel terms of the face fit
+(``nebula_rt.filtering``), the field's and the variance's transforms, their products and the
+inverse transforms, per band in turn.
 """
 
 from __future__ import annotations
@@ -26,8 +28,8 @@ from dataclasses import dataclass, field
 
 from .errors import ResourceError
 
-#: bytes per FFT point of the collision filter's convolutions (4 complex128 work arrays)
-FFT_BYTES_PER_POINT = 4 * 16
+#: bytes per FFT point of the collision filter's convolutions (20 complex128 half-spectra)
+FFT_BYTES_PER_POINT = 20 * 8
 
 
 @dataclass
