@@ -37,7 +37,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from . import colour_convert
+from . import colour_convert, limits
 from .array_api import array_module
 from .backends import Backend, TransportSetup
 from .errors import AccumulatorOverflowError, CancelledError
@@ -376,10 +376,14 @@ def trace(
     wl = np.array([b.wavelength for b in bands], dtype=np.float64)
     slum = star_band_luminosities(stars, wl)
     band_lum = slum.sum(axis=0)
+    track_scale = float(2.0**FIXED_POINT_BITS * max(shape))
+    # what the device forms from these inputs must fit float32/int32: checked before any work
+    limits.check_transport(density, bands, stars, slum, tau=tau, photons=photons, max_scatterings=max_scatterings,
+                           estimator=estimator, track_scale=track_scale, seed=seed)
+    backend.check_grid_fits(shape, len(bands))
     cdf = np.cumsum(slum, axis=0) / band_lum[None, :]
     cdf[-1, :] = 1.0
     sigma_scale = np.array([tau * b.extinction for b in bands], dtype=np.float64)
-    track_scale = float(2.0**FIXED_POINT_BITS * max(shape))
     setup = TransportSetup(
         density=density,
         sigma_scale=sigma_scale.astype(np.float32),

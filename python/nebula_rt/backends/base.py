@@ -221,6 +221,33 @@ class Backend(abc.ABC):
         by_memory = max(1, int(self.slot_memory_budget) // (8 * max(int(cells), 1)))
         return int(max(1, min(32, n_batches, by_work, by_memory)))
 
+    def memory_limits(self) -> tuple[int, int] | None:
+        """(largest single buffer, total) device memory in bytes; None where unknown."""
+        return None
+
+    def check_grid_fits(self, shape, n_bands: int = 0) -> None:
+        """Raise SceneError("grid.shape") unless the grid fits the device: the density alone
+        (``n_bands`` 0: 4 B per voxel), or a transport of ``n_bands`` bands (one batch slot and
+        the two running sums, 8 B per cell each, and the density; a cell is one voxel of one
+        band). Checked before the first allocation, which would otherwise fail with the
+        runtime's own error (e.g. OpenCL's INVALID_BUFFER_SIZE)."""
+        from ..errors import SceneError
+
+        lim = self.memory_limits()
+        if lim is None:
+            return
+        max_alloc, total = lim
+        nvox = int(np.prod([int(n) for n in shape], dtype=object))
+        ncell = int(n_bands) * nvox
+        biggest, need = (8 * ncell, 24 * ncell + 4 * nvox) if n_bands else (4 * nvox, 4 * nvox)
+        if biggest > max_alloc or need > total:
+            gib = 2.0**30
+            what = f"a transport of {n_bands} band(s)" if n_bands else "the density"
+            raise SceneError("grid.shape", [int(n) for n in shape],
+                             f"needs {need / gib:.4g} GiB of device memory for {what} (largest buffer "
+                             f"{biggest / gib:.4g} GiB); {self.device_name} has {total / gib:.4g} GiB, at most "
+                             f"{max_alloc / gib:.4g} GiB per buffer")
+
     #: kernel file of the transport (benchmarks swap in variants to compare them)
     transport_program: str = "transport.cl"
     #: packets (all bands) worth one launch, and bytes the batch slots may take

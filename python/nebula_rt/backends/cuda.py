@@ -173,6 +173,11 @@ class CUDABackend(Backend):
         free, _total = cp.cuda.runtime.memGetInfo()
         self.slot_memory_budget = int(free) // 4
 
+    def memory_limits(self):
+        with self.device:
+            _free, total = self.cp.cuda.runtime.memGetInfo()
+        return int(total), int(total)
+
     def _compile(self, name, defines):
         # --fmad=false: no contraction of a * b + c into one rounding (as OpenCL's FP_CONTRACT
         # OFF in nebula_common.h), so the float arithmetic is the same whatever the compiler

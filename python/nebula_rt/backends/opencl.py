@@ -238,6 +238,9 @@ class OpenCLBackend(Backend):
         self.pinned_host = self.is_gpu
         self.slot_memory_budget = mem // 4 if self.is_gpu else min(mem // 4, 1 << 30)
 
+    def memory_limits(self):
+        return int(self.device.max_mem_alloc_size), int(self.device.global_mem_size)
+
     def _compile(self, name, defines):
         options = [f"-D{k}={v}" for k, v in sorted(defines.items())]
         return cl.Program(self.context, kernel_source(name)).build(options=options)
