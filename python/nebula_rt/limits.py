@@ -125,6 +125,14 @@ def check_int_range(parameter: str, value: int, lo: int, hi: int, what: str = "a
         raise SceneError(parameter, value, f"must be {what} in [{lo}, {hi}]")
 
 
+def check_batch_count(batches: int, batch_size: int) -> None:
+    """The batch count is an int32 of the finishing kernels (the batch-means error estimate)."""
+    if batches > INT32_MAX:
+        raise SceneError("transport.batch_size", batch_size,
+                         f"gives {batches} batches, more than the {INT32_MAX} (int32) the device counts: "
+                         f"choose a batch size of at least photons / {INT32_MAX}")
+
+
 # ---------------------------------------------------------------------------------------------
 # products and outputs of the transport
 # ---------------------------------------------------------------------------------------------

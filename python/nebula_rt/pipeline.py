@@ -22,6 +22,7 @@ from .array_api import array_module, to_numpy
 from .backends import Backend, get_backend
 from .bands import Band, reference_band_index
 from .density import file_digest, generate_density
+from .limits import FLOAT32_MAX
 from .transport import TALLY_NAMES, TransportResult, batch_standard_error, light_from_sums, trace
 
 
@@ -531,5 +532,7 @@ def rgba_from_emissivity(
     a8 = xp.clip(xp.rint(alpha * 255.0), 0, 255).astype(xp.uint8)
     rgba = to_numpy(xp.concatenate([srgb8, a8[..., None]], axis=-1))
     if return_linear:
-        return rgba, float(exposure), to_numpy((rgb * exposure).astype(xp.float32))
+        # float32: an over-exposed colour saturates at the largest float32 instead of infinity
+        linear = xp.minimum(rgb * exposure, FLOAT32_MAX)
+        return rgba, float(exposure), to_numpy(linear.astype(xp.float32))
     return rgba, float(exposure)

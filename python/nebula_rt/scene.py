@@ -307,7 +307,8 @@ def _to_int(v: Any) -> int:
         return int(v)
     if _is_real(v):
         f = float(v)
-        if math.isfinite(f) and f == math.floor(f):
+        # a whole float (2.1e6) is an integer; beyond 2**53 a float no longer says which one
+        if math.isfinite(f) and f == math.floor(f) and abs(f) <= 2.0**53:
             return int(f)
     raise TypeError
 
@@ -548,7 +549,7 @@ def _unknown_key(param: str, value: Any, allowed_keys: Sequence[str]) -> SceneEr
 
 
 def _parse_table(name: str, d: Any, rules: Mapping[str, _Rule]) -> Dict[str, Any]:
-    """Check keys and convert types of one table; ranges are not checked."""
+    """Check keys, convert types and check the range of each value of one table."""
     if not isinstance(d, Mapping):
         raise SceneError(name, d, "must be a table")
     out = {}
@@ -557,6 +558,9 @@ def _parse_table(name: str, d: Any, rules: Mapping[str, _Rule]) -> Dict[str, Any
         if key not in rules:
             raise _unknown_key(param, value, list(rules))
         out[key] = rules[key].coerce(param, value)
+        check = rules[key].check
+        if check is not None and not check(out[key]):  # here, so that the message shows the value as given
+            raise SceneError(param, value, rules[key].allowed)
     return out
 
 
@@ -860,6 +864,8 @@ class Scene:
         spread of the batch totals (one batch has none, and would report 100 % everywhere)."""
         t = self.transport
         photons, _ = t.effective()
+        if t.batch_size:
+            limits.check_batch_count(-(-photons // t.batch_size), t.batch_size)
         if t.batch_size and photons >= 2 and t.batch_size >= photons:
             raise SceneError(
                 "transport.batch_size", t.batch_size,

@@ -135,6 +135,16 @@ def exact_packet_energy(luminosity: float, photons: int) -> float:
     return math.ldexp(math.floor(m * 2.0**bits) / 2.0**bits, e)
 
 
+def batch_count(photons: int, batch_size: int = 0) -> int:
+    """Number of batches :func:`batch_plan` makes."""
+    photons = int(photons)
+    if batch_size and batch_size > 0:
+        m = max(1, math.ceil(photons / batch_size))
+    else:
+        m = max(MIN_BATCHES, math.ceil(photons / MAX_AUTO_BATCH))
+    return min(m, photons)
+
+
 def batch_plan(photons: int, batch_size: int = 0) -> list[tuple[int, int]]:
     """Split ``photons`` packets into batches [(start, count), ...].
 
@@ -143,11 +153,7 @@ def batch_plan(photons: int, batch_size: int = 0) -> list[tuple[int, int]]:
     The plan depends only on the arguments (never on the device): same scene, same bits.
     """
     photons = int(photons)
-    if batch_size and batch_size > 0:
-        m = max(1, math.ceil(photons / batch_size))
-    else:
-        m = max(MIN_BATCHES, math.ceil(photons / MAX_AUTO_BATCH))
-    m = min(m, photons)
+    m = batch_count(photons, batch_size)
     base, extra = divmod(photons, m)
     plan, start = [], 0
     for k in range(m):
@@ -403,6 +409,7 @@ def trace(
     targeted = target_error > 0.0
     if targeted and not batch_size:
         batch_size = max(1, math.ceil(photons / TARGET_BATCHES))
+    limits.check_batch_count(batch_count(photons, batch_size), batch_size)
     plan = batch_plan(photons, batch_size)
     nb = len(bands)
     base, extra = divmod(int(photons), len(plan))
