@@ -35,6 +35,9 @@ MAX_BANDS = 32
 
 #: Largest allowed wavelength in nm (100 um).
 MAX_WAVELENGTH_NM = 1.0e5
+#: Smallest allowed band wavelength in nm: the band integrals run on a 1 nm grid from the
+#: shortest band centre rounded down, and at 0 nm the Planck law is 0 x infinity (NaN).
+MIN_WAVELENGTH_NM = 1.0
 
 _NAME_RE = re.compile(r"^[A-Za-z0-9_-]+$")
 
@@ -52,7 +55,7 @@ class Band:
         Band name, made of ``[A-Za-z0-9_-]``; unique within a scene.  It names
         the output arrays (``J_<name>``, ``emissivity_<name>``).
     wavelength : float
-        Representative (central) wavelength in nm, in ``(0, 1e5]``.
+        Representative (central) wavelength in nm, in ``[1, 1e5]``.
     extinction : float
         Extinction cross-section relative to the reference band (> 0).  The
         extinction coefficient in this band is
@@ -165,9 +168,9 @@ def _check_extinction(param: str, value: Any) -> float:
 
 
 def _check_wavelength(param: str, value: Any) -> float:
-    allowed = "must be a wavelength in nm in (0, 1e5]"
+    allowed = "must be a wavelength in nm in [1, 1e5]"
     v = _as_float(param, value, allowed)
-    if not (0.0 < v <= MAX_WAVELENGTH_NM):
+    if not (MIN_WAVELENGTH_NM <= v <= MAX_WAVELENGTH_NM):
         raise SceneError(param, value, allowed)
     return v
 

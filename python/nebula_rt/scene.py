@@ -484,8 +484,8 @@ BANDS_RULES: Dict[str, _Rule] = {
     # "list" is handled separately (array of tables).
 }
 BAND_ENTRY_RULES: Dict[str, _Rule] = {
-    "name": _ANY_STR,
-    "wavelength": _Rule(_to_float, "must be a wavelength in nm in (0, 1e5]"),
+    "name": _Rule(_to_str, "must be a non-empty name made of [A-Za-z0-9_-]"),
+    "wavelength": _Rule(_to_float, "must be a wavelength in nm in [1, 1e5]"),
     "extinction": _Rule(_to_float, "must be a number > 0 (relative to the reference band) in " + FLOAT32_RANGE_TEXT),
     "albedo": _Rule(_to_float, "must be in [0, 1]"),
     "g": _Rule(_to_float, "must be in [-1, 1]"),
