@@ -50,7 +50,7 @@ class NebulaAlgorithm(VTKPythonAlgorithmBase):
     output, ``last_error`` set and one message on VTK's output window; nothing escapes into
     VTK's executive (which would print a traceback and two more errors, and leave the output
     half made). ``PROPERTIES`` maps scene keys to the setters' property names, so a message
-    says which property to change (``Tau: dust.tau = 1e+39: ...``).
+    says which property to change (``dust.tau = 1e+39: ... (property Tau)``).
     """
 
     #: scene key -> property name (subclasses); star keys map to "Stars"
@@ -121,7 +121,7 @@ class NebulaAlgorithm(VTKPythonAlgorithmBase):
         """The property behind a scene key (None if no property sets it)."""
         m = _STAR_KEY.match(parameter)
         if m and hasattr(self, "SetStars"):
-            return f"Stars (star {m.group(1)}: {m.group(2)})"
+            return f"Stars: star {m.group(1)} {m.group(2)}"
         return self.PROPERTIES.get(parameter)
 
     def describe_error(self, exc: BaseException) -> str:
@@ -130,7 +130,7 @@ class NebulaAlgorithm(VTKPythonAlgorithmBase):
         LogicError, MemoryError, ...), since its text alone may not say what failed."""
         if isinstance(exc, SceneError):
             prop = self.property_name(exc.parameter)
-            return f"{prop}: {exc}" if prop and prop != exc.parameter else str(exc)
+            return f"{exc} (property {prop})" if prop and prop != exc.parameter else str(exc)
         if isinstance(exc, NebulaError):
             return str(exc)
         return f"{type(exc).__name__}: {exc}"

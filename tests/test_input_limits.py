@@ -179,7 +179,7 @@ def test_light_field_filter_refuses_tau_beyond_float32():
     lf.SetTau(1e39)
     lf.Update()
     assert lf.GetOutputDataObject(0).GetNumberOfPoints() == 0
-    assert "Tau" in lf.last_error and "dust.tau = 1e+39" in lf.last_error and limits.FLOAT32_RANGE_TEXT in lf.last_error
+    assert "(property Tau)" in lf.last_error and "dust.tau = 1e+39" in lf.last_error and limits.FLOAT32_RANGE_TEXT in lf.last_error
 
 
 def test_light_field_filter_refuses_density_beyond_float32():
@@ -279,7 +279,7 @@ def test_filter_refuses_max_scatterings_beyond_int32(bad):
     lf.SetMaxScatterings(bad)
     lf.Update()
     assert lf.GetOutputDataObject(0).GetNumberOfPoints() == 0
-    assert "MaxScatterings" in lf.last_error and "transport.max_scatterings" in lf.last_error
+    assert "(property MaxScatterings)" in lf.last_error and "transport.max_scatterings" in lf.last_error
 
 
 # --- 3. filters: any exception is one clean error ------------------------------------------
@@ -338,7 +338,8 @@ def test_bad_grid_shape_in_the_density_source(shape, fragment):
     with _Capture() as cap:
         d.Update()
     assert d.GetOutputDataObject(0).GetNumberOfPoints() == 0
-    assert d.last_error.startswith("NebulaDustDensity: GridShape: grid.shape") and fragment in d.last_error
+    assert d.last_error.startswith("NebulaDustDensity: grid.shape = ") and fragment in d.last_error
+    assert d.last_error.endswith("(property GridShape)")
     assert cap.text.count("NebulaRT error") == 1 and "Traceback" not in cap.text
 
 
