@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
-import math
+import numbers
+import re
 
 from vtkmodules.util.vtkAlgorithm import VTKPythonAlgorithmBase
 from vtkmodules.vtkCommonCore import vtkOutputWindow
 
-from nebula_rt.errors import CancelledError, NebulaError
+from nebula_rt.errors import CancelledError, NebulaError, SceneError
 
 #: Star records in the flat ``Stars`` property: x, y, z (box units), luminosity,
 #: temperature (K; 0 = no spectrum, flat), bump radius (box units).
@@ -15,24 +16,45 @@ STAR_FIELDS = ("x", "y", "z", "luminosity", "temperature", "bump_radius")
 
 
 def stars_from_flat(values) -> list[dict]:
-    """Scene-file star tables from the flat ``Stars`` vector (6 numbers per star)."""
-    vals = [float(v) for v in values]
-    if len(vals) % len(STAR_FIELDS):
-        from nebula_rt.errors import SceneError
+    """Scene-file star tables from the flat ``Stars`` vector (6 numbers per star).
 
-        raise SceneError("Stars", vals, "must hold 6 numbers per star: x, y, z, luminosity, temperature, bump radius")
+    A temperature of exactly 0 means no spectrum (flat); any other value goes to the scene's
+    validation (a negative or NaN temperature is an error, not a flat spectrum)."""
+    allowed = "must hold 6 numbers per star: x, y, z, luminosity, temperature (0 = flat spectrum), bump radius"
+    try:
+        vals = list(values)
+    except TypeError:
+        raise SceneError("Stars", values, allowed) from None
+    if not vals or len(vals) % len(STAR_FIELDS) or not all(
+            isinstance(v, numbers.Real) and not isinstance(v, bool) for v in vals):
+        raise SceneError("Stars", vals, allowed)
+    vals = [float(v) for v in vals]
     out = []
     for i in range(0, len(vals), 6):
         x, y, z, lum, temp, bump = vals[i:i + 6]
         star = {"position": [x, y, z], "luminosity": lum, "bump_radius": bump}
-        if temp > 0 and math.isfinite(temp):
+        if temp != 0.0:
             star["temperature"] = temp
         out.append(star)
     return out
 
 
+#: The star fields of the flat Stars property, by scene key.
+_STAR_KEY = re.compile(r"^stars\[(\d+)\]\.(\w+)$")
+
+
 class NebulaAlgorithm(VTKPythonAlgorithmBase):
-    """Base class: error reporting, progress, abort and an execution counter."""
+    """Base class: error reporting, progress, abort and an execution counter.
+
+    Any exception of an execution (NebulaRT's own, the runtime's, a bug) ends it with an empty
+    output, ``last_error`` set and one message on VTK's output window; nothing escapes into
+    VTK's executive (which would print a traceback and two more errors, and leave the output
+    half made). ``PROPERTIES`` maps scene keys to the setters' property names, so a message
+    says which property to change (``dust.tau = 1e+39: ... (property Tau)``).
+    """
+
+    #: scene key -> property name (subclasses); star keys map to "Stars"
+    PROPERTIES: dict = {}
 
     def __init__(self, **kw):
         super().__init__(**kw)
@@ -82,18 +104,36 @@ class NebulaAlgorithm(VTKPythonAlgorithmBase):
         try:
             self._execute(request, inInfo, outInfo)
             self._report(1.0, "")
-        except (NebulaError, ValueError, KeyError) as exc:
+        except Exception as exc:  # noqa: BLE001 - every failure ends as a reported empty output
             kind = "cancelled" if isinstance(exc, CancelledError) else "error"
             if isinstance(exc, CancelledError):
                 # VTK 9.2 (ParaView 5.11) does not clear the flag before the next execution:
                 # without this every later update would be cancelled at once
                 self.SetAbortExecute(0)
-            self.last_error = f"{type(self).__name__}: {exc}"
+            self.last_error = f"{type(self).__name__}: {self.describe_error(exc)}"
             output.Initialize()  # no half-made output
             vtkOutputWindow.GetInstance().DisplayErrorText(f"NebulaRT {kind}: {self.last_error}\n")
         # Succeed either way: an empty output (with the error on the output window) lets
         # downstream filters re-execute to empty rather than keep stale data.
         return 1
+
+    def property_name(self, parameter: str):
+        """The property behind a scene key (None if no property sets it)."""
+        m = _STAR_KEY.match(parameter)
+        if m and hasattr(self, "SetStars"):
+            return f"Stars: star {m.group(1)} {m.group(2)}"
+        return self.PROPERTIES.get(parameter)
+
+    def describe_error(self, exc: BaseException) -> str:
+        """A message for ``last_error``: a SceneError with the property that sets its parameter,
+        NebulaRT's other errors as they are, anything else with its type (pyopencl's
+        LogicError, MemoryError, ...), since its text alone may not say what failed."""
+        if isinstance(exc, SceneError):
+            prop = self.property_name(exc.parameter)
+            return f"{exc} (property {prop})" if prop and prop != exc.parameter else str(exc)
+        if isinstance(exc, NebulaError):
+            return str(exc)
+        return f"{type(exc).__name__}: {exc}"
 
     def _execute(self, request, inInfo, outInfo) -> None:  # pragma: no cover - abstract
         raise NotImplementedError

@@ -23,6 +23,9 @@ class NebulaColour(ExposureMixin, NebulaAlgorithm):
     sRGB before the transfer curve); field data ``exposure`` is the exposure used.
     """
 
+    PROPERTIES = {"colour.exposure": "Exposure", "colour.white_point": "WhitePoint",
+                  "colour.opacity_scale": "OpacityScale"}
+
     def __init__(self):
         super().__init__(nInputPorts=1, nOutputPorts=1, inputType="vtkImageData", outputType="vtkImageData")
         self._auto_exposure = True

@@ -8,6 +8,7 @@ from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
 from nebula_rt.backends import get_backend
 from nebula_rt.density import generate_density
 from nebula_rt.io_vti import add_point_arrays
+from nebula_rt.limits import INT32_MAX
 from nebula_rt.scene import Scene
 
 from .base import NebulaAlgorithm, stars_from_flat
@@ -21,6 +22,10 @@ class NebulaDustDensity(NebulaAlgorithm):
     Point data ``density`` on the voxel centres: origin 0.5/n, spacing 1/n per axis.
     Formula: thesis Eq. 3.2/3.3 (turbulence or uniform, plus each star's cubic bump, floor).
     """
+
+    PROPERTIES = {"grid.shape": "GridShape", "dust.model": "Model", "dust.scale": "Scale",
+                  "dust.offset": "Offset", "dust.floor": "Floor", "dust.density": "UniformDensity",
+                  "transport.backend": "Backend", "transport.device": "Device"}
 
     def __init__(self):
         super().__init__(nInputPorts=0, nOutputPorts=1, outputType="vtkImageData")
@@ -89,9 +94,10 @@ class NebulaDustDensity(NebulaAlgorithm):
         info = outInfo.GetInformationObject(0)
         try:
             nx, ny, nz = (int(n) for n in self._shape)
-        except (TypeError, ValueError):
-            nx = ny = nz = 2
-        nx, ny, nz = max(nx, 1), max(ny, 1), max(nz, 1)
+            if not all(2 <= n <= INT32_MAX for n in (nx, ny, nz)):
+                raise ValueError
+        except (TypeError, ValueError, OverflowError):
+            nx = ny = nz = 2  # a bad GridShape is reported by RequestData (an extent must be int32)
         info.Set(vtkStreamingDemandDrivenPipeline.WHOLE_EXTENT(), 0, nx - 1, 0, ny - 1, 0, nz - 1)
         info.Set(vtkImageData.SPACING(), 1.0 / nx, 1.0 / ny, 1.0 / nz)
         info.Set(vtkImageData.ORIGIN(), 0.5 / nx, 0.5 / ny, 0.5 / nz)

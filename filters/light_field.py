@@ -9,6 +9,7 @@ from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
 from nebula_rt.backends import get_backend
 from nebula_rt.errors import SceneError
 from nebula_rt.io_vti import add_field_data, add_point_arrays, cell_array, image_geometry, point_array
+from nebula_rt.limits import check_float32_array
 from nebula_rt.pipeline import compute_light, finish_light_field
 from nebula_rt.scene import Scene
 
@@ -38,6 +39,14 @@ class NebulaLightField(NebulaAlgorithm):
     ``rel_error_<band>``, and the run's field data (energies, photons, seed, scene TOML): the
     output contract of DESIGN.md.
     """
+
+    PROPERTIES = {"dust.tau": "Tau", "bands.preset": "BandPreset", "bands.albedo": "Albedo", "bands.g": "G",
+                  "transport.photons": "Photons", "transport.estimator": "Estimator",
+                  "transport.filter_radius": "FilterRadius", "transport.max_scatterings": "MaxScatterings",
+                  "transport.seed": "Seed", "transport.backend": "Backend", "transport.device": "Device",
+                  "transport.batch_size": "BatchSize", "transport.quality": "Quality",
+                  "transport.target_error": "TargetError", "grid.shape": "input extent",
+                  "density": "density array"}
 
     def __init__(self):
         super().__init__(nInputPorts=1, nOutputPorts=1, inputType="vtkImageData", outputType="vtkImageData")
@@ -170,6 +179,8 @@ class NebulaLightField(NebulaAlgorithm):
     def RequestInformation(self, request, inInfo, outInfo):
         src = inInfo[0].GetInformationObject(0)
         dst = outInfo.GetInformationObject(0)
+        if src is None or not src.Has(vtkStreamingDemandDrivenPipeline.WHOLE_EXTENT()):
+            return 1  # no input information: RequestData reports the missing input
         ext = list(src.Get(vtkStreamingDemandDrivenPipeline.WHOLE_EXTENT()))
         spacing = list(src.Get(vtkImageData.SPACING()) or (1.0, 1.0, 1.0))
         origin = list(src.Get(vtkImageData.ORIGIN()) or (0.0, 0.0, 0.0))
@@ -201,6 +212,7 @@ class NebulaLightField(NebulaAlgorithm):
             raise SceneError("density array", name, "must be finite (found NaN or infinity)")
         if np.any(rho < 0):
             raise SceneError("density array", name, f"must be >= 0 (minimum {rho.min()!r})")
+        check_float32_array("density array", name, rho, "density values")  # the device's density is float32
         scene = self.scene(rho.shape)
         backend = get_backend(scene.transport.backend, scene.transport.device)
         self._report(0.0, "NebulaRT: tracing")

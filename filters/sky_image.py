@@ -9,6 +9,7 @@ from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
 from nebula_rt import colour_convert
 from nebula_rt.errors import SceneError
 from nebula_rt.io_vti import add_field_data, add_point_arrays, field_data_dict, point_array
+from nebula_rt.limits import check_float32_array
 from nebula_rt.pipeline import colour_source_from_field_data
 from nebula_rt.scene import Scene
 from nebula_rt.sky import Camera, sky_image
@@ -34,6 +35,11 @@ class NebulaSkyImage(ExposureMixin, NebulaAlgorithm):
     Field data: the camera, ``tau_star_<band>`` (optical depth from the first star to the
     observer), ``exposure``.
     """
+
+    PROPERTIES = {"colour.exposure": "Exposure"}
+    #: Camera's parameter names -> the properties that set them
+    _CAMERA_PROPERTIES = {"Camera.direction": "ViewDirection", "Camera.up": "ViewUp", "Camera.size": "ImageSize",
+                          "Camera.extent": "Extent"}
 
     def __init__(self):
         super().__init__(nInputPorts=1, nOutputPorts=1, inputType="vtkImageData", outputType="vtkImageData")
@@ -67,12 +73,16 @@ class NebulaSkyImage(ExposureMixin, NebulaAlgorithm):
         self.Modified()
 
     def _camera(self) -> Camera:
+        # whole numbers given as floats (ParaView's int properties may arrive so) are pixels; 16.5 is not
+        size = tuple(int(v) if isinstance(v, float) and v.is_integer() else v for v in self._size)
         try:
-            w, h = (int(v) for v in self._size)
-            return Camera(direction=tuple(float(v) for v in self._direction), up=tuple(float(v) for v in self._up),
-                          size=(w, h), extent=float(self._extent))
-        except ValueError as exc:
-            raise SceneError("sky image camera", (self._direction, self._up, self._size, self._extent), str(exc)) from None
+            return Camera(direction=tuple(self._direction), up=tuple(self._up), size=size, extent=self._extent)
+        except (ValueError, TypeError) as exc:
+            text = str(exc)
+            name = next((p for c, p in self._CAMERA_PROPERTIES.items() if text.startswith(c)), "camera")
+            value = {"ViewDirection": self._direction, "ViewUp": self._up, "ImageSize": self._size,
+                     "Extent": self._extent}.get(name, (self._direction, self._up, self._size, self._extent))
+            raise SceneError(name, value, text) from None
 
     def RequestInformation(self, request, inInfo, outInfo):
         try:
@@ -88,8 +98,8 @@ class NebulaSkyImage(ExposureMixin, NebulaAlgorithm):
 
     def _execute(self, request, inInfo, outInfo):
         cam = self._camera()
-        if not self._auto_exposure and not (float(self._exposure) > 0):
-            raise SceneError("Exposure", self._exposure, "must be a positive number (or use AutoExposure)")
+        if not self._auto_exposure:
+            Scene.from_dict({"colour": {"exposure": self._exposure}})  # the colour table's rule
         inp = vtkImageData.GetData(inInfo[0])
         fd = field_data_dict(inp)
         need = ("band_names", "band_wavelength_nm", "band_extinction", "tau", "scene")
@@ -124,6 +134,9 @@ class NebulaSkyImage(ExposureMixin, NebulaAlgorithm):
         out.SetDimensions(w, h, 1)
         out.SetSpacing(cam.pixel_size, cam.pixel_size, 1.0)
         out.SetOrigin(0.5 * cam.pixel_size, 0.5 * cam.pixel_size, 0.0)
+        # float32 outputs: the star's pixel (L / (4 pi pixel^2)) is the brightest
+        check_float32_array("ImageSize", list(cam.size), img.intensity * (4.0 * np.pi / band_lum.min()),
+                            "the sky image's intensities (relative ones included)", underflow=False)
         arrays = {}
         for b, n in enumerate(names):
             arrays[f"I_{n}"] = img.intensity[b][:, :, None].astype(np.float32)

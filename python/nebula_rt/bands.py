@@ -14,13 +14,13 @@ optional ``bands.albedo`` / ``bands.g`` override every band.
 
 from __future__ import annotations
 
-import math
 import numbers
 import re
 from dataclasses import asdict, dataclass, replace
 from typing import Any, Dict, List, Mapping, Optional, Sequence
 
 from .errors import SceneError
+from .limits import FLOAT32_RANGE_TEXT, FLOAT32_TINY, fmt, in_float32_range
 
 __all__ = [
     "Band",
@@ -35,6 +35,9 @@ MAX_BANDS = 32
 
 #: Largest allowed wavelength in nm (100 um).
 MAX_WAVELENGTH_NM = 1.0e5
+#: Smallest allowed band wavelength in nm: the band integrals run on a 1 nm grid from the
+#: shortest band centre rounded down, and at 0 nm the Planck law is 0 x infinity (NaN).
+MIN_WAVELENGTH_NM = 1.0
 
 _NAME_RE = re.compile(r"^[A-Za-z0-9_-]+$")
 
@@ -52,7 +55,7 @@ class Band:
         Band name, made of ``[A-Za-z0-9_-]``; unique within a scene.  It names
         the output arrays (``J_<name>``, ``emissivity_<name>``).
     wavelength : float
-        Representative (central) wavelength in nm, in ``(0, 1e5]``.
+        Representative (central) wavelength in nm, in ``[1, 1e5]``.
     extinction : float
         Extinction cross-section relative to the reference band (> 0).  The
         extinction coefficient in this band is
@@ -136,34 +139,38 @@ def _as_float(param: str, value: Any, allowed: str) -> float:
         raise SceneError(param, value, allowed) from None
 
 
+#: Albedo and g reach the device as float32: 0, or a magnitude of at least FLOAT32_TINY.
+_TINY_TEXT = f"0 or at least {fmt(FLOAT32_TINY)} in magnitude (float32)"
+
+
 def _check_albedo(param: str, value: Any) -> float:
-    allowed = "must be in [0, 1]"
+    allowed = f"must be in [0, 1], {_TINY_TEXT}"
     v = _as_float(param, value, allowed)
-    if not (0.0 <= v <= 1.0):  # False for NaN
+    if not (0.0 <= v <= 1.0 and in_float32_range(v)):  # False for NaN
         raise SceneError(param, value, allowed)
     return v
 
 
 def _check_g(param: str, value: Any) -> float:
-    allowed = "must be in [-1, 1]"
+    allowed = f"must be in [-1, 1], {_TINY_TEXT}"
     v = _as_float(param, value, allowed)
-    if not (-1.0 <= v <= 1.0):
+    if not (-1.0 <= v <= 1.0 and in_float32_range(v)):
         raise SceneError(param, value, allowed)
     return v
 
 
 def _check_extinction(param: str, value: Any) -> float:
-    allowed = "must be a finite number > 0 (relative to the reference band)"
+    allowed = f"must be a number > 0 (relative to the reference band) in {FLOAT32_RANGE_TEXT} (float32)"
     v = _as_float(param, value, allowed)
-    if not (math.isfinite(v) and v > 0.0):
+    if not (v > 0.0 and in_float32_range(v, zero=False)):
         raise SceneError(param, value, allowed)
     return v
 
 
 def _check_wavelength(param: str, value: Any) -> float:
-    allowed = "must be a wavelength in nm in (0, 1e5]"
+    allowed = "must be a wavelength in nm in [1, 1e5]"
     v = _as_float(param, value, allowed)
-    if not (0.0 < v <= MAX_WAVELENGTH_NM):
+    if not (MIN_WAVELENGTH_NM <= v <= MAX_WAVELENGTH_NM):
         raise SceneError(param, value, allowed)
     return v
 

@@ -45,9 +45,9 @@ class OutputError(NebulaError, ValueError):
         super().__init__(f"{option} {str(path)!r}: {reason}")
 
 
-class ResourceError(NebulaError, MemoryError):
+class ResourceError(SceneError, MemoryError):
     """A run would need more memory than the host or the device has (estimated before any
-    allocation).
+    allocation). A :class:`SceneError` of the parameter that drives the need.
 
     Parameters
     ----------
@@ -60,8 +60,8 @@ class ResourceError(NebulaError, MemoryError):
     """
 
     def __init__(self, parameter: str, value: object, detail: str):
-        self.parameter, self.value, self.detail = parameter, value, detail
-        super().__init__(f"{parameter} = {value!r}: {detail}")
+        super().__init__(parameter, value, detail)
+        self.detail = detail
 
 
 class BackendUnavailableError(NebulaError, RuntimeError):

@@ -22,11 +22,14 @@ Field data
 * ``float`` (and NumPy floating scalars): a one-value ``vtkDoubleArray``;
 * ``int``, ``bool`` and NumPy integer scalars: a one-value
   ``vtkTypeInt64Array`` (exact over the whole int64 range; a ``bool`` reads
-  back as ``int``);
+  back as ``int``); NumPy unsigned 64-bit scalars, and ints in [2**63, 2**64),
+  a one-value ``vtkTypeUInt64Array`` (XML type ``UInt64``, read back as ``int``:
+  the seed's whole range);
 * ``str``: a one-value ``vtkStringArray`` (UTF-8);
 * 1-D numeric arrays (or lists/tuples of numbers): ``vtkDoubleArray`` (any
-  floating dtype) or ``vtkTypeInt64Array`` (any integer or bool dtype), read
-  back as ``float64`` / ``int64`` arrays. A one-element array keeps being an
+  floating dtype), ``vtkTypeUInt64Array`` (``uint64``) or ``vtkTypeInt64Array``
+  (any other integer or bool dtype), read back as ``float64`` / ``uint64`` /
+  ``int64`` arrays. A one-element array keeps being an
   array on reading (it is marked through its component name).
 """
 
@@ -202,6 +205,7 @@ def _field_value_to_vtk(name: str, value: Any):
         vtkDoubleArray,
         vtkStringArray,
         vtkTypeInt64Array,
+        vtkTypeUInt64Array,
     )
 
     if isinstance(value, str):
@@ -213,8 +217,16 @@ def _field_value_to_vtk(name: str, value: Any):
 
     if isinstance(value, (bool, np.bool_, numbers.Integral)):
         iv = int(value)
+        if isinstance(value, np.uint64) or 2**63 <= iv < 2**64:
+            if not 0 <= iv < 2**64:
+                raise OverflowError(f"field data {name!r} = {iv} does not fit in uint64")
+            arr = vtkTypeUInt64Array()
+            arr.SetName(name)
+            arr.SetNumberOfValues(1)
+            arr.SetValue(0, iv)
+            return arr
         if not (-(2**63) <= iv < 2**63):
-            raise OverflowError(f"field data {name!r} = {iv} does not fit in int64")
+            raise OverflowError(f"field data {name!r} = {iv} does not fit in int64 or uint64")
         arr = vtkTypeInt64Array()
         arr.SetName(name)
         arr.SetNumberOfValues(1)
@@ -240,6 +252,8 @@ def _field_value_to_vtk(name: str, value: Any):
         if a.dtype.kind == "f":
             arr = vtkDoubleArray()
             a = a.astype(np.float64, copy=False)
+        elif a.dtype == np.uint64:
+            arr = vtkTypeUInt64Array()
         elif a.dtype.kind in "iub":
             if a.dtype.kind == "u" and a.size and int(a.max()) >= 2**63:
                 raise OverflowError(f"field data {name!r} has values that do not fit in int64")

@@ -8,6 +8,7 @@ regenerates the density. ``Pipeline.executions`` counts how often each stage rea
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 from collections import Counter
@@ -20,7 +21,8 @@ from . import colour_convert, filtering, postprocess
 from .array_api import array_module, to_numpy
 from .backends import Backend, get_backend
 from .bands import Band, reference_band_index
-from .density import generate_density
+from .density import file_digest, generate_density
+from .limits import FLOAT32_MAX
 from .transport import TALLY_NAMES, TransportResult, batch_standard_error, light_from_sums, trace
 
 
@@ -44,6 +46,8 @@ class LightField:
     timings: dict = field(default_factory=dict)
     #: peak device memory of the run and peak host RSS of the process (bytes)
     memory: dict = field(default_factory=dict)
+    #: SHA-256 of the density file the run read (dust.model = "file"), else ""
+    dust_file_sha256: str = ""
 
     @property
     def spacing(self) -> tuple[float, float, float]:
@@ -78,7 +82,8 @@ class LightField:
         out["photons"] = int(tr.photons)
         out["photons_budget"] = int(tr.photons_budget or tr.photons)
         out["achieved_error"] = float(tr.achieved_error)
-        out["seed"] = int(self.scene.transport.seed)
+        # uint64: the seed's whole range [0, 2^64) (an int64 field cannot hold 2^63 and above)
+        out["seed"] = np.uint64(self.scene.transport.seed)
         out["batches"] = int(tr.batches)
         out["estimator"] = tr.estimator
         out["device"] = tr.device
@@ -95,8 +100,31 @@ class LightField:
         out["tau"] = float(self.scene.dust.tau)
         t = _dominant_temperature(self.scene.stars)
         out["colour_temperature"] = float(t) if t is not None else 0.0
-        out["scene"] = self.scene.to_toml()
+        out["scene"] = _reproducible_scene(self.scene).to_toml()
+        if self.dust_file_sha256:
+            out["dust_file_sha256"] = self.dust_file_sha256
         return out
+
+
+def _reproducible_scene(scene):
+    """The scene with a relative ``dust.file`` resolved to an absolute path, so that the stored
+    scene text reproduces the run wherever it is loaded (with the ``dust_file_sha256`` field
+    telling whether the file still holds the same data)."""
+    if scene.dust.model != "file" or not scene.dust.file:
+        return scene
+    path = str(scene.dust_file_path().resolve())
+    return dataclasses.replace(scene, dust=dataclasses.replace(scene.dust, file=path))
+
+
+def dust_file_digest(scene):
+    """SHA-256 of the scene's density file (None: not a file model, or no such file)."""
+    if scene.dust.model != "file" or not scene.dust.file:
+        return None
+    p = scene.dust_file_path()
+    try:
+        return file_digest(p)
+    except OSError:
+        return None
 
 
 #: Auto exposure: percentile of the per-voxel max colour component, over voxels at least this opaque.
@@ -130,20 +158,22 @@ class Pipeline:
 
     # --- keys: what each stage depends on ------------------------------------------------
     @staticmethod
-    def density_key(scene) -> str:
+    def density_key(scene, digest: Optional[str] = None) -> str:
+        """What the density depends on; a density file by its content (SHA-256, ``digest`` if
+        already computed), not its modification time, which a rewrite may keep."""
         d = scene.to_dict()
         stars = [{"position": s["position"], "bump_radius": s.get("bump_radius", 0.0)} for s in d["stars"]]
         dust = dict(d["dust"])
         if dust.get("model") == "file":
-            p = scene.dust_file_path()
-            dust["_file"] = [str(p), p.stat().st_mtime_ns if p.exists() else None]
+            dust["_file"] = [str(scene.dust_file_path().resolve()), digest or dust_file_digest(scene)]
         return _key([d["grid"]["shape"], dust, stars])
 
-    def transport_key(self, scene) -> str:
+    def transport_key(self, scene, density_key: Optional[str] = None) -> str:
         d = scene.to_dict()
         bands = [b.__dict__ for b in scene.bands.resolve()]
         transport = {k: v for k, v in d["transport"].items()}
-        return _key([self.density_key(scene), d["dust"].get("tau"), d["stars"], bands, transport])
+        dkey = density_key if density_key is not None else self.density_key(scene)
+        return _key([dkey, d["dust"].get("tau"), d["stars"], bands, transport])
 
     def _cached(self, stage: str, key: str, compute):
         hit = self._cache.get(stage)
@@ -155,16 +185,19 @@ class Pipeline:
         return value
 
     # --- stages -----------------------------------------------------------------------------
-    def density(self, scene) -> np.ndarray:
-        """Stage 1: the dust density (float32, (nx, ny, nz))."""
-        return self._cached("density", self.density_key(scene), lambda: generate_density(scene, self.backend_for(scene)))
+    def density(self, scene, key: Optional[str] = None) -> np.ndarray:
+        """Stage 1: the dust density (float32, (nx, ny, nz)); ``key``: its density_key if known."""
+        key = key if key is not None else self.density_key(scene)
+        return self._cached("density", key, lambda: generate_density(scene, self.backend_for(scene)))
 
-    def light(self, scene, progress=None, cancel=None) -> tuple[TransportResult, np.ndarray, np.ndarray]:
+    def light(self, scene, progress=None, cancel=None,
+              density_key: Optional[str] = None) -> tuple[TransportResult, np.ndarray, np.ndarray]:
         """Stage 2: transport and, for collision-filter, the smoothing. Returns (result, J, rel)."""
+        dkey = density_key if density_key is not None else self.density_key(scene)
         return self._cached(
             "transport",
-            self.transport_key(scene),
-            lambda: compute_light(scene, self.density(scene), self.backend_for(scene), progress, cancel,
+            self.transport_key(scene, dkey),
+            lambda: compute_light(scene, self.density(scene, dkey), self.backend_for(scene), progress, cancel,
                                   on_device=True),
         )
 
@@ -180,14 +213,16 @@ class Pipeline:
 
         t0 = time.perf_counter()
         resources.check(scene, self.backend_for(scene))  # before the density is allocated
-        rho = self.density(scene)
+        digest = dust_file_digest(scene)  # the file is hashed once per run
+        dkey = self.density_key(scene, digest)
+        rho = self.density(scene, dkey)
         t1 = time.perf_counter()
-        res, J, rel = self.light(scene, progress, cancel)
+        res, J, rel = self.light(scene, progress, cancel, dkey)
         t2 = time.perf_counter()
         # one band has no colour to show: no colour stage, no rgba (render the emissivity
         # with a colour map, or ask for colour explicitly, as the CLI does for a PNG)
         colour = colour and len(scene.bands.resolve()) > 1
-        ckey = _key([self.transport_key(scene), scene.to_dict().get("colour", {})])
+        ckey = _key([self.transport_key(scene, dkey), scene.to_dict().get("colour", {})])
         hit = self._cache.get("colour")
         need_colour = colour and not (hit is not None and hit[0] == ckey)
         light = finish_light_field(scene, rho, res, J, rel, colour=need_colour)
@@ -197,6 +232,7 @@ class Pipeline:
         elif colour:
             light.rgba, light.exposure = hit[1]
         t3 = time.perf_counter()
+        light.dust_file_sha256 = digest or ""
         light.timings = {"density_s": t1 - t0, "transport_s": t2 - t1, "finish_s": t3 - t2,
                          "kernel_s": res.timings.get("kernel_s", 0.0)}
         return light
@@ -512,5 +548,7 @@ def rgba_from_emissivity(
     a8 = xp.clip(xp.rint(alpha * 255.0), 0, 255).astype(xp.uint8)
     rgba = to_numpy(xp.concatenate([srgb8, a8[..., None]], axis=-1))
     if return_linear:
-        return rgba, float(exposure), to_numpy((rgb * exposure).astype(xp.float32))
+        # float32: an over-exposed colour saturates at the largest float32 instead of infinity
+        linear = xp.minimum(rgb * exposure, FLOAT32_MAX)
+        return rgba, float(exposure), to_numpy(linear.astype(xp.float32))
     return rgba, float(exposure)

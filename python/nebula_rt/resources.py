@@ -73,7 +73,7 @@ def estimate(scene, backend, peel_pixels: int = 0) -> Estimate:
     peel_pixels : int
         Pixels of a peel-off image traced with it (0: none).
     """
-    from .transport import MAX_AUTO_BATCH, TARGET_BATCHES, batch_plan
+    from .transport import batch_plan, planned_batch_size
 
     t = scene.transport
     shape = tuple(int(n) for n in scene.grid.shape)
@@ -81,10 +81,7 @@ def estimate(scene, backend, peel_pixels: int = 0) -> Estimate:
     nb = len(scene.bands.resolve())
     ncell = nb * nvox
     photons, target = t.effective()
-    batch_size = t.batch_size
-    if target > 0 and not batch_size:
-        batch_size = min(MAX_AUTO_BATCH, max(1, math.ceil(photons / TARGET_BATCHES)))
-    plan = batch_plan(photons, batch_size)
+    plan = batch_plan(photons, planned_batch_size(photons, t.batch_size, target > 0))
     slots = backend.launch_plan(ncell, (plan.base + 1) * nb, len(plan))
     colour = nb > 1
     collision = t.estimator == "collision-filter"
@@ -180,17 +177,23 @@ def check(scene, backend, peel_pixels: int = 0, peel_option: str = "--size", pee
     return est
 
 
-def check_density(shape, backend) -> None:
-    """Refuse a density grid the device or the host cannot hold (4 B per voxel on each, a
-    single device buffer)."""
-    nvox = math.prod(int(n) for n in shape)
+def check_grid(shape, backend, n_bands: int = 0) -> None:
+    """Refuse a grid the device cannot hold: the density alone (``n_bands`` 0: 4 B per voxel,
+    one buffer), or a transport of ``n_bands`` bands (one batch slot and the two running sums,
+    8 B per cell each, and the density), and a density the host cannot hold (twice, while it is
+    generated and copied)."""
+    shape = [int(n) for n in shape]
+    nvox = math.prod(shape)
+    ncell = int(n_bands) * nvox
+    biggest, need = (8 * ncell, 24 * ncell + 4 * nvox) if n_bands else (4 * nvox, 4 * nvox)
     total, max_alloc = backend.memory_limits()
-    need = 4 * nvox
-    if need > min(total, max_alloc):
-        raise ResourceError("grid.shape", [int(n) for n in shape],
-                            f"the density alone needs {_gib(need)} in one device buffer; the device "
-                            f"({backend.device_name}) allocates at most {_gib(min(total, max_alloc))} at once")
-    if 2 * need > host_available_bytes():
-        raise ResourceError("grid.shape", [int(n) for n in shape],
-                            f"the density needs about {_gib(2 * need)} of host memory; "
-                            f"{_gib(host_available_bytes())} is available")
+    what = f"a transport of {n_bands} band(s)" if n_bands else "the density"
+    if biggest > max_alloc or need > total:
+        raise ResourceError("grid.shape", shape,
+                            f"needs {_gib(need)} of device memory for {what} (largest buffer "
+                            f"{_gib(biggest)}); the device ({backend.device_name}) has {_gib(total)}, "
+                            f"at most {_gib(max_alloc)} per buffer")
+    avail = host_available_bytes()
+    if 8 * nvox > avail:
+        raise ResourceError("grid.shape", shape, f"the density needs about {_gib(8 * nvox)} of host "
+                                                 f"memory; {_gib(avail)} is available")

@@ -37,8 +37,10 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover
     import tomli as tomllib
 
+from . import limits
 from .bands import BAND_KEYS, Band, resolve_bands
 from .errors import SceneError
+from .limits import FLOAT32_RANGE_TEXT, INT32_MAX, MAX_OFFSET, TEMPERATURE_RANGE, float32_allowed, in_float32_range
 
 __all__ = [
     "Grid",
@@ -305,7 +307,8 @@ def _to_int(v: Any) -> int:
         return int(v)
     if _is_real(v):
         f = float(v)
-        if math.isfinite(f) and f == math.floor(f):
+        # a whole float (2.1e6) is an integer; beyond 2**53 a float no longer says which one
+        if math.isfinite(f) and f == math.floor(f) and abs(f) <= 2.0**53:
             return int(f)
     raise TypeError
 
@@ -379,6 +382,15 @@ def _finite_nonneg(v: float) -> bool:
     return math.isfinite(v) and v >= 0
 
 
+def _float32_nonneg(v: float) -> bool:
+    """0, or positive within the normal float32 range (limits.FLOAT32_TINY .. FLOAT32_MAX)."""
+    return v >= 0 and in_float32_range(v)
+
+
+def _float32_pos(v: float) -> bool:
+    return v > 0 and in_float32_range(v, zero=False)
+
+
 def _one_of(options: Sequence[str]) -> str:
     return "one of: " + ", ".join(repr(o) for o in options)
 
@@ -415,7 +427,9 @@ _ANY_STR = _Rule(_to_str, "must be a string")
 
 GRID_RULES: Dict[str, _Rule] = {
     "shape": _Rule(
-        _to_ivec3, "must be a list of 3 integers, each >= 2", lambda v: all(n >= 2 for n in v)
+        _to_ivec3,
+        f"must be a list of 3 integers, each in [2, {INT32_MAX}] (int32 on the device)",
+        lambda v: all(2 <= n <= INT32_MAX for n in v),
     ),
     "length": _Rule(_to_float, "must be a finite number > 0", _finite_pos),
     "unit": _ANY_STR,
@@ -423,17 +437,18 @@ GRID_RULES: Dict[str, _Rule] = {
 
 DUST_RULES: Dict[str, _Rule] = {
     "model": _Rule(_to_str, _one_of(DUST_MODELS), lambda v: v in DUST_MODELS),
-    "density": _Rule(_to_float, "must be a finite number >= 0", _finite_nonneg),
+    "density": _Rule(_to_float, float32_allowed("a number"), _float32_nonneg),
     "file": _ANY_STR,
     "array": _ANY_STR,
-    "scale": _Rule(_to_float, "must be a finite number >= 0", _finite_nonneg),
+    "scale": _Rule(_to_float, float32_allowed("a number"), _float32_nonneg),
     "offset": _Rule(
         _to_vec3,
-        "must be a list of 3 finite numbers (box units)",
-        lambda v: all(math.isfinite(x) for x in v),
+        f"must be a list of 3 numbers in [-{MAX_OFFSET:g}, {MAX_OFFSET:g}] (box units; beyond, the float32 "
+        "turbulence loses its structure: docs/physics.md)",
+        lambda v: all(abs(x) <= MAX_OFFSET for x in v),  # False for NaN
     ),
-    "floor": _Rule(_to_float, "must be a finite number >= 0", _finite_nonneg),
-    "tau": _Rule(_to_float, "must be a finite number >= 0", _finite_nonneg),
+    "floor": _Rule(_to_float, float32_allowed("a number"), _float32_nonneg),
+    "tau": _Rule(_to_float, float32_allowed("a number"), _float32_nonneg),
 }
 
 STAR_RULES: Dict[str, _Rule] = {
@@ -442,14 +457,16 @@ STAR_RULES: Dict[str, _Rule] = {
         "must be a list of 3 finite numbers in [0, 1] (box units)",
         lambda v: all(0.0 <= x <= 1.0 for x in v),
     ),
-    "luminosity": _Rule(_to_float, "must be a finite number > 0", _finite_pos),
+    "luminosity": _Rule(_to_float, float32_allowed("a number > 0", zero=False), _float32_pos),
     "temperature": _Rule(
         _to_opt_float,
-        "must be a finite number > 0 (K), or omitted",
-        lambda v: v is None or _finite_pos(v),
+        f"must be in [{TEMPERATURE_RANGE[0]:g}, {TEMPERATURE_RANGE[1]:g}] (K), or omitted",
+        lambda v: v is None or TEMPERATURE_RANGE[0] <= v <= TEMPERATURE_RANGE[1],
     ),
     "bump_radius": _Rule(
-        _to_float, "must be a number in [0, 1) (box units)", lambda v: 0.0 <= v < 1.0
+        _to_float,
+        f"must be 0 or a number in [{limits.fmt(limits.FLOAT32_TINY)}, 1) (box units; float32)",
+        lambda v: v == 0.0 or limits.FLOAT32_TINY <= v < 1.0,
     ),
     "spectrum": _Rule(
         _to_spectrum,
@@ -467,9 +484,9 @@ BANDS_RULES: Dict[str, _Rule] = {
     # "list" is handled separately (array of tables).
 }
 BAND_ENTRY_RULES: Dict[str, _Rule] = {
-    "name": _ANY_STR,
-    "wavelength": _Rule(_to_float, "must be a wavelength in nm in (0, 1e5]"),
-    "extinction": _Rule(_to_float, "must be a finite number > 0 (relative to the reference band)"),
+    "name": _Rule(_to_str, "must be a non-empty name made of [A-Za-z0-9_-]"),
+    "wavelength": _Rule(_to_float, "must be a wavelength in nm in [1, 1e5]"),
+    "extinction": _Rule(_to_float, "must be a number > 0 (relative to the reference band) in " + FLOAT32_RANGE_TEXT),
     "albedo": _Rule(_to_float, "must be in [0, 1]"),
     "g": _Rule(_to_float, "must be in [-1, 1]"),
 }
@@ -481,11 +498,13 @@ TRANSPORT_RULES: Dict[str, _Rule] = {
     ),
     "estimator": _Rule(_to_str, _one_of(ESTIMATORS), lambda v: v in ESTIMATORS),
     "filter_radius": _Rule(_to_float, "must be a finite number > 0 (box units)", _finite_pos),
-    "max_scatterings": _Rule(_to_int, "must be an integer >= 0", lambda v: v >= 0),
+    "max_scatterings": _Rule(_to_int, f"must be an integer in [0, {INT32_MAX}] (int32 on the device)",
+                             lambda v: 0 <= v <= INT32_MAX),
     "seed": _Rule(_to_int, "must be an integer in [0, 2**64)", lambda v: 0 <= v < MAX_SEED),
     "backend": _Rule(_to_str, _one_of(BACKENDS), lambda v: v in BACKENDS),
     "device": _ANY_STR,
-    "batch_size": _Rule(_to_int, "must be an integer >= 0 (0 = automatic)", lambda v: v >= 0),
+    "batch_size": _Rule(_to_int, f"must be an integer in [0, {MAX_PHOTONS}] (0 = automatic)",
+                        lambda v: 0 <= v <= MAX_PHOTONS),
     "target_error": _Rule(_to_float, "must be 0 (off) or a number in (0, 1)", lambda v: v == 0 or 0 < v < 1),
     "time_limit": _Rule(_to_float, "must be a finite number >= 0 (seconds; 0 = none)",
                         lambda v: math.isfinite(v) and v >= 0),
@@ -496,8 +515,8 @@ TRANSPORT_RULES: Dict[str, _Rule] = {
 COLOUR_RULES: Dict[str, _Rule] = {
     "exposure": _Rule(
         _to_exposure,
-        "must be 'auto' or a finite number > 0",
-        lambda v: v == "auto" or _finite_pos(v),
+        "must be 'auto' or a number > 0 in " + FLOAT32_RANGE_TEXT + " (the colours are float32)",
+        lambda v: v == "auto" or _float32_pos(v),
     ),
     "white_point": _Rule(_to_str, _one_of(WHITE_POINTS), lambda v: v in WHITE_POINTS),
     "opacity_scale": _Rule(_to_float, "must be a finite number > 0", _finite_pos),
@@ -530,7 +549,7 @@ def _unknown_key(param: str, value: Any, allowed_keys: Sequence[str]) -> SceneEr
 
 
 def _parse_table(name: str, d: Any, rules: Mapping[str, _Rule]) -> Dict[str, Any]:
-    """Check keys and convert types of one table; ranges are not checked."""
+    """Check keys, convert types and check the range of each value of one table."""
     if not isinstance(d, Mapping):
         raise SceneError(name, d, "must be a table")
     out = {}
@@ -539,6 +558,9 @@ def _parse_table(name: str, d: Any, rules: Mapping[str, _Rule]) -> Dict[str, Any
         if key not in rules:
             raise _unknown_key(param, value, list(rules))
         out[key] = rules[key].coerce(param, value)
+        check = rules[key].check
+        if check is not None and not check(out[key]):  # here, so that the message shows the value as given
+            raise SceneError(param, value, rules[key].allowed)
     return out
 
 
@@ -551,6 +573,55 @@ def _parse_array(name: str, d: Any) -> list:
 def _check_dataclass(prefix: str, obj: Any, rules: Mapping[str, _Rule]) -> None:
     for f in fields(obj):
         rules[f.name].validate(f"{prefix}.{f.name}", getattr(obj, f.name))
+
+
+def _check_star_spectra(stars: Sequence[Star], bands: Sequence[Band]) -> None:
+    """Every star's spectrum must overlap the visible range it is integrated over, and every band
+    must get light from some star.
+
+    The band luminosities integrate each spectrum over the bands' range (380-780 nm, widened to
+    the outermost band centres) and the colours over the CIE range (360-830 nm); a spectrum
+    with no power in 380-780 nm made a run fail half-way ("no power in the bands' range") or
+    gave NaN colours, and a band without light divides the colour matrix by 0. Only scenes with
+    a measured spectrum or a temperature import the colour module for this (a flat spectrum
+    lights every band).
+    """
+    if not any(s.spectral_source() is not None for s in stars):
+        return
+    import numpy as np
+
+    from . import colour_convert
+
+    with np.errstate(over="ignore", under="ignore"):  # exp overflows far in the Wien tail: power 0 there
+        _check_spectra_overlap(stars, bands, colour_convert)
+
+
+def _check_spectra_overlap(stars, bands, colour_convert) -> None:
+    def key_value(i):
+        s = stars[i]
+        if s.spectrum:
+            return f"stars[{i}].spectrum", [list(p) for p in s.spectrum]
+        return f"stars[{i}].temperature", s.temperature
+
+    wl = [b.wavelength for b in bands]
+    lo, hi = colour_convert.LUMINOSITY_RANGE_NM
+    light = [0.0] * len(bands)
+    for i, s in enumerate(stars):
+        source = s.spectral_source()
+        try:
+            # one band centred in the visible: its range is exactly 380-780 nm
+            colour_convert.band_luminosity_fractions([0.5 * (lo + hi)], source)
+            fractions = colour_convert.band_luminosity_fractions(wl, source)
+        except ValueError:
+            raise SceneError(*key_value(i), f"must have power inside {lo}-{hi} nm, the visible range over "
+                                            "which the band luminosities and colours are integrated") from None
+        for b, f in enumerate(fractions):
+            light[b] += s.luminosity * float(f)
+    for b, band in enumerate(bands):
+        if not light[b] > 0:  # also NaN
+            i = max(range(len(stars)), key=lambda j: stars[j].luminosity)
+            raise SceneError(*key_value(i), f"must give every band light: band {band.name!r} "
+                                            f"({band.wavelength:g} nm) gets none from any star")
 
 
 # ---------------------------------------------------------------------------
@@ -669,22 +740,35 @@ class Scene:
     @classmethod
     def loads(cls, text: str, base_dir: Optional[Union[str, Path]] = None) -> "Scene":
         """Parse a scene from TOML text (see :meth:`from_dict`)."""
-        try:
-            d = tomllib.loads(text)
-        except tomllib.TOMLDecodeError as e:
-            raise SceneError("(toml)", "<string>", f"not valid TOML: {e}") from None
-        return cls.from_dict(d, base_dir=base_dir)
+        if not isinstance(text, str):
+            raise SceneError("(toml)", type(text).__name__, "the scene must be given as text (str)")
+        return cls.from_dict(_parse_toml(text, "<string>"), base_dir=base_dir)
 
     @classmethod
     def load(cls, path: Union[str, Path]) -> "Scene":
-        """Read a TOML scene file; ``base_dir`` becomes the file's folder."""
+        """Read a TOML scene file; ``base_dir`` becomes the file's folder.
+
+        Raises
+        ------
+        SceneError
+            With parameter ``"scene file"`` when the path is missing, a folder or unreadable, or
+            the file is not UTF-8 TOML; else as :meth:`from_dict`.
+        """
         path = Path(path)
-        with open(path, "rb") as fh:
-            try:
-                d = tomllib.load(fh)
-            except tomllib.TOMLDecodeError as e:
-                raise SceneError("(toml)", str(path), f"not valid TOML: {e}") from None
-        return cls.from_dict(d, base_dir=path.absolute().parent)
+        try:
+            data = path.read_bytes()
+        except FileNotFoundError:
+            raise SceneError("scene file", str(path), "must be an existing TOML file (no such file)") from None
+        except IsADirectoryError:
+            raise SceneError("scene file", str(path), "must be a TOML file, not a folder") from None
+        except OSError as e:  # permission denied, a device, an I/O error
+            raise SceneError("scene file", str(path), f"must be a readable TOML file ({e.strerror or e})") from None
+        try:
+            text = data.decode("utf-8")
+        except UnicodeDecodeError as e:
+            raise SceneError("scene file", str(path), f"must be UTF-8 TOML text (byte 0x{data[e.start]:02x} at "
+                                                      f"offset {e.start} is not UTF-8)") from None
+        return cls.from_dict(_parse_toml(text, str(path)), base_dir=path.absolute().parent)
 
     # -- serialisation ------------------------------------------------------
 
@@ -769,9 +853,24 @@ class Scene:
             _check_dataclass(f"stars[{i}]", s, STAR_RULES)
         for key, rule in BANDS_RULES.items():
             rule.coerce(f"bands.{key}", getattr(self.bands, key))
-        self.bands.resolve()
+        bands = self.bands.resolve()
         _check_dataclass("transport", self.transport, TRANSPORT_RULES)
         _check_dataclass("colour", self.colour, COLOUR_RULES)
+        self._check_batches()
+        _check_star_spectra(self.stars, bands)
+
+    def _check_batches(self) -> None:
+        """An explicit batch size must leave at least 2 batches: the error estimate is the
+        spread of the batch totals (one batch has none, and would report 100 % everywhere)."""
+        t = self.transport
+        photons, _ = t.effective()
+        if t.batch_size:
+            limits.check_batch_count(-(-photons // t.batch_size), t.batch_size)
+        if t.batch_size and photons >= 2 and t.batch_size >= photons:
+            raise SceneError(
+                "transport.batch_size", t.batch_size,
+                f"must be 0 (automatic) or less than the {photons} photons per band, so that there are "
+                f"at least 2 batches for the error estimate (e.g. at most {photons // 2})")
 
     # -- overrides ----------------------------------------------------------
 
@@ -808,6 +907,17 @@ class Scene:
             key, raw = key.strip(), raw.strip()
             _apply_override(d, key, _parse_value(raw))
         return Scene.from_dict(d, base_dir=self.base_dir)
+
+
+def _parse_toml(text: str, where: str) -> Dict[str, Any]:
+    """TOML text -> dict; SceneError("(toml)", where, ...) on malformed or pathologically
+    nested text (tomllib recurses once per nesting level)."""
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise SceneError("(toml)", where, f"not valid TOML: {e}") from None
+    except RecursionError:
+        raise SceneError("(toml)", where, "not valid TOML: arrays or tables nested too deeply") from None
 
 
 _NUMERIC_ARRAY = re.compile(r"= \[\n((?:[ \t]+[-+0-9.eE_infa]+,\n)+)\]")

@@ -38,7 +38,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from . import colour_convert
+from . import colour_convert, limits
 from .array_api import array_module
 from .backends import Backend, TransportSetup
 from .errors import AccumulatorOverflowError, CancelledError, TimeLimitError
@@ -191,19 +191,42 @@ class BatchPlan(Sequence):
         return f"BatchPlan(photons={self.photons}, batches={self.m})"
 
 
-def batch_plan(photons: int, batch_size: int = 0) -> BatchPlan:
-    """Split ``photons`` packets into batches: a :class:`BatchPlan` of (start, count).
+#: Most batches an automatic plan makes (the finishing kernels count batches in an int32):
+#: past MAX_AUTO_BATCH x MAX_AUTO_BATCHES packets the batches grow instead (a long batch is
+#: traced in several launches anyway).
+MAX_AUTO_BATCHES = 1 << 24
 
-    ``batch_size`` 0 chooses at least ``MIN_BATCHES`` batches of at most ``MAX_AUTO_BATCH``.
-    Counts differ by at most one, so the batch totals are comparable for the error estimate.
-    The plan depends only on the arguments (never on the device): same scene, same bits.
-    """
+
+def batch_count(photons: int, batch_size: int = 0) -> int:
+    """Number of batches :func:`batch_plan` makes."""
     photons = int(photons)
     if batch_size and batch_size > 0:
         m = max(1, -(-photons // int(batch_size)))
     else:
-        m = max(MIN_BATCHES, -(-photons // MAX_AUTO_BATCH))
-    return BatchPlan(photons, min(m, photons))
+        m = min(max(MIN_BATCHES, -(-photons // MAX_AUTO_BATCH)), MAX_AUTO_BATCHES)
+    return min(m, photons)
+
+
+def planned_batch_size(photons: int, batch_size: int, targeted: bool) -> int:
+    """The batch size a run uses: ``batch_size`` if given, else 0 (automatic) for a fixed run
+    and, for an error-targeted run, batches small enough that the error is checked (and a time
+    limit honoured) early whatever the budget: TARGET_BATCHES of the budget, at most
+    MAX_AUTO_BATCH packets, unless that would make more than MAX_AUTO_BATCHES batches."""
+    if batch_size or not targeted:
+        return int(batch_size)
+    return max(min(MAX_AUTO_BATCH, -(-int(photons) // TARGET_BATCHES)),
+               -(-int(photons) // MAX_AUTO_BATCHES), 1)
+
+
+def batch_plan(photons: int, batch_size: int = 0) -> BatchPlan:
+    """Split ``photons`` packets into batches: a :class:`BatchPlan` of (start, count).
+
+    ``batch_size`` 0 chooses at least ``MIN_BATCHES`` batches of at most ``MAX_AUTO_BATCH``
+    packets (larger past ``MAX_AUTO_BATCH * MAX_AUTO_BATCHES``). Counts differ by at most one, so the batch totals are comparable for the error estimate.
+    The plan depends only on the arguments (never on the device): same scene, same bits.
+    """
+    photons = int(photons)
+    return BatchPlan(photons, batch_count(photons, batch_size))
 
 
 def star_band_luminosities(stars, wavelengths_nm) -> np.ndarray:
@@ -476,10 +499,14 @@ def trace(
     wl = np.array([b.wavelength for b in bands], dtype=np.float64)
     slum = star_band_luminosities(stars, wl)
     band_lum = slum.sum(axis=0)
+    track_scale = float(2.0**FIXED_POINT_BITS * max(shape))
+    # what the device forms from these inputs must fit float32/int32: checked before any work
+    limits.check_transport(density, bands, stars, slum, tau=tau, photons=photons, max_scatterings=max_scatterings,
+                           estimator=estimator, track_scale=track_scale, seed=seed)
+    backend.check_grid_fits(shape, len(bands))
     cdf = np.cumsum(slum, axis=0) / band_lum[None, :]
     cdf[-1, :] = 1.0
     sigma_scale = np.array([tau * b.extinction for b in bands], dtype=np.float64)
-    track_scale = float(2.0**FIXED_POINT_BITS * max(shape))
     setup = TransportSetup(
         density=density,
         sigma_scale=sigma_scale.astype(np.float32),
@@ -497,10 +524,8 @@ def trace(
         setup = dataclasses.replace(setup, peel=_peel_camera(peel),
                                     peel_scale=_peel_scale([b.g for b in bands]))
     targeted = target_error > 0.0
-    if targeted and not batch_size:
-        # small enough batches that the error can be checked (and a time limit honoured) early
-        # whatever the budget: at most MAX_AUTO_BATCH packets per band
-        batch_size = min(MAX_AUTO_BATCH, max(1, math.ceil(photons / TARGET_BATCHES)))
+    batch_size = planned_batch_size(photons, batch_size, targeted)
+    limits.check_batch_count(batch_count(photons, batch_size), batch_size)
     plan = batch_plan(photons, batch_size)
     nb = len(bands)
     base, extra = plan.base, plan.extra

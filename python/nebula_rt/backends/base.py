@@ -230,6 +230,15 @@ class Backend(abc.ABC):
         :mod:`nebula_rt.resources`."""
         return 1 << 62, 1 << 62
 
+    def check_grid_fits(self, shape, n_bands: int = 0) -> None:
+        """Raise a ResourceError (a SceneError) for ``grid.shape`` unless the grid fits this
+        device: the density alone (``n_bands`` 0), or a transport of ``n_bands`` bands (see
+        :func:`nebula_rt.resources.check_grid`). Checked before the first allocation, which
+        would otherwise fail with the runtime's own error (OpenCL's INVALID_BUFFER_SIZE)."""
+        from ..resources import check_grid
+
+        check_grid(shape, self, n_bands)
+
     #: kernel file of the transport (benchmarks swap in variants to compare them)
     transport_program: str = "transport.cl"
     #: packets (all bands) worth one launch, and bytes the batch slots may take
