@@ -127,15 +127,27 @@ def _compare(args) -> int:
     png = Path(args.png)
     if not png.parent.exists():
         raise SceneError("--png", str(png), f"folder {png.parent} does not exist")
-    prof, res = observe.observe_scene(scene, direction=direction, size=args.size)
+    prof, res = observe.observe_scene(scene, direction=direction, size=args.size, reference=args.reference)
     observe.plot(prof, png, title=f"{Path(args.scene).stem}: {len(res.band_luminosity)} bands, "
-                                  f"{res.photons:,} packets per band, peel-off image")
+                                  f"{res.photons:,} packets per band, peel-off image, "
+                                  f"against the {observe.REFERENCE_LABELS[prof.reference]}")
+
+    def mags(values):
+        return [None if not np.isfinite(x) else round(float(x), 4) for x in values]
+
     summary = {
         "scene": str(args.scene), "png": str(png),
+        "reference": prof.reference,
+        "star_tau": [round(float(x), 4) for x in prof.star_tau],
+        "star_ebv_mag": round(float(prof.star_ebv), 4),
         "offset": [round(float(x), 4) for x in prof.offset],
-        "delta_bv_mag": [None if not np.isfinite(x) else round(float(x), 4) for x in prof.delta_bv],
+        "delta_bv_mag": mags(prof.delta_bv),
+        "delta_bv_err_mag": mags(prof.delta_bv_err),
+        "delta_bv_intrinsic_mag": mags(prof.delta_bv_intrinsic),
+        "batches": prof.batches,
         "wavelength_nm": [float(x) for x in prof.wavelength_nm],
-        "ratio_rel_550nm": [[None if not np.isfinite(x) else round(float(x), 4) for x in row] for row in prof.ratio],
+        "ratio_rel_550nm": [mags(row) for row in prof.ratio],
+        "ratio_err": [mags(row) for row in prof.ratio_err],
         "observed_mean_delta_bv_mag": observe.observations()["mean_delta_bv"]["value"],
         "single_scattering_delta_bv_mag": observe.observations()["single_scattering_delta_bv"]["range"],
     }
@@ -187,6 +199,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--device", default=None, help="device selector (name substring or P:D)")
     c.add_argument("--direction", default="0,0,-1", help="viewing direction x,y,z (default 0,0,-1)")
     c.add_argument("--size", type=int, default=128, help="sky image pixels per side")
+    c.add_argument("--reference", default="observed", choices=["observed", "intrinsic"],
+                   help="star colour to measure against: as seen through its dust (default) or intrinsic")
     c.set_defaults(func=_compare)
     d = sub.add_parser("devices", help="list compute devices")
     d.set_defaults(func=_devices)
