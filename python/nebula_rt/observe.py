@@ -53,7 +53,7 @@ PASSBANDS = {"B": "bessell-B", "V": "bessell-V"}
 #: What Delta(B-V) and the nebula/star ratio are measured against: the star as seen through
 #: the dust in front of it (default) or its intrinsic light.
 REFERENCES = ("observed", "intrinsic")
-REFERENCE_LABELS = {"observed": "star as seen (through its dust)", "intrinsic": "star's intrinsic colour"}
+REFERENCE_LABELS = {"observed": "star as seen", "intrinsic": "star's intrinsic colour"}
 
 
 @functools.lru_cache(maxsize=None)
@@ -365,7 +365,8 @@ def plot(prof: Profiles, path, title: str = "") -> None:
     ok = np.isfinite(prof.delta_bv) & (prof.pixels > 0)
     err = None if prof.delta_bv_err is None else np.where(np.isfinite(prof.delta_bv_err), prof.delta_bv_err, 0.0)[ok]
     a1.errorbar(prof.offset[ok], prof.delta_bv[ok], yerr=err, fmt="o-", color="C0", capsize=3,
-                label=f"simulated, against the {ref} (1 sigma)")
+                label=f"simulated, against the {ref}" + (" through its dust" if prof.reference == "observed" else "")
+                + " (1 sigma errors)")
     if prof.reference == "observed" and prof.star_ebv:
         a1.plot(prof.offset[ok], prof.delta_bv_intrinsic[ok], ".:", color="C7",
                 label="simulated, against the star's intrinsic colour")
