@@ -272,7 +272,7 @@ def _annuli(scattered, labels, edges, band_lum, wl, source, star_tau, reference,
             delta_err = np.where(np.isfinite(delta), _batch_error(np.einsum("bk,mbk->mk", c, x)), np.nan)
             # d ratio_b = ratio_b (dr_b / r_b - dr_v / r_v)
             y = ratio[None] * (x / r[None] - x[:, vb:vb + 1] / r[None, vb:vb + 1])
-            ratio_err = np.where(np.isfinite(ratio), _batch_error(np.nan_to_num(y)), np.nan)
+            ratio_err = np.where(np.isfinite(ratio) & (r > 0), _batch_error(np.nan_to_num(y)), np.nan)
     return Profiles(offset=0.5 * (edges[1:] + edges[:-1]), delta_bv=delta, ratio=ratio, wavelength_nm=wl,
                     pixels=pixels, reference=reference, star_tau=np.asarray(star_tau, np.float64),
                     star_ebv=ebv, delta_bv_err=delta_err, ratio_err=ratio_err, batches=batches)

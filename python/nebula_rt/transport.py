@@ -86,7 +86,8 @@ class TransportResult:
     sigma_scale : ndarray (n_bands,)
         Extinction per box unit at density 1, tau k_b.
     achieved_error : float
-        Error-targeted runs: the :func:`lit_region_error` reached (NaN otherwise).
+        Error-targeted runs: the :func:`lit_region_error` reached, combined in quadrature with
+        the largest :func:`terminated_bias` (NaN otherwise).
     peel_image : ndarray or None
         With ``trace(peel=camera)``: the peel-off image of the scattered light, (n_bands, W, H),
         luminosity per box-unit area per steradian.
@@ -473,7 +474,9 @@ def trace(
         0: trace ``photons`` packets. In (0, 1): trace batch after batch (the plan is made for
         ``photons``, now a budget) until :func:`lit_region_error` is at most this, checked after
         every launch once ``MIN_BATCHES`` batches are in; ``result.photons`` is what was used
-        and ``result.achieved_error`` the error reached.
+        and ``result.achieved_error`` the error reached, sqrt(statistical^2 + bias^2) with the
+        bias bound of terminated packets (:func:`terminated_bias`), which more packets do not
+        shrink and so does not enter the stopping rule.
     time_limit : float
         Seconds; > 0 also stops an error-targeted run after this long (the photon count then
         depends on the machine's speed).
