@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import math
 import numbers
 import re
+import warnings
 
 from vtkmodules.util.vtkAlgorithm import VTKPythonAlgorithmBase
 from vtkmodules.vtkCommonCore import vtkOutputWindow
 
-from nebula_rt.errors import CancelledError, NebulaError, SceneError
+from nebula_rt.errors import CancelledError, NebulaError, NebulaWarning, SceneError
 
 #: Star records in the flat ``Stars`` property: x, y, z (box units), luminosity,
 #: temperature (K; 0 = no spectrum, flat), bump radius (box units).
@@ -60,6 +62,8 @@ class NebulaAlgorithm(VTKPythonAlgorithmBase):
         super().__init__(**kw)
         self.execution_count = 0
         self.last_error: str | None = None
+        #: the NebulaWarning texts of the last execution (also shown as VTK warnings)
+        self.last_warnings: list[str] = []
 
     # -- progress and abort ------------------------------------------------------------------
     def _report(self, fraction: float, text: str) -> None:
@@ -93,6 +97,7 @@ class NebulaAlgorithm(VTKPythonAlgorithmBase):
     def RequestData(self, request, inInfo, outInfo):
         self.execution_count += 1
         self.last_error = None
+        self.last_warnings = []
         output = self.GetOutputData(outInfo, 0)
         if self.GetNumberOfInputPorts() > 0:
             inp = self.GetInputData(inInfo, 0, 0)
@@ -102,7 +107,10 @@ class NebulaAlgorithm(VTKPythonAlgorithmBase):
                 output.Initialize()
                 return 1
         try:
-            self._execute(request, inInfo, outInfo)
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always", NebulaWarning)
+                self._execute(request, inInfo, outInfo)
+            self._surface_warnings(caught)
             self._report(1.0, "")
         except Exception as exc:  # noqa: BLE001 - every failure ends as a reported empty output
             kind = "cancelled" if isinstance(exc, CancelledError) else "error"
@@ -134,6 +142,17 @@ class NebulaAlgorithm(VTKPythonAlgorithmBase):
         if isinstance(exc, NebulaError):
             return str(exc)
         return f"{type(exc).__name__}: {exc}"
+
+    def _surface_warnings(self, caught) -> None:
+        """NebulaWarnings go to VTK's output window as warnings (ParaView shows them); any
+        other warning is passed on to Python's warning machinery unchanged."""
+        for w in caught:
+            if issubclass(w.category, NebulaWarning):
+                text = f"{type(self).__name__}: {w.message}"
+                self.last_warnings.append(text)
+                vtkOutputWindow.GetInstance().DisplayWarningText(f"NebulaRT warning: {text}\n")
+            else:
+                warnings.warn_explicit(w.message, w.category, w.filename, w.lineno, source=w.source)
 
     def _execute(self, request, inInfo, outInfo) -> None:  # pragma: no cover - abstract
         raise NotImplementedError

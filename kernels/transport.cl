@@ -194,10 +194,43 @@ NRT_DEVICE float nrt_tau_to_edge(const NRT_GLOBAL float *density, float sig_b, c
     }
 }
 
+/*
+ * Fixed-point units of a peel-off weight, rounded stochastically: floor(x) + 1 with
+ * probability frac(x), x = wgt * scale, so the expected deposit is x (to 2^-64 units) however
+ * faint the weight. Rounding to nearest dropped every weight below half a unit, 2^-25 of the
+ * forward phase-function peak (with g 0.9: beyond tau about 8.5 towards the observer); the
+ * sums stay exact integers. The uniform comes from a Philox block of its own, counter
+ * (photon, event, 1, 0) under the packet's key (seed, band): the packet's stream uses
+ * counters (photon, block, 0, 0), so its random numbers, and everything else it tallies,
+ * are untouched, and the image is the same bits on any device and thread order.
+ */
+NRT_DEVICE nrt_u64 nrt_fixed_stochastic(float wgt, float scale, nrt_u64 seed, nrt_u64 band,
+                                        nrt_u64 photon, nrt_u64 event)
+{
+    float x = NRT_FMAF(wgt, scale, 0.0f);
+    float whole = floor(x);
+    float frac = x - whole; /* exact for x >= 0 */
+    nrt_u64 n = (nrt_u64)whole;
+    if (frac > 0.0f) {
+        nrt_u64x4 c;
+        c.v[0] = photon;
+        c.v[1] = event;
+        c.v[2] = 1;
+        c.v[3] = 0;
+        nrt_u64x4 r = nrt_philox4x64_10(c, seed, band);
+        /* P(r < T) = T 2^-64 with T = floor(frac 2^64): frac 2^64 < 2^64 is a float whose
+           conversion truncates only below 2^24, i.e. loses less than 2^-40 of frac */
+        nrt_u64 threshold = (nrt_u64)(frac * 18446744073709551616.0f);
+        n += (r.v[0] < threshold) ? 1UL : 0UL;
+    }
+    return n;
+}
+
 NRT_DEVICE void nrt_peel(const NRT_GLOBAL float *density, float sig_b, float g_b,
                          const NRT_GLOBAL float *peel, float peel_scale, const float *x,
                          const float *d, int ix, int iy, int iz, int nx, int ny, int nz,
-                         NRT_GLOBAL nrt_u64 *band_image, NRT_GLOBAL nrt_u32 *overflow)
+                         NRT_GLOBAL nrt_u64 *band_image, NRT_GLOBAL nrt_u32 *overflow,
+                         nrt_u64 seed, int band, nrt_u64 photon, int event)
 {
     const float o[3] = {peel[0], peel[1], peel[2]};
     float rx = x[0] - peel[9], ry = x[1] - peel[10], rz = x[2] - peel[11];
@@ -209,7 +242,8 @@ NRT_DEVICE void nrt_peel(const NRT_GLOBAL float *density, float sig_b, float g_b
         return;
     float mu = d[0] * o[0] + d[1] * o[1] + d[2] * o[2];
     float wgt = nrt_hg_phase(g_b, mu) * exp(-nrt_tau_to_edge(density, sig_b, x, o, ix, iy, iz, nx, ny, nz));
-    nrt_acc_add_checked(&band_image[(nrt_u64)pi * (nrt_u64)h + (nrt_u64)qi], nrt_fixed(wgt, peel_scale),
+    nrt_acc_add_checked(&band_image[(nrt_u64)pi * (nrt_u64)h + (nrt_u64)qi],
+                        nrt_fixed_stochastic(wgt, peel_scale, seed, (nrt_u64)band, photon, (nrt_u64)event),
                         overflow);
 }
 #endif
@@ -345,7 +379,7 @@ NRT_DEVICE void nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, f
             ++scatterings;
 #if NRT_PEEL
             nrt_peel(density, sig_b, g_b, peel, peel_scale, p0, d, ix, iy, iz, nx, ny, nz, band_image,
-                     overflow);
+                     overflow, seed, band, photon, scatterings);
 #endif
             float mu, sin_theta;
             nrt_sample_hg(g_b, nrt_rng_uniform(&rng), &mu, &sin_theta);

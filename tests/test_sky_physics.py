@@ -109,6 +109,7 @@ def single_scattering_hg(b, kappa, g, omega, nodes=400):
 
 
 @pytest.mark.parametrize("g", [0.0, 0.6])
+@pytest.mark.filterwarnings("ignore::nebula_rt.errors.NebulaWarning")  # max_scatterings 1 on purpose
 def test_peel_off_image_is_single_scattering_at_any_g(backend, g):
     """trace(peel=camera) with at most one scattering per packet (max_scatterings 1: a packet
     peels off at its first scattering and ends at its second interaction) is the single
@@ -141,3 +142,62 @@ def test_peel_off_image_is_single_scattering_at_any_g(backend, g):
     phi = (1 - g * g) / (4 * math.pi * (1 + g * g - 2 * g * z / r) ** 1.5)
     integral = (x[1] * phi / (r * r)).sum() * half * bb
     assert abs(integral - {0.0: 0.16667, 0.6: 0.12654}[g]) < 1e-4
+
+
+@pytest.mark.filterwarnings("ignore::nebula_rt.errors.NebulaWarning")  # max_scatterings 1 on purpose
+def test_peel_off_keeps_weights_far_below_one_fixed_point_unit(backend):
+    """g 0.999: the phase function falls by 2^-33 from forward to backward, and at projected
+    offsets b >= R/2 of a central star every scattering angle exceeds about 28 deg, where a
+    deposit is below 0.2 fixed-point units (2^24 units at the forward peak). Rounded to
+    nearest, each would be 0 and the image there black; rounded stochastically (unbiased),
+    the image is the single-scattering image. max_scatterings 1 makes the peel-off image
+    exactly single scattering, attenuation included (tau_R = 0.5, albedo 1), so the reference
+    is the chord integral. Tolerance: 5 standard errors of the mean of 4 seeds plus 1.5 % for
+    the voxelised sphere, as in the test above."""
+    from nebula_rt.transport import _peel_scale
+
+    g, tau_r = 0.999, 0.5
+    kappa = tau_r / R
+    rho = partial_volume_sphere((N, N, N), R)
+    cam = Camera(direction=(0.0, 0.0, -1.0), size=(64, 64), extent=1.0)
+    images = [trace(rho, one_band(albedo=1.0, g=g), centre_star(L), tau=kappa, photons=2_500_000, seed=s,
+                    backend=backend, peel=cam, max_scatterings=1).peel_image[0] for s in range(1, 5)]
+    img0 = sky_image(np.zeros((1, N, N, N)), np.zeros((1, N, N, N)), cam)
+    p = np.arange(64)
+    P, Q = np.meshgrid(p, p, indexing="ij")
+    b = np.hypot(img0.origin[0] + img0.pixel_size * P - 0.5, img0.origin[1] + img0.pixel_size * Q - 0.5)
+    want_px = single_scattering_hg(b, kappa, g, 1.0)
+    # the largest deposit at b >= R/2: smallest angle, from a point half a pixel nearer the
+    # star in projection and one voxel diagonal beyond the sphere along the line of sight
+    b_min = 0.5 * R - img0.pixel_size / math.sqrt(2.0)
+    z_max = math.sqrt(R * R - (0.5 * R) ** 2) + math.sqrt(3.0) / N
+    mu = z_max / math.hypot(b_min, z_max)
+    phase = (1 - g * g) / (4 * math.pi * (1 + g * g - 2 * g * mu) ** 1.5)
+    assert phase * _peel_scale([g]) < 0.2  # every deposit there is far below half a unit
+    for lo, hi in ((0.5 * R, 0.65 * R), (0.65 * R, 0.8 * R)):
+        m = (b >= lo) & (b < hi)
+        got = np.array([im[m].mean() for im in images])
+        want = want_px[m].mean()
+        se = got.std(ddof=1) / math.sqrt(len(got))
+        assert abs(got.mean() / want - 1) < 5 * se / want + 0.015, (lo, got.mean() / want, se / want)
+        assert se / want < 0.04  # the test has teeth: rounded to nearest, got would be 0
+
+
+def test_peel_off_rounding_is_deterministic_and_leaves_the_transport_alone(backend):
+    """The stochastic rounding draws from its own Philox counters: the same seed gives the same
+    image bits, another seed another image, and the packets' random numbers (hence J's sums
+    and the tallies) are those of a run without a camera. Bad pixel groups are refused."""
+    rho = partial_volume_sphere((16, 16, 16), R)
+    cam = Camera(direction=(0.3, -0.2, -1.0), size=(20, 16), extent=1.0)
+    kw = dict(tau=2.0, photons=20_000, backend=backend)
+    a = trace(rho, one_band(g=0.9), centre_star(L), seed=3, peel=cam, **kw)
+    b = trace(rho, one_band(g=0.9), centre_star(L), seed=3, peel=cam, **kw)
+    c = trace(rho, one_band(g=0.9), centre_star(L), seed=4, peel=cam, **kw)
+    plain = trace(rho, one_band(g=0.9), centre_star(L), seed=3, **kw)
+    np.testing.assert_array_equal(a.peel_image, b.peel_image)
+    np.testing.assert_array_equal(a.peel_error, b.peel_error)
+    assert not np.array_equal(a.peel_image, c.peel_image)
+    np.testing.assert_array_equal(a.raw_sum, plain.raw_sum)
+    np.testing.assert_array_equal(a.counts, plain.counts)
+    with pytest.raises(ValueError, match="peel_bins"):
+        trace(rho, one_band(g=0.9), centre_star(L), seed=3, peel=cam, peel_bins=np.zeros((16, 20), int), **kw)

@@ -118,6 +118,7 @@ def sphere():
     return partial_volume_sphere(shape, 0.5)
 
 
+@pytest.mark.filterwarnings("ignore::nebula_rt.errors.NebulaWarning")  # terminates packets on purpose
 def test_sphere_escape_p0_and_p1(backend, sphere):
     """tau_R = 1, albedo 0.6, g 0.6: max_scatterings 0 -> escape fraction P0, 1 -> P0 + P1."""
     kappa = 2.0  # per box unit, R = 0.5 -> tau_R = 1
@@ -166,6 +167,7 @@ def thesis_bands():
     return PRESETS["thesis-rgb"]
 
 
+@pytest.mark.filterwarnings("ignore::nebula_rt.errors.NebulaWarning")  # terminates packets on purpose
 def test_energy_conservation_is_exact(backend, cloud):
     res = trace(cloud, thesis_bands(), centre_star(), tau=60.0, photons=100_000, max_scatterings=2,
                 seed=9, backend=backend)

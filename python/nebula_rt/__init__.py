@@ -9,6 +9,7 @@ from .errors import (
     BackendUnavailableError,
     CancelledError,
     NebulaError,
+    NebulaWarning,
     SceneError,
 )
 
@@ -19,6 +20,7 @@ __all__ = [
     "BackendUnavailableError",
     "CancelledError",
     "NebulaError",
+    "NebulaWarning",
     "SceneError",
     "__version__",
 ]

@@ -172,6 +172,8 @@ def _render(args, cancel) -> int:
         "peak_device_mib": round(light.memory.get("device_peak_bytes", 0) / 2**20, 1),
         "peak_host_rss_mib": round(light.memory.get("host_peak_rss_bytes", 0) / 2**20, 1),
         "escaped_fraction": {b.name: float(tr.counts[i, 2] / tr.photons) for i, b in enumerate(light.bands)},
+        # packets stopped at transport.max_scatterings: their light is missing from J
+        "terminated_fraction": {b.name: float(f) for b, f in zip(light.bands, tr.terminated_fraction)},
     }
     if not args.quiet:
         _print_summary(summary)
@@ -208,20 +210,33 @@ def _compare(args, cancel) -> int:
     resources.check(scene, backend, peel_pixels=args.size * args.size, peel_option="--size", peel_value=args.size)
     check_outputs(outputs, _inputs(args, scene))
     cancel.check("start-up")
-    prof, res = observe.observe_scene(scene, direction=direction, size=args.size, backend=backend, cancel=cancel)
+    prof, res = observe.observe_scene(scene, direction=direction, size=args.size, backend=backend,
+                                      reference=args.reference, cancel=cancel)
     cancel.check("run")
+
+    def mags(values):
+        return [None if not np.isfinite(x) else round(float(x), 4) for x in values]
+
     summary = {
         "scene": str(args.scene), "png": str(png),
+        "reference": prof.reference,
+        "star_tau": [round(float(x), 4) for x in prof.star_tau],
+        "star_ebv_mag": round(float(prof.star_ebv), 4),
         "offset": [round(float(x), 4) for x in prof.offset],
-        "delta_bv_mag": [None if not np.isfinite(x) else round(float(x), 4) for x in prof.delta_bv],
+        "delta_bv_mag": mags(prof.delta_bv),
+        "delta_bv_err_mag": mags(prof.delta_bv_err),
+        "delta_bv_intrinsic_mag": mags(prof.delta_bv_intrinsic),
+        "batches": prof.batches,
         "wavelength_nm": [float(x) for x in prof.wavelength_nm],
-        "ratio_rel_550nm": [[None if not np.isfinite(x) else round(float(x), 4) for x in row] for row in prof.ratio],
+        "ratio_rel_550nm": [mags(row) for row in prof.ratio],
+        "ratio_err": [mags(row) for row in prof.ratio_err],
         "observed_mean_delta_bv_mag": observe.observations()["mean_delta_bv"]["value"],
         "single_scattering_delta_bv_mag": observe.observations()["single_scattering_delta_bv"]["range"],
     }
     with Publication() as pub:  # the plot and the JSON, both or neither
         observe.plot(prof, pub.stage(png), title=f"{Path(args.scene).stem}: {len(res.band_luminosity)} bands, "
-                                                 f"{res.photons:,} packets per band, peel-off image")
+                                                 f"{res.photons:,} packets per band, peel-off image, "
+                                                 f"against the {observe.REFERENCE_LABELS[prof.reference]}")
         if args.json:
             pub.stage(args.json).write_text(json.dumps(summary, indent=2) + "\n")
         cancel.check("run")
@@ -275,6 +290,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--direction", default="0,0,-1", help="viewing direction x,y,z (default 0,0,-1)")
     c.add_argument("--size", type=int, default=128,
                    help=f"sky image pixels per side ({MIN_SKY_SIZE}-{MAX_SKY_SIZE})")
+    c.add_argument("--reference", default="observed", choices=["observed", "intrinsic"],
+                   help="star colour to measure against: as seen through its dust (default) or intrinsic")
     c.set_defaults(func=_compare)
     d = sub.add_parser("devices", help="list compute devices")
     d.set_defaults(func=_devices)

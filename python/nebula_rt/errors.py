@@ -78,3 +78,9 @@ class TimeLimitError(NebulaError):
 
 class AccumulatorOverflowError(NebulaError, OverflowError):
     """A 64-bit fixed-point tally would have overflowed and could not be recovered."""
+
+
+class NebulaWarning(UserWarning):
+    """A run finished, but a result is less trustworthy than its error estimate alone says
+    (e.g. packets stopped at ``transport.max_scatterings``). The VTK filters show it on the
+    output window as a VTK warning."""

@@ -75,10 +75,14 @@ class LightField:
         tr = self.transport
         energy = tr.energy
         out: dict[str, object] = {}
+        frac, bias = tr.terminated_fraction, tr.terminated_bias
         for b, band in enumerate(self.bands):
             for t, name in enumerate(TALLY_NAMES):
                 out[f"{name}_{band.name}"] = float(energy[b, t])
                 out[f"packets_{name}_{band.name}"] = int(tr.counts[b, t])
+            # packets stopped at max_scatterings, and the bound on J's bias they leave
+            out[f"terminated_fraction_{band.name}"] = float(frac[b])
+            out[f"terminated_bias_{band.name}"] = float(bias[b])
         out["photons"] = int(tr.photons)
         out["photons_budget"] = int(tr.photons_budget or tr.photons)
         out["achieved_error"] = float(tr.achieved_error)

@@ -32,6 +32,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+import warnings
 from dataclasses import dataclass, field
 from collections.abc import Sequence
 from typing import Callable, Optional
@@ -41,7 +42,7 @@ import numpy as np
 from . import colour_convert, limits
 from .array_api import array_module
 from .backends import Backend, TransportSetup
-from .errors import AccumulatorOverflowError, CancelledError, TimeLimitError
+from .errors import AccumulatorOverflowError, CancelledError, NebulaWarning, TimeLimitError
 from .postprocess import DeviceSums
 
 #: Default largest batch (packets per band per kernel launch). Larger batches amortise launch
@@ -86,10 +87,17 @@ class TransportResult:
     sigma_scale : ndarray (n_bands,)
         Extinction per box unit at density 1, tau k_b.
     achieved_error : float
-        Error-targeted runs: the :func:`lit_region_error` reached (NaN otherwise).
+        Error-targeted runs: the :func:`lit_region_error` reached, combined in quadrature with
+        the largest :func:`terminated_bias` (NaN otherwise).
     peel_image : ndarray or None
         With ``trace(peel=camera)``: the peel-off image of the scattered light, (n_bands, W, H),
         luminosity per box-unit area per steradian.
+    peel_error : ndarray or None
+        Batch-means standard error of ``peel_image`` per pixel (same units and shape).
+    peel_bin_batches : ndarray or None
+        With ``trace(peel_bins=labels)``: per folded batch, the peel-off image summed over each
+        pixel group, (batches, n_bands, n_groups), in the units of ``peel_image``: the batch
+        totals from which :mod:`nebula_rt.observe` takes the errors of its annulus profiles.
     device_bytes : int
         Device memory the transport held (see ``TransportSession.device_bytes``).
     photons_budget : int
@@ -120,6 +128,8 @@ class TransportResult:
     photons_budget: int = 0
     device_bytes: int = 0
     peel_image: Optional[np.ndarray] = None
+    peel_error: Optional[np.ndarray] = None
+    peel_bin_batches: Optional[np.ndarray] = None
     device: str = ""
     timings: dict = field(default_factory=dict)
 
@@ -127,6 +137,68 @@ class TransportResult:
     def energy(self) -> np.ndarray:
         """Energies (n_bands, 4) = counts * packet energy, exact in float64."""
         return self.counts.astype(np.float64) * self.packet_energy[:, None]
+
+    @property
+    def terminated_fraction(self) -> np.ndarray:
+        """(n_bands,) fraction of the packets stopped at ``max_scatterings`` (their light is
+        missing from J)."""
+        return terminated_fraction(self.counts)
+
+    @property
+    def terminated_bias(self) -> np.ndarray:
+        """(n_bands,) bound on the relative bias of J from the terminated packets
+        (:func:`terminated_bias`)."""
+        return terminated_bias(self.counts)
+
+
+def terminated_fraction(counts) -> np.ndarray:
+    """Fraction f_b of the emitted packets that were terminated, from tallies (n_bands, 4)."""
+    c = np.asarray(counts, np.float64)
+    return np.where(c[:, 0] > 0, c[:, 3] / np.maximum(c[:, 0], 1.0), 0.0)
+
+
+def terminated_bias(counts) -> np.ndarray:
+    """Bound on the relative (low) bias that terminated packets leave in the light the dust
+    intercepts, sum over voxels of sigma_b J_b V (what the lit-region error weighs by):
+    f_b / (A_b + f_b), A_b the absorbed and f_b the terminated fraction of the packets.
+
+    Why: every interaction absorbs with probability 1 - albedo_b (uniform per band), so the
+    expected absorbed fraction is (1 - albedo_b) times the expected interactions per packet,
+    and sum sigma J V is proportional to those interactions (the collision estimator's
+    expectation). Completing the terminated packets would add at most f_b to the absorbed
+    fraction (each packet at most once), so the true sum exceeds the truncated one by the
+    factor (A_b + x) / A_b with x <= f_b: a relative bias x / (A_b + x) <= f_b / (A_b + f_b).
+    With albedo 1 nothing is absorbed and energy bounds nothing: the bound is then 1 wherever
+    a packet was terminated. 0 where none was.
+    """
+    c = np.asarray(counts, np.float64)
+    emitted = np.maximum(c[:, 0], 1.0)
+    f = c[:, 3] / emitted
+    a = c[:, 1] / emitted
+    return np.where(c[:, 3] > 0, f / np.where(c[:, 3] > 0, a + f, 1.0), 0.0)
+
+
+#: Warn (:class:`~nebula_rt.errors.NebulaWarning`) when the terminated packets may bias J by
+#: more than this (:func:`terminated_bias`): a tenth of the finest quality preset's target
+#: (1 %), so that below it the bias changes no targeted error by more than 0.5 %
+#: (sqrt(0.01^2 + 0.001^2) = 1.005 %).
+TERMINATED_WARN_BIAS = 1.0e-3
+
+
+def warn_if_terminated(counts, band_names, max_scatterings: int) -> None:
+    """Warn when the terminated packets may bias J by more than ``TERMINATED_WARN_BIAS``."""
+    bias = terminated_bias(counts)
+    if not np.any(bias > TERMINATED_WARN_BIAS):
+        return
+    f = terminated_fraction(counts)
+    worst = int(np.argmax(bias))
+    warnings.warn(NebulaWarning(
+        f"{f[worst]:.3g} of the packets of band {band_names[worst]} stopped at transport.max_scatterings = "
+        f"{max_scatterings} (terminated_fraction per band: "
+        + ", ".join(f"{n} {x:.3g}" for n, x in zip(band_names, f))
+        + f"); their light is missing, so J may be low by up to {bias[worst]:.3g} (sum of sigma J over "
+        + ("the grid; with albedo 1 no energy balance bounds it" if bias[worst] >= 1.0 else "the grid")
+        + "); raise transport.max_scatterings"), stacklevel=3)
 
 
 def exact_packet_energy(luminosity: float, photons: int) -> float:
@@ -250,7 +322,9 @@ def _peel_camera(camera) -> np.ndarray:
 def _peel_scale(gs) -> float:
     """Fixed-point units per 1/sr of a peel-off deposit: 2^24 at the largest phase function
     value of the bands (forward, |g| clamped as the sampling does), so one deposit is at most
-    2^24 units and a launch of 2^23 packets scattering up to 2^15 times each cannot reach 2^63."""
+    2^24 + 1 units and a launch of 2^23 packets scattering up to 2^15 times each cannot reach
+    2^63. Deposits are rounded stochastically (kernels/transport.cl, nrt_fixed_stochastic), so
+    weights far below one unit still add their expectation."""
     g = min(max(abs(float(x)) for x in gs), 1.0 - 1.0e-4)
     phi_max = (1.0 + g) / (4.0 * math.pi * (1.0 - g) ** 2)
     return float(2.0**24 / phi_max)
@@ -263,6 +337,50 @@ def batch_standard_error(s1, s2, m: int):
         return xp.abs(s1)  # one batch: no spread to measure, report 100 %
     var = (s2 - s1 * s1 / m) * (m / (m - 1.0))
     return xp.sqrt(xp.maximum(var, 0.0))
+
+
+class _PeelSums:
+    """Per-batch peel-off images folded on the host: the sum and the sum of squares of the
+    batch images per pixel (batch means, as for the voxel tallies) and, with pixel groups
+    (``labels``: group of each pixel, (W, H), -1 for none), every batch's group sums."""
+
+    def __init__(self, n_bands: int, size, labels=None):
+        self.s1 = np.zeros((n_bands,) + tuple(size), np.float64)
+        self.s2 = np.zeros_like(self.s1)
+        self.batches = 0
+        self.groups = []
+        self.labels = None
+        if labels is not None:
+            lab = np.asarray(labels)
+            if lab.shape != tuple(size) or not np.issubdtype(lab.dtype, np.integer):
+                raise ValueError(f"peel_bins must be an integer array of the image's shape {tuple(size)}, "
+                                 f"got {lab.dtype} {lab.shape}")
+            keep = lab.reshape(-1) >= 0
+            self.labels = (np.flatnonzero(keep), lab.reshape(-1)[keep], int(lab.max(initial=-1)) + 1)
+
+    def add(self, image) -> None:
+        """Fold one batch's image (uint64 fixed point, (n_bands, W, H)); the units are exact
+        integers, and their float64 sum stays exact while a pixel holds fewer than 2^29
+        full-weight deposits over the run."""
+        x = image.astype(np.float64)
+        self.s1 += x
+        self.s2 += x * x
+        self.batches += 1
+        if self.labels is not None:
+            idx, lab, n = self.labels
+            flat = x.reshape(x.shape[0], -1)[:, idx]
+            self.groups.append(np.stack([np.bincount(lab, weights=row, minlength=n) for row in flat]))
+
+    def finish(self, scale):
+        """(image, standard error, group sums per batch) in units of ``scale`` per fixed-point
+        unit (per band)."""
+        sc = np.asarray(scale, np.float64)[:, None, None]
+        err = batch_standard_error(self.s1, self.s2, self.batches) * sc
+        groups = None
+        if self.labels is not None:
+            groups = (np.stack(self.groups) if self.groups else np.zeros((0, self.s1.shape[0], self.labels[2])))
+            groups = groups * np.asarray(scale, np.float64)[None, :, None]
+        return self.s1 * sc, err, groups
 
 
 #: Error-targeted runs: batches planned for the photon budget, so that the error can be checked
@@ -452,6 +570,7 @@ def trace(
     target_error: float = 0.0,
     time_limit: float = 0.0,
     peel=None,
+    peel_bins=None,
     _checked_adds: bool = False,
 ) -> TransportResult:
     """Trace ``photons`` packets per band through ``density`` and estimate J.
@@ -478,7 +597,9 @@ def trace(
         0: trace ``photons`` packets. In (0, 1): trace batch after batch (the plan is made for
         ``photons``, now a budget) until :func:`lit_region_error` is at most this, checked after
         every launch once ``MIN_BATCHES`` batches are in; ``result.photons`` is what was used
-        and ``result.achieved_error`` the error reached.
+        and ``result.achieved_error`` the error reached, sqrt(statistical^2 + bias^2) with the
+        bias bound of terminated packets (:func:`terminated_bias`), which more packets do not
+        shrink and so does not enter the stopping rule.
     time_limit : float
         Seconds; > 0 also stops an error-targeted run after this long (the photon count then
         depends on the machine's speed).
@@ -486,7 +607,13 @@ def trace(
         Also make a peel-off image of the scattered light seen by this camera (the phase
         function at every scattering towards the observer, attenuated to the box's edge):
         ``result.peel_image``, luminosity per box-unit area per steradian, (n_bands, W, H),
-        the layout of :class:`nebula_rt.sky.SkyImage`.
+        the layout of :class:`nebula_rt.sky.SkyImage`; ``result.peel_error`` its batch-means
+        standard error per pixel.
+    peel_bins : int ndarray (W, H), optional
+        With ``peel``: a pixel group per pixel (-1: none); ``result.peel_bin_batches`` then
+        holds every batch's image summed over each group, for the errors of statistics of
+        several pixels (an annulus's sum: the pixels of a batch are correlated, one packet
+        peeling off into many of them).
     on_device : bool
         Leave the sums on the device (``result.device_sums``, for
         :func:`nebula_rt.postprocess.finish`) instead of computing J and rel_error on the host.
@@ -533,7 +660,7 @@ def trace(
         setup = dataclasses.replace(setup, unchecked_adds=_no_wrap(base + 1, max_scatterings, estimator,
                                                                    track_scale, shape))
     sigma_host = sigma_scale[:, None, None, None] * density.astype(np.float64)[None] if targeted else None
-    peel_sum = 0.0 if peel is None else np.zeros((nb,) + tuple(peel.size), np.float64)
+    peel_sums = None if peel is None else _PeelSums(nb, peel.size, peel_bins)
     achieved = float("nan")
     counts = np.zeros((nb, 4), dtype=object)  # python ints: exact whatever the photon count
     slots = backend.launch_plan(nb * int(np.prod(shape)), (base + 1) * nb, len(plan))
@@ -549,13 +676,13 @@ def trace(
 
     def take(tallies, overflow, images, ranges):
         """Fold the finished batches ``ranges`` [(start, count)] of a launch's slots."""
-        nonlocal folded, done, peel_sum
+        nonlocal folded, done
         for k, (b_start, b_count) in enumerate(ranges):
             if overflow[k]:
                 redo.append((b_start, b_count))
                 continue
             if images is not None:
-                peel_sum = peel_sum + images[k]
+                peel_sums.add(images[k])
             folded += 1
             counts[...] += tallies[k].astype(object)
             done += b_count
@@ -631,9 +758,9 @@ def trace(
         budget, photons = int(photons), int(done)
         q = np.array([exact_packet_energy(L, photons) for L in band_lum])
         j_scale = _j_scale(q, estimator, track_scale, nvox_inv)
-        peel_image = None
+        peel_image = peel_error = peel_groups = None
         if peel is not None:  # packet energy x (phase x attenuation) per pixel area
-            peel_image = peel_sum * (q / (setup.peel_scale * peel.pixel_size**2))[:, None, None]
+            peel_image, peel_error, peel_groups = peel_sums.finish(q / (setup.peel_scale * peel.pixel_size**2))
         if on_device:
             s1, s2, d_rho = session.release_sums()
             device_sums = DeviceSums(backend, shape, nb, s1, s2, d_rho)
@@ -646,8 +773,12 @@ def trace(
             achieved = (lit_region_error(J, rel, sigma_host) if device_sums is None else
                         _current_error(session, folded, estimator, band_lum, photons, track_scale,
                                        nvox_inv, sigma_scale, density, sigma_host, device_sums))
+            # the stopping rule above uses the statistical error alone (more packets do not
+            # shrink the bias); the error reported adds the terminated packets' bias bound
+            achieved = math.hypot(achieved, float(np.max(terminated_bias(counts_i64))))
     finally:
         session.close()
+    warn_if_terminated(counts_i64, [b.name for b in bands], max_scatterings)
     return TransportResult(
         J=J,
         rel_error=rel,
@@ -667,6 +798,8 @@ def trace(
         photons_budget=budget,
         device_bytes=device_bytes,
         peel_image=peel_image,
+        peel_error=peel_error,
+        peel_bin_batches=peel_groups,
         device=backend.device_name,
         timings={"setup_s": t_setup, "kernel_s": t_kernel, "total_s": time.perf_counter() - t0},
     )
