@@ -184,7 +184,7 @@ def test_cli_render_summary_reports_it(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "nebula_rt.cli", "render", str(scene), "-o", str(out)],
                           capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
-    assert "NebulaWarning" in proc.stderr and "max_scatterings = 1" in proc.stderr
+    assert "nebula-rt: warning:" in proc.stderr and "max_scatterings = 1" in proc.stderr
     summary = json.loads(proc.stdout[proc.stdout.index("{"):])
     field = read_vti(out)[1]
     for name, f in summary["terminated_fraction"].items():

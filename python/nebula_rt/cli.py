@@ -306,6 +306,26 @@ def main(argv=None) -> int:
     was written); 3 the backend or device cannot be used; 130 / 143 cancelled by SIGINT /
     SIGTERM (nothing was written).
     """
+    import warnings
+
+    from .errors import NebulaWarning
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        # NebulaRT's warnings are for the user: one line, no source location
+        if issubclass(category, NebulaWarning):
+            _error(f"warning: {message}")
+        else:
+            _show_default(message, category, filename, lineno, file, line)
+
+    _show_default = warnings.showwarning
+    warnings.showwarning = show
+    try:
+        return _main(argv)
+    finally:
+        warnings.showwarning = _show_default
+
+
+def _main(argv) -> int:
     cancel = SignalCancel()
     with cancel:
         try:
