@@ -511,15 +511,19 @@ class _Launcher:
     """Traces a group of batches in launches of at most about ``LAUNCH_SECONDS``, polling the
     cancel callback before each and the deadline between them."""
 
-    def __init__(self, session, n_bands: int, backend, cancel, deadline: float):
+    def __init__(self, session, n_bands: int, backend, cancel, deadline: float, progress_of=None):
         self.session, self.nb, self.cancel, self.deadline = session, n_bands, cancel, deadline
+        self.progress_of = progress_of  # () -> (packets per band done, total), for messages
         self.first = max(1, int(getattr(backend, "first_launch_packets", 1 << 21)))
         self.rate = None  # packets (all bands) per second of the latest launch
         self.kernel_s = 0.0
 
     def poll(self) -> None:
         if self.cancel is not None and self.cancel():
-            raise CancelledError("transport cancelled")
+            if self.progress_of is None:
+                raise CancelledError("transport cancelled")
+            done, total = self.progress_of()
+            raise CancelledError(f"transport cancelled after {done:,} of {total:,} packets per band")
 
     def run(self, start: int, count: int, base: int, extra: int, first_batch: int, n_slots: int,
             on_progress=None):
@@ -668,7 +672,7 @@ def trace(
     device_bytes = session.device_bytes()
     t_setup = time.perf_counter() - t0
     deadline = t0 + time_limit if time_limit > 0 else math.inf
-    launcher = _Launcher(session, nb, backend, cancel, deadline)
+    launcher = _Launcher(session, nb, backend, cancel, deadline, lambda: (done, photons))
     folded = 0
     done = 0
     next_check = 0  # packets per band after which the error is checked next (targeted runs)
