@@ -206,15 +206,20 @@ def check_transport(
     check_int_range("transport.max_scatterings", int(max_scatterings), 0, INT32_MAX, "an integer (int32)")
     check_int_range("transport.seed", int(seed), 0, SEED_LIMIT - 1, "an integer (uint64)")
     rho = np.asarray(density)
-    if rho.size and not bool(np.all(np.isfinite(rho))):
+    # reductions without temporaries where possible (NaN propagates through max and min): on a
+    # GPU the kernel of a thesis-sized run takes milliseconds, and so must these checks
+    rho_max = float(rho.max()) if rho.size else 0.0
+    rho_low = float(rho.min()) if rho.size else 0.0
+    if not (math.isfinite(rho_max) and math.isfinite(rho_low)):
         raise SceneError("density", f"array of shape {tuple(rho.shape)}",
                          f"must be finite in float32 (magnitudes at most {fmt(FLOAT32_MAX)}; found NaN or infinity)")
     shape = rho.shape
     volume, diag = _voxel_geometry(shape)
     four_pi_v = 4.0 * math.pi * volume
-    rho_max = float(rho.max()) if rho.size else 0.0
-    normal = rho[rho >= FLOAT32_TINY]
-    rho_min = float(normal.min()) if normal.size else 0.0
+    if rho_low >= FLOAT32_TINY:
+        rho_min = rho_low
+    else:  # vacuum or denormal voxels: the least normal density
+        rho_min = float(np.min(rho, initial=np.inf, where=rho >= FLOAT32_TINY)) if rho_max >= FLOAT32_TINY else 0.0
     k = np.array([b.extinction for b in bands], np.float64)
     alb = np.array([b.albedo for b in bands], np.float64)
     slum = np.asarray(star_band_luminosity, np.float64).reshape(len(stars), len(bands))
