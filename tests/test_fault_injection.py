@@ -103,12 +103,18 @@ def test_interrupt_publishes_nothing(scene_dir, point, sig, status):
     assert_intact(scene_dir, before)
 
 
-def test_ctrl_c_within_one_long_launch_is_honoured_at_once(scene_dir):
-    """An outside SIGINT during a batch of 3e6 packets per band (about 10 s of tracing on two
-    cores): the run stops within about a second, exits 130 and the old output stays."""
+@pytest.mark.parametrize("run", [
+    # one batch of 3e6 packets per band: about 10 s of tracing on two cores
+    ["--set", "transport.photons=6e6", "--set", "transport.batch_size=3e6"],
+    # an error-targeted run with a huge budget and a time limit it will not reach first
+    ["--set", "transport.photons=1e12", "--set", "transport.target_error=0.001",
+     "--set", "transport.time_limit=30"],
+], ids=["long-batch", "targeted-huge-budget"])
+def test_ctrl_c_within_one_long_launch_is_honoured_at_once(scene_dir, run):
+    """An outside SIGINT in the middle of a long run: it stops within about a second, exits 130
+    and the old output stays."""
     before = old_outputs(scene_dir)
-    cmd = _cli("render", str(scene_dir / "s.toml"), "-o", str(scene_dir / "out.vti"),
-               "--set", "transport.photons=6e6", "--set", "transport.batch_size=3e6")
+    cmd = _cli("render", str(scene_dir / "s.toml"), "-o", str(scene_dir / "out.vti"), *run)
     import threading
 
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=_env())
