@@ -703,8 +703,8 @@ def trace(
             tallies, overflow, traced = launcher.run(
                 start, count, base, extra, first, n,
                 None if progress is None else (lambda k: progress(done + k, photons)))
-            if traced < count:
-                finished = plan.batches_within(first, start + traced)  # the time limit came within the group: keep its finished batches
+            if traced < count:  # the time limit came within the group: keep its finished batches
+                finished = plan.batches_within(first, start + traced)
                 session.fold(finished)
                 images = session.take_images(n)[:finished] if peel is not None else None
                 take(tallies, overflow, images, plan[first:first + finished])
