@@ -399,5 +399,11 @@ def plot(prof: Profiles, path, title: str = "") -> None:
     if title:
         fig.suptitle(title, fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    from .outputs import Publication
+
+    try:  # a temporary file unique to this call, renamed onto the target once complete
+        with Publication() as pub:
+            fig.savefig(pub.stage(path), dpi=110)
+            pub.publish()
+    finally:
+        plt.close(fig)
