@@ -220,14 +220,12 @@ def _field_value_to_vtk(name: str, value: Any):
         if isinstance(value, np.uint64) or 2**63 <= iv < 2**64:
             if not 0 <= iv < 2**64:
                 raise OverflowError(f"field data {name!r} = {iv} does not fit in uint64")
-            arr = vtkTypeUInt64Array()
-            arr.SetName(name)
-            arr.SetNumberOfValues(1)
-            arr.SetValue(0, iv)
-            return arr
-        if not (-(2**63) <= iv < 2**63):
+            kind = vtkTypeUInt64Array
+        elif -(2**63) <= iv < 2**63:
+            kind = vtkTypeInt64Array
+        else:
             raise OverflowError(f"field data {name!r} = {iv} does not fit in int64 or uint64")
-        arr = vtkTypeInt64Array()
+        arr = kind()
         arr.SetName(name)
         arr.SetNumberOfValues(1)
         arr.SetValue(0, iv)

@@ -224,7 +224,8 @@ class Transport:
         ``nebula_rt.transport.lit_region_error``) is at most this; ``photons`` is then the
         budget (extension key).
     time_limit : float
-        Seconds, >= 0; > 0 also ends an error-targeted run after this long (extension key).
+        Seconds, >= 0; > 0 ends any run after this long (within one launch), keeping the
+        batches finished by then: ``photons`` is then a budget (extension key).
     quality : str
         ``""`` (use photons and target_error as given) or a preset of ``QUALITY_PRESETS``:
         ``"preview"``, ``"balanced"``, ``"reference"``, each a target error with a photon

@@ -594,19 +594,22 @@ def trace(
     estimator : {"track-length", "collision-filter"}
         Which tally the kernel accumulates (the collision estimate is unfiltered here).
     progress : callable(done, total), optional
-        Called after every batch with packets per band done so far.
+        Called after every group of batches (and after each launch of a group traced in
+        several) with the packets per band done so far.
     cancel : callable() -> bool, optional
-        Polled between batches; True raises :class:`~nebula_rt.errors.CancelledError`.
+        Polled before every launch (launches last at most ``LAUNCH_SECONDS``) and after the
+        last; True raises :class:`~nebula_rt.errors.CancelledError`.
     target_error : float
         0: trace ``photons`` packets. In (0, 1): trace batch after batch (the plan is made for
-        ``photons``, now a budget) until :func:`lit_region_error` is at most this, checked after
-        every launch once ``MIN_BATCHES`` batches are in; ``result.photons`` is what was used
+        ``photons``, now a budget) until :func:`lit_region_error` is at most this, checked once
+        ``MIN_BATCHES`` batches are in and then where the 1/sqrt(N) fall of the error predicts
+        the target (O(log N) checks); ``result.photons`` is what was used
         and ``result.achieved_error`` the error reached, sqrt(statistical^2 + bias^2) with the
         bias bound of terminated packets (:func:`terminated_bias`), which more packets do not
         shrink and so does not enter the stopping rule.
     time_limit : float
-        Seconds; > 0 also stops an error-targeted run after this long (the photon count then
-        depends on the machine's speed).
+        Seconds; > 0 stops any run within one launch of this long, keeping the finished
+        batches (the photon count then depends on the machine's speed).
     peel : nebula_rt.sky.Camera, optional
         Also make a peel-off image of the scattered light seen by this camera (the phase
         function at every scattering towards the observer, attenuated to the box's edge):
