@@ -1,15 +1,17 @@
 /*
  * postprocess.cl -- from the transport's batch sums to the output arrays, on the device.
  *
- * One work item per voxel runs over all bands, so the per-band arrays, the colour and the
- * opacity come out of one pass over the sums and only the final arrays travel to the host:
+ * Only the final arrays travel to the host, and the sums' memory is reused as the outputs
+ * appear (peak: the sums and J, then the outputs):
  *
- *   finish_voxels, pass 0: J, its relative error and the emissivity (float32, band-major,
- *       x fastest), the opacity byte of rgba, and a brightness key per voxel for the exposure;
+ *   light_cells:            J and its relative error (float32, band-major, x fastest), the
+ *       error written over the centred sums of squares it comes from;
+ *   finish_voxels, pass 0:  the emissivity, the opacity byte of rgba, and a brightness key
+ *       per voxel for the exposure;
  *   key_histogram:          histograms of the keys' bit patterns, from which the host picks
  *       the exposure percentile exactly (two passes of 2^16 bins: a radix select);
  *   finish_voxels, pass 1:  the colour bytes of rgba at the chosen exposure (the colour is
- *       recomputed rather than stored: reading the sums again costs less memory than a
+ *       recomputed from J rather than stored: reading J again costs less memory than a
  *       float colour buffer on large grids).
  *
  * The arithmetic follows the NumPy reference (nebula_rt.transport.trace,
@@ -31,16 +33,17 @@
 NRT_DEVICE double nrt_dmax(double a, double b) { return a > b ? a : b; }
 NRT_DEVICE double nrt_dmin(double a, double b) { return a < b ? a : b; }
 
-/* Standard error of a total of `batches` batch totals from their sum x1 and sum of squares x2
-   (batch means; nebula_rt.transport.batch_standard_error). */
-NRT_DEVICE double nrt_batch_se(double x1, double x2, int batches)
+/* Standard error of a total of `batches` batch totals from their sum x1 and centred sum of
+   squares q = sum (x - mean)^2 (batch means; nebula_rt.transport.batch_standard_error). */
+NRT_DEVICE double nrt_batch_se(double x1, double q, double batches)
 {
-    if (batches < 2)
+    if (batches < 2.0)
         return x1 < 0.0 ? -x1 : x1; /* one batch: no spread to measure, report 100 % */
-    double m = (double)batches;
-    double var = (x2 - x1 * x1 / m) * (m / (m - 1.0));
-    return NRT_DSQRT(nrt_dmax(var, 0.0));
+    return NRT_DSQRT(nrt_dmax(q * (batches / (batches - 1.0)), 0.0));
 }
+
+/* Stored centred sums of squares are float32 x 2^-64 (see fold_batches in transport.cl). */
+#define NRT_M2_UP 18446744073709551616.0 /* 2^64 */
 
 /* sRGB transfer curve (IEC 61966-2-1) of x in [0, 1] -> 0..255. */
 NRT_DEVICE nrt_u8 nrt_srgb8(double x)
@@ -52,22 +55,61 @@ NRT_DEVICE nrt_u8 nrt_srgb8(double x)
 }
 
 /*
- * band_params: per band 4 doubles: J scale (J = sum x scale, or for the collision estimator
- * J = sum / sigma x scale), extinction per box unit at density 1 (tau k_b), albedo, unused.
+ * light_cells: J and its relative error per cell (n = n_bands * nvox) as float32, the first
+ * pass of the finishing. band_params: per band 4 doubles: J scale (J = sum x scale, or for
+ * the collision estimator J = sum / sigma x scale), extinction per box unit at density 1
+ * (tau k_b), albedo, batches folded.
+ * mode 0: from the sum s1 of the batch totals and their centred sum of squares m2 (float32
+ *     x 2^-64); rel32 may be m2 itself (each cell is read before it is written, by the same
+ *     work item), so the error needs no memory of its own;
+ * mode 1: from J and its relative error already computed (filtered), in j64 and rel64.
+ */
+NRT_KERNEL void light_cells(const NRT_GLOBAL double *s1, const NRT_GLOBAL float *m2,
+                            const NRT_GLOBAL double *j64, const NRT_GLOBAL double *rel64,
+                            const NRT_GLOBAL float *density, const NRT_GLOBAL double *band_params,
+                            nrt_u64 nvox, nrt_u64 n, int mode, int collision,
+                            NRT_GLOBAL float *J32, NRT_GLOBAL float *rel32)
+{
+    nrt_u64 i = NRT_GLOBAL_ID();
+    if (i >= n)
+        return;
+    int k = (int)(i / nvox);
+    double J, rel;
+    if (mode == 0) {
+        double x1 = s1[i];
+        double se = nrt_batch_se(x1, (double)m2[i] * NRT_M2_UP, band_params[4 * k + 3]);
+        rel = (x1 > 0.0) ? se / x1 : 1.0;
+        if (collision) {
+            double sig = band_params[4 * k + 1] * (double)density[i - (nrt_u64)k * nvox];
+            J = (sig > 0.0) ? x1 / sig : 0.0;
+            J *= band_params[4 * k];
+        } else {
+            J = x1 * band_params[4 * k];
+        }
+    } else {
+        J = j64[i];
+        rel = rel64[i];
+    }
+    J32[i] = (float)J;
+    rel32[i] = (float)rel;
+}
+
+/*
+ * finish_voxels: per voxel, over all bands, from the float32 J (emissivity = albedo x sigma x
+ * J of the float32 J: the output's own precision, which the float64 sums do not improve).
  * to_rgb: 3 x n_bands (row-major), band emissivity / (L_b sigma_ref) -> linear sRGB, white
  * balance included.
- * mode 0: a, b are the sums of the batch totals and of their squares (batches of them);
- * mode 1: a, b are J and its relative error (already filtered).
+ *   pass 0: the emissivity (float32, band-major, x fastest), the opacity byte of rgba and the
+ *       brightness key of the exposure;
+ *   pass 1: the colour bytes of rgba at the chosen exposure (recomputed from J rather than
+ *       stored: a float colour buffer would cost more memory than reading J again).
  */
-NRT_KERNEL void finish_voxels(const NRT_GLOBAL double *a, const NRT_GLOBAL double *b,
-                              const NRT_GLOBAL float *density,
+NRT_KERNEL void finish_voxels(const NRT_GLOBAL float *J32, const NRT_GLOBAL float *density,
                               const NRT_GLOBAL double *band_params,
                               const NRT_GLOBAL double *to_rgb, int n_bands, nrt_u64 nvox,
-                              int mode, int collision, int batches, int pass, int colour,
+                              int pass, int colour,
                               double sigma_ref_scale, double voxel_edge, double opacity_scale,
-                              double exposure,
-                              NRT_GLOBAL float *J32, NRT_GLOBAL float *rel32,
-                              NRT_GLOBAL float *emis32, NRT_GLOBAL float *key,
+                              double exposure, NRT_GLOBAL float *emis32, NRT_GLOBAL float *key,
                               NRT_GLOBAL nrt_u8 *rgba)
 {
     nrt_u64 v = NRT_GLOBAL_ID();
@@ -77,30 +119,10 @@ NRT_KERNEL void finish_voxels(const NRT_GLOBAL double *a, const NRT_GLOBAL doubl
     double rgb[3] = {0.0, 0.0, 0.0};
     for (int k = 0; k < n_bands; ++k) {
         nrt_u64 i = (nrt_u64)k * nvox + v;
-        double j_scale = band_params[4 * k], sig_k = band_params[4 * k + 1];
-        double alb = band_params[4 * k + 2];
-        double J, rel;
-        if (mode == 0) {
-            double x1 = a[i];
-            double se = nrt_batch_se(x1, b[i], batches);
-            rel = (x1 > 0.0) ? se / x1 : 1.0;
-            if (collision) {
-                double sig = sig_k * rho;
-                J = (sig > 0.0) ? x1 / sig : 0.0;
-                J *= j_scale;
-            } else {
-                J = x1 * j_scale;
-            }
-        } else {
-            J = a[i];
-            rel = b[i];
-        }
-        double emis = alb * (sig_k * rho) * J;
-        if (pass == 0) {
-            J32[i] = (float)J;
-            rel32[i] = (float)rel;
+        double sig_k = band_params[4 * k + 1], alb = band_params[4 * k + 2];
+        double emis = alb * (sig_k * rho) * (double)J32[i];
+        if (pass == 0)
             emis32[i] = (float)emis;
-        }
         if (colour) {
             rgb[0] += emis * to_rgb[k];
             rgb[1] += emis * to_rgb[n_bands + k];
@@ -175,9 +197,9 @@ NRT_KERNEL void key_histogram(const NRT_GLOBAL float *key, nrt_u64 n, int all_vo
  * sums of the batch totals (as nebula_rt.pipeline.filter_collisions computes them):
  * J = sum / sigma x scale, var = (SE x J / sum)^2. n = n_bands * nvox cells.
  */
-NRT_KERNEL void collision_light(const NRT_GLOBAL double *s1, const NRT_GLOBAL double *s2,
+NRT_KERNEL void collision_light(const NRT_GLOBAL double *s1, const NRT_GLOBAL float *m2,
                                 const NRT_GLOBAL float *density,
-                                const NRT_GLOBAL double *band_params, int batches, nrt_u64 nvox,
+                                const NRT_GLOBAL double *band_params, nrt_u64 nvox,
                                 nrt_u64 n, NRT_GLOBAL double *J, NRT_GLOBAL double *var)
 {
     nrt_u64 i = NRT_GLOBAL_ID();
@@ -186,7 +208,7 @@ NRT_KERNEL void collision_light(const NRT_GLOBAL double *s1, const NRT_GLOBAL do
     int k = (int)(i / nvox);
     double rho = (double)density[i - (nrt_u64)k * nvox];
     double x1 = s1[i];
-    double se = nrt_batch_se(x1, s2[i], batches);
+    double se = nrt_batch_se(x1, (double)m2[i] * NRT_M2_UP, band_params[4 * k + 3]);
     double sig = band_params[4 * k + 1] * rho;
     double j = (sig > 0.0) ? x1 / sig : 0.0;
     j *= band_params[4 * k];

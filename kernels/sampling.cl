@@ -78,3 +78,7 @@ NRT_KERNEL void sample_tau_at(NRT_GLOBAL float *tau, const NRT_GLOBAL float *xi,
         return;
     tau[i] = nrt_tau_of_xi(xi[i]);
 }
+
+/* How the device lays out the parameter structs (offsets and sizes; tests compare them with
+   the host's dtype). */
+/* NRT_PARAM_LAYOUT_KERNELS */

@@ -1,8 +1,8 @@
 /*
  * transport.cl -- Monte Carlo photon packet transport through a piecewise-constant voxel grid.
  *
- * One work item traces one packet of one band; all bands go in one launch
- * (gid = band * batch + i). Packets leave a star isotropically (the star is chosen with
+ * One work item traces one packet of one band; the bands of a launch go in one grid
+ * (gid = band * count + i). Packets leave a star isotropically (the star is chosen with
  * probability L_star,b / L_b), fly an exponentially distributed optical depth -ln(1 - xi)
  * that is spent exactly voxel by voxel (3D DDA, Amanatides & Woo 1987), and at the interaction
  * scatter with probability albedo_b (analog: every packet carries the same energy, so energy
@@ -424,33 +424,37 @@ NRT_DEVICE nrt_u64 nrt_batch_of(nrt_u64 photon, nrt_u64 base, nrt_u64 extra)
 }
 
 /*
- * Trace packets [photon_start, photon_start + count) of every band. They belong to the
- * consecutive batches first_batch, first_batch + 1, ... of the plan (base, extra); each batch
- * accumulates into its own slot (slot = batch - first_batch) of acc, tallies and overflow, so
- * the batch totals stay separable for the error estimate while many batches share one launch.
- * The backends launch one work item per packet; the grid-stride loop keeps the kernel correct
- * for smaller launches too.
+ * Trace packets [photon_start, photon_start + count) of bands band0 .. band0 + n_lbands - 1
+ * (gid = band offset * count + i). They belong to the consecutive batches first_batch,
+ * first_batch + 1, ... of the plan (prm->batch_base, prm->batch_extra); each (batch, band)
+ * accumulates into its own cell of acc (cell = (batch - first_batch) * n_lbands + band
+ * offset), tallies and image, and each batch raises its own overflow flag, so the batch
+ * totals stay separable for the error estimate while many batches (and bands) share one
+ * launch; the host traces the bands in several launches when one cell of every band would not
+ * fit its memory budget. The backends launch one work item per packet; the grid-stride loop
+ * keeps the kernel correct for smaller launches too.
  */
-NRT_KERNEL void trace_photons(const NRT_GLOBAL float *density, /* nx*ny*nz, x fastest */
-                              const NRT_GLOBAL float *sigma_scale, /* per band: tau * k_b */
-                              const NRT_GLOBAL float *albedo,      /* per band */
-                              const NRT_GLOBAL float *asym_g,      /* per band */
-                              const NRT_GLOBAL float *stars,       /* per star: x, y, z, pad */
-                              const NRT_GLOBAL float *star_cdf,    /* per band: n_stars cdf */
-                              int nx, int ny, int nz, int n_bands, int n_stars,
-                              nrt_u64 seed, nrt_u64 photon_start, nrt_u64 count,
-                              nrt_u64 batch_base, nrt_u64 batch_extra, nrt_u64 first_batch,
-                              int max_scatterings, float track_scale,
-                              NRT_GLOBAL nrt_u64 *acc,     /* slots * n_bands * nvox */
-                              NRT_GLOBAL nrt_u64 *tallies, /* slots * n_bands * 4 */
+NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
+                              const NRT_GLOBAL float *density,  /* nx*ny*nz, x fastest */
+                              const NRT_GLOBAL float *optics,   /* per band: tau k_b, albedo, g, 0 */
+                              const NRT_GLOBAL float *stars,    /* per star: x, y, z, pad */
+                              const NRT_GLOBAL float *star_cdf, /* per band: n_stars cdf */
+                              nrt_u64 photon_start, nrt_u64 count, nrt_u64 first_batch,
+                              int band0, int n_lbands,
+                              NRT_GLOBAL nrt_u64 *acc,      /* slots * n_lbands * nvox */
+                              NRT_GLOBAL nrt_u64 *tallies,  /* slots * n_lbands * 4 */
                               NRT_GLOBAL nrt_u32 *overflow, /* slots */
-                              const NRT_GLOBAL float *peel, /* NRT_PEEL: camera (15) */
-                              float peel_scale,             /* fixed-point units per 1/sr */
-                              NRT_GLOBAL nrt_u64 *image)    /* slots * n_bands * W * H */
+                              NRT_GLOBAL nrt_u64 *image)    /* slots * n_lbands * W * H */
 {
+    const int nx = prm->nx, ny = prm->ny, nz = prm->nz, n_stars = prm->n_stars;
+    const nrt_u64 seed = prm->seed, batch_base = prm->batch_base, batch_extra = prm->batch_extra;
+    const int max_scatterings = prm->max_scatterings;
+    const float track_scale = prm->track_scale, peel_scale = prm->peel_scale;
+    const NRT_GLOBAL float *peel = prm->peel;
     nrt_u64 nvox = (nrt_u64)nx * (nrt_u64)ny * (nrt_u64)nz;
-    nrt_u64 total = count * (nrt_u64)n_bands;
+    nrt_u64 total = count * (nrt_u64)n_lbands;
     nrt_u64 stride = NRT_GLOBAL_SIZE();
+    nrt_u64 pixels = NRT_PEEL ? (nrt_u64)peel[13] * (nrt_u64)peel[14] : 0;
     /* the home cell (batch slot and band) of the group: that of its first packet */
     nrt_u64 home_cell = 0, home_slot = 0;
     nrt_sink sink;
@@ -467,7 +471,7 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL float *density, /* nx*ny*nz, x fa
     {
         nrt_u64 t0 = NRT_GROUP_FIRST_ID();
         home_slot = nrt_batch_of(photon_start + t0 % count, batch_base, batch_extra) - first_batch;
-        home_cell = home_slot * (nrt_u64)n_bands + (nrt_u64)(t0 / count);
+        home_cell = home_slot * (nrt_u64)n_lbands + (nrt_u64)(t0 / count);
     }
     sink.l_tally = l_tally;
     NRT_BARRIER();
@@ -475,10 +479,11 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL float *density, /* nx*ny*nz, x fa
     sink.l_tally = 0;
 #endif
     for (nrt_u64 t = NRT_GLOBAL_ID(); t < total; t += stride) {
-        int band = (int)(t / count);
+        int lband = (int)(t / count);
+        int band = band0 + lband;
         nrt_u64 photon = photon_start + t % count;
         nrt_u64 slot = nrt_batch_of(photon, batch_base, batch_extra) - first_batch;
-        nrt_u64 cell = slot * (nrt_u64)n_bands + (nrt_u64)band;
+        nrt_u64 cell = slot * (nrt_u64)n_lbands + (nrt_u64)lband;
         sink.tally = tallies + 4 * cell;
         sink.home = NRT_GROUP_TALLY && cell == home_cell;
 #if NRT_GROUP_TALLY
@@ -487,11 +492,10 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL float *density, /* nx*ny*nz, x fa
         sink.l_hot = 0;
 #endif
         nrt_count(&sink, 0);
-        nrt_trace_packet(density, sigma_scale[band], albedo[band], asym_g[band], stars,
+        nrt_trace_packet(density, optics[4 * band], optics[4 * band + 1], optics[4 * band + 2], stars,
                          star_cdf + band * n_stars, nx, ny, nz, n_stars, seed, band, photon,
                          max_scatterings, track_scale, acc + cell * nvox, &sink,
-                         overflow + slot, peel, peel_scale,
-                         image + (NRT_PEEL ? cell * (nrt_u64)peel[13] * (nrt_u64)peel[14] : 0));
+                         overflow + slot, peel, peel_scale, image + cell * pixels);
     }
 #if NRT_GROUP_TALLY
     /* the group's local sums go to global memory once */
@@ -511,36 +515,64 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL float *density, /* nx*ny*nz, x fa
 #endif
 }
 
+/* The centred sums of squares are stored in float32 times 2^-64, so that any sum of squared
+   64-bit totals fits (2^128 is float32's limit) and the smallest non-zero one (about 1 unit^2)
+   stays normal. */
+#define NRT_M2_DOWN 5.42101086242752217e-20 /* 2^-64 */
+#define NRT_M2_UP 18446744073709551616.0    /* 2^64 */
+
 /*
  * Fold the batch slots 0..n_slots-1 of the accumulator, in batch order, into per-cell running
- * sums of the batch totals and of their squares (for the batch-means error estimate), and
- * clear them. A slot whose overflow flag is set is cleared without folding (the host re-traces
- * that batch in halves). Each cell is folded by one work item in a fixed order, so the float64
- * sums are deterministic. With NRT_ACC_RED the deposits were not checked as they were added:
- * a cell at or past the headroom limit raises *seen (the host then re-runs with checked adds).
+ * statistics of the batch totals, and clear them: the sum (float64; exact while below 2^53)
+ * and the centred sum of squares M2 = sum (x - mean)^2 (Welford's update, formed in float64,
+ * stored in float32 x 2^-64: 4 bytes where a raw sum of squares would need float64 and still
+ * lose the variance to cancellation once the batch totals agree to 8 digits). The slots hold
+ * cells 0..n-1 of this launch's bands, which are cells cell0 .. cell0 + n - 1 of the sums;
+ * the k0 batches folded before are in the sums. A slot whose overflow flag is set is cleared
+ * without folding (the host re-traces that batch in halves). Each cell is folded by one work
+ * item in a fixed order, so the sums are deterministic. With NRT_ACC_RED the deposits were not
+ * checked as they were added: a cell at or past the headroom limit raises *seen (the host then
+ * re-runs with checked adds).
  */
-NRT_KERNEL void fold_batches(NRT_GLOBAL nrt_u64 *acc, NRT_GLOBAL double *sum1,
-                             NRT_GLOBAL double *sum2, const NRT_GLOBAL nrt_u32 *overflow,
-                             int n_slots, nrt_u64 n, NRT_GLOBAL nrt_u32 *seen)
+NRT_KERNEL void fold_batches(NRT_GLOBAL nrt_u64 *acc, NRT_GLOBAL double *sum1, NRT_GLOBAL float *m2,
+                             const NRT_GLOBAL nrt_u32 *overflow, int n_slots, nrt_u64 n,
+                             nrt_u64 cell0, int k0, NRT_GLOBAL nrt_u32 *seen)
 {
     nrt_u64 gid = NRT_GLOBAL_ID();
     if (gid >= n)
         return;
-    double s1 = sum1[gid], s2 = sum2[gid];
-    int past = 0;
+    double s1 = sum1[cell0 + gid];
+    double q = (double)m2[cell0 + gid] * NRT_M2_UP;
+    double k = (double)k0;
+    int past = 0, changed = 0;
     for (int g = 0; g < n_slots; ++g) {
         nrt_u64 i = (nrt_u64)g * n + gid;
         nrt_u64 a = acc[i];
         past |= a >= NRT_ACC_LIMIT;
         if (!overflow[g]) {
             double x = (double)a;
-            s1 += x;
-            s2 += x * x;
+            if (k > 0.0) {
+                double mean_old = s1 / k;
+                s1 += x;
+                q += (x - mean_old) * (x - s1 / (k + 1.0));
+                /* rounded as stored after every batch, so the bits do not depend on how
+                   many batches one fold takes */
+                q = (double)(float)(q * NRT_M2_DOWN) * NRT_M2_UP;
+            } else {
+                s1 = x;
+            }
+            k += 1.0;
         }
-        acc[i] = 0;
+        if (a != 0) {
+            acc[i] = 0;
+            changed = 1;
+        }
     }
-    sum1[gid] = s1;
-    sum2[gid] = s2;
+    /* cells that no batch has reached yet are left untouched (no memory traffic) */
+    if (changed || s1 != 0.0) {
+        sum1[cell0 + gid] = s1;
+        m2[cell0 + gid] = (float)(q * NRT_M2_DOWN); /* exact: q is a stored value already */
+    }
     if (NRT_ACC_RED && past)
         NRT_ATOMIC_OR_U32(seen, 1u);
 }

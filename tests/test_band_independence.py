@@ -59,7 +59,7 @@ def together_long(backend):
 
 def same_bits(res_a, a, res_b, b):
     np.testing.assert_array_equal(res_a.raw_sum[a], res_b.raw_sum[b])
-    np.testing.assert_array_equal(res_a.raw_sum2[a], res_b.raw_sum2[b])
+    np.testing.assert_array_equal(res_a.raw_m2[a], res_b.raw_m2[b])
     np.testing.assert_array_equal(res_a.counts[a], res_b.counts[b])
     # J per unit luminosity: the same up to the rounding of the packet energy L_b / N to
     # 53 - bit_length(N) bits (transport.exact_packet_energy), twice

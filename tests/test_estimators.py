@@ -45,7 +45,7 @@ def zscores(a, sa, b, sb, mask):
 @pytest.mark.parametrize("radius", [0.5 / 24, 2.0 / 24])
 def test_estimators_agree_within_stated_errors(runs, radius):
     track, coll = runs
-    Jc, rel_c = filter_collisions(coll.J, coll.raw_sum, coll.raw_sum2, coll.batches, radius)
+    Jc, rel_c = filter_collisions(coll.J, coll.raw_sum, coll.raw_m2, coll.batches, radius)
     kernel = filtering.cubic_kernel(SHAPE, radius)
     var_t = (track.J[0] * track.rel_error[0]) ** 2
     Jt, var_tf = filtering.normalised_convolution(track.J[0], kernel, var_t)

@@ -156,7 +156,7 @@ def test_collision_filter_against_the_absorber_at_the_faces(backend):
     for seed in range(1, seeds + 1):
         res = trace(rho, one_band(albedo=0.0), centre_star(), tau=kappa, photons=500_000, seed=seed,
                     estimator="collision-filter", backend=backend)
-        Jf, rel = filter_collisions(res.J, res.raw_sum, res.raw_sum2, res.batches, RADIUS)
+        Jf, rel = filter_collisions(res.J, res.raw_sum, res.raw_m2, res.batches, RADIUS)
         runs.append(Jf[0])
         errs.append(Jf[0] * rel[0])
     runs, errs = np.array(runs), np.array(errs)

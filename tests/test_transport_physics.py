@@ -264,7 +264,7 @@ def test_launch_grouping_does_not_change_the_bits(backend, cloud, monkeypatch):
     single = trace(cloud, thesis_bands(), centre_star(), **kw)
     assert single.batches == grouped.batches == 16
     assert single.raw_sum.tobytes() == grouped.raw_sum.tobytes()
-    assert single.raw_sum2.tobytes() == grouped.raw_sum2.tobytes()
+    assert single.raw_m2.tobytes() == grouped.raw_m2.tobytes()
     assert np.array_equal(single.counts, grouped.counts)
 
 

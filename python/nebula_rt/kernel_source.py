@@ -3,7 +3,9 @@
 The OpenCL and CUDA backends compile the same ``.cl`` sources; the header
 ``nebula_common.h`` is pasted in place of its ``#include`` so a program is one
 self-contained string (no include paths to get wrong, and the source text is a
-complete cache key).
+complete cache key). The parameter structs of :mod:`nebula_rt.kernel_params` replace the
+``NRT_PARAM_STRUCTS`` line of the header, and their layout kernels the
+``NRT_PARAM_LAYOUT_KERNELS`` line of a program that asks for them.
 """
 
 from __future__ import annotations
@@ -11,6 +13,8 @@ from __future__ import annotations
 import functools
 import re
 from importlib import resources
+
+from . import kernel_params
 
 HEADER = "nebula_common.h"
 _INCLUDE = re.compile(r'^\s*#include\s+"([^"]+)"\s*$', re.MULTILINE)
@@ -29,4 +33,7 @@ def kernel_source(name: str) -> str:
     def _inline(match: re.Match) -> str:
         return read_kernel_file(match.group(1))
 
-    return _INCLUDE.sub(_inline, read_kernel_file(name))
+    text = _INCLUDE.sub(_inline, read_kernel_file(name))
+    text = text.replace("/* NRT_PARAM_STRUCTS */", kernel_params.all_structs())
+    layouts = "\n\n".join(kernel_params.layout_kernel(n) for n in kernel_params.STRUCTS)
+    return text.replace("/* NRT_PARAM_LAYOUT_KERNELS */", layouts)

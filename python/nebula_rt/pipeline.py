@@ -242,14 +242,13 @@ class Pipeline:
         return light
 
 
-def _memory(res: TransportResult, finish_bytes: int) -> dict:
-    """Peak device memory of a run: the transport's buffers, or, later, the sums and density it
-    hands over plus the finishing's outputs, whichever is larger; and the process's peak RSS."""
+def _memory(res: TransportResult, finish_bytes: int, finish_peak: int = 0) -> dict:
+    """Peak device memory of a run: the transport's buffers, or, later, the finishing's peak
+    (the sums and density it was handed with its outputs, see
+    :func:`nebula_rt.postprocess.finish`), whichever is larger; and the process's peak RSS."""
     import resource
 
-    ds = res.device_sums
-    handed = 0 if ds is None else 8 * 2 * ds.n_bands * ds.nvox + 4 * ds.nvox
-    return {"device_peak_bytes": int(max(res.device_bytes, handed + finish_bytes)),
+    return {"device_peak_bytes": int(max(res.device_bytes, finish_peak)),
             "transport_device_bytes": int(res.device_bytes), "finish_device_bytes": int(finish_bytes),
             "host_peak_rss_bytes": int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024}
 
@@ -289,13 +288,13 @@ def compute_light(scene, density: np.ndarray, backend: Backend, progress=None, c
         if res.device_sums is not None and _opencl_fft(backend):
             bands = scene.bands.resolve()
             params = np.stack([res.j_scale, res.sigma_scale, [b.albedo for b in bands]], axis=1)
-            J, rel = postprocess.filter_collisions_opencl(res.device_sums, params, res.batches, t.filter_radius)
+            J, rel = postprocess.filter_collisions_opencl(res.device_sums, params, res.band_batches, t.filter_radius)
         elif res.device_sums is not None:
             s1, s2 = res.device_sums.host_sums()
-            J0, _ = light_from_sums(s1, s2, res.batches, res.estimator, res.j_scale, res.sigma_scale, density)
-            J, rel = filter_collisions(J0, s1, s2, res.batches, t.filter_radius)
+            J0, _ = light_from_sums(s1, s2, res.band_batches, res.estimator, res.j_scale, res.sigma_scale, density)
+            J, rel = filter_collisions(J0, s1, s2, res.band_batches, t.filter_radius)
         else:
-            J, rel = filter_collisions(res.J, res.raw_sum, res.raw_sum2, res.batches, t.filter_radius)
+            J, rel = filter_collisions(res.J, res.raw_sum, res.raw_m2, res.band_batches, t.filter_radius)
     else:
         J, rel = res.J, res.rel_error
     return res, J, rel
@@ -344,8 +343,15 @@ def finish_light_field(scene, rho, res: TransportResult, J=None, rel=None, colou
             percentile=AUTO_EXPOSURE_PERCENTILE,
             min_alpha=AUTO_EXPOSURE_MIN_ALPHA,
         )
-    out = postprocess.finish(ds, params, batches=res.batches, collision=res.estimator != "track-length",
-                             light=None if J is None else (J, rel), colour=csetup)
+    from_sums = J is None
+    if from_sums and ds.sum1 is None:  # spent by an earlier finishing: its float32 light
+        J, rel = res.J, res.rel_error
+    out = postprocess.finish(ds, params, batches=res.band_batches, collision=res.estimator != "track-length",
+                             light=None if J is None else (J, rel), colour=csetup, release=from_sums)
+    if from_sums and res.J is None:
+        # the sums' memory went to the outputs; a later finishing (a new colour) starts from
+        # these float32 arrays, which give the same bits (light_cells rounds J to float32)
+        res.J, res.rel_error = out.J, out.rel_error
     light = LightField(
         scene=scene,
         bands=bands,
@@ -358,7 +364,7 @@ def finish_light_field(scene, rho, res: TransportResult, J=None, rel=None, colou
         exposure=out.exposure,
         reference_band=reference_band_index(bands),
     )
-    light.memory = _memory(res, out.device_bytes)
+    light.memory = _memory(res, out.device_bytes, out.peak_device_bytes)
     return light
 
 
@@ -370,21 +376,24 @@ def _voxel_edge(shape) -> float:
 def assemble_light_field(scene, rho, res: TransportResult, J, rel, with_device_emissivity=False):
     """The output-contract arrays (emissivity = albedo x extinction x J) without colour.
 
-    J and rel may live on the device (CuPy); the LightField holds NumPy float32 copies. With
+    J and rel may live on the device (CuPy); the LightField holds NumPy float32 copies. The
+    emissivity is formed from the float32 J, the output's own precision (the device finishing
+    does the same: a float64 J changes it by less than float32's rounding, 6e-8). With
     ``with_device_emissivity`` also return the emissivity on J's device (for the colour stage).
     """
     xp = array_module(J)
+    J32 = J.astype(xp.float32)
     bands = scene.bands.resolve()
     tau = scene.dust.tau
     rho_x = xp.asarray(rho, dtype=xp.float64)
     sig = xp.asarray([tau * b.extinction for b in bands])[:, None, None, None] * rho_x[None]
     alb = xp.asarray([b.albedo for b in bands])[:, None, None, None]
-    emissivity = alb * sig * J
+    emissivity = alb * sig * J32.astype(xp.float64)
     light = LightField(
         scene=scene,
         bands=bands,
         density=np.asarray(rho),
-        J=to_numpy(J.astype(xp.float32)),
+        J=to_numpy(J32),
         rel_error=to_numpy(rel.astype(xp.float32)),
         emissivity=to_numpy(emissivity.astype(xp.float32)),
         rgba=None,
@@ -398,8 +407,9 @@ def assemble_light_field(scene, rho, res: TransportResult, J, rel, with_device_e
 def filter_collisions(J, s1, s2, batches: int, radius: float):
     """Smooth the collision estimate of J with the normalised cubic kernel of ``radius`` (box units).
 
-    ``s1``, ``s2``: the sums of the batch totals (collision counts) and of their squares, from
-    which the per-voxel variance of J is filtered with the squared kernel: the filtered
+    ``s1``, ``s2``: the sum of the batch totals (collision counts) and their centred sum of
+    squares (``batches`` of them, an int or per band), from which the per-voxel variance of J
+    is filtered with the squared kernel: the filtered
     field's statistical error (the filter's bias is not included). Runs on the device of ``J``
     (CuPy FFTs on CUDA).
     """

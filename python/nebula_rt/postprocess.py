@@ -33,9 +33,12 @@ class DeviceSums:
     backend : Backend
     shape : (nx, ny, nz)
     n_bands : int
-    sum1, sum2 : device arrays, float64, n_bands * nx * ny * nz
-        Sum of the batch totals and of their squares (fixed-point track units or collision
-        counts), band-major, x fastest.
+    sum1 : device array, float64, n_bands * nx * ny * nz
+        Sum of the batch totals (fixed-point track units or collision counts), band-major,
+        x fastest.
+    m2 : device array, float32, n_bands * nx * ny * nz
+        Their centred sum of squares sum (x - mean)^2, stored times 2^-64
+        (``session.M2_SCALE``).
     density : device array, float32, nx * ny * nz
     """
 
@@ -43,7 +46,7 @@ class DeviceSums:
     shape: tuple
     n_bands: int
     sum1: object
-    sum2: object
+    m2: object
     density: object
 
     @property
@@ -51,16 +54,19 @@ class DeviceSums:
         return int(np.prod(self.shape))
 
     def host_sums(self):
-        """The sums as (n_bands, nx, ny, nz) arrays of the backend's array module (CuPy views on
-        CUDA, NumPy copies otherwise)."""
+        """(sum, centred sum of squares) as float64 (n_bands, nx, ny, nz) arrays of the
+        backend's array module (CuPy on CUDA, NumPy copies otherwise)."""
+        from .backends.session import M2_SCALE
+
+        if self.sum1 is None:
+            raise RuntimeError("the device sums were released by postprocess.finish(release=True)")
         shape = (self.n_bands,) + tuple(self.shape[::-1])
-        out = []
-        for a in (self.sum1, self.sum2):
-            if type(a).__module__.startswith("cupy"):
-                out.append(a.reshape(shape).transpose(0, 3, 2, 1))
-            else:
-                out.append(self.backend.to_host(a).reshape(shape).transpose(0, 3, 2, 1))
-        return out[0], out[1]
+        if type(self.sum1).__module__.startswith("cupy"):
+            s1, m2 = self.sum1, self.m2.astype(self.sum1.dtype) * M2_SCALE
+        else:
+            s1 = self.backend.to_host(self.sum1)
+            m2 = self.backend.to_host(self.m2).astype(np.float64) * M2_SCALE
+        return tuple(a.reshape(shape).transpose(0, 3, 2, 1) for a in (s1, m2))
 
 
 @dataclass
@@ -86,6 +92,7 @@ class FinishedArrays:
     rgba: Optional[np.ndarray]  # uint8 (nx, ny, nz, 4)
     exposure: float
     device_bytes: int = 0  # device memory the finishing allocated (outputs; colour only if asked)
+    peak_device_bytes: int = 0  # the finishing's peak, with the sums and density it was handed
 
 
 def _device_layout(xp, a):
@@ -93,8 +100,17 @@ def _device_layout(xp, a):
     return xp.ascontiguousarray(a.transpose(0, 3, 2, 1)).reshape(-1)
 
 
-def finish(ds: DeviceSums, band_params: np.ndarray, *, batches: int, collision: bool,
-           light=None, colour: Optional[ColourSetup] = None) -> FinishedArrays:
+def _band_params(band_params, batches) -> np.ndarray:
+    """(n_bands, 4) float64: J scale, tau k_b, albedo, batches folded (int or per band)."""
+    bp = np.asarray(band_params, np.float64)
+    params = np.zeros((bp.shape[0], 4), np.float64)
+    params[:, :3] = bp[:, :3]
+    params[:, 3] = np.broadcast_to(np.asarray(batches, np.float64), (bp.shape[0],))
+    return params
+
+
+def finish(ds: DeviceSums, band_params: np.ndarray, *, batches, collision: bool,
+           light=None, colour: Optional[ColourSetup] = None, release: bool = False) -> FinishedArrays:
     """Turn device sums (or a filtered J and error) into the output arrays.
 
     Parameters
@@ -102,8 +118,8 @@ def finish(ds: DeviceSums, band_params: np.ndarray, *, batches: int, collision: 
     ds : DeviceSums
     band_params : ndarray (n_bands, 3)
         J scale, extinction per box unit at density 1 (tau k_b), albedo, per band.
-    batches : int
-        Batch totals summed (for the batch-means error).
+    batches : int or ndarray (n_bands,)
+        Batch totals folded (for the batch-means error), per band or for all.
     collision : bool
         The sums are collision counts (J = sum / sigma x scale), else track lengths.
     light : (J, rel_error), optional
@@ -112,44 +128,64 @@ def finish(ds: DeviceSums, band_params: np.ndarray, *, batches: int, collision: 
         layout (from :func:`filter_collisions_opencl`).
     colour : ColourSetup, optional
         Also compute rgba (else ``rgba`` is None).
+    release : bool
+        The sums are not needed afterwards: the relative error is written over the centred
+        sums of squares and the sums are freed before the emissivity and colour arrays are
+        made, so the peak is the sums and J (20 B per cell) rather than the sums and every
+        output (``ds`` is then spent).
+
+    Memory (bytes per cell, n_b bands per voxel): the sums 12, J 4, relative error 4 (or the
+    squares' memory), emissivity 4, and per voxel the density 4, the brightness key 4 and rgba 4.
     """
     be = ds.backend
     nb, nvox = ds.n_bands, ds.nvox
     nx, ny, nz = ds.shape
-    if light is not None and getattr(light[0], "ndim", 0) == 1:  # already in device layout
-        a, b, mode = light[0], light[1], 1
-    elif light is not None:
-        from .array_api import array_module
-
-        xp = array_module(light[0])
-        a = _device_layout(xp, xp.asarray(light[0], dtype=xp.float64))
-        b = _device_layout(xp, xp.asarray(light[1], dtype=xp.float64))
-        if xp is np:
-            a, b = be.to_device(a), be.to_device(b)
-        mode = 1
-    else:
-        a, b, mode = ds.sum1, ds.sum2, 0
-    params = np.zeros((nb, 4), np.float64)
-    params[:, :3] = band_params
-    d_params = be.to_device(params)
+    n = nb * nvox
+    d_params = be.to_device(_band_params(band_params, batches))
     c = colour
     d_rgb = be.to_device(np.ascontiguousarray(c.to_rgb, np.float64) if c else np.zeros(3 * nb))
-    J32, rel32, emis32 = (be.device_zeros(nb * nvox, np.float32) for _ in range(3))
+    dummy64, dummy32 = be.device_zeros(1, np.float64), be.device_zeros(1, np.float32)
+    J32 = be.device_zeros(n, np.float32)
+    if light is None:
+        mode, s1, m2, j64, r64 = 0, ds.sum1, ds.m2, dummy64, dummy64
+        rel32 = ds.m2 if release else be.device_zeros(n, np.float32)
+    else:
+        mode, s1, m2 = 1, dummy64, dummy32
+        if getattr(light[0], "ndim", 0) == 1:  # already in device layout
+            j64, r64 = light[0], light[1]
+        else:
+            from .array_api import array_module
+
+            xp = array_module(light[0])
+            j64 = _device_layout(xp, xp.asarray(light[0], dtype=xp.float64))
+            r64 = _device_layout(xp, xp.asarray(light[1], dtype=xp.float64))
+            if xp is np:
+                j64, r64 = be.to_device(j64), be.to_device(r64)
+        rel32 = be.device_zeros(n, np.float32)
+    be.launch("postprocess.cl", "light_cells", n, s1, m2, j64, r64, ds.density, d_params,
+              np.uint64(nvox), np.uint64(n), np.int32(mode), np.int32(bool(collision)), J32, rel32)
+    sums_bytes = 0 if ds.sum1 is None else 12 * n
+    own_rel = rel32 is not ds.m2
+    stage_a = sums_bytes + 4 * nvox + 4 * n + (4 * n if own_rel else 0) + (16 * n if mode == 1 else 0)
+    del s1, m2, j64, r64, light
+    if release:
+        ds.sum1 = ds.m2 = None  # the float64 sums go before the outputs come
+    # J and the error are final now: their copies overlap the emissivity, exposure and colour
+    hosts = [be.host_empty((nb, nz, ny, nx), np.float32) for _ in range(3)]
+    copies = [be.to_host_async(arr, h) for arr, h in zip((J32, rel32), hosts)]
+    emis32 = be.device_zeros(n, np.float32)
     key = be.device_zeros(nvox if c else 1, np.float32)
     rgba = be.device_zeros(4 * nvox if c else 1, np.uint8)
     const = (np.float64(c.sigma_ref_scale if c else 0.0), np.float64(c.voxel_edge if c else 0.0),
              np.float64(c.opacity_scale if c else 0.0))
 
     def run(pass_, exposure):
-        be.launch("postprocess.cl", "finish_voxels", nvox, a, b, ds.density, d_params, d_rgb,
-                  np.int32(nb), np.uint64(nvox), np.int32(mode), np.int32(bool(collision)),
-                  np.int32(batches), np.int32(pass_), np.int32(c is not None), *const,
-                  np.float64(exposure), J32, rel32, emis32, key, rgba)
+        be.launch("postprocess.cl", "finish_voxels", nvox, J32, ds.density, d_params, d_rgb,
+                  np.int32(nb), np.uint64(nvox), np.int32(pass_), np.int32(c is not None), *const,
+                  np.float64(exposure), emis32, key, rgba)
 
     run(0, 1.0)
-    # the float32 outputs are final now: their copies overlap the exposure and colour pass
-    hosts = [be.host_empty((nb, nz, ny, nx), np.float32) for _ in range(3)]
-    copies = [be.to_host_async(arr, h) for arr, h in zip((J32, rel32, emis32), hosts)]
+    copies.append(be.to_host_async(emis32, hosts[2]))
     exposure = float("nan")
     h_rgba = None
     if c is not None:
@@ -160,11 +196,12 @@ def finish(ds: DeviceSums, band_params: np.ndarray, *, batches: int, collision: 
         be.wait_copy(handle)
     out = [h.transpose(0, 3, 2, 1) for h in hosts]
     nbytes = sum(int(x.nbytes) for x in (J32, rel32, emis32, key, rgba, d_params, d_rgb))
+    stage_b = (0 if release else sums_bytes) + 4 * nvox + sum(int(x.nbytes) for x in (J32, rel32, emis32, key, rgba))
     return FinishedArrays(J=out[0], rel_error=out[1], emissivity=out[2], rgba=h_rgba, exposure=exposure,
-                          device_bytes=nbytes)
+                          device_bytes=nbytes, peak_device_bytes=int(max(stage_a, stage_b)))
 
 
-def filter_collisions_opencl(ds: DeviceSums, band_params: np.ndarray, batches: int, radius: float):
+def filter_collisions_opencl(ds: DeviceSums, band_params: np.ndarray, batches, radius: float):
     """The collision filter on an OpenCL device (VkFFT through pyvkfft): the unfiltered J and
     its variance from the sums, each band convolved on the device
     (:func:`nebula_rt.filtering_opencl.normalised_convolution_cl`), and the relative error.
@@ -181,12 +218,11 @@ def filter_collisions_opencl(ds: DeviceSums, band_params: np.ndarray, batches: i
     be = ds.backend
     nb, nvox = ds.n_bands, ds.nvox
     nx, ny, nz = ds.shape
-    params = np.zeros((nb, 4), np.float64)
-    params[:, :3] = band_params
+    params = _band_params(band_params, batches)
     n = nb * nvox
     J0, var = be.device_zeros(n, np.float64), be.device_zeros(n, np.float64)
-    be.launch("postprocess.cl", "collision_light", n, ds.sum1, ds.sum2, ds.density, be.to_device(params),
-              np.int32(batches), np.uint64(nvox), np.uint64(n), J0, var)
+    be.launch("postprocess.cl", "collision_light", n, ds.sum1, ds.m2, ds.density, be.to_device(params),
+              np.uint64(nvox), np.uint64(n), J0, var)
     # a band's x-fastest block is a C-order (nz, ny, nx) array: convolve it with the kernel's
     # axes reversed to match
     kernel = np.ascontiguousarray(filtering.cubic_kernel(ds.shape, radius).transpose(2, 1, 0))

@@ -81,8 +81,9 @@ def estimate(scene, backend, peel_pixels: int = 0) -> Estimate:
     nb = len(scene.bands.resolve())
     ncell = nb * nvox
     photons, target = t.effective()
-    plan = batch_plan(photons, planned_batch_size(photons, t.batch_size, target > 0))
-    slots = backend.launch_plan(ncell, (plan.base + 1) * nb, len(plan))
+    plan = batch_plan(photons, planned_batch_size(photons, t.batch_size, target > 0, nvox), nvox)
+    per_launch, slots = backend.launch_plan(nvox, nb, plan.base + 1, len(plan))
+    slot_cells = per_launch * nvox
     colour = nb > 1
     collision = t.estimator == "collision-filter"
     fft = FFT_BYTES_PER_POINT * filter_fft_points(shape, t.filter_radius) if collision else 0
@@ -97,19 +98,28 @@ def estimate(scene, backend, peel_pixels: int = 0) -> Estimate:
     # the finishing's outputs or the filter's work arrays, whichever is larger
     tracing = {
         "density": 4 * nvox,
-        "batch slots": 8 * ncell * slots,
-        "running sums": 16 * ncell,
-        "peel-off images": 8 * slots * nb * int(peel_pixels),
-        "tallies and parameters": 36 * nb * slots + 4096,
+        "batch slots": 8 * slot_cells * slots,
+        "running sums": 12 * ncell,
+        "peel-off images": 8 * slots * per_launch * int(peel_pixels),
+        "tallies and parameters": 36 * per_launch * slots + 4096,
     }
+    # the finishing (postprocess.finish, release=True): first the sums and J, then the sums'
+    # float64 half gone and the emissivity, key and rgba made
     finishing = {
         "density": 4 * nvox,
-        "running sums": 16 * ncell,
-        "outputs": 12 * ncell + (8 * nvox if colour else 0),
+        "running sums": 12 * ncell,
+        "outputs": 4 * ncell,
         "filter FFT": fft if on_device_fft else 0,
         "parameters": 64 * nb + 4096,
     }
-    est.device = max(tracing, finishing, key=lambda d: sum(d.values()))
+    outputs_stage = {
+        "density": 4 * nvox,
+        "outputs": 12 * ncell + (8 * nvox if colour else 0),
+        "parameters": 64 * nb + 4096,
+    }
+    if collision:  # the filter's float64 J and error in the device layout
+        finishing["outputs"] += 16 * ncell
+    est.device = max(tracing, finishing, outputs_stage, key=lambda d: sum(d.values()))
     outputs = 4 * nvox + 12 * ncell + (4 * nvox if colour else 0)
     est.host = {
         "density": 4 * nvox,
@@ -118,7 +128,7 @@ def estimate(scene, backend, peel_pixels: int = 0) -> Estimate:
         "error checks": 40 * ncell if target > 0 else 0,
         "filter": (16 * ncell + 16 * nvox + (0 if on_device_fft else fft)) if collision else 0,
     }
-    est.largest_buffer = max(8 * ncell * slots, 8 * slots * nb * int(peel_pixels), 8 * ncell)
+    est.largest_buffer = max(8 * slot_cells * slots, 8 * slots * per_launch * int(peel_pixels), 8 * ncell)
     return est
 
 

@@ -21,10 +21,12 @@ less than 2^-(52 - bit_length(N)) relative (2^-31 for 2.1M packets).
 
 Error estimate
 --------------
-Packets are traced in M batches of (nearly) equal size; for each voxel the device keeps the
-sum and the sum of squares of the batch totals X_k, and the standard error of the total is
-sqrt(M / (M - 1) * (sum X_k^2 - (sum X_k)^2 / M)) (batch means). ``rel_error`` = SE / total,
-and 1.0 where nothing was tallied.
+Packets are traced in M batches of (nearly) equal size; for each cell (voxel and band) the
+device keeps the sum of the batch totals X_k (float64) and their centred sum of squares
+Q = sum (X_k - mean)^2 (Welford's update as each batch is folded, float32), and the standard
+error of the total is sqrt(M / (M - 1) * Q) (batch means). ``rel_error`` = SE / total, and
+1.0 where nothing was tallied. The batch slots are folded as soon as a launch is done, so the
+memory is the sums and at most a launch's slots, never one slot per batch.
 """
 
 from __future__ import annotations
@@ -45,9 +47,13 @@ from .backends import Backend, TransportSetup
 from .errors import AccumulatorOverflowError, CancelledError, NebulaWarning, TimeLimitError
 from .postprocess import DeviceSums
 
-#: Default largest batch (packets per band per kernel launch). Larger batches amortise launch
-#: overhead; smaller ones report progress more often. 16 batches at least, for the error estimate.
+#: Default largest batch (packets per band): larger batches fold less often; launches last at
+#: most LAUNCH_SECONDS whatever the batch. 16 batches at least, for the error estimate. On
+#: grids of more than 8 MAX_AUTO_BATCH voxels a batch may hold up to a packet per
+#: AUTO_VOXELS_PER_PACKET voxels: each fold reads and writes every cell (about 40 bytes), which
+#: a batch of fewer packets would not pay for (512^3: 1.5 ms per fold on an H200).
 MAX_AUTO_BATCH = 1 << 20
+AUTO_VOXELS_PER_PACKET = 8
 MIN_BATCHES = 16
 #: Fixed-point units per voxel edge (the smallest edge): 2^32, so one crossing of the smallest
 #: voxel is 2^32 units; a cell holds 2^63 units = 2^31 full crossings per batch before the
@@ -77,11 +83,15 @@ class TransportResult:
     photons : int
         Packets per band.
     batches : int
-        Number of batches folded (for the error estimate).
+        Number of batches folded (for the error estimate): the fewest of any band.
+    band_batches : ndarray, int64, (n_bands,)
+        Batches folded per band (more than ``batches`` in a band whose batch was re-traced in
+        halves after a fixed-point overflow).
     estimator : str
-    raw_sum, raw_sum2 : ndarray
-        The sums (fixed-point track units or collision counts) of the batch totals and of their
-        squares, kept for the collision-filter stage and for diagnostics.
+    raw_sum, raw_m2 : ndarray
+        The sum (fixed-point track units or collision counts) of the batch totals and their
+        centred sum of squares sum (X_k - mean)^2, float64, kept for the collision-filter
+        stage and for diagnostics.
     j_scale : ndarray (n_bands,)
         J per unit of raw_sum (track-length), or per unit of raw_sum / sigma (collision).
     sigma_scale : ndarray (n_bands,)
@@ -120,7 +130,8 @@ class TransportResult:
     batches: int
     estimator: str
     raw_sum: Optional[np.ndarray]
-    raw_sum2: Optional[np.ndarray]
+    raw_m2: Optional[np.ndarray]
+    band_batches: Optional[np.ndarray] = None
     j_scale: Optional[np.ndarray] = None
     sigma_scale: Optional[np.ndarray] = None
     device_sums: Optional[DeviceSums] = None
@@ -269,36 +280,43 @@ class BatchPlan(Sequence):
 MAX_AUTO_BATCHES = 1 << 24
 
 
-def batch_count(photons: int, batch_size: int = 0) -> int:
+def auto_batch_limit(nvox: int = 0) -> int:
+    """Largest automatic batch (packets per band) on a grid of ``nvox`` voxels."""
+    return max(MAX_AUTO_BATCH, int(nvox) // AUTO_VOXELS_PER_PACKET)
+
+
+def batch_count(photons: int, batch_size: int = 0, nvox: int = 0) -> int:
     """Number of batches :func:`batch_plan` makes."""
     photons = int(photons)
     if batch_size and batch_size > 0:
         m = max(1, -(-photons // int(batch_size)))
     else:
-        m = min(max(MIN_BATCHES, -(-photons // MAX_AUTO_BATCH)), MAX_AUTO_BATCHES)
+        m = min(max(MIN_BATCHES, -(-photons // auto_batch_limit(nvox))), MAX_AUTO_BATCHES)
     return min(m, photons)
 
 
-def planned_batch_size(photons: int, batch_size: int, targeted: bool) -> int:
+def planned_batch_size(photons: int, batch_size: int, targeted: bool, nvox: int = 0) -> int:
     """The batch size a run uses: ``batch_size`` if given, else 0 (automatic) for a fixed run
     and, for an error-targeted run, batches small enough that the error is checked (and a time
     limit honoured) early whatever the budget: TARGET_BATCHES of the budget, at most
-    MAX_AUTO_BATCH packets, unless that would make more than MAX_AUTO_BATCHES batches."""
+    :func:`auto_batch_limit` packets, unless that would make more than MAX_AUTO_BATCHES batches."""
     if batch_size or not targeted:
         return int(batch_size)
-    return max(min(MAX_AUTO_BATCH, -(-int(photons) // TARGET_BATCHES)),
+    return max(min(auto_batch_limit(nvox), -(-int(photons) // TARGET_BATCHES)),
                -(-int(photons) // MAX_AUTO_BATCHES), 1)
 
 
-def batch_plan(photons: int, batch_size: int = 0) -> BatchPlan:
+def batch_plan(photons: int, batch_size: int = 0, nvox: int = 0) -> BatchPlan:
     """Split ``photons`` packets into batches: a :class:`BatchPlan` of (start, count).
 
-    ``batch_size`` 0 chooses at least ``MIN_BATCHES`` batches of at most ``MAX_AUTO_BATCH``
-    packets (larger past ``MAX_AUTO_BATCH * MAX_AUTO_BATCHES``). Counts differ by at most one, so the batch totals are comparable for the error estimate.
-    The plan depends only on the arguments (never on the device): same scene, same bits.
+    ``batch_size`` 0 chooses at least ``MIN_BATCHES`` batches of at most
+    :func:`auto_batch_limit` packets on a grid of ``nvox`` voxels (larger past that times
+    ``MAX_AUTO_BATCHES``). Counts differ by at most one, so the batch totals are comparable
+    for the error estimate. The plan depends only on the arguments (never on the device):
+    same scene, same bits.
     """
     photons = int(photons)
-    return BatchPlan(photons, batch_count(photons, batch_size))
+    return BatchPlan(photons, batch_count(photons, batch_size, nvox))
 
 
 def star_band_luminosities(stars, wavelengths_nm) -> np.ndarray:
@@ -330,25 +348,42 @@ def _peel_scale(gs) -> float:
     return float(2.0**24 / phi_max)
 
 
-def batch_standard_error(s1, s2, m: int):
-    """Standard error of a total of ``m`` batch totals from their sum and sum of squares."""
+def batch_standard_error(s1, m2, m):
+    """Standard error of a total of ``m`` batch totals from their sum ``s1`` and centred sum
+    of squares ``m2`` = sum (x - mean)^2; ``m`` an int or, per band, an array (n_bands,)
+    (then ``s1`` is (n_bands, ...))."""
     xp = array_module(s1)
-    if m < 2:
+    mm = np.asarray(m, dtype=np.float64)
+    if mm.ndim:
+        mm = xp.asarray(mm.reshape((-1,) + (1,) * (s1.ndim - 1)))
+        return xp.where(mm < 2, xp.abs(s1), xp.sqrt(xp.maximum(m2 * (mm / xp.maximum(mm - 1.0, 1.0)), 0.0)))
+    if mm < 2:
         return xp.abs(s1)  # one batch: no spread to measure, report 100 %
-    var = (s2 - s1 * s1 / m) * (m / (m - 1.0))
-    return xp.sqrt(xp.maximum(var, 0.0))
+    return xp.sqrt(xp.maximum(m2 * (float(mm) / (float(mm) - 1.0)), 0.0))
+
+
+def welford_fold(s1, m2, x, k: int):
+    """Fold batch total ``x`` into the sum ``s1`` and centred sum of squares ``m2`` of ``k``
+    earlier batches (in place), as the device's fold does (kernels/transport.cl)."""
+    if k == 0:
+        s1 += x
+        return
+    mean_old = s1 / k
+    s1 += x
+    m2 += (x - mean_old) * (x - s1 / (k + 1))
 
 
 class _PeelSums:
-    """Per-batch peel-off images folded on the host: the sum and the sum of squares of the
-    batch images per pixel (batch means, as for the voxel tallies) and, with pixel groups
+    """Per-batch peel-off images folded on the host: the sum and the centred sum of squares of
+    the batch images per pixel (batch means, as for the voxel tallies) and, with pixel groups
     (``labels``: group of each pixel, (W, H), -1 for none), every batch's group sums."""
 
     def __init__(self, n_bands: int, size, labels=None):
         self.s1 = np.zeros((n_bands,) + tuple(size), np.float64)
         self.s2 = np.zeros_like(self.s1)
         self.batches = 0
-        self.groups = []
+        self.band_batches = np.zeros(n_bands, np.int64)
+        self.groups = [[] for _ in range(n_bands)]  # per band: every batch's group sums
         self.labels = None
         if labels is not None:
             lab = np.asarray(labels)
@@ -358,27 +393,38 @@ class _PeelSums:
             keep = lab.reshape(-1) >= 0
             self.labels = (np.flatnonzero(keep), lab.reshape(-1)[keep], int(lab.max(initial=-1)) + 1)
 
-    def add(self, image) -> None:
-        """Fold one batch's image (uint64 fixed point, (n_bands, W, H)); the units are exact
-        integers, and their float64 sum stays exact while a pixel holds fewer than 2^29
-        full-weight deposits over the run."""
+    def add(self, image, band0: int = 0) -> None:
+        """Fold one batch's image of bands ``band0 ..`` (uint64 fixed point, (bands, W, H));
+        the units are exact integers, and their float64 sum stays exact while a pixel holds
+        fewer than 2^29 full-weight deposits over the run. The error uses the batches of the
+        first band (the bands of one batch are folded together or one after another)."""
         x = image.astype(np.float64)
-        self.s1 += x
-        self.s2 += x * x
-        self.batches += 1
+        sl = slice(band0, band0 + x.shape[0])
+        k = self.band_batches[band0]
+        welford_fold(self.s1[sl], self.s2[sl], x, int(k))
+        self.band_batches[sl] += 1
+        self.batches = int(self.band_batches.min())
         if self.labels is not None:
             idx, lab, n = self.labels
             flat = x.reshape(x.shape[0], -1)[:, idx]
-            self.groups.append(np.stack([np.bincount(lab, weights=row, minlength=n) for row in flat]))
+            for b, row in enumerate(flat, start=band0):
+                self.groups[b].append(np.bincount(lab, weights=row, minlength=n))
 
     def finish(self, scale):
         """(image, standard error, group sums per batch) in units of ``scale`` per fixed-point
         unit (per band)."""
         sc = np.asarray(scale, np.float64)[:, None, None]
-        err = batch_standard_error(self.s1, self.s2, self.batches) * sc
+        err = batch_standard_error(self.s1, self.s2, self.band_batches) * sc
         groups = None
         if self.labels is not None:
-            groups = (np.stack(self.groups) if self.groups else np.zeros((0, self.s1.shape[0], self.labels[2])))
+            m = min(len(g) for g in self.groups)
+            if any(len(g) != m for g in self.groups):
+                # only a band whose batch overflowed (and was re-traced in halves) has more
+                raise AccumulatorOverflowError(
+                    "peel_bins: a batch of one band was re-traced in halves after a fixed-point "
+                    "overflow, so the bands' batch sums no longer pair up; lower transport.batch_size")
+            groups = (np.stack([np.stack(g) for g in self.groups], axis=1) if m else
+                      np.zeros((0, self.s1.shape[0], self.labels[2])))
             groups = groups * np.asarray(scale, np.float64)[None, :, None]
         return self.s1 * sc, err, groups
 
@@ -443,8 +489,9 @@ def _weights(J_b, sigma_b):
     return x if bool(xp.any(x > 0)) else J_b
 
 
-def light_from_sums(s1, s2, batches: int, estimator: str, j_scale, sigma_scale, density):
-    """J and its batch-means relative error from the sums of the batch totals.
+def light_from_sums(s1, s2, batches, estimator: str, j_scale, sigma_scale, density):
+    """J and its batch-means relative error from the sum ``s1`` of the batch totals and their
+    centred sum of squares ``s2``; ``batches`` an int or per band (n_bands,).
 
     NumPy or CuPy arrays (n_bands, nx, ny, nz); the reference for the device kernel
     ``finish_voxels`` (kernels/postprocess.cl).
@@ -511,8 +558,8 @@ class _Launcher:
     """Traces a group of batches in launches of at most about ``LAUNCH_SECONDS``, polling the
     cancel callback before each and the deadline between them."""
 
-    def __init__(self, session, n_bands: int, backend, cancel, deadline: float, progress_of=None):
-        self.session, self.nb, self.cancel, self.deadline = session, n_bands, cancel, deadline
+    def __init__(self, session, backend, cancel, deadline: float, progress_of=None):
+        self.session, self.cancel, self.deadline = session, cancel, deadline
         self.progress_of = progress_of  # () -> (packets per band done, total), for messages
         self.first = max(1, int(getattr(backend, "first_launch_packets", 1 << 21)))
         self.rate = None  # packets (all bands) per second of the latest launch
@@ -526,28 +573,30 @@ class _Launcher:
             raise CancelledError(f"transport cancelled after {done:,} of {total:,} packets per band")
 
     def run(self, start: int, count: int, base: int, extra: int, first_batch: int, n_slots: int,
-            on_progress=None):
-        """Trace packets [start, start + count) into slots 0..n_slots-1; ``on_progress(traced)``
-        after each launch but the last (a group traced in several launches reports as it goes).
+            bands: tuple[int, int], on_progress=None):
+        """Trace packets [start, start + count) of ``bands`` (first band, number) into slots
+        0..n_slots-1; ``on_progress(traced)`` after each launch but the last (a group traced in
+        several launches reports as it goes).
 
         Returns (tallies, overflow, traced): the group's tallies and overflow flags so far and
         the packets per band traced from ``start`` (less than ``count`` only when the deadline
         passed between two launches).
         """
+        nb = bands[1]
         traced = 0
         tallies = overflow = None
         while traced < count:
             self.poll()
             if traced and time.perf_counter() >= self.deadline:
                 break
-            budget = self.first if self.rate is None else max(self.nb, int(self.rate * LAUNCH_SECONDS))
-            chunk = max(1, min(count - traced, budget // self.nb))
+            budget = self.first if self.rate is None else max(nb, int(self.rate * LAUNCH_SECONDS))
+            chunk = max(1, min(count - traced, budget // nb))
             tk = time.perf_counter()
             tallies, overflow = self.session.run_group(start + traced, chunk, base, extra, first_batch,
-                                                       n_slots, fresh=traced == 0)
+                                                       n_slots, fresh=traced == 0, bands=bands)
             dt = time.perf_counter() - tk
             self.kernel_s += dt
-            self.rate = chunk * self.nb / max(dt, 1e-6)
+            self.rate = chunk * nb / max(dt, 1e-6)
             traced += chunk
             if on_progress is not None and traced < count:
                 on_progress(traced)
@@ -658,9 +707,10 @@ def trace(
         setup = dataclasses.replace(setup, peel=_peel_camera(peel),
                                     peel_scale=_peel_scale([b.g for b in bands]))
     targeted = target_error > 0.0
-    batch_size = planned_batch_size(photons, batch_size, targeted)
-    limits.check_batch_count(batch_count(photons, batch_size), batch_size)
-    plan = batch_plan(photons, batch_size)
+    nvox = int(np.prod(shape))
+    batch_size = planned_batch_size(photons, batch_size, targeted, nvox)
+    limits.check_batch_count(batch_count(photons, batch_size, nvox), batch_size)
+    plan = batch_plan(photons, batch_size, nvox)
     nb = len(bands)
     base, extra = plan.base, plan.extra
     if not _checked_adds:
@@ -670,58 +720,83 @@ def trace(
     peel_sums = None if peel is None else _PeelSums(nb, peel.size, peel_bins)
     achieved = float("nan")
     counts = np.zeros((nb, 4), dtype=object)  # python ints: exact whatever the photon count
-    slots = backend.launch_plan(nb * int(np.prod(shape)), (base + 1) * nb, len(plan))
-    session = backend.transport_session(setup, slots)
+    per_launch, slots = backend.launch_plan(nvox, nb, base + 1, len(plan))
+    session = backend.transport_session(setup, slots, per_launch)
+    groups = session.band_groups  # bands traced together: [(first band, bands)]
     device_bytes = session.device_bytes()
     t_setup = time.perf_counter() - t0
     deadline = t0 + time_limit if time_limit > 0 else math.inf
-    launcher = _Launcher(session, nb, backend, cancel, deadline, lambda: (done, photons))
-    folded = 0
-    done = 0
+    launcher = _Launcher(session, backend, cancel, deadline, lambda: (done, photons))
+    folded = np.zeros(nb, np.int64)  # batches folded per band
+    band_done = np.zeros(nb, np.int64)  # packets folded per band
+    done = 0  # packets per band traced (all bands)
     next_check = 0  # packets per band after which the error is checked next (targeted runs)
-    redo: list[tuple[int, int]] = []
+    redo: list[tuple[int, int, tuple[int, int]]] = []
 
-    def take(tallies, overflow, images, ranges):
-        """Fold the finished batches ``ranges`` [(start, count)] of a launch's slots."""
-        nonlocal folded, done
+    def take(tallies, overflow, images, ranges, group):
+        """Fold the finished batches ``ranges`` [(start, count)] of a launch's slots (bands
+        ``group``) into the counts; returns the packets per band they hold."""
+        b0, nlb = group
+        packets = 0
         for k, (b_start, b_count) in enumerate(ranges):
             if overflow[k]:
-                redo.append((b_start, b_count))
+                redo.append((b_start, b_count, group))
                 continue
             if images is not None:
-                peel_sums.add(images[k])
-            folded += 1
-            counts[...] += tallies[k].astype(object)
-            done += b_count
-        if progress is not None:
-            progress(done, photons)
+                peel_sums.add(images[k], b0)
+            folded[b0:b0 + nlb] += 1
+            counts[b0:b0 + nlb] += tallies[k].astype(object)
+            band_done[b0:b0 + nlb] += b_count
+            packets += b_count
+        return packets
+
+    def fold_group(group, n, tallies, overflow, ranges):
+        """Fold a group's first ``n`` slots on the device and its tallies on the host."""
+        session.fold(n, group, int(folded[group[0]]))
+        images = session.take_images(n, group)[:len(ranges)] if peel is not None else None
+        return take(tallies, overflow, images, ranges, group)
 
     try:
-        # groups of consecutive batches, each traced in one or more launches
+        # batches in groups of consecutive ones, each group's bands traced in one or more
+        # launches and folded before the next group's
         first = 0
-        while first < len(plan):
+        stop = False
+        while first < len(plan) and not stop:
             n = min(slots, len(plan) - first)
             start = plan.start(first)
             count = plan.start(first + n) - start
-            tallies, overflow, traced = launcher.run(
-                start, count, base, extra, first, n,
-                None if progress is None else (lambda k: progress(done + k, photons)))
-            if traced < count:  # the time limit came within the group: keep its finished batches
-                finished = plan.batches_within(first, start + traced)
-                session.fold(finished)
-                images = session.take_images(n)[:finished] if peel is not None else None
-                take(tallies, overflow, images, plan[first:first + finished])
+            finished_packets = None
+            for gi, group in enumerate(groups):
+                tallies, overflow, traced = launcher.run(
+                    start, count, base, extra, first, n, group,
+                    None if progress is None else (lambda k, gi=gi: progress(done + (gi * count + k) // len(groups), photons)))
+                if traced < count:  # the time limit came: keep the batches every band finished
+                    finished = plan.batches_within(first, start + traced)
+                    if gi > 0:  # earlier band groups traced all n; they must end where this one does
+                        finished = 0
+                    fold_group(group, finished, tallies, overflow, plan[first:first + finished])
+                    finished_packets = plan.start(first + finished) - start
+                    stop = True
+                    break
+                fold_group(group, n, tallies, overflow, plan[first:first + n])
+            if stop:
+                if finished_packets == 0 and len(groups) > 1:
+                    raise TimeLimitError(
+                        f"transport.time_limit = {time_limit!r}: the bands are traced one group after "
+                        "another on this grid, and the time limit came before every band had finished a "
+                        "batch; raise it or lower transport.batch_size")
+                done += finished_packets
                 redo.clear()  # no time left to re-trace
                 break
-            session.fold(n)
-            images = session.take_images(n) if peel is not None else None
-            take(tallies, overflow, images, plan[first:first + n])
+            done += count
+            if progress is not None:
+                progress(done, photons)
             first += n
             if first >= len(plan):
                 break
             if time.perf_counter() >= deadline:
                 break
-            if targeted and folded >= MIN_BATCHES and done >= next_check:
+            if targeted and int(folded.min()) >= MIN_BATCHES and done >= next_check:
                 achieved = _current_error(session, folded, estimator, band_lum, done, track_scale,
                                           nvox_inv, sigma_scale, density, sigma_host)
                 if achieved <= target_error:
@@ -734,7 +809,7 @@ def trace(
         # same random numbers: tracing it in two halves gives the same integer deposits with
         # more headroom each (each half then counts as a batch of the error estimate).
         while redo:
-            b_start, b_count = redo.pop()
+            b_start, b_count, group = redo.pop()
             if b_count == 1:
                 raise AccumulatorOverflowError(
                     "a single packet overflowed a 64-bit fixed-point voxel tally; "
@@ -743,13 +818,12 @@ def trace(
             half = b_count // 2
             for h_start, h_count in ((b_start, half), (b_start + half, b_count - half)):
                 # one batch covering the whole range: base 2^62 puts every packet in batch 0
-                tallies, overflow, traced = launcher.run(h_start, h_count, 1 << 62, 0, 0, 1)
+                tallies, overflow, traced = launcher.run(h_start, h_count, 1 << 62, 0, 0, 1, group)
                 if traced < h_count:  # the time limit came: what is folded is the result
                     redo.clear()
                     break
-                session.fold(1)
-                images = session.take_images(1) if peel is not None else None
-                take(tallies, overflow, images, [(h_start, h_count)])
+                fold_group(group, 1, tallies, overflow, [(h_start, h_count)])
+        done = int(band_done.min())
         if done == 0:
             raise TimeLimitError(
                 f"transport.time_limit = {time_limit!r}: no batch of {base} packets per band "
@@ -763,7 +837,8 @@ def trace(
             return trace(**dict(call, _checked_adds=True))
         counts_i64 = np.array(counts.tolist(), dtype=np.int64)
         budget, photons = int(photons), int(done)
-        q = np.array([exact_packet_energy(L, photons) for L in band_lum])
+        # per band: a band whose overflowed batch the time limit left unfinished has fewer
+        q = np.array([exact_packet_energy(L, int(n)) for L, n in zip(band_lum, band_done)])
         j_scale = _j_scale(q, estimator, track_scale, nvox_inv)
         peel_image = peel_error = peel_groups = None
         if peel is not None:  # packet energy x (phase x attenuation) per pixel area
@@ -794,10 +869,11 @@ def trace(
         band_luminosity=band_lum,
         star_band_luminosity=slum,
         photons=int(photons),
-        batches=folded,
+        batches=int(folded.min()),
+        band_batches=folded,
         estimator=estimator,
         raw_sum=None if on_device else s1,
-        raw_sum2=None if on_device else s2,
+        raw_m2=None if on_device else s2,
         j_scale=j_scale,
         sigma_scale=sigma_scale,
         device_sums=device_sums,

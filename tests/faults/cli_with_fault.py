@@ -34,7 +34,7 @@ def main() -> int:
             os.kill(os.getpid(), sig)
 
     from nebula_rt import cli, io_vti, pipeline, render, scene
-    from nebula_rt.backends import opencl
+    from nebula_rt.backends import session
 
     if point == "startup":
         load = scene.Scene.load.__func__
@@ -44,7 +44,7 @@ def main() -> int:
             return load(cls, path)
         scene.Scene.load = classmethod(loading)
     elif point == "mid-launch":
-        run_group = opencl.OpenCLTransport.run_group
+        run_group = session.DeviceTransport.run_group
         calls = {"n": 0}
 
         def launching(self, *a, **kw):
@@ -52,7 +52,7 @@ def main() -> int:
             if calls["n"] == 2:
                 fire()
             return run_group(self, *a, **kw)
-        opencl.OpenCLTransport.run_group = launching
+        session.DeviceTransport.run_group = launching
     elif point == "after-last-batch":
         run = pipeline.Pipeline.run
 

@@ -98,20 +98,25 @@ def transport_defines(setup: TransportSetup, tuning: dict | None = None) -> dict
 
 
 class TransportSession(abc.ABC):
-    """Device-resident state of one transport run: ``slots`` batch accumulators and the
-    running sums of the batch totals."""
+    """Device-resident state of one transport run: batch slots and the running statistics of
+    the batch totals (one implementation for every backend: :class:`~.session.DeviceTransport`).
+
+    ``bands`` arguments are (first band, number of bands) of one launch group (default: all
+    bands), when the slots hold fewer bands than the run has."""
 
     slots: int = 1
+    bands_per_launch: int = 1
 
     @abc.abstractmethod
     def run_group(self, photon_start: int, count: int, batch_base: int, batch_extra: int,
-                  first_batch: int, n_slots: int, fresh: bool = True) -> tuple[np.ndarray, np.ndarray]:
-        """Trace packets ``[photon_start, photon_start + count)`` of every band in one launch.
+                  first_batch: int, n_slots: int, fresh: bool = True,
+                  bands: tuple[int, int] | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Trace packets ``[photon_start, photon_start + count)`` of the group's bands in one launch.
 
         They belong to batches ``first_batch .. first_batch + n_slots - 1`` of a plan whose
         first ``batch_extra`` batches hold ``batch_base + 1`` packets and the rest
         ``batch_base``; batch ``first_batch + k`` accumulates into slot ``k``.
-        Returns the tallies (uint64, (n_slots, n_bands, 4): emitted, absorbed, escaped,
+        Returns the tallies (uint64, (n_slots, group bands, 4): emitted, absorbed, escaped,
         terminated) and the per-slot overflow flags (bool, (n_slots,)).
 
         ``fresh`` False continues the previous launch's group: tallies and overflow flags are
@@ -120,9 +125,10 @@ class TransportSession(abc.ABC):
         """
 
     @abc.abstractmethod
-    def fold(self, n_slots: int) -> None:
-        """Add slots 0..n_slots-1 (in order, except those that overflowed) to the running sums
-        (and their squares) and clear them."""
+    def fold(self, n_slots: int, bands: tuple[int, int] | None = None, folded_before: int = 0) -> None:
+        """Fold slots 0..n_slots-1 (in order, except those that overflowed) of the group's
+        bands into their running sums and centred sums of squares (``folded_before`` batches
+        are in them already) and clear the slots."""
 
     @abc.abstractmethod
     def overflow_seen(self) -> bool:
@@ -131,7 +137,8 @@ class TransportSession(abc.ABC):
 
     @abc.abstractmethod
     def sums(self) -> tuple[np.ndarray, np.ndarray]:
-        """Return (sum of batch totals, sum of squared batch totals), float64, (n_bands, nx, ny, nz)."""
+        """Return (sum of the batch totals, centred sum of their squares sum (x - mean)^2),
+        float64 host arrays (n_bands, nx, ny, nz)."""
 
     def sums_on_device(self):
         """The same sums as arrays of the backend's array module (CuPy arrays stay on the GPU).
@@ -139,22 +146,19 @@ class TransportSession(abc.ABC):
         return self.sums()
 
     @abc.abstractmethod
-    def take_images(self, n_slots: int) -> np.ndarray:
-        """The peel-off images of slots 0..n_slots-1 (uint64 fixed point, (n_slots, n_bands, W,
-        H)), clearing them; an empty array without a peel-off camera."""
+    def take_images(self, n_slots: int, bands: tuple[int, int] | None = None) -> np.ndarray:
+        """The peel-off images of slots 0..n_slots-1 (uint64 fixed point, (n_slots, group
+        bands, W, H)), clearing them; an empty array without a peel-off camera."""
 
     @abc.abstractmethod
     def release_sums(self) -> tuple:
-        """Hand the sums and the density over as device arrays (flat; the sums band-major, x
-        fastest) for the device post-processing; :meth:`close` then leaves them alone."""
+        """Hand the sums (float64), the centred sums of squares (float32 x 2^-64) and the
+        density over as flat device arrays (the sums band-major, x fastest) for the device
+        post-processing, and free the batch slots; :meth:`close` then leaves them alone."""
 
+    @abc.abstractmethod
     def device_bytes(self) -> int:
-        """Device memory this run holds: the batch slots (8 B per cell each), the two running
-        sums (8 B per cell each), the density (4 B per voxel) and the per-slot tallies; a cell
-        is one voxel of one band, and only the requested bands have cells."""
-        nb = self.setup.n_bands
-        return (8 * self.ncell * self.slots + 16 * self.ncell + 4 * self.nvox
-                + 32 * nb * self.slots + 4 * self.slots)
+        """Device memory this run holds."""
 
     def close(self) -> None:  # pragma: no cover - default: nothing to release
         """Release device memory."""
@@ -212,18 +216,26 @@ class Backend(abc.ABC):
     ) -> np.ndarray:
         """Dust density on the grid (float32, (nx, ny, nz)); ``stars`` is (n, 4): x, y, z, bump radius."""
 
-    @abc.abstractmethod
-    def transport_session(self, setup: TransportSetup, slots: int) -> TransportSession:
-        """Allocate the device state for a transport run with ``slots`` batch accumulators."""
+    def transport_session(self, setup: TransportSetup, slots: int, bands_per_launch: int = 0) -> TransportSession:
+        """Allocate the device state for a transport run with ``slots`` batch slots of
+        ``bands_per_launch`` bands each (0: all)."""
+        from .session import DeviceTransport
 
-    def launch_plan(self, cells: int, packets_per_batch: int, n_batches: int) -> int:
-        """How many batches to trace per launch: enough packets to fill the device (and to
-        keep launches few), within a memory budget for the slots (8 bytes per cell each) and
-        at most 32 (the fold kernel's order). Subclasses set ``launch_packets`` and
-        ``slot_memory_budget``."""
-        by_work = max(1, -(-int(self.launch_packets) // max(int(packets_per_batch), 1)))
-        by_memory = max(1, int(self.slot_memory_budget) // (8 * max(int(cells), 1)))
-        return int(max(1, min(32, n_batches, by_work, by_memory)))
+        return DeviceTransport(self, setup, slots, bands_per_launch)
+
+    def launch_plan(self, nvox: int, n_bands: int, packets_per_batch: int, n_batches: int) -> tuple[int, int]:
+        """(bands per launch, batches per launch) of a transport run: enough packets to fill
+        the device (``launch_packets``) and to keep launches few, with batch slots (8 bytes per
+        voxel and band each) within ``slot_memory_budget`` and at most 32 batches (the fold
+        kernel's order). Where one slot of every band exceeds the budget, the bands are traced
+        in groups of as many as fit it (at least one), one batch at a time."""
+        nvox, n_bands = max(int(nvox), 1), max(int(n_bands), 1)
+        budget = int(self.slot_memory_budget)
+        if 8 * nvox * n_bands > budget:
+            return int(max(1, min(n_bands, budget // (8 * nvox)))), 1
+        by_work = max(1, -(-int(self.launch_packets) // max(int(packets_per_batch) * n_bands, 1)))
+        by_memory = max(1, budget // (8 * nvox * n_bands))
+        return n_bands, int(max(1, min(32, n_batches, by_work, by_memory)))
 
     def memory_limits(self) -> tuple[int, int]:
         """(device memory, largest single allocation) in bytes, for the estimates of
@@ -241,7 +253,8 @@ class Backend(abc.ABC):
 
     #: kernel file of the transport (benchmarks swap in variants to compare them)
     transport_program: str = "transport.cl"
-    #: packets (all bands) worth one launch, and bytes the batch slots may take
+    #: packets (all bands) worth one launch, and bytes the batch slots may take beyond one
+    #: slot of one band (the transport's memory stays within twice the minimum plus this)
     launch_packets: int = 1 << 21
     slot_memory_budget: int = 1 << 30
     #: packets (all bands) of a run's first launch, before its speed is measured; later
@@ -296,8 +309,17 @@ class Backend(abc.ABC):
         """Wait until the copy started by :meth:`to_host_async` has arrived."""
 
     @abc.abstractmethod
+    def fill_zero(self, dev) -> None:
+        """Set every element of a device array to zero (queued, not waited for)."""
+
+    @abc.abstractmethod
     def launch(self, prog_name: str, kernel_name: str, n: int, *args, defines: dict | None = None) -> None:
         """Run a kernel over ``n`` work items; device arrays and NumPy scalars as arguments."""
+
+    def launch_trace(self, prog_name: str, kernel_name: str, n: int, *args, defines: dict | None = None) -> None:
+        """Run the transport kernel over ``n`` packets, in the work-group size and grid the
+        backend traces best with. Default: :meth:`launch`."""
+        self.launch(prog_name, kernel_name, n, *args, defines=defines)
 
     # --- kernels exposed for tests and diagnostics ---------------------------------------
     @abc.abstractmethod

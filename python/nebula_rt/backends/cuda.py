@@ -12,7 +12,7 @@ import numpy as np
 
 from ..errors import BackendUnavailableError
 from ..kernel_source import kernel_source
-from .base import Backend, TransportSession, TransportSetup, transport_defines
+from .base import Backend
 
 BLOCK = 256
 #: threads per block of the transport kernel: smaller blocks retire sooner after their slowest
@@ -50,91 +50,6 @@ def _grid(n: int) -> tuple[int]:
     return ((int(n) + BLOCK - 1) // BLOCK,)
 
 
-class CUDATransport(TransportSession):
-    def __init__(self, backend: "CUDABackend", setup: TransportSetup, slots: int):
-        cp = backend.cp
-        self.backend = backend
-        self.setup = setup
-        self.shape = tuple(int(n) for n in setup.density.shape)
-        nb = setup.n_bands
-        self.nvox = int(np.prod(self.shape))
-        self.ncell = nb * self.nvox
-        self.slots = int(slots)
-        resident = backend.resident_density(setup.density)
-        self.d_density = (resident if resident is not None else
-                          cp.asarray(np.ravel(np.asarray(setup.density, np.float32), order="F")))
-        self.d_sigma = cp.asarray(np.asarray(setup.sigma_scale, np.float32))
-        self.d_albedo = cp.asarray(np.asarray(setup.albedo, np.float32))
-        self.d_g = cp.asarray(np.asarray(setup.g, np.float32))
-        stars4 = np.zeros((setup.stars.shape[0], 4), np.float32)
-        stars4[:, :3] = setup.stars
-        self.d_stars = cp.asarray(stars4.ravel())
-        self.d_cdf = cp.asarray(np.ascontiguousarray(setup.star_cdf, np.float32).ravel())
-        self.d_acc = cp.zeros(self.ncell * self.slots, cp.uint64)
-        self.d_sum1 = cp.zeros(self.ncell, cp.float64)
-        self.d_sum2 = cp.zeros(self.ncell, cp.float64)
-        self.d_tallies = cp.zeros(self.slots * nb * 4, cp.uint64)
-        self.d_overflow = cp.zeros(self.slots, cp.uint32)
-        self.d_seen = cp.zeros(1, cp.uint32)
-        self.d_peel = cp.asarray(np.zeros(15, np.float32) if setup.peel is None else np.asarray(setup.peel, np.float32))
-        self.d_image = cp.zeros(max(1, self.slots * nb * setup.peel_pixels), cp.uint64)
-        defines = transport_defines(setup, backend.transport_tuning)
-        self.k_trace = backend.kernel(backend.transport_program, "trace_photons", defines)
-        self.k_fold = backend.kernel(backend.transport_program, "fold_batches", defines)
-
-    def run_group(self, photon_start, count, batch_base, batch_extra, first_batch, n_slots, fresh=True):
-        s = self.setup
-        nx, ny, nz = self.shape
-        if fresh:
-            self.d_tallies.fill(0)
-            self.d_overflow.fill(0)
-        total = int(count) * s.n_bands
-        tb = self.backend.trace_block
-        self.k_trace(((self.backend.work_items(total, self.k_trace) + tb - 1) // tb,), (tb,), (
-            self.d_density, self.d_sigma, self.d_albedo, self.d_g, self.d_stars, self.d_cdf,
-            np.int32(nx), np.int32(ny), np.int32(nz), np.int32(s.n_bands), np.int32(s.stars.shape[0]),
-            np.uint64(s.seed), np.uint64(photon_start), np.uint64(count),
-            np.uint64(batch_base), np.uint64(batch_extra), np.uint64(first_batch),
-            np.int32(s.max_scatterings), np.float32(s.track_scale),
-            self.d_acc, self.d_tallies, self.d_overflow, self.d_peel, np.float32(s.peel_scale), self.d_image,
-        ))
-        tallies = self.d_tallies.get().reshape(self.slots, s.n_bands, 4)  # synchronises
-        return tallies[:n_slots], self.d_overflow.get()[:n_slots].astype(bool)
-
-    def fold(self, n_slots):
-        self.k_fold(_grid(self.ncell), (BLOCK,), (self.d_acc, self.d_sum1, self.d_sum2, self.d_overflow,
-                                                 np.int32(n_slots), np.uint64(self.ncell), self.d_seen))
-
-    def overflow_seen(self):
-        return bool(self.d_seen.get()[0])
-
-    def sums_on_device(self):
-        nb = self.setup.n_bands
-        # device layout: band-major, x fastest; as (nb, nx, ny, nz) views
-        return tuple(buf.reshape((nb,) + self.shape[::-1]).transpose(0, 3, 2, 1) for buf in (self.d_sum1, self.d_sum2))
-
-    def sums(self):
-        return tuple(a.get() for a in self.sums_on_device())
-
-    def take_images(self, n_slots):
-        s = self.setup
-        if s.peel is None:
-            return np.zeros((n_slots, s.n_bands, 0, 0), np.uint64)
-        w, h = int(s.peel[13]), int(s.peel[14])
-        out = self.d_image.get().reshape(self.slots, s.n_bands, w, h)[:n_slots]
-        self.d_image.fill(0)
-        return out
-
-    def release_sums(self):
-        out = (self.d_sum1, self.d_sum2, self.d_density)
-        self.d_sum1 = self.d_sum2 = self.d_density = None
-        return out
-
-    def close(self):
-        for name in ("d_acc", "d_sum1", "d_sum2", "d_density"):
-            setattr(self, name, None)
-
-
 class CUDABackend(Backend):
     """Kernels compiled with NVRTC (CuPy RawModule) for one CUDA device."""
 
@@ -170,11 +85,11 @@ class CUDABackend(Backend):
         props = cp.cuda.runtime.getDeviceProperties(index)
         self._device_name = f"CUDA: {props['name'].decode()}"
         self.sm_count = int(props["multiProcessorCount"])
-        self.launch_packets = 1 << 23
+        # a launch fills the GPU 32 times over (so its slowest packets leave little idle time):
+        # 2^23 on an H100 or H200 (132 SMs x 2048 threads)
+        self.launch_packets = self.sm_count * int(props["maxThreadsPerMultiProcessor"]) * 32
         # a GPU traces a full launch in milliseconds: the first needs no shortening
         self.first_launch_packets = self.launch_packets
-        free, _total = cp.cuda.runtime.memGetInfo()
-        self.slot_memory_budget = int(free) // 4
 
     def _compile(self, name, defines):
         # --fmad=false: no contraction of a * b + c into one rounding (as OpenCL's FP_CONTRACT
@@ -203,9 +118,6 @@ class CUDABackend(Backend):
         host = self.host_empty((nz, ny, nx), np.float32)
         out.get(out=host.reshape(-1))
         return self._keep_resident(host.transpose(2, 1, 0), out)
-
-    def transport_session(self, setup, slots):
-        return CUDATransport(self, setup, slots)
 
     def memory_limits(self):
         cp = self.cp
@@ -261,8 +173,16 @@ class CUDABackend(Backend):
         if handle is not None:
             handle[0].synchronize()
 
+    def fill_zero(self, dev):
+        dev.fill(0)
+
     def launch(self, prog_name, kernel_name, n, *args, defines=None):
         self.kernel(prog_name, kernel_name, defines)(_grid(max(int(n), 1)), (BLOCK,), args)
+
+    def launch_trace(self, prog_name, kernel_name, n, *args, defines=None):
+        tb = self.trace_block
+        k = self.kernel(prog_name, kernel_name, defines)
+        k(((self.work_items(max(int(n), 1), k) + tb - 1) // tb,), (tb,), args)
 
     def sample_noise(self, points):
         cp = self.cp

@@ -8,7 +8,7 @@ import numpy as np
 
 from ..errors import BackendUnavailableError
 from ..kernel_source import kernel_source
-from .base import Backend, TransportSession, TransportSetup, transport_defines
+from .base import Backend
 
 try:  # pyopencl is a hard dependency, but give a clear message if the ICD loader is broken
     import pyopencl as cl
@@ -104,131 +104,6 @@ def probe_device(selector: str):
     return None
 
 
-class OpenCLTransport(TransportSession):
-    """Device buffers of one transport run."""
-
-    def __init__(self, backend: "OpenCLBackend", setup: TransportSetup, slots: int):
-        self.backend = backend
-        self.setup = setup
-        ctx, q = backend.context, backend.queue
-        mf = cl.mem_flags
-        nx, ny, nz = setup.density.shape
-        self.shape = (nx, ny, nz)
-        self.nvox = nx * ny * nz
-        nb = setup.n_bands
-        self.ncell = nb * self.nvox
-        self.slots = int(slots)
-
-        def ro(a, dtype):
-            return cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(a, dtype=dtype))
-
-        resident = backend.resident_density(setup.density)
-        self.own_density = resident is None
-        self.d_density = (resident if resident is not None else
-                          ro(np.asfortranarray(setup.density, dtype=np.float32).ravel(order="F"), np.float32))
-        self.d_sigma = ro(setup.sigma_scale, np.float32)
-        self.d_albedo = ro(setup.albedo, np.float32)
-        self.d_g = ro(setup.g, np.float32)
-        stars4 = np.zeros((setup.stars.shape[0], 4), np.float32)
-        stars4[:, :3] = setup.stars
-        self.d_stars = ro(stars4.ravel(), np.float32)
-        self.d_cdf = ro(setup.star_cdf.ravel(), np.float32)
-        self.d_acc = cl.Buffer(ctx, mf.READ_WRITE, size=8 * self.ncell * self.slots)
-        self.d_sum1 = cl.Buffer(ctx, mf.READ_WRITE, size=8 * self.ncell)
-        self.d_sum2 = cl.Buffer(ctx, mf.READ_WRITE, size=8 * self.ncell)
-        cl.enqueue_fill_buffer(q, self.d_acc, np.uint64(0), 0, 8 * self.ncell * self.slots)
-        for buf in (self.d_sum1, self.d_sum2):
-            cl.enqueue_fill_buffer(q, buf, np.uint64(0), 0, 8 * self.ncell)
-        self.h_tallies = np.zeros((self.slots, nb, 4), np.uint64)
-        self.d_tallies = cl.Buffer(ctx, mf.READ_WRITE, size=self.h_tallies.nbytes)
-        self.h_overflow = np.zeros(self.slots, np.uint32)
-        self.d_overflow = cl.Buffer(ctx, mf.READ_WRITE, size=self.h_overflow.nbytes)
-        self.d_peel = ro(np.zeros(15, np.float32) if setup.peel is None else setup.peel, np.float32)
-        self.image_cells = max(1, self.slots * nb * setup.peel_pixels)
-        self.d_image = cl.Buffer(ctx, mf.READ_WRITE, size=8 * self.image_cells)
-        cl.enqueue_fill_buffer(q, self.d_image, np.uint64(0), 0, 8 * self.image_cells)
-        self.d_seen = cl.Buffer(ctx, mf.READ_WRITE, size=4)
-        cl.enqueue_fill_buffer(q, self.d_seen, np.uint32(0), 0, 4)
-        defines = transport_defines(setup, backend.transport_tuning)
-        self.k_trace = backend.kernel(backend.transport_program, "trace_photons", defines)
-        self.k_fold = backend.kernel(backend.transport_program, "fold_batches", defines)
-        most = self.k_trace.get_work_group_info(cl.kernel_work_group_info.WORK_GROUP_SIZE, backend.device)
-        self.local_size = (int(min(backend.TRACE_LOCAL_SIZE, most)),)
-
-    def run_group(self, photon_start, count, batch_base, batch_extra, first_batch, n_slots, fresh=True):
-        q = self.backend.queue
-        s = self.setup
-        nx, ny, nz = self.shape
-        if fresh:
-            cl.enqueue_fill_buffer(q, self.d_tallies, np.uint64(0), 0, self.h_tallies.nbytes)
-            cl.enqueue_fill_buffer(q, self.d_overflow, np.uint32(0), 0, self.h_overflow.nbytes)
-        total = int(count) * s.n_bands
-        self.k_trace(
-            q, (self.backend.work_items(total, self.local_size[0]),), self.local_size,
-            self.d_density, self.d_sigma, self.d_albedo, self.d_g, self.d_stars, self.d_cdf,
-            np.int32(nx), np.int32(ny), np.int32(nz), np.int32(s.n_bands), np.int32(s.stars.shape[0]),
-            np.uint64(s.seed), np.uint64(photon_start), np.uint64(count),
-            np.uint64(batch_base), np.uint64(batch_extra), np.uint64(first_batch),
-            np.int32(s.max_scatterings), np.float32(s.track_scale),
-            self.d_acc, self.d_tallies, self.d_overflow, self.d_peel, np.float32(s.peel_scale), self.d_image,
-        )
-        cl.enqueue_copy(q, self.h_tallies, self.d_tallies)
-        cl.enqueue_copy(q, self.h_overflow, self.d_overflow)
-        q.finish()
-        return self.h_tallies[:n_slots].copy(), self.h_overflow[:n_slots].astype(bool)
-
-    def fold(self, n_slots):
-        self.k_fold(self.backend.queue, (self.ncell,), None, self.d_acc, self.d_sum1, self.d_sum2,
-                    self.d_overflow, np.int32(n_slots), np.uint64(self.ncell), self.d_seen)
-
-    def overflow_seen(self):
-        h = np.zeros(1, np.uint32)
-        cl.enqueue_copy(self.backend.queue, h, self.d_seen)
-        self.backend.queue.finish()
-        return bool(h[0])
-
-    def sums(self):
-        q = self.backend.queue
-        nb = self.setup.n_bands
-        out = []
-        for buf in (self.d_sum1, self.d_sum2):
-            h = np.empty(self.ncell, np.float64)
-            cl.enqueue_copy(q, h, buf)
-            # device layout: band-major, x fastest within a band
-            out.append(h.reshape((nb,) + self.shape[::-1]).transpose(0, 3, 2, 1))
-        q.finish()
-        return out[0], out[1]
-
-    def take_images(self, n_slots):
-        s = self.setup
-        if s.peel is None:
-            return np.zeros((n_slots, s.n_bands, 0, 0), np.uint64)
-        w, h = int(s.peel[13]), int(s.peel[14])
-        out = np.empty(self.image_cells, np.uint64)
-        q = self.backend.queue
-        cl.enqueue_copy(q, out, self.d_image)
-        cl.enqueue_fill_buffer(q, self.d_image, np.uint64(0), 0, 8 * self.image_cells)
-        q.finish()
-        return out.reshape(self.slots, s.n_bands, w, h)[:n_slots]
-
-    def release_sums(self):
-        cl_array = _cl_array()
-        q = self.backend.queue
-        out = (cl_array.Array(q, (self.ncell,), np.float64, data=self.d_sum1),
-               cl_array.Array(q, (self.ncell,), np.float64, data=self.d_sum2),
-               cl_array.Array(q, (self.nvox,), np.float32, data=self.d_density))
-        self.d_sum1 = self.d_sum2 = self.d_density = None
-        return out
-
-    def close(self):
-        for name in ("d_acc", "d_sum1", "d_sum2", "d_density"):
-            buf = getattr(self, name, None)
-            if buf is not None:
-                if name != "d_density" or self.own_density:  # not the backend's resident copy
-                    buf.release()
-                setattr(self, name, None)
-
-
 class OpenCLBackend(Backend):
     """Kernels compiled with pyopencl for one OpenCL device."""
 
@@ -255,7 +130,7 @@ class OpenCLBackend(Backend):
         self.first_launch_packets = self.launch_packets if self.is_gpu else (1 << 16)
         # page-locked result buffers on GPUs (host_empty); on a CPU device memory is host memory
         self.pinned_host = self.is_gpu
-        self.slot_memory_budget = mem // 4 if self.is_gpu else min(mem // 4, 1 << 30)
+        self.slot_memory_budget = min(mem // 4, 1 << 30)
 
     def _compile(self, name, defines):
         options = [f"-D{k}={v}" for k, v in sorted(defines.items())]
@@ -286,9 +161,6 @@ class OpenCLBackend(Backend):
         self.queue.finish()
         # the device copy stays for the transport
         return self._keep_resident(h.transpose(2, 1, 0), out)
-
-    def transport_session(self, setup, slots):
-        return OpenCLTransport(self, setup, slots)
 
     def memory_limits(self):
         return int(self.device.global_mem_size), int(self.device.max_mem_alloc_size)
@@ -373,10 +245,21 @@ class OpenCLBackend(Backend):
         if handle is not None:
             handle[0].wait()
 
+    def fill_zero(self, dev):
+        cl.enqueue_fill_buffer(self.queue, dev.data, np.uint8(0), 0, dev.nbytes)
+
     def launch(self, prog_name, kernel_name, n, *args, defines=None):
         array_type = _cl_array().Array
         args = [a.data if isinstance(a, array_type) else a for a in args]
         self.kernel(prog_name, kernel_name, defines)(self.queue, (max(int(n), 1),), None, *args)
+
+    def launch_trace(self, prog_name, kernel_name, n, *args, defines=None):
+        array_type = _cl_array().Array
+        args = [a.data if isinstance(a, array_type) else a for a in args]
+        k = self.kernel(prog_name, kernel_name, defines)
+        most = k.get_work_group_info(cl.kernel_work_group_info.WORK_GROUP_SIZE, self.device)
+        local = int(min(self.TRACE_LOCAL_SIZE, most))
+        k(self.queue, (self.work_items(max(int(n), 1), local),), (local,), *args)
 
     # --- test/diagnostic kernels ----------------------------------------------------------
     def _run(self, prog_name, kname, n, outputs, *args):

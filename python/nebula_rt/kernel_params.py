@@ -1,0 +1,93 @@
+"""Parameter structs shared by the kernels and the host: one definition, three languages.
+
+The transport kernel reads a run's constants (grid, seed, batch plan, fixed-point scales,
+peel-off camera) from one struct in device memory instead of two dozen positional arguments.
+The fields are declared here once; :func:`c_struct` writes the C typedef that
+:mod:`nebula_rt.kernel_source` pastes into every kernel program (OpenCL C and CUDA C), and
+:func:`dtype` the NumPy structured dtype the host fills and uploads. Fields are ordered by
+size (8-byte, then 4-byte) and the struct is padded to a multiple of 8 bytes, so the C layout
+needs no compiler-specific packing and NumPy's aligned layout is the same; the
+``nrt_params_layout`` kernel reports the device's offsets, which a test compares with the
+dtype's.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+
+_TYPES = {"u64": ("nrt_u64", np.uint64), "i32": ("int", np.int32), "f32": ("float", np.float32)}
+
+#: nrt_trace_params: the constants of one transport run (fields: name, type, count, meaning)
+TRACE_PARAMS = (
+    ("seed", "u64", 1, "Philox key word 0"),
+    ("batch_base", "u64", 1, "packets per batch (the first batch_extra batches hold one more)"),
+    ("batch_extra", "u64", 1, "batches holding batch_base + 1 packets"),
+    ("nx", "i32", 1, "grid size along x (voxels)"),
+    ("ny", "i32", 1, "grid size along y"),
+    ("nz", "i32", 1, "grid size along z"),
+    ("n_bands", "i32", 1, "bands of the run"),
+    ("n_stars", "i32", 1, "stars"),
+    ("max_scatterings", "i32", 1, "a packet is terminated past this many scatterings"),
+    ("track_scale", "f32", 1, "fixed-point track units per box unit of path"),
+    ("peel_scale", "f32", 1, "fixed-point peel-off units per 1/sr"),
+    ("peel", "f32", 15, "peel-off camera: direction to the observer, u, v, centre of pixel (0, 0), "
+                        "pixel size, W, H (box units)"),
+)
+
+STRUCTS = {"nrt_trace_params": TRACE_PARAMS}
+
+
+@functools.lru_cache(maxsize=None)
+def dtype(name: str = "nrt_trace_params") -> np.dtype:
+    """The NumPy structured dtype of struct ``name`` (C layout, padded to 8 bytes)."""
+    fields = STRUCTS[name]
+    dt = np.dtype([(f, _TYPES[t][1], (n,)) if n > 1 else (f, _TYPES[t][1]) for f, t, n, _ in fields],
+                  align=True)
+    size = -(-dt.itemsize // 8) * 8
+    return np.dtype({"names": dt.names, "formats": [dt.fields[n][0] for n in dt.names],
+                     "offsets": [dt.fields[n][1] for n in dt.names], "itemsize": size})
+
+
+def c_struct(name: str) -> str:
+    """C typedef of struct ``name`` (valid OpenCL C and CUDA C), with the padding explicit."""
+    dt = dtype(name)
+    lines = ["typedef struct {"]
+    end = 0
+    for field, t, n, meaning in STRUCTS[name]:
+        lines.append(f"    {_TYPES[t][0]} {field}{f'[{n}]' if n > 1 else ''}; /* {meaning} */")
+        end = dt.fields[field][1] + dt.fields[field][0].itemsize
+    if dt.itemsize > end:
+        lines.append(f"    nrt_u32 pad_[{(dt.itemsize - end) // 4}];")
+    lines.append(f"}} {name};")
+    return "\n".join(lines)
+
+
+def layout_kernel(name: str) -> str:
+    """OpenCL/CUDA C of a kernel ``<name>_layout(p, out)`` writing sizeof and every field's
+    offset (bytes) into ``out``: how the device laid the struct out, for the layout test."""
+    body = [f"    out[0] = (nrt_u64)sizeof({name});"]
+    for i, (field, _t, _n, _m) in enumerate(STRUCTS[name]):
+        body.append(f"    out[{i + 1}] = (nrt_u64)((const NRT_GLOBAL char *)&p->{field} - (const NRT_GLOBAL char *)p);")
+    return (f"NRT_KERNEL void {name}_layout(const NRT_GLOBAL {name} *p, NRT_GLOBAL nrt_u64 *out)\n{{\n"
+            + "\n".join(body) + "\n}")
+
+
+def all_structs() -> str:
+    """The C text of every struct, for the kernel sources."""
+    return "\n\n".join(c_struct(n) for n in STRUCTS)
+
+
+def pack(name: str = "nrt_trace_params", **values) -> np.ndarray:
+    """One struct ``name`` as a (1,) structured array with ``values`` filled in (the rest 0);
+    every field must be given."""
+    dt = dtype(name)
+    missing = set(dt.names) - set(values)
+    extra = set(values) - set(dt.names)
+    if missing or extra:
+        raise TypeError(f"{name}: missing fields {sorted(missing)}, unknown fields {sorted(extra)}")
+    out = np.zeros(1, dt)
+    for k, v in values.items():
+        out[k] = v
+    return out
