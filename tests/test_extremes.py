@@ -23,6 +23,7 @@ import pytest
 from scipy import integrate
 
 from conftest import centre_star, one_band, voxel_centres
+from nebula_rt.backends import probes
 from nebula_rt.errors import AccumulatorOverflowError, NebulaError, SceneError
 from nebula_rt.transport import FIXED_POINT_BITS, batch_plan, exact_packet_energy, trace
 from test_transport_physics import shell_means, voxel_average_point_source
@@ -82,7 +83,7 @@ def kernel_directions(backend, n, seed=1, photon0=0):
     """The initial directions of packets photon0.. as the kernel draws them (one star, so no
     star choice): its own Philox words, then mu = 2 u1 - 1, phi = 2 pi u2, in float64 from the
     float32 uniforms (the kernel's float32 cos/sin differ by a few ulps)."""
-    w = backend.photon_stream_u32(seed, 0, photon0, 2, n).astype(np.uint64)
+    w = probes.photon_stream_u32(backend, seed, 0, photon0, 2, n).astype(np.uint64)
     u = (w >> np.uint64(8)).astype(np.float64) * U32
     mu = (2 * u[:, 0].astype(np.float32) - np.float32(1)).astype(np.float64)
     phi = (np.float32(2 * np.pi) * u[:, 1].astype(np.float32)).astype(np.float64)
@@ -386,14 +387,14 @@ def test_photon_streams_past_2_32(backend):
     from test_rng import numpy_philox_block
 
     photon0, n, m, seed = 2**32 - 2, 5, 8, 77
-    got = backend.photon_stream_u32(seed, 1, photon0, m, n)
+    got = probes.photon_stream_u32(backend, seed, 1, photon0, m, n)
     assert len({tuple(r) for r in got.tolist()}) == n  # distinct streams (no 32-bit aliasing)
     for i in range(n):
         raw = numpy_philox_block((seed, 1), (photon0 + i, 0, 0, 0)).random_raw(4)
         want = [f(int(w)) for w in raw for f in (lambda w: w & 0xFFFFFFFF, lambda w: w >> 32)]
         assert [int(v) for v in got[i]] == want
     # the stream of photon 2^32 + k is not that of photon k
-    low = backend.photon_stream_u32(seed, 1, 0, m, 3)
+    low = probes.photon_stream_u32(backend, seed, 1, 0, m, 3)
     assert not np.array_equal(low, got[2:5])
 
 
@@ -481,7 +482,7 @@ def test_accumulator_overflow_recovery_in_vacuum(backend):
 # --------------------------------------------------------------------------------------------
 def test_free_path_at_xi_zero(backend):
     xi = np.array([0.0, U32, 0.5, 1 - 2 * U32, 1 - U32], np.float32)
-    tau = backend.sample_tau_at(xi).astype(np.float64)
+    tau = probes.sample_tau_at(backend, xi).astype(np.float64)
     assert np.all(np.isfinite(tau)) and tau[0] == 0.0
     want = -np.log1p(-xi.astype(np.float64))
     # float32 log: 1 - xi is exact on the 2^-24 grid; OpenCL allows log 3 ulps

@@ -9,6 +9,8 @@ import numpy as np
 import pytest
 from scipy import integrate
 
+from nebula_rt.backends import probes
+
 N = 2_000_000
 GS = [-0.99, -0.5, 0.0, 1e-7, 1e-4, 0.6, 0.99]
 
@@ -32,7 +34,7 @@ def central_moment4(g):
 
 @pytest.mark.parametrize("g", GS)
 def test_hg_moments(backend, g):
-    mu, norm = backend.hg_cosines(g, seed=11, n=N)
+    mu, norm = probes.hg_cosines(backend, g, seed=11, n=N)
     mu = mu.astype(np.float64)
     assert np.all(np.isfinite(mu)) and np.all(np.abs(mu) <= 1.0 + 1e-6)
     # the kernel clamps |g| <= 1 - 1e-4 in float32; compare with the clamped value
@@ -48,8 +50,8 @@ def test_hg_moments(backend, g):
 
 def test_orientation_forward_and_backward(backend):
     """mu is measured between the NEW and OLD directions: forward scattering keeps going."""
-    fwd, _ = backend.hg_cosines(0.9, seed=3, n=100_000)
-    back, _ = backend.hg_cosines(-0.9, seed=3, n=100_000)
+    fwd, _ = probes.hg_cosines(backend, 0.9, seed=3, n=100_000)
+    back, _ = probes.hg_cosines(backend, -0.9, seed=3, n=100_000)
     assert np.median(fwd) > 0.9 and np.median(back) < -0.9
 
 
@@ -83,7 +85,7 @@ def test_hg_inverse_cdf_pointwise(backend, g):
     mu = 0 instead of 0.4 there). The quantile is the right yardstick: where the pdf is tiny
     (g -> -1, mu -> 1) mu itself is ill-conditioned in xi."""
     xi = np.concatenate([[0.0, 1.0, 1 - 2**-24, 2**-24], np.linspace(0, 1, 1001)]).astype(np.float32)
-    mu, st = backend.hg_at(g, xi)
+    mu, st = probes.hg_at(backend, g, xi)
     gk = kernel_g(g)
     assert np.all(np.isfinite(mu)) and np.all(np.isfinite(st))
     # 1 - |mu| from sin(theta), which the kernel computes separately and the rotation uses: mu

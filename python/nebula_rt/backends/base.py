@@ -314,34 +314,11 @@ class Backend(abc.ABC):
 
     @abc.abstractmethod
     def launch(self, prog_name: str, kernel_name: str, n: int, *args, defines: dict | None = None) -> None:
-        """Run a kernel over ``n`` work items; device arrays and NumPy scalars as arguments."""
+        """Run a kernel over ``n`` work items; device arrays and NumPy scalars as arguments.
+        (The kernels exposed for tests and diagnostics run through this:
+        :mod:`nebula_rt.backends.probes`.)"""
 
     def launch_trace(self, prog_name: str, kernel_name: str, n: int, *args, defines: dict | None = None) -> None:
         """Run the transport kernel over ``n`` packets, in the work-group size and grid the
         backend traces best with. Default: :meth:`launch`."""
         self.launch(prog_name, kernel_name, n, *args, defines=defines)
-
-    # --- kernels exposed for tests and diagnostics ---------------------------------------
-    @abc.abstractmethod
-    def sample_noise(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Simplex noise and turbulence at points (n, 3) -> two float32 arrays (n,)."""
-
-    @abc.abstractmethod
-    def philox_blocks(self, key: tuple[int, int], counter: tuple[int, int, int, int], n: int) -> np.ndarray:
-        """Philox4x64-10 of counters (c0 + i, c1, c2, c3), i < n -> uint64 (n, 4)."""
-
-    @abc.abstractmethod
-    def photon_stream_u32(self, seed: int, band: int, photon0: int, m: int, n: int) -> np.ndarray:
-        """First ``m`` 32-bit words of the streams of photons photon0..photon0+n-1 -> uint32 (n, m)."""
-
-    @abc.abstractmethod
-    def hg_cosines(self, g: float, seed: int, n: int) -> tuple[np.ndarray, np.ndarray]:
-        """Cosines between new and old directions of n HG scatterings, and |new|."""
-
-    @abc.abstractmethod
-    def hg_at(self, g: float, xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """HG (mu, sin theta) at the given xi values."""
-
-    @abc.abstractmethod
-    def sample_tau_at(self, xi: np.ndarray) -> np.ndarray:
-        """Free-path optical depth -ln(1 - xi) as the transport kernel computes it, at given xi."""
