@@ -27,7 +27,7 @@ nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader
 python3 -m nebula_rt.cli devices
 git rev-parse --short HEAD 2>/dev/null || true
 
-physics="tests/test_rng.py tests/test_hg.py tests/test_density_kernel.py tests/test_transport_physics.py tests/test_estimators.py tests/test_postprocess.py tests/test_target_error.py tests/test_sky_physics.py tests/test_kernel_options.py tests/test_filter_boundary.py tests/test_terminated.py tests/test_peel_off_physics.py tests/test_band_independence.py tests/test_resources.py tests/test_extremes.py"
+physics="tests/test_rng.py tests/test_hg.py tests/test_density_kernel.py tests/test_transport_physics.py tests/test_estimators.py tests/test_postprocess.py tests/test_target_error.py tests/test_sky_physics.py tests/test_kernel_options.py tests/test_filter_boundary.py tests/test_terminated.py tests/test_peel_off_physics.py tests/test_band_independence.py tests/test_resources.py tests/test_extremes.py tests/test_memory_layout.py"
 if [[ " $steps " == *" tests "* ]]; then
     echo "== physics tests, CUDA"; NEBULA_RT_TEST_BACKEND=cuda python3 -m pytest -q -p no:cacheprovider $physics tests/test_cuda_sources.py 2>&1 | tail -n 8
     echo "== physics tests, NVIDIA OpenCL"; NEBULA_RT_TEST_DEVICE=NVIDIA python3 -m pytest -q -p no:cacheprovider $physics 2>&1 | tail -n 3
