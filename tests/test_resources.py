@@ -3,8 +3,7 @@ limit; large photon counts cost O(1) bookkeeping.
 
 The estimate is checked against what the run really holds: the transport session reports its
 device buffers (``TransportResult.device_bytes``) and the finishing its outputs; the estimate
-must cover them (it is an upper bound) without overstating them by more than the output copy
-it adds for writing.
+must cover them (it is an upper bound) without overstating them much.
 """
 
 from __future__ import annotations

@@ -309,7 +309,10 @@ def _unlink_quietly(p: Path) -> None:
 # --------------------------------------------------------------------------- in memory
 
 
-def _build_image(flat_arrays: dict, dims, field_data: dict, spacing, origin):
+def _build_image(flat_arrays: dict, dims, field_data: dict, spacing, origin, deep: bool = True):
+    """A vtkImageData of the flat (x fastest) arrays. ``deep`` False shares the arrays' memory
+    (no copy of a grid's worth of outputs on the host): only while the caller keeps them alive,
+    as :func:`write_vti` does until the file is written."""
     from vtkmodules.util import numpy_support
     from vtkmodules.vtkCommonDataModel import vtkImageData
 
@@ -319,7 +322,7 @@ def _build_image(flat_arrays: dict, dims, field_data: dict, spacing, origin):
     img.SetOrigin(*origin)
     pd = img.GetPointData()
     for name, flat in flat_arrays.items():
-        varr = numpy_support.numpy_to_vtk(flat, deep=True)
+        varr = numpy_support.numpy_to_vtk(flat, deep=deep or not flat.flags.c_contiguous)
         varr.SetName(name)
         pd.AddArray(varr)
     if len(flat_arrays) == 1:
@@ -509,7 +512,8 @@ def write_vti(
     # ---- build the VTK image
     from vtkmodules.vtkIOXML import vtkXMLImageDataWriter
 
-    img = _build_image(flat_arrays, dims, field_data, spacing, origin)
+    # the image shares the arrays' memory: flat_arrays lives until the writer is done
+    img = _build_image(flat_arrays, dims, field_data, spacing, origin, deep=False)
 
     # ---- write to a temporary file unique to this call, then rename
     from .outputs import Publication

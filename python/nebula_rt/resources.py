@@ -124,7 +124,6 @@ def estimate(scene, backend, peel_pixels: int = 0) -> Estimate:
     est.host = {
         "density": 4 * nvox,
         "outputs": outputs,
-        "output copy for writing": outputs,
         "error checks": 40 * ncell if target > 0 else 0,
         "filter": (16 * ncell + 16 * nvox + (0 if on_device_fft else fft)) if collision else 0,
     }
