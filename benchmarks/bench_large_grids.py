@@ -9,7 +9,9 @@ Scene: the neb128 medium (benchmarks/bench_neb128.py) on n^3 voxels: uniform dus
 depth 1 from the centre to a face (dust.tau = 2 across the box, so mu_t = 2/n per voxel),
 albedo 0.6, g 0.6, no reflection, an isotropic point source at the centre, 1000 scatterings
 at most. The optical depth does not change with n, so the absorbed fraction is the same at
-every size: MCX's figure for neb128 is 0.4078, reported beside each measurement. ``--bands 3``
+every size: MCX's figure for neb128 is 0.4078, reported beside each measurement (to 4 digits:
+its rounding, up to 5e-5, is as large as the statistical error of 1e8 packets, 4.9e-5, so at 1e8
+compare with MCX's own figure of the same run, ``absorbed_diff_vs_mcx``). ``--bands 3``
 runs the same medium with three bands of identical optics (the memory target of three bands);
 ``--bands 1 3`` runs both.
 
@@ -672,6 +674,10 @@ def main(argv=None) -> int:
             mcx = rec["mcx"]
             rec["ratio_vs_mcx"] = (neb["kernel_packets_per_ms"] / mcx["photons_per_ms"]
                                    if mcx and mcx.get("photons_per_ms") else None)
+            if mcx and mcx.get("absorbed_fraction") is not None:
+                # MCX's absorbed fraction is weight-based; its noise is not included in the z
+                rec["absorbed_diff_vs_mcx"] = neb["absorbed_fraction"] - mcx["absorbed_fraction"]
+                rec["absorbed_z_vs_mcx"] = rec["absorbed_diff_vs_mcx"] / neb["absorbed_sigma"]
             g = walk.get(n)
             visits = neb["voxel_visits_per_packet"]
             if g is not None and visits > 0:
