@@ -7,7 +7,7 @@
 # WHEELDIR holds wheels for what the machine lacks (pyopencl and its pure-Python needs,
 # colour-science, tomli-w; pmcx for the MCX comparison), fetched elsewhere with
 # `pip download --only-binary=:all: --python-version 3.12 ...`.
-# STEPS (default "tests bench neb128 compare profile"; also "scaling", "tune", "stages", "trade", "presets", "empty", "fft") selects what runs. Everything printed
+# STEPS (default "tests bench neb128 compare profile"; also "scaling", "large", "tune", "stages", "trade", "presets", "empty", "fft") selects what runs. Everything printed
 # goes to OUTDIR/log.txt as well; JSON and .npz results beside it.
 set -uo pipefail
 out="${1:?output folder}"
@@ -63,6 +63,13 @@ if [[ " $steps " == *" fft "* ]]; then
 fi
 if [[ " $steps " == *" scaling "* ]]; then
     echo "== scaling, CUDA"; python3 benchmarks/bench_scaling.py --backend cuda --out "$out/scaling-cuda.json"
+fi
+if [[ " $steps " == *" large "* ]]; then
+    # 64^3..1024^3 x 1e7/1e8 photons, 1 band against pmcx and 3 bands (memory target), and the
+    # atomic-add microbenchmark; each configuration in its own process. About 7 min on an H200
+    # (355 s measured without n1024-p1e8-b3, which adds about 1 min: --skip n1024-p1e8-b3 drops it)
+    echo "== large grids, CUDA vs pmcx, 1 and 3 bands, atomic adds"
+    python3 benchmarks/bench_large_grids.py --bands 1 3 --out "$out/large-grids-cuda.json"
 fi
 if [[ " $steps " == *" compare "* ]]; then
     echo "== same seed on CUDA and NVIDIA OpenCL"
