@@ -138,6 +138,15 @@ def _peak_hook(cp, pool):
     return PeakHook()
 
 
+def _tuning_from_env() -> dict:
+    """Transport kernel options (``--tuning KEY=VALUE ...``, passed to the child processes as
+    NRT_BENCH_TUNING) overriding the backend's defaults."""
+    import os
+
+    text = os.environ.get("NRT_BENCH_TUNING", "").strip()
+    return {k: int(v) for k, v in (item.split("=", 1) for item in text.split())} if text else {}
+
+
 def child_nebula(n: int, photons: int, n_bands: int, repeats: int, repeat_below_s: float) -> dict:
     import resource
 
@@ -149,7 +158,13 @@ def child_nebula(n: int, photons: int, n_bands: int, repeats: int, repeat_below_
     from nebula_rt.scene import Scene
     from nebula_rt.transport import FIXED_POINT_BITS
 
-    backend = get_backend("cuda", "")
+    tuning = _tuning_from_env()
+    if tuning:
+        from nebula_rt.backends.cuda import CUDABackend
+
+        backend = CUDABackend("", transport_tuning=tuning)
+    else:
+        backend = get_backend("cuda", "")
     Pipeline(backend).run(Scene.from_dict(scene_dict(16, 10_000, n_bands)), colour=False)  # compile, warm up
     scene = Scene.from_dict(scene_dict(n, photons, n_bands))
     pool = cp.get_default_memory_pool()
@@ -560,6 +575,8 @@ def main(argv=None) -> int:
                     help="array sizes s (s^3 elements) of the microbenchmark (default 128 256 512 1024 and --grids)")
     ap.add_argument("--micro-adds", type=float, default=2.0**30, help="adds per size and kind")
     ap.add_argument("--timeout", type=float, default=300.0, help="seconds per child process")
+    ap.add_argument("--tuning", nargs="*", default=[], metavar="KEY=VALUE",
+                    help="transport kernel options for NebulaRT, e.g. NRT_SORTED=1 (base.TRANSPORT_TUNING)")
     ap.add_argument("--out", default=None)
     ap.add_argument("--dry-run", action="store_true", help="print the configurations and exit")
     ap.add_argument("--child-nebula", nargs=3, type=float, help=argparse.SUPPRESS)
@@ -567,6 +584,10 @@ def main(argv=None) -> int:
     ap.add_argument("--child-micro", type=int, nargs="+", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     args.skip = [s.lower() for s in args.skip]
+    if args.tuning:  # the children read it
+        import os
+
+        os.environ["NRT_BENCH_TUNING"] = " ".join(args.tuning)
 
     if args.child_nebula:
         n, p, b = (int(x) for x in args.child_nebula)
@@ -599,7 +620,7 @@ def main(argv=None) -> int:
         commit = "unknown"
     t_start = time.perf_counter()
     result = {"benchmark": "large_grids", "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-              "commit": commit, "command": " ".join(["benchmarks/bench_large_grids.py"] + (argv or sys.argv[1:])),
+              "commit": commit, "tuning": args.tuning, "command": " ".join(["benchmarks/bench_large_grids.py"] + (argv or sys.argv[1:])),
               "scene": {"dust_tau_across_box": TAU, "optical_depth_centre_to_face": TAU / 2, "albedo": ALBEDO,
                         "g": G, "max_scatterings": 1000, "source": "isotropic point at the box centre"},
               "absorbed_expected": EXPECTED_ABSORBED, "budget_target_rule": "2 * (4 B + 8 B * bands) * voxels + 1 GiB",

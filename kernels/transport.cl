@@ -58,6 +58,11 @@
  *                    star's voxel (every packet's first segment: the hottest cells of a point
  *                    source) are summed in local memory and added to global memory once.
  *   NRT_IDX32        32-bit voxel indices (grids below 2^32 voxels).
+ *   NRT_SORTED       work items take their packets in the order of `order` (the launch's
+ *                    packets sorted by cell, star and first direction, emission_keys): the
+ *                    packets of a warp then fly their first flight side by side, so their
+ *                    deposits and density loads share cache sectors instead of scattering
+ *                    over the grid (integer deposits: the order changes no bit).
  */
 #ifndef NRT_ACC_RED
 #define NRT_ACC_RED 0
@@ -70,6 +75,9 @@
 #endif
 #ifndef NRT_IDX32
 #define NRT_IDX32 0
+#endif
+#ifndef NRT_SORTED
+#define NRT_SORTED 0
 #endif
 #if NRT_IDX32
 typedef nrt_u32 nrt_idx;
@@ -444,7 +452,8 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
                               NRT_GLOBAL nrt_u64 *acc,      /* slots * n_lbands * nvox */
                               NRT_GLOBAL nrt_u64 *tallies,  /* slots * n_lbands * 4 */
                               NRT_GLOBAL nrt_u32 *overflow, /* slots */
-                              NRT_GLOBAL nrt_u64 *image)    /* slots * n_lbands * W * H */
+                              NRT_GLOBAL nrt_u64 *image,    /* slots * n_lbands * W * H */
+                              const NRT_GLOBAL nrt_u64 *order) /* NRT_SORTED: sorted keys */
 {
     const int nx = prm->nx, ny = prm->ny, nz = prm->nz, n_stars = prm->n_stars;
     const nrt_u64 seed = prm->seed, batch_base = prm->batch_base, batch_extra = prm->batch_extra;
@@ -470,6 +479,8 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
         l_hot[i] = 0;
     {
         nrt_u64 t0 = NRT_GROUP_FIRST_ID();
+        if (NRT_SORTED && t0 < total)
+            t0 = order[t0] & 0xFFFFFFFFUL;
         home_slot = nrt_batch_of(photon_start + t0 % count, batch_base, batch_extra) - first_batch;
         home_cell = home_slot * (nrt_u64)n_lbands + (nrt_u64)(t0 / count);
     }
@@ -478,7 +489,8 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
 #else
     sink.l_tally = 0;
 #endif
-    for (nrt_u64 t = NRT_GLOBAL_ID(); t < total; t += stride) {
+    for (nrt_u64 it = NRT_GLOBAL_ID(); it < total; it += stride) {
+        nrt_u64 t = NRT_SORTED ? (order[it] & 0xFFFFFFFFUL) : it;
         int lband = (int)(t / count);
         int band = band0 + lband;
         nrt_u64 photon = photon_start + t % count;
@@ -513,6 +525,42 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
                     overflow + home_slot);
     }
 #endif
+}
+
+/*
+ * Sort keys of a launch's packets (NRT_SORTED): high 32 bits the packet's cell (band offset and
+ * batch slot, so a work group's packets share a home cell), star and first direction (the
+ * first two uniforms of nrt_sample_isotropic, i.e. mu and phi, in 256 x 256 equal-area bins),
+ * low 32 bits the work item t (count * n_lbands < 2^32), so that sorting the keys yields the
+ * order itself. The draws are those nrt_trace_packet makes, in the same order.
+ */
+NRT_KERNEL void emission_keys(const NRT_GLOBAL nrt_trace_params *prm,
+                              const NRT_GLOBAL float *star_cdf,
+                              nrt_u64 photon_start, nrt_u64 count, nrt_u64 first_batch,
+                              int band0, int n_lbands, int n_slots, NRT_GLOBAL nrt_u64 *keys)
+{
+    nrt_u64 total = count * (nrt_u64)n_lbands;
+    for (nrt_u64 t = NRT_GLOBAL_ID(); t < total; t += NRT_GLOBAL_SIZE()) {
+        int lband = (int)(t / count);
+        int band = band0 + lband;
+        nrt_u64 photon = photon_start + t % count;
+        nrt_u64 slot = nrt_batch_of(photon, prm->batch_base, prm->batch_extra) - first_batch;
+        nrt_rng rng;
+        nrt_rng_init(&rng, prm->seed, (nrt_u64)band, photon);
+        int s = 0;
+        if (prm->n_stars > 1) {
+            const NRT_GLOBAL float *cdf = star_cdf + band * prm->n_stars;
+            float u = nrt_rng_uniform(&rng);
+            while (s < prm->n_stars - 1 && u >= cdf[s])
+                ++s;
+        }
+        nrt_u32 bm = (nrt_u32)(nrt_rng_uniform(&rng) * 256.0f);
+        nrt_u32 bp = (nrt_u32)(nrt_rng_uniform(&rng) * 256.0f);
+        bm = bm > 255u ? 255u : bm;
+        bp = bp > 255u ? 255u : bp;
+        nrt_u64 group = (((nrt_u64)lband * (nrt_u64)n_slots + slot) * (nrt_u64)prm->n_stars + (nrt_u64)s) & 0xFFFFUL;
+        keys[t] = (((group << 16) | (nrt_u64)(bm << 8 | bp)) << 32) | t;
+    }
 }
 
 /* The centred sums of squares are stored in float32 times 2^-64, so that any sum of squared

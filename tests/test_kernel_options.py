@@ -53,7 +53,7 @@ def _backend(tuning):
 
 @pytest.mark.parametrize("estimator", ["track-length", "collision-filter"])
 def test_every_option_combination_gives_the_same_bits(cloud, estimator):
-    """All 2^3 combinations: identical batch sums, sums of squares and packet counts (with a
+    """All 2^4 combinations: identical batch sums, centred squares and packet counts (with a
     batch plan of several launches and a peel-off image, which keeps checked adds); the images
     agree to the rounding of their float weights."""
     camera = sky.Camera(direction=(0.0, 0.0, -1.0), size=(12, 10))

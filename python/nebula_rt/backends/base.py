@@ -76,7 +76,7 @@ class TransportSetup:
 #: Performance options of the transport kernel (kernels/transport.cl; all give the same bits),
 #: on by default where they were measured faster (benchmarks/tune_cuda.py). A backend's
 #: ``transport_tuning`` overrides them (the tuning benchmark switches them one by one).
-TRANSPORT_TUNING = {"NRT_ACC_RED": 1, "NRT_PREFETCH": 1, "NRT_GROUP_TALLY": 1}
+TRANSPORT_TUNING = {"NRT_ACC_RED": 1, "NRT_PREFETCH": 1, "NRT_GROUP_TALLY": 1, "NRT_SORTED": 0}
 
 
 def transport_defines(setup: TransportSetup, tuning: dict | None = None) -> dict:
@@ -307,6 +307,14 @@ class Backend(abc.ABC):
 
     def wait_copy(self, handle) -> None:
         """Wait until the copy started by :meth:`to_host_async` has arrived."""
+
+    def sort_u64(self, dev, n: int):
+        """Sort the first ``n`` elements of a uint64 device array ascending; returns the array
+        holding the result (``dev`` itself, or a new one). Default: through the host (for
+        tests; the CUDA backend sorts on the device)."""
+        h = self.to_host(dev)
+        h[:n].sort()
+        return self.to_device(h)
 
     @abc.abstractmethod
     def fill_zero(self, dev) -> None:

@@ -176,6 +176,10 @@ class CUDABackend(Backend):
     def fill_zero(self, dev):
         dev.fill(0)
 
+    def sort_u64(self, dev, n):
+        dev[:n].sort()  # CUB's radix sort, in place
+        return dev
+
     def launch(self, prog_name, kernel_name, n, *args, defines=None):
         self.kernel(prog_name, kernel_name, defines)(_grid(max(int(n), 1)), (BLOCK,), args)
 

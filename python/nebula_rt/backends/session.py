@@ -76,6 +76,8 @@ class DeviceTransport(TransportSession):
         self.pixels = setup.peel_pixels
         self.d_image = be.device_zeros(max(1, self.slots * self.bands_per_launch * self.pixels), np.uint64)
         self.defines = transport_defines(setup, be.transport_tuning)
+        self.sorted = bool(self.defines.get("NRT_SORTED"))
+        self.d_keys = be.device_zeros(1, np.uint64)  # NRT_SORTED: the launch's sorted packets
         self._plan = (0, 0)
 
     @property
@@ -97,12 +99,22 @@ class DeviceTransport(TransportSession):
         if fresh:
             be.fill_zero(self.d_tallies)
             be.fill_zero(self.d_overflow)
+        items = int(count) * n_lb
+        if self.sorted:
+            if self.d_keys.size < items:
+                self.d_keys = None
+                self.d_keys = be.device_zeros(items, np.uint64)
+            be.launch(be.transport_program, "emission_keys", items, self.d_params, self.d_cdf,
+                      np.uint64(photon_start), np.uint64(count), np.uint64(first_batch),
+                      np.int32(band0), np.int32(n_lb), np.int32(self.slots), self.d_keys,
+                      defines=self.defines)
+            self.d_keys = be.sort_u64(self.d_keys, items)
         be.launch_trace(
             be.transport_program, "trace_photons", int(count) * n_lb,
             self.d_params, self.d_density, self.d_optics, self.d_stars, self.d_cdf,
             np.uint64(photon_start), np.uint64(count), np.uint64(first_batch),
             np.int32(band0), np.int32(n_lb),
-            self.d_acc, self.d_tallies, self.d_overflow, self.d_image, defines=self.defines)
+            self.d_acc, self.d_tallies, self.d_overflow, self.d_image, self.d_keys, defines=self.defines)
         tallies = be.to_host(self.d_tallies).reshape(self.slots, self.bands_per_launch, 4)  # synchronises
         overflow = be.to_host(self.d_overflow)
         return tallies[:n_slots, :n_lb].copy(), overflow[:n_slots].astype(bool)
@@ -149,7 +161,7 @@ class DeviceTransport(TransportSession):
     def release_sums(self):
         out = (self.d_sum1, self.d_m2, self.d_density)
         self.d_sum1 = self.d_m2 = self.d_density = None
-        self.d_acc = self.d_image = None  # the slots' memory goes to the finishing
+        self.d_acc = self.d_image = self.d_keys = None  # the slots' memory goes to the finishing
         return out
 
     def device_bytes(self) -> int:
@@ -160,5 +172,5 @@ class DeviceTransport(TransportSession):
                 + 8 * self.slots * self.bands_per_launch * self.pixels)
 
     def close(self):
-        for name in ("d_acc", "d_sum1", "d_m2", "d_density", "d_image"):
+        for name in ("d_acc", "d_sum1", "d_m2", "d_density", "d_image", "d_keys"):
             setattr(self, name, None)
