@@ -71,6 +71,19 @@ if [[ " $steps " == *" large "* ]]; then
     echo "== large grids, CUDA vs pmcx, 1 and 3 bands, atomic adds"
     python3 benchmarks/bench_large_grids.py --bands 1 3 --out "$out/large-grids-cuda.json"
 fi
+if [[ " $steps " == *" layout "* ]]; then
+    echo "== memory layout, sorted packet order and transport physics, CUDA"
+    NEBULA_RT_TEST_BACKEND=cuda python3 -m pytest -q -p no:cacheprovider tests/test_memory_layout.py \
+        tests/test_transport_physics.py tests/test_kernel_options.py -k "not every_option" 2>&1 | tail -n 4
+fi
+if [[ " $steps " == *" sorted "* ]]; then
+    for flag in 0 1; do
+        echo "== large grids, 1e8 photons, NRT_SORTED=$flag (MCX up to 512^3)"
+        python3 benchmarks/bench_large_grids.py --grids 128 512 1024 --photons 1e8 --bands 1 --repeats 1 \
+            --skip micro $([[ $flag == 1 ]] && echo "mcx") --mcx-max-grid 512 \
+            --tuning NRT_SORTED=$flag --out "$out/sorted-$flag.json" 2>&1 | tail -n 12
+    done
+fi
 if [[ " $steps " == *" compare "* ]]; then
     echo "== same seed on CUDA and NVIDIA OpenCL"
     python3 benchmarks/compare_backends.py --run cuda: --run opencl:NVIDIA --save-dir "$out" --out "$out/compare.json" | grep -E '"(a|b|max_count|median|z_std)'
