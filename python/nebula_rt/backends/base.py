@@ -262,6 +262,9 @@ class Backend(abc.ABC):
     first_launch_packets: int = 1 << 21
     #: overrides of ``TRANSPORT_TUNING`` for this backend (benchmarks)
     transport_tuning: dict = {}
+    #: grids of at least this many voxels trace their packets sorted by first direction
+    #: (NRT_SORTED) unless ``transport_tuning`` says otherwise; 0: never
+    sort_min_voxels: int = 0
 
     # --- the density stays on the device ------------------------------------------------------
     def _keep_resident(self, host: np.ndarray, dev) -> np.ndarray:

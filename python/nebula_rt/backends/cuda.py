@@ -70,6 +70,10 @@ class CUDABackend(Backend):
     """Kernels compiled with NVRTC (CuPy RawModule) for one CUDA device."""
 
     name = "cuda"
+    #: packets sorted by first direction from 512^3 on (H200, neb medium, 1e8 photons, kernel
+    #: photons/ms unsorted -> sorted: 128^3 493k -> 479k, 512^3 30.9k -> 32.7k, 1024^3
+    #: 17.9k -> 26.0k; benchmarks/results/h200-2026-12-01-sorted/)
+    sort_min_voxels = 512**3
 
     def __init__(self, selector: str = "", *, compile_options: tuple = (), trace_block: int = TRACE_BLOCK,
                  transport_tuning: dict | None = None, fmad: bool = False):

@@ -75,7 +75,10 @@ class DeviceTransport(TransportSession):
         self.d_seen = be.device_zeros(1, np.uint32)
         self.pixels = setup.peel_pixels
         self.d_image = be.device_zeros(max(1, self.slots * self.bands_per_launch * self.pixels), np.uint64)
-        self.defines = transport_defines(setup, be.transport_tuning)
+        tuning = dict(be.transport_tuning)
+        if "NRT_SORTED" not in tuning and self.nvox >= getattr(be, "sort_min_voxels", 0) > 0:
+            tuning["NRT_SORTED"] = 1  # large grids: a warp's first flights side by side
+        self.defines = transport_defines(setup, tuning)
         self.sorted = bool(self.defines.get("NRT_SORTED"))
         self.d_keys = be.device_zeros(1, np.uint64)  # NRT_SORTED: the launch's sorted packets
         self._plan = (0, 0)
