@@ -228,3 +228,58 @@ NRT_KERNEL void relative_error(const NRT_GLOBAL double *J, const NRT_GLOBAL doub
     double j = J[i];
     rel[i] = (j > 0.0) ? NRT_DSQRT(var[i]) / j : 1.0;
 }
+
+/*
+ * The lit-region error of a transport so far (nebula_rt.transport.lit_region_error), band by
+ * band, in two passes with a key array of one float per voxel:
+ *   lit_keys:          key = sigma_b J_b (the light the dust intercepts), or J_b alone
+ *                      (use_sigma 0, for a band without dust); its 95th percentile is then
+ *                      picked by the radix select of the exposure (key_histogram);
+ *   lit_partial_sums:  over the voxels with a positive key at or above the level, the sums of
+ *                      w = key and of w rel^2, each work item over its own `chunk` of voxels
+ *                      in order (the host adds the partial sums in order: deterministic).
+ * band_params as for light_cells; s1 and m2 are the band's cells (offset band * nvox).
+ */
+NRT_KERNEL void lit_keys(const NRT_GLOBAL double *s1, const NRT_GLOBAL float *density,
+                         const NRT_GLOBAL double *band_params, int band, nrt_u64 nvox,
+                         int collision, int use_sigma, NRT_GLOBAL float *key)
+{
+    nrt_u64 v = NRT_GLOBAL_ID();
+    if (v >= nvox)
+        return;
+    double x1 = s1[(nrt_u64)band * nvox + v];
+    double sig = band_params[4 * band + 1] * (double)density[v];
+    double J;
+    if (collision)
+        J = (sig > 0.0) ? x1 / sig * band_params[4 * band] : 0.0;
+    else
+        J = x1 * band_params[4 * band];
+    key[v] = (float)(use_sigma ? J * sig : J);
+}
+
+NRT_KERNEL void lit_partial_sums(const NRT_GLOBAL double *s1, const NRT_GLOBAL float *m2,
+                                 const NRT_GLOBAL float *key, const NRT_GLOBAL double *band_params,
+                                 int band, double level, nrt_u64 nvox, nrt_u64 chunk,
+                                 NRT_GLOBAL double *partial)
+{
+    nrt_u64 i = NRT_GLOBAL_ID();
+    nrt_u64 first = i * chunk;
+    if (first >= nvox)
+        return;
+    nrt_u64 last = first + chunk < nvox ? first + chunk : nvox;
+    double batches = band_params[4 * band + 3];
+    double sw = 0.0, swr = 0.0;
+    for (nrt_u64 v = first; v < last; ++v) {
+        double w = (double)key[v];
+        if (w > 0.0 && w >= level) {
+            nrt_u64 c = (nrt_u64)band * nvox + v;
+            double x1 = s1[c];
+            double se = nrt_batch_se(x1, (double)m2[c] * NRT_M2_UP, batches);
+            double rel = (x1 > 0.0) ? se / x1 : 1.0;
+            sw += w;
+            swr += w * rel * rel;
+        }
+    }
+    partial[2 * i] = sw;
+    partial[2 * i + 1] = swr;
+}

@@ -125,3 +125,35 @@ def test_pipeline_reports_the_error_and_photons_used(backend):
     fd = light.field_data()
     assert fd["photons"] < fd["photons_budget"] == 400_000
     assert 0 < fd["achieved_error"] <= 0.2
+
+
+@pytest.mark.parametrize("estimator,medium", [("track-length", "dust"), ("collision-filter", "dust"),
+                                             ("track-length", "vacuum")])
+def test_device_lit_region_error_matches_the_reference(backend, estimator, medium):
+    """The error the stopping rule uses, formed on the device with one float of work memory per
+    voxel (float32 keys, radix-selected percentile, partial sums in a fixed order), against the
+    float64 NumPy reference on the same sums: equal to float32 rounding of the weights (1e-5),
+    in dust and in vacuum (no dust anywhere: the light alone decides), and the same value twice
+    (deterministic)."""
+    from nebula_rt.bands import Band
+    from nebula_rt.postprocess import lit_region_error_on_device
+    from nebula_rt.transport import LIT_FRACTION, LIT_PERCENTILE, light_from_sums, lit_region_error
+
+    rng = np.random.default_rng(3)
+    rho = (rng.random(SHAPE) ** 2).astype(np.float32) * (medium == "dust")
+    bands = [Band(name="B", wavelength=450.0, extinction=1.2, albedo=0.6, g=0.4),
+             Band(name="R", wavelength=650.0, extinction=0.7, albedo=0.5, g=-0.2)]
+    res = trace(rho, bands, centre_star(1.0), tau=2.0, photons=40_000, seed=2, backend=backend,
+                estimator=estimator, on_device=True)
+    ds = res.device_sums
+    s1, m2 = ds.host_sums()
+    J, rel = light_from_sums(s1, m2, res.band_batches, estimator, res.j_scale, res.sigma_scale, rho)
+    sigma = res.sigma_scale[:, None, None, None] * rho.astype(np.float64)[None]
+    ref = lit_region_error(J, rel, sigma)
+    params = np.stack([res.j_scale, res.sigma_scale, [b.albedo for b in bands]], axis=1)
+    args = (backend, ds.sum1, ds.m2, ds.density, SHAPE, params, res.band_batches,
+            estimator != "track-length", LIT_FRACTION, LIT_PERCENTILE)
+    dev = lit_region_error_on_device(*args)
+    assert 0.0 < ref < 1.0
+    assert dev == pytest.approx(ref, rel=1e-5)
+    assert lit_region_error_on_device(*args) == dev

@@ -253,7 +253,15 @@ def _histogram(be, key, n, all_voxels, hi_bin):
 def auto_exposure_on_device(be, key, n: int, percentile: float) -> float:
     """1 / (the ``percentile`` of the positive brightness keys of the visible voxels, or of all
     voxels if none is visible), interpolated linearly between order statistics as
-    ``numpy.percentile`` does; 1.0 when no key is positive.
+    ``numpy.percentile`` does; 1.0 when no key is positive (:func:`percentile_of_keys`)."""
+    level = percentile_of_keys(be, key, n, percentile)
+    return 1.0 / level if level is not None and level > 0.0 else 1.0
+
+
+def percentile_of_keys(be, key, n: int, percentile: float):
+    """The ``percentile`` of the positive keys of the visible voxels (sign bit clear), or of all
+    voxels if none is visible, as ``numpy.percentile`` interpolates it; None when no key is
+    positive.
 
     The order statistics are found exactly by a radix select on the keys' bit patterns: a
     histogram of the high 16 bits finds the bin holding the rank, a histogram of the low 16
@@ -267,7 +275,7 @@ def auto_exposure_on_device(be, key, n: int, percentile: float) -> float:
     pos = hist[:_HI_BINS]
     npos = int(pos.sum())
     if npos == 0:
-        return 1.0
+        return None
     cum = np.cumsum(pos)
     low_cache: dict[int, np.ndarray] = {}
 
@@ -283,5 +291,44 @@ def auto_exposure_on_device(be, key, n: int, percentile: float) -> float:
     k = int(math.floor(idx))
     frac = idx - k
     v0 = order_statistic(k)
-    level = v0 if frac == 0.0 else v0 + frac * (order_statistic(min(k + 1, npos - 1)) - v0)
-    return 1.0 / level if level > 0.0 else 1.0
+    return v0 if frac == 0.0 else v0 + frac * (order_statistic(min(k + 1, npos - 1)) - v0)
+
+
+#: voxels each work item of lit_partial_sums adds up
+_LIT_CHUNK = 256
+
+
+def lit_region_error_on_device(be, s1, m2, density, shape, band_params, batches, collision: bool,
+                               lit_fraction: float, lit_percentile: float) -> float:
+    """The lit-region error (:func:`nebula_rt.transport.lit_region_error`) of device sums
+    (flat: ``s1`` float64 and ``m2`` float32 x 2^-64 cells, band-major, x fastest; ``density``
+    float32), with one float of work memory per voxel: the brightness key of a band, its
+    percentile by the radix select, then partial sums of the weights over fixed chunks of voxels
+    added on the host in order (so the value, which decides when a run stops, is deterministic).
+    The key is float32 where the reference forms sigma J in float64: the level and the weights
+    agree to float32 rounding."""
+    nvox = int(np.prod(shape))
+    nb = int(np.asarray(band_params).shape[0])
+    d_params = be.to_device(_band_params(band_params, batches))
+    key = be.device_zeros(nvox, np.float32)
+    n_chunks = -(-nvox // _LIT_CHUNK)
+    partial = be.device_zeros(2 * n_chunks, np.float64)
+    worst = 0.0
+    for b in range(nb):
+        level = None
+        for use_sigma in (1, 0):  # a band without dust: the light itself decides
+            be.launch("postprocess.cl", "lit_keys", nvox, s1, density, d_params, np.int32(b),
+                      np.uint64(nvox), np.int32(bool(collision)), np.int32(use_sigma), key)
+            level = percentile_of_keys(be, key, nvox, lit_percentile)
+            if level is not None:
+                break
+        if level is None:
+            return 1.0  # nothing lit in this band
+        be.launch("postprocess.cl", "lit_partial_sums", n_chunks, s1, m2, key, d_params, np.int32(b),
+                  np.float64(lit_fraction * level), np.uint64(nvox), np.uint64(_LIT_CHUNK), partial)
+        sums = be.to_host(partial).reshape(-1, 2)
+        sw, swr = float(np.sum(sums[:, 0])), float(np.sum(sums[:, 1]))
+        if not sw > 0.0:
+            return 1.0
+        worst = max(worst, math.sqrt(swr / sw))
+    return worst

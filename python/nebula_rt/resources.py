@@ -73,7 +73,7 @@ def estimate(scene, backend, peel_pixels: int = 0) -> Estimate:
     peel_pixels : int
         Pixels of a peel-off image traced with it (0: none).
     """
-    from .transport import batch_plan, planned_batch_size
+    from .transport import plan_launches
 
     t = scene.transport
     shape = tuple(int(n) for n in scene.grid.shape)
@@ -81,8 +81,8 @@ def estimate(scene, backend, peel_pixels: int = 0) -> Estimate:
     nb = len(scene.bands.resolve())
     ncell = nb * nvox
     photons, target = t.effective()
-    plan = batch_plan(photons, planned_batch_size(photons, t.batch_size, target > 0, nvox), nvox)
-    per_launch, slots = backend.launch_plan(nvox, nb, plan.base + 1, len(plan))
+    launches = plan_launches(photons, t.batch_size, target > 0, shape, nb, backend)
+    per_launch, slots = launches.bands_per_launch, launches.slots
     slot_cells = per_launch * nvox
     colour = nb > 1
     collision = t.estimator == "collision-filter"
@@ -102,6 +102,8 @@ def estimate(scene, backend, peel_pixels: int = 0) -> Estimate:
         "running sums": 12 * ncell,
         "peel-off images": 8 * slots * per_launch * int(peel_pixels),
         "tallies and parameters": 36 * per_launch * slots + 4096,
+        # error-targeted runs: a brightness key per voxel and partial sums per 256 voxels
+        "error checks": (4 * nvox + 16 * (nvox // 256 + 1)) if target > 0 else 0,
     }
     # the finishing (postprocess.finish, release=True): first the sums and J, then the sums'
     # float64 half gone and the emissivity, key and rgba made
@@ -124,7 +126,6 @@ def estimate(scene, backend, peel_pixels: int = 0) -> Estimate:
     est.host = {
         "density": 4 * nvox,
         "outputs": outputs,
-        "error checks": 40 * ncell if target > 0 else 0,
         "filter": (16 * ncell + 16 * nvox + (0 if on_device_fft else fft)) if collision else 0,
     }
     est.largest_buffer = max(8 * slot_cells * slots, 8 * slots * per_launch * int(peel_pixels), 8 * ncell)

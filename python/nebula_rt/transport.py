@@ -319,6 +319,48 @@ def batch_plan(photons: int, batch_size: int = 0, nvox: int = 0) -> BatchPlan:
     return BatchPlan(photons, batch_count(photons, batch_size, nvox))
 
 
+@dataclass(frozen=True)
+class LaunchPlan:
+    """How a run's packets are split and traced: the batches (which fix the result) and how
+    many batches and bands one launch holds (which the device's memory and speed fix; they
+    change no bit). Resolved once, by :func:`plan_launches`, for the run and for the memory
+    estimate alike.
+
+    Attributes
+    ----------
+    batches : BatchPlan
+    batch_size : int
+        The batch size asked for after :func:`planned_batch_size` (0: automatic).
+    bands_per_launch, slots : int
+        Bands and batches one launch traces (``slots`` batch slots of ``bands_per_launch``
+        bands each).
+    n_bands : int
+    """
+
+    batches: BatchPlan
+    batch_size: int
+    bands_per_launch: int
+    slots: int
+    n_bands: int
+
+    @property
+    def band_groups(self) -> list[tuple[int, int]]:
+        """(first band, bands) of each group of bands traced together."""
+        k = self.bands_per_launch
+        return [(b, min(k, self.n_bands - b)) for b in range(0, self.n_bands, k)]
+
+
+def plan_launches(photons: int, batch_size: int, targeted: bool, shape, n_bands: int, backend) -> LaunchPlan:
+    """The :class:`LaunchPlan` of a run of ``photons`` packets per band on a grid of ``shape``
+    (checks the batch count against the limits first)."""
+    nvox = int(np.prod([int(n) for n in shape]))
+    size = planned_batch_size(photons, batch_size, targeted, nvox)
+    limits.check_batch_count(batch_count(photons, size, nvox), size)
+    plan = batch_plan(photons, size, nvox)
+    per_launch, slots = backend.launch_plan(nvox, n_bands, plan.base + 1, len(plan))
+    return LaunchPlan(plan, size, per_launch, slots, int(n_bands))
+
+
 def star_band_luminosities(stars, wavelengths_nm) -> np.ndarray:
     """(n_stars, n_bands) luminosity of each star in each band: its spectrum (measured,
     blackbody or flat) integrated over each band; a star's bands add up to its luminosity."""
@@ -509,18 +551,18 @@ def light_from_sums(s1, s2, batches, estimator: str, j_scale, sigma_scale, densi
     return J, rel
 
 
-def _current_error(session, folded, estimator, band_lum, photons, track_scale, nvox_inv,
-                   sigma_scale, density, sigma_host, device_sums=None) -> float:
-    """The lit-region error of the batches folded so far (on the device's array module)."""
-    if device_sums is not None:
-        s1, s2 = device_sums.host_sums()
-    else:
-        s1, s2 = session.sums_on_device()
-    xp = array_module(s1)
+def _current_error(backend, sums, shape, folded, estimator, band_lum, photons, track_scale, nvox_inv,
+                   sigma_scale, albedo) -> float:
+    """The lit-region error of the batches folded so far, on the device
+    (:func:`nebula_rt.postprocess.lit_region_error_on_device`): ``sums`` the (sum, centred
+    squares, density) device arrays of the session or of the DeviceSums."""
+    from .postprocess import lit_region_error_on_device
+
     q = np.array([exact_packet_energy(L, photons) for L in band_lum])
-    J, rel = light_from_sums(s1, s2, folded, estimator, _j_scale(q, estimator, track_scale, nvox_inv),
-                             sigma_scale, density)
-    return lit_region_error(J, rel, xp.asarray(sigma_host))
+    params = np.stack([_j_scale(q, estimator, track_scale, nvox_inv), sigma_scale, albedo], axis=1)
+    s1, m2, rho = sums
+    return lit_region_error_on_device(backend, s1, m2, rho, shape, params, folded,
+                                      estimator != "track-length", LIT_FRACTION, LIT_PERCENTILE)
 
 
 def _no_wrap(packets_per_batch: int, max_scatterings: int, estimator: str, track_scale: float,
@@ -690,6 +732,7 @@ def trace(
     cdf = np.cumsum(slum, axis=0) / band_lum[None, :]
     cdf[-1, :] = 1.0
     sigma_scale = np.array([tau * b.extinction for b in bands], dtype=np.float64)
+    albedo = np.array([b.albedo for b in bands], dtype=np.float64)
     setup = TransportSetup(
         density=density,
         sigma_scale=sigma_scale.astype(np.float32),
@@ -708,21 +751,19 @@ def trace(
                                     peel_scale=_peel_scale([b.g for b in bands]))
     targeted = target_error > 0.0
     nvox = int(np.prod(shape))
-    batch_size = planned_batch_size(photons, batch_size, targeted, nvox)
-    limits.check_batch_count(batch_count(photons, batch_size, nvox), batch_size)
-    plan = batch_plan(photons, batch_size, nvox)
     nb = len(bands)
+    launches = plan_launches(photons, batch_size, targeted, shape, nb, backend)
+    plan = launches.batches
     base, extra = plan.base, plan.extra
     if not _checked_adds:
         setup = dataclasses.replace(setup, unchecked_adds=_no_wrap(base + 1, max_scatterings, estimator,
                                                                    track_scale, shape))
-    sigma_host = sigma_scale[:, None, None, None] * density.astype(np.float64)[None] if targeted else None
     peel_sums = None if peel is None else _PeelSums(nb, peel.size, peel_bins)
     achieved = float("nan")
     counts = np.zeros((nb, 4), dtype=object)  # python ints: exact whatever the photon count
-    per_launch, slots = backend.launch_plan(nvox, nb, base + 1, len(plan))
-    session = backend.transport_session(setup, slots, per_launch)
-    groups = session.band_groups  # bands traced together: [(first band, bands)]
+    slots = launches.slots
+    session = backend.transport_session(setup, slots, launches.bands_per_launch)
+    groups = launches.band_groups  # bands traced together: [(first band, bands)]
     device_bytes = session.device_bytes()
     t_setup = time.perf_counter() - t0
     deadline = t0 + time_limit if time_limit > 0 else math.inf
@@ -797,8 +838,8 @@ def trace(
             if time.perf_counter() >= deadline:
                 break
             if targeted and int(folded.min()) >= MIN_BATCHES and done >= next_check:
-                achieved = _current_error(session, folded, estimator, band_lum, done, track_scale,
-                                          nvox_inv, sigma_scale, density, sigma_host)
+                achieved = _current_error(backend, session.device_arrays(), shape, folded, estimator,
+                                          band_lum, done, track_scale, nvox_inv, sigma_scale, albedo)
                 if achieved <= target_error:
                     break
                 # the error falls as 1/sqrt(N): check again near where it should reach the
@@ -852,9 +893,10 @@ def trace(
             s1, s2 = session.sums()
             J, rel = light_from_sums(s1, s2, folded, estimator, j_scale, sigma_scale, density)
         if targeted:
-            achieved = (lit_region_error(J, rel, sigma_host) if device_sums is None else
-                        _current_error(session, folded, estimator, band_lum, photons, track_scale,
-                                       nvox_inv, sigma_scale, density, sigma_host, device_sums))
+            arrays = (session.device_arrays() if device_sums is None else
+                      (device_sums.sum1, device_sums.m2, device_sums.density))
+            achieved = _current_error(backend, arrays, shape, folded, estimator, band_lum, photons,
+                                      track_scale, nvox_inv, sigma_scale, albedo)
             # the stopping rule above uses the statistical error alone (more packets do not
             # shrink the bias); the error reported adds the terminated packets' bias bound
             achieved = math.hypot(achieved, float(np.max(terminated_bias(counts_i64))))

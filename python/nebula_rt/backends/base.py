@@ -202,7 +202,6 @@ class Backend(abc.ABC):
             kernels[key] = self._get_kernel(self.program(prog_name, defines), kernel_name)
         return kernels[key]
 
-    @abc.abstractmethod
     def generate_density(
         self,
         shape: tuple[int, int, int],
@@ -214,7 +213,22 @@ class Backend(abc.ABC):
         stars: np.ndarray,
         subsamples: int = 8,
     ) -> np.ndarray:
-        """Dust density on the grid (float32, (nx, ny, nz)); ``stars`` is (n, 4): x, y, z, bump radius."""
+        """Dust density on the grid (float32, (nx, ny, nz)); ``stars`` is (n, 4): x, y, z, bump
+        radius. The device copy stays resident for a transport through the returned array."""
+        nx, ny, nz = (int(v) for v in shape)
+        n = nx * ny * nz
+        out = self.device_zeros(n, np.float32)
+        stars = np.asarray(stars, np.float32).reshape(-1, 4)
+        d_stars = self.to_device(stars if len(stars) else np.zeros(4, np.float32))
+        self.launch("density.cl", "generate_density", n, out,
+                    np.int32(nx), np.int32(ny), np.int32(nz), np.int32(model),
+                    np.float32(offset[0]), np.float32(offset[1]), np.float32(offset[2]),
+                    np.float32(scale), np.float32(uniform_density), np.float32(floor),
+                    d_stars, np.int32(len(stars)), np.int32(subsamples))
+        # into the backend's result memory (page-locked where that pays); x fastest on the device
+        host = self.host_empty((nz, ny, nx), np.float32)
+        self.to_host(out, host.reshape(-1))
+        return self._keep_resident(host.transpose(2, 1, 0), out)
 
     def transport_session(self, setup: TransportSetup, slots: int, bands_per_launch: int = 0) -> TransportSession:
         """Allocate the device state for a transport run with ``slots`` batch slots of

@@ -122,23 +122,6 @@ class CUDABackend(Backend):
     def _get_kernel(self, module, kernel_name):
         return module.get_function(kernel_name)
 
-    def generate_density(self, shape, model, offset, scale, uniform_density, floor, stars, subsamples=8):
-        cp = self.cp
-        nx, ny, nz = (int(v) for v in shape)
-        n = nx * ny * nz
-        out = cp.empty(n, cp.float32)
-        stars = np.asarray(stars, np.float32).reshape(-1, 4)
-        d_stars = cp.asarray(stars.ravel() if len(stars) else np.zeros(4, np.float32))
-        self.kernel("density.cl", "generate_density")(_grid(n), (BLOCK,), (
-            out, np.int32(nx), np.int32(ny), np.int32(nz), np.int32(model),
-            np.float32(offset[0]), np.float32(offset[1]), np.float32(offset[2]),
-            np.float32(scale), np.float32(uniform_density), np.float32(floor),
-            d_stars, np.int32(len(stars)), np.int32(subsamples)))
-        # into page-locked memory (4x faster than pageable); the device copy stays for the transport
-        host = self.host_empty((nz, ny, nx), np.float32)
-        out.get(out=host.reshape(-1))
-        return self._keep_resident(host.transpose(2, 1, 0), out)
-
     def memory_limits(self):
         cp = self.cp
         # free memory plus what CuPy's pool holds for reuse

@@ -140,28 +140,6 @@ class OpenCLBackend(Backend):
         return cl.Kernel(program, kernel_name)
 
     # --- stages ------------------------------------------------------------------------------
-    def generate_density(self, shape, model, offset, scale, uniform_density, floor, stars, subsamples=8):
-        nx, ny, nz = (int(v) for v in shape)
-        n = nx * ny * nz
-        mf = cl.mem_flags
-        out = cl.Buffer(self.context, mf.WRITE_ONLY, size=4 * n)
-        stars = np.zeros((0, 4), np.float32) if len(stars) == 0 else np.asarray(stars, np.float32).reshape(-1, 4)
-        d_stars = cl.Buffer(
-            self.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(stars if len(stars) else np.zeros(4, np.float32))
-        )
-        self.kernel("density.cl", "generate_density")(
-            self.queue, (n,), None, out,
-            np.int32(nx), np.int32(ny), np.int32(nz), np.int32(model),
-            np.float32(offset[0]), np.float32(offset[1]), np.float32(offset[2]),
-            np.float32(scale), np.float32(uniform_density), np.float32(floor),
-            d_stars, np.int32(len(stars)), np.int32(subsamples),
-        )
-        h = self.host_empty((nz, ny, nx), np.float32)
-        cl.enqueue_copy(self.queue, h, out)
-        self.queue.finish()
-        # the device copy stays for the transport
-        return self._keep_resident(h.transpose(2, 1, 0), out)
-
     def memory_limits(self):
         return int(self.device.global_mem_size), int(self.device.max_mem_alloc_size)
 
@@ -170,6 +148,7 @@ class OpenCLBackend(Backend):
         on a 2^3 grid, so that a device that cannot build the kernels is refused before a run
         starts, not in the middle of it."""
         try:
+            self._compile("density.cl", {})  # a build, not the backend's cached program
             self.generate_density((2, 2, 2), 1, (0.0, 0.0, 0.0), 0.0, 1.0, 0.0, np.zeros((0, 4), np.float32))
         except cl.Error as exc:
             first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__

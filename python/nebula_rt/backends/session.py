@@ -83,12 +83,6 @@ class DeviceTransport(TransportSession):
         self.d_keys = be.device_zeros(1, np.uint64)  # NRT_SORTED: the launch's sorted packets
         self._plan = (0, 0)
 
-    @property
-    def band_groups(self) -> list[tuple[int, int]]:
-        """(first band, bands) of each launch group."""
-        nb, k = self.setup.n_bands, self.bands_per_launch
-        return [(b, min(k, nb - b)) for b in range(0, nb, k)]
-
     def run_group(self, photon_start, count, batch_base, batch_extra, first_batch, n_slots, fresh=True,
                   bands=None):
         be = self.backend
@@ -143,6 +137,10 @@ class DeviceTransport(TransportSession):
             return self.sums()
         m2 = self.d_m2.astype(np.float64) * M2_SCALE
         return tuple(a.reshape(shape).transpose(0, 3, 2, 1) for a in (self.d_sum1, m2))
+
+    def device_arrays(self):
+        """(sum, centred squares, density) as flat device arrays, left in place."""
+        return self.d_sum1, self.d_m2, self.d_density
 
     def sums(self):
         be = self.backend
