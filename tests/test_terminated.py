@@ -115,7 +115,9 @@ def test_targeted_error_includes_the_terminated_bias(backend):
     bound = float(res.terminated_bias.max())
     assert 0.5 < bound < 0.8
     assert stat <= 0.08 and res.photons < res.photons_budget  # stopped on the statistical part
-    assert res.achieved_error == pytest.approx(math.hypot(stat, bound), rel=1e-12)
+    # the run forms the statistical part on the device from float32 keys (1e-5 of the float64
+    # reference: tests/test_target_error.py)
+    assert res.achieved_error == pytest.approx(math.hypot(stat, bound), rel=1e-5)
 
 
 def test_field_data_and_vtk_filter_report_it(backend):

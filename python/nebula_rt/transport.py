@@ -646,6 +646,315 @@ class _Launcher:
         return tallies, overflow, traced
 
 
+@dataclass(frozen=True)
+class TransportPlan:
+    """A transport run resolved from its inputs, once (the stage :func:`plan_transport`): what
+    the device is given (``setup``), how the packets are split (``launches``) and the
+    per-band constants the estimate needs. :func:`run_transport` traces it.
+
+    Attributes
+    ----------
+    setup : TransportSetup
+    launches : LaunchPlan
+    photons : int
+        Packets per band asked for (the budget of an error-targeted run).
+    band_names : tuple of str
+    band_luminosity : ndarray (n_bands,)
+    star_band_luminosity : ndarray (n_stars, n_bands)
+    sigma_scale, albedo : ndarray float64 (n_bands,)
+        Extinction per box unit at density 1 (tau k_b) and albedo.
+    nvox_inv : float
+        Voxel volume (box units^3).
+    target_error, time_limit : float
+    peel, peel_bins : camera and pixel groups of a peel-off image, or None
+    """
+
+    setup: TransportSetup
+    launches: LaunchPlan
+    photons: int
+    band_names: tuple
+    band_luminosity: np.ndarray
+    star_band_luminosity: np.ndarray
+    sigma_scale: np.ndarray
+    albedo: np.ndarray
+    nvox_inv: float
+    target_error: float = 0.0
+    time_limit: float = 0.0
+    peel: object = None
+    peel_bins: object = None
+
+    @property
+    def shape(self) -> tuple:
+        return tuple(int(n) for n in self.setup.density.shape)
+
+    @property
+    def estimator(self) -> str:
+        return self.setup.estimator
+
+    @property
+    def n_bands(self) -> int:
+        return len(self.band_names)
+
+
+@dataclass
+class Tallies:
+    """What the tracing stage (:func:`run_transport`) leaves: the exact packet counts, the
+    batches and packets folded per band, the device session holding the sums (open: the
+    estimate reads them, the caller closes it), the peel-off sums and timings.
+
+    Attributes
+    ----------
+    session : TransportSession
+    counts : ndarray int64 (n_bands, 4)
+        Emitted, absorbed, escaped, terminated.
+    folded, band_done : ndarray int64 (n_bands,)
+        Batches and packets folded per band.
+    peel_sums : _PeelSums or None
+    achieved_error : float
+        The last lit-region error checked (error-targeted runs; NaN otherwise).
+    device_bytes : int
+    setup_s, kernel_s : float
+    """
+
+    session: object
+    counts: np.ndarray
+    folded: np.ndarray
+    band_done: np.ndarray
+    peel_sums: object = None
+    achieved_error: float = float("nan")
+    device_bytes: int = 0
+    setup_s: float = 0.0
+    kernel_s: float = 0.0
+
+    @property
+    def photons(self) -> int:
+        """Packets per band folded in every band."""
+        return int(self.band_done.min())
+
+
+def plan_transport(density, bands, stars, *, tau: float, photons: int, estimator: str = "track-length",
+                   max_scatterings: int = 1000, seed: int = 1, batch_size: int = 0, backend: Backend,
+                   target_error: float = 0.0, time_limit: float = 0.0, peel=None, peel_bins=None,
+                   checked_adds: bool = False, _acc_limit_bits: int = 63) -> TransportPlan:
+    """The first stage: check every input against what the device can represent, then resolve
+    the run (see :func:`trace` for the parameters; ``checked_adds`` checks every deposit for
+    the headroom as it is added)."""
+    density = np.asarray(density, dtype=np.float32)
+    shape = density.shape
+    wl = np.array([b.wavelength for b in bands], dtype=np.float64)
+    slum = star_band_luminosities(stars, wl)
+    band_lum = slum.sum(axis=0)
+    track_scale = float(2.0**FIXED_POINT_BITS * max(shape))
+    # what the device forms from these inputs must fit float32/int32: checked before any work
+    limits.check_transport(density, bands, stars, slum, tau=tau, photons=photons, max_scatterings=max_scatterings,
+                           estimator=estimator, track_scale=track_scale, seed=seed)
+    backend.check_grid_fits(shape, len(bands))
+    cdf = np.cumsum(slum, axis=0) / band_lum[None, :]
+    cdf[-1, :] = 1.0
+    sigma_scale = np.array([tau * b.extinction for b in bands], dtype=np.float64)
+    albedo = np.array([b.albedo for b in bands], dtype=np.float64)
+    launches = plan_launches(photons, batch_size, target_error > 0.0, shape, len(bands), backend)
+    base = launches.batches.base
+    setup = TransportSetup(
+        density=density,
+        sigma_scale=sigma_scale.astype(np.float32),
+        albedo=albedo.astype(np.float32),
+        g=np.array([b.g for b in bands], np.float32),
+        stars=np.array([s.position for s in stars], np.float32).reshape(-1, 3),
+        star_cdf=np.ascontiguousarray(cdf.T, dtype=np.float32),
+        estimator=estimator,
+        max_scatterings=int(max_scatterings),
+        seed=int(seed),
+        track_scale=track_scale,
+        acc_limit_bits=int(_acc_limit_bits),
+        unchecked_adds=(not checked_adds) and _no_wrap(base + 1, max_scatterings, estimator, track_scale, shape),
+    )
+    if peel is not None:
+        setup = dataclasses.replace(setup, peel=_peel_camera(peel), peel_scale=_peel_scale([b.g for b in bands]))
+    return TransportPlan(setup=setup, launches=launches, photons=int(photons),
+                         band_names=tuple(b.name for b in bands), band_luminosity=band_lum,
+                         star_band_luminosity=slum, sigma_scale=sigma_scale, albedo=albedo,
+                         nvox_inv=1.0 / float(np.prod(shape)), target_error=float(target_error),
+                         time_limit=float(time_limit), peel=peel, peel_bins=peel_bins)
+
+
+def run_transport(plan: TransportPlan, backend: Backend, *, progress=None, cancel=None,
+                  started: Optional[float] = None) -> Tallies:
+    """The tracing stage: trace the plan's batches, folding each launch's slots into the
+    device sums, until every batch is in, the error target is met or the time limit
+    (counted from ``started``) comes. Returns the :class:`Tallies`; its session stays open."""
+    t0 = time.perf_counter() if started is None else started
+    setup, launches = plan.setup, plan.launches
+    shape, nb, photons = plan.shape, plan.n_bands, plan.photons
+    batches = launches.batches
+    base, extra = batches.base, batches.extra
+    slots, groups = launches.slots, launches.band_groups  # groups: bands traced together
+    targeted = plan.target_error > 0.0
+    track_scale = setup.track_scale
+    peel_sums = None if plan.peel is None else _PeelSums(nb, plan.peel.size, plan.peel_bins)
+    counts = np.zeros((nb, 4), dtype=object)  # python ints: exact whatever the photon count
+    session = backend.transport_session(setup, slots, launches.bands_per_launch)
+    out = Tallies(session=session, counts=np.zeros((nb, 4), np.int64), folded=np.zeros(nb, np.int64),
+                  band_done=np.zeros(nb, np.int64), peel_sums=peel_sums, device_bytes=session.device_bytes(),
+                  setup_s=time.perf_counter() - t0)
+    folded, band_done = out.folded, out.band_done
+    deadline = t0 + plan.time_limit if plan.time_limit > 0 else math.inf
+    done = 0  # packets per band traced (all bands)
+    launcher = _Launcher(session, backend, cancel, deadline, lambda: (done, photons))
+    next_check = 0  # packets per band after which the error is checked next (targeted runs)
+    redo: list[tuple[int, int, tuple[int, int]]] = []
+
+    def take(tallies, overflow, images, ranges, group):
+        """Fold the finished batches ``ranges`` [(start, count)] of a launch's slots (bands
+        ``group``) into the counts."""
+        b0, nlb = group
+        for k, (b_start, b_count) in enumerate(ranges):
+            if overflow[k]:
+                redo.append((b_start, b_count, group))
+                continue
+            if images is not None:
+                peel_sums.add(images[k], b0)
+            folded[b0:b0 + nlb] += 1
+            counts[b0:b0 + nlb] += tallies[k].astype(object)
+            band_done[b0:b0 + nlb] += b_count
+
+    def fold_group(group, n, tallies, overflow, ranges):
+        """Fold a group's first ``n`` slots on the device and its tallies on the host."""
+        session.fold(n, group, int(folded[group[0]]))
+        images = session.take_images(n, group)[:len(ranges)] if plan.peel is not None else None
+        take(tallies, overflow, images, ranges, group)
+
+    try:
+        # batches in groups of consecutive ones, each group's bands traced in one or more
+        # launches and folded before the next group's
+        first = 0
+        while first < len(batches):
+            n = min(slots, len(batches) - first)
+            start = batches.start(first)
+            count = batches.start(first + n) - start
+            cut = None  # packets of the group every band finished, when the time limit came
+            for gi, group in enumerate(groups):
+                tallies, overflow, traced = launcher.run(
+                    start, count, base, extra, first, n, group,
+                    None if progress is None else (lambda k, gi=gi: progress(done + (gi * count + k) // len(groups), photons)))
+                if traced < count:  # the time limit came: keep the batches every band finished
+                    # earlier band groups traced all n; they must end where this one does
+                    finished = batches.batches_within(first, start + traced) if gi == 0 else 0
+                    fold_group(group, finished, tallies, overflow, batches[first:first + finished])
+                    cut = batches.start(first + finished) - start
+                    break
+                fold_group(group, n, tallies, overflow, batches[first:first + n])
+            if cut is not None:
+                if cut == 0 and len(groups) > 1:
+                    raise TimeLimitError(
+                        f"transport.time_limit = {plan.time_limit!r}: the bands are traced one group after "
+                        "another on this grid, and the time limit came before every band had finished a "
+                        "batch; raise it or lower transport.batch_size")
+                redo.clear()  # no time left to re-trace
+                break
+            done += count
+            if progress is not None:
+                progress(done, photons)
+            first += n
+            if first >= len(batches) or time.perf_counter() >= deadline:
+                break
+            if targeted and int(folded.min()) >= MIN_BATCHES and done >= next_check:
+                out.achieved_error = _current_error(backend, session.device_arrays(), shape, folded,
+                                                    plan.estimator, plan.band_luminosity, done, track_scale,
+                                                    plan.nvox_inv, plan.sigma_scale, plan.albedo)
+                if out.achieved_error <= plan.target_error:
+                    break
+                # the error falls as 1/sqrt(N): check again near where it should reach the
+                # target (never before 10 % more packets), so the checks cost O(log N)
+                predicted = done * (out.achieved_error / plan.target_error) ** 2
+                next_check = max(int(done * 1.1), int(0.9 * predicted))
+        # A batch whose fixed-point cell would have passed 2^63 was not folded. Same packets,
+        # same random numbers: tracing it in two halves gives the same integer deposits with
+        # more headroom each (each half then counts as a batch of the error estimate).
+        while redo:
+            b_start, b_count, group = redo.pop()
+            if b_count == 1:
+                raise AccumulatorOverflowError(
+                    "a single packet overflowed a 64-bit fixed-point voxel tally; "
+                    "reduce dust.tau or transport.max_scatterings"
+                )
+            half = b_count // 2
+            for h_start, h_count in ((b_start, half), (b_start + half, b_count - half)):
+                # one batch covering the whole range: base 2^62 puts every packet in batch 0
+                tallies, overflow, traced = launcher.run(h_start, h_count, 1 << 62, 0, 0, 1, group)
+                if traced < h_count:  # the time limit came: what is folded is the result
+                    redo.clear()
+                    break
+                fold_group(group, 1, tallies, overflow, [(h_start, h_count)])
+        if out.photons == 0:
+            raise TimeLimitError(
+                f"transport.time_limit = {plan.time_limit!r}: no batch of {base} packets per band "
+                "finished within the time limit; raise it or lower transport.batch_size"
+            )
+    except BaseException:
+        session.close()
+        raise
+    out.counts = np.array(counts.tolist(), dtype=np.int64)
+    out.kernel_s = launcher.kernel_s
+    return out
+
+
+def estimate_light(plan: TransportPlan, tallies: Tallies, backend: Backend, *, on_device: bool = False) -> TransportResult:
+    """The estimate stage: J and its error (or the device sums, ``on_device``), the packet
+    energies from the packets folded, the peel-off image and the error reached, from a
+    plan's tallies (whose session must still be open)."""
+    session, folded, band_done = tallies.session, tallies.folded, tallies.band_done
+    shape, nb, estimator = plan.shape, plan.n_bands, plan.estimator
+    photons = tallies.photons
+    # per band: a band whose overflowed batch the time limit left unfinished has fewer
+    q = np.array([exact_packet_energy(L, int(n)) for L, n in zip(plan.band_luminosity, band_done)])
+    j_scale = _j_scale(q, estimator, plan.setup.track_scale, plan.nvox_inv)
+    peel_image = peel_error = peel_groups = None
+    if plan.peel is not None:  # packet energy x (phase x attenuation) per pixel area
+        peel_image, peel_error, peel_groups = tallies.peel_sums.finish(
+            q / (plan.setup.peel_scale * plan.peel.pixel_size**2))
+    achieved = float("nan")
+    if plan.target_error > 0.0:
+        achieved = _current_error(backend, session.device_arrays(), shape, folded, estimator, plan.band_luminosity,
+                                  photons, plan.setup.track_scale, plan.nvox_inv, plan.sigma_scale, plan.albedo)
+        # the stopping rule uses the statistical error alone (more packets do not shrink the
+        # bias); the error reported adds the terminated packets' bias bound
+        achieved = math.hypot(achieved, float(np.max(terminated_bias(tallies.counts))))
+    if on_device:
+        s1, s2, d_rho = session.release_sums()
+        device_sums = DeviceSums(backend, shape, nb, s1, s2, d_rho)
+        J = rel = None
+    else:
+        device_sums = None
+        s1, s2 = session.sums()
+        J, rel = light_from_sums(s1, s2, folded, estimator, j_scale, plan.sigma_scale, plan.setup.density)
+    return TransportResult(
+        J=J,
+        rel_error=rel,
+        counts=tallies.counts,
+        packet_energy=q,
+        band_luminosity=plan.band_luminosity,
+        star_band_luminosity=plan.star_band_luminosity,
+        photons=photons,
+        batches=int(folded.min()),
+        band_batches=folded,
+        estimator=estimator,
+        raw_sum=None if on_device else s1,
+        raw_m2=None if on_device else s2,
+        j_scale=j_scale,
+        sigma_scale=plan.sigma_scale,
+        device_sums=device_sums,
+        achieved_error=achieved,
+        photons_budget=plan.photons,
+        device_bytes=tallies.device_bytes,
+        peel_image=peel_image,
+        peel_error=peel_error,
+        peel_bin_batches=peel_groups,
+        device=backend.device_name,
+        timings={"setup_s": tallies.setup_s, "kernel_s": tallies.kernel_s},
+    )
+
+
 def trace(
     density: np.ndarray,
     bands,
@@ -716,215 +1025,22 @@ def trace(
         Leave the sums on the device (``result.device_sums``, for
         :func:`nebula_rt.postprocess.finish`) instead of computing J and rel_error on the host.
     """
-    call = dict(locals())
     t0 = time.perf_counter()
-    density = np.asarray(density, dtype=np.float32)
-    shape = density.shape
-    nvox_inv = 1.0 / float(np.prod(shape))  # voxel volume in box units^3
-    wl = np.array([b.wavelength for b in bands], dtype=np.float64)
-    slum = star_band_luminosities(stars, wl)
-    band_lum = slum.sum(axis=0)
-    track_scale = float(2.0**FIXED_POINT_BITS * max(shape))
-    # what the device forms from these inputs must fit float32/int32: checked before any work
-    limits.check_transport(density, bands, stars, slum, tau=tau, photons=photons, max_scatterings=max_scatterings,
-                           estimator=estimator, track_scale=track_scale, seed=seed)
-    backend.check_grid_fits(shape, len(bands))
-    cdf = np.cumsum(slum, axis=0) / band_lum[None, :]
-    cdf[-1, :] = 1.0
-    sigma_scale = np.array([tau * b.extinction for b in bands], dtype=np.float64)
-    albedo = np.array([b.albedo for b in bands], dtype=np.float64)
-    setup = TransportSetup(
-        density=density,
-        sigma_scale=sigma_scale.astype(np.float32),
-        albedo=np.array([b.albedo for b in bands], np.float32),
-        g=np.array([b.g for b in bands], np.float32),
-        stars=np.array([s.position for s in stars], np.float32).reshape(-1, 3),
-        star_cdf=np.ascontiguousarray(cdf.T, dtype=np.float32),
-        estimator=estimator,
-        max_scatterings=int(max_scatterings),
-        seed=int(seed),
-        track_scale=track_scale,
-        acc_limit_bits=int(_acc_limit_bits),
-    )
-    if peel is not None:
-        setup = dataclasses.replace(setup, peel=_peel_camera(peel),
-                                    peel_scale=_peel_scale([b.g for b in bands]))
-    targeted = target_error > 0.0
-    nvox = int(np.prod(shape))
-    nb = len(bands)
-    launches = plan_launches(photons, batch_size, targeted, shape, nb, backend)
-    plan = launches.batches
-    base, extra = plan.base, plan.extra
-    if not _checked_adds:
-        setup = dataclasses.replace(setup, unchecked_adds=_no_wrap(base + 1, max_scatterings, estimator,
-                                                                   track_scale, shape))
-    peel_sums = None if peel is None else _PeelSums(nb, peel.size, peel_bins)
-    achieved = float("nan")
-    counts = np.zeros((nb, 4), dtype=object)  # python ints: exact whatever the photon count
-    slots = launches.slots
-    session = backend.transport_session(setup, slots, launches.bands_per_launch)
-    groups = launches.band_groups  # bands traced together: [(first band, bands)]
-    device_bytes = session.device_bytes()
-    t_setup = time.perf_counter() - t0
-    deadline = t0 + time_limit if time_limit > 0 else math.inf
-    launcher = _Launcher(session, backend, cancel, deadline, lambda: (done, photons))
-    folded = np.zeros(nb, np.int64)  # batches folded per band
-    band_done = np.zeros(nb, np.int64)  # packets folded per band
-    done = 0  # packets per band traced (all bands)
-    next_check = 0  # packets per band after which the error is checked next (targeted runs)
-    redo: list[tuple[int, int, tuple[int, int]]] = []
-
-    def take(tallies, overflow, images, ranges, group):
-        """Fold the finished batches ``ranges`` [(start, count)] of a launch's slots (bands
-        ``group``) into the counts; returns the packets per band they hold."""
-        b0, nlb = group
-        packets = 0
-        for k, (b_start, b_count) in enumerate(ranges):
-            if overflow[k]:
-                redo.append((b_start, b_count, group))
-                continue
-            if images is not None:
-                peel_sums.add(images[k], b0)
-            folded[b0:b0 + nlb] += 1
-            counts[b0:b0 + nlb] += tallies[k].astype(object)
-            band_done[b0:b0 + nlb] += b_count
-            packets += b_count
-        return packets
-
-    def fold_group(group, n, tallies, overflow, ranges):
-        """Fold a group's first ``n`` slots on the device and its tallies on the host."""
-        session.fold(n, group, int(folded[group[0]]))
-        images = session.take_images(n, group)[:len(ranges)] if peel is not None else None
-        return take(tallies, overflow, images, ranges, group)
-
+    kw = dict(tau=tau, photons=photons, estimator=estimator, max_scatterings=max_scatterings, seed=seed,
+              batch_size=batch_size, backend=backend, target_error=target_error, time_limit=time_limit,
+              peel=peel, peel_bins=peel_bins, _acc_limit_bits=_acc_limit_bits)
+    plan = plan_transport(density, bands, stars, checked_adds=_checked_adds, **kw)
+    tallies = run_transport(plan, backend, progress=progress, cancel=cancel, started=t0)
     try:
-        # batches in groups of consecutive ones, each group's bands traced in one or more
-        # launches and folded before the next group's
-        first = 0
-        stop = False
-        while first < len(plan) and not stop:
-            n = min(slots, len(plan) - first)
-            start = plan.start(first)
-            count = plan.start(first + n) - start
-            finished_packets = None
-            for gi, group in enumerate(groups):
-                tallies, overflow, traced = launcher.run(
-                    start, count, base, extra, first, n, group,
-                    None if progress is None else (lambda k, gi=gi: progress(done + (gi * count + k) // len(groups), photons)))
-                if traced < count:  # the time limit came: keep the batches every band finished
-                    finished = plan.batches_within(first, start + traced)
-                    if gi > 0:  # earlier band groups traced all n; they must end where this one does
-                        finished = 0
-                    fold_group(group, finished, tallies, overflow, plan[first:first + finished])
-                    finished_packets = plan.start(first + finished) - start
-                    stop = True
-                    break
-                fold_group(group, n, tallies, overflow, plan[first:first + n])
-            if stop:
-                if finished_packets == 0 and len(groups) > 1:
-                    raise TimeLimitError(
-                        f"transport.time_limit = {time_limit!r}: the bands are traced one group after "
-                        "another on this grid, and the time limit came before every band had finished a "
-                        "batch; raise it or lower transport.batch_size")
-                done += finished_packets
-                redo.clear()  # no time left to re-trace
-                break
-            done += count
-            if progress is not None:
-                progress(done, photons)
-            first += n
-            if first >= len(plan):
-                break
-            if time.perf_counter() >= deadline:
-                break
-            if targeted and int(folded.min()) >= MIN_BATCHES and done >= next_check:
-                achieved = _current_error(backend, session.device_arrays(), shape, folded, estimator,
-                                          band_lum, done, track_scale, nvox_inv, sigma_scale, albedo)
-                if achieved <= target_error:
-                    break
-                # the error falls as 1/sqrt(N): check again near where it should reach the
-                # target (never before 10 % more packets), so the checks cost O(log N)
-                predicted = done * (achieved / target_error) ** 2
-                next_check = max(int(done * 1.1), int(0.9 * predicted))
-        # A batch whose fixed-point cell would have passed 2^63 was not folded. Same packets,
-        # same random numbers: tracing it in two halves gives the same integer deposits with
-        # more headroom each (each half then counts as a batch of the error estimate).
-        while redo:
-            b_start, b_count, group = redo.pop()
-            if b_count == 1:
-                raise AccumulatorOverflowError(
-                    "a single packet overflowed a 64-bit fixed-point voxel tally; "
-                    "reduce dust.tau or transport.max_scatterings"
-                )
-            half = b_count // 2
-            for h_start, h_count in ((b_start, half), (b_start + half, b_count - half)):
-                # one batch covering the whole range: base 2^62 puts every packet in batch 0
-                tallies, overflow, traced = launcher.run(h_start, h_count, 1 << 62, 0, 0, 1, group)
-                if traced < h_count:  # the time limit came: what is folded is the result
-                    redo.clear()
-                    break
-                fold_group(group, 1, tallies, overflow, [(h_start, h_count)])
-        done = int(band_done.min())
-        if done == 0:
-            raise TimeLimitError(
-                f"transport.time_limit = {time_limit!r}: no batch of {base} packets per band "
-                "finished within the time limit; raise it or lower transport.batch_size"
-            )
-        t_kernel = launcher.kernel_s
-        if setup.unchecked_adds and session.overflow_seen():
+        if plan.setup.unchecked_adds and tallies.session.overflow_seen():
             # a cell reached the headroom limit unnoticed during a launch: trace again with
             # every add checked (same packets, same bits as a checked run)
-            session.close()
-            return trace(**dict(call, _checked_adds=True))
-        counts_i64 = np.array(counts.tolist(), dtype=np.int64)
-        budget, photons = int(photons), int(done)
-        # per band: a band whose overflowed batch the time limit left unfinished has fewer
-        q = np.array([exact_packet_energy(L, int(n)) for L, n in zip(band_lum, band_done)])
-        j_scale = _j_scale(q, estimator, track_scale, nvox_inv)
-        peel_image = peel_error = peel_groups = None
-        if peel is not None:  # packet energy x (phase x attenuation) per pixel area
-            peel_image, peel_error, peel_groups = peel_sums.finish(q / (setup.peel_scale * peel.pixel_size**2))
-        if on_device:
-            s1, s2, d_rho = session.release_sums()
-            device_sums = DeviceSums(backend, shape, nb, s1, s2, d_rho)
-            J = rel = None
-        else:
-            device_sums = None
-            s1, s2 = session.sums()
-            J, rel = light_from_sums(s1, s2, folded, estimator, j_scale, sigma_scale, density)
-        if targeted:
-            arrays = (session.device_arrays() if device_sums is None else
-                      (device_sums.sum1, device_sums.m2, device_sums.density))
-            achieved = _current_error(backend, arrays, shape, folded, estimator, band_lum, photons,
-                                      track_scale, nvox_inv, sigma_scale, albedo)
-            # the stopping rule above uses the statistical error alone (more packets do not
-            # shrink the bias); the error reported adds the terminated packets' bias bound
-            achieved = math.hypot(achieved, float(np.max(terminated_bias(counts_i64))))
+            tallies.session.close()
+            plan = plan_transport(density, bands, stars, checked_adds=True, **kw)
+            tallies = run_transport(plan, backend, progress=progress, cancel=cancel, started=t0)
+        result = estimate_light(plan, tallies, backend, on_device=on_device)
     finally:
-        session.close()
-    warn_if_terminated(counts_i64, [b.name for b in bands], max_scatterings)
-    return TransportResult(
-        J=J,
-        rel_error=rel,
-        counts=counts_i64,
-        packet_energy=q,
-        band_luminosity=band_lum,
-        star_band_luminosity=slum,
-        photons=int(photons),
-        batches=int(folded.min()),
-        band_batches=folded,
-        estimator=estimator,
-        raw_sum=None if on_device else s1,
-        raw_m2=None if on_device else s2,
-        j_scale=j_scale,
-        sigma_scale=sigma_scale,
-        device_sums=device_sums,
-        achieved_error=achieved,
-        photons_budget=budget,
-        device_bytes=device_bytes,
-        peel_image=peel_image,
-        peel_error=peel_error,
-        peel_bin_batches=peel_groups,
-        device=backend.device_name,
-        timings={"setup_s": t_setup, "kernel_s": t_kernel, "total_s": time.perf_counter() - t0},
-    )
+        tallies.session.close()
+    warn_if_terminated(result.counts, list(plan.band_names), plan.setup.max_scatterings)
+    result.timings["total_s"] = time.perf_counter() - t0
+    return result
