@@ -77,12 +77,21 @@ if [[ " $steps " == *" layout "* ]]; then
         tests/test_transport_physics.py tests/test_kernel_options.py -k "not every_option" 2>&1 | tail -n 4
 fi
 if [[ " $steps " == *" sorted "* ]]; then
-    for flag in 0 1; do
-        echo "== large grids, 1e8 photons, NRT_SORTED=$flag (MCX up to 512^3)"
-        python3 benchmarks/bench_large_grids.py --grids 128 512 1024 --photons 1e8 --bands 1 --repeats 1 \
-            --skip micro $([[ $flag == 1 ]] && echo "mcx") --mcx-max-grid 512 \
-            --tuning NRT_SORTED=$flag --out "$out/sorted-$flag.json" 2>&1 | tail -n 12
+    # packet order: plain, sorted by first direction in 256^2 bins, in 1024^2 bins (Morton order);
+    # MCX once, in the same session
+    i=0
+    for tuning in "NRT_SORTED=0" "NRT_SORTED=1" "NRT_SORTED=1 NRT_SORT_BITS=10"; do
+        echo "== large grids, 1e8 photons, $tuning"
+        python3 benchmarks/bench_large_grids.py --grids 256 512 1024 --photons 1e8 --bands 1 --repeats 3 \
+            --skip micro $([[ $i -gt 0 ]] && echo "mcx") --mcx-max-grid 512 \
+            --tuning $tuning --out "$out/sorted-$i.json" 2>&1 | tail -n 8
+        i=$((i + 1))
     done
+fi
+if [[ " $steps " == *" e2e1e9 "* ]]; then
+    echo "== 512^3, 1e9 photons, end to end (target: 10 s)"
+    python3 benchmarks/bench_large_grids.py --grids 512 --photons 1e9 --bands 1 --repeats 1 --skip micro mcx \
+        --out "$out/e2e-512-1e9.json" 2>&1 | tail -n 4
 fi
 if [[ " $steps " == *" compare "* ]]; then
     echo "== same seed on CUDA and NVIDIA OpenCL"

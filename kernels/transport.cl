@@ -79,6 +79,10 @@
 #ifndef NRT_SORTED
 #define NRT_SORTED 0
 #endif
+/* direction bins of the sort key: 2^NRT_SORT_BITS along mu and along phi, in Morton order */
+#ifndef NRT_SORT_BITS
+#define NRT_SORT_BITS 8
+#endif
 #if NRT_IDX32
 typedef nrt_u32 nrt_idx;
 #else
@@ -529,11 +533,24 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
 
 /*
  * Sort keys of a launch's packets (NRT_SORTED): high 32 bits the packet's cell (band offset and
- * batch slot, so a work group's packets share a home cell), star and first direction (the
- * first two uniforms of nrt_sample_isotropic, i.e. mu and phi, in 256 x 256 equal-area bins),
- * low 32 bits the work item t (count * n_lbands < 2^32), so that sorting the keys yields the
- * order itself. The draws are those nrt_trace_packet makes, in the same order.
+ * batch slot, so a work group's packets share a home cell) and star (together modulo
+ * 2^(32 - 2 NRT_SORT_BITS)), then its first direction: the first two uniforms of
+ * nrt_sample_isotropic (mu and phi, equal-area bins) in 2^NRT_SORT_BITS x 2^NRT_SORT_BITS bins,
+ * interleaved bit by bit (Morton order: consecutive keys stay in a compact patch of the
+ * sphere); low 32 bits the work item t (count * n_lbands < 2^32), so that sorting the keys
+ * yields the order itself. The draws are those nrt_trace_packet makes, in the same order; the
+ * key only orders the work (any key gives the same bits).
  */
+NRT_DEVICE nrt_u32 nrt_spread_bits(nrt_u32 x) /* bit i -> bit 2i, for x < 2^16 */
+{
+    x &= 0xFFFFu;
+    x = (x | (x << 8)) & 0x00FF00FFu;
+    x = (x | (x << 4)) & 0x0F0F0F0Fu;
+    x = (x | (x << 2)) & 0x33333333u;
+    x = (x | (x << 1)) & 0x55555555u;
+    return x;
+}
+
 NRT_KERNEL void emission_keys(const NRT_GLOBAL nrt_trace_params *prm,
                               const NRT_GLOBAL float *star_cdf,
                               nrt_u64 photon_start, nrt_u64 count, nrt_u64 first_batch,
@@ -554,12 +571,15 @@ NRT_KERNEL void emission_keys(const NRT_GLOBAL nrt_trace_params *prm,
             while (s < prm->n_stars - 1 && u >= cdf[s])
                 ++s;
         }
-        nrt_u32 bm = (nrt_u32)(nrt_rng_uniform(&rng) * 256.0f);
-        nrt_u32 bp = (nrt_u32)(nrt_rng_uniform(&rng) * 256.0f);
-        bm = bm > 255u ? 255u : bm;
-        bp = bp > 255u ? 255u : bp;
-        nrt_u64 group = (((nrt_u64)lband * (nrt_u64)n_slots + slot) * (nrt_u64)prm->n_stars + (nrt_u64)s) & 0xFFFFUL;
-        keys[t] = (((group << 16) | (nrt_u64)(bm << 8 | bp)) << 32) | t;
+        const nrt_u32 bins = 1u << NRT_SORT_BITS;
+        nrt_u32 bm = (nrt_u32)(nrt_rng_uniform(&rng) * (float)bins);
+        nrt_u32 bp = (nrt_u32)(nrt_rng_uniform(&rng) * (float)bins);
+        bm = bm >= bins ? bins - 1u : bm;
+        bp = bp >= bins ? bins - 1u : bp;
+        nrt_u32 dir = (nrt_spread_bits(bm) << 1) | nrt_spread_bits(bp);
+        nrt_u64 group = (((nrt_u64)lband * (nrt_u64)n_slots + slot) * (nrt_u64)prm->n_stars + (nrt_u64)s)
+                        & ((1UL << (32 - 2 * NRT_SORT_BITS)) - 1UL);
+        keys[t] = ((group << (2 * NRT_SORT_BITS) | (nrt_u64)dir) << 32) | t;
     }
 }
 
