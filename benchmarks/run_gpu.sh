@@ -7,7 +7,8 @@
 # WHEELDIR holds wheels for what the machine lacks (pyopencl and its pure-Python needs,
 # colour-science, tomli-w; pmcx for the MCX comparison), fetched elsewhere with
 # `pip download --only-binary=:all: --python-version 3.12 ...`.
-# STEPS (default "tests bench neb128 compare profile"; also "scaling", "large", "tune", "stages", "trade", "presets", "empty", "fft") selects what runs. Everything printed
+# STEPS (default "tests bench neb128 compare profile"; also "scaling", "large", "layout", "sorted", "e2e1e9", "tune",
+# "stages", "trade", "presets", "empty", "fft") selects what runs. Everything printed
 # goes to OUTDIR/log.txt as well; JSON and .npz results beside it.
 set -uo pipefail
 out="${1:?output folder}"
