@@ -9,7 +9,7 @@
 #     to run is printed).
 #     Also ParaView 5.11 (paraview, python3-paraview), Xvfb and Debian's PoCL
 #     OpenCL driver for the ParaView plugin and its tests.
-# (b) The virtual environment .venv with `pip install -e ".[io,pocl,test]"`.
+# (b) The virtual environment .venv with `pip install -e ".[io,pocl,test,mpi]"`.
 #     .venv/.nebula-setup-stamp holds the sha256 of pyproject.toml; while it
 #     matches, step (b) is skipped.
 # (b2) pyvkfft (VkFFT), the optional OpenCL FFTs of the collision filter: it has no
@@ -79,6 +79,9 @@ if [[ "$SKIP_PV" == 1 ]]; then PV_PKGS=(); fi
 # Building pyvkfft (b2): the OpenCL headers, the ICD loader's libOpenCL.so and a C++ compiler.
 FFT_PKGS=(opencl-headers ocl-icd-opencl-dev g++)
 if [[ "$SKIP_VKFFT" == 1 ]]; then FFT_PKGS=(); fi
+# Distributed runs (mpiexec; the venv's mpi4py wheel loads the system's Open MPI, the same
+# library Debian's ParaView and python3-mpi4py are built with).
+MPI_PKGS=(openmpi-bin)
 
 is_installed() {
     # dpkg -s also succeeds for removed packages whose config files remain;
@@ -88,7 +91,7 @@ is_installed() {
 
 missing=()
 if command -v dpkg-query >/dev/null 2>&1; then
-    for pkg in "${RENDER_PKGS[@]}" "${X11_PKGS[@]}" "${PV_PKGS[@]}" "${FFT_PKGS[@]}"; do
+    for pkg in "${RENDER_PKGS[@]}" "${X11_PKGS[@]}" "${PV_PKGS[@]}" "${FFT_PKGS[@]}" "${MPI_PKGS[@]}"; do
         is_installed "$pkg" || missing+=("$pkg")
     done
     # The venv needs an interpreter with venv + ensurepip (Debian splits them out).
@@ -139,8 +142,8 @@ if [[ ! -x "$VENV/bin/python" ]]; then
     "$PYTHON" -m venv "$VENV"
 fi
 
-log "pip install -e \".[io,pocl,test]\" (this takes a while the first time; log: $VENV/.nebula-setup-pip.log)"
-if ! "$VENV/bin/python" -m pip install --disable-pip-version-check -e ".[io,pocl,test]" \
+log "pip install -e \".[io,pocl,test,mpi]\" (this takes a while the first time; log: $VENV/.nebula-setup-pip.log)"
+if ! "$VENV/bin/python" -m pip install --disable-pip-version-check -e ".[io,pocl,test,mpi]" \
         >"$VENV/.nebula-setup-pip.log" 2>&1; then
     tail -n 30 "$VENV/.nebula-setup-pip.log" >&2
     log "pip install failed (full log: $VENV/.nebula-setup-pip.log)"

@@ -77,10 +77,20 @@ def _inputs(args, scene) -> list[tuple[str, Path]]:
     return inputs
 
 
-def _backend_for(scene):
+def _backend_for(scene, comm=None):
+    """The scene's backend; with several ranks and no ``transport.device``, CUDA ranks take the
+    GPUs of their node by local rank."""
     from .backends import get_backend
 
-    backend = get_backend(scene.transport.backend, scene.transport.device)
+    device = scene.transport.device
+    if comm is not None and comm.size > 1 and not device and scene.transport.backend in ("auto", "cuda"):
+        from .backends.cuda import cuda_available
+
+        if cuda_available():
+            import cupy
+
+            device = str(comm.local_rank % cupy.cuda.runtime.getDeviceCount())
+    backend = get_backend(scene.transport.backend, device)
     check = getattr(backend, "check_build", None)
     if check is not None:
         check()
@@ -113,11 +123,15 @@ def _render(args, cancel) -> int:
         outputs.append(Output("--png", Path(args.png), ".png", PNG_BYTES))
         _require_io("--png", args.png, png=True)
     from . import resources
+    from .parallel import world
 
-    backend = _backend_for(scene)
+    # under mpiexec: every rank traces a share and holds the whole result; rank 0 writes it
+    comm = world()
+    lead = comm.rank == 0
+    backend = _backend_for(scene, comm)
     resources.check(scene, backend)  # memory first: an impossible run is refused as such
     check_outputs(outputs, _inputs(args, scene))
-    pipe = Pipeline(backend)
+    pipe = Pipeline(backend, comm=comm)
     cancel.check("start-up")
 
     bar = None
@@ -127,7 +141,7 @@ def _render(args, cancel) -> int:
             from tqdm import tqdm
 
             bar = tqdm(total=scene.transport.effective()[0], unit="pkt", unit_scale=True, desc="tracing",
-                       disable=args.quiet, file=sys.stderr)
+                       disable=args.quiet or not lead, file=sys.stderr)
 
             def progress(done, total):
                 bar.n = done
@@ -138,6 +152,8 @@ def _render(args, cancel) -> int:
             if bar is not None:
                 bar.close()
         cancel.check("run")  # a cancel after the last launch publishes nothing either
+        if not lead:
+            return 0
 
         from .io_vti import write_vti
 

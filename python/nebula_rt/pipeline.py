@@ -150,8 +150,9 @@ class Pipeline:
         ``transport.device`` select.
     """
 
-    def __init__(self, backend: Optional[Backend] = None):
+    def __init__(self, backend: Optional[Backend] = None, comm=None):
         self._backend = backend
+        self.comm = comm  # several ranks trace together (nebula_rt.parallel); None: this process alone
         self._cache: dict[str, tuple[str, object]] = {}
         self.executions: Counter = Counter()
 
@@ -202,7 +203,7 @@ class Pipeline:
             "transport",
             self.transport_key(scene, dkey),
             lambda: compute_light(scene, self.density(scene, dkey), self.backend_for(scene), progress, cancel,
-                                  on_device=True),
+                                  on_device=True, comm=self.comm),
         )
 
     def run(self, scene, progress: Optional[Callable[[int, int], None]] = None,
@@ -253,7 +254,8 @@ def _memory(res: TransportResult, finish_bytes: int, finish_peak: int = 0) -> di
             "host_peak_rss_bytes": int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024}
 
 
-def compute_light(scene, density: np.ndarray, backend: Backend, progress=None, cancel=None, on_device=False):
+def compute_light(scene, density: np.ndarray, backend: Backend, progress=None, cancel=None, on_device=False,
+                  comm=None):
     """Transport through ``density`` (and the collision filter if the scene asks for it).
 
     Returns (TransportResult, J, rel_error). Without ``on_device``: J and rel_error are NumPy
@@ -283,6 +285,7 @@ def compute_light(scene, density: np.ndarray, backend: Backend, progress=None, c
         progress=progress,
         cancel=cancel,
         on_device=on_device,
+        comm=comm,
     )
     if t.estimator == "collision-filter":
         if res.device_sums is not None and _opencl_fft(backend):

@@ -779,10 +779,21 @@ def plan_transport(density, bands, stars, *, tau: float, photons: int, estimator
 
 
 def run_transport(plan: TransportPlan, backend: Backend, *, progress=None, cancel=None,
-                  started: Optional[float] = None) -> Tallies:
+                  started: Optional[float] = None, comm=None) -> Tallies:
     """The tracing stage: trace the plan's batches, folding each launch's slots into the
     device sums, until every batch is in, the error target is met or the time limit
-    (counted from ``started``) comes. Returns the :class:`Tallies`; its session stays open."""
+    (counted from ``started``) comes. Returns the :class:`Tallies`; its session stays open.
+
+    ``comm`` (:mod:`nebula_rt.parallel`) with several ranks: each rank traces its share of
+    every group's packets, the ranks' slots and tallies are added before each fold, and the
+    decisions to stop (time limit, cancel: any rank's) are made together between groups, so
+    every rank folds the one-rank run's sums."""
+    from .parallel import Serial, share
+
+    comm = comm if comm is not None else Serial()
+    distributed = comm.size > 1
+    if comm.rank != 0:
+        progress = None
     t0 = time.perf_counter() if started is None else started
     setup, launches = plan.setup, plan.launches
     shape, nb, photons = plan.shape, plan.n_bands, plan.photons
@@ -800,7 +811,31 @@ def run_transport(plan: TransportPlan, backend: Backend, *, progress=None, cance
     folded, band_done = out.folded, out.band_done
     deadline = t0 + plan.time_limit if plan.time_limit > 0 else math.inf
     done = 0  # packets per band traced (all bands)
-    launcher = _Launcher(session, backend, cancel, deadline, lambda: (done, photons))
+    # several ranks: no rank stops on its own within a group (the others would wait for it)
+    launcher = _Launcher(session, backend, None if distributed else cancel,
+                         math.inf if distributed else deadline, lambda: (done, photons))
+
+    def trace_group(start, count, first_batch, n, group, on_progress=None, base_=None, extra_=None):
+        """Trace a group (this rank's share of it) and, with several ranks, add the ranks'."""
+        b_, e_ = (base, extra) if base_ is None else (base_, extra_)
+        if not distributed:
+            return launcher.run(start, count, b_, e_, first_batch, n, group, on_progress)
+        lo, mine = share(start, count, comm)
+        if mine:
+            tallies, overflow, _ = launcher.run(lo, mine, b_, e_, first_batch, n, group, on_progress)
+        else:
+            tallies, overflow = session.empty_group(n, group)
+        tallies, overflow = session.reduce_group(comm, n, group, tallies, overflow)
+        return tallies, overflow, count
+
+    def stop_together() -> bool:
+        """With several ranks: whether any rank was cancelled (all raise) or rank 0's clock
+        passed the time limit (all stop), decided between groups."""
+        if not distributed:
+            return time.perf_counter() >= deadline
+        if comm.allreduce_max(1.0 if cancel is not None and cancel() else 0.0) > 0:
+            raise CancelledError(f"transport cancelled after {done:,} of {photons:,} packets per band")
+        return bool(comm.bcast(time.perf_counter() >= deadline))
     next_check = 0  # packets per band after which the error is checked next (targeted runs)
     redo: list[tuple[int, int, tuple[int, int]]] = []
 
@@ -834,8 +869,8 @@ def run_transport(plan: TransportPlan, backend: Backend, *, progress=None, cance
             count = batches.start(first + n) - start
             cut = None  # packets of the group every band finished, when the time limit came
             for gi, group in enumerate(groups):
-                tallies, overflow, traced = launcher.run(
-                    start, count, base, extra, first, n, group,
+                tallies, overflow, traced = trace_group(
+                    start, count, first, n, group,
                     None if progress is None else (lambda k, gi=gi: progress(done + (gi * count + k) // len(groups), photons)))
                 if traced < count:  # the time limit came: keep the batches every band finished
                     # earlier band groups traced all n; they must end where this one does
@@ -856,7 +891,7 @@ def run_transport(plan: TransportPlan, backend: Backend, *, progress=None, cance
             if progress is not None:
                 progress(done, photons)
             first += n
-            if first >= len(batches) or time.perf_counter() >= deadline:
+            if first >= len(batches) or stop_together():
                 break
             if targeted and int(folded.min()) >= MIN_BATCHES and done >= next_check:
                 out.achieved_error = _current_error(backend, session.device_arrays(), shape, folded,
@@ -881,7 +916,7 @@ def run_transport(plan: TransportPlan, backend: Backend, *, progress=None, cance
             half = b_count // 2
             for h_start, h_count in ((b_start, half), (b_start + half, b_count - half)):
                 # one batch covering the whole range: base 2^62 puts every packet in batch 0
-                tallies, overflow, traced = launcher.run(h_start, h_count, 1 << 62, 0, 0, 1, group)
+                tallies, overflow, traced = trace_group(h_start, h_count, 0, 1, group, None, 1 << 62, 0)
                 if traced < h_count:  # the time limit came: what is folded is the result
                     redo.clear()
                     break
@@ -975,6 +1010,7 @@ def trace(
     time_limit: float = 0.0,
     peel=None,
     peel_bins=None,
+    comm=None,
     _checked_adds: bool = False,
 ) -> TransportResult:
     """Trace ``photons`` packets per band through ``density`` and estimate J.
@@ -1024,20 +1060,24 @@ def trace(
     on_device : bool
         Leave the sums on the device (``result.device_sums``, for
         :func:`nebula_rt.postprocess.finish`) instead of computing J and rel_error on the host.
+    comm : communicator, optional
+        Trace with several processes (:func:`nebula_rt.parallel.world` under ``mpiexec``):
+        every rank calls ``trace`` with the same arguments, traces a share of the packets, and
+        gets the one-rank result, bit for bit.
     """
     t0 = time.perf_counter()
     kw = dict(tau=tau, photons=photons, estimator=estimator, max_scatterings=max_scatterings, seed=seed,
               batch_size=batch_size, backend=backend, target_error=target_error, time_limit=time_limit,
               peel=peel, peel_bins=peel_bins, _acc_limit_bits=_acc_limit_bits)
     plan = plan_transport(density, bands, stars, checked_adds=_checked_adds, **kw)
-    tallies = run_transport(plan, backend, progress=progress, cancel=cancel, started=t0)
+    tallies = run_transport(plan, backend, progress=progress, cancel=cancel, started=t0, comm=comm)
     try:
         if plan.setup.unchecked_adds and tallies.session.overflow_seen():
             # a cell reached the headroom limit unnoticed during a launch: trace again with
             # every add checked (same packets, same bits as a checked run)
             tallies.session.close()
             plan = plan_transport(density, bands, stars, checked_adds=True, **kw)
-            tallies = run_transport(plan, backend, progress=progress, cancel=cancel, started=t0)
+            tallies = run_transport(plan, backend, progress=progress, cancel=cancel, started=t0, comm=comm)
         result = estimate_light(plan, tallies, backend, on_device=on_device)
     finally:
         tallies.session.close()

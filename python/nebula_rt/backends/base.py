@@ -334,6 +334,10 @@ class Backend(abc.ABC):
         return self.to_device(h)
 
     @abc.abstractmethod
+    def upload(self, dev, host: np.ndarray) -> None:
+        """Copy a host array into the first ``host.size`` elements of a device array."""
+
+    @abc.abstractmethod
     def fill_zero(self, dev) -> None:
         """Set every element of a device array to zero (queued, not waited for)."""
 

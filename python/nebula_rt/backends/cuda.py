@@ -186,6 +186,9 @@ class CUDABackend(Backend):
         if handle is not None:
             handle[0].synchronize()
 
+    def upload(self, dev, host):
+        dev[:host.size].set(np.ascontiguousarray(host, dev.dtype).reshape(-1))
+
     def fill_zero(self, dev):
         dev.fill(0)
 

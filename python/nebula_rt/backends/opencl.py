@@ -224,6 +224,9 @@ class OpenCLBackend(Backend):
         if handle is not None:
             handle[0].wait()
 
+    def upload(self, dev, host):
+        cl.enqueue_copy(self.queue, dev.data, np.ascontiguousarray(host, dev.dtype).reshape(-1))
+
     def fill_zero(self, dev):
         cl.enqueue_fill_buffer(self.queue, dev.data, np.uint8(0), 0, dev.nbytes)
 

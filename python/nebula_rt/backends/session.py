@@ -116,6 +116,47 @@ class DeviceTransport(TransportSession):
         overflow = be.to_host(self.d_overflow)
         return tallies[:n_slots, :n_lb].copy(), overflow[:n_slots].astype(bool)
 
+    def empty_group(self, n_slots, bands=None):
+        """Clear the group's tallies and flags without tracing (a rank with no packets of a
+        group); returns them as :meth:`run_group` would."""
+        n_lb = (bands or (0, self.setup.n_bands))[1]
+        self.backend.fill_zero(self.d_tallies)
+        self.backend.fill_zero(self.d_overflow)
+        return np.zeros((n_slots, n_lb, 4), np.uint64), np.zeros(n_slots, bool)
+
+    def reduce_group(self, comm, n_slots, bands, tallies, overflow):
+        """Add the ranks' slots, tallies and images of a group (``comm.allreduce_u64``) and
+        put the sums back on the device, so every rank folds the one-rank run's batch totals.
+
+        With checked adds each rank's cells stay below the headroom limit, but three ranks'
+        can pass 2^64 together: the high and low 32 bits are then added apart (no sum can
+        wrap) and a slot with a cell at or past the limit is flagged, as one rank's checked
+        adds would have flagged it. With unchecked adds the batch cannot wrap at all (the bound
+        covers all its packets) and the fold checks the limit. Returns (tallies, overflow)."""
+        be = self.backend
+        n_lb = bands[1]
+        used = n_slots * n_lb * self.nvox
+        acc = be.to_host(self.d_acc)[:used]
+        limit_bits = int(self.setup.acc_limit_bits)
+        flags = comm.allreduce_u64(np.asarray(overflow, np.uint64)) > 0
+        if self.setup.unchecked_adds:
+            total = comm.allreduce_u64(acc)
+        else:
+            hi = comm.allreduce_u64(acc >> np.uint64(32))
+            lo = comm.allreduce_u64(acc & np.uint64(0xFFFFFFFF))
+            hi_all = hi + (lo >> np.uint64(32))
+            past = (hi_all >> np.uint64(limit_bits - 32)) > 0 if limit_bits >= 32 else hi_all > 0
+            total = (hi << np.uint64(32)) + lo  # exact where no cell reaches the limit
+            if limit_bits < 32:
+                past |= (lo >> np.uint64(limit_bits)) > 0
+            flags |= past.reshape(n_slots, -1).any(axis=1)
+        be.upload(self.d_acc, total)
+        if self.pixels:
+            img = be.to_host(self.d_image)[:n_slots * n_lb * self.pixels]
+            be.upload(self.d_image, comm.allreduce_u64(img))
+        be.upload(self.d_overflow, flags.astype(np.uint32))
+        return comm.allreduce_u64(tallies).reshape(tallies.shape), flags
+
     def fold(self, n_slots, bands=None, folded_before: int = 0):
         band0, n_lb = bands if bands is not None else (0, self.setup.n_bands)
         n = n_lb * self.nvox

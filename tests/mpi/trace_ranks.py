@@ -1,0 +1,43 @@
+"""Run by tests/test_mpi.py under mpiexec: every rank traces the same run through
+``trace(comm=world())``; rank 0 saves the sums, squares, counts and peel-off image (.npz).
+
+    mpiexec -n N python tests/mpi/trace_ranks.py OUT.npz ESTIMATOR plain|checked [DEVICE]
+"""
+
+import sys
+
+import numpy as np
+
+from nebula_rt.backends import get_backend
+from nebula_rt.bands import Band
+from nebula_rt.parallel import world
+from nebula_rt.scene import Star
+from nebula_rt.sky import Camera
+from nebula_rt.transport import trace
+
+
+def main() -> int:
+    out, estimator = sys.argv[1], sys.argv[2]
+    checked = len(sys.argv) > 3 and sys.argv[3] == "checked"
+    comm = world()
+    backend = get_backend("opencl", sys.argv[4] if len(sys.argv) > 4 else "")
+    rng = np.random.default_rng(11)
+    cloud = (rng.random((20, 16, 12)) ** 3).astype(np.float32)
+    bands = [Band(name="B", wavelength=450.0, extinction=1.3, albedo=0.6, g=0.5),
+             Band(name="R", wavelength=650.0, extinction=0.8, albedo=0.7, g=-0.3)]
+    stars = [Star(position=(0.5, 0.5, 0.5), luminosity=1.0, temperature=None, bump_radius=0.0),
+             Star(position=(0.25, 0.625, 0.4), luminosity=0.6, temperature=None, bump_radius=0.0)]
+    kw = dict(tau=25.0, photons=9001, seed=4, estimator=estimator, backend=backend, batch_size=1500,
+              peel=Camera(direction=(0.0, 0.0, -1.0), size=(12, 10)))
+    if checked:  # headroom lowered: batches overflow and are re-traced in halves
+        kw["_acc_limit_bits"] = 36
+    backend.launch_packets = 2 * 3 * 1500  # several launches, each of several batches
+    res = trace(cloud, bands, stars, comm=comm, **kw)
+    if comm.rank == 0:
+        np.savez(out, raw_sum=res.raw_sum, raw_m2=res.raw_m2, counts=res.counts, peel=res.peel_image,
+                 band_batches=res.band_batches, size=comm.size)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
