@@ -84,3 +84,29 @@ def test_cli_render_under_mpiexec_writes_the_one_rank_file(tmp_path):
         assert arrays[n].keys() == arrays[1].keys()
         for name, a in arrays[1].items():
             assert arrays[n][name].tobytes() == a.tobytes(), (n, name)
+
+
+def test_ctrl_c_under_mpiexec_ends_every_rank_and_writes_nothing(tmp_path):
+    """A SIGINT to mpiexec (which passes it to every rank) during a long run: all ranks stop
+    together after their current launch (they check for a cancel together after every launch
+    of about 0.25 s), each says so, nothing is written and no temporary file is left; the job
+    ends within a few seconds (mpiexec's own shutdown included)."""
+    import signal
+    import time
+
+    scene = ROOT / "examples" / "scenes" / "thesis-default.toml"
+    exe = str(Path(sys.executable).with_name("nebula-rt"))
+    out = tmp_path / "o.vti"
+    proc = subprocess.Popen([shutil.which("mpiexec"), "--allow-run-as-root", "--oversubscribe", "-n", "2", exe,
+                             "render", str(scene), "-o", str(out), "--device", TEST_DEVICE,
+                             "--set", "grid.shape=[16,16,16]", "--set", "transport.photons=1e9", "-q"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    time.sleep(5.0)  # start-up and the first launches
+    assert proc.poll() is None
+    proc.send_signal(signal.SIGINT)
+    t0 = time.perf_counter()
+    _, err = proc.communicate(timeout=30)
+    elapsed = time.perf_counter() - t0
+    assert proc.returncode != 0 and elapsed < 5.0, (proc.returncode, elapsed, err[-1500:])
+    assert err.count("transport cancelled; nothing written") == 2, err[-1500:]
+    assert list(tmp_path.iterdir()) == []

@@ -645,6 +645,40 @@ class _Launcher:
         self.poll()  # a cancel that came during the last launch
         return tallies, overflow, traced
 
+    def run_together(self, comm, start: int, count: int, base: int, extra: int, first_batch: int,
+                     n_slots: int, bands: tuple[int, int], cancel, on_progress=None):
+        """With several ranks: trace this rank's ``count`` packets of a group in as many
+        launches as rank 0 needs for its share (each about ``LAUNCH_SECONDS``), every rank the
+        same number, and check after each launch whether any rank was cancelled (then all
+        raise :class:`CancelledError`). Returns (tallies, overflow): ``count`` may be 0."""
+        nb = bands[1]
+        if comm.rank == 0:
+            budget = self.first if self.rate is None else max(nb, int(self.rate * LAUNCH_SECONDS))
+            launches = max(1, -(-count * nb // max(budget, 1)))
+        else:
+            launches = None
+        launches = int(comm.bcast(launches))
+        tallies = overflow = None
+        traced = 0
+        for i in range(launches):
+            chunk = count * (i + 1) // launches - count * i // launches
+            if chunk:
+                tk = time.perf_counter()
+                tallies, overflow = self.session.run_group(start + traced, chunk, base, extra, first_batch,
+                                                           n_slots, fresh=traced == 0, bands=bands)
+                dt = time.perf_counter() - tk
+                self.kernel_s += dt
+                self.rate = chunk * nb / max(dt, 1e-6)
+                traced += chunk
+                if on_progress is not None and i + 1 < launches:
+                    on_progress(traced * comm.size)
+            if comm.allreduce_max(1.0 if cancel is not None and cancel() else 0.0) > 0:
+                raise CancelledError("transport cancelled")
+        if tallies is None:
+            tallies, overflow = self.session.empty_group(n_slots, bands)
+        return tallies, overflow
+
+
 
 @dataclass(frozen=True)
 class TransportPlan:
@@ -821,10 +855,8 @@ def run_transport(plan: TransportPlan, backend: Backend, *, progress=None, cance
         if not distributed:
             return launcher.run(start, count, b_, e_, first_batch, n, group, on_progress)
         lo, mine = share(start, count, comm)
-        if mine:
-            tallies, overflow, _ = launcher.run(lo, mine, b_, e_, first_batch, n, group, on_progress)
-        else:
-            tallies, overflow = session.empty_group(n, group)
+        tallies, overflow = launcher.run_together(comm, lo, mine, b_, e_, first_batch, n, group, cancel,
+                                                  on_progress)
         tallies, overflow = session.reduce_group(comm, n, group, tallies, overflow)
         return tallies, overflow, count
 
