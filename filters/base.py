@@ -83,13 +83,18 @@ class NebulaAlgorithm(VTKPythonAlgorithmBase):
 
     # -- execution -----------------------------------------------------------------------------
     def RequestUpdateExtent(self, request, inInfo, outInfo):
-        """Always ask for the whole input: the transport needs every voxel, and a sub-extent
-        request (e.g. from a 2D sky image downstream) would re-execute the upstream filters."""
+        """Always ask for the whole input, as piece 0 of 1: the transport needs every voxel on
+        every rank (a piece-aware reader in a parallel ParaView would otherwise give each rank
+        a slab), and a sub-extent request (e.g. from a 2D sky image downstream) would
+        re-execute the upstream filters."""
         from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline as sddp
 
         for port in range(self.GetNumberOfInputPorts()):
             for conn in range(inInfo[port].GetNumberOfInformationObjects()):
                 info = inInfo[port].GetInformationObject(conn)
+                info.Set(sddp.UPDATE_PIECE_NUMBER(), 0)
+                info.Set(sddp.UPDATE_NUMBER_OF_PIECES(), 1)
+                info.Set(sddp.UPDATE_NUMBER_OF_GHOST_LEVELS(), 0)
                 if info.Has(sddp.WHOLE_EXTENT()):
                     info.Set(sddp.UPDATE_EXTENT(), *info.Get(sddp.WHOLE_EXTENT()))
         return 1
@@ -110,6 +115,7 @@ class NebulaAlgorithm(VTKPythonAlgorithmBase):
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always", NebulaWarning)
                 self._execute(request, inInfo, outInfo)
+                self._crop_to_request(outInfo.GetInformationObject(0), output)
             self._surface_warnings(caught)
             self._report(1.0, "")
         except Exception as exc:  # noqa: BLE001 - every failure ends as a reported empty output
@@ -124,6 +130,21 @@ class NebulaAlgorithm(VTKPythonAlgorithmBase):
         # Succeed either way: an empty output (with the error on the output window) lets
         # downstream filters re-execute to empty rather than keep stale data.
         return 1
+
+    @staticmethod
+    def _crop_to_request(info, output) -> None:
+        """An image output computed whole is cropped to the extent asked of it (the piece of
+        this rank in a parallel ParaView, which renders and writes the pieces together)."""
+        from vtkmodules.vtkCommonDataModel import vtkImageData
+        from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline as sddp
+
+        if not isinstance(output, vtkImageData) or not info.Has(sddp.UPDATE_EXTENT()):
+            return
+        want = list(info.Get(sddp.UPDATE_EXTENT()))
+        have = list(output.GetExtent())
+        if want != have and all(want[2 * a] >= have[2 * a] and want[2 * a + 1] <= have[2 * a + 1]
+                                and want[2 * a] <= want[2 * a + 1] for a in range(3)):
+            output.Crop(want)
 
     def property_name(self, parameter: str):
         """The property behind a scene key (None if no property sets it)."""

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from vtkmodules.vtkCommonDataModel import vtkImageData
-from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
+from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm, vtkStreamingDemandDrivenPipeline
 
 from nebula_rt.backends import get_backend
 from nebula_rt.density import generate_density
@@ -101,6 +101,8 @@ class NebulaDustDensity(NebulaAlgorithm):
         info.Set(vtkStreamingDemandDrivenPipeline.WHOLE_EXTENT(), 0, nx - 1, 0, ny - 1, 0, nz - 1)
         info.Set(vtkImageData.SPACING(), 1.0 / nx, 1.0 / ny, 1.0 / nz)
         info.Set(vtkImageData.ORIGIN(), 0.5 / nx, 0.5 / ny, 0.5 / nz)
+        # pieces: the whole grid is generated (deterministic) and cropped to the piece asked
+        info.Set(vtkAlgorithm.CAN_PRODUCE_SUB_EXTENT(), 1)
         return 1
 
     def _execute(self, request, inInfo, outInfo):

@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 from vtkmodules.vtkCommonDataModel import vtkDataObject, vtkImageData
-from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
+from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm, vtkStreamingDemandDrivenPipeline
 
 from nebula_rt.backends import get_backend
 from nebula_rt.errors import SceneError
 from nebula_rt.io_vti import add_field_data, add_point_arrays, cell_array, image_geometry, point_array
 from nebula_rt.limits import check_float32_array
+from nebula_rt.parallel import vtk_world
 from nebula_rt.pipeline import compute_light, finish_light_field
 from nebula_rt.scene import Scene
 
@@ -194,6 +195,8 @@ class NebulaLightField(NebulaAlgorithm):
         dst.Set(vtkStreamingDemandDrivenPipeline.WHOLE_EXTENT(), *ext)
         dst.Set(vtkImageData.SPACING(), *spacing)
         dst.Set(vtkImageData.ORIGIN(), *origin)
+        # every rank computes the whole field and gives the piece asked of it (base.RequestData)
+        dst.Set(vtkAlgorithm.CAN_PRODUCE_SUB_EXTENT(), 1)
         return 1
 
     def _execute(self, request, inInfo, outInfo):
@@ -216,8 +219,11 @@ class NebulaLightField(NebulaAlgorithm):
         scene = self.scene(rho.shape)
         backend = get_backend(scene.transport.backend, scene.transport.device)
         self._report(0.0, "NebulaRT: tracing")
+        # in ParaView's parallel engine every rank has the whole density (RequestUpdateExtent),
+        # traces a share of the packets, and holds the one-rank result after the reductions
         res, J, rel = compute_light(scene, rho.astype(np.float32), backend, on_device=True,
-                                    progress=self._progress_callback("traced"), cancel=self._abort_requested)
+                                    progress=self._progress_callback("traced"), cancel=self._abort_requested,
+                                    comm=vtk_world())
         light = finish_light_field(scene, rho.astype(np.float32), res, J, rel, colour=False)
         if cells:
             dims, spacing, origin = image_geometry(inp)

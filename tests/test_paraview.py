@@ -366,3 +366,62 @@ def test_cancel_stops_the_trace_between_batches(pv_env, xdisplay):
     assert c["abort_flag_after"] == 0, c  # cleared: the next update is not cancelled at once
     after = r["after"]
     assert after["last_error"] is None and after["points"] == 24 ** 3, after
+
+
+# -- ParaView's parallel engine ----------------------------------------------------------------
+def _pvbatch_mpi(env, display, n, *args, timeout=240):
+    """mpiexec -n N pvbatch --mpi --symmetric tests/paraview/<script> ...; RESULT of rank 0."""
+    e = dict(env)
+    e["DISPLAY"] = display
+    proc = subprocess.run([shutil.which("mpiexec"), "--allow-run-as-root", "--oversubscribe", "-n", str(n),
+                           "pvbatch", "--mpi", "--symmetric", str(SCRIPTS / "mpi_light_field.py"), *map(str, args)],
+                          env=e, cwd=str(SCRIPTS), capture_output=True, text=True, timeout=timeout)
+    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")]
+    assert proc.returncode == 0 and lines, (
+        f"pvbatch on {n} ranks exited {proc.returncode}\n--- stdout ---\n{proc.stdout[-3000:]}\n"
+        f"--- stderr ---\n{proc.stderr[-4000:]}")
+    return json.loads(lines[-1][len("RESULT "):])
+
+
+def _read_pvti(path):
+    from vtkmodules.util.numpy_support import vtk_to_numpy
+    from vtkmodules.vtkIOXML import vtkXMLPImageDataReader
+
+    r = vtkXMLPImageDataReader()
+    r.SetFileName(str(path))
+    r.Update()
+    img = r.GetOutput()
+    pd = img.GetPointData()
+    return list(img.GetExtent()), {pd.GetArrayName(i): vtk_to_numpy(pd.GetArray(i)).copy()
+                                   for i in range(pd.GetNumberOfArrays())}
+
+
+@pytest.mark.parametrize("kind", ["reader", "source"])
+def test_light_field_under_paraview_mpi_is_the_one_rank_field(pv_env, xdisplay, tmp_path, kind):
+    """mpiexec -n 1/2/3 pvbatch --mpi: with a piece-aware reader (which would hand each rank a
+    slab) and with the Dust Density source, every rank's Nebula Light Field gets the whole
+    density, the ranks trace together (transport_ranks = N), each outputs its own piece, and
+    the .pvti that SaveData writes holds the one-rank field bit for bit."""
+    from nebula_rt.io_vti import write_vti
+
+    density = tmp_path / "density.vti"
+    rng = np.random.default_rng(7)
+    write_vti(density, {"density": (rng.random((16, 14, 12)) ** 2).astype(np.float32)}, {},
+              (1 / 16, 1 / 14, 1 / 12), (1 / 32, 1 / 28, 1 / 24))
+    fields = {}
+    for n in (1, 2, 3):
+        out = tmp_path / f"lf{n}.pvti"
+        res = _pvbatch_mpi(pv_env, xdisplay, n, kind, density, out)
+        assert res["size"] == n and res["error"] is None
+        whole = [0, 15, 0, 13, 0, 11]
+        for r in res["ranks"]:
+            assert r["input_extent"] == whole and not r["failed"]
+            assert r["transport_ranks"] == n
+        pieces = [r["output_extent"] for r in res["ranks"]]
+        assert len({tuple(p) for p in pieces}) == n  # a piece of its own per rank
+        fields[n] = _read_pvti(out)
+        assert fields[n][0] == whole
+    for n in (2, 3):
+        assert fields[n][1].keys() == fields[1][1].keys()
+        for name, a in fields[1][1].items():
+            assert fields[n][1][name].tobytes() == a.tobytes(), (n, name)

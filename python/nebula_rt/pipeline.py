@@ -89,6 +89,7 @@ class LightField:
         # uint64: the seed's whole range [0, 2^64) (an int64 field cannot hold 2^63 and above)
         out["seed"] = np.uint64(self.scene.transport.seed)
         out["batches"] = int(tr.batches)
+        out["transport_ranks"] = int(tr.ranks)
         out["estimator"] = tr.estimator
         out["device"] = tr.device
         out["exposure"] = float(self.exposure)

@@ -142,6 +142,7 @@ class TransportResult:
     peel_error: Optional[np.ndarray] = None
     peel_bin_batches: Optional[np.ndarray] = None
     device: str = ""
+    ranks: int = 1  # processes that traced it together (nebula_rt.parallel)
     timings: dict = field(default_factory=dict)
 
     @property
@@ -1114,5 +1115,6 @@ def trace(
     finally:
         tallies.session.close()
     warn_if_terminated(result.counts, list(plan.band_names), plan.setup.max_scatterings)
+    result.ranks = 1 if comm is None else int(comm.size)
     result.timings["total_s"] = time.perf_counter() - t0
     return result
