@@ -41,6 +41,14 @@ class NebulaColour(ExposureMixin, NebulaAlgorithm):
         self._opacity_scale = v
         self.Modified()
 
+    def RequestInformation(self, request, inInfo, outInfo):
+        """The input's geometry (copied by the executive), and pieces: every rank colours the
+        whole light field (global exposure) and gives the piece asked of it."""
+        from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm
+
+        outInfo.GetInformationObject(0).Set(vtkAlgorithm.CAN_PRODUCE_SUB_EXTENT(), 1)
+        return 1
+
     def _execute(self, request, inInfo, outInfo):
         from nebula_rt.scene import Colour, Scene  # validation of the colour table
 
