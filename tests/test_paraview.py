@@ -396,12 +396,13 @@ def _read_pvti(path):
                                    for i in range(pd.GetNumberOfArrays())}
 
 
-@pytest.mark.parametrize("kind", ["reader", "source"])
-def test_light_field_under_paraview_mpi_is_the_one_rank_field(pv_env, xdisplay, tmp_path, kind):
+@pytest.mark.parametrize("kind,estimator", [("reader", "track-length"), ("source", "collision-filter")])
+def test_light_field_under_paraview_mpi_is_the_one_rank_field(pv_env, xdisplay, tmp_path, kind, estimator):
     """mpiexec -n 1/2/3 pvbatch --mpi: with a piece-aware reader (which would hand each rank a
     slab) and with the Dust Density source, every rank's Nebula Light Field gets the whole
     density, the ranks trace together (transport_ranks = N), each outputs its own piece, and
-    the .pvti that SaveData writes holds the one-rank field bit for bit."""
+    the .pvti that SaveData writes holds the one-rank field bit for bit (both estimators: the
+    collision filter runs on every rank's whole sums)."""
     from nebula_rt.io_vti import write_vti
 
     density = tmp_path / "density.vti"
@@ -411,7 +412,7 @@ def test_light_field_under_paraview_mpi_is_the_one_rank_field(pv_env, xdisplay, 
     fields = {}
     for n in (1, 2, 3):
         out = tmp_path / f"lf{n}.pvti"
-        res = _pvbatch_mpi(pv_env, xdisplay, n, kind, density, out)
+        res = _pvbatch_mpi(pv_env, xdisplay, n, kind, density, out, estimator)
         assert res["size"] == n and res["error"] is None
         whole = [0, 15, 0, 13, 0, 11]
         for r in res["ranks"]:

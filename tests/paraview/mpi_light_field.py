@@ -2,7 +2,7 @@
 Field in ParaView's parallel engine, fed by a piece-aware reader or by the Dust Density source,
 saved with SaveData as a .pvti (each rank writes its own piece).
 
-    mpiexec -n N pvbatch --mpi --symmetric mpi_light_field.py reader|source DENSITY.vti OUT.pvti
+    mpiexec -n N pvbatch --mpi --symmetric mpi_light_field.py reader|source DENSITY.vti OUT.pvti ESTIMATOR
 
 RESULT (rank 0): the ranks, each rank's input and output extents and the transport_ranks of
 the output's field data.
@@ -14,7 +14,7 @@ import _common
 from paraview import simple
 from vtkmodules.vtkParallelCore import vtkMultiProcessController
 
-kind, density_file, out_file = sys.argv[1:4]
+kind, density_file, out_file, estimator = sys.argv[1:5]
 controller = vtkMultiProcessController.GetGlobalController()
 rank, size = controller.GetLocalProcessId(), controller.GetNumberOfProcesses()
 if kind == "reader":
@@ -26,6 +26,7 @@ else:
 lf = simple.NebulaLightField(Input=up)
 lf.Photons = 6000
 lf.Device = _common.TEST_DEVICE
+lf.Estimator = estimator
 lf.UpdatePipeline()
 alg = lf.GetClientSideObject()
 out = alg.GetOutputDataObject(0)
