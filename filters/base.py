@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import numbers
 import re
+import sys
 import warnings
 
 from vtkmodules.util.vtkAlgorithm import VTKPythonAlgorithmBase
@@ -120,6 +121,7 @@ class NebulaAlgorithm(VTKPythonAlgorithmBase):
             self._report(1.0, "")
         except Exception as exc:  # noqa: BLE001 - every failure ends as a reported empty output
             kind = "cancelled" if isinstance(exc, CancelledError) else "error"
+            self._abort_if_distributed(exc)
             if isinstance(exc, CancelledError):
                 # VTK 9.2 (ParaView 5.11) does not clear the flag before the next execution:
                 # without this every later update would be cancelled at once
@@ -130,6 +132,22 @@ class NebulaAlgorithm(VTKPythonAlgorithmBase):
         # Succeed either way: an empty output (with the error on the output window) lets
         # downstream filters re-execute to empty rather than keep stale data.
         return 1
+
+    def _abort_if_distributed(self, exc: BaseException) -> None:
+        """In a parallel ParaView a failure of one rank's transport (other than a cancel, which
+        the ranks decide together) would leave the others waiting in their next reduction:
+        the job is ended instead, with the rank and the cause on stderr."""
+        if isinstance(exc, CancelledError) or not getattr(self, "distributed", False):
+            return
+        from nebula_rt.parallel import vtk_world
+
+        comm = vtk_world()
+        if comm.size < 2:
+            return
+        sys.stderr.write(f"NebulaRT error (rank {comm.rank} of {comm.size}): {type(self).__name__}: "
+                         f"{self.describe_error(exc)}; ending the job\n")
+        sys.stderr.flush()
+        comm.abort(1)
 
     @staticmethod
     def _crop_to_request(info, output) -> None:

@@ -41,6 +41,9 @@ class NebulaLightField(NebulaAlgorithm):
     output contract of DESIGN.md.
     """
 
+    #: its executions reduce with the other ranks of a parallel ParaView: a failure ends the job
+    distributed = True
+
     PROPERTIES = {"dust.tau": "Tau", "bands.preset": "BandPreset", "bands.albedo": "Albedo", "bands.g": "G",
                   "transport.photons": "Photons", "transport.estimator": "Estimator",
                   "transport.filter_radius": "FilterRadius", "transport.max_scatterings": "MaxScatterings",

@@ -110,3 +110,59 @@ def test_ctrl_c_under_mpiexec_ends_every_rank_and_writes_nothing(tmp_path):
     assert proc.returncode != 0 and elapsed < 5.0, (proc.returncode, elapsed, err[-1500:])
     assert err.count("transport cancelled; nothing written") == 2, err[-1500:]
     assert list(tmp_path.iterdir()) == []
+
+
+def test_one_rank_failing_ends_the_job_naming_the_rank(tmp_path):
+    """Rank 1 alone raises a device error in its second launch (tests/faults/cli_with_fault.py
+    wraps the real launch): it names itself and the cause, ends the whole job (MPI_Abort: rank
+    0 would otherwise wait in its next reduction forever) with status 1, and nothing is
+    written."""
+    import time
+
+    scene = ROOT / "examples" / "scenes" / "thesis-default.toml"
+    out = tmp_path / "o.vti"
+    t0 = time.perf_counter()
+    r = subprocess.run([shutil.which("mpiexec"), "--allow-run-as-root", "--oversubscribe", "-n", "2",
+                        sys.executable, str(ROOT / "tests" / "faults" / "cli_with_fault.py"), "rank1-fails", "-", "--",
+                        "render", str(scene), "-o", str(out), "--device", TEST_DEVICE,
+                        "--set", "grid.shape=[16,16,16]", "--set", "transport.photons=3e6", "-q"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode != 0 and time.perf_counter() - t0 < 60
+    assert "nebula-rt (rank 1 of 2): the device lost its context (injected on rank 1)" in r.stderr, r.stderr[-2000:]
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_killed_rank_ends_the_job(tmp_path):
+    """SIGKILL to rank 1 during a long run: mpiexec ends the other rank too (no hang), with a
+    non-zero status, and nothing is written."""
+    import signal
+    import time
+
+    scene = ROOT / "examples" / "scenes" / "thesis-default.toml"
+    exe = str(Path(sys.executable).with_name("nebula-rt"))
+    out = tmp_path / "o.vti"
+    proc = subprocess.Popen([shutil.which("mpiexec"), "--allow-run-as-root", "--oversubscribe", "-n", "2", exe,
+                             "render", str(scene), "-o", str(out), "--device", TEST_DEVICE,
+                             "--set", "grid.shape=[16,16,16]", "--set", "transport.photons=1e9", "-q"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    rank1 = None
+    deadline = time.monotonic() + 30
+    while rank1 is None and time.monotonic() < deadline:
+        time.sleep(0.5)
+        for pid in os.listdir("/proc"):
+            if not pid.isdigit():
+                continue
+            try:
+                env = open(f"/proc/{pid}/environ", "rb").read().split(b"\0")
+                cmd = open(f"/proc/{pid}/cmdline", "rb").read()
+            except OSError:
+                continue
+            if b"OMPI_COMM_WORLD_RANK=1" in env and str(out).encode() in cmd:
+                rank1 = int(pid)
+    assert rank1 is not None, "rank 1 not found"
+    time.sleep(2.0)  # tracing by now
+    os.kill(rank1, signal.SIGKILL)
+    t0 = time.perf_counter()
+    proc.communicate(timeout=60)
+    assert proc.returncode != 0 and time.perf_counter() - t0 < 30
+    assert list(tmp_path.iterdir()) == []

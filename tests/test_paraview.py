@@ -426,3 +426,19 @@ def test_light_field_under_paraview_mpi_is_the_one_rank_field(pv_env, xdisplay, 
         assert fields[n][1].keys() == fields[1][1].keys()
         for name, a in fields[1][1].items():
             assert fields[n][1][name].tobytes() == a.tobytes(), (n, name)
+
+
+def test_one_rank_failing_under_paraview_mpi_ends_the_job(pv_env, xdisplay):
+    """Rank 1's transport fails (a device error in its second launch): the job ends within
+    seconds with the rank and the cause on stderr, and no rank reports a finished run (the
+    filter ends the job instead of leaving rank 0 waiting in a reduction)."""
+    e = dict(pv_env)
+    e["DISPLAY"] = xdisplay
+    t0 = time.monotonic()
+    proc = subprocess.run([shutil.which("mpiexec"), "--allow-run-as-root", "--oversubscribe", "-n", "2",
+                           "pvbatch", "--mpi", "--symmetric", str(SCRIPTS / "mpi_rank_fails.py")],
+                          env=e, cwd=str(SCRIPTS), capture_output=True, text=True, timeout=120)
+    assert proc.returncode != 0 and time.monotonic() - t0 < 60
+    assert "RESULT " not in proc.stdout
+    assert ("NebulaRT error (rank 1 of 2): NebulaLightField: the device lost its context (injected on rank 1)"
+            in proc.stderr + proc.stdout), proc.stderr[-3000:]

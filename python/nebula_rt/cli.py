@@ -344,45 +344,71 @@ def main(argv=None) -> int:
 def _main(argv) -> int:
     cancel = SignalCancel()
     with cancel:
+        status = None
         try:
             args = build_parser().parse_args(argv)
             cancel.quiet = bool(getattr(args, "quiet", False))
             return args.func(args, cancel)
         except SceneError as exc:
             _error(f"invalid scene: {exc}; nothing written")
-            return 2
+            status = 2
         except (OutputError, ResourceError) as exc:
             _error(f"{exc}; nothing written")
-            return 2
+            status = 2
         except BackendUnavailableError as exc:
             _error(str(exc))
-            return 3
+            status = 3
         except CancelledError as exc:
+            # every rank of a distributed run raises this together: no need to abort the others
             _error(f"{exc}; nothing written")
             return cancel.exit_status
         except KeyboardInterrupt:
             _error("aborted; nothing written")
-            return 130
+            status = 130
         except OSError as exc:
             from .outputs import describe_os_error
 
             where = f"{exc.filename}: " if exc.filename else ""
             _error(f"{where}{describe_os_error(exc)}; nothing written")
-            return 1
+            status = 1
         except NebulaError as exc:
             _error(str(exc))
-            return 1
+            status = 1
         except Exception as exc:  # a defect: one line, not a traceback (NEBULA_RT_DEBUG=1 shows it)
             if os.environ.get("NEBULA_RT_DEBUG"):
                 raise
             _error(f"internal error: {type(exc).__name__}: {exc} (set NEBULA_RT_DEBUG=1 for the "
                    "traceback; nothing written)")
-            return 1
+            status = 1
+        _abort_the_other_ranks(status)
+        return status
+
+
+def _distributed():
+    """The communicator when this process is one of several ranks, else None."""
+    from .parallel import _launched_by_mpi, world
+
+    if not _launched_by_mpi():
+        return None
+    comm = world()
+    return comm if comm.size > 1 else None
+
+
+def _abort_the_other_ranks(status: int) -> None:
+    """One rank of a distributed run failed on its own: the others would wait for it in their
+    next reduction forever, so the whole job is ended (MPI_Abort) with this rank's status,
+    after its message (which names the rank) is out."""
+    comm = _distributed()
+    if comm is not None:
+        sys.stderr.flush()
+        comm.comm.Abort(int(status))
 
 
 def _error(message: str) -> None:
+    comm = _distributed()
+    who = "nebula-rt" if comm is None else f"nebula-rt (rank {comm.rank} of {comm.size})"
     try:
-        print(f"nebula-rt: {message}", file=sys.stderr, flush=True)
+        print(f"{who}: {message}", file=sys.stderr, flush=True)
     except (OSError, ValueError):
         pass
 

@@ -41,6 +41,9 @@ class Serial:
     def barrier(self) -> None:
         pass
 
+    def abort(self, code: int) -> None:
+        raise SystemExit(int(code))
+
 
 class MPIComm:
     """An mpi4py communicator (``comm``), with the node-local rank for choosing a device."""
@@ -70,6 +73,10 @@ class MPIComm:
 
     def barrier(self) -> None:
         self.comm.Barrier()
+
+    def abort(self, code: int) -> None:
+        """End every rank of the job (MPI_Abort)."""
+        self.comm.Abort(int(code))
 
 
 class VTKControllerComm:
@@ -120,6 +127,17 @@ class VTKControllerComm:
 
     def barrier(self) -> None:
         self.controller.Barrier()
+
+    def abort(self, code: int) -> None:
+        """End every rank of the job (MPI_Abort through mpi4py, which Debian's ParaView's
+        Python has; else the controller's own break of its remote-method loop)."""
+        try:
+            from mpi4py import MPI
+
+            MPI.COMM_WORLD.Abort(int(code))
+        except ImportError:
+            self.controller.TriggerBreakRMIs()
+            os._exit(int(code))
 
 
 def vtk_world():

@@ -12,6 +12,7 @@ during-write       inside the .vti writer, before VTK writes
 during-png         inside the PNG rendering
 fill-disk          the output's file system is filled just before the .vti is written
 png-fails          the PNG rendering raises after the .vti was staged
+rank1-fails        (under mpiexec) rank 1 alone raises a device error in its second launch
 
 The functions are wrapped, not replaced: the real pipeline, kernels and writers run.
 """
@@ -36,7 +37,20 @@ def main() -> int:
     from nebula_rt import cli, io_vti, pipeline, render, scene
     from nebula_rt.backends import session
 
-    if point == "startup":
+    if point == "rank1-fails":
+        from nebula_rt.errors import NebulaError
+        from nebula_rt.parallel import world
+
+        run_group = session.DeviceTransport.run_group
+        calls = {"n": 0}
+
+        def failing(self, *a, **kw):
+            calls["n"] += 1
+            if world().rank == 1 and calls["n"] == 2:
+                raise NebulaError("the device lost its context (injected on rank 1)")
+            return run_group(self, *a, **kw)
+        session.DeviceTransport.run_group = failing
+    elif point == "startup":
         load = scene.Scene.load.__func__
 
         def loading(cls, path):
