@@ -760,6 +760,7 @@ class Tallies:
     device_bytes: int = 0
     setup_s: float = 0.0
     kernel_s: float = 0.0
+    reduce_s: float = 0.0  # several ranks: time spent adding the ranks' slots and tallies
 
     @property
     def photons(self) -> int:
@@ -858,7 +859,9 @@ def run_transport(plan: TransportPlan, backend: Backend, *, progress=None, cance
         lo, mine = share(start, count, comm)
         tallies, overflow = launcher.run_together(comm, lo, mine, b_, e_, first_batch, n, group, cancel,
                                                   on_progress)
+        tr = time.perf_counter()
         tallies, overflow = session.reduce_group(comm, n, group, tallies, overflow)
+        out.reduce_s += time.perf_counter() - tr
         return tallies, overflow, count
 
     def stop_together() -> bool:
@@ -1019,7 +1022,7 @@ def estimate_light(plan: TransportPlan, tallies: Tallies, backend: Backend, *, o
         peel_error=peel_error,
         peel_bin_batches=peel_groups,
         device=backend.device_name,
-        timings={"setup_s": tallies.setup_s, "kernel_s": tallies.kernel_s},
+        timings={"setup_s": tallies.setup_s, "kernel_s": tallies.kernel_s, "reduce_s": tallies.reduce_s},
     )
 
 
