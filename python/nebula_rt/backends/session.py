@@ -136,7 +136,7 @@ class DeviceTransport(TransportSession):
         be = self.backend
         n_lb = bands[1]
         used = n_slots * n_lb * self.nvox
-        acc = be.to_host(self.d_acc)[:used]
+        acc = be.to_host(self.d_acc[:used])  # the group's slots only
         limit_bits = int(self.setup.acc_limit_bits)
         flags = comm.allreduce_u64(np.asarray(overflow, np.uint64)) > 0
         if self.setup.unchecked_adds:
@@ -152,7 +152,7 @@ class DeviceTransport(TransportSession):
             flags |= past.reshape(n_slots, -1).any(axis=1)
         be.upload(self.d_acc, total)
         if self.pixels:
-            img = be.to_host(self.d_image)[:n_slots * n_lb * self.pixels]
+            img = be.to_host(self.d_image[:n_slots * n_lb * self.pixels])
             be.upload(self.d_image, comm.allreduce_u64(img))
         be.upload(self.d_overflow, flags.astype(np.uint32))
         return comm.allreduce_u64(tallies).reshape(tallies.shape), flags
