@@ -86,6 +86,16 @@ def test_cli_render_under_mpiexec_writes_the_one_rank_file(tmp_path):
             assert arrays[n][name].tobytes() == a.tobytes(), (n, name)
 
 
+def _long_render(out):
+    """`mpiexec -n 2 nebula-rt render` of 1e9 packets into ``out``, started (a Popen)."""
+    scene = ROOT / "examples" / "scenes" / "thesis-default.toml"
+    exe = str(Path(sys.executable).with_name("nebula-rt"))
+    return subprocess.Popen([shutil.which("mpiexec"), "--allow-run-as-root", "--oversubscribe", "-n", "2", exe,
+                             "render", str(scene), "-o", str(out), "--device", TEST_DEVICE,
+                             "--set", "grid.shape=[16,16,16]", "--set", "transport.photons=1e9", "-q"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
 def test_ctrl_c_under_mpiexec_ends_every_rank_and_writes_nothing(tmp_path):
     """A SIGINT to mpiexec (which passes it to every rank) during a long run: all ranks stop
     together after their current launch (they check for a cancel together after every launch
@@ -94,13 +104,8 @@ def test_ctrl_c_under_mpiexec_ends_every_rank_and_writes_nothing(tmp_path):
     import signal
     import time
 
-    scene = ROOT / "examples" / "scenes" / "thesis-default.toml"
-    exe = str(Path(sys.executable).with_name("nebula-rt"))
     out = tmp_path / "o.vti"
-    proc = subprocess.Popen([shutil.which("mpiexec"), "--allow-run-as-root", "--oversubscribe", "-n", "2", exe,
-                             "render", str(scene), "-o", str(out), "--device", TEST_DEVICE,
-                             "--set", "grid.shape=[16,16,16]", "--set", "transport.photons=1e9", "-q"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = _long_render(out)
     time.sleep(5.0)  # start-up and the first launches
     assert proc.poll() is None
     proc.send_signal(signal.SIGINT)
@@ -138,13 +143,8 @@ def test_a_killed_rank_ends_the_job(tmp_path):
     import signal
     import time
 
-    scene = ROOT / "examples" / "scenes" / "thesis-default.toml"
-    exe = str(Path(sys.executable).with_name("nebula-rt"))
     out = tmp_path / "o.vti"
-    proc = subprocess.Popen([shutil.which("mpiexec"), "--allow-run-as-root", "--oversubscribe", "-n", "2", exe,
-                             "render", str(scene), "-o", str(out), "--device", TEST_DEVICE,
-                             "--set", "grid.shape=[16,16,16]", "--set", "transport.photons=1e9", "-q"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = _long_render(out)
     rank1 = None
     deadline = time.monotonic() + 30
     while rank1 is None and time.monotonic() < deadline:

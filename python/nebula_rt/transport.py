@@ -632,19 +632,28 @@ class _Launcher:
             self.poll()
             if traced and time.perf_counter() >= self.deadline:
                 break
-            budget = self.first if self.rate is None else max(nb, int(self.rate * LAUNCH_SECONDS))
-            chunk = max(1, min(count - traced, budget // nb))
-            tk = time.perf_counter()
-            tallies, overflow = self.session.run_group(start + traced, chunk, base, extra, first_batch,
-                                                       n_slots, fresh=traced == 0, bands=bands)
-            dt = time.perf_counter() - tk
-            self.kernel_s += dt
-            self.rate = chunk * nb / max(dt, 1e-6)
+            chunk = max(1, min(count - traced, self._budget(nb) // nb))
+            tallies, overflow = self._launch(start + traced, chunk, base, extra, first_batch, n_slots,
+                                             traced == 0, bands)
             traced += chunk
             if on_progress is not None and traced < count:
                 on_progress(traced)
         self.poll()  # a cancel that came during the last launch
         return tallies, overflow, traced
+
+    def _budget(self, nb: int) -> int:
+        """Packets (all bands) of the next launch: the first launch's, then what the measured
+        speed traces in ``LAUNCH_SECONDS``."""
+        return self.first if self.rate is None else max(nb, int(self.rate * LAUNCH_SECONDS))
+
+    def _launch(self, start, chunk, base, extra, first_batch, n_slots, fresh, bands):
+        """One launch, timed (its speed sizes the next)."""
+        tk = time.perf_counter()
+        out = self.session.run_group(start, chunk, base, extra, first_batch, n_slots, fresh=fresh, bands=bands)
+        dt = time.perf_counter() - tk
+        self.kernel_s += dt
+        self.rate = chunk * bands[1] / max(dt, 1e-6)
+        return out
 
     def run_together(self, comm, start: int, count: int, base: int, extra: int, first_batch: int,
                      n_slots: int, bands: tuple[int, int], cancel, on_progress=None):
@@ -653,23 +662,15 @@ class _Launcher:
         same number, and check after each launch whether any rank was cancelled (then all
         raise :class:`CancelledError`). Returns (tallies, overflow): ``count`` may be 0."""
         nb = bands[1]
-        if comm.rank == 0:
-            budget = self.first if self.rate is None else max(nb, int(self.rate * LAUNCH_SECONDS))
-            launches = max(1, -(-count * nb // max(budget, 1)))
-        else:
-            launches = None
+        launches = max(1, -(-count * nb // max(self._budget(nb), 1))) if comm.rank == 0 else None
         launches = int(comm.bcast(launches))
         tallies = overflow = None
         traced = 0
         for i in range(launches):
             chunk = count * (i + 1) // launches - count * i // launches
             if chunk:
-                tk = time.perf_counter()
-                tallies, overflow = self.session.run_group(start + traced, chunk, base, extra, first_batch,
-                                                           n_slots, fresh=traced == 0, bands=bands)
-                dt = time.perf_counter() - tk
-                self.kernel_s += dt
-                self.rate = chunk * nb / max(dt, 1e-6)
+                tallies, overflow = self._launch(start + traced, chunk, base, extra, first_batch, n_slots,
+                                                 traced == 0, bands)
                 traced += chunk
                 if on_progress is not None and i + 1 < launches:
                     on_progress(traced * comm.size)
