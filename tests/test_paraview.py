@@ -402,14 +402,15 @@ def test_light_field_under_paraview_mpi_is_the_one_rank_field(pv_env, xdisplay, 
     slab) and with the Dust Density source, every rank's Nebula Light Field gets the whole
     density, the ranks trace together (transport_ranks = N), each outputs its own piece, and
     the .pvti that SaveData writes holds the one-rank field bit for bit (both estimators: the
-    collision filter runs on every rank's whole sums)."""
+    collision filter runs on every rank's whole sums); a Nebula Colour downstream gives the same
+    pieces with the one-rank exposure on every rank."""
     from nebula_rt.io_vti import write_vti
 
     density = tmp_path / "density.vti"
     rng = np.random.default_rng(7)
     write_vti(density, {"density": (rng.random((16, 14, 12)) ** 2).astype(np.float32)}, {},
               (1 / 16, 1 / 14, 1 / 12), (1 / 32, 1 / 28, 1 / 24))
-    fields = {}
+    fields, exposures = {}, {}
     for n in (1, 2, 3):
         out = tmp_path / f"lf{n}.pvti"
         res = _pvbatch_mpi(pv_env, xdisplay, n, kind, density, out, estimator)
@@ -420,9 +421,14 @@ def test_light_field_under_paraview_mpi_is_the_one_rank_field(pv_env, xdisplay, 
             assert r["transport_ranks"] == n
         pieces = [r["output_extent"] for r in res["ranks"]]
         assert len({tuple(p) for p in pieces}) == n  # a piece of its own per rank
+        # Nebula Colour downstream: a piece per rank too, one exposure for all (the whole field)
+        assert [r["colour_extent"] for r in res["ranks"]] == pieces, res
+        exposures[n] = {r["exposure"] for r in res["ranks"]}
+        assert len(exposures[n]) == 1 and next(iter(exposures[n])) > 0
         fields[n] = _read_pvti(out)
         assert fields[n][0] == whole
     for n in (2, 3):
+        assert exposures[n] == exposures[1]  # the one-rank exposure, on every rank
         assert fields[n][1].keys() == fields[1][1].keys()
         for name, a in fields[1][1].items():
             assert fields[n][1][name].tobytes() == a.tobytes(), (n, name)
