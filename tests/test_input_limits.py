@@ -50,6 +50,19 @@ def image_input(alg, density):
     alg._producer = producer  # keep it alive with the algorithm
 
 
+def pinned_light_field(photons=None):
+    """A Nebula Light Field on a uniform 8^3 input, on the test device (``photons`` if given)."""
+    from nebula_rt.filters import NebulaLightField
+
+    lf = NebulaLightField()
+    image_input(lf, np.ones((8, 8, 8), np.float32))
+    lf.SetBackend(TEST_BACKEND)
+    lf.SetDevice(TEST_DEVICE)
+    if photons is not None:
+        lf.SetPhotons(photons)
+    return lf
+
+
 def refused(fn, parameter, *fragments):
     with pytest.raises(SceneError) as info:
         fn()
@@ -169,13 +182,7 @@ def test_J_and_emissivity_bounds_hold(backend, estimator):
 
 
 def test_light_field_filter_refuses_tau_beyond_float32():
-    from nebula_rt.filters import NebulaLightField
-
-    lf = NebulaLightField()
-    image_input(lf, np.ones((8, 8, 8), np.float32))
-    lf.SetBackend(TEST_BACKEND)
-    lf.SetDevice(TEST_DEVICE)
-    lf.SetPhotons(1000)
+    lf = pinned_light_field(photons=1000)
     lf.SetTau(1e39)
     lf.Update()
     assert lf.GetOutputDataObject(0).GetNumberOfPoints() == 0
@@ -244,14 +251,9 @@ def test_largest_seed_is_traced_and_written_losslessly(tmp_path, backend):
 
 
 def test_largest_seed_through_the_filter():
-    from nebula_rt.filters import NebulaLightField
     from nebula_rt.io_vti import field_data_dict
 
-    lf = NebulaLightField()
-    image_input(lf, np.ones((8, 8, 8), np.float32))
-    lf.SetBackend(TEST_BACKEND)
-    lf.SetDevice(TEST_DEVICE)
-    lf.SetPhotons(1000)
+    lf = pinned_light_field(photons=1000)
     lf.SetSeed(2**64 - 1)
     lf.Update()
     assert lf.last_error is None
@@ -308,16 +310,13 @@ def test_foreign_exceptions_become_one_error_and_an_empty_output(monkeypatch):
     import pyopencl as cl
 
     import nebula_rt.filters.light_field as lf_module
-    from nebula_rt.filters import NebulaColour, NebulaLightField
+    from nebula_rt.filters import NebulaColour
 
     def failing(*a, **k):
         raise cl.LogicError("create_buffer failed: INVALID_BUFFER_SIZE")
 
     monkeypatch.setattr(lf_module, "compute_light", failing)
-    lf = NebulaLightField()
-    image_input(lf, np.ones((8, 8, 8), np.float32))
-    lf.SetBackend(TEST_BACKEND)
-    lf.SetDevice(TEST_DEVICE)
+    lf = pinned_light_field()
     c = NebulaColour()
     c.SetInputConnection(lf.GetOutputPort())
     with _Capture() as cap:
