@@ -52,7 +52,12 @@ def child(backend_name: str, device: str, n: int, photons: int) -> dict:
     res = trace(rho, bands, stars, tau=2.0, photons=photons, backend=backend, comm=comm)
     wall = time.perf_counter() - t0
     digest = hashlib.sha256(res.raw_sum.tobytes() + res.raw_m2.tobytes() + res.counts.tobytes()).hexdigest()
-    return {"ranks": comm.size, "grid": n, "photons": photons, "device": backend.device_name,
+    gpus = None
+    if backend_name == "cuda":
+        import cupy
+
+        gpus = int(cupy.cuda.runtime.getDeviceCount())
+    return {"ranks": comm.size, "grid": n, "photons": photons, "device": backend.device_name, "gpus": gpus,
             "wall_s": round(wall, 4), "kernel_s": round(res.timings["kernel_s"], 4),
             "reduce_s": round(res.timings.get("reduce_s", 0.0), 4),
             "absorbed_fraction": float(res.counts[0, 1] / res.counts[0, 0]), "sha256": digest}
@@ -97,6 +102,8 @@ def main(argv=None) -> int:
                     rec = json.loads(lines[-1][len("RESULT "):])
                     if base is None and r == 1:
                         base = rec
+                    if rec.get("gpus") is not None and r > rec["gpus"]:
+                        rec["note"] = f"{r} ranks share {rec['gpus']} GPU(s): the code path, not scaling"
                     if base is not None:
                         rec["same_bits_as_one_rank"] = rec["sha256"] == base["sha256"]
                         rec["efficiency"] = round(base["wall_s"] / (r * rec["wall_s"]), 3)

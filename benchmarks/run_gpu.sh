@@ -7,7 +7,7 @@
 # WHEELDIR holds wheels for what the machine lacks (pyopencl and its pure-Python needs,
 # colour-science, tomli-w; pmcx for the MCX comparison), fetched elsewhere with
 # `pip download --only-binary=:all: --python-version 3.12 ...`.
-# STEPS (default "tests bench neb128 compare profile"; also "scaling", "large", "layout", "sorted", "e2e1e9", "tune",
+# STEPS (default "tests bench neb128 compare profile"; also "scaling", "large", "layout", "sorted", "probe", "ranks", "e2e1e9", "tune",
 # "stages", "trade", "presets", "empty", "fft") selects what runs. Everything printed
 # goes to OUTDIR/log.txt as well; JSON and .npz results beside it.
 set -uo pipefail
@@ -88,6 +88,29 @@ if [[ " $steps " == *" sorted "* ]]; then
             --tuning $tuning --out "$out/sorted-$i.json" 2>&1 | tail -n 8
         i=$((i + 1))
     done
+fi
+if [[ " $steps " == *" probe "* ]]; then
+    # what the deposits and the density loads cost at 256^3 and 512^3 (kernel probes: the light
+    # fields are wrong by design, the kernel times are what counts); MCX once, same session
+    i=0
+    for tuning in "NRT_SORTED=1" "NRT_SORTED=0" "NRT_PROBE_DEPOSIT=1" "NRT_PROBE_DEPOSIT=2" \
+                  "NRT_PROBE_UNIFORM=1" "NRT_PROBE_DEPOSIT=1 NRT_PROBE_UNIFORM=1"; do
+        echo "== probe, 1e8 photons, $tuning"
+        python3 benchmarks/bench_large_grids.py --grids 256 512 --photons 1e8 --bands 1 --repeats 3 \
+            --skip $([[ $i -gt 0 ]] && echo "mcx") micro --mcx-max-grid 512 \
+            --tuning $tuning --out "$out/probe-$i.json" 2>&1 | grep -E "kernel|mcx|MCX" | tail -n 6
+        i=$((i + 1))
+    done
+fi
+if [[ " $steps " == *" ranks "* ]]; then
+    # several ranks on the GPUs there are (on one GPU: the code path, not scaling)
+    if command -v mpiexec >/dev/null; then
+        echo "== ranks on $(nvidia-smi -L | wc -l) GPU(s), CUDA"
+        python3 benchmarks/bench_ranks.py --ranks 1 2 --backend cuda --grid 128 512 --photons 1e8 \
+            --out "$out/ranks-cuda.json" 2>&1 | tail -n 12
+    else
+        echo "== ranks: no mpiexec on this machine"
+    fi
 fi
 if [[ " $steps " == *" e2e1e9 "* ]]; then
     echo "== 512^3, 1e9 photons, end to end (target: 10 s)"

@@ -83,6 +83,25 @@
 #ifndef NRT_SORT_BITS
 #define NRT_SORT_BITS 8
 #endif
+/*
+ * Measurement probes (benchmarks/bench_large_grids.py --tuning; they give wrong light fields and
+ * the library never sets them): what the voxel deposits and the density loads cost.
+ *   NRT_PROBE_DEPOSIT 1  no voxel deposits (the walk, the density loads and the tallies only);
+ *                    2  each deposit as a 32-bit atomic add of v >> 28 into the low half of the
+ *                       slot (the memory traffic of an accumulator half as wide);
+ *   NRT_PROBE_UNIFORM 1  every density load reads voxel 0 (no density traffic).
+ */
+#ifndef NRT_PROBE_DEPOSIT
+#define NRT_PROBE_DEPOSIT 0
+#endif
+#ifndef NRT_PROBE_UNIFORM
+#define NRT_PROBE_UNIFORM 0
+#endif
+#if NRT_PROBE_UNIFORM
+#define NRT_RHO(density, i) ((density)[0])
+#else
+#define NRT_RHO(density, i) ((density)[i])
+#endif
 #if NRT_IDX32
 typedef nrt_u32 nrt_idx;
 #else
@@ -293,6 +312,13 @@ NRT_DEVICE void nrt_deposit(const nrt_sink *k, NRT_GLOBAL nrt_u64 *band_acc, nrt
         return;
     }
 #endif
+#if NRT_PROBE_DEPOSIT == 1
+    return;
+#elif NRT_PROBE_DEPOSIT == 2
+    if ((v >> 28) != 0)
+        NRT_ATOMIC_ADD_U32((NRT_GLOBAL nrt_u32 *)band_acc + idx, (nrt_u32)(v >> 28));
+    return;
+#endif
     nrt_acc_add(&band_acc[idx], v, overflow);
 }
 
@@ -350,7 +376,7 @@ NRT_DEVICE void nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, f
        the flight's length. */
     float p0[3] = {p[0], p[1], p[2]};
     float t_cur = 0.0f;
-    float rho = density[idx];
+    float rho = NRT_RHO(density, idx);
     for (;;) {
         float tx = nrt_face_distance(p0[0], d[0], inv_d[0], ix, hx);
         float ty = nrt_face_distance(p0[1], d[1], inv_d[1], iy, hy);
@@ -362,7 +388,7 @@ NRT_DEVICE void nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, f
         int leaving = nrt_step_voxel(&jx, &jy, &jz, tx, ty, tz, d, nx, ny, nz);
         nrt_idx jdx = leaving ? idx : nrt_voxel_index(jx, jy, jz, nx, ny);
 #if NRT_PREFETCH
-        float rho_next = density[jdx];
+        float rho_next = NRT_RHO(density, jdx);
 #endif
         float sigma = sig_b * rho;
         float tau_seg = sigma * seg;
@@ -420,7 +446,7 @@ NRT_DEVICE void nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, f
 #if NRT_PREFETCH
         rho = rho_next;
 #else
-        rho = density[idx];
+        rho = NRT_RHO(density, idx);
 #endif
     }
 }
