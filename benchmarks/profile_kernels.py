@@ -1,0 +1,109 @@
+#!/usr/bin/env python
+"""Where a CUDA transport's device time goes, kernel by kernel: the neb medium (uniform dust,
+optical depth 1 centre to face, albedo 0.6, g 0.6, a point source at the centre) on n^3 voxels.
+
+    python benchmarks/profile_kernels.py [--grids 256 512] [--photons 1e8]
+        [--tuning "NRT_SORTED=0" "NRT_SORTED=1" ...] [--out FILE.json]
+
+Each device call of the backend (every kernel launch, the key sort, fills and copies) is timed
+with CUDA events around it and the stream synchronised after it, so the calls do not overlap
+(the totals slightly exceed a free-running trace). Per configuration: the time per kernel name
+and calls, launches of the transport kernel with their packets, and the packets per ms of the
+transport kernel alone. Each ``--tuning`` entry is one configuration (space-separated
+KEY=VALUE options of the transport kernel, "" for the backend's defaults).
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import sys
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+
+
+def profile(n: int, photons: int, tuning: dict) -> dict:
+    import cupy as cp
+    import numpy as np
+
+    from nebula_rt.backends.cuda import CUDABackend
+    from nebula_rt.bands import Band
+    from nebula_rt.scene import Star
+    from nebula_rt.transport import trace
+
+    be = CUDABackend("", transport_tuning=tuning)
+    bands = [Band(name="V", wavelength=550.0, extinction=1.0, albedo=0.6, g=0.6)]
+    stars = [Star(position=(0.5, 0.5, 0.5), luminosity=1.0, temperature=None, bump_radius=0.0)]
+    trace(np.ones((16, 16, 16), np.float32), bands, stars, tau=2.0, photons=10_000, backend=be)  # compile
+
+    times: dict = collections.defaultdict(float)
+    calls: dict = collections.Counter()
+    trace_packets = []
+
+    def timed(name_of, fn):
+        def wrapper(*args, **kwargs):
+            start, end = cp.cuda.Event(), cp.cuda.Event()
+            start.record()
+            out = fn(*args, **kwargs)
+            end.record()
+            end.synchronize()
+            name = name_of(args)
+            times[name] += cp.cuda.get_elapsed_time(start, end) / 1e3
+            calls[name] += 1
+            return out
+        return wrapper
+
+    be.launch = timed(lambda a: a[1], be.launch)
+    orig_trace = be.launch_trace
+
+    def launch_trace(*args, **kwargs):
+        trace_packets.append(int(args[2]))
+        return orig_trace(*args, **kwargs)
+
+    be.launch_trace = timed(lambda a: a[1], launch_trace)
+    be.sort_u64 = timed(lambda a: "sort_u64", be.sort_u64)
+    be.fill_zero = timed(lambda a: "fill_zero", be.fill_zero)
+    be.to_host = timed(lambda a: "to_host", be.to_host)
+    rho = np.ones((n, n, n), np.float32)
+    t0 = time.perf_counter()
+    res = trace(rho, bands, stars, tau=2.0, photons=photons, backend=be)
+    wall = time.perf_counter() - t0
+    t_trace = times.get("trace_photons", 0.0)
+    return {"grid": n, "photons": photons, "tuning": tuning, "wall_s": wall,
+            "kernel_s": float(res.timings["kernel_s"]), "batches": int(res.batches),
+            "absorbed_fraction": float(res.counts[0, 1] / res.counts[0, 0]),
+            "device_s": dict(sorted(times.items(), key=lambda kv: -kv[1])), "calls": dict(calls),
+            "trace_launches": len(trace_packets), "trace_packets": trace_packets[:64],
+            "trace_packets_per_ms": photons / (t_trace * 1e3) if t_trace else None}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--grids", type=int, nargs="+", default=[256, 512])
+    ap.add_argument("--photons", type=float, default=1e8)
+    ap.add_argument("--tuning", nargs="*", default=[""])
+    ap.add_argument("--out", default=None)
+    args = ap.parse_args(argv)
+    records = []
+    for text in args.tuning:
+        tuning = {k: int(v) for k, v in (item.split("=", 1) for item in text.split())}
+        for n in args.grids:
+            rec = profile(n, int(args.photons), tuning)
+            records.append(rec)
+            top = ", ".join(f"{k} {v:.3f} s/{rec['calls'][k]}" for k, v in list(rec["device_s"].items())[:5])
+            print(f"{n}^3 {text or 'defaults':<40} kernel {rec['kernel_s']:.3f} s  trace "
+                  f"{rec['trace_packets_per_ms'] or 0:,.0f} pkt/ms  launches {rec['trace_launches']}  [{top}]",
+                  flush=True)
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(json.dumps({"benchmark": "profile_kernels", "date": time.strftime("%Y-%m-%d %H:%M:%S"),
+                                              "command": " ".join(["benchmarks/profile_kernels.py"] + (argv or sys.argv[1:])),
+                                              "records": records}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
