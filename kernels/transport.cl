@@ -163,23 +163,6 @@ NRT_DEVICE float nrt_face_distance(float p, float d, float inv_d, int i, float h
     return NRT_INF_F;
 }
 
-/* Step (ix, iy, iz) across the nearest of the faces at distances tx, ty, tz along d (ties: x,
-   then y); returns 1 when the step leaves the box. */
-NRT_DEVICE int nrt_step_voxel(int *ix, int *iy, int *iz, float tx, float ty, float tz,
-                              const float *d, int nx, int ny, int nz)
-{
-    if (tx <= ty && tx <= tz) {
-        *ix += (d[0] > 0.0f) ? 1 : -1;
-        return *ix < 0 || *ix >= nx;
-    }
-    if (ty <= tz) {
-        *iy += (d[1] > 0.0f) ? 1 : -1;
-        return *iy < 0 || *iy >= ny;
-    }
-    *iz += (d[2] > 0.0f) ? 1 : -1;
-    return *iz < 0 || *iz >= nz;
-}
-
 #ifndef NRT_PEEL
 #define NRT_PEEL 0
 #endif
@@ -212,16 +195,39 @@ NRT_DEVICE float nrt_tau_to_edge(const NRT_GLOBAL float *density, float sig_b, c
     const float hx = 1.0f / (float)nx, hy = 1.0f / (float)ny, hz = 1.0f / (float)nz;
     float inv_o[3] = {1.0f / o[0], 1.0f / o[1], 1.0f / o[2]};
     float t_cur = 0.0f, tau = 0.0f;
+    /* face distances kept from step to step, only the stepped axis' formed again (as in
+       nrt_trace_packet: the same bits as forming all three every step) */
+    float tx = nrt_face_distance(x[0], o[0], inv_o[0], ix, hx);
+    float ty = nrt_face_distance(x[1], o[1], inv_o[1], iy, hy);
+    float tz = nrt_face_distance(x[2], o[2], inv_o[2], iz, hz);
+    nrt_idx idx = nrt_voxel_index(ix, iy, iz, nx, ny);
+    const nrt_idx stride_y = (nrt_idx)nx, stride_z = (nrt_idx)nx * (nrt_idx)ny;
     for (;;) {
-        nrt_idx idx = nrt_voxel_index(ix, iy, iz, nx, ny);
-        float tx = nrt_face_distance(x[0], o[0], inv_o[0], ix, hx);
-        float ty = nrt_face_distance(x[1], o[1], inv_o[1], iy, hy);
-        float tz = nrt_face_distance(x[2], o[2], inv_o[2], iz, hz);
         float t_next = fmin(tx, fmin(ty, tz));
         tau += sig_b * density[idx] * fmax(0.0f, t_next - t_cur);
         t_cur = fmax(t_cur, t_next);
-        if (nrt_step_voxel(&ix, &iy, &iz, tx, ty, tz, o, nx, ny, nz))
-            return tau;
+        if (tx <= ty && tx <= tz) {
+            int up = o[0] > 0.0f;
+            ix += up ? 1 : -1;
+            if (ix < 0 || ix >= nx)
+                return tau;
+            idx = up ? idx + 1 : idx - 1;
+            tx = nrt_face_distance(x[0], o[0], inv_o[0], ix, hx);
+        } else if (ty <= tz) {
+            int up = o[1] > 0.0f;
+            iy += up ? 1 : -1;
+            if (iy < 0 || iy >= ny)
+                return tau;
+            idx = up ? idx + stride_y : idx - stride_y;
+            ty = nrt_face_distance(x[1], o[1], inv_o[1], iy, hy);
+        } else {
+            int up = o[2] > 0.0f;
+            iz += up ? 1 : -1;
+            if (iz < 0 || iz >= nz)
+                return tau;
+            idx = up ? idx + stride_z : idx - stride_z;
+            tz = nrt_face_distance(x[2], o[2], inv_o[2], iz, hz);
+        }
     }
 }
 
@@ -377,16 +383,39 @@ NRT_DEVICE void nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, f
     float p0[3] = {p[0], p[1], p[2]};
     float t_cur = 0.0f;
     float rho = NRT_RHO(density, idx);
+    /* The current voxel's face distances are kept from step to step: a step changes the voxel
+       on one axis only, so only that axis' distance is formed again (by the same expression,
+       so the same bits as forming all three every step), and the flat index moves by that
+       axis' stride. */
+    float tx = nrt_face_distance(p0[0], d[0], inv_d[0], ix, hx);
+    float ty = nrt_face_distance(p0[1], d[1], inv_d[1], iy, hy);
+    float tz = nrt_face_distance(p0[2], d[2], inv_d[2], iz, hz);
+    const nrt_idx stride_y = (nrt_idx)nx, stride_z = (nrt_idx)nx * (nrt_idx)ny;
     for (;;) {
-        float tx = nrt_face_distance(p0[0], d[0], inv_d[0], ix, hx);
-        float ty = nrt_face_distance(p0[1], d[1], inv_d[1], iy, hy);
-        float tz = nrt_face_distance(p0[2], d[2], inv_d[2], iz, hz);
         float t_next = fmin(tx, fmin(ty, tz));
         float seg = fmax(0.0f, t_next - t_cur);
-        /* the neighbour across the nearest face */
-        int jx = ix, jy = iy, jz = iz;
-        int leaving = nrt_step_voxel(&jx, &jy, &jz, tx, ty, tz, d, nx, ny, nz);
-        nrt_idx jdx = leaving ? idx : nrt_voxel_index(jx, jy, jz, nx, ny);
+        /* the neighbour across the nearest face (ties: x, then y) */
+        int axis = (tx <= ty && tx <= tz) ? 0 : ((ty <= tz) ? 1 : 2);
+        int jx = ix, jy = iy, jz = iz, leaving;
+        nrt_idx jdx;
+        if (axis == 0) {
+            int up = d[0] > 0.0f;
+            jx += up ? 1 : -1;
+            leaving = jx < 0 || jx >= nx;
+            jdx = up ? idx + 1 : idx - 1;
+        } else if (axis == 1) {
+            int up = d[1] > 0.0f;
+            jy += up ? 1 : -1;
+            leaving = jy < 0 || jy >= ny;
+            jdx = up ? idx + stride_y : idx - stride_y;
+        } else {
+            int up = d[2] > 0.0f;
+            jz += up ? 1 : -1;
+            leaving = jz < 0 || jz >= nz;
+            jdx = up ? idx + stride_z : idx - stride_z;
+        }
+        if (leaving)
+            jdx = idx;
 #if NRT_PREFETCH
         float rho_next = NRT_RHO(density, jdx);
 #endif
@@ -428,6 +457,9 @@ NRT_DEVICE void nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, f
             inv_d[1] = 1.0f / d[1];
             inv_d[2] = 1.0f / d[2];
             t_cur = 0.0f;
+            tx = nrt_face_distance(p0[0], d[0], inv_d[0], ix, hx);
+            ty = nrt_face_distance(p0[1], d[1], inv_d[1], iy, hy);
+            tz = nrt_face_distance(p0[2], d[2], inv_d[2], iz, hz);
             continue;
         }
 #if NRT_TRACK_LENGTH
@@ -443,6 +475,12 @@ NRT_DEVICE void nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, f
         iy = jy;
         iz = jz;
         idx = jdx;
+        if (axis == 0)
+            tx = nrt_face_distance(p0[0], d[0], inv_d[0], ix, hx);
+        else if (axis == 1)
+            ty = nrt_face_distance(p0[1], d[1], inv_d[1], iy, hy);
+        else
+            tz = nrt_face_distance(p0[2], d[2], inv_d[2], iz, hz);
 #if NRT_PREFETCH
         rho = rho_next;
 #else

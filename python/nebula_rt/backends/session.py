@@ -82,6 +82,10 @@ class DeviceTransport(TransportSession):
         self.sorted = bool(self.defines.get("NRT_SORTED"))
         self.d_keys = be.device_zeros(1, np.uint64)  # NRT_SORTED: the launch's sorted packets
         self._plan = (0, 0)
+        # build the kernels of this option set now (setup time): compiled inside the first
+        # launch, they were counted as tracing (up to 1 s per option set on CUDA)
+        for name in ("trace_photons", "fold_batches") + (("emission_keys",) if self.sorted else ()):
+            be.kernel(be.transport_program, name, self.defines)
 
     def run_group(self, photon_start, count, batch_base, batch_extra, first_batch, n_slots, fresh=True,
                   bands=None):
