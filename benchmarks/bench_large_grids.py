@@ -147,6 +147,25 @@ def _tuning_from_env() -> dict:
     return {k: int(v) for k, v in (item.split("=", 1) for item in text.split())} if text else {}
 
 
+def _build_kernels(backend, n: int, photons: int, n_bands: int) -> None:
+    """Build the transport kernels of the measured configuration before timing it: their
+    options depend on the grid and the batch size (sorted order from 512^3, unchecked adds
+    while no cell can wrap), so the 16^3 warm-up may not have built them, and a build inside
+    the measured run (up to 1 s per option set) would be counted in its end-to-end time."""
+    import numpy as np
+
+    from nebula_rt.bands import Band
+    from nebula_rt.scene import Star
+    from nebula_rt.transport import plan_transport
+
+    bands = [Band(name=f"b{i}", wavelength=450.0 + 100.0 * i, extinction=1.0, albedo=ALBEDO, g=G)
+             for i in range(n_bands)]
+    stars = [Star(position=(0.5, 0.5, 0.5), luminosity=1.0, temperature=None, bump_radius=0.0)]
+    plan = plan_transport(np.ones((n, n, n), np.float32), bands, stars, tau=TAU, photons=int(photons),
+                          backend=backend)
+    backend.transport_session(plan.setup, plan.launches.slots, plan.launches.bands_per_launch).close()
+
+
 def child_nebula(n: int, photons: int, n_bands: int, repeats: int, repeat_below_s: float) -> dict:
     import resource
 
@@ -167,6 +186,7 @@ def child_nebula(n: int, photons: int, n_bands: int, repeats: int, repeat_below_
         backend = get_backend("cuda", "")
     Pipeline(backend).run(Scene.from_dict(scene_dict(16, 10_000, n_bands)), colour=False)  # compile, warm up
     scene = Scene.from_dict(scene_dict(n, photons, n_bands))
+    _build_kernels(backend, n, photons, n_bands)
     pool = cp.get_default_memory_pool()
     pool.free_all_blocks()
     cp.cuda.Device().synchronize()

@@ -3,14 +3,16 @@
 optical depth 1 centre to face, albedo 0.6, g 0.6, a point source at the centre) on n^3 voxels.
 
     python benchmarks/profile_kernels.py [--grids 256 512] [--photons 1e8]
-        [--tuning "NRT_SORTED=0" "NRT_SORTED=1" ...] [--out FILE.json]
+        [--tuning "NRT_SORTED=0" "NRT_SORTED=1" ...] [--variant transport_old.cl ...] [--out FILE.json]
 
 Each device call of the backend (every kernel launch, the key sort, fills and copies) is timed
 with CUDA events around it and the stream synchronised after it, so the calls do not overlap
 (the totals slightly exceed a free-running trace). Per configuration: the time per kernel name
 and calls, launches of the transport kernel with their packets, and the packets per ms of the
 transport kernel alone. Each ``--tuning`` entry is one configuration (space-separated
-KEY=VALUE options of the transport kernel, "" for the backend's defaults).
+KEY=VALUE options of the transport kernel, "" for the backend's defaults), run with the
+transport source as built and with each ``--variant`` (another transport source in kernels/,
+e.g. an older version kept aside for comparison).
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 
 
-def profile(n: int, photons: int, tuning: dict) -> dict:
+def profile(n: int, photons: int, tuning: dict, program: str = "") -> dict:
     import cupy as cp
     import numpy as np
 
@@ -35,6 +37,8 @@ def profile(n: int, photons: int, tuning: dict) -> dict:
     from nebula_rt.transport import trace
 
     be = CUDABackend("", transport_tuning=tuning)
+    if program:
+        be.transport_program = program
     bands = [Band(name="V", wavelength=550.0, extinction=1.0, albedo=0.6, g=0.6)]
     stars = [Star(position=(0.5, 0.5, 0.5), luminosity=1.0, temperature=None, bump_radius=0.0)]
     trace(np.ones((16, 16, 16), np.float32), bands, stars, tau=2.0, photons=10_000, backend=be)  # compile
@@ -72,7 +76,7 @@ def profile(n: int, photons: int, tuning: dict) -> dict:
     res = trace(rho, bands, stars, tau=2.0, photons=photons, backend=be)
     wall = time.perf_counter() - t0
     t_trace = times.get("trace_photons", 0.0)
-    return {"grid": n, "photons": photons, "tuning": tuning, "wall_s": wall,
+    return {"grid": n, "photons": photons, "tuning": tuning, "program": be.transport_program, "wall_s": wall,
             "kernel_s": float(res.timings["kernel_s"]), "batches": int(res.batches),
             "absorbed_fraction": float(res.counts[0, 1] / res.counts[0, 0]),
             "device_s": dict(sorted(times.items(), key=lambda kv: -kv[1])), "calls": dict(calls),
@@ -85,18 +89,20 @@ def main(argv=None) -> int:
     ap.add_argument("--grids", type=int, nargs="+", default=[256, 512])
     ap.add_argument("--photons", type=float, default=1e8)
     ap.add_argument("--tuning", nargs="*", default=[""])
+    ap.add_argument("--variant", nargs="*", default=[], help="other transport sources in kernels/")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     records = []
     for text in args.tuning:
         tuning = {k: int(v) for k, v in (item.split("=", 1) for item in text.split())}
         for n in args.grids:
-            rec = profile(n, int(args.photons), tuning)
-            records.append(rec)
-            top = ", ".join(f"{k} {v:.3f} s/{rec['calls'][k]}" for k, v in list(rec["device_s"].items())[:5])
-            print(f"{n}^3 {text or 'defaults':<40} kernel {rec['kernel_s']:.3f} s  trace "
-                  f"{rec['trace_packets_per_ms'] or 0:,.0f} pkt/ms  launches {rec['trace_launches']}  [{top}]",
-                  flush=True)
+            for program in [""] + list(args.variant):
+                rec = profile(n, int(args.photons), tuning, program)
+                records.append(rec)
+                top = ", ".join(f"{k} {v:.3f} s/{rec['calls'][k]}" for k, v in list(rec["device_s"].items())[:5])
+                print(f"{n}^3 {rec['program']:<20} {text or 'defaults':<30} kernel {rec['kernel_s']:.3f} s  trace "
+                      f"{rec['trace_packets_per_ms'] or 0:,.0f} pkt/ms  launches {rec['trace_launches']}  [{top}]",
+                      flush=True)
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
         Path(args.out).write_text(json.dumps({"benchmark": "profile_kernels", "date": time.strftime("%Y-%m-%d %H:%M:%S"),

@@ -394,28 +394,15 @@ NRT_DEVICE void nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, f
     for (;;) {
         float t_next = fmin(tx, fmin(ty, tz));
         float seg = fmax(0.0f, t_next - t_cur);
-        /* the neighbour across the nearest face (ties: x, then y) */
-        int axis = (tx <= ty && tx <= tz) ? 0 : ((ty <= tz) ? 1 : 2);
-        int jx = ix, jy = iy, jz = iz, leaving;
-        nrt_idx jdx;
-        if (axis == 0) {
-            int up = d[0] > 0.0f;
-            jx += up ? 1 : -1;
-            leaving = jx < 0 || jx >= nx;
-            jdx = up ? idx + 1 : idx - 1;
-        } else if (axis == 1) {
-            int up = d[1] > 0.0f;
-            jy += up ? 1 : -1;
-            leaving = jy < 0 || jy >= ny;
-            jdx = up ? idx + stride_y : idx - stride_y;
-        } else {
-            int up = d[2] > 0.0f;
-            jz += up ? 1 : -1;
-            leaving = jz < 0 || jz >= nz;
-            jdx = up ? idx + stride_z : idx - stride_z;
-        }
-        if (leaving)
-            jdx = idx;
+        /* the neighbour across the nearest face (ties: x, then y), by selects rather than
+           branches: the lanes of a SIMD group step along different axes */
+        int ax = (tx <= ty && tx <= tz) ? 0 : ((ty <= tz) ? 1 : 2);
+        float d_ax = ax == 0 ? d[0] : (ax == 1 ? d[1] : d[2]);
+        int up = d_ax > 0.0f;
+        int i_next = (ax == 0 ? ix : (ax == 1 ? iy : iz)) + (up ? 1 : -1);
+        int leaving = i_next < 0 || i_next >= (ax == 0 ? nx : (ax == 1 ? ny : nz));
+        nrt_idx stride = ax == 0 ? (nrt_idx)1 : (ax == 1 ? stride_y : stride_z);
+        nrt_idx jdx = leaving ? idx : (up ? idx + stride : idx - stride);
 #if NRT_PREFETCH
         float rho_next = NRT_RHO(density, jdx);
 #endif
@@ -471,16 +458,16 @@ NRT_DEVICE void nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, f
             nrt_count(sink, 2);
             return;
         }
-        ix = jx;
-        iy = jy;
-        iz = jz;
         idx = jdx;
-        if (axis == 0)
-            tx = nrt_face_distance(p0[0], d[0], inv_d[0], ix, hx);
-        else if (axis == 1)
-            ty = nrt_face_distance(p0[1], d[1], inv_d[1], iy, hy);
-        else
-            tz = nrt_face_distance(p0[2], d[2], inv_d[2], iz, hz);
+        float t_ax = nrt_face_distance(ax == 0 ? p0[0] : (ax == 1 ? p0[1] : p0[2]), d_ax,
+                                       ax == 0 ? inv_d[0] : (ax == 1 ? inv_d[1] : inv_d[2]), i_next,
+                                       ax == 0 ? hx : (ax == 1 ? hy : hz));
+        ix = ax == 0 ? i_next : ix;
+        iy = ax == 1 ? i_next : iy;
+        iz = ax == 2 ? i_next : iz;
+        tx = ax == 0 ? t_ax : tx;
+        ty = ax == 1 ? t_ax : ty;
+        tz = ax == 2 ? t_ax : tz;
 #if NRT_PREFETCH
         rho = rho_next;
 #else
