@@ -7,7 +7,7 @@
 # WHEELDIR holds wheels for what the machine lacks (pyopencl and its pure-Python needs,
 # colour-science, tomli-w; pmcx for the MCX comparison), fetched elsewhere with
 # `pip download --only-binary=:all: --python-version 3.12 ...`.
-# STEPS (default "tests bench neb128 compare profile"; also "scaling", "large", "layout", "sorted", "probe", "ranks", "e2e1e9", "tune",
+# STEPS (default "tests bench neb128 compare profile"; also "tests-cuda", "scaling", "large", "layout", "sorted", "probe", "ranks", "e2e1e9", "tune",
 # "stages", "trade", "presets", "empty", "fft") selects what runs. Everything printed
 # goes to OUTDIR/log.txt as well; JSON and .npz results beside it.
 set -uo pipefail
@@ -32,6 +32,9 @@ physics="tests/test_rng.py tests/test_hg.py tests/test_density_kernel.py tests/t
 if [[ " $steps " == *" tests "* ]]; then
     echo "== physics tests, CUDA"; NEBULA_RT_TEST_BACKEND=cuda python3 -m pytest -q -p no:cacheprovider $physics tests/test_cuda_sources.py 2>&1 | tail -n 8
     echo "== physics tests, NVIDIA OpenCL"; NEBULA_RT_TEST_DEVICE=NVIDIA python3 -m pytest -q -p no:cacheprovider $physics 2>&1 | tail -n 3
+fi
+if [[ " $steps " == *" tests-cuda "* ]]; then
+    echo "== physics tests, CUDA"; NEBULA_RT_TEST_BACKEND=cuda python3 -m pytest -q -p no:cacheprovider $physics tests/test_cuda_sources.py 2>&1 | tail -n 8
 fi
 if [[ " $steps " == *" bench "* ]]; then
     echo "== thesis scene, CUDA"; python3 benchmarks/bench_transport.py --backend cuda --out "$out/transport-cuda.json"
