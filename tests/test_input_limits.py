@@ -206,7 +206,7 @@ def test_offset_limit_is_where_the_float32_turbulence_keeps_its_structure(backen
     stays within 1 % (rms, of the density's standard deviation) of the float64 oracle; at 100x
     the limit it is far off (measured 40-50 %), which is why larger offsets are refused. The
     oracle gets the float32-rounded offset, so only the kernel's arithmetic is compared."""
-    from nebula_rt import reference_density as ref
+    from oracles import reference_density as ref
     from nebula_rt.backends.base import MODEL_TURBULENCE
 
     def rms_error(o):

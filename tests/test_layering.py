@@ -5,7 +5,7 @@ import sys
 
 CORE = ["nebula_rt", "nebula_rt.scene", "nebula_rt.bands", "nebula_rt.backends", "nebula_rt.density",
         "nebula_rt.transport", "nebula_rt.filtering", "nebula_rt.colour_convert", "nebula_rt.pipeline",
-        "nebula_rt.cli", "nebula_rt.reference_density", "nebula_rt.io_vti", "nebula_rt.render"]
+        "nebula_rt.cli", "nebula_rt.io_vti", "nebula_rt.render"]
 
 
 def test_core_imports_without_vtk():

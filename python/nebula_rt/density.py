@@ -6,7 +6,7 @@ All models share one formula (thesis Eq. 3.2 and 3.3, generalised):
 
 with base = scale * max(0, turbulence(v + offset)) ("turbulence"), a constant ("uniform"),
 or the array read from ``dust.file`` ("file"). The generated models run on the compute
-device; ``nebula_rt.reference_density`` is an independent NumPy implementation used as the
+device; an independent NumPy implementation, ``tests/oracles/reference_density.py``, is the
 test oracle.
 """
 
