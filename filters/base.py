@@ -139,7 +139,7 @@ class NebulaAlgorithm(VTKPythonAlgorithmBase):
         the job is ended instead, with the rank and the cause on stderr."""
         if isinstance(exc, CancelledError) or not getattr(self, "distributed", False):
             return
-        from nebula_rt.parallel import vtk_world
+        from .controller import vtk_world
 
         comm = vtk_world()
         if comm.size < 2:

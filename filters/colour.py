@@ -6,10 +6,10 @@ import numpy as np
 from vtkmodules.vtkCommonDataModel import vtkImageData
 
 from nebula_rt.errors import SceneError
-from nebula_rt.io_vti import add_field_data, add_point_arrays, field_data_dict, point_array
 from nebula_rt.pipeline import colour_source_from_field_data, rgba_from_emissivity
 
 from .base import ExposureMixin, NebulaAlgorithm, require_light_field, shallow_copy_image
+from .image_data import add_field_data, add_point_arrays, field_data_dict, point_array
 
 WHITE_POINTS = ("D65", "E", "star")
 

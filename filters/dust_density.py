@@ -7,11 +7,11 @@ from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm, vtkStreamingDemandD
 
 from nebula_rt.backends import get_backend
 from nebula_rt.density import generate_density
-from nebula_rt.io_vti import add_point_arrays
 from nebula_rt.limits import INT32_MAX
 from nebula_rt.scene import Scene
 
 from .base import NebulaAlgorithm, stars_from_flat
+from .image_data import add_point_arrays
 
 MODELS = ("turbulence", "uniform")
 

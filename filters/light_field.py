@@ -8,13 +8,13 @@ from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm, vtkStreamingDemandD
 
 from nebula_rt.backends import get_backend
 from nebula_rt.errors import SceneError
-from nebula_rt.io_vti import add_field_data, add_point_arrays, cell_array, image_geometry, point_array
 from nebula_rt.limits import check_float32_array
-from nebula_rt.parallel import vtk_world
 from nebula_rt.pipeline import compute_light, finish_light_field
 from nebula_rt.scene import Scene
 
 from .base import NebulaAlgorithm, shallow_copy_image, stars_from_flat
+from .controller import vtk_world
+from .image_data import add_field_data, add_point_arrays, cell_array, image_geometry, point_array
 
 ESTIMATORS = ("track-length", "collision-filter")
 BACKENDS = ("auto", "opencl", "cuda")

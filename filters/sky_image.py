@@ -8,7 +8,6 @@ from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
 
 from nebula_rt import colour_convert
 from nebula_rt.errors import SceneError
-from nebula_rt.io_vti import add_field_data, add_point_arrays, field_data_dict, point_array
 from nebula_rt.limits import check_float32_array
 from nebula_rt.pipeline import colour_source_from_field_data
 from nebula_rt.scene import Scene
@@ -16,6 +15,7 @@ from nebula_rt.sky import Camera, sky_image
 from nebula_rt.transport import star_band_luminosities
 
 from .base import ExposureMixin, NebulaAlgorithm, require_light_field
+from .image_data import add_field_data, add_point_arrays, field_data_dict, point_array
 
 #: Auto exposure of the sky image: this percentile of the scattered light's max colour
 #: component (among lit pixels) maps to full scale; star pixels saturate.

@@ -20,7 +20,7 @@ import pytest
 from conftest import TEST_BACKEND, TEST_DEVICE, centre_star, one_band
 from nebula_rt import limits
 from nebula_rt.errors import SceneError
-from nebula_rt.io_vti import read_vti, write_vti
+from nebula_rt.filters.vti import read_vti, write_vti
 from nebula_rt.pipeline import Pipeline
 from nebula_rt.scene import Scene
 from nebula_rt.transport import FIXED_POINT_BITS, trace
@@ -42,7 +42,7 @@ def image_input(alg, density):
     """Connect ``density`` ((nx, ny, nz) array named "density") as the algorithm's input."""
     from vtkmodules.vtkCommonExecutionModel import vtkTrivialProducer
 
-    from nebula_rt.io_vti import to_image_data
+    from nebula_rt.filters.image_data import to_image_data
 
     producer = vtkTrivialProducer()
     producer.SetOutput(to_image_data({"density": density}, None, (1, 1, 1)))
@@ -251,7 +251,7 @@ def test_largest_seed_is_traced_and_written_losslessly(tmp_path, backend):
 
 
 def test_largest_seed_through_the_filter():
-    from nebula_rt.io_vti import field_data_dict
+    from nebula_rt.filters.image_data import field_data_dict
 
     lf = pinned_light_field(photons=1000)
     lf.SetSeed(2**64 - 1)
