@@ -212,16 +212,6 @@ class ExposureMixin:
         self.Modified()
 
 
-def require_light_field(fd: dict, keys) -> None:
-    """Raise a clear error unless the input's field data holds ``keys`` (it must come from
-    Nebula Light Field)."""
-    from nebula_rt.errors import SceneError
-
-    missing = [k for k in keys if k not in fd]
-    if missing:
-        raise SceneError("input", "field data", f"must come from Nebula Light Field (missing {', '.join(missing)})")
-
-
 def shallow_copy_image(out, inp) -> None:
     """``out.ShallowCopy(inp)`` with field data of its own (ShallowCopy shares the container,
     so adding field data to the output would change the input)."""

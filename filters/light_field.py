@@ -6,6 +6,7 @@ import numpy as np
 from vtkmodules.vtkCommonDataModel import vtkDataObject, vtkImageData
 from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm, vtkStreamingDemandDrivenPipeline
 
+from nebula_rt import output_contract as contract
 from nebula_rt.backends import get_backend
 from nebula_rt.errors import SceneError
 from nebula_rt.limits import check_float32_array
@@ -237,9 +238,9 @@ class NebulaLightField(NebulaAlgorithm):
         else:
             shallow_copy_image(out, inp)
         arrays = light.point_arrays()
-        if name != "density" or cells:
-            arrays.pop("density")  # the input's own array carries it
+        if name != contract.DENSITY.name() or cells:
+            arrays.pop(contract.DENSITY.name())  # the input's own array carries it
         add_point_arrays(out, arrays)
         add_field_data(out, light.field_data())
-        out.GetPointData().SetActiveScalars(f"J_{light.bands[light.reference_band].name}")
+        out.GetPointData().SetActiveScalars(contract.J.name(light.bands[light.reference_band].name))
         self.last_light = light
