@@ -12,6 +12,16 @@ empty output, a VTK error message naming the parameter, and ``last_error``); pro
 reported per kernel launch through ``UpdateProgress``/``SetProgressText`` and ``CheckAbort`` cancels
 between batches. VTK's pipeline re-executes only the algorithms whose inputs or properties
 changed; ``execution_count`` counts real executions.
+
+The rest of NebulaRT's VTK layer (the library, ``nebula_rt``, imports no VTK) lives here too:
+
+- :mod:`nebula_rt.filters.image_data`  NumPy grids and field data in a vtkImageData
+- :mod:`nebula_rt.filters.vti`         reading and writing ``.vti`` files (the ``io`` extra)
+- :mod:`nebula_rt.filters.render`      off-screen PNG volume rendering with pyvista (``io``)
+- :mod:`nebula_rt.filters.controller`  the communicator of ParaView's parallel engine
+
+The names and types of the outputs' arrays and field data are declared in
+:mod:`nebula_rt.output_contract`.
 """
 
 from .colour import NebulaColour

@@ -139,7 +139,7 @@ class NebulaAlgorithm(VTKPythonAlgorithmBase):
         the job is ended instead, with the rank and the cause on stderr."""
         if isinstance(exc, CancelledError) or not getattr(self, "distributed", False):
             return
-        from nebula_rt.parallel import vtk_world
+        from .controller import vtk_world
 
         comm = vtk_world()
         if comm.size < 2:
@@ -210,16 +210,6 @@ class ExposureMixin:
     def SetExposure(self, v):
         self._exposure = v
         self.Modified()
-
-
-def require_light_field(fd: dict, keys) -> None:
-    """Raise a clear error unless the input's field data holds ``keys`` (it must come from
-    Nebula Light Field)."""
-    from nebula_rt.errors import SceneError
-
-    missing = [k for k in keys if k not in fd]
-    if missing:
-        raise SceneError("input", "field data", f"must come from Nebula Light Field (missing {', '.join(missing)})")
 
 
 def shallow_copy_image(out, inp) -> None:

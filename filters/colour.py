@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 from vtkmodules.vtkCommonDataModel import vtkImageData
 
-from nebula_rt.errors import SceneError
-from nebula_rt.io_vti import add_field_data, add_point_arrays, field_data_dict, point_array
+from nebula_rt import output_contract as contract
 from nebula_rt.pipeline import colour_source_from_field_data, rgba_from_emissivity
 
-from .base import ExposureMixin, NebulaAlgorithm, require_light_field, shallow_copy_image
+from .base import ExposureMixin, NebulaAlgorithm, shallow_copy_image
+from .image_data import add_field_data, add_point_arrays, field_data_dict, point_array
 
 WHITE_POINTS = ("D65", "E", "star")
 
@@ -56,33 +56,32 @@ class NebulaColour(ExposureMixin, NebulaAlgorithm):
         Scene.from_dict({"colour": {"exposure": exposure, "white_point": self._white_point,
                                     "opacity_scale": self._opacity_scale}})
         inp = vtkImageData.GetData(inInfo[0])
-        fd = field_data_dict(inp)
+        has_density = inp.GetPointData().HasArray(contract.DENSITY.name())
         need = ("band_names", "band_wavelength_nm", "band_luminosity", "band_extinction", "tau", "reference_band")
-        require_light_field(fd, need)
-        names = str(fd["band_names"]).split(",")
-        emissivity = np.stack([point_array(inp, f"emissivity_{n}") for n in names]).astype(np.float64)
-        density = point_array(inp, "density") if inp.GetPointData().HasArray("density") else None
-        ext = np.atleast_1d(fd["band_extinction"])
-        ref = int(fd["reference_band"])
-        if density is None:
-            # recover the reference extinction from emissivity = albedo sigma J
-            J = point_array(inp, f"J_{names[ref]}").astype(np.float64)
-            alb = float(np.atleast_1d(fd["band_albedo"])[ref])
+        # without the density, the reference extinction comes from emissivity = albedo sigma J
+        fd = contract.LightFieldData.from_field_data(field_data_dict(inp),
+                                                     need=need + (() if has_density else ("band_albedo",)))
+        emissivity = np.stack([point_array(inp, contract.EMISSIVITY.name(n)) for n in fd.band_names])
+        emissivity = emissivity.astype(np.float64)
+        ref = fd.reference_band
+        if has_density:
+            density = point_array(inp, contract.DENSITY.name()).astype(np.float64)
+            sigma_ref = fd.tau * float(fd.band_extinction[ref]) * density
+        else:
+            J = point_array(inp, contract.J.name(fd.band_names[ref])).astype(np.float64)
+            alb = float(fd.band_albedo[ref])
             with np.errstate(divide="ignore", invalid="ignore"):
                 sigma_ref = np.where(J > 0, emissivity[ref] / (alb * J), 0.0)
-        else:
-            sigma_ref = float(fd["tau"]) * float(ext[ref]) * density.astype(np.float64)
-        source = colour_source_from_field_data(fd)
         rgba, used, linear = rgba_from_emissivity(
             emissivity, sigma_ref,
-            wavelengths_nm=np.atleast_1d(fd["band_wavelength_nm"]),
-            band_luminosity=np.atleast_1d(fd["band_luminosity"]),
-            temperature=source,
+            wavelengths_nm=fd.band_wavelength_nm,
+            band_luminosity=fd.band_luminosity,
+            temperature=colour_source_from_field_data(fd),
             exposure=exposure, white_point=self._white_point, opacity_scale=self._opacity_scale,
             return_linear=True,
         )
         out = vtkImageData.GetData(outInfo)
         shallow_copy_image(out, inp)
-        add_point_arrays(out, {"rgba": rgba, "rgb_linear": linear})
-        add_field_data(out, {"exposure": used})
-        out.GetPointData().SetActiveScalars("rgba")
+        add_point_arrays(out, {contract.RGBA.name(): rgba, contract.RGB_LINEAR.name(): linear})
+        add_field_data(out, contract.LightFieldData(exposure=used).to_field_data(complete=False))
+        out.GetPointData().SetActiveScalars(contract.RGBA.name())

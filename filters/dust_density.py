@@ -5,13 +5,14 @@ from __future__ import annotations
 from vtkmodules.vtkCommonDataModel import vtkImageData
 from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm, vtkStreamingDemandDrivenPipeline
 
+from nebula_rt import output_contract as contract
 from nebula_rt.backends import get_backend
 from nebula_rt.density import generate_density
-from nebula_rt.io_vti import add_point_arrays
 from nebula_rt.limits import INT32_MAX
 from nebula_rt.scene import Scene
 
 from .base import NebulaAlgorithm, stars_from_flat
+from .image_data import add_point_arrays
 
 MODELS = ("turbulence", "uniform")
 
@@ -114,5 +115,5 @@ class NebulaDustDensity(NebulaAlgorithm):
         out.SetDimensions(nx, ny, nz)
         out.SetSpacing(1.0 / nx, 1.0 / ny, 1.0 / nz)
         out.SetOrigin(0.5 / nx, 0.5 / ny, 0.5 / nz)
-        add_point_arrays(out, {"density": rho})
-        out.GetPointData().SetActiveScalars("density")
+        add_point_arrays(out, {contract.DENSITY.name(): rho})
+        out.GetPointData().SetActiveScalars(contract.DENSITY.name())

@@ -6,15 +6,16 @@ import numpy as np
 from vtkmodules.vtkCommonDataModel import vtkDataObject, vtkImageData
 from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm, vtkStreamingDemandDrivenPipeline
 
+from nebula_rt import output_contract as contract
 from nebula_rt.backends import get_backend
 from nebula_rt.errors import SceneError
-from nebula_rt.io_vti import add_field_data, add_point_arrays, cell_array, image_geometry, point_array
 from nebula_rt.limits import check_float32_array
-from nebula_rt.parallel import vtk_world
 from nebula_rt.pipeline import compute_light, finish_light_field
 from nebula_rt.scene import Scene
 
 from .base import NebulaAlgorithm, shallow_copy_image, stars_from_flat
+from .controller import vtk_world
+from .image_data import add_field_data, add_point_arrays, cell_array, image_geometry, point_array
 
 ESTIMATORS = ("track-length", "collision-filter")
 BACKENDS = ("auto", "opencl", "cuda")
@@ -237,9 +238,9 @@ class NebulaLightField(NebulaAlgorithm):
         else:
             shallow_copy_image(out, inp)
         arrays = light.point_arrays()
-        if name != "density" or cells:
-            arrays.pop("density")  # the input's own array carries it
+        if name != contract.DENSITY.name() or cells:
+            arrays.pop(contract.DENSITY.name())  # the input's own array carries it
         add_point_arrays(out, arrays)
         add_field_data(out, light.field_data())
-        out.GetPointData().SetActiveScalars(f"J_{light.bands[light.reference_band].name}")
+        out.GetPointData().SetActiveScalars(contract.J.name(light.bands[light.reference_band].name))
         self.last_light = light

@@ -7,15 +7,16 @@ from vtkmodules.vtkCommonDataModel import vtkImageData
 from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
 
 from nebula_rt import colour_convert
+from nebula_rt import output_contract as contract
 from nebula_rt.errors import SceneError
-from nebula_rt.io_vti import add_field_data, add_point_arrays, field_data_dict, point_array
 from nebula_rt.limits import check_float32_array
 from nebula_rt.pipeline import colour_source_from_field_data
 from nebula_rt.scene import Scene
 from nebula_rt.sky import Camera, sky_image
 from nebula_rt.transport import star_band_luminosities
 
-from .base import ExposureMixin, NebulaAlgorithm, require_light_field
+from .base import ExposureMixin, NebulaAlgorithm
+from .image_data import add_field_data, add_point_arrays, field_data_dict, point_array
 
 #: Auto exposure of the sky image: this percentile of the scattered light's max colour
 #: component (among lit pixels) maps to full scale; star pixels saturate.
@@ -101,18 +102,16 @@ class NebulaSkyImage(ExposureMixin, NebulaAlgorithm):
         if not self._auto_exposure:
             Scene.from_dict({"colour": {"exposure": self._exposure}})  # the colour table's rule
         inp = vtkImageData.GetData(inInfo[0])
-        fd = field_data_dict(inp)
-        need = ("band_names", "band_wavelength_nm", "band_extinction", "tau", "scene")
-        require_light_field(fd, need)
-        names = str(fd["band_names"]).split(",")
-        wl = np.atleast_1d(fd["band_wavelength_nm"]).astype(np.float64)
-        ext = np.atleast_1d(fd["band_extinction"]).astype(np.float64)
-        emissivity = np.stack([point_array(inp, f"emissivity_{n}") for n in names]).astype(np.float64)
-        rho = point_array(inp, "density").astype(np.float64) if inp.GetPointData().HasArray("density") else None
-        if rho is None:
+        fd = contract.LightFieldData.from_field_data(
+            field_data_dict(inp), need=("band_names", "band_wavelength_nm", "band_extinction", "tau", "scene"))
+        names = fd.band_names
+        wl, ext = fd.band_wavelength_nm, fd.band_extinction
+        emissivity = np.stack([point_array(inp, contract.EMISSIVITY.name(n)) for n in names]).astype(np.float64)
+        if not inp.GetPointData().HasArray(contract.DENSITY.name()):
             raise SceneError("input", "density", "the light field must carry its density array")
-        sigma = float(fd["tau"]) * ext[:, None, None, None] * rho[None]
-        scene = Scene.loads(str(fd["scene"]))
+        rho = point_array(inp, contract.DENSITY.name()).astype(np.float64)
+        sigma = fd.tau * ext[:, None, None, None] * rho[None]
+        scene = Scene.loads(fd.scene)
         stars = [s.position for s in scene.stars] if self._include_stars else []
         slum = star_band_luminosities(scene.stars, wl) if self._include_stars else None
         self._report(0.1, "NebulaRT: ray marching the sky image")
@@ -139,17 +138,15 @@ class NebulaSkyImage(ExposureMixin, NebulaAlgorithm):
                             "the sky image's intensities (relative ones included)", underflow=False)
         arrays = {}
         for b, n in enumerate(names):
-            arrays[f"I_{n}"] = img.intensity[b][:, :, None].astype(np.float32)
-            arrays[f"scattered_{n}"] = img.scattered[b][:, :, None].astype(np.float32)
+            arrays[contract.SKY_INTENSITY.name(n)] = img.intensity[b][:, :, None].astype(np.float32)
+            arrays[contract.SKY_SCATTERED.name(n)] = img.scattered[b][:, :, None].astype(np.float32)
             # surface brightness relative to the star: I_b / (L_b / 4 pi), per box-unit^2 of sky
-            arrays[f"relative_{n}"] = (img.intensity[b] * (4.0 * np.pi / band_lum[b]))[:, :, None].astype(np.float32)
-        arrays["rgb"] = rgb8[:, :, None, :]
+            arrays[contract.SKY_RELATIVE.name(n)] = (
+                (img.intensity[b] * (4.0 * np.pi / band_lum[b]))[:, :, None].astype(np.float32))
+        arrays[contract.SKY_RGB.name()] = rgb8[:, :, None, :]
         add_point_arrays(out, arrays)
-        field = {"view_direction": np.array(cam.basis()[0]), "view_up": np.array(img.v_axis),
-                 "pixel_size": float(img.pixel_size), "exposure": float(exposure),
-                 "band_names": ",".join(names), "band_luminosity": band_lum}
-        if len(img.tau_star):
-            for b, n in enumerate(names):
-                field[f"tau_star_{n}"] = float(img.tau_star[0, b])
-        add_field_data(out, field)
-        out.GetPointData().SetActiveScalars("rgb")
+        add_field_data(out, contract.SkyImageData(
+            band_names=names, band_luminosity=band_lum, view_direction=cam.basis()[0], view_up=img.v_axis,
+            pixel_size=img.pixel_size, exposure=exposure,
+            tau_star=img.tau_star[0] if len(img.tau_star) else None).to_field_data())
+        out.GetPointData().SetActiveScalars(contract.SKY_RGB.name())

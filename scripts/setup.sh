@@ -4,7 +4,7 @@
 #   bash scripts/setup.sh            # install what is missing, skip what is done
 #   bash scripts/setup.sh --force    # reinstall the package even if the stamp matches
 #
-# (a) System libraries for off-screen rendering (nebula_rt.render), installed
+# (a) System libraries for off-screen rendering (nebula_rt.filters.render), installed
 #     with apt-get only when missing, and only as root (otherwise the command
 #     to run is printed).
 #     Also ParaView 5.11 (paraview, python3-paraview), Xvfb and Debian's PoCL
@@ -163,13 +163,13 @@ print('[setup] nebula_rt', nebula_rt.__version__, 'with', n, 'kernel source file
 )
 if ! (cd / && "$VENV/bin/python" - <<'EOF' >/dev/null 2>&1
 import os, tempfile, numpy as np
-from nebula_rt.render import render_rgba_png
+from nebula_rt.filters.render import render_rgba_png
 rgba = np.zeros((4, 4, 4, 4), np.uint8); rgba[..., 2] = 255; rgba[..., 3] = 128
 with tempfile.TemporaryDirectory() as d:
     render_rgba_png(os.path.join(d, "t.png"), rgba, (1.0, 1.0, 1.0), window_size=(32, 32))
 EOF
 ); then
-    log "WARNING: off-screen rendering does not work here (nebula_rt.render); check the system packages above"
+    log "WARNING: off-screen rendering does not work here (nebula_rt.filters.render); check the system packages above"
 else
     log "off-screen rendering works"
 fi

@@ -376,7 +376,7 @@ def _producer(img):
 
 def _light():
     from nebula_rt.filters import NebulaLightField
-    from nebula_rt.io_vti import to_image_data
+    from nebula_rt.filters.image_data import to_image_data
 
     lf = NebulaLightField()
     lf._producer = _producer(to_image_data({"density": np.ones((8, 8, 8), np.float32)}, None, (1, 1, 1)))

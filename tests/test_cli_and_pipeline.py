@@ -11,7 +11,7 @@ import pytest
 
 from conftest import TEST_DEVICE
 from nebula_rt.errors import SceneError
-from nebula_rt.io_vti import read_vti
+from nebula_rt.filters.vti import read_vti
 from nebula_rt.pipeline import Pipeline
 from nebula_rt.scene import Scene
 
@@ -97,7 +97,7 @@ def file_scene(path, shape=(8, 6, 4)):
 
 
 def test_density_file_npy_and_vti(tmp_path, backend):
-    from nebula_rt.io_vti import write_vti
+    from nebula_rt.filters.vti import write_vti
 
     rng = np.random.default_rng(1)
     data = rng.uniform(0, 2, size=(8, 6, 4))
@@ -110,7 +110,7 @@ def test_density_file_npy_and_vti(tmp_path, backend):
 
 @pytest.mark.parametrize("case", ["missing", "garbage", "shape", "nan", "negative", "array"])
 def test_bad_density_file(tmp_path, backend, case):
-    from nebula_rt.io_vti import write_vti
+    from nebula_rt.filters.vti import write_vti
 
     path = tmp_path / "d.npy"
     good = np.ones((8, 6, 4))

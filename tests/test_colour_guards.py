@@ -21,7 +21,7 @@ def test_colour_filter_on_a_dark_light_field():
     """NebulaColour on a light field whose band_luminosity is all zero: empty output and an
     error naming band_luminosity (it returned NaN rgb_linear and black rgba)."""
     from nebula_rt.filters import NebulaColour
-    from nebula_rt.io_vti import to_image_data
+    from nebula_rt.filters.image_data import to_image_data
 
     shape = (4, 4, 4)
     names = ["R", "G", "B"]

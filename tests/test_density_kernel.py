@@ -1,4 +1,4 @@
-"""The density kernel against the independent NumPy oracle (nebula_rt.reference_density).
+"""The density kernel against the independent NumPy oracle (tests/oracles/reference_density.py).
 
 Tolerance: both evaluate the same continuous formulas, one in float32 and one in float64. The
 noise values agree to ~1e-6; Gustavson's 2005 simplex noise (t = 0.6 - r^2) jumps by up to
@@ -12,9 +12,9 @@ jump bound (measured here: 99.1-99.9% within 1e-5, max 1.8e-5).
 import numpy as np
 import pytest
 
-from nebula_rt import reference_density as ref
 from nebula_rt.backends import probes
 from nebula_rt.backends.base import MODEL_TURBULENCE, MODEL_UNIFORM
+from oracles import reference_density as ref
 
 JUMP = 5e-3
 

@@ -11,8 +11,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from nebula_rt.bands import PRESETS, reference_band_index, resolve_bands
-from nebula_rt.dust_tables import CITATION, band_average, draine_table, spectral_bands
+from nebula_rt.bands import PRESETS, reference_band_index, resolve_bands, spectral_bands
+from nebula_rt.dust_tables import CITATION, band_average, draine_table
 
 WL = [350, 400, 450, 500, 550, 600, 650, 700, 750, 800]
 ALBEDO = [.613, .638, .656, .668, .674, .676, .675, .671, .665, .658]

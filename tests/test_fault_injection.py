@@ -148,7 +148,7 @@ def test_concurrent_renders_to_one_output(scene_dir):
     """Three renders with different seeds started together onto one path, twice: every one
     exits 0, the survivor is one run's complete output (bit for bit the J of the seed it
     names) and no temporary file remains."""
-    from nebula_rt.io_vti import read_vti
+    from nebula_rt.filters.vti import read_vti
 
     out = scene_dir / "same.vti"
     for _ in range(2):
@@ -186,7 +186,7 @@ def test_bad_outputs_refused_before_tracing(scene_dir, args, needle):
     (scene_dir / "folder.vti").mkdir()
     (scene_dir / "x.vti").write_bytes(b"old")
     (scene_dir / "link.png").symlink_to(scene_dir / "x.vti")
-    from nebula_rt.io_vti import write_vti
+    from nebula_rt.filters.vti import write_vti
 
     write_vti(scene_dir / "dust.vti", {"density": np.ones((16, 16, 16), np.float32)}, {}, (1 / 16,) * 3)
     dust = (scene_dir / "dust.vti").read_bytes()

@@ -8,7 +8,7 @@ from vtkmodules.vtkCommonDataModel import vtkDataObject
 
 from conftest import TEST_BACKEND, TEST_DEVICE
 from nebula_rt.filters import NebulaColour, NebulaDustDensity, NebulaLightField
-from nebula_rt.io_vti import field_data_dict, point_array, to_image_data
+from nebula_rt.filters.image_data import field_data_dict, point_array, to_image_data
 from nebula_rt.pipeline import Pipeline
 from nebula_rt.scene import Scene
 

@@ -20,7 +20,7 @@ import pytest
 from conftest import TEST_BACKEND, TEST_DEVICE, centre_star, one_band
 from nebula_rt import limits
 from nebula_rt.errors import SceneError
-from nebula_rt.io_vti import read_vti, write_vti
+from nebula_rt.filters.vti import read_vti, write_vti
 from nebula_rt.pipeline import Pipeline
 from nebula_rt.scene import Scene
 from nebula_rt.transport import FIXED_POINT_BITS, trace
@@ -42,7 +42,7 @@ def image_input(alg, density):
     """Connect ``density`` ((nx, ny, nz) array named "density") as the algorithm's input."""
     from vtkmodules.vtkCommonExecutionModel import vtkTrivialProducer
 
-    from nebula_rt.io_vti import to_image_data
+    from nebula_rt.filters.image_data import to_image_data
 
     producer = vtkTrivialProducer()
     producer.SetOutput(to_image_data({"density": density}, None, (1, 1, 1)))
@@ -206,7 +206,7 @@ def test_offset_limit_is_where_the_float32_turbulence_keeps_its_structure(backen
     stays within 1 % (rms, of the density's standard deviation) of the float64 oracle; at 100x
     the limit it is far off (measured 40-50 %), which is why larger offsets are refused. The
     oracle gets the float32-rounded offset, so only the kernel's arithmetic is compared."""
-    from nebula_rt import reference_density as ref
+    from oracles import reference_density as ref
     from nebula_rt.backends.base import MODEL_TURBULENCE
 
     def rms_error(o):
@@ -251,7 +251,7 @@ def test_largest_seed_is_traced_and_written_losslessly(tmp_path, backend):
 
 
 def test_largest_seed_through_the_filter():
-    from nebula_rt.io_vti import field_data_dict
+    from nebula_rt.filters.image_data import field_data_dict
 
     lf = pinned_light_field(photons=1000)
     lf.SetSeed(2**64 - 1)

@@ -1,4 +1,4 @@
-"""Tests of nebula_rt.io_vti (VTK image I/O) and nebula_rt.render (PNG volume rendering)."""
+"""Tests of nebula_rt.filters.vti (.vti files) and nebula_rt.filters.render (PNG volume rendering)."""
 
 from __future__ import annotations
 
@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 
 pytest.importorskip("vtkmodules.vtkIOXML")
+pytest.importorskip("pyvista")  # the io extra: VTK and pyvista
 
-from nebula_rt.io_vti import (  # noqa: E402
+from nebula_rt.filters.vti import (  # noqa: E402
     ArrayNotFoundError,
     read_density_array,
     read_vti,
@@ -275,7 +276,7 @@ def _png_stats(path):
 )
 def test_render_rgba_png_colours(tmp_path, color, brighter, dimmer):
     pytest.importorskip("pyvista")
-    from nebula_rt.render import render_rgba_png
+    from nebula_rt.filters.render import render_rgba_png
 
     path = tmp_path / "blob.png"
     out = render_rgba_png(path, _blob(color), spacing=(0.1, 0.1, 0.1), window_size=(160, 120))
@@ -291,7 +292,7 @@ def test_render_rgba_png_colours(tmp_path, color, brighter, dimmer):
 
 def test_render_png_from_vti(tmp_path):
     pytest.importorskip("pyvista")
-    from nebula_rt.render import render_png_from_vti
+    from nebula_rt.filters.render import render_png_from_vti
 
     vti = tmp_path / "blob.vti"
     write_vti(vti, {"rgba": _blob((0.1, 1.0, 0.2))}, {}, (0.1, 0.1, 0.1))

@@ -1,16 +1,194 @@
-"""The library core never imports VTK or ParaView (DESIGN.md layers)."""
+"""The layers of DESIGN.md: the library (python/nebula_rt) imports no VTK, pyvista or ParaView;
+the VTK layer is nebula_rt.filters, and its part that ParaView runs needs no pyvista."""
 
+from __future__ import annotations
+
+import ast
 import subprocess
 import sys
+import warnings
+from pathlib import Path
 
-CORE = ["nebula_rt", "nebula_rt.scene", "nebula_rt.bands", "nebula_rt.backends", "nebula_rt.density",
-        "nebula_rt.transport", "nebula_rt.filtering", "nebula_rt.colour_convert", "nebula_rt.pipeline",
-        "nebula_rt.cli", "nebula_rt.reference_density", "nebula_rt.io_vti", "nebula_rt.render"]
+import pytest
+
+import nebula_rt
+
+LIBRARY = Path(nebula_rt.__file__).resolve().parent
+#: top-level packages of the VTK world
+VTK_PACKAGES = ("vtk", "vtkmodules", "pyvista", "paraview")
+#: the library's modules that reach into the VTK layer, each inside a function (at run time,
+#: for an output or input that needs VTK): the CLI writes the .vti and the PNG, the density
+#: stage reads a .vti density, and the old name io_vti forwards to nebula_rt.filters.vti
+BOUNDARY = {"nebula_rt.cli", "nebula_rt.density", "nebula_rt.io_vti"}
+#: the one import circle left, between the transport and its backends
+TRANSPORT_KNOT = {"nebula_rt.transport", "nebula_rt.postprocess", "nebula_rt.resources", "nebula_rt.backends",
+                  "nebula_rt.backends.base", "nebula_rt.backends.cuda", "nebula_rt.backends.opencl",
+                  "nebula_rt.backends.session"}
 
 
-def test_core_imports_without_vtk():
-    code = ("import sys\n" + "".join(f"import {m}\n" for m in CORE) +
-            "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('vtk', 'vtkmodules', 'pyvista', 'paraview'))\n"
-            "print(bad)\nassert not bad, bad\n")
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+def library_modules() -> dict[str, Path]:
+    """Every module of python/nebula_rt (the files themselves, not a list kept by hand)."""
+    out = {}
+    for p in sorted(LIBRARY.rglob("*.py")):
+        parts = p.relative_to(LIBRARY.parent).with_suffix("").parts
+        out[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = p
+    return out
+
+
+def _run(code: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+
+
+def _block(packages) -> str:
+    """Python that makes these packages unimportable (as if not installed)."""
+    return "import sys\n" + "".join(f"sys.modules[{p!r}] = None\n" for p in packages)
+
+
+def test_every_library_module_imports_without_vtk():
+    """With vtk, vtkmodules, pyvista and paraview unimportable, every module of python/nebula_rt
+    imports, and none of them (nor the VTK layer, nebula_rt.filters) is loaded."""
+    modules = sorted(library_modules())
+    assert "nebula_rt.output_contract" in modules and "nebula_rt.cli" in modules
+    code = (_block(VTK_PACKAGES) + "import importlib\n"
+            f"for m in {modules!r}:\n    importlib.import_module(m)\n"
+            "bad = sorted(m for m in sys.modules if m.split('.')[0] in "
+            f"{VTK_PACKAGES!r} and sys.modules[m] is not None or m.startswith('nebula_rt.filters'))\n"
+            "assert not bad, bad\nprint(len(" + repr(modules) + "))\n")
+    proc = _run(code)
     assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert proc.stdout.strip() == str(len(modules))
+
+
+def _imported_names(tree: ast.AST, module: str, is_package: bool):
+    """(absolute module name, node, inside a function) of every import in ``tree``: import
+    statements anywhere (function bodies too) and importlib.import_module / __import__ calls
+    with literal names."""
+    package = module if is_package else module.rpartition(".")[0]
+    functions = [n for n in ast.walk(tree) if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef))]
+    nested = {id(c) for f in functions for c in ast.walk(f) if c is not f}
+    for node in ast.walk(tree):
+        lazy = id(node) in nested
+        if isinstance(node, ast.Import):
+            for alias in node.names:
+                yield alias.name, node, lazy
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")[: len(package.split(".")) - node.level + 1]
+                name = ".".join(base + ([node.module] if node.module else []))
+            else:
+                name = node.module
+            yield name, node, lazy
+            for alias in node.names:  # `from . import filters` names a module too
+                yield f"{name}.{alias.name}", node, lazy
+        elif isinstance(node, ast.Call):
+            f = node.func
+            fname = f.attr if isinstance(f, ast.Attribute) else getattr(f, "id", "")
+            if fname in ("import_module", "__import__"):
+                for c in ast.walk(node):
+                    if isinstance(c, ast.Constant) and isinstance(c.value, str):
+                        yield c.value, node, lazy
+
+
+def _library_imports():
+    mods = library_modules()
+    for module, path in mods.items():
+        tree = ast.parse(path.read_text(), str(path))
+        for name, node, lazy in _imported_names(tree, module, path.name == "__init__.py"):
+            yield module, path, name, node, lazy
+
+
+def test_no_library_module_imports_vtk_even_lazily():
+    """Imports inside functions never run at import time, so the import system cannot see them:
+    the library's source is read instead. No import of vtk/vtkmodules/pyvista/paraview anywhere
+    (function bodies and importlib calls included); the VTK layer is reached only from the
+    boundary modules, and only inside functions."""
+    vtk, crossing = [], []
+    for module, path, name, node, lazy in _library_imports():
+        where = f"{path.relative_to(LIBRARY.parent)}:{node.lineno} {name}"
+        if name.split(".")[0] in VTK_PACKAGES:
+            vtk.append(where)
+        if name == "nebula_rt.filters" or name.startswith("nebula_rt.filters."):
+            if module not in BOUNDARY or not lazy:
+                crossing.append(where)
+    assert not vtk, vtk
+    assert not crossing, crossing
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[set[str]]:
+    """Strongly connected components with more than one module (Tarjan)."""
+    index, low, stack, on, out, counter = {}, {}, [], set(), [], [0]
+
+    def visit(v):
+        index[v] = low[v] = counter[0]
+        counter[0] += 1
+        stack.append(v)
+        on.add(v)
+        for w in graph[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = set()
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.add(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(comp)
+
+    for v in graph:
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_no_import_circles_outside_the_transport():
+    """The library's import graph (imports inside functions included) has no circle except the
+    transport's with its backends; bands and dust_tables, which used to import each other,
+    are in none."""
+    mods = library_modules()
+    graph = {m: set() for m in mods}
+    for module, _path, name, _node, _lazy in _library_imports():
+        if name in mods and name != module:
+            graph[module].add(name)
+    circles = _cycles(graph)
+    assert all(c <= TRANSPORT_KNOT for c in circles), circles
+    assert "nebula_rt.bands" not in graph["nebula_rt.dust_tables"]
+    assert not any({"nebula_rt.bands", "nebula_rt.dust_tables"} & c for c in circles)
+
+
+def test_the_vtk_layer_that_paraview_runs_needs_no_pyvista():
+    """ParaView's Python has VTK but no pyvista (docs/paraview.md: never install it there): the
+    VTK algorithms, image_data and the controller communicator import without it; .vti files
+    and PNGs (the io extra) need it."""
+    code = (_block(["pyvista"]) + "import nebula_rt.filters, nebula_rt.filters.image_data, "
+            "nebula_rt.filters.controller\n"
+            "from nebula_rt.filters import NebulaColour, NebulaDustDensity, NebulaLightField, NebulaSkyImage\n"
+            "try:\n    import nebula_rt.filters.vti\nexcept ImportError as e:\n    print('vti needs', e.name)\n")
+    proc = _run(code)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert proc.stdout.strip() == "vti needs pyvista"
+
+
+def test_old_io_vti_name_forwards_to_the_vtk_layer():
+    """``nebula_rt.io_vti`` (shown by earlier docs) imports without VTK and hands out the VTK
+    layer's functions on use, with a DeprecationWarning naming the new place."""
+    pytest.importorskip("pyvista")
+    from nebula_rt import io_vti
+    from nebula_rt.filters import image_data, vti
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert io_vti.write_vti is vti.write_vti and io_vti.read_vti is vti.read_vti
+        assert io_vti.to_image_data is image_data.to_image_data
+    assert len(caught) == 3 and all(issubclass(w.category, DeprecationWarning) for w in caught)
+    assert "nebula_rt.filters.vti.write_vti" in str(caught[0].message)
+    with pytest.raises(AttributeError):
+        io_vti.add_point_arrays  # noqa: B018 - not one the docs showed
+    proc = _run(_block(VTK_PACKAGES) + "import nebula_rt.io_vti as m\n"
+                "try:\n    m.write_vti\nexcept ImportError as e:\n    print('needs', e.name.split('.')[0])\n")
+    assert proc.returncode == 0 and proc.stdout.strip() == "needs vtkmodules", proc.stdout + proc.stderr

@@ -68,7 +68,7 @@ def test_trace_is_the_same_bits_on_1_2_3_ranks(tmp_path, case):
 def test_cli_render_under_mpiexec_writes_the_one_rank_file(tmp_path):
     """`mpiexec -n N nebula-rt render`: rank 0 writes the .vti (one file, no temporaries left)
     and its arrays are the one-rank run's, byte for byte, for N = 1, 2, 3."""
-    from nebula_rt.io_vti import read_vti
+    from nebula_rt.filters.vti import read_vti
 
     scene = ROOT / "examples" / "scenes" / "thesis-default.toml"
     exe = str(Path(sys.executable).with_name("nebula-rt"))

@@ -291,7 +291,7 @@ def test_rgba_compositing_is_per_voxel(pv_env, xdisplay, tmp_path):
 
 def test_paraview_render_matches_pyvista(pv_env, xdisplay, tmp_path):
     """The same .vti rendered by ParaView (show_rgba_volume + set_orbit_camera) and by
-    nebula_rt.render (pyvista, VTK wheel): same camera (look down -z, azimuth 30, elevation
+    nebula_rt.filters.render (pyvista, VTK wheel): same camera (look down -z, azimuth 30, elevation
     20, view angle 30, VTK ResetCamera on the volume's bounds), 400 x 400, black background.
 
     Tolerance: mean colour of the lit pixels within 3 % + 2 levels per channel, the 16 x 16
@@ -302,7 +302,7 @@ def test_paraview_render_matches_pyvista(pv_env, xdisplay, tmp_path):
     volume's edge. Measured: mean colours within 0.4 %, block MAD 0.1 level, IoU 0.99; the
     plain recipe without the per-voxel opacity mapping misses by far more (checked below).
     """
-    from nebula_rt.render import render_png_from_vti
+    from nebula_rt.filters.render import render_png_from_vti
 
     r, _ = run_pv(pv_env, xdisplay, "compare_render.py", tmp_path)
     assert r["error"] is None
@@ -404,7 +404,7 @@ def test_light_field_under_paraview_mpi_is_the_one_rank_field(pv_env, xdisplay, 
     the .pvti that SaveData writes holds the one-rank field bit for bit (both estimators: the
     collision filter runs on every rank's whole sums); a Nebula Colour downstream gives the same
     pieces with the one-rank exposure on every rank."""
-    from nebula_rt.io_vti import write_vti
+    from nebula_rt.filters.vti import write_vti
 
     density = tmp_path / "density.vti"
     rng = np.random.default_rng(7)

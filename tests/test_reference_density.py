@@ -1,4 +1,4 @@
-"""Self-consistency tests of the density oracle ``nebula_rt.reference_density``.
+"""Self-consistency tests of the density oracle ``tests/oracles/reference_density.py``.
 
 These tests check the oracle against the specification and against hand
 derivations only; they never touch the OpenCL kernel (that comparison lives
@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from scipy import integrate
 
-from nebula_rt.reference_density import (
+from oracles.reference_density import (
     GRAD3,
     OCTAVE_SHIFT,
     PERM,

@@ -175,7 +175,7 @@ def test_cli_render_summary_reports_it(tmp_path):
     import subprocess
     import sys
 
-    from nebula_rt.io_vti import read_vti
+    from nebula_rt.filters.vti import read_vti
 
     scene = tmp_path / "thick.toml"
     scene.write_text(Scene.from_dict({

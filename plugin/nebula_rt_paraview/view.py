@@ -3,7 +3,7 @@
 - :func:`load_plugin`            load plugin/NebulaRT.py unless its proxies are already known
 - :func:`show_rgba_volume`       show the ``rgba`` array of Nebula Colour as a volume, composited right
 - :func:`show_sky_image`         show the ``rgb`` image of Nebula Sky Image as it is
-- :func:`set_orbit_camera`       the camera of ``nebula_rt.render`` (``nebula-rt render --png``)
+- :func:`set_orbit_camera`       the camera of ``nebula_rt.filters.render`` (``nebula-rt render --png``)
 - :func:`set_compute_device`     pin the Device property of every NebulaRT proxy
 - :func:`load_state_safely`      LoadState, then check that the expected proxies exist
 
@@ -156,7 +156,7 @@ def show_sky_image(source, view=None, array: str = "rgb"):
 
 
 def set_orbit_camera(view, bounds=None, azimuth: float = 30.0, elevation: float = 20.0, view_angle: float = 30.0):
-    """The camera ``nebula_rt.render.render_rgba_png`` uses: look down -z (x right, y up),
+    """The camera ``nebula_rt.filters.render.render_rgba_png`` uses: look down -z (x right, y up),
     rotate by ``azimuth`` then ``elevation`` (degrees) about the bounds' centre, then VTK's
     ResetCamera on ``bounds`` (default: the visible data). Perspective, view angle 30 degrees.
     Returns (position, focal point, view up)."""

@@ -1,7 +1,9 @@
 """NebulaRT: radiative transfer of starlight in reflection nebulae.
 
-The library core (this package) never imports VTK or ParaView; the modules
-``nebula_rt.io_vti`` and ``nebula_rt.render`` do, lazily.
+The library (this package) imports no VTK, pyvista or ParaView. The VTK layer is
+``nebula_rt.filters``: the VTK algorithms, ``.vti`` files (``nebula_rt.filters.vti``) and PNG
+rendering (``nebula_rt.filters.render``). The names and types of the outputs' arrays and field
+data are declared in ``nebula_rt.output_contract``.
 """
 
 from .errors import (

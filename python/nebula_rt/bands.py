@@ -19,6 +19,7 @@ import re
 from dataclasses import asdict, dataclass, replace
 from typing import Any, Dict, List, Mapping, Optional, Sequence
 
+from .dust_tables import spectral_band_properties
 from .errors import SceneError
 from .limits import FLOAT32_RANGE_TEXT, FLOAT32_TINY, fmt, in_float32_range
 
@@ -28,6 +29,7 @@ __all__ = [
     "PRESETS",
     "resolve_bands",
     "reference_band_index",
+    "spectral_bands",
 ]
 
 #: Largest number of bands a scene may have.
@@ -86,9 +88,9 @@ class _Presets(Mapping):
 
     _makers = {
         "thesis-rgb": _thesis_rgb,
-        "spectral-8": lambda: _spectral(8, "3.1"),
-        "spectral-16": lambda: _spectral(16, "3.1"),
-        "spectral-8-dense": lambda: _spectral(8, "5.5"),
+        "spectral-8": lambda: spectral_bands(8, "3.1"),
+        "spectral-16": lambda: spectral_bands(16, "3.1"),
+        "spectral-8-dense": lambda: spectral_bands(8, "5.5"),
     }
 
     def __init__(self):
@@ -108,10 +110,12 @@ class _Presets(Mapping):
         return len(self._makers)
 
 
-def _spectral(n: int, rv: str) -> List[Band]:
-    from .dust_tables import spectral_bands
-
-    return spectral_bands(n, rv)
+def spectral_bands(n: int, rv: str = "3.1") -> List[Band]:
+    """``n`` equal bands across 380-780 nm with Draine's dust of ``rv`` (band averages of
+    :func:`nebula_rt.dust_tables.spectral_band_properties`). Band names are their centre
+    wavelengths ("405nm"); the band holding 550 nm is the reference band (extinction 1.0)."""
+    return [Band(f"{centre:g}nm".replace(".", "p"), centre, extinction, albedo, g)
+            for centre, extinction, albedo, g in spectral_band_properties(n, rv)]
 
 
 #: Named band sets:

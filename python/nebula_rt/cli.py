@@ -55,18 +55,15 @@ def _vti_bytes(scene) -> int:
 
 
 def _require_io(option: str, path, png: bool = False) -> None:
-    """VTK (and pyvista for a PNG) must import before a trace whose output needs them."""
+    """The VTK layer's writers (the ``io`` extra: VTK, pyvista) must import before a trace
+    whose output needs them."""
     import importlib
 
-    missing = []
-    for module in ("vtkmodules.vtkIOXML", "pyvista") if png else ("vtkmodules.vtkIOXML",):
-        try:
-            importlib.import_module(module)
-        except ImportError:
-            missing.append(module.split(".")[0])
-    if missing:
-        raise OutputError(option, path, f"writing it needs {', '.join(missing)}: "
-                                        "pip install 'nebula-rt[io]'")
+    try:
+        importlib.import_module("nebula_rt.filters.render" if png else "nebula_rt.filters.vti")
+    except ImportError as exc:
+        missing = (exc.name or "vtk").split(".")[0]
+        raise OutputError(option, path, f"writing it needs {missing}: pip install 'nebula-rt[io]'") from None
 
 
 def _inputs(args, scene) -> list[tuple[str, Path]]:
@@ -155,7 +152,7 @@ def _render(args, cancel) -> int:
         if not lead:
             return 0
 
-        from .io_vti import write_vti
+        from .filters.vti import write_vti
 
         write_vti(pub.stage(out), light.point_arrays(), light.field_data(), light.spacing, light.origin)
         cancel.check("run")
@@ -163,7 +160,7 @@ def _render(args, cancel) -> int:
             import numpy as np
 
             from .pipeline import colour_rgba
-            from .render import render_rgba_png
+            from .filters.render import render_rgba_png
 
             rgba = light.rgba
             if rgba is None:  # one band: no colour stage ran; the PNG asks for one (star's colour)

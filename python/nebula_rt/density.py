@@ -6,7 +6,7 @@ All models share one formula (thesis Eq. 3.2 and 3.3, generalised):
 
 with base = scale * max(0, turbulence(v + offset)) ("turbulence"), a constant ("uniform"),
 or the array read from ``dust.file`` ("file"). The generated models run on the compute
-device; ``nebula_rt.reference_density`` is an independent NumPy implementation used as the
+device; an independent NumPy implementation, ``tests/oracles/reference_density.py``, is the
 test oracle.
 """
 
@@ -60,8 +60,11 @@ def load_density_file(path: Path, array: str, shape: tuple[int, int, int]) -> np
         if suffix == ".npy":
             data = np.load(path, allow_pickle=False)
         elif suffix == ".vti":
-            from .io_vti import read_density_array
-
+            try:  # the VTK layer (the io extra)
+                from .filters.vti import read_density_array
+            except ImportError as exc:
+                raise SceneError("dust.file", str(path), f"a .vti density needs {(exc.name or 'vtk').split('.')[0]}: "
+                                                         "pip install 'nebula-rt[io]', or give a .npy file") from None
             data = read_density_array(path, array)
         else:
             raise SceneError("dust.file", str(path), "must be a .npy or .vti file")

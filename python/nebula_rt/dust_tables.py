@@ -87,20 +87,20 @@ def band_average(rv: str, lo_nm: float, hi_nm: float) -> tuple[float, float, flo
     return float(cext.mean()), float(sca.mean() / cext.mean()), float((g * sca).mean() / sca.mean())
 
 
-def spectral_bands(n: int, rv: str = "3.1", lo_nm: float = 380.0, hi_nm: float = 780.0):
+def spectral_band_properties(n: int, rv: str = "3.1", lo_nm: float = 380.0,
+                             hi_nm: float = 780.0) -> list[tuple[float, float, float, float]]:
     """``n`` equal bands across [lo_nm, hi_nm] with Draine dust of ``rv``.
 
-    Band names are their centre wavelengths ("405nm"); extinction is relative to the band
-    holding 550 nm (V), which is then the reference band (extinction 1.0).
+    Returns
+    -------
+    list of (centre nm, extinction, albedo, g), one per band from blue to red: the
+    extinction is relative to the band holding 550 nm (V), which then has 1.0 and is the
+    reference band. :mod:`nebula_rt.bands` makes its ``Band`` records from these (this module
+    knows nothing of bands, so the two do not import each other).
     """
-    from .bands import Band
-
     edges = np.linspace(lo_nm, hi_nm, n + 1)
     props = [band_average(rv, a, b) for a, b in zip(edges[:-1], edges[1:])]
     ref = int(np.searchsorted(edges, 550.0, side="right")) - 1
     c_ref = props[ref][0]
-    bands = []
-    for (a, b), (cext, alb, g) in zip(zip(edges[:-1], edges[1:]), props):
-        centre = 0.5 * (a + b)
-        bands.append(Band(f"{centre:g}nm".replace(".", "p"), float(centre), cext / c_ref, alb, g))
-    return bands
+    return [(float(0.5 * (a + b)), cext / c_ref, alb, g)
+            for (a, b), (cext, alb, g) in zip(zip(edges[:-1], edges[1:]), props)]

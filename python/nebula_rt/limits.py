@@ -38,7 +38,7 @@ SEED_LIMIT = 2**64
 
 #: Largest |dust.offset| component (box units). The turbulence is evaluated in float32 at
 #: voxel centre + offset, so its coordinates lose precision as the offset grows: measured
-#: against the float64 oracle (nebula_rt.reference_density) on 32^3-128^3 grids, the rms
+#: against the float64 oracle (tests/oracles/reference_density.py) on 32^3-128^3 grids, the rms
 #: density error is 4e-5 of the density's standard deviation at offset 0.5, 0.5-0.75 % at 1e4,
 #: 1-1.7 % at 2e4, 6 % at 1e5, 40-50 % at 1e6 (76 % of neighbouring voxels equal: blocky), and
 #: above 1e7 the structure is gone. The noise has no common period to wrap the offset by (the

@@ -9,7 +9,8 @@ reduction order of the MPI library does not matter.
 
 :func:`world` gives the communicator of the process: mpi4py's ``COMM_WORLD`` when the process
 was started by ``mpiexec`` with more than one rank (mpi4py is the optional ``mpi`` extra), else
-:class:`Serial`.
+:class:`Serial`. The communicator of a VTK pipeline (ParaView's MPI engine) is the VTK layer's:
+:mod:`nebula_rt.filters.controller`.
 """
 
 from __future__ import annotations
@@ -77,80 +78,6 @@ class MPIComm:
     def abort(self, code: int) -> None:
         """End every rank of the job (MPI_Abort)."""
         self.comm.Abort(int(code))
-
-
-class VTKControllerComm:
-    """A VTK multi-process controller (ParaView's parallel engine: pvbatch, pvserver), with
-    the same reductions as :class:`MPIComm` through ``vtkMultiProcessController.AllReduce``
-    and ``Broadcast`` (numbers only)."""
-
-    def __init__(self, controller):
-        self.controller = controller
-        self.rank = int(controller.GetLocalProcessId())
-        self.size = int(controller.GetNumberOfProcesses())
-        # a controller knows no nodes: the launcher's node-local rank if it says, else the rank
-        self.local_rank = int(os.environ.get("OMPI_COMM_WORLD_LOCAL_RANK", os.environ.get("MPI_LOCALRANKID", self.rank)))
-        self.local_size = int(os.environ.get("OMPI_COMM_WORLD_LOCAL_SIZE", self.size))
-
-    def _allreduce(self, a: np.ndarray, op) -> np.ndarray:
-        from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
-
-        src = np.ascontiguousarray(a).reshape(-1)
-        send = numpy_to_vtk(src, deep=False)
-        recv = send.NewInstance()
-        recv.SetNumberOfComponents(1)
-        recv.SetNumberOfTuples(src.size)
-        if not self.controller.AllReduce(send, recv, op):
-            raise RuntimeError("vtkMultiProcessController.AllReduce failed")
-        return vtk_to_numpy(recv).astype(src.dtype, copy=True).reshape(np.shape(a))
-
-    def allreduce_u64(self, a: np.ndarray) -> np.ndarray:
-        from vtkmodules.vtkParallelCore import vtkCommunicator
-
-        return self._allreduce(np.asarray(a, np.uint64), vtkCommunicator.SUM_OP)
-
-    def allreduce_max(self, x: float) -> float:
-        from vtkmodules.vtkParallelCore import vtkCommunicator
-
-        return float(self._allreduce(np.array([float(x)]), vtkCommunicator.MAX_OP)[0])
-
-    def bcast(self, obj, root: int = 0):
-        """Broadcast a number (int, float or bool) from ``root``."""
-        from vtkmodules.vtkCommonCore import vtkDoubleArray
-
-        arr = vtkDoubleArray()
-        arr.SetNumberOfTuples(1)
-        arr.SetValue(0, float(obj) if self.rank == root else 0.0)
-        self.controller.Broadcast(arr, root)
-        v = arr.GetValue(0)
-        return type(obj)(v) if self.rank == root else (int(v) if float(v).is_integer() else v)
-
-    def barrier(self) -> None:
-        self.controller.Barrier()
-
-    def abort(self, code: int) -> None:
-        """End every rank of the job (MPI_Abort through mpi4py, which Debian's ParaView's
-        Python has; else the controller's own break of its remote-method loop)."""
-        try:
-            from mpi4py import MPI
-
-            MPI.COMM_WORLD.Abort(int(code))
-        except ImportError:
-            self.controller.TriggerBreakRMIs()
-            os._exit(int(code))
-
-
-def vtk_world():
-    """The communicator of a VTK pipeline: :class:`VTKControllerComm` over the global
-    controller when it has several processes (ParaView's MPI engine), else :class:`Serial`."""
-    try:
-        from vtkmodules.vtkParallelCore import vtkMultiProcessController
-    except ImportError:
-        return Serial()
-    controller = vtkMultiProcessController.GetGlobalController()
-    if controller is None or controller.GetNumberOfProcesses() < 2:
-        return Serial()
-    return VTKControllerComm(controller)
 
 
 def _launched_by_mpi() -> bool:

@@ -18,12 +18,13 @@ from typing import Callable, Optional
 import numpy as np
 
 from . import colour_convert, filtering, postprocess
+from . import output_contract as contract
 from .array_api import array_module, to_numpy
 from .backends import Backend, get_backend
 from .bands import Band, reference_band_index
 from .density import file_digest, generate_density
 from .limits import FLOAT32_MAX
-from .transport import TALLY_NAMES, TransportResult, batch_standard_error, light_from_sums, trace
+from .transport import TransportResult, batch_standard_error, light_from_sums, trace
 
 
 @dataclass
@@ -60,55 +61,53 @@ class LightField:
         return tuple(0.5 / n for n in self.density.shape)
 
     def point_arrays(self) -> dict[str, np.ndarray]:
-        """The point-data arrays of the output contract."""
-        out = {"density": self.density.astype(np.float32)}
+        """The point-data arrays of the output contract (:mod:`nebula_rt.output_contract`)."""
+        out = {contract.DENSITY.name(): self.density.astype(np.float32)}
         for b, band in enumerate(self.bands):
-            out[f"J_{band.name}"] = self.J[b]
-            out[f"emissivity_{band.name}"] = self.emissivity[b]
-            out[f"rel_error_{band.name}"] = self.rel_error[b]
+            out[contract.J.name(band.name)] = self.J[b]
+            out[contract.EMISSIVITY.name(band.name)] = self.emissivity[b]
+            out[contract.REL_ERROR.name(band.name)] = self.rel_error[b]
         if self.rgba is not None:
-            out["rgba"] = self.rgba
+            out[contract.RGBA.name()] = self.rgba
         return out
 
-    def field_data(self) -> dict[str, object]:
-        """Field data of the output contract: energies per band, photons, seed, the scene."""
+    def record(self) -> contract.LightFieldData:
+        """The run's field data as the output contract's record: energies per band, photons,
+        seed, the scene."""
         tr = self.transport
-        energy = tr.energy
-        out: dict[str, object] = {}
-        frac, bias = tr.terminated_fraction, tr.terminated_bias
-        for b, band in enumerate(self.bands):
-            for t, name in enumerate(TALLY_NAMES):
-                out[f"{name}_{band.name}"] = float(energy[b, t])
-                out[f"packets_{name}_{band.name}"] = int(tr.counts[b, t])
-            # packets stopped at max_scatterings, and the bound on J's bias they leave
-            out[f"terminated_fraction_{band.name}"] = float(frac[b])
-            out[f"terminated_bias_{band.name}"] = float(bias[b])
-        out["photons"] = int(tr.photons)
-        out["photons_budget"] = int(tr.photons_budget or tr.photons)
-        out["achieved_error"] = float(tr.achieved_error)
-        # uint64: the seed's whole range [0, 2^64) (an int64 field cannot hold 2^63 and above)
-        out["seed"] = np.uint64(self.scene.transport.seed)
-        out["batches"] = int(tr.batches)
-        out["transport_ranks"] = int(tr.ranks)
-        out["estimator"] = tr.estimator
-        out["device"] = tr.device
-        out["exposure"] = float(self.exposure)
-        out["band_names"] = ",".join(b.name for b in self.bands)
-        out["band_wavelength_nm"] = np.array([b.wavelength for b in self.bands], np.float64)
-        out["band_luminosity"] = np.asarray(tr.band_luminosity, np.float64)
-        out["band_extinction"] = np.array([b.extinction for b in self.bands], np.float64)
-        out["band_albedo"] = np.array([b.albedo for b in self.bands], np.float64)
-        out["band_g"] = np.array([b.g for b in self.bands], np.float64)
-        out["reference_band"] = int(self.reference_band)
-        if self.memory:
-            out["device_memory_peak_bytes"] = int(self.memory.get("device_peak_bytes", 0))
-        out["tau"] = float(self.scene.dust.tau)
         t = _dominant_temperature(self.scene.stars)
-        out["colour_temperature"] = float(t) if t is not None else 0.0
-        out["scene"] = _reproducible_scene(self.scene).to_toml()
-        if self.dust_file_sha256:
-            out["dust_file_sha256"] = self.dust_file_sha256
-        return out
+        return contract.LightFieldData(
+            band_names=tuple(b.name for b in self.bands),
+            band_wavelength_nm=[b.wavelength for b in self.bands],
+            band_luminosity=tr.band_luminosity,
+            band_extinction=[b.extinction for b in self.bands],
+            band_albedo=[b.albedo for b in self.bands],
+            band_g=[b.g for b in self.bands],
+            reference_band=self.reference_band,
+            tau=self.scene.dust.tau,
+            energy=tr.energy,
+            packets=tr.counts,
+            # packets stopped at max_scatterings, and the bound on J's bias they leave
+            terminated_fraction=tr.terminated_fraction,
+            terminated_bias=tr.terminated_bias,
+            photons=tr.photons,
+            photons_budget=tr.photons_budget or tr.photons,
+            achieved_error=tr.achieved_error,
+            seed=self.scene.transport.seed,
+            batches=tr.batches,
+            transport_ranks=tr.ranks,
+            estimator=tr.estimator,
+            device=tr.device,
+            exposure=self.exposure,
+            colour_temperature=t if t is not None else 0.0,
+            device_memory_peak_bytes=int(self.memory.get("device_peak_bytes", 0)) if self.memory else None,
+            scene=_reproducible_scene(self.scene).to_toml(),
+            dust_file_sha256=self.dust_file_sha256 or None,
+        )
+
+    def field_data(self) -> dict[str, object]:
+        """Field data of the output contract, flat ``{name: value}`` (:meth:`record`)."""
+        return self.record().to_field_data()
 
 
 def _reproducible_scene(scene):
@@ -438,15 +437,18 @@ def _dominant_temperature(stars):
     return star.temperature
 
 
-def colour_source_from_field_data(fd: dict):
-    """The star spectrum a light field's colours use, from its field data: the scene's most
+def colour_source_from_field_data(fd):
+    """The star spectrum a light field's colours use, from its field data (a
+    :class:`~nebula_rt.output_contract.LightFieldData` or the flat mapping): the scene's most
     luminous star (measured spectrum, temperature or flat) when the scene TOML is there, else
     ``colour_temperature`` (0: flat)."""
-    if "scene" in fd:
+    if not isinstance(fd, contract.LightFieldData):
+        fd = contract.LightFieldData.from_field_data(fd)
+    if fd.scene is not None:
         from .scene import Scene
 
-        return _dominant_source(Scene.loads(str(fd["scene"])).stars)
-    t = float(fd.get("colour_temperature", 0.0))
+        return _dominant_source(Scene.loads(fd.scene).stars)
+    t = fd.colour_temperature or 0.0
     return t if t > 0 else None
 
 

@@ -34,7 +34,8 @@ def main() -> int:
         for _ in range(repeat):
             os.kill(os.getpid(), sig)
 
-    from nebula_rt import cli, io_vti, pipeline, render, scene
+    from nebula_rt import cli, pipeline, scene
+    from nebula_rt.filters import render, vti
     from nebula_rt.backends import session
 
     if point == "rank1-fails":
@@ -76,12 +77,12 @@ def main() -> int:
             return out
         pipeline.Pipeline.run = running
     elif point == "during-write":
-        enter = io_vti._CapturedVtkMessages.__enter__
+        enter = vti.VtkMessages.__enter__
 
         def entering(self):
             fire()
             return enter(self)
-        io_vti._CapturedVtkMessages.__enter__ = entering
+        vti.VtkMessages.__enter__ = entering
     elif point == "during-png":
         png = render.render_rgba_png
 
@@ -90,7 +91,7 @@ def main() -> int:
             return png(*a, **kw)
         render.render_rgba_png = rendering
     elif point == "fill-disk":
-        write = io_vti.write_vti
+        write = vti.write_vti
 
         def filling(path, *a, **kw):
             with open(os.path.join(os.path.dirname(path), "filler"), "wb") as fh:
@@ -101,7 +102,7 @@ def main() -> int:
                 except OSError:
                     pass
             return write(path, *a, **kw)
-        io_vti.write_vti = filling
+        vti.write_vti = filling
     elif point == "png-fails":
         def failing(*a, **kw):
             raise RuntimeError("the PNG renderer failed")

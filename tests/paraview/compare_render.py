@@ -1,10 +1,10 @@
-"""Render the same light field in ParaView as ``nebula_rt.render`` does with pyvista.
+"""Render the same light field in ParaView as ``nebula_rt.filters.render`` does with pyvista.
 
     pvpython compare_render.py OUT_DIR
 
 Builds a small nebula (40^3 voxels, thesis-rgb, tau 128), writes the Nebula Colour output to
 OUT_DIR/light.vti, reads that file back and renders its ``rgba`` with show_rgba_volume and the
-orbit camera of nebula_rt.render (azimuth 30, elevation 20, view angle 30, black background,
+orbit camera of nebula_rt.filters.render (azimuth 30, elevation 20, view angle 30, black background,
 400 x 400) to OUT_DIR/paraview.png, and once more with the plain linear opacity ramp to
 OUT_DIR/paraview-naive.png. The test renders light.vti with render_png_from_vti.
 """

@@ -1,13 +1,11 @@
-"""Off-screen PNG rendering of RGBA volumes with PyVista.
+"""Off-screen PNG rendering of RGBA volumes with pyvista (the ``io`` extra).
 
-PyVista (and so VTK) is imported lazily inside the functions. The volume is
-shown as it is: each voxel's RGB is its colour and its A (through a linear
-opacity ramp over 0-255) its opacity per ``opacity_unit_distance``; no colour
-map is applied.
+The volume is shown as it is: each voxel's RGB is its colour and its A (through a linear
+opacity ramp over 0-255) its opacity per ``opacity_unit_distance``; no colour map is applied.
 
-Off-screen rendering works without an X server: the VTK wheel then renders
-through EGL (Mesa's software rasteriser where there is no GPU), which needs
-the system libraries that ``scripts/setup.sh`` installs.
+Off-screen rendering works without an X server: the VTK wheel then renders through EGL
+(Mesa's software rasteriser where there is no GPU), which needs the system libraries that
+``scripts/setup.sh`` installs.
 """
 
 from __future__ import annotations
@@ -18,6 +16,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pyvista as pv
+
+from nebula_rt.outputs import Publication
+
+from .image_data import to_vtk_order
+from .vti import ArrayNotFoundError, read_vti
 
 __all__ = ["render_png_from_vti", "render_rgba_png"]
 
@@ -40,8 +44,6 @@ def _prefer_egl_without_display() -> None:
 
 
 def _write_bytes_atomic(path: Path, data: bytes) -> None:
-    from .outputs import Publication
-
     # a temporary file unique to this call, renamed onto the target once complete
     with Publication() as pub:
         tmp = pub.stage(path)
@@ -87,9 +89,7 @@ def render_rgba_png(
     pathlib.Path
         The PNG written.
     """
-    _prefer_egl_without_display()
-    import pyvista as pv
-
+    _prefer_egl_without_display()  # read when the render window is made
     path = Path(os.fspath(path))
     rgba = np.asarray(rgba)
     if rgba.ndim != 4 or rgba.shape[3] != 4:
@@ -119,8 +119,7 @@ def render_rgba_png(
     spacing = tuple(s / unit for s in spacing)
     origin = tuple(o / unit for o in origin)
     img = pv.ImageData(dimensions=(nx, ny, nz), spacing=spacing, origin=origin)
-    # VTK point order is x fastest: point i + nx*(j + ny*k).
-    img.point_data["rgba"] = np.ascontiguousarray(rgba.transpose(2, 1, 0, 3)).reshape(-1, 4)
+    img.point_data["rgba"] = to_vtk_order("rgba", rgba)
 
     plotter = pv.Plotter(off_screen=True, window_size=[width, height])
     try:
@@ -165,8 +164,6 @@ def render_png_from_vti(
     ``spacing`` and ``origin`` come from the file; other keyword arguments go
     to :func:`render_rgba_png`.
     """
-    from .io_vti import ArrayNotFoundError, read_vti
-
     point_arrays, _fd, spacing, origin, _dims = read_vti(vti_path)
     if array_name not in point_arrays:
         raise ArrayNotFoundError(Path(os.fspath(vti_path)), array_name, sorted(point_arrays))

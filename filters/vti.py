@@ -1,0 +1,291 @@
+"""Reading and writing VTK XML image data (``.vti``) files.
+
+Needs the ``io`` extra (VTK and pyvista). The arrays go through
+:mod:`nebula_rt.filters.image_data` (layout: ``(nx, ny, nz[, c])`` grids indexed [x, y, z], the
+image's points at the voxel centres; field-data types: see there), so a file holds what the
+VTK algorithms' outputs hold.
+
+- Writing (:func:`write_vti`): ``vtkXMLImageDataWriter``, appended raw binary, ZLib, 64-bit
+  headers (arrays above 4 GiB), into a temporary file of its own in the target's folder that
+  is renamed onto the target once complete (:class:`nebula_rt.outputs.Publication`): readers
+  never see a half-written file and concurrent writers never share one.
+- Reading (:func:`read_vti`, :func:`read_density_array`): pyvista's XML image reader, with its
+  array selection so that only the array asked for is read.
+
+VTK's messages of a read or write (the reader's, the writer's and those of their helpers, such
+as the XML parser) are caught by pyvista's ``VtkErrorCatcher`` with VTK's logger silenced, and
+go into the exception raised instead of stderr. Both are process-global, so one read or write
+runs at a time.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import math
+import os
+import threading
+from pathlib import Path
+
+import numpy as np
+import pyvista as pv
+from vtkmodules.vtkIOXML import vtkXMLImageDataWriter
+
+from nebula_rt.errors import NebulaError
+from nebula_rt.outputs import Publication
+
+from .image_data import (cell_array, check_numeric_dtype, field_data_dict, image_geometry, point_array,
+                         to_image_data)
+
+__all__ = ["ArrayNotFoundError", "read_density_array", "read_vti", "write_vti"]
+
+
+class ArrayNotFoundError(NebulaError, KeyError, ValueError):
+    """A named array is not present in a data file.
+
+    Attributes
+    ----------
+    path : pathlib.Path
+        The file searched.
+    array_name : str
+        The name asked for.
+    available : list of str
+        The names of the arrays that the file has.
+    """
+
+    def __init__(self, path: Path, array_name: str, available: list[str]):
+        self.path = Path(path)
+        self.array_name = array_name
+        self.available = list(available)
+        listed = ", ".join(repr(a) for a in self.available) if self.available else "none"
+        self.message = f"{self.path}: no array named {array_name!r}; available arrays: {listed}"
+        super().__init__(self.message)
+
+    def __str__(self) -> str:  # KeyError would quote the message
+        return self.message
+
+
+_VTK_MESSAGES = threading.Lock()
+
+
+class VtkMessages:
+    """Within this block VTK's messages are caught instead of printed; ``errors`` afterwards
+    holds the error messages (their text, without VTK's source location)."""
+
+    def __enter__(self) -> "VtkMessages":
+        _VTK_MESSAGES.acquire()
+        self._stack = contextlib.ExitStack()
+        try:
+            self._stack.enter_context(pv.vtk_verbosity("off"))  # the logger's copy on stderr
+            self._catcher = self._stack.enter_context(pv.VtkErrorCatcher(send_to_logging=False))
+        except BaseException:
+            self._stack.close()
+            _VTK_MESSAGES.release()
+            raise
+        self.errors: list[str] = []
+        return self
+
+    def __exit__(self, *exc) -> None:
+        try:
+            self._stack.__exit__(*exc)
+        finally:
+            _VTK_MESSAGES.release()
+        self.errors = [str(e.alert).strip() for e in self._catcher.error_events]
+
+
+# --------------------------------------------------------------------------- writing
+
+
+def write_vti(path, point_arrays: dict, field_data: dict | None, spacing, origin=(0.0, 0.0, 0.0),
+              compress: bool = True) -> Path:
+    """Write point arrays and field data to a VTK XML image file, atomically.
+
+    Parameters
+    ----------
+    path : path-like
+        Target file (normally ending in ``.vti``).
+    point_arrays : dict of str to numpy.ndarray
+        Arrays of shape ``(nx, ny, nz)`` or ``(nx, ny, nz, c)``, all with the same
+        ``(nx, ny, nz)``; integer (8-64 bit) or float32/float64 dtype.
+    field_data : dict of str to object, or None
+        Floats, ints, strings and 1-D numeric arrays (:mod:`nebula_rt.filters.image_data`).
+    spacing : tuple of 3 floats
+        Voxel size along x, y, z (positive).
+    origin : tuple of 3 floats
+        Position of the centre of voxel ``[0, 0, 0]``.
+    compress : bool
+        ZLib-compress the appended binary data.
+
+    Returns
+    -------
+    pathlib.Path
+        The path written.
+
+    Raises
+    ------
+    ValueError, TypeError
+        Bad shapes, dtypes or metadata. Nothing is written.
+    OSError
+        The file could not be written (missing folder, no permission, disk full, VTK writer
+        failure; ``errno.ENOSPC`` for a full disk). No file and no temporary file is left, an
+        old file at ``path`` is unchanged.
+    """
+    path = Path(os.fspath(path))
+    # ---- validate everything before touching the file system
+    if not point_arrays:
+        raise ValueError("write_vti needs at least one point array")
+    spacing = tuple(float(s) for s in spacing)
+    origin = tuple(float(o) for o in origin)
+    if len(spacing) != 3 or len(origin) != 3:
+        raise ValueError("spacing and origin must have 3 components each")
+    if not all(math.isfinite(s) and s > 0 for s in spacing):
+        raise ValueError(f"spacing must be positive and finite, got {spacing}")
+    if not all(math.isfinite(o) for o in origin):
+        raise ValueError(f"origin must be finite, got {origin}")
+    dims = None
+    for name, arr in point_arrays.items():
+        if not isinstance(name, str) or not name:
+            raise ValueError(f"point array names must be non-empty strings, got {name!r}")
+        a = np.asarray(arr)
+        check_numeric_dtype(name, a.dtype)
+        if a.ndim not in (3, 4):
+            raise ValueError(f"point array {name!r} has shape {a.shape}; expected (nx, ny, nz) or (nx, ny, nz, c)")
+        if min(a.shape) < 1:
+            raise ValueError(f"point array {name!r} has an empty axis: shape {a.shape}")
+        if dims is not None and tuple(a.shape[:3]) != dims:
+            raise ValueError(f"point array {name!r} has grid shape {tuple(a.shape[:3])}, others have {dims}")
+        dims = tuple(a.shape[:3])
+    img = to_image_data(point_arrays, field_data, spacing, origin)  # checks the field data too
+    if not path.parent.is_dir():
+        raise FileNotFoundError(2, f"cannot write {path}: directory {path.parent} does not exist", str(path))
+
+    writer = vtkXMLImageDataWriter()
+    writer.SetInputData(img)
+    writer.SetDataModeToAppended()
+    writer.EncodeAppendedDataOff()  # raw binary, not base64
+    writer.SetHeaderTypeToUInt64()  # arrays larger than 4 GiB
+    if compress:
+        writer.SetCompressorTypeToZLib()
+    else:
+        writer.SetCompressorTypeToNone()
+    with Publication() as pub:
+        tmp = pub.stage(path)
+        writer.SetFileName(str(tmp))
+        with VtkMessages() as messages:
+            ok = writer.Write()
+        code = writer.GetErrorCode()
+        if ok != 1 or code != 0 or messages.errors:
+            detail = "; ".join(messages.errors) or f"VTK error code {code}"
+            # VTK reports the system error (errno) or its own OutOfDiskSpaceError (20007)
+            if code in (errno.ENOSPC, 20007):
+                raise OSError(errno.ENOSPC, f"No space left on device ({detail})", str(path))
+            raise OSError(f"could not write {path}: {detail}")
+        with open(tmp, "rb") as fh:  # durable before the rename makes it visible
+            os.fsync(fh.fileno())
+        pub.publish()
+    return path
+
+
+# --------------------------------------------------------------------------- reading
+
+
+def _open(path: Path):
+    """pyvista's reader of ``path`` with the file's information read (array names, extent)."""
+    if not path.exists():
+        raise FileNotFoundError(2, f"no such file: {path}", str(path))
+    if path.is_dir():
+        raise IsADirectoryError(21, f"is a directory, not a .vti file: {path}", str(path))
+    with VtkMessages() as messages:
+        reader = pv.XMLImageDataReader(str(path))
+    if reader.reader.GetErrorCode() != 0 or messages.errors:
+        _unreadable(path, reader, messages.errors)
+    return reader
+
+
+def _unreadable(path: Path, reader, errors) -> None:
+    detail = "; ".join(errors) or f"VTK error code {reader.reader.GetErrorCode()}"
+    raise ValueError(f"{path}: unreadable .vti file: {detail}")
+
+
+def _read(path: Path, reader):
+    with VtkMessages() as messages:
+        img = reader.read()
+    if reader.reader.GetErrorCode() != 0 or messages.errors or img is None:
+        _unreadable(path, reader, messages.errors)
+    return img
+
+
+def read_vti(path):
+    """Read a ``.vti`` file written by :func:`write_vti` (or any VTK XML image).
+
+    Returns
+    -------
+    point_arrays : dict of str to numpy.ndarray
+        Shapes ``(nx, ny, nz)`` or ``(nx, ny, nz, c)``, dtypes as stored.
+    field_data : dict of str to object
+        ``float``, ``int``, ``str``, or 1-D ``float64`` / ``int64`` / ``uint64`` arrays (2-D for
+        multi-component arrays of other writers).
+    spacing : tuple of 3 floats
+    origin : tuple of 3 floats
+        Position of the first point (voxel centre ``[0, 0, 0]``).
+    dimensions : tuple of 3 ints
+        ``(nx, ny, nz)``.
+
+    Raises
+    ------
+    FileNotFoundError
+        ``path`` does not exist.
+    ValueError
+        ``path`` is not a readable VTK XML image file.
+    """
+    path = Path(os.fspath(path))
+    img = _read(path, _open(path))
+    dims, spacing, origin = image_geometry(img)
+    pd = img.GetPointData()
+    names = [pd.GetArrayName(i) for i in range(pd.GetNumberOfArrays()) if pd.GetArray(i) is not None]
+    return {n: point_array(img, n) for n in names}, field_data_dict(img), spacing, origin, dims
+
+
+def read_density_array(path, array_name: str) -> np.ndarray:
+    """Read one scalar array of a ``.vti`` file as a ``float64`` grid.
+
+    The array is looked up among the point data first (shape ``(nx, ny, nz)``, the image's
+    dimensions), then among the cell data, for images whose cells are the voxels (shape
+    ``dimensions - 1``). Only that array is read from the file.
+
+    Raises
+    ------
+    FileNotFoundError
+        ``path`` does not exist.
+    ArrayNotFoundError
+        (a ``KeyError`` and ``ValueError``) no point or cell array has that name; the message
+        lists the arrays there are.
+    ValueError
+        Unsupported file type, unreadable file, or the array has more than one component.
+    """
+    path = Path(os.fspath(path))
+    if path.suffix.lower() != ".vti":
+        if not path.exists():
+            raise FileNotFoundError(2, f"no such file: {path}", str(path))
+        raise ValueError(f"{path}: unsupported density file type {path.suffix!r}; expected .vti")
+    reader = _open(path)
+    point_names, cell_names = list(reader.point_array_names), list(reader.cell_array_names)
+    if array_name in point_names:
+        where = "point"
+    elif array_name in cell_names:
+        where = "cell"
+    else:
+        available = [f"{n} (point)" for n in point_names] + [f"{n} (cell)" for n in cell_names]
+        raise ArrayNotFoundError(path, array_name, available)
+    reader.disable_all_point_arrays()
+    reader.disable_all_cell_arrays()
+    (reader.enable_point_array if where == "point" else reader.enable_cell_array)(array_name)
+    img = _read(path, reader)
+    try:
+        grid = point_array(img, array_name) if where == "point" else cell_array(img, array_name)
+    except KeyError:
+        raise ValueError(f"{path}: array {array_name!r} is not a numeric array") from None
+    if grid.ndim != 3:
+        raise ValueError(f"{path}: array {array_name!r} has {grid.shape[3]} components; "
+                         "a density must be a scalar array")
+    return grid.astype(np.float64)
