@@ -32,7 +32,8 @@ before each; the first includes the source's device start-up and the file's firs
 through the page cache); a repetition's time is the slowest rank's (the transport's first
 collective waits for it). Memory: each rank's peak RSS (VmHWM) at the end and its RSS before
 the first update; the figure is the largest over the ranks, in MiB. The probe also checks
-that every rank's whole density has the same SHA-256 in both modes.
+that every rank's whole density has the same SHA-256 in both modes, and records how many
+points the upstream gave each rank (the whole grid, or its piece).
 
 On this 2-core machine the ranks share the cores (3 ranks oversubscribe them), and the file is
 read from the page cache: the figures measure the readers' decoding and the data movement,
@@ -107,6 +108,7 @@ def _probe_class():
             whole_ext = list(info.Get(sddp.WHOLE_EXTENT()))
             dims = [whole_ext[2 * a + 1] - whole_ext[2 * a] + 1 for a in range(3)]
             local = vtk_to_numpy(inp.GetPointData().GetArray("density"))
+            self.input_points = int(local.size)  # what the upstream gave this rank
             if self.mode == "whole":
                 self.whole = local
                 return 1
@@ -165,7 +167,7 @@ def child(upstream: str, path: str, n: int, mode: str, repeats: int) -> None:
         times.append(time.perf_counter() - t0)
     digest = hashlib.sha256(probe.whole.tobytes()).hexdigest()
     ok = probe.whole.size == n ** 3
-    row = times + [rss0, _status_kib("VmHWM"), float(ok), int(digest[:12], 16)]
+    row = times + [rss0, _status_kib("VmHWM"), float(ok), int(digest[:12], 16), probe.input_points]
     send = vtkDoubleArray()
     send.SetNumberOfTuples(len(row))
     for i, v in enumerate(row):
@@ -188,6 +190,7 @@ def child(upstream: str, path: str, n: int, mode: str, repeats: int) -> None:
             "whole_density_on_every_rank": all(r[repeats + 2] == 1.0 for r in rows),
             "digest": "%012x" % int(rows[0][repeats + 3]),
             "same_digest_on_every_rank": len({r[repeats + 3] for r in rows}) == 1,
+            "upstream_points_per_rank": [int(r[repeats + 4]) for r in rows],
         }), flush=True)
 
 
