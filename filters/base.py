@@ -87,7 +87,9 @@ class NebulaAlgorithm(VTKPythonAlgorithmBase):
         """Always ask for the whole input, as piece 0 of 1: the transport needs every voxel on
         every rank (a piece-aware reader in a parallel ParaView would otherwise give each rank
         a slab), and a sub-extent request (e.g. from a 2D sky image downstream) would
-        re-execute the upstream filters."""
+        re-execute the upstream filters. Letting the upstream make pieces and gathering them
+        was measured and not taken: no faster for readers or the Dust Density source, and
+        more memory (benchmarks/bench_density_gather.py, docs/domain_decomposition.md)."""
         from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline as sddp
 
         for port in range(self.GetNumberOfInputPorts()):

@@ -7,10 +7,10 @@ from __future__ import annotations
 import os
 
 import numpy as np
-from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
-from vtkmodules.vtkCommonCore import vtkDoubleArray
+from vtkmodules.vtkCommonCore import vtkDoubleArray, vtkTypeUInt64Array
 
-from nebula_rt.parallel import Serial
+from nebula_rt import parallel
+from nebula_rt.parallel import Serial, _flat_u64
 
 try:
     from vtkmodules.vtkParallelCore import vtkCommunicator, vtkMultiProcessController
@@ -19,9 +19,9 @@ except ImportError:  # a VTK built without its parallel module: always one proce
 
 
 class VTKControllerComm:
-    """A VTK multi-process controller (ParaView's parallel engine: pvbatch, pvserver), with the
-    same reductions as :class:`nebula_rt.parallel.MPIComm` through
-    ``vtkMultiProcessController.AllReduce`` and ``Broadcast`` (numbers only)."""
+    """A VTK multi-process controller (ParaView's parallel engine: pvbatch, pvserver), with
+    the same reductions as :class:`nebula_rt.parallel.MPIComm` through ``vtkMultiProcessController.AllReduce``
+    and ``Broadcast`` (numbers only)."""
 
     def __init__(self, controller):
         self.controller = controller
@@ -31,21 +31,32 @@ class VTKControllerComm:
         self.local_rank = int(os.environ.get("OMPI_COMM_WORLD_LOCAL_RANK", os.environ.get("MPI_LOCALRANKID", self.rank)))
         self.local_size = int(os.environ.get("OMPI_COMM_WORLD_LOCAL_SIZE", self.size))
 
-    def _allreduce(self, a: np.ndarray, op) -> np.ndarray:
-        src = np.ascontiguousarray(a).reshape(-1)
-        send = numpy_to_vtk(src, deep=False)
-        recv = send.NewInstance()
-        recv.SetNumberOfComponents(1)
-        recv.SetNumberOfTuples(src.size)
-        if not self.controller.AllReduce(send, recv, op):
-            raise RuntimeError("vtkMultiProcessController.AllReduce failed")
-        return vtk_to_numpy(recv).astype(src.dtype, copy=True).reshape(np.shape(a))
+    def sum_u64(self, buf: np.ndarray) -> np.ndarray:
+        """In place, in chunks of :data:`nebula_rt.parallel.SUM_CHUNK` elements: each chunk is copied into a
+        send array and reduced straight into ``buf``'s memory (both ``vtkTypeUInt64Array``
+        views of numpy memory, so nothing is converted; MPI forbids the same buffer for both)."""
+        flat = _flat_u64(buf)
+        chunk = parallel.SUM_CHUNK
+        scratch = np.empty(min(flat.size, chunk), np.uint64)
+        for lo in range(0, flat.size, chunk):
+            part = flat[lo:lo + chunk]
+            send = scratch[:part.size]
+            send[...] = part
+            self._allreduce(_vtk_view(vtkTypeUInt64Array, send), _vtk_view(vtkTypeUInt64Array, part),
+                            vtkCommunicator.SUM_OP)
+        return buf
 
     def allreduce_u64(self, a: np.ndarray) -> np.ndarray:
-        return self._allreduce(np.asarray(a, np.uint64), vtkCommunicator.SUM_OP)
+        return self.sum_u64(np.array(a, np.uint64, copy=True))
+
+    def _allreduce(self, send, recv, op) -> None:
+        if not self.controller.AllReduce(send, recv, op):
+            raise RuntimeError("vtkMultiProcessController.AllReduce failed")
 
     def allreduce_max(self, x: float) -> float:
-        return float(self._allreduce(np.array([float(x)]), vtkCommunicator.MAX_OP)[0])
+        send, recv = np.array([float(x)]), np.empty(1)
+        self._allreduce(_vtk_view(vtkDoubleArray, send), _vtk_view(vtkDoubleArray, recv), vtkCommunicator.MAX_OP)
+        return float(recv[0])
 
     def bcast(self, obj, root: int = 0):
         """Broadcast a number (int, float or bool) from ``root``."""
@@ -69,6 +80,17 @@ class VTKControllerComm:
         except ImportError:
             self.controller.TriggerBreakRMIs()
             os._exit(int(code))
+
+
+def _vtk_view(cls, a: np.ndarray):
+    """A VTK array of class ``cls`` over the memory of the flat contiguous numpy array ``a``
+    (no copy; VTK neither frees nor reallocates it, and a reduction of the same length into it
+    keeps its memory)."""
+    v = cls()
+    v.SetNumberOfComponents(1)
+    v.SetVoidArray(a, a.size, 1)
+    v._numpy = a  # keep the memory alive as long as the view
+    return v
 
 
 def vtk_world():

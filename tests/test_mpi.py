@@ -2,8 +2,9 @@
 ranks' integer slots and tallies are added before each fold, and every rank holds the one-rank
 run's sums. The result must be the same bits on 1, 2 and 3 ranks (3 ranks on this machine's 2
 cores: --oversubscribe), for both estimators, through the overflow re-trace (whose checked
-adds are summed over the ranks in two 32-bit halves so that three ranks' cells cannot wrap),
-and through the command line, where rank 0 alone writes the .vti.
+adds are summed so that no rank's cells can wrap together: sum_checked), and through the
+command line, where rank 0 alone writes the .vti. The sums themselves are held against Python's
+integers (tests/mpi/sum_ranks.py).
 
 mpiexec (openmpi-bin) and mpi4py (the ``mpi`` extra) are installed by scripts/setup.sh; their
 absence is a failure here, not a skip.
@@ -48,21 +49,68 @@ def _ranks(tmp_path, n, *extra):
 
 
 @pytest.mark.parametrize("case", [("track-length", "plain"), ("collision-filter", "plain"),
-                                  ("track-length", "checked")])
+                                  ("track-length", "checked"), ("track-length", "checked+copied")],
+                         ids="-".join)
 def test_trace_is_the_same_bits_on_1_2_3_ranks(tmp_path, case):
     """Sums, centred squares, packet counts, peel-off image and batches per band: identical
     bytes on 1, 2 and 3 ranks (two bands, two stars, 9001 packets in batches of 1500, several
-    batches per launch; 'checked': headroom 2^36, so batches overflow and are re-traced)."""
+    batches per launch; 'checked': headroom 2^36, so batches overflow and are re-traced;
+    '+copied': the slots summed in a host copy, the path of GPUs, instead of in PoCL's mapped
+    device memory)."""
     estimator, mode = case
     runs = {n: _ranks(tmp_path, n, estimator, mode, TEST_DEVICE) for n in (1, 2, 3)}
     one = runs[1]
     assert int(one["size"]) == 1 and int(runs[3]["size"]) == 3
     assert one["counts"][:, 0].tolist() == [9001, 9001]
-    if mode == "checked":
+    if mode.startswith("checked"):
         assert one["band_batches"].min() > 7  # the overflow happened and batches were split
     for n in (2, 3):
         for key in ("raw_sum", "raw_m2", "counts", "peel", "band_batches"):
             assert runs[n][key].tobytes() == one[key].tobytes(), (n, key)
+
+
+def load_sum_script():
+    """tests/mpi/sum_ranks.py as a module (its ``inputs`` give every rank's numbers)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("sum_ranks", ROOT / "tests" / "mpi" / "sum_ranks.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def check_rank_sums(res, n: int) -> None:
+    """The sums and flags of tests/mpi/sum_ranks.py on ``n`` ranks against Python's integers:
+    every sum is the exact sum modulo 2^64 (the wrapping ones and the checked ones alike), the
+    input of ``allreduce_u64`` is left unchanged, and a checked row is flagged exactly when one
+    of its exact (unwrapped) sums reaches 2^63."""
+    mod = load_sum_script()
+    per_rank = [mod.inputs(r, n) for r in range(n)]
+    exact = [sum(np.array(p[k], dtype=object) for p in per_rank) for k in (0, 1)]
+    assert int(res["size"]) == n
+    assert res["wrapping"].tolist() == [int(v) % 2**64 for v in exact[0]]
+    assert res["checked"].tolist() == [int(v) % 2**64 for v in exact[1]]
+    assert res["copied"].tolist() == res["checked"].tolist()
+    rows = exact[1][:mod.ROWS * mod.COLS].reshape(mod.ROWS, mod.COLS)
+    expected = [any(int(v) >= 2**mod.LIMIT_BITS for v in row) for row in rows]
+    assert res["flags"].tolist() == expected
+    # what the rows stand for: two ranks pass the limit in rows 1-3, three wrap 2^64 in row 2
+    assert expected == [False, n >= 2, n >= 2, n >= 2]
+    if n >= 3:
+        assert int(rows[2].max()) >= 2**64
+
+
+@pytest.mark.parametrize("n", [1, 2, 3])
+def test_rank_sums_are_exact_and_flag_the_headroom_limit(tmp_path, n):
+    """``sum_u64`` (in place, in chunks: arrays across two chunk boundaries), ``allreduce_u64``
+    and ``sum_checked`` under mpiexec with mpi4py: exact modulo 2^64, and the checked cells'
+    flags as one rank's checked adds would set them, also where three ranks' cells pass 2^64
+    together (then summed in 32-bit halves) and where a single wrapping sum would miss it."""
+    out = tmp_path / f"sums{n}.npz"
+    mpiexec(n, sys.executable, str(ROOT / "tests" / "mpi" / "sum_ranks.py"), str(out), "mpi4py", timeout=120)
+    res = np.load(out)
+    assert str(res["kind"]) == ("Serial" if n == 1 else "MPIComm")
+    check_rank_sums(res, n)
 
 
 def test_cli_render_under_mpiexec_writes_the_one_rank_file(tmp_path):

@@ -434,6 +434,26 @@ def test_light_field_under_paraview_mpi_is_the_one_rank_field(pv_env, xdisplay, 
             assert fields[n][1][name].tobytes() == a.tobytes(), (n, name)
 
 
+@pytest.mark.parametrize("n", [2, 3])
+def test_controller_sums_are_exact_and_flag_the_headroom_limit(pv_env, xdisplay, tmp_path, n):
+    """The VTK controller's reductions (VTKControllerComm: vtkTypeUInt64Array views of numpy
+    memory, in chunks) under mpiexec pvbatch --mpi: the same exact sums modulo 2^64 and the
+    same headroom flags as the mpi4py path (tests/test_mpi.py holds both against Python's
+    integers)."""
+    from test_mpi import check_rank_sums
+
+    e = dict(pv_env)
+    e["DISPLAY"] = xdisplay
+    out = tmp_path / f"sums{n}.npz"
+    proc = subprocess.run([shutil.which("mpiexec"), "--allow-run-as-root", "--oversubscribe", "-n", str(n),
+                           "pvbatch", "--mpi", "--symmetric", str(REPO / "tests" / "mpi" / "sum_ranks.py"),
+                           str(out), "vtk"], env=e, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, (proc.stdout[-2000:], proc.stderr[-3000:])
+    res = np.load(out)
+    assert str(res["kind"]) == "VTKControllerComm"
+    check_rank_sums(res, n)
+
+
 def test_one_rank_failing_under_paraview_mpi_ends_the_job(pv_env, xdisplay):
     """Rank 1's transport fails (a device error in its second launch): the job ends within
     seconds with the rank and the cause on stderr, and no rank reports a finished run (the

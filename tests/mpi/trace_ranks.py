@@ -1,7 +1,11 @@
 """Run by tests/test_mpi.py under mpiexec: every rank traces the same run through
 ``trace(comm=world())``; rank 0 saves the sums, squares, counts and peel-off image (.npz).
 
-    mpiexec -n N python tests/mpi/trace_ranks.py OUT.npz ESTIMATOR plain|checked [DEVICE]
+    mpiexec -n N python tests/mpi/trace_ranks.py OUT.npz ESTIMATOR MODE [DEVICE]
+
+MODE: ``plain``, ``checked`` (headroom 2^36: batches overflow and are re-traced), either with
+``+copied``: the slots are summed in a host copy, as on a GPU, instead of in the mapped device
+memory of PoCL (``Backend.map_host``).
 """
 
 import sys
@@ -18,9 +22,12 @@ from nebula_rt.transport import trace
 
 def main() -> int:
     out, estimator = sys.argv[1], sys.argv[2]
-    checked = len(sys.argv) > 3 and sys.argv[3] == "checked"
+    mode = sys.argv[3] if len(sys.argv) > 3 else "plain"
+    checked = mode.split("+")[0] == "checked"
     comm = world()
     backend = get_backend("opencl", sys.argv[4] if len(sys.argv) > 4 else "")
+    if "+copied" in mode:
+        backend.map_host = lambda dev, n: None
     rng = np.random.default_rng(11)
     cloud = (rng.random((20, 16, 12)) ** 3).astype(np.float32)
     bands = [Band(name="B", wavelength=450.0, extinction=1.3, albedo=0.6, g=0.5),

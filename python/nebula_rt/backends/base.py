@@ -333,6 +333,13 @@ class Backend(abc.ABC):
         h[:n].sort()
         return self.to_device(h)
 
+    def map_host(self, dev, n: int):
+        """A context manager giving a writeable host array over the first ``n`` elements of
+        the device array ``dev`` without a copy, where the device's memory is the host's
+        (what the block writes is the device's afterwards; no kernel may run meanwhile), or
+        None where it is not: the caller then copies (:meth:`to_host`, :meth:`upload`)."""
+        return None
+
     @abc.abstractmethod
     def upload(self, dev, host: np.ndarray) -> None:
         """Copy a host array into the first ``host.size`` elements of a device array."""

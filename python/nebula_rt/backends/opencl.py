@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import sys
 
 import numpy as np
@@ -24,6 +25,19 @@ def _cl_array():
     import pyopencl.array as cl_array
 
     return cl_array
+
+
+@contextlib.contextmanager
+def _mapped(queue, dev, n: int):
+    """The first ``n`` elements of the pyopencl array ``dev`` mapped for reading and writing,
+    unmapped (and the queue finished) when the block ends."""
+    arr, ev = cl.enqueue_map_buffer(queue, dev.data, cl.map_flags.READ | cl.map_flags.WRITE, 0, (n,), dev.dtype)
+    ev.wait()
+    try:
+        yield arr
+    finally:
+        arr.base.release(queue)
+        queue.finish()
 
 
 def list_devices() -> list[tuple[int, int, str, bool]]:
@@ -223,6 +237,13 @@ class OpenCLBackend(Backend):
     def wait_copy(self, handle):
         if handle is not None:
             handle[0].wait()
+
+    def map_host(self, dev, n):
+        """On a CPU device (host-unified memory): the buffer mapped (PoCL maps it in place:
+        0.1 ms for 256 MiB, where a copy into fresh host memory took 0.8 s of page faults)."""
+        if self.is_gpu or not self.device.host_unified_memory:
+            return None
+        return _mapped(self.queue, dev, int(n))
 
     def upload(self, dev, host):
         cl.enqueue_copy(self.queue, dev.data, np.ascontiguousarray(host, dev.dtype).reshape(-1))

@@ -82,6 +82,7 @@ class DeviceTransport(TransportSession):
         self.sorted = bool(self.defines.get("NRT_SORTED"))
         self.d_keys = be.device_zeros(1, np.uint64)  # NRT_SORTED: the launch's sorted packets
         self._plan = (0, 0)
+        self._h_stage = None  # several ranks: the host buffer of reduce_group
         # build the kernels of this option set now (setup time): compiled inside the first
         # launch, they were counted as tracing (up to 1 s per option set on CUDA)
         for name in ("trace_photons", "fold_batches") + (("emission_keys",) if self.sorted else ()):
@@ -129,37 +130,60 @@ class DeviceTransport(TransportSession):
         return np.zeros((n_slots, n_lb, 4), np.uint64), np.zeros(n_slots, bool)
 
     def reduce_group(self, comm, n_slots, bands, tallies, overflow):
-        """Add the ranks' slots, tallies and images of a group (``comm.allreduce_u64``) and
-        put the sums back on the device, so every rank folds the one-rank run's batch totals.
+        """Add the ranks' slots, images, tallies and flags of a group and put the sums back on
+        the device, so every rank folds the one-rank run's batch totals.
 
-        With checked adds each rank's cells stay below the headroom limit, but three ranks'
-        can pass 2^64 together: the high and low 32 bits are then added apart (no sum can
-        wrap) and a slot with a cell at or past the limit is flagged, as one rank's checked
-        adds would have flagged it. With unchecked adds the batch cannot wrap at all (the bound
-        covers all its packets) and the fold checks the limit. Returns (tallies, overflow)."""
+        The sums are taken in place (:func:`nebula_rt.parallel.sum_checked`): in the slots'
+        own memory where the device's memory is the host's (OpenCL on a CPU,
+        ``Backend.map_host``: no copy at all), else in one host buffer kept for the run (no
+        allocation, and no page faults, per group) that holds everything; the image, tallies
+        and flags then travel in it too. Checked cells (the slots with checked adds, the image
+        always) are summed so that none can wrap, and a slot with a summed cell at or past the
+        headroom limit is flagged, as one rank's checked adds would have flagged it. With
+        unchecked adds the batch cannot wrap at all (the bound covers all its packets) and the
+        fold checks the limit. Returns (tallies, overflow)."""
         be = self.backend
         n_lb = bands[1]
-        used = n_slots * n_lb * self.nvox
-        acc = be.to_host(self.d_acc[:used])  # the group's slots only
-        limit_bits = int(self.setup.acc_limit_bits)
-        flags = comm.allreduce_u64(np.asarray(overflow, np.uint64)) > 0
-        if self.setup.unchecked_adds:
-            total = comm.allreduce_u64(acc)
+        cells = n_slots * n_lb * self.nvox
+        mapped = be.map_host(self.d_acc, cells)
+        if mapped is None:
+            return self._reduce(comm, n_slots, n_lb, tallies, overflow, None)
+        with mapped as acc:
+            return self._reduce(comm, n_slots, n_lb, tallies, overflow, acc)
+
+    def _reduce(self, comm, n_slots, n_lb, tallies, overflow, acc):
+        """:meth:`reduce_group` with the group's slots mapped as ``acc`` (or None: copied)."""
+        from ..parallel import sum_checked
+
+        be = self.backend
+        cells = 0 if acc is not None else n_slots * n_lb * self.nvox
+        pix, nt = n_slots * n_lb * self.pixels, tallies.size
+        need = cells + pix + nt + n_slots
+        if self._h_stage is None or self._h_stage.size < need:
+            most = self.slots * self.bands_per_launch
+            self._h_stage = be.host_empty((0 if acc is not None else most * self.nvox)
+                                          + most * (self.pixels + 4) + self.slots, np.uint64)
+        buf = self._h_stage[:need]
+        if acc is None:
+            acc = buf[:cells]
+            be.to_host(self.d_acc[:cells], out=acc)  # the group's slots only
+        if pix:
+            be.to_host(self.d_image[:pix], out=buf[cells:cells + pix])
+        buf[cells + pix:cells + pix + nt] = tallies.reshape(-1)
+        buf[cells + pix + nt:] = overflow
+        slots_checked = [] if self.setup.unchecked_adds else [(0, acc.size)]
+        if cells:  # one buffer
+            parts = [(buf, slots_checked + [(cells, cells + pix)])]
         else:
-            hi = comm.allreduce_u64(acc >> np.uint64(32))
-            lo = comm.allreduce_u64(acc & np.uint64(0xFFFFFFFF))
-            hi_all = hi + (lo >> np.uint64(32))
-            past = (hi_all >> np.uint64(limit_bits - 32)) > 0 if limit_bits >= 32 else hi_all > 0
-            total = (hi << np.uint64(32)) + lo  # exact where no cell reaches the limit
-            if limit_bits < 32:
-                past |= (lo >> np.uint64(limit_bits)) > 0
-            flags |= past.reshape(n_slots, -1).any(axis=1)
-        be.upload(self.d_acc, total)
-        if self.pixels:
-            img = be.to_host(self.d_image[:n_slots * n_lb * self.pixels])
-            be.upload(self.d_image, comm.allreduce_u64(img))
+            parts = [(acc, slots_checked), (buf, [(0, pix)])]
+        past = sum_checked(comm, parts, n_slots, int(self.setup.acc_limit_bits))
+        flags = (buf[cells + pix + nt:] > 0) | past
+        if cells:
+            be.upload(self.d_acc, acc)
+        if pix:
+            be.upload(self.d_image, buf[cells:cells + pix])
         be.upload(self.d_overflow, flags.astype(np.uint32))
-        return comm.allreduce_u64(tallies).reshape(tallies.shape), flags
+        return buf[cells + pix:cells + pix + nt].reshape(tallies.shape).copy(), flags
 
     def fold(self, n_slots, bands=None, folded_before: int = 0):
         band0, n_lb = bands if bands is not None else (0, self.setup.n_bands)
@@ -208,6 +232,7 @@ class DeviceTransport(TransportSession):
         out = (self.d_sum1, self.d_m2, self.d_density)
         self.d_sum1 = self.d_m2 = self.d_density = None
         self.d_acc = self.d_image = self.d_keys = None  # the slots' memory goes to the finishing
+        self._h_stage = None
         return out
 
     def device_bytes(self) -> int:
@@ -218,5 +243,5 @@ class DeviceTransport(TransportSession):
                 + 8 * self.slots * self.bands_per_launch * self.pixels)
 
     def close(self):
-        for name in ("d_acc", "d_sum1", "d_m2", "d_density", "d_image", "d_keys"):
+        for name in ("d_acc", "d_sum1", "d_m2", "d_density", "d_image", "d_keys", "_h_stage"):
             setattr(self, name, None)
