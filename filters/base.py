@@ -11,6 +11,9 @@ import warnings
 from vtkmodules.util.vtkAlgorithm import VTKPythonAlgorithmBase
 from vtkmodules.vtkCommonCore import vtkOutputWindow
 
+from nebula_rt import schema
+from nebula_rt import scene as _scene
+from nebula_rt.bands import reference_band_index
 from nebula_rt.errors import CancelledError, NebulaError, NebulaWarning, SceneError
 
 #: Star records in the flat ``Stars`` property: x, y, z (box units), luminosity,
@@ -40,6 +43,21 @@ def stars_from_flat(values) -> list[dict]:
             star["temperature"] = temp
         out.append(star)
     return out
+
+
+def default_star_row() -> list:
+    """The Stars property's row of the scene's default star: x, y, z, luminosity, temperature
+    (0 = flat spectrum), bump radius."""
+    star = _scene.Star()
+    return [*map(float, star.position), float(star.luminosity), float(star.temperature or 0.0),
+            float(star.bump_radius)]
+
+
+def default_reference_band():
+    """The reference band of the scene's default band preset (where a panel shows Albedo and G
+    before they are set)."""
+    bands = _scene.BandsConfig().resolve()
+    return bands[reference_band_index(bands)]
 
 
 #: The star fields of the flat Stars property, by scene key.
@@ -171,6 +189,9 @@ class NebulaAlgorithm(VTKPythonAlgorithmBase):
         m = _STAR_KEY.match(parameter)
         if m and hasattr(self, "SetStars"):
             return f"Stars: star {m.group(1)} {m.group(2)}"
+        for prop in getattr(self, "BOUND_PROPERTIES", ()):
+            if prop.key == parameter:
+                return schema.label(prop.key, prop.param)
         return self.PROPERTIES.get(parameter)
 
     def describe_error(self, exc: BaseException) -> str:
@@ -178,7 +199,10 @@ class NebulaAlgorithm(VTKPythonAlgorithmBase):
         NebulaRT's other errors as they are, anything else with its type (pyopencl's
         LogicError, MemoryError, ...), since its text alone may not say what failed."""
         if isinstance(exc, SceneError):
+            bound = any(p.key == exc.parameter for p in getattr(self, "BOUND_PROPERTIES", ()))
             prop = self.property_name(exc.parameter)
+            if bound:  # as the panel shows it, then the scene key: "Tau (dust.tau) = 1e+39: ..."
+                return f"{prop} ({exc.parameter}) = {exc.value!r}: {exc.allowed}"
             return f"{exc} (property {prop})" if prop and prop != exc.parameter else str(exc)
         if isinstance(exc, NebulaError):
             return str(exc)

@@ -13,22 +13,34 @@ from nebula_rt.limits import check_float32_array
 from nebula_rt.pipeline import compute_light, finish_light_field
 from nebula_rt.scene import Scene
 
-from .base import NebulaAlgorithm, shallow_copy_image, stars_from_flat
+from .base import NebulaAlgorithm, default_reference_band, default_star_row, shallow_copy_image, stars_from_flat
 from .controller import vtk_world
 from .image_data import add_field_data, add_point_arrays, cell_array, image_geometry, point_array
+from .properties import Property, bind, init_values, scene_values
 
-ESTIMATORS = ("track-length", "collision-filter")
-BACKENDS = ("auto", "opencl", "cuda")
+#: The light field's properties bound to scene keys, in the panel's order (density source and
+#: dust optics, stars, transport, quality, device); defaults, choices and ranges come from the
+#: scene schema. Stars, OverrideOptics and the density array are the filter's own.
+LIGHT_FIELD_PROPERTIES = (
+    Property("Tau", "dust.tau"),
+    Property("BandPreset", "bands.preset"),
+    Property("Albedo", "bands.albedo", enabled_by=("OverrideOptics", 1)),
+    Property("G", "bands.g", enabled_by=("OverrideOptics", 1)),
+    Property("Estimator", "transport.estimator", widget="enum"),
+    Property("FilterRadius", "transport.filter_radius", enabled_by=("Estimator", 1)),
+    Property("MaxScatterings", "transport.max_scatterings"),
+    Property("Seed", "transport.seed"),
+    Property("Quality", "transport.quality", widget="enum"),
+    Property("TargetError", "transport.target_error", enabled_by=("Quality", 0)),
+    Property("Photons", "transport.photons"),
+    Property("TimeLimit", "transport.time_limit"),
+    Property("Backend", "transport.backend"),
+    Property("Device", "transport.device"),
+    Property("BatchSize", "transport.batch_size"),
+)
 
 
-#: ParaView's Quality enumeration ("custom" = no preset)
-QUALITY_NAMES = ("custom", "preview", "balanced", "reference")
-
-
-def _enum(value, options):
-    return options[value] if isinstance(value, int) and 0 <= value < len(options) else value
-
-
+@bind(LIGHT_FIELD_PROPERTIES)
 class NebulaLightField(NebulaAlgorithm):
     """Trace photon packets from the stars through the input's dust density.
 
@@ -37,6 +49,10 @@ class NebulaLightField(NebulaAlgorithm):
     per voxel. Its grid spans the box [0, 1]^3 (box units) whatever its spacing: star positions
     and the filter radius are in box units. A cell-data array gives voxels = cells.
 
+    The setters (``SetTau``, ``SetPhotons``, ... : :data:`LIGHT_FIELD_PROPERTIES`) set scene keys, with the
+    scene's defaults: the filter with no property set traces what a scene file with no keys
+    would. Albedo and G apply with ``SetOverrideOptics(1)`` only (else each band's own).
+
     Output: the input's arrays plus, per band, ``J_<band>``, ``emissivity_<band>``,
     ``rel_error_<band>``, and the run's field data (energies, photons, seed, scene TOML): the
     output contract of DESIGN.md.
@@ -44,110 +60,31 @@ class NebulaLightField(NebulaAlgorithm):
 
     #: its executions reduce with the other ranks of a parallel ParaView: a failure ends the job
     distributed = True
-
-    PROPERTIES = {"dust.tau": "Tau", "bands.preset": "BandPreset", "bands.albedo": "Albedo", "bands.g": "G",
-                  "transport.photons": "Photons", "transport.estimator": "Estimator",
-                  "transport.filter_radius": "FilterRadius", "transport.max_scatterings": "MaxScatterings",
-                  "transport.seed": "Seed", "transport.backend": "Backend", "transport.device": "Device",
-                  "transport.batch_size": "BatchSize", "transport.quality": "Quality",
-                  "transport.target_error": "TargetError", "grid.shape": "input extent",
-                  "density": "density array"}
+    #: what names the parameters no bound property sets, in messages
+    PROPERTIES = {"grid.shape": "input extent", "density": "density array"}
 
     def __init__(self):
         super().__init__(nInputPorts=1, nOutputPorts=1, inputType="vtkImageData", outputType="vtkImageData")
-        d = Scene.default()
-        self._stars = [0.5, 0.5, 0.5, 1.0, 0.0, 0.0]
-        self._preset = d.bands.preset
-        self._override_optics = True
-        self._albedo = 0.6
-        self._g = 0.6
-        self._tau = d.dust.tau
-        self._photons = 100_000
-        self._estimator = d.transport.estimator
-        self._filter_radius = d.transport.filter_radius
-        self._max_scatterings = d.transport.max_scatterings
-        self._seed = d.transport.seed
-        self._backend = "auto"
-        self._device = ""
-        self._batch_size = 0
-        self._quality = ""
-        self._target_error = 0.0
+        init_values(self)
+        self._stars = default_star_row()
+        # the panel's values of Albedo and G until set (the default preset's reference band)
+        ref = default_reference_band()
+        self._values["bands.albedo"], self._values["bands.g"] = ref.albedo, ref.g
+        self._override_optics = False
         self._density_name = None
         self.last_light = None
 
-    # -- properties ----------------------------------------------------------------------------
+    # -- the filter's own properties -----------------------------------------------------------
     def SetStars(self, *values):
         """Flat list, 6 numbers per star: x, y, z (box units), luminosity, temperature (K, 0 =
         flat spectrum), bump radius (ignored here: the density comes from the input)."""
         self._stars = list(values[0]) if len(values) == 1 and hasattr(values[0], "__len__") else list(values)
         self.Modified()
 
-    def SetBandPreset(self, name):
-        self._preset = name
-        self.Modified()
-
     def SetOverrideOptics(self, flag):
-        """Apply Albedo and G to every band (else the preset's own values)."""
+        """Apply Albedo and G to every band (else each band's own values; default off, as a scene
+        file without bands.albedo and bands.g)."""
         self._override_optics = bool(flag)
-        self.Modified()
-
-    def SetAlbedo(self, v):
-        self._albedo = v
-        self.Modified()
-
-    def SetG(self, v):
-        self._g = v
-        self.Modified()
-
-    def SetTau(self, v):
-        """Optical depth across one box edge at density 1 in the reference band."""
-        self._tau = v
-        self.Modified()
-
-    def SetPhotons(self, n):
-        self._photons = n
-        self.Modified()
-
-    def SetQuality(self, name):
-        """Quality preset ("" or "custom": Photons and TargetError as set; "preview", "balanced",
-        "reference": a target error with a photon budget, see nebula_rt.scene.QUALITY_PRESETS),
-        by name or index in that order."""
-        name = _enum(name, QUALITY_NAMES)
-        self._quality = "" if name == "custom" else name
-        self.Modified()
-
-    def SetTargetError(self, e):
-        """0: trace Photons packets; in (0, 1): trace until the lit region's relative error is at
-        most this, with Photons as the budget."""
-        self._target_error = e
-        self.Modified()
-
-    def SetEstimator(self, name):
-        self._estimator = _enum(name, ESTIMATORS)
-        self.Modified()
-
-    def SetFilterRadius(self, r):
-        self._filter_radius = r
-        self.Modified()
-
-    def SetMaxScatterings(self, n):
-        self._max_scatterings = n
-        self.Modified()
-
-    def SetSeed(self, s):
-        self._seed = s
-        self.Modified()
-
-    def SetBackend(self, name):
-        self._backend = _enum(name, BACKENDS)
-        self.Modified()
-
-    def SetDevice(self, selector):
-        self._device = selector
-        self.Modified()
-
-    def SetBatchSize(self, n):
-        self._batch_size = n
         self.Modified()
 
     def SetDensityArrayName(self, name):
@@ -165,20 +102,12 @@ class NebulaLightField(NebulaAlgorithm):
         return (name or "density"), assoc
 
     def scene(self, shape) -> Scene:
-        bands = {"preset": self._preset}
-        if self._override_optics:
-            bands.update(albedo=self._albedo, g=self._g)
-        return Scene.from_dict({
-            "grid": {"shape": list(shape)},
-            "dust": {"model": "uniform", "tau": self._tau},
-            "stars": stars_from_flat(self._stars),
-            "bands": bands,
-            "transport": {"photons": self._photons, "estimator": self._estimator,
-                          "filter_radius": self._filter_radius, "max_scatterings": self._max_scatterings,
-                          "seed": self._seed, "backend": self._backend, "device": self._device,
-                          "batch_size": self._batch_size, "quality": self._quality,
-                          "target_error": self._target_error},
-        })
+        values = dict(self._values)
+        if not self._override_optics:
+            values.pop("bands.albedo")
+            values.pop("bands.g")
+        return Scene.from_dict(scene_values(values, {"grid": {"shape": list(shape)}, "dust": {"model": "uniform"},
+                                                     "stars": stars_from_flat(self._stars)}))
 
     # -- pipeline ------------------------------------------------------------------------------
     def RequestInformation(self, request, inInfo, outInfo):

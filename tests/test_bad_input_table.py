@@ -384,6 +384,7 @@ def _light():
     lf.SetBackend(TEST_BACKEND)
     lf.SetDevice(TEST_DEVICE)
     lf.SetStars(STAR)
+    lf.SetOverrideOptics(1)  # Albedo and G apply (the rows of bands.albedo and bands.g)
     return lf
 
 
@@ -407,8 +408,12 @@ def test_c_filter_setter_refuses(row, light_field_image):
     getattr(alg, setter)(*args(row.value))
     alg.Update()
     assert alg.GetOutputDataObject(0).GetNumberOfPoints() == 0
+    from nebula_rt.schema import label
+
+    # the message names the property as the panel shows it (a bound property: its label)
     prop = setter[3:]
-    assert alg.last_error is not None and prop in alg.last_error, alg.last_error
+    shown = {p.name: label(p.key, p.param) for p in getattr(alg, "BOUND_PROPERTIES", ())}.get(prop, prop)
+    assert alg.last_error is not None and shown in alg.last_error, alg.last_error
     if row.key.startswith("stars") and row.kind == "type":
         return  # the Stars vector is refused as a whole: "Stars = [...]: must hold 6 numbers per star"
     assert row.parameter in alg.last_error, alg.last_error

@@ -186,7 +186,9 @@ def test_light_field_filter_refuses_tau_beyond_float32():
     lf.SetTau(1e39)
     lf.Update()
     assert lf.GetOutputDataObject(0).GetNumberOfPoints() == 0
-    assert "(property Tau)" in lf.last_error and "dust.tau = 1e+39" in lf.last_error and limits.FLOAT32_RANGE_TEXT in lf.last_error
+    # named as the panel shows it, then the scene key, the value and what is allowed
+    assert lf.last_error.startswith("NebulaLightField: Tau (dust.tau) = 1e+39: ") or "Tau (dust.tau) = 1e+39: " in lf.last_error
+    assert limits.FLOAT32_RANGE_TEXT in lf.last_error
 
 
 def test_light_field_filter_refuses_density_beyond_float32():
@@ -281,7 +283,7 @@ def test_filter_refuses_max_scatterings_beyond_int32(bad):
     lf.SetMaxScatterings(bad)
     lf.Update()
     assert lf.GetOutputDataObject(0).GetNumberOfPoints() == 0
-    assert "(property MaxScatterings)" in lf.last_error and "transport.max_scatterings" in lf.last_error
+    assert "Max Scatterings (transport.max_scatterings) = " in lf.last_error
 
 
 # --- 3. filters: any exception is one clean error ------------------------------------------

@@ -169,7 +169,9 @@ def test_plugin_loads_and_every_proxy_executes(pv_env, xdisplay, exe):
     assert "vtkSMStringListDomain" in lf["BandPreset"]["domains"]
     assert "vtkSMStringListDomain" in lf["Backend"]["domains"]
     assert "vtkSMDoubleRangeDomain" in lf["Albedo"]["domains"]
-    assert "vtkSMIntRangeDomain" in lf["Photons"]["domains"]
+    # photon counts are 64-bit: a double property holds every count up to 2^53 exactly, and a
+    # pvpython Photons=1e5 is the integer it names
+    assert lf["Photons"]["class"] == "vtkSMDoubleVectorProperty" and "vtkSMDoubleRangeDomain" in lf["Photons"]["domains"]
     assert "vtkSMEnumerationDomain" in lf["Quality"]["domains"]
     assert "vtkSMDoubleRangeDomain" in lf["TargetError"]["domains"]
     sp = r["outputs"]["NebulaLightField(spectral-8)"]
@@ -178,7 +180,8 @@ def test_plugin_loads_and_every_proxy_executes(pv_env, xdisplay, exe):
     assert q["photons_budget"] == 10_000_000 and q["photons"] < q["photons_budget"]
     assert 0 < q["achieved_error"] <= 0.10
     assert "vtkSMEnumerationDomain" in r["definitions"]["NebulaColour"]["properties"]["WhitePoint"]["domains"]
-    assert r["definitions"]["NebulaLightField"]["property_groups"][:2] == ["Dust", "Stars"]
+    assert r["definitions"]["NebulaLightField"]["property_groups"] == [
+        "Dust", "Dust optics", "Stars", "Photon transport", "Quality", "Compute device"]
 
     out = r["outputs"]
     bands = ("R", "G", "B")
@@ -210,6 +213,58 @@ def test_plugin_loads_and_every_proxy_executes(pv_env, xdisplay, exe):
     assert pv_env["NEBULA_RT_TEST_DEVICE"] in out["NebulaLightField"]["device"]
     # a colour change re-runs the colour, not the trace
     assert r["rerun"] == {"light_executions_added": 0, "colour_executions": 2}
+
+
+# -- one declaration per parameter -------------------------------------------------------------
+@pytest.fixture(scope="module")
+def schema_density(tmp_path_factory):
+    from test_schema_layers import make_density_files
+
+    return make_density_files(tmp_path_factory.mktemp("density"))
+
+
+def test_paraview_proxy_is_the_schema_and_gives_the_same_bits(pv_env, xdisplay, schema_density):
+    """One declaration per parameter, as ParaView builds the proxy (tests/test_schema_layers.py
+    checks the other layers): labels, visibility, defaults, ranges and choices are the scene
+    schema's, the panel follows the workflow, and the same values give the same bits in
+    pvpython, plain VTK and a scene file (exact: same scene, seed and device)."""
+    from test_schema_layers import LIGHT_FIELD_PROPERTIES, PHOTONS, label, sc
+
+    npy, vti, rho = schema_density
+    r, _ = run_pv(pv_env, xdisplay, "schema_layers.py", vti, npy, PHOTONS)
+    assert r["last_error"] is None, r["last_error"]
+    props = {e["name"]: e for e in r["properties"]}
+    for prop in LIGHT_FIELD_PROPERTIES:
+        e, p, want = props[prop.name], prop.param, sc.default(prop.key)
+        assert e["label"] == label(prop.key, p), prop.name
+        assert (e["panel_visibility"] == "advanced") == p.advanced, prop.name
+        if prop.widget == "enum":
+            assert e["enum"] == list(p.choice_labels or p.choices) and e["default"] == [p.choices.index(want)]
+        elif p.choices:
+            assert e["strings"] == list(p.choices) and e["default"] == [want], prop.name
+        elif isinstance(want, str):
+            assert e["default"] == [want], prop.name
+        elif want is not None:
+            assert e["default"] == [want], prop.name
+            lo, hi = e["range"]
+            assert lo == p.lo, prop.name
+            # the panel's bound is the schema's, or 2^53 for integers travelling as doubles
+            assert hi == (None if p.hi is None else min(p.hi, 2**53) if p.hi > 2**31 - 1 else p.hi), prop.name
+    # the panel's order: the workflow, a controlling property before what it controls
+    order = [e["name"] for e in r["properties"]]
+    assert order.index("OverrideOptics") < order.index("Albedo") < order.index("G")
+    assert order.index("Estimator") < order.index("FilterRadius")
+    assert order.index("Quality") < order.index("TargetError") < order.index("Photons")
+    assert order.index("DensityArray") < order.index("Tau") < order.index("BandPreset") < order.index("Stars") \
+        < order.index("Estimator") < order.index("Quality") < order.index("Backend")
+    assert list(r["groups"]) == ["Dust", "Dust optics", "Stars", "Photon transport", "Quality", "Compute device"]
+    assert r["int_photons_from_float"] == 10000
+    # the same values through the proxy, the plain VTK filter and a scene file, in ParaView's
+    # Python on its OpenCL device: the same bits (test_schema_layers compares the last two in
+    # the venv, on its own PoCL build)
+    h = r["hashes"]
+    assert h["proxy"] == h["vtk"] == h["scene"] and len(h["proxy"]) == 3, h
+
 
 
 # -- state files -------------------------------------------------------------------------------

@@ -57,7 +57,7 @@ def property_groups(*groups):
 
 def stars_property(default):
     """The repeatable ``Stars`` property: 6 numbers per star, ``AddStar`` once per star after
-    ``RemoveAllStars``."""
+    ``RemoveAllStars``; ``default``: the rows (6 numbers each) it starts with."""
     values = " ".join(repr(float(v)) for v in default)
     return """
 <DoubleVectorProperty name="Stars" label="Stars" command="AddStar" clean_command="RemoveAllStars"
@@ -87,3 +87,88 @@ DENSITY_ARRAY = """
     per voxel; cells are voxels for a cell array). The grid spans the box [0, 1]^3 whatever its
     spacing.</Documentation>
 </StringVectorProperty>"""
+
+
+# -- properties made from the scene schema (nebula_rt.filters.properties) ---------------------
+INT32 = (-2**31, 2**31 - 1)
+#: integers past int32 (photon counts, seeds) travel as doubles: exact up to 2^53, and a
+#: pvpython ``Photons=1e5`` is taken as the integer it is
+DOUBLE_EXACT = 2**53
+
+
+def _values_text(v):
+    vals = v if isinstance(v, (tuple, list)) else (v,)
+    return " ".join(repr(float(x)) if isinstance(x, float) else str(int(x)) for x in vals)
+
+
+def _tooltip(prop, p):
+    from nebula_rt.schema import range_text
+
+    extra = [x for x in (p.unit, range_text(p), "scene key " + prop.key) if x]
+    return escape(" ".join(f"{p.doc} ({'; '.join(extra)}).".split()))
+
+
+def bound_property(prop, default=None):
+    """The ServerManager XML of one :class:`nebula_rt.filters.properties.Property`: its
+    element type, domain, label, tooltip, visibility and the decorator that enables it, all
+    from the scene schema. ``default`` replaces a schema default of None (a panel needs a
+    value: e.g. Albedo before it overrides anything)."""
+    from nebula_rt.schema import label
+
+    p = prop.param
+    d = prop.default if default is None else default
+    attrs = 'name=%s label=%s command=%s' % (quoteattr(prop.name), quoteattr(label(prop.key, p)),
+                                            quoteattr("Set" + prop.name))
+    if p.advanced:
+        attrs += ' panel_visibility="advanced"'
+    n = prop.elements
+    if prop.widget == "enum":
+        texts = p.choice_labels or p.choices
+        items = "".join('<Entry value="%d" text=%s/>' % (i, quoteattr(t)) for i, t in enumerate(texts))
+        tag, dflt = "IntVectorProperty", str(p.choices.index(d))
+        domain = '<EnumerationDomain name="enum">%s</EnumerationDomain>' % items
+    elif prop.widget == "bool":
+        tag, dflt, domain = "IntVectorProperty", str(int(bool(d))), '<BooleanDomain name="bool"/>'
+    elif p.choices:
+        items = "".join("<String value=%s/>" % quoteattr(c) for c in p.choices)
+        tag, dflt = "StringVectorProperty", quoteattr(d)[1:-1]
+        domain = '<StringListDomain name="list">%s</StringListDomain>' % items
+    elif isinstance(d, str):
+        tag, dflt, domain = "StringVectorProperty", quoteattr(d)[1:-1], ""
+    else:
+        integer = p.type.startswith("int") or p.type.endswith("int")
+        if integer and p.lo is not None and p.hi is not None and INT32[0] <= p.lo and p.hi <= INT32[1]:
+            tag, dom = "IntVectorProperty", "IntRangeDomain"
+            lo, hi = p.lo, p.hi
+        else:
+            tag, dom = "DoubleVectorProperty", "DoubleRangeDomain"
+            lo, hi = p.lo, (min(p.hi, DOUBLE_EXACT) if integer and p.hi is not None else p.hi)
+        bounds = "".join(' %s="%s"' % (k, _values_text(v)) for k, v in (("min", lo), ("max", hi)) if v is not None)
+        if n > 1 and bounds:  # every element in the same range
+            bounds = "".join(' %s="%s"' % (k, " ".join([_values_text(v)] * n)) for k, v in (("min", lo), ("max", hi))
+                             if v is not None)
+        domain = '<%s name="range"%s/>' % (dom, bounds) if bounds else ""
+        dflt = _values_text(d)
+    hints = ""
+    for mode, rule in (("enabled_state", prop.enabled_by), ("visibility", prop.shown_by)):
+        if rule:
+            hints += ('<PropertyWidgetDecorator type="GenericDecorator" mode="%s" property=%s value=%s />'
+                      % (mode, quoteattr(rule[0]), quoteattr(str(rule[1]))))
+    if hints:
+        hints = "<Hints>%s</Hints>" % hints
+    return ('<%s %s number_of_elements="%d" default_values="%s">%s<Documentation>%s</Documentation>%s</%s>'
+            % (tag, attrs, n, dflt, domain, _tooltip(prop, p), hints, tag))
+
+
+def bound_properties(props, defaults=None, extra=None):
+    """The XML of a proxy's schema-bound properties, in the panel's order, with ``extra``
+    (name -> XML of a property of the filter's own) placed before the bound property of the
+    same name prefixed by ``<``: ``{"<Albedo": override_optics_xml}``."""
+    defaults, extra = dict(defaults or {}), dict(extra or {})
+    out = []
+    for prop in props:
+        if "<" + prop.name in extra:
+            out.append(extra.pop("<" + prop.name))
+        out.append(bound_property(prop, defaults.get(prop.key)))
+    out.extend(extra.values())
+    return "\n".join(out)

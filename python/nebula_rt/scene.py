@@ -38,9 +38,11 @@ else:  # pragma: no cover
     import tomli as tomllib
 
 from . import limits
-from .bands import BAND_KEYS, Band, resolve_bands
+from .bands import BAND_KEYS, PRESETS, Band, resolve_bands
 from .errors import SceneError
 from .limits import FLOAT32_RANGE_TEXT, INT32_MAX, MAX_OFFSET, TEMPERATURE_RANGE, float32_allowed, in_float32_range
+from . import schema
+from .schema import document, param
 
 __all__ = [
     "Grid",
@@ -67,191 +69,6 @@ MAX_SEED = 2**64
 # ---------------------------------------------------------------------------
 
 
-@dataclass
-class Grid:
-    """The voxel grid, TOML table ``[grid]``.
-
-    Parameters
-    ----------
-    shape : tuple of 3 int
-        Voxels along x, y, z; each >= 2 (non-cubic allowed).  The grid spans
-        the box ``[0, 1]^3``, so voxels need not be cubes.
-    length : float
-        Physical length of one box edge, in `unit` (> 0).  Labels only: the
-        transport works in box units.
-    unit : str
-        Unit of `length` (e.g. ``"pc"``).
-    """
-
-    shape: Tuple[int, int, int] = (64, 64, 64)
-    length: float = 1.0
-    unit: str = "pc"
-
-
-@dataclass
-class Dust:
-    """The dust density field, TOML table ``[dust]``.
-
-    Parameters
-    ----------
-    model : {"turbulence", "uniform", "file"}
-        How the density is made: procedural turbulence noise (the thesis),
-        a constant, or read from `file`.
-    density : float
-        ``"uniform"``: the density everywhere (>= 0, dimensionless).
-    file : str
-        ``"file"``: a ``.npy`` array in (x, y, z) order or a ``.vti`` image;
-        a relative path is relative to the scene file's folder
-        (:meth:`Scene.dust_file_path`).
-    array : str
-        ``"file"`` with ``.vti``: name of the point-data array to read.
-    scale : float
-        ``"turbulence"``: amplitude of the noise (thesis ``densityScale``), >= 0.
-    offset : tuple of 3 float
-        ``"turbulence"``: offset into the noise, box units (a different offset
-        gives a different nebula).
-    floor : float
-        Minimum density (the thesis clamp), >= 0.
-    tau : float
-        Optical depth across one box edge at density 1 in the reference band,
-        >= 0.  Extinction coefficient per box edge:
-        ``sigma_t = tau * extinction_b * density``.
-    """
-
-    model: str = "turbulence"
-    density: float = 1.0
-    file: str = ""
-    array: str = "density"
-    scale: float = 0.15
-    offset: Vec3 = (0.5, 0.5, 0.5)
-    floor: float = 1e-4
-    tau: float = 1.0
-
-
-@dataclass
-class Star:
-    """A point source, one TOML ``[[stars]]`` table.
-
-    Parameters
-    ----------
-    position : tuple of 3 float
-        Box units, inside ``[0, 1]^3``.
-    luminosity : float
-        Total luminosity over all bands, scene units (> 0).
-    temperature : float or None
-        Effective temperature in K (> 0).  If given, a blackbody spectrum sets
-        the split of `luminosity` over the bands; if None (omitted in TOML)
-        the bands get equal shares.
-    bump_radius : float
-        Half-size, box units, of the thesis's cubic dust bump around the star,
-        in ``[0, 1)``; 0 means no bump.
-    spectrum : tuple of (wavelength nm, relative power) pairs, or None
-        A measured spectrum (at least 2 pairs, wavelengths increasing); it replaces the
-        blackbody of `temperature` for the split over the bands and for the colour.
-    """
-
-    position: Vec3 = (0.5, 0.5, 0.5)
-    luminosity: float = 1.0
-    temperature: Optional[float] = None
-    bump_radius: float = 0.0
-    spectrum: Optional[Tuple[Tuple[float, float], ...]] = None
-
-    def spectral_source(self):
-        """What sets the star's spectrum: the measured pairs, else the temperature (K), else
-        None (flat); see :func:`nebula_rt.colour_convert.star_spectrum`."""
-        return self.spectrum if self.spectrum else self.temperature
-
-
-@dataclass
-class BandsConfig:
-    """Band selection, TOML table ``[bands]``.
-
-    Parameters
-    ----------
-    preset : str or None
-        Name of a preset in :data:`nebula_rt.bands.PRESETS`.  Set to None
-        (ignored) whenever `list` is given.
-    albedo : float or None
-        If given, overrides the single-scattering albedo of every band, [0, 1].
-    g : float or None
-        If given, overrides the Henyey-Greenstein asymmetry of every band,
-        [-1, 1].
-    list : list of dict or None
-        Explicit bands, TOML ``[[bands.list]]`` tables with keys ``name``,
-        ``wavelength`` (nm), ``extinction`` (relative to the reference band),
-        ``albedo`` and ``g``.
-    """
-
-    preset: Optional[str] = "thesis-rgb"
-    albedo: Optional[float] = None
-    g: Optional[float] = None
-    list: Optional[List[Dict[str, Any]]] = None
-
-    def __post_init__(self) -> None:
-        if self.list is not None:
-            self.preset = None
-
-    def resolve(self) -> List[Band]:
-        """Return the validated bands (see :func:`nebula_rt.bands.resolve_bands`)."""
-        return resolve_bands(self.preset, self.list, self.albedo, self.g)
-
-
-@dataclass
-class Transport:
-    """Monte Carlo transport settings, TOML table ``[transport]``.
-
-    Parameters
-    ----------
-    photons : int
-        Photon packets per band, in ``[1, 2**53]``.
-    estimator : {"track-length", "collision-filter"}
-        Estimator of the mean intensity J per voxel.
-    filter_radius : float
-        Box units (> 0); radius of the collision-filter kernel
-        (``"collision-filter"`` only).
-    max_scatterings : int
-        Packets are terminated (and tallied) after this many scatterings, >= 0.
-    seed : int
-        Random seed, in ``[0, 2**64)``.
-    backend : {"auto", "opencl", "cuda"}
-        Compute backend.
-    device : str
-        Optional device selector ("" = the backend's default).
-    batch_size : int
-        Packets per kernel launch, >= 0; 0 chooses automatically (extension key).
-    target_error : float
-        0 (off), or in (0, 1): trace until the relative error in the lit region (see
-        ``nebula_rt.transport.lit_region_error``) is at most this; ``photons`` is then the
-        budget (extension key).
-    time_limit : float
-        Seconds, >= 0; > 0 ends any run after this long (within one launch), keeping the
-        batches finished by then: ``photons`` is then a budget (extension key).
-    quality : str
-        ``""`` (use photons and target_error as given) or a preset of ``QUALITY_PRESETS``:
-        ``"preview"``, ``"balanced"``, ``"reference"``, each a target error with a photon
-        budget; a preset replaces photons and target_error (extension key).
-    """
-
-    photons: int = 2_100_000
-    estimator: str = "track-length"
-    filter_radius: float = 0.02
-    max_scatterings: int = 1000
-    seed: int = 1
-    backend: str = "auto"
-    device: str = ""
-    batch_size: int = 0
-    target_error: float = 0.0
-    time_limit: float = 0.0
-    quality: str = ""
-
-    def effective(self) -> tuple[int, float]:
-        """(photons per band or budget, target error) after applying the quality preset."""
-        if self.quality:
-            preset = QUALITY_PRESETS[self.quality]
-            return int(preset["photons"]), float(preset["target_error"])
-        return int(self.photons), float(self.target_error)
-
-
 #: Quality presets: a target for the lit-region error (1 sigma, brightness-weighted RMS over the
 #: lit voxels; nebula_rt.transport.lit_region_error) with a photon budget per band. From the
 #: measured curves (docs/trade_study.md, track-length on the thesis nebula): the error falls
@@ -266,24 +83,225 @@ QUALITY_PRESETS = {
 QUALITIES = ("",) + tuple(QUALITY_PRESETS)
 
 
+# Panel groups, in the order of the workflow (density source, dust optics, stars, transport,
+# quality, device)
+G_GRID, G_DUST, G_OPTICS, G_STARS = "Dust", "Dust", "Dust optics", "Stars"
+G_TRANSPORT, G_QUALITY, G_DEVICE, G_COLOUR = "Photon transport", "Quality", "Compute device", "Colour"
+
+
+@document
+@dataclass
+class Grid:
+    """The voxel grid, TOML table ``[grid]``."""
+
+    shape: Tuple[int, int, int] = param(
+        (64, 64, 64), type="tuple of 3 int", lo=2, hi=INT32_MAX, label="Grid Shape", group=G_GRID,
+        doc="Voxels along x, y, z (non-cubic allowed). The grid spans the box [0, 1]^3 whatever its "
+            "shape, so voxels need not be cubes; memory and trace time grow with the number of voxels "
+            "(the thesis used 128^3)")
+    length: float = param(
+        1.0, type="float", lo=0.0, lo_open=True, group=G_GRID, advanced=True,
+        doc="Physical length of one box edge, in `unit`. A label only: the transport works in "
+            "box units")
+    unit: str = param("pc", type="str", group=G_GRID, advanced=True, doc="Unit of `length` (e.g. \"pc\")")
+
+
+@document
+@dataclass
+class Dust:
+    """The dust density field, TOML table ``[dust]``."""
+
+    model: str = param(
+        "turbulence", type="str", choices=DUST_MODELS, group=G_DUST,
+        doc="How the density is made: procedural turbulence noise (the thesis, Eq. 3.2), a constant, "
+            "or read from `file`; each star's dust bump and the floor are added")
+    density: float = param(
+        1.0, type="float", lo=0.0, label="Uniform Density", group=G_DUST,
+        doc="\"uniform\": the density everywhere (dimensionless; `tau` is the optical depth across the "
+            "box at density 1)")
+    file: str = param(
+        "", type="str", group=G_DUST,
+        doc="\"file\": a .npy array in (x, y, z) order or a .vti image; a relative path is relative to "
+            "the scene file's folder")
+    array: str = param("density", type="str", group=G_DUST,
+                       doc="\"file\" with .vti: the name of the point-data array to read")
+    scale: float = param(
+        0.15, type="float", lo=0.0, group=G_DUST,
+        doc="\"turbulence\": amplitude of the noise (the thesis's densityScale, 0.15)")
+    offset: Vec3 = param(
+        (0.5, 0.5, 0.5), type="tuple of 3 float", lo=-MAX_OFFSET, hi=MAX_OFFSET, unit="box units", group=G_DUST,
+        doc="\"turbulence\": offset into the noise; a different offset gives a different nebula")
+    floor: float = param(
+        1e-4, type="float", lo=0.0, group=G_DUST, advanced=True,
+        doc="Minimum density everywhere (the thesis's clamp; keeps the medium from being empty)")
+    tau: float = param(
+        1.0, type="float", lo=0.0, label="Tau", group=G_OPTICS,
+        doc="Optical depth across one box edge at density 1 in the reference band: the extinction "
+            "per box edge is tau x extinction_b x density (the thesis's 128^3 nebula: 128, i.e. "
+            "extinction = density per voxel)")
+
+
+@document
+@dataclass
+class Star:
+    """A point source, one TOML ``[[stars]]`` table."""
+
+    position: Vec3 = param(
+        (0.5, 0.5, 0.5), type="tuple of 3 float", lo=0.0, hi=1.0, unit="box units", group=G_STARS,
+        doc="Where the star is, inside [0, 1]^3")
+    luminosity: float = param(
+        1.0, type="float", lo=0.0, lo_open=True, unit="scene units", group=G_STARS,
+        doc="Total luminosity over all bands")
+    temperature: Optional[float] = param(
+        None, type="float or None", lo=TEMPERATURE_RANGE[0], hi=TEMPERATURE_RANGE[1], unit="K", group=G_STARS,
+        doc="Effective temperature: a blackbody spectrum then splits the luminosity over the bands "
+            "and colours the star; None (omitted, 0 in a Stars table) gives every band an equal share")
+    bump_radius: float = param(
+        0.0, type="float", lo=0.0, hi=1.0, unit="box units", group=G_STARS,
+        doc="Half-size of the thesis's cubic dust bump around the star (0 = none; the thesis used "
+            "0.01); used where the density is made, not by the light field of a given density")
+    spectrum: Optional[Tuple[Tuple[float, float], ...]] = param(
+        None, type="tuple of (wavelength nm, relative power) pairs, or None", group=G_STARS,
+        doc="A measured spectrum (at least 2 pairs, wavelengths increasing): it replaces the "
+            "blackbody of `temperature` for the split over the bands and for the colour")
+
+    def spectral_source(self):
+        """What sets the star's spectrum: the measured pairs, else the temperature (K), else
+        None (flat); see :func:`nebula_rt.colour_convert.star_spectrum`."""
+        return self.spectrum if self.spectrum else self.temperature
+
+
+@document
+@dataclass
+class BandsConfig:
+    """Band selection, TOML table ``[bands]``."""
+
+    preset: Optional[str] = param(
+        "thesis-rgb", type="str or None", choices=tuple(sorted(PRESETS)), label="Band Preset", group=G_OPTICS,
+        doc="The wavelength bands traced, a preset of nebula_rt.bands.PRESETS (thesis-rgb: R 677, "
+            "G 550, B 439 nm with the thesis's extinction factors 0.748 / 1 / 1.324); None whenever "
+            "`list` is given")
+    albedo: Optional[float] = param(
+        None, type="float or None", lo=0.0, hi=1.0, group=G_OPTICS,
+        doc="If given, the single-scattering albedo of the dust in every band (else each band's own)")
+    g: Optional[float] = param(
+        None, type="float or None", lo=-1.0, hi=1.0, label="G", group=G_OPTICS,
+        doc="If given, the Henyey-Greenstein asymmetry parameter of every band (else each band's own)")
+    list: Optional[List[Dict[str, Any]]] = param(
+        None, type="list of dict or None", group=G_OPTICS,
+        doc="Explicit bands, [[bands.list]] tables with keys name, wavelength (nm), extinction "
+            "(relative to the reference band), albedo and g")
+
+    def __post_init__(self) -> None:
+        if self.list is not None:
+            self.preset = None
+
+    def resolve(self) -> List[Band]:
+        """Return the validated bands (see :func:`nebula_rt.bands.resolve_bands`)."""
+        return resolve_bands(self.preset, self.list, self.albedo, self.g)
+
+
+@document
+@dataclass
+class Transport:
+    """Monte Carlo transport settings, TOML table ``[transport]``."""
+
+    photons: int = param(
+        2_100_000, type="int", lo=1, hi=MAX_PHOTONS, unit="packets per band", group=G_QUALITY,
+        doc="Photon packets traced per band (with a target error: the budget). The noise falls as "
+            "1/sqrt(photons); the thesis used 2.1 million")
+    estimator: str = param(
+        "track-length", type="str", choices=ESTIMATORS, group=G_TRANSPORT,
+        doc="Estimator of the mean intensity J per voxel. track-length: every packet's path through a "
+            "voxel scores there (low noise); collision-filter: the thesis's estimator, collisions "
+            "spread over filter_radius")
+    filter_radius: float = param(
+        0.02, type="float", lo=0.0, lo_open=True, unit="box units", label="Filter Radius", group=G_TRANSPORT,
+        doc="Radius of the collision filter (collision-filter only)")
+    max_scatterings: int = param(
+        1000, type="int", lo=0, hi=INT32_MAX, label="Max Scatterings", group=G_TRANSPORT, advanced=True,
+        doc="A packet is terminated (and tallied as such) after this many scatterings")
+    seed: int = param(
+        1, type="int", lo=0, hi=MAX_SEED - 1, group=G_TRANSPORT, advanced=True,
+        doc="Random seed: the same seed, scene and device give the same bits")
+    backend: str = param(
+        "auto", type="str", choices=BACKENDS, group=G_DEVICE, advanced=True,
+        doc="Compute backend: auto (CUDA if usable, else OpenCL), opencl or cuda")
+    device: str = param(
+        "", type="str", group=G_DEVICE, advanced=True,
+        doc="Compute device: empty = automatic (a GPU if there is one), else a text contained in the "
+            "device's name (e.g. NVIDIA, Portable Computing Language)")
+    batch_size: int = param(
+        0, type="int", lo=0, hi=MAX_PHOTONS, unit="packets per band", label="Batch Size", group=G_DEVICE,
+        advanced=True,
+        doc="Packets per band in one batch, the unit of the Monte Carlo error estimate (0 = automatic: "
+            "at least 16 batches); progress and cancelling happen between kernel launches")
+    target_error: float = param(
+        0.0, type="float", lo=0.0, hi=1.0, label="Target Error", group=G_QUALITY,
+        doc="0: trace `photons` packets. In (0, 1): trace until the relative error in the lit region "
+            "(RMS over the lit voxels, 1 sigma) is at most this, `photons` being the budget")
+    time_limit: float = param(
+        0.0, type="float", lo=0.0, unit="s", label="Time Limit", group=G_QUALITY, advanced=True,
+        doc="0: none. Above 0: end the run after this long (within one launch), keeping the batches "
+            "finished by then; `photons` is then a budget")
+    quality: str = param(
+        "", type="str", choices=QUALITIES, choice_labels=("custom",) + QUALITIES[1:], group=G_QUALITY,
+        doc="\"\" (custom: photons and target_error as given) or a preset: preview / balanced / "
+            "reference trace until the lit region's error is 10 % / 3 % / 1 % (budgets of 10M / 100M "
+            "/ 1000M packets per band); a preset replaces photons and target_error")
+
+    def effective(self) -> tuple[int, float]:
+        """(photons per band or budget, target error) after applying the quality preset."""
+        if self.quality:
+            preset = QUALITY_PRESETS[self.quality]
+            return int(preset["photons"]), float(preset["target_error"])
+        return int(self.photons), float(self.target_error)
+
+
+
+
+@document
 @dataclass
 class Colour:
-    """Conversion of the band results to sRGB, TOML table ``[colour]`` (extension).
+    """Conversion of the band results to sRGB, TOML table ``[colour]`` (extension)."""
 
-    Parameters
-    ----------
-    exposure : "auto" or float
-        ``"auto"`` or a finite factor > 0 applied before the sRGB transfer.
-    white_point : {"D65", "E", "star"}
-        White point of the colour conversion (``"star"``: the first star's
-        blackbody colour is white).
-    opacity_scale : float
-        Factor (> 0) on the reference-band extinction used as volume opacity.
-    """
+    exposure: Union[float, str] = param(
+        "auto", type="\"auto\" or float", group=G_COLOUR,
+        doc="\"auto\" or a finite factor > 0 applied to the linear colour before the sRGB transfer")
+    white_point: str = param(
+        "D65", type="str", choices=WHITE_POINTS, label="White Point", group=G_COLOUR,
+        doc="White balance: D65 (daylight), E (equal energy) or star (the first star's blackbody "
+            "colour is white)")
+    opacity_scale: float = param(
+        1.0, type="float", lo=0.0, lo_open=True, label="Opacity Scale", group=G_COLOUR,
+        doc="Factor on each voxel's reference-band optical depth in the volume's alpha")
 
-    exposure: Union[float, str] = "auto"
-    white_point: str = "D65"
-    opacity_scale: float = 1.0
+
+#: The scene file's tables with their dataclasses, in the file's order: the schema
+#: (:mod:`nebula_rt.schema`). A star's keys are ``stars.<field>`` (the same for every star).
+SECTIONS = (("grid", Grid), ("dust", Dust), ("stars", Star), ("bands", BandsConfig), ("transport", Transport),
+            ("colour", Colour))
+
+
+def parameters():
+    """Every scene parameter as (key, :class:`~nebula_rt.schema.Param`, default), in the file's order."""
+    return schema.parameters(SECTIONS)
+
+
+def declaration(key: str) -> "schema.Param":
+    """The declaration of scene key ``key`` (``"transport.photons"``); KeyError if none."""
+    for k, p, _ in parameters():
+        if k == key:
+            return p
+    raise KeyError(key)
+
+
+def default(key: str):
+    """The default value of scene key ``key``."""
+    for k, _, d in parameters():
+        if k == key:
+            return d
+    raise KeyError(key)
 
 
 # ---------------------------------------------------------------------------

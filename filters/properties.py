@@ -1,0 +1,128 @@
+"""The VTK algorithms' properties, bound to the scene schema.
+
+A :class:`Property` names a setter (``Set<Name>``, also the ParaView property's name) and the
+scene key it sets; :func:`bind` makes the setters and getters of a list of them on a VTK
+algorithm class, with the defaults, choices and ranges of the scene schema
+(:func:`nebula_rt.scene.parameters`): nothing of a parameter is written here again. The
+ParaView proxies (``plugin/nebula_rt_paraview``) make their property XML from the same
+:class:`Property` lists, so plain VTK, pyvista, pvpython and the GUI have one set of defaults.
+
+Values are kept as given (a setter never fails: VTK's and ParaView's setters cannot report
+an error to the caller) and checked when the algorithm runs, by the scene's own validation,
+whose error names the property (:meth:`NebulaAlgorithm.describe_error`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Dict, Optional, Sequence, Tuple
+
+from nebula_rt import scene as _scene
+from nebula_rt.schema import Param
+
+__all__ = ["Property", "bind", "scene_values"]
+
+
+@dataclass(frozen=True)
+class Property:
+    """One property of a NebulaRT VTK algorithm bound to a scene key.
+
+    Attributes
+    ----------
+    name : str
+        ``Set<name>`` / ``Get<name>`` and the ParaView property's name (state-file API).
+    key : str
+        The scene key it sets (``"transport.photons"``).
+    widget : str
+        How a choice or a flag is stored: ``"enum"`` (an integer index into the choices, as
+        older state files hold it), ``"bool"``; "" chooses from the declaration (a string
+        list for choices, a number or text otherwise).
+    enabled_by : tuple
+        ``(property name, value)``: the panel enables the widget only while that property has
+        that value (the controlling property comes first in the panel).
+    shown_by : tuple
+        ``(property name, value)``: the panel shows the widget only then.
+    """
+
+    name: str
+    key: str
+    widget: str = ""
+    enabled_by: Tuple = ()
+    shown_by: Tuple = ()
+
+    @property
+    def param(self) -> Param:
+        return _scene.declaration(self.key)
+
+    @property
+    def default(self) -> Any:
+        return _scene.default(self.key)
+
+    @property
+    def elements(self) -> int:
+        d = self.default
+        return len(d) if isinstance(d, (tuple, list)) else 1
+
+
+def _coerce(prop: Property, args):
+    """The value of a setter call: a choice given by index (ParaView's enumeration) becomes its
+    name; vector setters take their elements as arguments or one sequence."""
+    if prop.elements > 1:
+        vals = args[0] if len(args) == 1 and hasattr(args[0], "__len__") else args
+        return tuple(vals)
+    (v,) = args
+    choices = prop.param.choices
+    if choices and isinstance(v, int) and not isinstance(v, bool) and 0 <= v < len(choices):
+        return choices[v]
+    labels = prop.param.choice_labels
+    if labels and isinstance(v, str) and v in labels and v not in choices:
+        return choices[labels.index(v)]
+    if prop.key == "transport.device" and v is None:
+        return ""  # ParaView hands an empty string over as None
+    return v
+
+
+def bind(props: Sequence[Property]):
+    """Class decorator: ``Set<name>`` / ``Get<name>`` for every property, kept in the
+    instance's ``_values`` (scene key -> value; the schema's default until set)."""
+
+    def decorate(cls):
+        cls.BOUND_PROPERTIES = tuple(getattr(cls, "BOUND_PROPERTIES", ())) + tuple(props)
+        for prop in props:
+            def setter(self, *args, _p=prop):
+                value = _coerce(_p, args)
+                if self._values.get(_p.key, object()) != value:
+                    self._values[_p.key] = value
+                    self.Modified()
+
+            def getter(self, _p=prop):
+                return self._values[_p.key]
+
+            setter.__name__, getter.__name__ = "Set" + prop.name, "Get" + prop.name
+            p = prop.param
+            setter.__doc__ = f"{p.doc} (scene key ``{prop.key}``; default {prop.default!r})."
+            getter.__doc__ = f"The value of ``{prop.key}`` set by Set{prop.name}."
+            setattr(cls, setter.__name__, setter)
+            setattr(cls, getter.__name__, getter)
+        return cls
+
+    return decorate
+
+
+def init_values(obj) -> None:
+    """The schema's defaults of every bound property of ``obj``'s class."""
+    obj._values = {p.key: p.default for p in type(obj).BOUND_PROPERTIES}
+
+
+def scene_values(values: Dict[str, Any], base: Optional[dict] = None) -> dict:
+    """A scene dict (``{"transport": {"photons": ...}, ...}``) from dotted keys, merged into
+    ``base``; keys of ``stars.*`` are left to the caller (a scene has a list of stars)."""
+    out = {k: dict(v) if isinstance(v, dict) else v for k, v in (base or {}).items()}
+    for key, value in values.items():
+        table, name = key.split(".", 1)
+        if table == "stars":
+            continue
+        if isinstance(value, tuple):
+            value = list(value)
+        out.setdefault(table, {})[name] = value
+    return out

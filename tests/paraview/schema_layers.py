@@ -1,0 +1,104 @@
+"""The Nebula Light Field proxy as ParaView built it from the scene schema, and one run.
+
+    pvpython schema_layers.py DENSITY.vti DENSITY.npy PHOTONS
+
+RESULT: ``properties``: per property in the panel's order (ParaView's ordered iterator) its
+class, label, default elements, panel visibility and domain (range bounds, enumeration
+texts, string list); ``groups``: the property groups with their properties; ``hashes``:
+SHA-256 of each J_<band> array's bytes of a light field with every property at its default
+except Photons and Device, three ways in this process (so on this ParaView's OpenCL device):
+``proxy`` (the proxy on ParaView's reader of DENSITY.vti), ``vtk`` (the plain VTK filter on
+VTK's reader of the same file), ``scene`` (a scene file's dict with dust.file = DENSITY.npy
+through the Pipeline); ``int_photons_from_float``: the photons a ``Photons=1e4`` assignment
+stores.
+"""
+
+import hashlib
+import sys
+
+import _common
+import numpy as np
+from paraview import servermanager, simple
+from nebula_rt_paraview.view import load_plugin
+from vtkmodules.util.numpy_support import vtk_to_numpy
+
+load_plugin()
+path, npy, photons = sys.argv[1], sys.argv[2], int(sys.argv[3])
+
+spm = servermanager.vtkSMProxyManager.GetProxyManager().GetActiveSessionProxyManager()
+proto = spm.GetPrototypeProxy("filters", "NebulaLightField")
+props = []
+it = servermanager.vtkSMOrderedPropertyIterator()
+it.SetProxy(proto)
+it.Begin()
+while not it.IsAtEnd():
+    name, prop = it.GetKey(), it.GetProperty()
+    entry = {"name": name, "class": prop.GetClassName(), "label": prop.GetXMLLabel(),
+             "panel_visibility": prop.GetPanelVisibility()}
+    if hasattr(prop, "GetElement") and hasattr(prop, "GetNumberOfElements") and name != "Input":
+        # a prototype's elements are the defaults
+        entry["default"] = [prop.GetElement(i) for i in range(prop.GetNumberOfElements())]
+    dit = prop.NewDomainIterator()
+    dit.Begin()
+    while not dit.IsAtEnd():
+        dom = dit.GetDomain()
+        cls = dom.GetClassName()
+        if cls in ("vtkSMDoubleRangeDomain", "vtkSMIntRangeDomain"):
+            lo = dom.GetMinimum(0) if dom.GetMinimumExists(0) else None
+            hi = dom.GetMaximum(0) if dom.GetMaximumExists(0) else None
+            entry["range"] = [lo, hi]
+        elif cls == "vtkSMEnumerationDomain":
+            entry["enum"] = [dom.GetEntryText(i) for i in range(dom.GetNumberOfEntries())]
+        elif cls == "vtkSMStringListDomain":
+            entry["strings"] = [dom.GetString(i) for i in range(dom.GetNumberOfStrings())]
+        elif cls == "vtkSMBooleanDomain":
+            entry["bool"] = True
+        dit.Next()
+    props.append(entry)
+    it.Next()
+groups = {}
+for i in range(proto.GetNumberOfPropertyGroups()):
+    g = proto.GetPropertyGroup(i)
+    groups[g.GetXMLLabel()] = [g.GetPropertyName(j) for j in range(g.GetNumberOfProperties())]
+
+reader = simple.XMLImageDataReader(FileName=[path])
+light = simple.NebulaLightField(reader, Photons=photons, Device=_common.TEST_DEVICE)
+light.UpdatePipeline()
+out = servermanager.Fetch(light)
+
+
+def j_hashes(dataset):
+    pd = dataset.GetPointData()
+    return {pd.GetArrayName(i): hashlib.sha256(np.ascontiguousarray(vtk_to_numpy(pd.GetArray(i))).tobytes()).hexdigest()
+            for i in range(pd.GetNumberOfArrays()) if pd.GetArrayName(i).startswith("J_")}
+
+
+hashes = {"proxy": j_hashes(out)}
+# the plain VTK filter on VTK's own reader
+from nebula_rt.filters.light_field import NebulaLightField  # noqa: E402
+from vtkmodules.vtkIOXML import vtkXMLImageDataReader  # noqa: E402
+
+r = vtkXMLImageDataReader()
+r.SetFileName(path)
+lf = NebulaLightField()
+lf.SetInputConnection(r.GetOutputPort())
+lf.SetPhotons(photons)
+lf.SetDevice(_common.TEST_DEVICE)
+lf.Update()
+hashes["vtk"] = j_hashes(lf.GetOutputDataObject(0))
+# a scene file's values through the pipeline
+from nebula_rt.backends import get_backend  # noqa: E402
+from nebula_rt.pipeline import Pipeline  # noqa: E402
+from nebula_rt.scene import Scene  # noqa: E402
+
+rho = np.load(npy)
+scene = Scene.from_dict({"grid": {"shape": list(rho.shape)}, "dust": {"model": "file", "file": npy},
+                         "transport": {"photons": photons, "device": _common.TEST_DEVICE}})
+res = Pipeline(get_backend("auto", _common.TEST_DEVICE)).run(scene, colour=False)
+# J is indexed [x, y, z]; VTK's arrays run x fastest
+hashes["scene"] = {f"J_{b.name}": hashlib.sha256(np.ascontiguousarray(res.J[i].ravel(order="F"), np.float32).tobytes()).hexdigest()
+                   for i, b in enumerate(res.bands)}
+light.Photons = 1e4  # a float where an integer is meant
+stored = light.GetProperty("Photons").GetData()
+_common.result(properties=props, groups=groups, hashes=hashes, int_photons_from_float=stored,
+               last_error=light.GetClientSideObject().last_error)

@@ -1,0 +1,171 @@
+"""One declaration per parameter: every layer shows the scene schema's defaults, ranges and
+choices, and the same values give the same bits in ParaView, plain VTK and a scene file.
+
+The schema is the scene dataclasses' field declarations (nebula_rt.scene.parameters); the
+layers are the VTK filter's bound setters (nebula_rt.filters.light_field), the ParaView proxy
+that ParaView builds from them (tests/paraview/schema_layers.py, under pvpython), the CLI's
+choices, and the scene classes' docstrings. The bit comparisons are exact: the same scene,
+seed and device give the same integer tallies, so any difference is a defect.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+
+import numpy as np
+import pytest
+
+from nebula_rt import scene as sc
+from nebula_rt.filters.light_field import LIGHT_FIELD_PROPERTIES, NebulaLightField
+from nebula_rt.schema import label
+
+from conftest import TEST_DEVICE
+
+
+def test_every_scene_field_is_declared_with_a_doc():
+    import dataclasses
+
+    for section, cls in sc.SECTIONS:
+        for f in dataclasses.fields(cls):
+            p = f.metadata.get("param")
+            assert p is not None, f"{section}.{f.name} has no declaration"
+            assert p.doc.strip(), f"{section}.{f.name}"
+            assert f.name in cls.__doc__ and p.doc.split()[0] in cls.__doc__, f"{section}.{f.name} not documented"
+
+
+def test_the_schema_defaults_are_the_scene_defaults():
+    d = sc.Scene.default()
+    for key, _, default in sc.parameters():
+        table, name = key.split(".")
+        obj = d.stars[0] if table == "stars" else getattr(d, table)
+        assert getattr(obj, name) == default, key
+
+
+def test_choices_of_the_schema_are_what_the_scene_accepts():
+    for key, p, default in sc.parameters():
+        if not p.choices:
+            continue
+        table, name = key.split(".")
+        assert default in p.choices, key
+        for choice in p.choices:
+            try:  # accepted (a choice may need other keys: dust.model = "file" needs dust.file)
+                sc.Scene.from_dict({table: {name: choice}})
+            except sc.SceneError as exc:
+                assert exc.parameter != key, exc
+        with pytest.raises(sc.SceneError):
+            sc.Scene.from_dict({table: {name: "no-such-choice"}})
+
+
+def test_numeric_bounds_of_the_schema_are_what_the_scene_accepts():
+    """At each declared bound the scene accepts the value; just past it, it refuses it (where
+    the bound is closed and the next representable value is past it)."""
+    cases = {"transport.photons": (1, 2**53), "transport.max_scatterings": (0, 2**31 - 1),
+             "transport.seed": (0, 2**64 - 1)}
+    for key, (lo, hi) in cases.items():
+        p = sc.declaration(key)
+        assert (p.lo, p.hi) == (lo, hi), key
+        table, name = key.split(".")
+        sc.Scene.from_dict({table: {name: lo}})
+        sc.Scene.from_dict({table: {name: hi}})
+        for bad in (lo - 1, hi + 1):
+            with pytest.raises(sc.SceneError):
+                sc.Scene.from_dict({table: {name: bad}})
+
+
+def test_vtk_filter_defaults_are_the_schema_defaults():
+    lf = NebulaLightField()
+    for prop in LIGHT_FIELD_PROPERTIES:
+        want = sc.default(prop.key)
+        if want is None:  # Albedo and G: the default preset's own values, applied only on request
+            continue
+        assert getattr(lf, "Get" + prop.name)() == want, prop.name
+    # an untouched filter traces the scene file's defaults (its density from the input)
+    s = lf.scene((8, 8, 8))
+    d = sc.Scene.default()
+    assert s.transport == d.transport and s.bands == d.bands and s.stars == d.stars
+    assert s.dust.tau == d.dust.tau
+
+
+def test_vtk_setters_take_enumeration_indices_and_whole_floats():
+    lf = NebulaLightField()
+    lf.SetEstimator(1)
+    lf.SetQuality(2)
+    lf.SetPhotons(1e5)
+    s = lf.scene((8, 8, 8))
+    assert s.transport.estimator == sc.ESTIMATORS[1] and s.transport.quality == sc.QUALITIES[2]
+    assert s.transport.photons == 100_000 and isinstance(s.transport.photons, int)
+    lf.SetQuality("custom")  # the panel's text of ""
+    assert lf.scene((8, 8, 8)).transport.quality == ""
+
+
+def test_cli_choices_are_the_schema_choices():
+    from nebula_rt.cli import build_parser
+
+    parser = build_parser()
+    render = next(a for a in parser._subparsers._group_actions[0].choices.values() if a.prog.endswith("render"))
+    opts = {a.dest: a for a in render._actions}
+    assert tuple(opts["backend"].choices) == sc.BACKENDS
+    assert tuple(opts["quality"].choices) == sc.QUALITIES[1:]
+
+
+def make_density_files(d):
+    """A random density (above the floor everywhere) as .npy and as .vti with the same values."""
+    from nebula_rt.filters.vti import write_vti
+
+    rng = np.random.default_rng(11)
+    rho = (0.2 + rng.random((12, 10, 9))).astype(np.float32)
+    np.save(d / "rho.npy", rho)
+    write_vti(d / "rho.vti", {"density": rho}, None, (1.0, 1.0, 1.0))
+    return d / "rho.npy", d / "rho.vti", rho
+
+
+@pytest.fixture(scope="module")
+def density_file(tmp_path_factory):
+    return make_density_files(tmp_path_factory.mktemp("density"))
+
+
+PHOTONS = 4000
+
+
+def _hashes(arrays: dict) -> dict:
+    return {k: hashlib.sha256(np.ascontiguousarray(v, np.float32).tobytes()).hexdigest() for k, v in arrays.items()}
+
+
+def _vtk_run(vti):
+    from vtkmodules.vtkIOXML import vtkXMLImageDataReader
+
+    from nebula_rt.filters.image_data import point_array
+
+    reader = vtkXMLImageDataReader()
+    reader.SetFileName(str(vti))
+    lf = NebulaLightField()
+    lf.SetInputConnection(reader.GetOutputPort())
+    lf.SetPhotons(PHOTONS)
+    lf.SetDevice(TEST_DEVICE)
+    lf.Update()
+    assert lf.last_error is None, lf.last_error
+    out = lf.GetOutputDataObject(0)
+    names = [out.GetPointData().GetArrayName(i) for i in range(out.GetPointData().GetNumberOfArrays())]
+    return {n: point_array(out, n) for n in names if n.startswith("J_")}
+
+
+def _scene_file_run(npy, rho):
+    from nebula_rt.backends import get_backend
+    from nebula_rt.pipeline import Pipeline
+
+    scene = sc.Scene.from_dict({"grid": {"shape": list(rho.shape)}, "dust": {"model": "file", "file": str(npy)},
+                                "transport": {"photons": PHOTONS, "device": TEST_DEVICE}})
+    light = Pipeline(get_backend(scene.transport.backend, TEST_DEVICE)).run(scene, colour=False)
+    return {f"J_{b.name}": light.J[i] for i, b in enumerate(light.bands)}
+
+
+def test_plain_vtk_and_scene_file_give_the_same_bits(density_file):
+    npy, vti, rho = density_file
+    assert _hashes(_vtk_run(vti)) == _hashes(_scene_file_run(npy, rho))
+
+
+def test_schema_ranges_are_closed_numbers_or_none():
+    for key, p, _ in sc.parameters():
+        for b in (p.lo, p.hi):
+            assert b is None or (isinstance(b, (int, float)) and math.isfinite(b)), key
