@@ -45,6 +45,21 @@ def stars_from_flat(values) -> list[dict]:
     return out
 
 
+def _arrays_mtime(data) -> int:
+    """The latest modification time of a dataset's point and cell arrays (0 for none): what
+    changes when its values change (the data object's own time also moves when a pipeline
+    only re-negotiates its extent)."""
+    if data is None:
+        return 0
+    times = [0]
+    for attrs in (data.GetPointData(), data.GetCellData()):
+        for i in range(attrs.GetNumberOfArrays()):
+            arr = attrs.GetAbstractArray(i)
+            if arr is not None:
+                times.append(arr.GetMTime())
+    return max(times)
+
+
 def default_star_row() -> list:
     """The Stars property's row of the scene's default star: x, y, z, luminosity, temperature
     (0 = flat spectrum), bump radius."""
@@ -122,11 +137,20 @@ class NebulaAlgorithm(VTKPythonAlgorithmBase):
 
     def RequestData(self, request, inInfo, outInfo):
         self.execution_count += 1
+        output = self.GetOutputData(outInfo, 0)
+        inp = self.GetInputData(inInfo, 0, 0) if self.GetNumberOfInputPorts() > 0 else None
+        # An empty output never satisfies a request for the whole extent, so ParaView runs a
+        # failed algorithm again for every consumer of one Apply (the colour filter, the data
+        # information, the representation): the same inputs and properties fail the same
+        # way, so they are not run (nor reported) again until one of them changes.
+        key = (self.GetMTime(), _arrays_mtime(inp))
+        if self.last_error is not None and key == getattr(self, "_failed_key", None):
+            output.Initialize()
+            return 1
+        self._failed_key = None
         self.last_error = None
         self.last_warnings = []
-        output = self.GetOutputData(outInfo, 0)
         if self.GetNumberOfInputPorts() > 0:
-            inp = self.GetInputData(inInfo, 0, 0)
             if inp is None or inp.GetNumberOfPoints() == 0:
                 # an upstream NebulaRT filter failed (it said why): pass the emptiness on
                 # instead of leaving a stale result downstream
@@ -147,6 +171,7 @@ class NebulaAlgorithm(VTKPythonAlgorithmBase):
                 # without this every later update would be cancelled at once
                 self.SetAbortExecute(0)
             self.last_error = f"{type(self).__name__}: {self.describe_error(exc)}"
+            self._failed_key = key
             output.Initialize()  # no half-made output
             vtkOutputWindow.GetInstance().DisplayErrorText(f"NebulaRT {kind}: {self.last_error}\n")
         # Succeed either way: an empty output (with the error on the output window) lets

@@ -79,6 +79,8 @@ def _coerce(prop: Property, args):
         return choices[labels.index(v)]
     if prop.key == "transport.device" and v is None:
         return ""  # ParaView hands an empty string over as None
+    if prop.param.type == "int" and isinstance(v, float) and v.is_integer():
+        return int(v)  # integers past int32 travel as doubles in ParaView (and 1e5 is an integer)
     return v
 
 
