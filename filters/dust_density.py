@@ -11,90 +11,52 @@ from nebula_rt.density import generate_density
 from nebula_rt.limits import INT32_MAX
 from nebula_rt.scene import Scene
 
-from .base import NebulaAlgorithm, stars_from_flat
+from .base import NebulaAlgorithm, default_star_row, stars_from_flat
 from .image_data import add_point_arrays
+from .properties import Property, bind, init_values, scene_values
 
-MODELS = ("turbulence", "uniform")
+#: The source's properties bound to scene keys, in the panel's order; defaults, choices and
+#: ranges come from the scene schema. Stars is the source's own (a bump per star).
+DUST_DENSITY_PROPERTIES = (
+    Property("GridShape", "grid.shape"),
+    Property("Model", "dust.model", widget="enum", only=("turbulence", "uniform")),
+    Property("Scale", "dust.scale", shown_by=("Model", 0)),
+    Property("Offset", "dust.offset", shown_by=("Model", 0)),
+    Property("UniformDensity", "dust.density", shown_by=("Model", 1)),
+    Property("Floor", "dust.floor"),
+    Property("Backend", "transport.backend"),
+    Property("Device", "transport.device"),
+)
 
 
+@bind(DUST_DENSITY_PROPERTIES)
 class NebulaDustDensity(NebulaAlgorithm):
     """Dust density on an nx x ny x nz grid spanning the box [0, 1]^3 (box units).
 
     Point data ``density`` on the voxel centres: origin 0.5/n, spacing 1/n per axis.
     Formula: thesis Eq. 3.2/3.3 (turbulence or uniform, plus each star's cubic bump, floor).
+    The setters (:data:`DUST_DENSITY_PROPERTIES`) set scene keys with the scene's defaults.
     """
-
-    PROPERTIES = {"grid.shape": "GridShape", "dust.model": "Model", "dust.scale": "Scale",
-                  "dust.offset": "Offset", "dust.floor": "Floor", "dust.density": "UniformDensity",
-                  "transport.backend": "Backend", "transport.device": "Device"}
 
     def __init__(self):
         super().__init__(nInputPorts=0, nOutputPorts=1, outputType="vtkImageData")
-        d = Scene.default()
-        self._shape = tuple(d.grid.shape)
-        self._model = d.dust.model
-        self._scale = d.dust.scale
-        self._offset = tuple(d.dust.offset)
-        self._floor = d.dust.floor
-        self._uniform = d.dust.density
-        self._stars = [0.5, 0.5, 0.5, 1.0, 0.0, 0.01]
-        self._backend = "auto"
-        self._device = ""
-
-    # -- properties (store and Modified() only; validated in RequestData) ---------------------
-    def SetGridShape(self, nx, ny, nz):
-        self._shape = (nx, ny, nz)
-        self.Modified()
-
-    def SetModel(self, model):
-        """"turbulence" or "uniform" (or 0/1)."""
-        self._model = MODELS[model] if isinstance(model, int) and 0 <= model < len(MODELS) else model
-        self.Modified()
-
-    def SetScale(self, v):
-        self._scale = v
-        self.Modified()
-
-    def SetOffset(self, x, y, z):
-        self._offset = (x, y, z)
-        self.Modified()
-
-    def SetFloor(self, v):
-        self._floor = v
-        self.Modified()
-
-    def SetUniformDensity(self, v):
-        self._uniform = v
-        self.Modified()
+        init_values(self)
+        self._stars = default_star_row()
 
     def SetStars(self, *values):
         """Flat list, 6 numbers per star: x, y, z, luminosity, temperature (0: none), bump radius."""
         self._stars = list(values[0]) if len(values) == 1 and hasattr(values[0], "__len__") else list(values)
         self.Modified()
 
-    def SetBackend(self, name):
-        self._backend = name
-        self.Modified()
-
-    def SetDevice(self, selector):
-        self._device = selector
-        self.Modified()
-
     # -- pipeline -----------------------------------------------------------------------------
     def scene(self) -> Scene:
         """The scene these properties describe (validated)."""
-        return Scene.from_dict({
-            "grid": {"shape": list(self._shape)},
-            "dust": {"model": self._model, "scale": self._scale, "offset": list(self._offset),
-                     "floor": self._floor, "density": self._uniform},
-            "stars": stars_from_flat(self._stars),
-            "transport": {"backend": self._backend, "device": self._device},
-        })
+        return Scene.from_dict(scene_values(self._values, {"stars": stars_from_flat(self._stars)}))
 
     def RequestInformation(self, request, inInfo, outInfo):
         info = outInfo.GetInformationObject(0)
         try:
-            nx, ny, nz = (int(n) for n in self._shape)
+            nx, ny, nz = (int(n) for n in self._values["grid.shape"])
             if not all(2 <= n <= INT32_MAX for n in (nx, ny, nz)):
                 raise ValueError
         except (TypeError, ValueError, OverflowError):

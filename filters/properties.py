@@ -42,6 +42,9 @@ class Property:
         that value (the controlling property comes first in the panel).
     shown_by : tuple
         ``(property name, value)``: the panel shows the widget only then.
+    only : tuple of str
+        The choices this algorithm offers, where it offers fewer than the scene (the Dust
+        Density source makes no density from a file).
     """
 
     name: str
@@ -49,6 +52,11 @@ class Property:
     widget: str = ""
     enabled_by: Tuple = ()
     shown_by: Tuple = ()
+    only: Tuple[str, ...] = ()
+
+    @property
+    def choices(self) -> Tuple[str, ...]:
+        return self.only or self.param.choices
 
     @property
     def param(self) -> Param:
@@ -71,7 +79,7 @@ def _coerce(prop: Property, args):
         vals = args[0] if len(args) == 1 and hasattr(args[0], "__len__") else args
         return tuple(vals)
     (v,) = args
-    choices = prop.param.choices
+    choices = prop.choices
     if choices and isinstance(v, int) and not isinstance(v, bool) and 0 <= v < len(choices):
         return choices[v]
     labels = prop.param.choice_labels

@@ -58,8 +58,7 @@ def test_filters_match_the_library_pipeline():
     scene = Scene.from_dict({
         "grid": {"shape": [16, 12, 10]},
         "dust": {"tau": 50.0},
-        "stars": [{"position": [0.5, 0.5, 0.5], "luminosity": 1.0, "bump_radius": 0.01}],
-        "bands": {"albedo": 0.6, "g": 0.6},
+        # the filters' untouched properties are the scene's defaults (one star at the centre)
         "transport": {"photons": 5000, "device": TEST_DEVICE},
     })
     light = Pipeline().run(scene)

@@ -339,8 +339,8 @@ def test_bad_grid_shape_in_the_density_source(shape, fragment):
     with _Capture() as cap:
         d.Update()
     assert d.GetOutputDataObject(0).GetNumberOfPoints() == 0
-    assert d.last_error.startswith("NebulaDustDensity: grid.shape = ") and fragment in d.last_error
-    assert d.last_error.endswith("(property GridShape)")
+    # named as the panel shows it, then the scene key, the value and what is allowed
+    assert d.last_error.startswith("NebulaDustDensity: Grid Shape (grid.shape) = ") and fragment in d.last_error
     assert cap.text.count("NebulaRT error") == 1 and "Traceback" not in cap.text
 
 

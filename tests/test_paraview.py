@@ -233,23 +233,29 @@ def test_paraview_proxy_is_the_schema_and_gives_the_same_bits(pv_env, xdisplay, 
     npy, vti, rho = schema_density
     r, _ = run_pv(pv_env, xdisplay, "schema_layers.py", vti, npy, PHOTONS)
     assert r["last_error"] is None, r["last_error"]
-    props = {e["name"]: e for e in r["properties"]}
-    for prop in LIGHT_FIELD_PROPERTIES:
-        e, p, want = props[prop.name], prop.param, sc.default(prop.key)
-        assert e["label"] == label(prop.key, p), prop.name
-        assert (e["panel_visibility"] == "advanced") == p.advanced, prop.name
-        if prop.widget == "enum":
-            assert e["enum"] == list(p.choice_labels or p.choices) and e["default"] == [p.choices.index(want)]
-        elif p.choices:
-            assert e["strings"] == list(p.choices) and e["default"] == [want], prop.name
-        elif isinstance(want, str):
-            assert e["default"] == [want], prop.name
-        elif want is not None:
-            assert e["default"] == [want], prop.name
-            lo, hi = e["range"]
-            assert lo == p.lo, prop.name
-            # the panel's bound is the schema's, or 2^53 for integers travelling as doubles
-            assert hi == (None if p.hi is None else min(p.hi, 2**53) if p.hi > 2**31 - 1 else p.hi), prop.name
+    from test_schema_layers import DUST_DENSITY_PROPERTIES
+
+    for proxy_props, bound in ((r["properties"], LIGHT_FIELD_PROPERTIES),
+                               (r["density_properties"], DUST_DENSITY_PROPERTIES)):
+        props = {e["name"]: e for e in proxy_props}
+        for prop in bound:
+            e, p, want = props[prop.name], prop.param, sc.default(prop.key)
+            assert e["label"] == label(prop.key, p), prop.name
+            assert (e["panel_visibility"] == "advanced") == p.advanced, prop.name
+            if prop.widget == "enum":
+                texts = [p.choice_labels[p.choices.index(c)] if p.choice_labels else c for c in prop.choices]
+                assert e["enum"] == texts and e["default"] == [prop.choices.index(want)], prop.name
+            elif prop.choices:
+                assert e["strings"] == list(prop.choices) and e["default"] == [want], prop.name
+            elif isinstance(want, str):
+                assert e["default"] == [want], prop.name
+            elif want is not None:
+                assert e["default"] == (list(want) if isinstance(want, tuple) else [want]), prop.name
+                lo, hi = e["range"] if "range" in e else (None, None)
+                assert lo == p.lo, prop.name
+                # the panel's bound is the schema's, or 2^53 for integers travelling as doubles
+                assert hi == (None if p.hi is None else min(p.hi, 2**53) if p.hi > 2**31 - 1 else p.hi), prop.name
+    assert list(r["density_groups"]) == ["Dust", "Stars", "Compute device"]
     # the panel's order: the workflow, a controlling property before what it controls
     order = [e["name"] for e in r["properties"]]
     assert order.index("OverrideOptics") < order.index("Albedo") < order.index("G")

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from nebula_rt import scene as sc
+from nebula_rt.filters.dust_density import DUST_DENSITY_PROPERTIES, NebulaDustDensity
 from nebula_rt.filters.light_field import LIGHT_FIELD_PROPERTIES, NebulaLightField
 from nebula_rt.schema import label
 
@@ -85,6 +86,16 @@ def test_vtk_filter_defaults_are_the_schema_defaults():
     d = sc.Scene.default()
     assert s.transport == d.transport and s.bands == d.bands and s.stars == d.stars
     assert s.dust.tau == d.dust.tau
+
+
+def test_density_source_defaults_are_the_schema_defaults():
+    d = NebulaDustDensity()
+    for prop in DUST_DENSITY_PROPERTIES:
+        assert getattr(d, "Get" + prop.name)() == sc.default(prop.key), prop.name
+        assert set(prop.choices) <= set(prop.param.choices)
+    s = d.scene()
+    default = sc.Scene.default()
+    assert s.grid == default.grid and s.dust == default.dust and s.stars == default.stars
 
 
 def test_vtk_setters_take_enumeration_indices_and_whole_floats():

@@ -123,14 +123,14 @@ def bound_property(prop, default=None):
         attrs += ' panel_visibility="advanced"'
     n = prop.elements
     if prop.widget == "enum":
-        texts = p.choice_labels or p.choices
+        texts = [p.choice_labels[p.choices.index(c)] if p.choice_labels else c for c in prop.choices]
         items = "".join('<Entry value="%d" text=%s/>' % (i, quoteattr(t)) for i, t in enumerate(texts))
-        tag, dflt = "IntVectorProperty", str(p.choices.index(d))
+        tag, dflt = "IntVectorProperty", str(prop.choices.index(d))
         domain = '<EnumerationDomain name="enum">%s</EnumerationDomain>' % items
     elif prop.widget == "bool":
         tag, dflt, domain = "IntVectorProperty", str(int(bool(d))), '<BooleanDomain name="bool"/>'
-    elif p.choices:
-        items = "".join("<String value=%s/>" % quoteattr(c) for c in p.choices)
+    elif prop.choices:
+        items = "".join("<String value=%s/>" % quoteattr(c) for c in prop.choices)
         tag, dflt = "StringVectorProperty", quoteattr(d)[1:-1]
         domain = '<StringListDomain name="list">%s</StringListDomain>' % items
     elif isinstance(d, str):

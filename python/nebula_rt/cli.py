@@ -15,6 +15,7 @@ from pathlib import Path
 
 from .errors import (BackendUnavailableError, CancelledError, NebulaError, OutputError, ResourceError,
                      SceneError)
+from . import scene as _scene
 from .interrupts import SignalCancel
 
 #: pixels per side of the sky image of ``nebula-rt compare``
@@ -272,6 +273,11 @@ def _devices(args, cancel) -> int:
     return 0
 
 
+def _choices(key: str) -> list:
+    """The non-empty choices of a scene key, from the scene schema (its flags take those)."""
+    return [c for c in _scene.declaration(key).choices if c]
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="nebula-rt", description="Radiative transfer in reflection nebulae")
     sub = ap.add_subparsers(dest="command", required=True)
@@ -284,9 +290,10 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--photons", default=None, help="shorthand for --set transport.photons=N")
     r.add_argument("--target-error", default=None,
                    help="trace until the lit region's relative error is at most this (photons = budget)")
-    r.add_argument("--quality", default=None, choices=["preview", "balanced", "reference"],
+    r.add_argument("--quality", default=None, choices=_choices("transport.quality"),
                    help="quality preset: a target error with a photon budget (overrides --photons)")
-    r.add_argument("--backend", default=None, choices=["auto", "opencl", "cuda"])
+    r.add_argument("--backend", default=None, choices=_choices("transport.backend"),
+                   help=_scene.declaration("transport.backend").doc)
     r.add_argument("--device", default=None, help="device selector (name substring or P:D)")
     r.add_argument("-q", "--quiet", action="store_true", help="no progress bar or summary")
     r.set_defaults(func=_render)
@@ -297,8 +304,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a scene key")
     c.add_argument("--photons", default=None, help="shorthand for --set transport.photons=N")
     c.add_argument("--target-error", default=None, help="trace until this lit-region error")
-    c.add_argument("--quality", default=None, choices=["preview", "balanced", "reference"])
-    c.add_argument("--backend", default=None, choices=["auto", "opencl", "cuda"])
+    c.add_argument("--quality", default=None, choices=_choices("transport.quality"))
+    c.add_argument("--backend", default=None, choices=_choices("transport.backend"))
     c.add_argument("--device", default=None, help="device selector (name substring or P:D)")
     c.add_argument("--direction", default="0,0,-1", help="viewing direction x,y,z (default 0,0,-1)")
     c.add_argument("--size", type=int, default=128,

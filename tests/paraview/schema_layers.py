@@ -26,40 +26,49 @@ load_plugin()
 path, npy, photons = sys.argv[1], sys.argv[2], int(sys.argv[3])
 
 spm = servermanager.vtkSMProxyManager.GetProxyManager().GetActiveSessionProxyManager()
-proto = spm.GetPrototypeProxy("filters", "NebulaLightField")
-props = []
-it = servermanager.vtkSMOrderedPropertyIterator()
-it.SetProxy(proto)
-it.Begin()
-while not it.IsAtEnd():
-    name, prop = it.GetKey(), it.GetProperty()
-    entry = {"name": name, "class": prop.GetClassName(), "label": prop.GetXMLLabel(),
-             "panel_visibility": prop.GetPanelVisibility()}
-    if hasattr(prop, "GetElement") and hasattr(prop, "GetNumberOfElements") and name != "Input":
-        # a prototype's elements are the defaults
-        entry["default"] = [prop.GetElement(i) for i in range(prop.GetNumberOfElements())]
-    dit = prop.NewDomainIterator()
-    dit.Begin()
-    while not dit.IsAtEnd():
-        dom = dit.GetDomain()
-        cls = dom.GetClassName()
-        if cls in ("vtkSMDoubleRangeDomain", "vtkSMIntRangeDomain"):
-            lo = dom.GetMinimum(0) if dom.GetMinimumExists(0) else None
-            hi = dom.GetMaximum(0) if dom.GetMaximumExists(0) else None
-            entry["range"] = [lo, hi]
-        elif cls == "vtkSMEnumerationDomain":
-            entry["enum"] = [dom.GetEntryText(i) for i in range(dom.GetNumberOfEntries())]
-        elif cls == "vtkSMStringListDomain":
-            entry["strings"] = [dom.GetString(i) for i in range(dom.GetNumberOfStrings())]
-        elif cls == "vtkSMBooleanDomain":
-            entry["bool"] = True
-        dit.Next()
-    props.append(entry)
-    it.Next()
-groups = {}
-for i in range(proto.GetNumberOfPropertyGroups()):
-    g = proto.GetPropertyGroup(i)
-    groups[g.GetXMLLabel()] = [g.GetPropertyName(j) for j in range(g.GetNumberOfProperties())]
+
+
+def describe(group, name):
+    """(properties in the panel's order, property groups) of a proxy's prototype."""
+    proto = spm.GetPrototypeProxy(group, name)
+    props = []
+    it = servermanager.vtkSMOrderedPropertyIterator()
+    it.SetProxy(proto)
+    it.Begin()
+    while not it.IsAtEnd():
+        pname, prop = it.GetKey(), it.GetProperty()
+        entry = {"name": pname, "class": prop.GetClassName(), "label": prop.GetXMLLabel(),
+                 "panel_visibility": prop.GetPanelVisibility()}
+        if hasattr(prop, "GetElement") and hasattr(prop, "GetNumberOfElements") and pname != "Input":
+            # a prototype's elements are the defaults
+            entry["default"] = [prop.GetElement(i) for i in range(prop.GetNumberOfElements())]
+        dit = prop.NewDomainIterator()
+        dit.Begin()
+        while not dit.IsAtEnd():
+            dom = dit.GetDomain()
+            cls = dom.GetClassName()
+            if cls in ("vtkSMDoubleRangeDomain", "vtkSMIntRangeDomain"):
+                lo = dom.GetMinimum(0) if dom.GetMinimumExists(0) else None
+                hi = dom.GetMaximum(0) if dom.GetMaximumExists(0) else None
+                entry["range"] = [lo, hi]
+            elif cls == "vtkSMEnumerationDomain":
+                entry["enum"] = [dom.GetEntryText(i) for i in range(dom.GetNumberOfEntries())]
+            elif cls == "vtkSMStringListDomain":
+                entry["strings"] = [dom.GetString(i) for i in range(dom.GetNumberOfStrings())]
+            elif cls == "vtkSMBooleanDomain":
+                entry["bool"] = True
+            dit.Next()
+        props.append(entry)
+        it.Next()
+    groups = {}
+    for i in range(proto.GetNumberOfPropertyGroups()):
+        g = proto.GetPropertyGroup(i)
+        groups[g.GetXMLLabel()] = [g.GetPropertyName(j) for j in range(g.GetNumberOfProperties())]
+    return props, groups
+
+
+props, groups = describe("filters", "NebulaLightField")
+density_props, density_groups = describe("sources", "NebulaDustDensity")
 
 reader = simple.XMLImageDataReader(FileName=[path])
 light = simple.NebulaLightField(reader, Photons=photons, Device=_common.TEST_DEVICE)
@@ -100,5 +109,6 @@ hashes["scene"] = {f"J_{b.name}": hashlib.sha256(np.ascontiguousarray(res.J[i].r
                    for i, b in enumerate(res.bands)}
 light.Photons = 1e4  # a float where an integer is meant
 stored = light.GetProperty("Photons").GetData()
-_common.result(properties=props, groups=groups, hashes=hashes, int_photons_from_float=stored,
+_common.result(properties=props, groups=groups, density_properties=density_props,
+               density_groups=density_groups, hashes=hashes, int_photons_from_float=stored,
                last_error=light.GetClientSideObject().last_error)
