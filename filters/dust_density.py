@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 from vtkmodules.vtkCommonDataModel import vtkImageData
 from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm, vtkStreamingDemandDrivenPipeline
 
@@ -12,7 +13,7 @@ from nebula_rt.limits import INT32_MAX
 from nebula_rt.scene import Scene
 
 from .base import NebulaAlgorithm, default_star_row, stars_from_flat
-from .image_data import add_point_arrays
+from .image_data import add_field_data, add_point_arrays
 from .properties import Property, bind, init_values, scene_values
 
 #: The source's properties bound to scene keys, in the panel's order; defaults, choices and
@@ -78,4 +79,5 @@ class NebulaDustDensity(NebulaAlgorithm):
         out.SetSpacing(1.0 / nx, 1.0 / ny, 1.0 / nz)
         out.SetOrigin(0.5 / nx, 0.5 / ny, 0.5 / nz)
         add_point_arrays(out, {contract.DENSITY.name(): rho})
+        add_field_data(out, contract.DensityData(stars=np.asarray(self._stars, np.float64)).to_field_data())
         out.GetPointData().SetActiveScalars(contract.DENSITY.name())

@@ -15,7 +15,7 @@ from nebula_rt.scene import Scene
 
 from .base import NebulaAlgorithm, default_reference_band, default_star_row, shallow_copy_image, stars_from_flat
 from .controller import vtk_world
-from .image_data import add_field_data, add_point_arrays, cell_array, image_geometry, point_array
+from .image_data import add_field_data, add_point_arrays, cell_array, field_data_dict, image_geometry, point_array
 from .properties import Property, bind, init_values, scene_values
 
 #: The light field's properties bound to scene keys, in the panel's order (density source and
@@ -71,6 +71,8 @@ class NebulaLightField(NebulaAlgorithm):
         ref = default_reference_band()
         self._values["bands.albedo"], self._values["bands.g"] = ref.albedo, ref.g
         self._override_optics = False
+        self._stars_from_input = True
+        self._input_stars = None  # the stars of the input's field data (Nebula Dust Density)
         self._density_name = None
         self.last_light = None
 
@@ -80,6 +82,19 @@ class NebulaLightField(NebulaAlgorithm):
         flat spectrum), bump radius (ignored here: the density comes from the input)."""
         self._stars = list(values[0]) if len(values) == 1 and hasattr(values[0], "__len__") else list(values)
         self.Modified()
+
+    def SetStarsFromInput(self, flag):
+        """Light the density with the stars it was made with, when the input carries them (Nebula
+        Dust Density's ``stars`` field data: the stars are entered once); else, and for an input
+        without stars (a ``.vti`` file), the Stars property (default on)."""
+        self._stars_from_input = bool(flag)
+        self.Modified()
+
+    def stars(self) -> list:
+        """The flat Stars list this filter traces (6 numbers per star)."""
+        if self._stars_from_input and self._input_stars is not None and len(self._input_stars):
+            return [float(v) for v in self._input_stars]
+        return list(self._stars)
 
     def SetOverrideOptics(self, flag):
         """Apply Albedo and G to every band (else each band's own values; default off, as a scene
@@ -107,7 +122,7 @@ class NebulaLightField(NebulaAlgorithm):
             values.pop("bands.albedo")
             values.pop("bands.g")
         return Scene.from_dict(scene_values(values, {"grid": {"shape": list(shape)}, "dust": {"model": "uniform"},
-                                                     "stars": stars_from_flat(self._stars)}))
+                                                     "stars": stars_from_flat(self.stars())}))
 
     # -- pipeline ------------------------------------------------------------------------------
     def RequestInformation(self, request, inInfo, outInfo):
@@ -149,6 +164,8 @@ class NebulaLightField(NebulaAlgorithm):
         if np.any(rho < 0):
             raise SceneError("density array", name, f"must be >= 0 (minimum {rho.min()!r})")
         check_float32_array("density array", name, rho, "density values")  # the device's density is float32
+        fd = field_data_dict(inp)
+        self._input_stars = contract.DensityData.from_field_data(fd).stars if "stars" in fd else None
         scene = self.scene(rho.shape)
         backend = get_backend(scene.transport.backend, scene.transport.device)
         self._report(0.0, "NebulaRT: tracing")
@@ -166,6 +183,8 @@ class NebulaLightField(NebulaAlgorithm):
             add_point_arrays(out, {name: rho.astype(np.float32)})
         else:
             shallow_copy_image(out, inp)
+            for key in contract.field_specs(contract.DensityData).values():  # the scene TOML has the stars
+                out.GetFieldData().RemoveArray(key.key)
         arrays = light.point_arrays()
         if name != contract.DENSITY.name() or cells:
             arrays.pop(contract.DENSITY.name())  # the input's own array carries it

@@ -206,3 +206,24 @@ def test_sky_image_filter():
     sky.SetImageSize(0, 10)
     sky.Update()
     assert "size" in sky.last_error.lower() and sky.GetOutputDataObject(0).GetNumberOfPoints() == 0
+
+
+def test_light_field_takes_the_density_sources_stars():
+    """Stars entered once: the density source passes its stars on in the field data, and the
+    light field traces them (unless told to use its own); a .vti-like input without stars
+    uses the light field's own Stars."""
+    from nebula_rt.filters.image_data import field_data_dict
+
+    d, lf, c = chain()
+    two = [0.3, 0.5, 0.5, 1.0, 0.0, 0.02, 0.7, 0.4, 0.6, 2.0, 6000.0, 0.01]
+    d.SetStars(two)
+    lf.SetStars([0.5, 0.5, 0.5, 1.0, 0.0, 0.0])
+    lf.Update()
+    assert lf.last_error is None, lf.last_error
+    np.testing.assert_array_equal(field_data_dict(d.GetOutputDataObject(0))["stars"], two)
+    s = lf.scene((16, 12, 10))
+    assert [list(st.position) for st in s.stars] == [[0.3, 0.5, 0.5], [0.7, 0.4, 0.6]]
+    assert s.stars[1].temperature == 6000.0 and s.stars[1].luminosity == 2.0
+    lf.SetStarsFromInput(False)
+    lf.Update()
+    assert [list(st.position) for st in lf.scene((16, 12, 10)).stars] == [[0.5, 0.5, 0.5]]

@@ -55,18 +55,33 @@ def property_groups(*groups):
     return "\n".join(out)
 
 
-def stars_property(default):
+def stars_property(default, enabled_by=None):
     """The repeatable ``Stars`` property: 6 numbers per star, ``AddStar`` once per star after
-    ``RemoveAllStars``; ``default``: the rows (6 numbers each) it starts with."""
+    ``RemoveAllStars``; ``default``: the rows (6 numbers each) it starts with; ``enabled_by``:
+    ``(property, value)`` that enables the table."""
     values = " ".join(repr(float(v)) for v in default)
+    hints = ""
+    if enabled_by:
+        hints = ('<Hints><PropertyWidgetDecorator type="GenericDecorator" mode="enabled_state" property=%s '
+                 'value=%s /></Hints>' % (quoteattr(enabled_by[0]), quoteattr(str(enabled_by[1]))))
     return """
 <DoubleVectorProperty name="Stars" label="Stars" command="AddStar" clean_command="RemoveAllStars"
     repeat_command="1" number_of_elements_per_command="6" use_index="0"
     number_of_elements="%d" default_values="%s">
   <Documentation>One row per star: x, y, z (box units, [0, 1]), luminosity, temperature (K; 0 =
     flat spectrum), bump radius (box units; the cubic dust bump around the star, used by Nebula
-    Dust Density only).</Documentation>
-</DoubleVectorProperty>""" % (len(default), values)
+    Dust Density only).</Documentation>%s
+</DoubleVectorProperty>""" % (len(default), values, hints)
+
+
+STARS_FROM_INPUT = """
+<IntVectorProperty name="StarsFromInput" label="Stars From Input" command="SetStarsFromInput"
+    number_of_elements="1" default_values="1">
+  <BooleanDomain name="bool"/>
+  <Documentation>Light the density with the stars it was made with (Nebula Dust Density passes
+    them on): the stars are entered once. Off, or for an input without stars (a .vti file): the
+    Stars table below.</Documentation>
+</IntVectorProperty>"""
 
 
 def input_with_array_domain():

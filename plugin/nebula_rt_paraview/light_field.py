@@ -28,11 +28,12 @@ PANEL = "\n".join([
     _xml.bound_properties(
         _base.LIGHT_FIELD_PROPERTIES,
         defaults={"bands.albedo": _REF.albedo, "bands.g": _REF.g},
-        extra={"<Albedo": OVERRIDE_OPTICS, "<Estimator": _xml.stars_property(default_star_row())}),
+        extra={"<Albedo": OVERRIDE_OPTICS,
+               "<Estimator": _xml.STARS_FROM_INPUT + _xml.stars_property(default_star_row(), ("StarsFromInput", 0))}),
     _xml.property_groups(
         ("Dust", ["DensityArray", "Tau"]),
         ("Dust optics", ["BandPreset", "OverrideOptics", "Albedo", "G"]),
-        ("Stars", ["Stars"]),
+        ("Stars", ["StarsFromInput", "Stars"]),
         ("Photon transport", ["Estimator", "FilterRadius", "MaxScatterings", "Seed"]),
         ("Quality", ["Quality", "TargetError", "Photons", "TimeLimit"]),
         ("Compute device", ["Backend", "Device", "BatchSize"]),

@@ -328,6 +328,19 @@ class LightFieldData(ContractData):
 
 
 @dataclass
+class DensityData(ContractData):
+    """The field data of a dust density (Nebula Dust Density): the stars it was made with, so
+    that a light field downstream lights it with the same stars (entered once)."""
+
+    SOURCE: ClassVar[str] = "Nebula Dust Density"
+    band_names: ClassVar[None] = None  # no field of a density is per band
+
+    stars: Optional[np.ndarray] = _field(
+        "float64", "the stars, 6 numbers each: x, y, z (box units), luminosity, temperature (K, 0 = flat "
+        "spectrum), bump radius (box units)", array=True)
+
+
+@dataclass
 class SkyImageData(ContractData):
     """The field data of a sky image (Nebula Sky Image)."""
 
