@@ -206,28 +206,24 @@ NRT_DEVICE float nrt_tau_to_edge(const NRT_GLOBAL float *density, float sig_b, c
         float t_next = fmin(tx, fmin(ty, tz));
         tau += sig_b * density[idx] * fmax(0.0f, t_next - t_cur);
         t_cur = fmax(t_cur, t_next);
-        if (tx <= ty && tx <= tz) {
-            int up = o[0] > 0.0f;
-            ix += up ? 1 : -1;
-            if (ix < 0 || ix >= nx)
-                return tau;
-            idx = up ? idx + 1 : idx - 1;
-            tx = nrt_face_distance(x[0], o[0], inv_o[0], ix, hx);
-        } else if (ty <= tz) {
-            int up = o[1] > 0.0f;
-            iy += up ? 1 : -1;
-            if (iy < 0 || iy >= ny)
-                return tau;
-            idx = up ? idx + stride_y : idx - stride_y;
-            ty = nrt_face_distance(x[1], o[1], inv_o[1], iy, hy);
-        } else {
-            int up = o[2] > 0.0f;
-            iz += up ? 1 : -1;
-            if (iz < 0 || iz >= nz)
-                return tau;
-            idx = up ? idx + stride_z : idx - stride_z;
-            tz = nrt_face_distance(x[2], o[2], inv_o[2], iz, hz);
-        }
+        /* the stepped axis by selects, as in nrt_trace_packet */
+        int ax = (tx <= ty && tx <= tz) ? 0 : ((ty <= tz) ? 1 : 2);
+        float o_ax = ax == 0 ? o[0] : (ax == 1 ? o[1] : o[2]);
+        int up = o_ax > 0.0f;
+        int i_next = (ax == 0 ? ix : (ax == 1 ? iy : iz)) + (up ? 1 : -1);
+        if (i_next < 0 || i_next >= (ax == 0 ? nx : (ax == 1 ? ny : nz)))
+            return tau;
+        nrt_idx stride = ax == 0 ? (nrt_idx)1 : (ax == 1 ? stride_y : stride_z);
+        idx = up ? idx + stride : idx - stride;
+        float t_ax = nrt_face_distance(ax == 0 ? x[0] : (ax == 1 ? x[1] : x[2]), o_ax,
+                                       ax == 0 ? inv_o[0] : (ax == 1 ? inv_o[1] : inv_o[2]), i_next,
+                                       ax == 0 ? hx : (ax == 1 ? hy : hz));
+        ix = ax == 0 ? i_next : ix;
+        iy = ax == 1 ? i_next : iy;
+        iz = ax == 2 ? i_next : iz;
+        tx = ax == 0 ? t_ax : tx;
+        ty = ax == 1 ? t_ax : ty;
+        tz = ax == 2 ? t_ax : tz;
     }
 }
 
