@@ -168,14 +168,18 @@ def add_field_data(img, field_data: dict) -> None:
     for name, value in field_data.items():  # check every value before changing anything
         if not isinstance(name, str) or not name:
             raise ValueError(f"field data names must be non-empty strings, got {name!r}")
+        if isinstance(value, (list, tuple)) and value and all(isinstance(v, str) for v in value):
+            typed[name] = list(value)  # a string array
+            continue
         typed[name] = value if isinstance(value, str) else _field_array(name, value)
     for name, value in typed.items():
         if fd.VTKObject.HasArray(name):
             fd.VTKObject.RemoveArray(name)
-        if isinstance(value, str):  # dataset_adapter holds numbers only
+        if isinstance(value, (str, list)):  # dataset_adapter holds numbers only
             s = vtkStringArray()
             s.SetName(name)
-            s.InsertNextValue(value)
+            for v in ([value] if isinstance(value, str) else value):
+                s.InsertNextValue(v)
             fd.VTKObject.AddArray(s)
             continue
         a, is_array = value

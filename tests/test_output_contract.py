@@ -55,7 +55,8 @@ def test_the_run_writes_exactly_the_table(light):
     bands = [b.name for b in light.bands]
     assert sorted(fd) == sorted(_expected_keys(contract.LightFieldData, bands,
                                                lambda n: n == "device_memory_peak_bytes"))
-    py = {"float64": float, "int64": int, "uint64": np.uint64, "str": str, "names": str}
+    # band names: a list of str, one per band (a string array with one value per band in VTK)
+    py = {"float64": float, "int64": int, "uint64": np.uint64, "str": str, "names": list}
     for spec in contract.field_specs(contract.LightFieldData).values():
         for key in spec.keys(bands):
             if spec.optional and key not in fd:
@@ -66,7 +67,11 @@ def test_the_run_writes_exactly_the_table(light):
                 assert fd[key].dtype == np.float64 and fd[key].shape == (len(bands),)
     for b in bands:
         assert fd[f"emitted_{b}"] == fd[f"absorbed_{b}"] + fd[f"escaped_{b}"] + fd[f"terminated_{b}"]
-    assert fd["band_names"] == ",".join(bands)
+    assert fd["band_names"] == bands
+    # per-band fractions as arrays in band order, from the packet counts
+    for i, b in enumerate(bands):
+        assert fd["escaped_fraction"][i] == fd[f"packets_escaped_{b}"] / fd[f"packets_emitted_{b}"]
+        assert fd["absorbed_fraction"][i] == fd[f"packets_absorbed_{b}"] / fd[f"packets_emitted_{b}"]
 
 
 def test_a_vti_file_stores_the_declared_types_and_reads_back_the_record(light, tmp_path):
@@ -95,7 +100,8 @@ def test_a_vti_file_stores_the_declared_types_and_reads_back_the_record(light, t
                 assert spec.optional, key
                 continue
             if spec.dtype in ("str", "names"):
-                assert arr.IsA("vtkStringArray") and arr.GetNumberOfValues() == 1, key
+                n = len(bands) if spec.dtype == "names" else 1
+                assert arr.IsA("vtkStringArray") and arr.GetNumberOfValues() == n, key
                 continue
             values = vtk_to_numpy(arr)
             assert (values.dtype.kind, values.dtype.itemsize) == vtk_kind[spec.dtype], (key, values.dtype)

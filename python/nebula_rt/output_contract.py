@@ -164,7 +164,7 @@ def _scalar(value: Any):
 
 def _encode(spec: FieldSpec, value: Any):
     if spec.dtype == "names":
-        return ",".join(str(v) for v in value)
+        return [str(v) for v in value]  # a string array, one value per band
     if spec.dtype == "str":
         return str(value)
     if spec.array:
@@ -183,6 +183,9 @@ def _encode(spec: FieldSpec, value: Any):
 
 def _decode(spec: FieldSpec, value: Any):
     if spec.dtype == "names":
+        if isinstance(value, (list, tuple)):
+            return tuple(str(v) for v in value)
+        # one band (a one-value string array), or a file of NebulaRT <= 0.1: names joined by ","
         return tuple(str(_scalar(value)).split(","))
     if spec.dtype == "str":
         return str(_scalar(value))
@@ -305,6 +308,10 @@ class LightFieldData(ContractData):
         key="{tally}_{band}")
     packets: Optional[np.ndarray] = _field("int64", "packet counts (n_bands, 4) behind the energies",
                                            key="packets_{tally}_{band}")
+    absorbed_fraction: Optional[np.ndarray] = _field(
+        "float64", "absorbed packets / emitted packets, per band in band order", array=True)
+    escaped_fraction: Optional[np.ndarray] = _field(
+        "float64", "escaped packets / emitted packets, per band in band order", array=True)
     terminated_fraction: Optional[np.ndarray] = _field(
         "float64", "fraction of packets stopped at transport.max_scatterings", key="terminated_fraction_{band}")
     terminated_bias: Optional[np.ndarray] = _field(

@@ -87,6 +87,8 @@ class LightField:
             tau=self.scene.dust.tau,
             energy=tr.energy,
             packets=tr.counts,
+            absorbed_fraction=_fractions(tr.counts, 1),
+            escaped_fraction=_fractions(tr.counts, 2),
             # packets stopped at max_scatterings, and the bound on J's bias they leave
             terminated_fraction=tr.terminated_fraction,
             terminated_bias=tr.terminated_bias,
@@ -108,6 +110,12 @@ class LightField:
     def field_data(self) -> dict[str, object]:
         """Field data of the output contract, flat ``{name: value}`` (:meth:`record`)."""
         return self.record().to_field_data()
+
+
+def _fractions(counts, tally: int) -> list:
+    """Packets of ``tally`` (1 absorbed, 2 escaped) over packets emitted, per band."""
+    c = np.asarray(counts, dtype=np.float64)
+    return [float(c[b, tally] / c[b, 0]) if c[b, 0] > 0 else 0.0 for b in range(c.shape[0])]
 
 
 def _reproducible_scene(scene):
