@@ -10,10 +10,17 @@ from nebula_rt.pipeline import colour_source_from_field_data, rgba_from_emissivi
 
 from .base import ExposureMixin, NebulaAlgorithm, shallow_copy_image
 from .image_data import add_field_data, add_point_arrays, field_data_dict, point_array
+from .properties import Property, bind, init_values, scene_values
 
-WHITE_POINTS = ("D65", "E", "star")
+#: The colour's properties bound to scene keys (Auto Exposure and Exposure, which together
+#: make colour.exposure = "auto" or a number, are the exposure mixin's)
+COLOUR_PROPERTIES = (
+    Property("WhitePoint", "colour.white_point", widget="enum"),
+    Property("OpacityScale", "colour.opacity_scale"),
+)
 
 
+@bind(COLOUR_PROPERTIES)
 class NebulaColour(ExposureMixin, NebulaAlgorithm):
     """sRGB colour of the scattered emissivity and the reference band's voxel opacity.
 
@@ -23,23 +30,13 @@ class NebulaColour(ExposureMixin, NebulaAlgorithm):
     sRGB before the transfer curve); field data ``exposure`` is the exposure used.
     """
 
-    PROPERTIES = {"colour.exposure": "Exposure", "colour.white_point": "WhitePoint",
-                  "colour.opacity_scale": "OpacityScale"}
+    PROPERTIES = {"colour.exposure": "Exposure"}
 
     def __init__(self):
         super().__init__(nInputPorts=1, nOutputPorts=1, inputType="vtkImageData", outputType="vtkImageData")
+        init_values(self)
         self._auto_exposure = True
         self._exposure = 1.0
-        self._white_point = "D65"
-        self._opacity_scale = 1.0
-
-    def SetWhitePoint(self, wp):
-        self._white_point = WHITE_POINTS[wp] if isinstance(wp, int) and 0 <= wp < 3 else wp
-        self.Modified()
-
-    def SetOpacityScale(self, v):
-        self._opacity_scale = v
-        self.Modified()
 
     def RequestInformation(self, request, inInfo, outInfo):
         """The input's geometry (copied by the executive), and pieces: every rank colours the
@@ -53,8 +50,7 @@ class NebulaColour(ExposureMixin, NebulaAlgorithm):
         from nebula_rt.scene import Colour, Scene  # validation of the colour table
 
         exposure = "auto" if self._auto_exposure else self._exposure
-        Scene.from_dict({"colour": {"exposure": exposure, "white_point": self._white_point,
-                                    "opacity_scale": self._opacity_scale}})
+        Scene.from_dict(scene_values(self._values, {"colour": {"exposure": exposure}}))
         inp = vtkImageData.GetData(inInfo[0])
         has_density = inp.GetPointData().HasArray(contract.DENSITY.name())
         need = ("band_names", "band_wavelength_nm", "band_luminosity", "band_extinction", "tau", "reference_band")
@@ -77,7 +73,8 @@ class NebulaColour(ExposureMixin, NebulaAlgorithm):
             wavelengths_nm=fd.band_wavelength_nm,
             band_luminosity=fd.band_luminosity,
             temperature=colour_source_from_field_data(fd),
-            exposure=exposure, white_point=self._white_point, opacity_scale=self._opacity_scale,
+            exposure=exposure, white_point=self._values["colour.white_point"],
+            opacity_scale=self._values["colour.opacity_scale"],
             return_linear=True,
         )
         out = vtkImageData.GetData(outInfo)

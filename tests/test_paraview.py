@@ -233,10 +233,11 @@ def test_paraview_proxy_is_the_schema_and_gives_the_same_bits(pv_env, xdisplay, 
     npy, vti, rho = schema_density
     r, _ = run_pv(pv_env, xdisplay, "schema_layers.py", vti, npy, PHOTONS)
     assert r["last_error"] is None, r["last_error"]
-    from test_schema_layers import DUST_DENSITY_PROPERTIES
+    from test_schema_layers import COLOUR_PROPERTIES, DUST_DENSITY_PROPERTIES
 
     for proxy_props, bound in ((r["properties"], LIGHT_FIELD_PROPERTIES),
-                               (r["density_properties"], DUST_DENSITY_PROPERTIES)):
+                               (r["density_properties"], DUST_DENSITY_PROPERTIES),
+                               (r["colour_properties"], COLOUR_PROPERTIES)):
         props = {e["name"]: e for e in proxy_props}
         for prop in bound:
             e, p, want = props[prop.name], prop.param, sc.default(prop.key)

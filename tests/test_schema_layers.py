@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from nebula_rt import scene as sc
+from nebula_rt.filters.colour import COLOUR_PROPERTIES, NebulaColour
 from nebula_rt.filters.dust_density import DUST_DENSITY_PROPERTIES, NebulaDustDensity
 from nebula_rt.filters.light_field import LIGHT_FIELD_PROPERTIES, NebulaLightField
 from nebula_rt.schema import label
@@ -96,6 +97,14 @@ def test_density_source_defaults_are_the_schema_defaults():
     s = d.scene()
     default = sc.Scene.default()
     assert s.grid == default.grid and s.dust == default.dust and s.stars == default.stars
+
+
+def test_colour_defaults_are_the_schema_defaults():
+    c = NebulaColour()
+    for prop in COLOUR_PROPERTIES:
+        assert getattr(c, "Get" + prop.name)() == sc.default(prop.key), prop.name
+    c.SetWhitePoint(2)
+    assert c.GetWhitePoint() == sc.WHITE_POINTS[2]
 
 
 def test_vtk_setters_take_enumeration_indices_and_whole_floats():

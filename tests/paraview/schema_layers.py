@@ -69,6 +69,7 @@ def describe(group, name):
 
 props, groups = describe("filters", "NebulaLightField")
 density_props, density_groups = describe("sources", "NebulaDustDensity")
+colour_props, _ = describe("filters", "NebulaColour")
 
 reader = simple.XMLImageDataReader(FileName=[path])
 light = simple.NebulaLightField(reader, Photons=photons, Device=_common.TEST_DEVICE)
@@ -110,5 +111,5 @@ hashes["scene"] = {f"J_{b.name}": hashlib.sha256(np.ascontiguousarray(res.J[i].r
 light.Photons = 1e4  # a float where an integer is meant
 stored = light.GetProperty("Photons").GetData()
 _common.result(properties=props, groups=groups, density_properties=density_props,
-               density_groups=density_groups, hashes=hashes, int_photons_from_float=stored,
+               density_groups=density_groups, colour_properties=colour_props, hashes=hashes, int_photons_from_float=stored,
                last_error=light.GetClientSideObject().last_error)
