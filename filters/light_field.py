@@ -114,6 +114,7 @@ class NebulaLightField(NebulaAlgorithm):
         assoc = vtkDataObject.FIELD_ASSOCIATION_POINTS
         if info is not None and info.Has(vtkDataObject.FIELD_ASSOCIATION()):
             assoc = info.Get(vtkDataObject.FIELD_ASSOCIATION())
+        self._density_chosen = bool(name)
         return (name or "density"), assoc
 
     def scene(self, shape) -> Scene:
@@ -155,6 +156,14 @@ class NebulaLightField(NebulaAlgorithm):
         try:
             rho = cell_array(inp, name) if cells else point_array(inp, name)
         except KeyError as exc:
+            if not self._density_chosen:
+                # e.g. a filter made on an input that had not run: ParaView then leaves its
+                # Density Array empty, and the input has no array named "density"
+                attrs = inp.GetCellData() if cells else inp.GetPointData()
+                names = [attrs.GetArrayName(i) for i in range(attrs.GetNumberOfArrays())]
+                raise SceneError("density array", None,
+                                 "none was chosen and the input has no array named 'density': choose one "
+                                 f"(Density Array) of {', '.join(repr(n) for n in names) or 'no arrays'}") from None
             raise SceneError("density array", name, f"must be a {'cell' if cells else 'point'} array of the input ({exc.args[0]})") from None
         if rho.ndim != 3:
             raise SceneError("density array", name, f"must have one component (found shape {rho.shape})")

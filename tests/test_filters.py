@@ -227,3 +227,24 @@ def test_light_field_takes_the_density_sources_stars():
     lf.SetStarsFromInput(False)
     lf.Update()
     assert [list(st.position) for st in lf.scene((16, 12, 10)).stars] == [[0.5, 0.5, 0.5]]
+
+
+def test_an_unchosen_density_array_is_named_in_the_error():
+    """An input without a "density" array and no array chosen (what ParaView leaves when the
+    filter is made on an input that has not run): the message says so and lists the arrays."""
+    from nebula_rt.filters.image_data import to_image_data
+
+    from vtkmodules.vtkCommonExecutionModel import vtkTrivialProducer
+
+    producer = vtkTrivialProducer()
+    producer.SetOutput(to_image_data({"rho": np.ones((6, 5, 4), np.float32)}, None, (1, 1, 1)))
+    lf = NebulaLightField()
+    lf.SetInputConnection(producer.GetOutputPort())
+    lf.SetPhotons(1000)
+    lf.SetDevice(TEST_DEVICE)
+    lf.Update()
+    assert lf.GetOutputDataObject(0).GetNumberOfPoints() == 0
+    assert "none was chosen" in lf.last_error and "'rho'" in lf.last_error, lf.last_error
+    lf.SetDensityArrayName("rho")
+    lf.Update()
+    assert lf.last_error is None and lf.GetOutputDataObject(0).GetNumberOfPoints() == 6 * 5 * 4
