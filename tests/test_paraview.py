@@ -79,8 +79,14 @@ def test_plugin_loads_and_every_proxy_executes(pv_env, xdisplay, exe):
                 assert e["doc"], f"{name}.{prop} has no tooltip"
         assert d["properties"]["Input"]["doc"] if group == "filters" else True
     assert r["definitions"]["NebulaSkyImage"]["representation"] == "Slice"
+    assert r["definitions"]["NebulaSkyImage"]["view_hints"] == ["NebulaSkyView"]
     for name in ("NebulaDustDensity", "NebulaLightField", "NebulaColour"):
         assert r["definitions"][name]["representation"] == "Volume"
+    # the light field's Stars port as points: its hint comes first (ParaView takes the first match)
+    assert r["definitions"]["NebulaLightField"]["representation_hints"][0] == {
+        "view": "RenderView", "type": "Points", "port": "1"}
+    assert r["sky_view"] == {"class": "vtkSMRenderViewProxy", "InteractionMode": 1, "CameraParallelProjection": 1,
+                             "Background": [0.0, 0.0, 0.0]}
     lf = r["definitions"]["NebulaLightField"]["properties"]
     assert lf["Stars"]["repeat"] == 1 and lf["Stars"]["per_command"] == 6
     assert r["definitions"]["NebulaDustDensity"]["properties"]["Stars"]["per_command"] == 6

@@ -3,6 +3,7 @@
 - :func:`load_plugin`            load plugin/NebulaRT.py unless its proxies are already known
 - :func:`show_rgba_volume`       show the ``rgba`` array of Nebula Colour as a volume, composited right
 - :func:`show_sky_image`         show the ``rgb`` image of Nebula Sky Image as it is
+- :func:`show_stars`             show the Stars output of Nebula Light Field, a point per star
 - :func:`set_orbit_camera`       the camera of ``nebula_rt.filters.render`` (``nebula-rt render --png``)
 - :func:`set_compute_device`     pin the Device property of every NebulaRT proxy
 - :func:`load_state_safely`      LoadState, then check that the expected proxies exist
@@ -205,23 +206,89 @@ def configure_rgba_volume(display, view, array: str = "rgba", mode: str = "Smart
 
 
 def show_sky_image(source, view=None, array: str = "rgb"):
-    """Show the ``rgb`` (uint8 x 3) image of Nebula Sky Image with its own colours, 2D camera."""
+    """Show the ``rgb`` (uint8 x 3) image of Nebula Sky Image with its own colours, 2D camera
+    fitted to the image."""
     view = view or simple.GetActiveViewOrCreate("RenderView")
+    source.UpdatePipeline()
     display = simple.Show(source, view)
+    configure_sky_image(display, view, array=array)
+    return display
+
+
+def configure_sky_image(display, view, array: str = "rgb", fit_camera: bool = True):
+    """Make an existing representation show a sky image's ``rgb`` as it is (Slice, Map
+    Scalars off, no colour bar); ``fit_camera``: look at the image face-on, 2D, parallel."""
     display.SetRepresentationType("Slice")
     simple.ColorBy(display, ("POINTS", array))
     display.MapScalars = 0
     display.SetScalarBarVisibility(view, False)
-    source.UpdatePipeline()
-    b = source.GetDataInformation().GetBounds()
-    cx, cy = 0.5 * (b[0] + b[1]), 0.5 * (b[2] + b[3])
-    view.InteractionMode = "2D"
-    view.CameraParallelProjection = 1
-    view.CameraFocalPoint = [cx, cy, 0.0]
-    view.CameraPosition = [cx, cy, 10.0]
-    view.CameraViewUp = [0.0, 1.0, 0.0]
-    simple.ResetCamera(view)
+    if fit_camera:
+        src, port = display_input(display)
+        b = src.GetDataInformation(port).GetBounds()
+        cx, cy = 0.5 * (b[0] + b[1]), 0.5 * (b[2] + b[3])
+        view.InteractionMode = "2D"
+        view.CameraParallelProjection = 1
+        view.CameraFocalPoint = [cx, cy, 0.0]
+        view.CameraPosition = [cx, cy, 10.0]
+        view.CameraViewUp = [0.0, 1.0, 0.0]
+        simple.ResetCamera(view)
     return display
+
+
+#: how the stars (port 1 of Nebula Light Field) are drawn: a sphere of this many pixels each
+STAR_POINT_SIZE = 9.0
+
+
+def show_stars(light, view=None):
+    """Show the Stars output (port 1) of a Nebula Light Field: a point per star in its own
+    colour (:func:`configure_star_points`). Returns the representation."""
+    view = view or simple.GetActiveViewOrCreate("RenderView")
+    port = simple.OutputPort(light, 1)
+    light.UpdatePipeline()
+    display = simple.Show(port, view)
+    configure_star_points(display, view)
+    return display
+
+
+def configure_star_points(display, view, array: str = "star_rgb", size: float = STAR_POINT_SIZE):
+    """Draw star points as discs of ``size`` pixels in their own colour (``star_rgb``, Map
+    Scalars off), lit flat so the colour is the star's, no colour bar, over the volume
+    (:func:`set_points_on_top`)."""
+    display.SetRepresentationType("Points")
+    simple.ColorBy(display, ("POINTS", array))
+    display.MapScalars = 0
+    display.PointSize = size
+    if "RenderPointsAsSpheres" in display.ListProperties():
+        display.RenderPointsAsSpheres = 1
+    display.Ambient = 1.0
+    display.Diffuse = 0.0
+    display.SetScalarBarVisibility(view, False)
+    set_points_on_top(display)
+    return display
+
+
+#: depth offset of star points (VTK adds offset/65000 to a point's depth): to the near plane
+ON_TOP_POINT_OFFSET = -66000.0
+
+
+def set_points_on_top(display, offset: float = ON_TOP_POINT_OFFSET) -> bool:
+    """Draw a representation's points at the front of the depth buffer: the volume's rays stop
+    there, so a star inside the nebula is seen as a marker instead of behind the dust in front
+    of it (its attenuated light is what Nebula Sky Image shows). Set on the rendering object's
+    mappers (the coincident-topology point offset; ParaView has no property for it), so it
+    works where this process renders, like :func:`set_alpha_unit_distance`; returns False
+    elsewhere (the points are then depth-tested like any geometry)."""
+    conn = servermanager.ActiveConnection
+    if conn is None or conn.IsRemote():
+        return False
+    try:
+        actor = display.GetClientSideObject().GetActiveRepresentation().GetActor()
+    except AttributeError:
+        return False
+    for mapper in (actor.GetMapper(), actor.GetLODMapper()):
+        if mapper is not None:
+            mapper.SetRelativeCoincidentTopologyPointOffsetParameter(offset)  # (Modified only on a change)
+    return True
 
 
 def set_orbit_camera(view, bounds=None, azimuth: float = 30.0, elevation: float = 20.0, view_angle: float = 30.0):
