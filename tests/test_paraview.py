@@ -69,6 +69,7 @@ def srgb_to_linear(v):
 def test_plugin_loads_and_every_proxy_executes(pv_env, xdisplay, exe):
     r, _ = run_pv(pv_env, xdisplay, "check_plugin.py", exe=exe)
     assert r["loaded_at_start"], "PV_PLUGIN_PATH=plugin/ should load NebulaRT.py at start-up"
+    assert r["numpy_interface_error"] is None  # sitecustomize's numpy.in1d alias
     assert sorted(r["functions"]) == sorted(PROXIES), "paraview.simple lacks constructors"
     for name, (group, label) in PROXIES.items():
         d = r["definitions"][name]

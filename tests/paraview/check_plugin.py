@@ -113,6 +113,14 @@ colour.UpdatePipeline()
 rerun = {"light_executions_added": light.GetClientSideObject().execution_count - before,
          "colour_executions": colour.GetClientSideObject().execution_count}
 
+# ParaView's numpy_interface (Python Calculator, Python Annotation) imports with the venv's numpy
+try:
+    import vtkmodules.numpy_interface.algorithms  # noqa: F401
+
+    numpy_interface = None
+except Exception as exc:  # noqa: BLE001 - reported
+    numpy_interface = f"{type(exc).__name__}: {exc}"
+
 # the plugin's view: a render view whose defaults (settings the plugin adds) suit a picture
 sky_view = simple.CreateView("NebulaSkyView")
 sky_view_facts = {"class": sky_view.SMProxy.GetClassName(),
@@ -122,6 +130,6 @@ sky_view_facts = {"class": sky_view.SMProxy.GetClassName(),
 simple.Delete(sky_view)
 
 _common.result(loaded_at_start=loaded_at_start, definitions=definitions, outputs=outputs, rerun=rerun,
-               sky_view=sky_view_facts,
+               sky_view=sky_view_facts, numpy_interface_error=numpy_interface,
                functions=[n for n in ("NebulaDustDensity", "NebulaLightField", "NebulaColour", "NebulaSkyImage")
                           if hasattr(simple, n)])
