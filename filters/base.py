@@ -145,7 +145,7 @@ class NebulaAlgorithm(VTKPythonAlgorithmBase):
         # way, so they are not run (nor reported) again until one of them changes.
         key = (self.GetMTime(), _arrays_mtime(inp))
         if self.last_error is not None and key == getattr(self, "_failed_key", None):
-            output.Initialize()
+            self._empty_outputs(outInfo)
             return 1
         self._failed_key = None
         self.last_error = None
@@ -154,7 +154,7 @@ class NebulaAlgorithm(VTKPythonAlgorithmBase):
             if inp is None or inp.GetNumberOfPoints() == 0:
                 # an upstream NebulaRT filter failed (it said why): pass the emptiness on
                 # instead of leaving a stale result downstream
-                output.Initialize()
+                self._empty_outputs(outInfo)
                 return 1
         try:
             with warnings.catch_warnings(record=True) as caught:
@@ -172,11 +172,17 @@ class NebulaAlgorithm(VTKPythonAlgorithmBase):
                 self.SetAbortExecute(0)
             self.last_error = f"{type(self).__name__}: {self.describe_error(exc)}"
             self._failed_key = key
-            output.Initialize()  # no half-made output
+            self._empty_outputs(outInfo)  # no half-made output
             vtkOutputWindow.GetInstance().DisplayErrorText(f"NebulaRT {kind}: {self.last_error}\n")
         # Succeed either way: an empty output (with the error on the output window) lets
         # downstream filters re-execute to empty rather than keep stale data.
         return 1
+
+    def _empty_outputs(self, outInfo) -> None:
+        for port in range(self.GetNumberOfOutputPorts()):
+            out = self.GetOutputData(outInfo, port)
+            if out is not None:
+                out.Initialize()
 
     def _abort_if_distributed(self, exc: BaseException) -> None:
         """In a parallel ParaView a failure of one rank's transport (other than a cancel, which

@@ -53,9 +53,13 @@ class NebulaLightField(NebulaAlgorithm):
     scene's defaults: the filter with no property set traces what a scene file with no keys
     would. Albedo and G apply with ``SetOverrideOptics(1)`` only (else each band's own).
 
-    Output: the input's arrays plus, per band, ``J_<band>``, ``emissivity_<band>``,
-    ``rel_error_<band>``, and the run's field data (energies, photons, seed, scene TOML): the
-    output contract of DESIGN.md.
+    Output port 0: the input's arrays plus, per band, ``J_<band>``, ``emissivity_<band>``,
+    ``rel_error_<band>``, ``rgba`` (the colour of the scene's defaults: auto exposure, D65,
+    opacity scale 1, as the command line's file has it; Nebula Colour downstream changes it
+    without re-tracing), and the run's field data (energies, photons, seed, scene TOML): the
+    output contract of DESIGN.md. Port 1 (``Stars``): a vtkPolyData with one vertex per star
+    at its place in port 0's world coordinates, ``star_rgb`` and ``luminosity``
+    (:mod:`nebula_rt.filters.stars`).
     """
 
     #: its executions reduce with the other ranks of a parallel ParaView: a failure ends the job
@@ -64,7 +68,7 @@ class NebulaLightField(NebulaAlgorithm):
     PROPERTIES = {"grid.shape": "input extent", "density": "density array"}
 
     def __init__(self):
-        super().__init__(nInputPorts=1, nOutputPorts=1, inputType="vtkImageData", outputType="vtkImageData")
+        super().__init__(nInputPorts=1, nOutputPorts=2, inputType="vtkImageData", outputType="vtkImageData")
         init_values(self)
         self._stars = default_star_row()
         # the panel's values of Albedo and G until set (the default preset's reference band)
@@ -183,7 +187,12 @@ class NebulaLightField(NebulaAlgorithm):
         res, J, rel = compute_light(scene, rho.astype(np.float32), backend, on_device=True,
                                     progress=self._progress_callback("traced"), cancel=self._abort_requested,
                                     comm=vtk_world())
-        light = finish_light_field(scene, rho.astype(np.float32), res, J, rel, colour=False)
+        # the colour of the scene's defaults, as the command line's file has it; not for one
+        # band (no colour to show) nor where a band has no starlight (colours are nebula/star
+        # ratios per band): Nebula Colour downstream says why
+        lum = np.asarray(res.band_luminosity, np.float64)
+        colour = len(scene.bands.resolve()) > 1 and bool(np.all(np.isfinite(lum) & (lum > 0)))
+        light = finish_light_field(scene, rho.astype(np.float32), res, J, rel, colour=colour)
         if cells:
             dims, spacing, origin = image_geometry(inp)
             out.SetDimensions(*rho.shape)
@@ -199,5 +208,30 @@ class NebulaLightField(NebulaAlgorithm):
             arrays.pop(contract.DENSITY.name())  # the input's own array carries it
         add_point_arrays(out, arrays)
         add_field_data(out, light.field_data())
-        out.GetPointData().SetActiveScalars(contract.J.name(light.bands[light.reference_band].name))
+        active = contract.RGBA.name() if light.rgba is not None else contract.J.name(light.bands[light.reference_band].name)
+        out.GetPointData().SetActiveScalars(active)
+        self._stars_output(outInfo, light, out)
         self.last_light = light
+
+    # -- the Stars port ------------------------------------------------------------------------
+    def FillOutputPortInformation(self, port, info):
+        info.Set(vtkDataObject.DATA_TYPE_NAME(), "vtkPolyData" if port == 1 else "vtkImageData")
+        return 1
+
+    @staticmethod
+    def _stars_output(outInfo, light, image) -> None:
+        """Port 1: the stars (on piece 0 only: in a parallel ParaView every rank holds the
+        whole field, and the stars are drawn once)."""
+        from vtkmodules.vtkCommonDataModel import vtkPolyData
+
+        from .stars import star_points
+
+        info = outInfo.GetInformationObject(1)
+        target = vtkPolyData.GetData(info)
+        piece = info.Get(vtkStreamingDemandDrivenPipeline.UPDATE_PIECE_NUMBER()) \
+            if info.Has(vtkStreamingDemandDrivenPipeline.UPDATE_PIECE_NUMBER()) else 0
+        if piece:
+            target.Initialize()
+            return
+        dims, spacing, origin = image_geometry(image)
+        target.ShallowCopy(star_points(light, dims, spacing, origin))

@@ -110,8 +110,9 @@ def render_rgba_png(
 
     nx, ny, nz = rgba.shape[:3]
     # Render in units of the smallest voxel edge: with dependent RGBA components VTK's GPU
-    # mapper applies the alpha channel as opacity per 1.0 world unit whatever the
-    # ScalarOpacityUnitDistance says (measured with VTK 9.7: a 32^3 box of alpha 20/255 at
+    # mapper corrects the alpha channel's opacity with the ScalarOpacityUnitDistance of
+    # component 3, which add_volume leaves at 1.0 (it sets component 0's): alpha acts as the
+    # opacity per 1.0 world unit (measured with VTK 9.7: a 32^3 box of alpha 20/255 at
     # spacing 1/32 rendered as one voxel's opacity). Scaling the geometry so one voxel edge is
     # one unit makes alpha the opacity of one voxel, as the output contract defines it. The
     # picture does not change otherwise: the camera is reset onto the volume.
@@ -126,17 +127,25 @@ def render_rgba_png(
         plotter.set_background(background)
         # 2-D uint8 scalars with 4 components are shown directly as RGBA
         # (PyVista sets independent_components=False and a linear opacity ramp).
+        # The GPU ray caster itself (what "smart" picks where OpenGL works): its opacity
+        # table must span the opacity function's own range 0..255 (NATIVE). With the default
+        # (SCALAR) it is sampled over the data's alpha range but looked up at alpha/255, so
+        # any alpha range other than 0..255 scales every opacity down (a 10-voxel slab of
+        # alpha 30 in an empty box rendered 26 of 143).
         actor = plotter.add_volume(
             img,
             scalars="rgba",
             clim=[0, 255],
-            mapper="smart",
+            mapper="gpu",
             opacity_unit_distance=1.0,
             show_scalar_bar=False,
         )
+        actor.GetProperty().SetInterpolationTypeToLinear()  # as ParaView does (VTK's default: nearest)
+        mapper = actor.GetMapper()
+        mapper.SetScalarOpacityRangeType(mapper.NATIVE)
+        mapper.SetColorRangeType(mapper.NATIVE)
         # Sample every half voxel (the mapper's default of 1.0 world unit with automatic
         # adjustment off would skip detail); opacity is corrected to the step by VTK.
-        mapper = actor.GetMapper()
         mapper.SetAutoAdjustSampleDistances(False)
         mapper.SetSampleDistance(0.5)
         plotter.view_xy()

@@ -8,6 +8,7 @@ this level). It adds the NebulaRT menu (Filters > NebulaRT and Sources > NebulaR
 - Nebula Light Field (filter)         proxy name ``NebulaLightField``
 - Nebula Colour (filter)              proxy name ``NebulaColour``
 - Nebula Sky Image (filter)           proxy name ``NebulaSkyImage``
+- Nebula Sky View (view)              proxy name ``NebulaSkyView`` (where sky images open)
 
 Modelled on ParaView's ``Examples/Plugins/ComplexPythonArchitecture``: this file only makes the
 package ``nebula_rt_paraview`` (next to it) importable and imports its proxies, thin
@@ -67,10 +68,20 @@ def _ensure_nebula_rt():
 
 _ensure_nebula_rt()
 
-# import the proxies (the plugin loader exports every decorated class found in this module)
+# import the proxies (the plugin loader exports every decorated class found in this module,
+# and NebulaSkyView's view definition: every object with a _pvsm_proxy_xml)
 from nebula_rt_paraview import (  # noqa: E402,F401
     NebulaColour,
     NebulaDustDensity,
     NebulaLightField,
     NebulaSkyImage,
+    NebulaSkyView,
 )
+
+# what Apply (or Show) shows: the true-colour volume with its stars, the sky image in its own
+# view (nebula_rt_paraview.display; only where this process has a client)
+from nebula_rt_paraview import display as _display  # noqa: E402
+from nebula_rt_paraview import views as _views  # noqa: E402
+
+_views.install_view_defaults()
+_display.install()

@@ -10,6 +10,10 @@ NEBULA_RT_TEST_DEVICE, default the first CUDA device).
 from __future__ import annotations
 
 import os
+import shutil
+import subprocess
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -62,3 +66,82 @@ def small_fs(tmp_path):
     finally:
         for path in (rw, ro):
             subprocess.run(["umount", "-l", str(path)], capture_output=True)
+
+
+# -- ParaView (tests/test_paraview.py, tests/test_paraview_gui.py) ----------------------------
+REPO = Path(__file__).resolve().parents[1]
+PV_ENV = REPO / "scripts" / "pv-env.sh"
+#: variables of the test process that must not leak into ParaView's Python
+SCRUB = ("PYTHONPATH", "PYTHONHOME", "VIRTUAL_ENV", "NEBULA_RT_SITE_PACKAGES", "PV_PLUGIN_PATH",
+         "VTK_DEFAULT_OPENGL_WINDOW", "DISPLAY")
+
+
+@pytest.fixture(scope="session")
+def pv_env():
+    """os.environ as scripts/pv-env.sh leaves it (sourced in a clean bash)."""
+    missing = [exe for exe in ("pvpython", "pvbatch", "Xvfb") if shutil.which(exe) is None]
+    if missing:
+        pytest.fail(f"ParaView tests need {', '.join(missing)}: run `bash scripts/setup.sh` as root "
+                    "(apt packages paraview python3-paraview xvfb pocl-opencl-icd)")
+    base = {k: v for k, v in os.environ.items() if k not in SCRUB}
+    proc = subprocess.run(["bash", "-c", 'source "$1" && source "$1" && env -0', "pv-env", str(PV_ENV)],
+                          env=base, capture_output=True, check=False, timeout=60)
+    if proc.returncode != 0:
+        pytest.fail(f"sourcing {PV_ENV} failed: {proc.stderr.decode(errors='replace')}")
+    env = dict(item.split("=", 1) for item in proc.stdout.decode().split("\0") if "=" in item)
+    site = env.get("NEBULA_RT_SITE_PACKAGES", "")
+    if not site or not all(os.path.isdir(d) for d in site.split(os.pathsep)):
+        pytest.fail(f"ParaView's packages ({site or 'NEBULA_RT_SITE_PACKAGES unset'}) are missing: "
+                    "run `bash scripts/setup.sh` (it makes .venv-pv)")
+    # sourced twice: nothing is added twice
+    real = os.path.realpath
+    assert [real(p) for p in env["PYTHONPATH"].split(os.pathsep)].count(real(REPO / "plugin" / "site")) == 1
+    assert [real(p) for p in env["PV_PLUGIN_PATH"].split(os.pathsep)] == [real(REPO / "plugin")]
+    assert len(site.split(os.pathsep)) == 1
+    env.setdefault("NEBULA_RT_TEST_DEVICE", "Portable Computing Language")
+    return env
+
+
+@pytest.fixture(scope="session")
+def xdisplay(pv_env):
+    """One Xvfb for the whole session on a free display number (killed at the end)."""
+    start = 100 + os.getpid() % 300
+    for n in list(range(start, 420)) + list(range(100, start)):
+        if os.path.exists(f"/tmp/.X11-unix/X{n}") or os.path.exists(f"/tmp/.X{n}-lock"):
+            continue
+        proc = subprocess.Popen(["Xvfb", f":{n}", "-screen", "0", "1280x1024x24", "-nolisten", "tcp"],
+                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and proc.poll() is None:
+            if os.path.exists(f"/tmp/.X11-unix/X{n}") and _accepts(f"/tmp/.X11-unix/X{n}"):
+                break
+            time.sleep(0.05)
+        if proc.poll() is None and os.path.exists(f"/tmp/.X11-unix/X{n}"):
+            break
+        # lost a race for this number (or Xvfb failed): try the next one
+        if proc.poll() is None:
+            proc.kill()
+        proc.wait()
+    else:
+        pytest.fail("could not start Xvfb on any display :100-:419")
+    try:
+        yield f":{n}"
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+def _accepts(path) -> bool:
+    """The X server listens on its socket (the file can appear before it accepts)."""
+    import socket
+
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
+        try:
+            sock.connect(path)
+            return True
+        except OSError:
+            return False

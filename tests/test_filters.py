@@ -65,6 +65,9 @@ def test_filters_match_the_library_pipeline():
     np.testing.assert_array_equal(point_array(out, "density"), light.density)
     np.testing.assert_array_equal(point_array(out, "J_B"), light.J[2])
     np.testing.assert_array_equal(point_array(out, "rgba"), light.rgba)
+    # the light field carries the colour of the scene's defaults: the command line's rgba
+    np.testing.assert_array_equal(point_array(lf.GetOutputDataObject(0), "rgba"), light.rgba)
+    assert field_data_dict(lf.GetOutputDataObject(0))["exposure"] == light.exposure
 
 
 def test_only_changed_stages_reexecute():
@@ -73,13 +76,16 @@ def test_only_changed_stages_reexecute():
     assert counts(d, lf, c) == (1, 1, 1)
     c.Update()
     assert counts(d, lf, c) == (1, 1, 1)
+    lf_exposure = field_data_dict(lf.GetOutputDataObject(0))["exposure"]
+    lf_rgba = point_array(lf.GetOutputDataObject(0), "rgba")
     c.SetAutoExposure(False)
     c.SetExposure(3.0)
     c.Update()  # colour change: no re-trace
     assert counts(d, lf, c) == (1, 1, 2)
     assert field_data_dict(c.GetOutputDataObject(0))["exposure"] == 3.0
-    # the colour filter's field data is its own: the light field's output is untouched
-    assert np.isnan(field_data_dict(lf.GetOutputDataObject(0))["exposure"])
+    # the colour filter's field data and arrays are its own: the light field's are untouched
+    assert field_data_dict(lf.GetOutputDataObject(0))["exposure"] == lf_exposure > 0
+    np.testing.assert_array_equal(point_array(lf.GetOutputDataObject(0), "rgba"), lf_rgba)
     lf.SetAlbedo(0.3)
     c.Update()  # albedo change: re-trace, no new density
     assert counts(d, lf, c) == (1, 2, 3)
@@ -143,6 +149,39 @@ def test_user_density_array_point_and_cell_data():
     lf.SetInputArrayToProcess(0, 0, 0, vtkDataObject.FIELD_ASSOCIATION_POINTS, "nope")
     lf.Update()
     assert "nope" in lf.last_error and lf.GetOutputDataObject(0).GetNumberOfPoints() == 0
+
+
+def test_stars_output_marks_each_star_in_world_coordinates():
+    """Port 1 of Nebula Light Field: one vertex per star where the star is in port 0's world
+    coordinates (the box [0, 1]^3 is the voxels' outer faces: origin - spacing/2 to
+    origin + (n - 1/2) spacing), its luminosity, and its own colour at full brightness: a
+    20 000 K star blue-white (B > R), a 3000 K one red (R > B), the largest component 255."""
+    from vtkmodules.util.numpy_support import vtk_to_numpy
+
+    rho = np.full((10, 5, 4), 0.01, np.float32)
+    img = to_image_data({"density": rho}, {}, spacing=(2.0, 2.0, 2.0), origin=(10.0, 0.0, 0.0))
+    lf = NebulaLightField()
+    lf.SetInputDataObject(0, img)
+    lf.SetStars(0.25, 0.5, 0.75, 1.0, 20000.0, 0.0, 0.5, 0.5, 0.5, 0.5, 3000.0, 0.0)
+    lf.SetPhotons(2000)
+    lf.SetDevice(TEST_DEVICE)
+    lf.Update()
+    assert lf.last_error is None, lf.last_error
+    assert lf.GetNumberOfOutputPorts() == 2
+    stars = lf.GetOutputDataObject(1)
+    assert stars.GetClassName() == "vtkPolyData"
+    assert stars.GetNumberOfPoints() == 2 and stars.GetNumberOfVerts() == 2
+    xyz = vtk_to_numpy(stars.GetPoints().GetData())
+    # x: [9, 29], y: [-1, 9], z: [-1, 7]
+    np.testing.assert_allclose(xyz, [[9 + 0.25 * 20, -1 + 0.5 * 10, -1 + 0.75 * 8], [19.0, 4.0, 3.0]], rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(vtk_to_numpy(stars.GetPointData().GetArray("luminosity")), [1.0, 0.5])
+    rgb = vtk_to_numpy(stars.GetPointData().GetArray("star_rgb")).astype(int)
+    assert rgb.shape == (2, 3) and list(rgb.max(axis=1)) == [255, 255]
+    assert rgb[0, 2] > rgb[0, 0] and rgb[1, 0] > rgb[1, 2], rgb
+    # a failed trace empties both ports
+    lf.SetPhotons(0)
+    lf.Update()
+    assert lf.last_error and lf.GetOutputDataObject(1).GetNumberOfPoints() == 0
 
 
 def test_progress_and_abort_between_batches(backend, monkeypatch):

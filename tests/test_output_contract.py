@@ -163,8 +163,9 @@ def test_writers_must_give_the_whole_contract():
 
 def test_the_vtk_algorithms_write_the_same_contract():
     """Nebula Light Field's output field data has exactly the table's names (as the CLI's file
-    has), Nebula Colour adds only rgba, rgb_linear and exposure, and Nebula Sky Image adds the
-    SkyImageData table to the light field's."""
+    has, exposure included: its rgba is the scene's default colour), Nebula Colour adds only
+    rgb_linear and replaces rgba and exposure, and Nebula Sky Image adds the SkyImageData table
+    to the light field's."""
     from nebula_rt.filters import NebulaColour, NebulaDustDensity, NebulaLightField, NebulaSkyImage
     from nebula_rt.filters.image_data import field_data_dict
 
@@ -192,12 +193,16 @@ def test_the_vtk_algorithms_write_the_same_contract():
                                                   lambda n: n == "device_memory_peak_bytes"))
     c_out = c.GetOutputDataObject(0)
     c_fd = field_data_dict(c_out)
-    assert sorted(c_fd) == sorted(lf_fd) and c_fd["exposure"] > 0 and np.isnan(lf_fd["exposure"])
+    assert sorted(c_fd) == sorted(lf_fd) and c_fd["exposure"] > 0 and lf_fd["exposure"] > 0
     pd = c_out.GetPointData()
     lf_pd = lf.GetOutputDataObject(0).GetPointData()
-    added = {pd.GetArrayName(i) for i in range(pd.GetNumberOfArrays())} - {
-        lf_pd.GetArrayName(i) for i in range(lf_pd.GetNumberOfArrays())}
-    assert added == {contract.RGBA.name(), contract.RGB_LINEAR.name()}
+    lf_names = {lf_pd.GetArrayName(i) for i in range(lf_pd.GetNumberOfArrays())}
+    assert contract.RGBA.name() in lf_names
+    added = {pd.GetArrayName(i) for i in range(pd.GetNumberOfArrays())} - lf_names
+    assert added == {contract.RGB_LINEAR.name()}
+    # the Stars port: the contract's star arrays
+    st = lf.GetOutputDataObject(1).GetPointData()
+    assert {st.GetArrayName(i) for i in range(st.GetNumberOfArrays())} == {a.name() for a in contract.STAR_ARRAYS}
     # the executive passes the input's field data on; the sky image's own replace same names
     sky_fd = field_data_dict(sky.GetOutputDataObject(0))
     own = _expected_keys(contract.SkyImageData, names, lambda n: True)

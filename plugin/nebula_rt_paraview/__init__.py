@@ -10,6 +10,8 @@ and property names are API: state files (.pvsm) store them.
 
 ``nebula_rt_paraview.view`` holds pvpython helpers (showing ``rgba`` as a volume, loading
 state files safely); it imports ``paraview.simple`` and is not imported here.
+``nebula_rt_paraview.display`` sets up the default displays (installed by the plugin's entry
+file); ``nebula_rt_paraview.views`` defines the view ``NebulaSkyView``.
 """
 
 # Import ParaView proxies from the Python files; keep helpers internal.
@@ -17,8 +19,9 @@ from .colour import NebulaColour
 from .dust_density import NebulaDustDensity
 from .light_field import NebulaLightField
 from .sky_image import NebulaSkyImage
+from .views import NebulaSkyView
 
 #: proxy names (group "sources" for the dust density, "filters" for the others)
 PROXY_NAMES = ("NebulaDustDensity", "NebulaLightField", "NebulaColour", "NebulaSkyImage")
 
-__all__ = ["NebulaColour", "NebulaDustDensity", "NebulaLightField", "NebulaSkyImage", "PROXY_NAMES"]
+__all__ = ["NebulaColour", "NebulaDustDensity", "NebulaLightField", "NebulaSkyImage", "NebulaSkyView", "PROXY_NAMES"]

@@ -12,6 +12,16 @@ from paraview.util.vtkAlgorithm import smdomain, smhint
 MENU = '<ShowInMenu category="NebulaRT" />'
 #: proxy hint: show the output as a volume in render views
 VOLUME = '<RepresentationType view="RenderView" type="Volume" />'
+#: proxy hints of Nebula Light Field: port 1 (the stars) as points, the rest as a volume (the
+#: hints are read in order, port-specific first); nebula_rt_paraview.display sets the colours
+LIGHT_FIELD_DISPLAY = '<RepresentationType view="RenderView" type="Points" port="1" />' + VOLUME
+#: the names of Nebula Light Field's output ports (the pipeline browser shows them)
+LIGHT_FIELD_PORTS = '<OutputPort name="Light Field" index="0" /><OutputPort name="Stars" index="1" />'
+#: proxy hints of Nebula Sky Image: its own 2D view (nebula_rt_paraview.views), as a slice
+SKY_IMAGE_DISPLAY = ('<View type="NebulaSkyView" />'
+                     '<RepresentationType view="NebulaSkyView" type="Slice" />'
+                     '<RepresentationType view="RenderView" type="Slice" />'
+                     '<PipelineIcon name="GEOMETRY" />')  # (the icon would be the view's, which has none)
 
 
 def doc(text):

@@ -43,7 +43,8 @@ PANEL = "\n".join([
 
 @smproxy.filter(name="NebulaLightField", label="Nebula Light Field", support_reload=False)
 @smhint.xml(_xml.MENU)
-@smhint.xml(_xml.VOLUME)
+@smhint.xml(_xml.LIGHT_FIELD_DISPLAY)
+@smproperty.xml(_xml.LIGHT_FIELD_PORTS)
 @smproperty.xml(PANEL)
 @smproperty.input(name="Input", port_index=0)
 @smdomain.datatype(dataTypes=["vtkImageData"], composite_data_supported=False)

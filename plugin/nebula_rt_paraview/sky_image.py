@@ -9,7 +9,7 @@ from . import _xml
 
 @smproxy.filter(name="NebulaSkyImage", label="Nebula Sky Image", support_reload=False)
 @smhint.xml(_xml.MENU)
-@smhint.xml('<RepresentationType view="RenderView" type="Slice" />')
+@smhint.xml(_xml.SKY_IMAGE_DISPLAY)
 @smproperty.input(name="Input", port_index=0)
 @smdomain.datatype(dataTypes=["vtkImageData"], composite_data_supported=False)
 @_xml.doc("The output of Nebula Light Field (it must carry its density array).")

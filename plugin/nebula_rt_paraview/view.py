@@ -3,26 +3,37 @@
 - :func:`load_plugin`            load plugin/NebulaRT.py unless its proxies are already known
 - :func:`show_rgba_volume`       show the ``rgba`` array of Nebula Colour as a volume, composited right
 - :func:`show_sky_image`         show the ``rgb`` image of Nebula Sky Image as it is
+- :func:`show_stars`             show the Stars output of Nebula Light Field, a point per star
 - :func:`set_orbit_camera`       the camera of ``nebula_rt.filters.render`` (``nebula-rt render --png``)
 - :func:`set_compute_device`     pin the Device property of every NebulaRT proxy
 - :func:`load_state_safely`      LoadState, then check that the expected proxies exist
 
-Compositing of ``rgba`` (measured with ParaView 5.11's GPU ray caster under Xvfb/llvmpipe,
-Smart and GPU Based modes alike; VTK 9.7's mapper behaves the same). With MapScalars off, a
-4-component array is rendered with *dependent* components: RGB is the colour, and the opacity
-function of the alpha channel gives an opacity **per 1.0 world unit**, whatever
-ScalarOpacityUnitDistance says. White voxels of constant alpha on black, centre pixel, with the
-plain linear opacity ramp: alpha 20 through 32 voxels rendered 19 at spacing 1/32 (one voxel's
-worth) and 235 at spacing 1; through 64 voxels at spacing 1/32 (two world units) 38; alpha 10
-through 64 voxels at spacing 1/64 gave 10 -- with ScalarOpacityUnitDistance at its default, at
-the spacing or at 1. Per-voxel compositing over the n - 1 voxel-centre intervals a ray crosses
-expects 234.7 / 234.7 / 254.5 / 234.5. Scaling the actor (the representation's Scale) does
-not help either. NebulaRT's alpha is the opacity of one voxel, so :func:`show_rgba_volume`
-maps it through the opacity function ``opacity(a) = 1 - (1 - a/255)^(1/s)`` (s = the voxel
-edge in world units, the geometric mean of the spacing): the opacity of the 1/s voxels in one
-world unit. With it the same cases render 235 / 235 / 254 / 235 (and alpha 5: 117 for 117.0).
-ScalarOpacityUnitDistance is set to 1.0 as well, so the mapping stays right on a ParaView
-that honours it. The data keep their box-unit geometry (tests/paraview/compositing.py).
+Compositing of ``rgba`` (ParaView 5.11's GPU ray caster, VTK 9.2; read from VTK's
+vtkVolumeInputHelper / vtkOpenGLVolumeOpacityTable / vtkOpenGLGPUVolumeRayCastMapper and measured
+under Xvfb/llvmpipe, Smart and GPU Based modes alike). With MapScalars off, a 4-component uint8
+array is rendered with *dependent* components: RGB is the colour as it is, and the alpha channel
+goes through the opacity function. Two things stand between that and per-voxel compositing:
+
+1. the opacity table is corrected for the sample distance with the ScalarOpacityUnitDistance
+   of component 3 (the alpha channel), which ParaView never sets (it sets component 0's): the
+   function's value is applied as the opacity per **1.0 world unit**;
+2. the table is sampled over the data's alpha range [a0, a1] (the mapper's default "scalar"
+   transfer-function range; ParaView 5.11 offers no other) but looked up at a/255 (dependent
+   components get no scale and bias): the opacity of alpha a is f(a0 + (a/255)(a1 - a0)).
+   A constant-alpha box hides this (a0 = a1: the table is f(a) throughout); a 10-voxel slab of
+   alpha 30 in an empty box rendered 26 where per-voxel compositing gives 143.
+
+NebulaRT's alpha is the opacity of one voxel, so :func:`show_rgba_volume` gives the opacity
+function the points ``x = a0 + t (a1 - a0)``, ``y = 1 - (1 - t)^(1/s)`` (t in [0, 1], s = the
+voxel edge in world units, the geometric mean of the spacing): the lookup at t = a/255 then
+finds the opacity of the 1/s voxels in one world unit. With it white boxes of constant alpha
+render 235 / 235 / 254 / 235 for 234.7 / 234.7 / 254.5 / 234.5 and the slab 142
+(tests/paraview/compositing.py). The mapping depends on the spacing and on the alpha range of
+the data shown, so it is fitted again when either changes (:mod:`nebula_rt_paraview.display`
+does so before each render; in scripts call :func:`show_rgba_volume` again). In a parallel
+render every rank's mapper samples its own piece's alpha range: the mapping is exact where the
+pieces share the whole range. ScalarOpacityUnitDistance is set to 1.0 so that the mapping stays
+right on a ParaView that honours it. The data keep their box-unit geometry.
 """
 
 from __future__ import annotations
@@ -89,35 +100,93 @@ def voxel_size(source, port: int = 0) -> float:
     return math.exp(sum(math.log(s) for s in sizes) / len(sizes))
 
 
-def per_voxel_opacity_points(voxel: float, n: int = 256, top: float = 255.0) -> list[float]:
-    """Opacity-function points (x, y, midpoint, sharpness) turning a per-voxel alpha channel
-    (0..top) into the opacity per world unit that the GPU mapper applies with dependent
-    components: ``1 - (1 - a/top)^(1/voxel)``."""
+def display_input(display):
+    """(vtkSMSourceProxy, output port) that a representation shows."""
+    prop = display.SMProxy.GetProperty("Input")
+    return prop.GetProxy(0), prop.GetOutputPortForConnection(0)
+
+
+def alpha_range(source, array: str = "rgba", port: int = 0) -> tuple[float, float]:
+    """(min, max) of the alpha channel (component 3) of ``array`` in ``source``'s output, as
+    the data information has it (the whole dataset's range in a parallel session)."""
+    info = source.GetDataInformation(port).GetPointDataInformation().GetArrayInformation(array)
+    if info is None or info.GetNumberOfComponents() < 4:
+        raise ValueError(f"{source.GetXMLName()} has no 4-component point array {array!r} to show")
+    lo, hi = info.GetComponentRange(3)
+    return float(lo), float(hi)
+
+
+def per_voxel_opacity_points(voxel: float, n: int = 256, top: float = 255.0, alpha_range=None,
+                             unit_distance: float = 1.0) -> list[float]:
+    """Opacity-function points (x, y, midpoint, sharpness) that make VTK's GPU mapper composite
+    a per-voxel alpha channel (0..top) voxel by voxel (module doc).
+
+    ``y = 1 - (1 - t)^(unit_distance/voxel)`` is the opacity over ``unit_distance`` (the
+    distance the mapper corrects the alpha channel's opacity to: 1.0 world unit unless
+    :func:`set_alpha_unit_distance` made it the voxel, where ``y = t``) of alpha ``a = t top``;
+    the points sit at ``x = a0 + t (a1 - a0)`` because the mapper samples the function over
+    the data's alpha range ``alpha_range = (a0, a1)`` and looks it up at ``t = a/top``. Without
+    a range, or for a constant alpha (a0 = a1: the whole table is the function's value at a0),
+    ``x = a``."""
+    a0, a1 = (0.0, top) if alpha_range is None else (float(alpha_range[0]), float(alpha_range[1]))
+    stretch = a1 > a0
+    power = float(unit_distance) / float(voxel)
     pts = []
     for i in range(n):
-        x = top * i / (n - 1)
-        a = min(max(x / top, 0.0), 1.0)
-        y = 1.0 - (1.0 - a) ** (1.0 / voxel) if a < 1.0 else 1.0
-        pts += [x, y, 0.5, 0.0]
+        t = i / (n - 1)
+        y = 1.0 - (1.0 - t) ** power if t < 1.0 else 1.0
+        pts += [a0 + t * (a1 - a0) if stretch else top * t, y, 0.5, 0.0]
     return pts
 
 
-def show_rgba_volume(source, view=None, array: str = "rgba", mode: str = "Smart", voxel: float | None = None):
+def set_alpha_unit_distance(display, distance: float) -> bool:
+    """Set the unit distance of the alpha channel (component 3 of the volume property) that
+    VTK's mapper corrects dependent RGBA opacities with; ParaView's ScalarOpacityUnitDistance
+    sets component 0's only. Reaches the rendering object directly, so it works where this
+    process renders (the GUI's and pvpython's built-in server, pvbatch): returns False
+    elsewhere (a remote server), where the opacity stays per world unit."""
+    conn = servermanager.ActiveConnection
+    if conn is None or conn.IsRemote():
+        return False
+    try:
+        rep = display.GetClientSideObject().GetActiveRepresentation()
+        prop = rep.GetActor().GetProperty()
+    except AttributeError:  # not a volume representation (or another ParaView's classes)
+        return False
+    if prop.GetScalarOpacityUnitDistance(3) != distance:
+        prop.SetScalarOpacityUnitDistance(3, float(distance))
+    return True
+
+
+def show_rgba_volume(source, view=None, array: str = "rgba", mode: str = "Smart", voxel: float | None = None,
+                     port: int = 0):
     """Show ``array`` (uint8 RGBA, alpha = opacity of one voxel) of ``source`` as a volume.
 
     The REFERENCES recipe (Volume; ColorBy first; MapScalars 0; transfer functions fixed to
     0..255) with this representation's own colour and opacity functions and the per-voxel
     opacity mapping of the module doc. ``voxel``: the voxel size in world units (default: from
-    the data; call again if the grid changes). ``mode``: "Smart" or "GPU Based" (not "Ray Cast
-    Only"). Returns the representation.
+    the data). The mapping follows the data's spacing and alpha range: call again if they
+    change (in the GUI, and wherever the plugin is loaded, nebula_rt_paraview.display refits it
+    before each render). ``mode``: "Smart" or "GPU Based" (not "Ray Cast Only"). Returns the
+    representation.
     """
     view = view or simple.GetActiveViewOrCreate("RenderView")
     source.UpdatePipeline()
+    display = simple.Show(source if port == 0 else simple.OutputPort(source, port), view)
+    configure_rgba_volume(display, view, array=array, mode=mode, voxel=voxel)
+    return display
+
+
+def configure_rgba_volume(display, view, array: str = "rgba", mode: str = "Smart", voxel: float | None = None):
+    """Make an existing image representation show ``array`` as a direct-RGBA volume
+    (:func:`show_rgba_volume` without the Show). Returns the (voxel, alpha range, unit
+    distance) it fitted."""
+    src, out_port = display_input(display)
     if voxel is None:
-        voxel = voxel_size(source)
-    display = simple.Show(source, view)
+        voxel = voxel_size(src, out_port)
+    arange = alpha_range(src, array, out_port)
     display.SetRepresentationType("Volume")
-    display.UseSeparateColorMap = 1  # the opacity mapping depends on this volume's spacing
+    display.UseSeparateColorMap = 1  # the opacity mapping depends on this volume's spacing and alpha range
     simple.ColorBy(display, ("POINTS", array))  # first: it re-fits the functions
     display.MapScalars = 0  # 4 components -> RGB colour + alpha channel (dependent components)
     lut = display.LookupTable
@@ -126,33 +195,100 @@ def show_rgba_volume(source, view=None, array: str = "rgba", mode: str = "Smart"
     pwf = display.ScalarOpacityFunction
     if "AutomaticRescaleRangeMode" in pwf.ListProperties():  # ParaView >= 5.12
         pwf.AutomaticRescaleRangeMode = "Never"
-    pwf.Points = per_voxel_opacity_points(voxel)
-    display.ScalarOpacityUnitDistance = 1.0
     display.VolumeRenderingMode = mode
+    display.ScalarOpacityUnitDistance = voxel  # component 0's: the same distance where ParaView honours it
+    unit = voxel if set_alpha_unit_distance(display, voxel) else 1.0
+    pwf.Points = per_voxel_opacity_points(voxel, alpha_range=arange, unit_distance=unit)
     if "Shade" in display.ListProperties():
         display.Shade = 0
     display.SetScalarBarVisibility(view, False)
-    return display
+    return voxel, arange, unit
 
 
 def show_sky_image(source, view=None, array: str = "rgb"):
-    """Show the ``rgb`` (uint8 x 3) image of Nebula Sky Image with its own colours, 2D camera."""
+    """Show the ``rgb`` (uint8 x 3) image of Nebula Sky Image with its own colours, 2D camera
+    fitted to the image."""
     view = view or simple.GetActiveViewOrCreate("RenderView")
+    source.UpdatePipeline()
     display = simple.Show(source, view)
+    configure_sky_image(display, view, array=array)
+    return display
+
+
+def configure_sky_image(display, view, array: str = "rgb", fit_camera: bool = True):
+    """Make an existing representation show a sky image's ``rgb`` as it is (Slice, Map
+    Scalars off, no colour bar); ``fit_camera``: look at the image face-on, 2D, parallel."""
     display.SetRepresentationType("Slice")
     simple.ColorBy(display, ("POINTS", array))
     display.MapScalars = 0
     display.SetScalarBarVisibility(view, False)
-    source.UpdatePipeline()
-    b = source.GetDataInformation().GetBounds()
-    cx, cy = 0.5 * (b[0] + b[1]), 0.5 * (b[2] + b[3])
-    view.InteractionMode = "2D"
-    view.CameraParallelProjection = 1
-    view.CameraFocalPoint = [cx, cy, 0.0]
-    view.CameraPosition = [cx, cy, 10.0]
-    view.CameraViewUp = [0.0, 1.0, 0.0]
-    simple.ResetCamera(view)
+    if fit_camera:
+        src, port = display_input(display)
+        b = src.GetDataInformation(port).GetBounds()
+        cx, cy = 0.5 * (b[0] + b[1]), 0.5 * (b[2] + b[3])
+        view.InteractionMode = "2D"
+        view.CameraParallelProjection = 1
+        view.CameraFocalPoint = [cx, cy, 0.0]
+        view.CameraPosition = [cx, cy, 10.0]
+        view.CameraViewUp = [0.0, 1.0, 0.0]
+        simple.ResetCamera(view)
     return display
+
+
+#: how the stars (port 1 of Nebula Light Field) are drawn: a sphere of this many pixels each
+STAR_POINT_SIZE = 9.0
+
+
+def show_stars(light, view=None):
+    """Show the Stars output (port 1) of a Nebula Light Field: a point per star in its own
+    colour (:func:`configure_star_points`). Returns the representation."""
+    view = view or simple.GetActiveViewOrCreate("RenderView")
+    port = simple.OutputPort(light, 1)
+    light.UpdatePipeline()
+    display = simple.Show(port, view)
+    configure_star_points(display, view)
+    return display
+
+
+def configure_star_points(display, view, array: str = "star_rgb", size: float = STAR_POINT_SIZE):
+    """Draw star points as discs of ``size`` pixels in their own colour (``star_rgb``, Map
+    Scalars off), lit flat so the colour is the star's, no colour bar, over the volume
+    (:func:`set_points_on_top`)."""
+    display.SetRepresentationType("Points")
+    simple.ColorBy(display, ("POINTS", array))
+    display.MapScalars = 0
+    display.PointSize = size
+    if "RenderPointsAsSpheres" in display.ListProperties():
+        display.RenderPointsAsSpheres = 1
+    display.Ambient = 1.0
+    display.Diffuse = 0.0
+    display.SetScalarBarVisibility(view, False)
+    set_points_on_top(display)
+    return display
+
+
+#: depth offset of star points (VTK adds offset/65000 to a point's depth): to the near plane
+ON_TOP_POINT_OFFSET = -66000.0
+
+
+def set_points_on_top(display, offset: float = ON_TOP_POINT_OFFSET) -> bool:
+    """Draw a representation's points at the front of the depth buffer: the volume's rays stop
+    there, so a star inside the nebula is seen as a marker instead of behind the dust in front
+    of it (its attenuated light is what Nebula Sky Image shows). Set on the rendering object's
+    mappers (the coincident-topology point offset; ParaView has no property for it), so it
+    works where this process renders, like :func:`set_alpha_unit_distance`; returns False
+    elsewhere (the points are then depth-tested like any geometry)."""
+    conn = servermanager.ActiveConnection
+    if conn is None or conn.IsRemote():
+        return False
+    try:
+        actor = display.GetClientSideObject().GetActiveRepresentation().GetActor()
+    except AttributeError:
+        return False
+    for mapper in (actor.GetMapper(), actor.GetLODMapper()):
+        if mapper is not None:
+            mapper.SetRelativeCoincidentTopologyPointOffsetParameter(offset)  # (Modified only on a change)
+    return True
 
 
 def set_orbit_camera(view, bounds=None, azimuth: float = 30.0, elevation: float = 20.0, view_angle: float = 30.0):

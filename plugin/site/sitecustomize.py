@@ -12,6 +12,10 @@ file ``plugin/NebulaRT.py`` belongs on PV_PLUGIN_PATH, since ParaView loads ever
    numpy/scipy wins over the distribution's), processes their .pth files (so an editable
    install of NebulaRT works) and fixes shadowed namespace packages (``mpl_toolkits``).
 
+3. NumPy 2.4 removed ``numpy.in1d``, which ParaView 5.11's ``vtkmodules.numpy_interface``
+   (Python Calculator, Python Annotation: the state files' labels) still binds at import; alias
+   it to ``numpy.isin`` (what ``in1d`` became) when a newer numpy is the one found.
+
 If a distribution already has a sitecustomize (Debian's lives in /etc/python3.X and only sets
 up apport), this one, being first on PYTHONPATH, replaces it for ParaView's processes.
 """
@@ -29,3 +33,12 @@ if _dirs:
     activate(_dirs)
     del activate
 del _dirs
+
+try:
+    import numpy as _np
+except ImportError:
+    pass
+else:
+    if "in1d" not in dir(_np) and hasattr(_np, "isin"):
+        _np.in1d = _np.isin
+    del _np

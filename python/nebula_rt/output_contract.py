@@ -39,6 +39,7 @@ from .transport import TALLY_NAMES
 __all__ = [
     "DENSITY", "EMISSIVITY", "J", "REL_ERROR", "RGBA", "RGB_LINEAR", "LIGHT_FIELD_ARRAYS",
     "SKY_INTENSITY", "SKY_SCATTERED", "SKY_RELATIVE", "SKY_RGB", "SKY_IMAGE_ARRAYS",
+    "STAR_ARRAYS", "STAR_LUMINOSITY", "STAR_RGB",
     "FieldSpec", "LightFieldData", "PointArray", "SkyImageData", "field_specs",
 ]
 
@@ -86,6 +87,12 @@ RGB_LINEAR = PointArray("rgb_linear", "float32", 3, "exposed linear sRGB before 
                                                     "(Nebula Colour)")
 #: the arrays of a light field, in the order they are written
 LIGHT_FIELD_ARRAYS = (DENSITY, J, EMISSIVITY, REL_ERROR, RGBA, RGB_LINEAR)
+
+STAR_RGB = PointArray("star_rgb", "uint8", 3, "sRGB of a star's own light at full brightness "
+                                              "(the Stars output of Nebula Light Field: one point per star)")
+STAR_LUMINOSITY = PointArray("luminosity", "float32", 1, "a star's luminosity (scene units)")
+#: the point arrays of the stars (one vertex per star at its place in the light field)
+STAR_ARRAYS = (STAR_RGB, STAR_LUMINOSITY)
 
 SKY_INTENSITY = PointArray("I_{band}", "float32", 1, "sky intensity (scattered light and the stars): "
                                                      "luminosity per box-unit area per steradian")

@@ -46,3 +46,21 @@ def output_summary(proxy):
     return {"points": int(data.GetNumberOfPoints()), "dimensions": list(data.GetDimensions()),
             "arrays": {n: array_stats(data, n) for n in names},
             "field": [data.GetFieldData().GetArrayName(i) for i in range(data.GetFieldData().GetNumberOfArrays())]}
+
+
+def plain_rgba_recipe(reader, view, spacing):
+    """The direct-RGBA recipe without the helper: Volume, ColorBy, MapScalars off, the colour
+    map fixed to 0..255, a linear opacity ramp, ScalarOpacityUnitDistance = spacing."""
+    from paraview import simple
+
+    display = simple.Show(reader, view)
+    display.SetRepresentationType("Volume")
+    display.UseSeparateColorMap = 1
+    simple.ColorBy(display, ("POINTS", "rgba"))
+    display.MapScalars = 0
+    display.LookupTable.AutomaticRescaleRangeMode = "Never"
+    display.LookupTable.RescaleTransferFunction(0.0, 255.0)
+    display.ScalarOpacityFunction.Points = [0.0, 0.0, 0.5, 0.0, 255.0, 1.0, 0.5, 0.0]
+    display.ScalarOpacityUnitDistance = spacing
+    display.SetScalarBarVisibility(view, False)
+    return display

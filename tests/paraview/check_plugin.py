@@ -25,9 +25,21 @@ for name in PROXY_NAMES:
         info["label"] = proto.GetXMLLabel()
         hints = proto.GetHints()
         menu = hints.FindNestedElementByName("ShowInMenu") if hints else None
-        rep = hints.FindNestedElementByName("RepresentationType") if hints else None
         info["menu"] = menu.GetAttribute("category") if menu else None
-        info["representation"] = rep.GetAttribute("type") if rep else None
+        # the display hints, in order: RepresentationType per (view, port), View, PipelineIcon
+        reps, views = [], []
+        for i in range(hints.GetNumberOfNestedElements() if hints else 0):
+            el = hints.GetNestedElement(i)
+            if el.GetName() == "RepresentationType":
+                reps.append({"view": el.GetAttribute("view"), "type": el.GetAttribute("type"),
+                             "port": el.GetAttribute("port")})
+            elif el.GetName() == "View":
+                views.append(el.GetAttribute("type"))
+        info["representation_hints"] = reps
+        info["view_hints"] = views
+        # what ParaView picks for port 0 of a render view: the first hint for that view and port
+        first = next((h for h in reps if h["view"] in (None, "RenderView") and h["port"] in (None, "0")), None)
+        info["representation"] = first["type"] if first else None
         props = {}
         it = proto.NewPropertyIterator()
         it.Begin()
@@ -101,6 +113,23 @@ colour.UpdatePipeline()
 rerun = {"light_executions_added": light.GetClientSideObject().execution_count - before,
          "colour_executions": colour.GetClientSideObject().execution_count}
 
+# ParaView's numpy_interface (Python Calculator, Python Annotation) imports with the venv's numpy
+try:
+    import vtkmodules.numpy_interface.algorithms  # noqa: F401
+
+    numpy_interface = None
+except Exception as exc:  # noqa: BLE001 - reported
+    numpy_interface = f"{type(exc).__name__}: {exc}"
+
+# the plugin's view: a render view whose defaults (settings the plugin adds) suit a picture
+sky_view = simple.CreateView("NebulaSkyView")
+sky_view_facts = {"class": sky_view.SMProxy.GetClassName(),
+                  "InteractionMode": int(sky_view.SMProxy.GetProperty("InteractionMode").GetElement(0)),
+                  "CameraParallelProjection": int(sky_view.CameraParallelProjection),
+                  "Background": [float(c) for c in sky_view.Background]}
+simple.Delete(sky_view)
+
 _common.result(loaded_at_start=loaded_at_start, definitions=definitions, outputs=outputs, rerun=rerun,
+               sky_view=sky_view_facts, numpy_interface_error=numpy_interface,
                functions=[n for n in ("NebulaDustDensity", "NebulaLightField", "NebulaColour", "NebulaSkyImage")
                           if hasattr(simple, n)])

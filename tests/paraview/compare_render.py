@@ -44,11 +44,10 @@ simple.Render(view)
 png = os.path.join(out, "paraview.png")
 simple.SaveScreenshot(png, view, ImageResolution=size)
 
-# the plain recipe for comparison (linear opacity ramp, ScalarOpacityUnitDistance = spacing):
+# the plain recipe for comparison (a fresh display: linear opacity ramp, ScalarOpacityUnitDistance = spacing):
 # what one gets without the per-voxel opacity mapping
-display = simple.GetDisplayProperties(reader, view)
-display.ScalarOpacityFunction.Points = [0.0, 0.0, 0.5, 0.0, 255.0, 1.0, 0.5, 0.0]
-display.ScalarOpacityUnitDistance = 1.0 / 40
+simple.Delete(simple.GetDisplayProperties(reader, view))
+_common.plain_rgba_recipe(reader, view, 1.0 / 40)
 simple.Render(view)
 naive = os.path.join(out, "paraview-naive.png")
 simple.SaveScreenshot(naive, view, ImageResolution=size)

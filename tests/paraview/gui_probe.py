@@ -1,0 +1,101 @@
+"""What the ParaView GUI shows, recorded from inside it (tests/test_paraview_gui.py).
+
+The GUI test plays recorded events (menus, Apply) and, between them, runs this file in the
+GUI's own Python shell with ``STEP = "<name>"; exec(open(<this file>).read())`` (the shell
+is only the test's observer: nothing here changes what is shown). It writes, under
+$NEBULA_GUI_OUT:
+
+- ``<step>-<view>.png``: a screenshot of every view at its size;
+- ``<step>.json``: the layouts (tabs) and their views, each view's type, size, camera,
+  background and representations (producer, port, representation type, colouring, Map
+  Scalars, visibility, colour bar), the stars' display positions, and data facts (the sky
+  image's mean rgb);
+- with ``GRAB = True``: ``<step>-window.png``, the whole screen (the docs' picture).
+"""
+
+import json
+import os
+import traceback
+
+from paraview import servermanager, simple
+from paraview.modules import vtkRemotingViews  # noqa: F401 - view proxies wrapped as their own classes
+
+OUT = os.environ["NEBULA_GUI_OUT"]
+step = globals().get("STEP", "probe")
+record = {"step": step}
+try:
+    import numpy as np
+    from vtkmodules.util.numpy_support import vtk_to_numpy
+
+    layouts = []
+    for (name, _id), layout in simple.GetLayouts().items():
+        views = [v for v in simple.GetViews() if simple.GetLayout(v) is layout]
+        layouts.append({"name": name, "views": [v.GetGlobalIDAsString() for v in views]})
+    record["layouts"] = layouts
+    record["views"] = []
+    for i, view in enumerate(simple.GetViews()):
+        v = {"id": view.GetGlobalIDAsString(), "type": view.GetXMLName(), "size": [int(x) for x in view.ViewSize]}
+        for prop in ("CameraPosition", "CameraFocalPoint", "CameraViewUp", "CameraViewAngle",
+                     "CameraParallelProjection", "CameraParallelScale", "Background"):
+            v[prop] = [float(x) for x in view.GetPropertyValue(prop)] if hasattr(
+                view.GetPropertyValue(prop), "__len__") else float(view.GetPropertyValue(prop))
+        v["UseColorPaletteForBackground"] = int(view.UseColorPaletteForBackground)
+        v["InteractionMode"] = int(view.SMProxy.GetProperty("InteractionMode").GetElement(0))  # 0 3D, 1 2D
+        reps = []
+        for rep in view.Representations:
+            inp = rep.SMProxy.GetProperty("Input")
+            if inp is None or inp.GetNumberOfProxies() == 0:
+                continue
+            src, port = inp.GetProxy(0), inp.GetOutputPortForConnection(0)
+            r = {"producer": src.GetXMLName(), "port": int(port), "visible": int(rep.Visibility),
+                 "representation": rep.SMProxy.GetProperty("Representation").GetElement(0)}
+            if "ColorArrayName" in rep.ListProperties():
+                r["color"] = [str(c) for c in rep.ColorArrayName]
+                r["map_scalars"] = int(rep.MapScalars)
+                lut = rep.LookupTable
+                bar = None if lut is None else servermanager.vtkSMTransferFunctionProxy.FindScalarBarRepresentation(
+                    lut.SMProxy, view.SMProxy)  # (GetScalarBar would make one)
+                r["scalar_bar"] = 0 if bar is None else int(bar.GetProperty("Visibility").GetElement(0))
+            if "ScalarOpacityFunction" in rep.ListProperties() and rep.ScalarOpacityFunction is not None:
+                r["opacity_points"] = len(rep.ScalarOpacityFunction.Points) // 4
+            if src.GetXMLName() == "NebulaLightField" and port == 1 and r["visible"]:
+                stars = servermanager.Fetch(servermanager._getPyProxy(src), idx=1)
+                xyz = vtk_to_numpy(stars.GetPoints().GetData())
+                rgb = vtk_to_numpy(stars.GetPointData().GetArray("star_rgb"))
+                ren = view.GetRenderer()
+                pos = []
+                for p in xyz:
+                    ren.SetWorldPoint(float(p[0]), float(p[1]), float(p[2]), 1.0)
+                    ren.WorldToDisplay()
+                    pos.append([float(c) for c in ren.GetDisplayPoint()[:2]])
+                r["stars"] = {"display": pos, "rgb": rgb.astype(int).tolist()}
+            if src.GetXMLName() == "NebulaSkyImage":
+                img = servermanager.Fetch(servermanager._getPyProxy(src))
+                rgb = vtk_to_numpy(img.GetPointData().GetArray("rgb")).astype(np.float64)
+                r["rgb_mean"] = rgb.mean(axis=0).tolist()
+                r["dimensions"] = list(img.GetDimensions())
+                ren = view.GetRenderer()
+                b = img.GetBounds()
+                corners = []
+                for x, y in ((b[0], b[2]), (b[1], b[3])):
+                    ren.SetWorldPoint(x, y, 0.0, 1.0)
+                    ren.WorldToDisplay()
+                    corners.append([float(c) for c in ren.GetDisplayPoint()[:2]])
+                r["display_corners"] = corners  # the first and last pixel centres
+            reps.append(r)
+        v["representations"] = reps
+        png = os.path.join(OUT, f"{step}-{i}.png")
+        simple.SaveScreenshot(png, view, ImageResolution=v["size"])
+        v["png"] = png
+        record["views"].append(v)
+    record["sources"] = sorted(k[0] for k in simple.GetSources())
+    if globals().get("GRAB"):
+        from PIL import ImageGrab
+
+        png = os.path.join(OUT, f"{step}-window.png")
+        ImageGrab.grab(xdisplay=os.environ["DISPLAY"]).save(png)
+        record["window_png"] = png
+except Exception:  # noqa: BLE001 - the test reads the traceback
+    record["error"] = traceback.format_exc()
+with open(os.path.join(OUT, f"{step}.json"), "w") as f:
+    json.dump(record, f, indent=1)
