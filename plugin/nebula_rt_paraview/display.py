@@ -76,6 +76,8 @@ class _Behaviour:
         self.fitted = {}  # (pxm key, representation GlobalID) -> (voxel, alpha range, unit, points)
         self.luts = {}  # pxm key -> GlobalIDs of the colour maps of NebulaRT's displays
         self.busy = False
+        self.busy_reset = False
+        self.reset_watched = {}  # key -> renderer of a sky view whose camera resets are fitted
         self.warned = False
         from paraview.modules.vtkRemotingServerManager import vtkSMProxyManager
 
@@ -156,6 +158,8 @@ class _Behaviour:
             self.busy = False
 
     def _pass(self, pxm, view):
+        if view.GetXMLName() == "NebulaSkyView":
+            self._watch_camera_resets(view)
         reps = self._nebula_representations(view)
         if not reps:
             return
@@ -225,6 +229,32 @@ class _Behaviour:
                     and _gid(lut.GetProxy(0)) in luts and _gid(lut.GetProxy(0)) not in used and vis.GetElement(0)):
                 vis.SetElement(0, 0)
                 bar.UpdateVTKObjects()
+
+    def _watch_camera_resets(self, view):
+        """A sky view's Reset Camera (ParaView's, after Apply, or the button) fits the image to
+        the view instead of the bounds' sphere (nebula_rt_paraview.view.fit_sky_camera)."""
+        pvview = view.GetClientSideObject()  # the vtkPVRenderView: it says when it reset its camera
+        if pvview is None or not pvview.IsA("vtkPVRenderView") or _key(pvview) in self.reset_watched:
+            return
+        self.reset_watched[_key(pvview)] = pvview
+        pvview.AddObserver("ResetCameraEvent", lambda r, e, view=view: self._on_camera_reset(view, r))
+
+    def _on_camera_reset(self, view, pvview):
+        if self.busy_reset:
+            return
+        self.busy_reset = True
+        try:
+            from . import view as helpers
+
+            for kind, rep, src, port in self._nebula_representations(view):
+                vis = rep.GetProperty("Visibility")
+                if kind == "sky" and vis is not None and vis.GetElement(0):
+                    helpers.fit_sky_camera(pvview.GetActiveCamera(), src, port, pvview.GetSize())
+                    break
+        except Exception as exc:  # noqa: BLE001
+            self._warn(exc)
+        finally:
+            self.busy_reset = False
 
     @staticmethod
     def _nebula_representations(view):
