@@ -6,8 +6,8 @@
     pvpython state_files/make_states.py --screenshots docs/images   # + paraview-fig4_*.png
 
 States (each: one Nebula Dust Density feeding four Nebula Light Field -> Nebula Colour
-branches, albedo 0.2 / 0.4 / 0.6 / 0.8, shown side by side as rgba volumes, one shared fixed
-exposure so brightness can be compared across the series):
+branches, albedo 0.2 / 0.4 / 0.6 / 0.8, shown side by side as rgba volumes with their stars,
+one shared fixed exposure so brightness can be compared across the series):
 
 - fig4_3_homogeneous_albedo.pvsm   uniform dust (density 0.02), tau 128, star at the centre
                                    (20 000 K, bump radius 0.01)       -- thesis Fig. 4.3
@@ -22,6 +22,15 @@ used where there is one, else the CPU OpenCL device.
 
 The shared exposure is the automatic exposure of the albedo-0.8 branch (the brightest),
 measured while generating; the Exposure property of each Nebula Colour holds it.
+
+What a plain ``LoadState`` (or File > Load State) gets from the file itself:
+
+- one tab (layout) with one render view, in preview mode at the figure's size (the layout's
+  PreviewMode): the GUI keeps the figure's aspect ratio, so all four panels fit whatever the
+  window; the stored camera (with the plugin loaded, ``LoadState(...); Render()`` keeps it);
+- labels made from the data: a Python Annotation on each light field prints its albedo from
+  the field data (``band_albedo``), and one on the first prints the title with its tau, so an
+  edit of Albedo or Tau shows in the labels.
 """
 
 from __future__ import annotations
@@ -34,27 +43,37 @@ from paraview import simple
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.join(os.path.dirname(HERE), "plugin"))
-from nebula_rt_paraview.view import load_plugin, show_rgba_volume  # noqa: E402
+from nebula_rt_paraview.view import load_plugin, show_rgba_volume, show_stars  # noqa: E402
 
 ALBEDOS = (0.2, 0.4, 0.6, 0.8)
 STAR = [0.5, 0.5, 0.5, 1.0, 20000.0, 0.01]
 #: gap between the volumes of the series (box units)
 PITCH = 1.25
+#: the figure's size in pixels (the layout's preview size, the screenshots')
+SIZE = [1600, 540]
 
 FIGURES = {
     "fig4_3_homogeneous_albedo": dict(
-        title="Homogeneous dust, tau 128: albedo series (thesis Fig. 4.3)",
+        title="Homogeneous dust, tau %g: albedo series (thesis Fig. 4.3)",
         density=dict(Model="uniform", UniformDensity=0.02),
     ),
     "fig4_4_nebula_offset_a": dict(
-        title="Nebula, noise offset (0.5, 0.5, 0.5): albedo series (thesis Fig. 4.4)",
+        title="Nebula, noise offset (0.5, 0.5, 0.5), tau %g: albedo series (thesis Fig. 4.4)",
         density=dict(Model="turbulence", Scale=0.15, Offset=[0.5, 0.5, 0.5]),
     ),
     "fig4_5_nebula_offset_b": dict(
-        title="Nebula, noise offset (3.5, 1.5, 0.5): albedo series (thesis Fig. 4.5)",
+        title="Nebula, noise offset (3.5, 1.5, 0.5), tau %g: albedo series (thesis Fig. 4.5)",
         density=dict(Model="turbulence", Scale=0.15, Offset=[3.5, 1.5, 0.5]),
     ),
 }
+
+#: the Python Annotation expressions of the labels (field data of a light field: band_albedo,
+#: tau); "%g" keeps 0.2 as 0.2
+ALBEDO_LABEL = '"albedo %g" % band_albedo[0]'
+
+
+def title_expression(title):
+    return repr(title) + " % tau[0]"
 
 
 def reset_session():
@@ -69,10 +88,14 @@ def reset_session():
 def build(name, spec, grid, photons, tau, device):
     """The pipeline and view of one figure; returns (view, colour proxies)."""
     reset_session()
-    layout = simple.CreateLayout(name)
     view = simple.CreateView("RenderView")
-    simple.AssignViewToLayout(view=view, layout=layout, hint=0)
-    view.ViewSize = [1600, 540]
+    layout = simple.GetLayout(view) or simple.CreateLayout(name)
+    if simple.GetLayout(view) is None:
+        simple.AssignViewToLayout(view=view, layout=layout, hint=0)
+    simple.RenameLayout(name, layout)
+    # the figure's size: the GUI shows the layout at this aspect ratio (scaled to fit)
+    layout.PreviewMode = SIZE
+    view.ViewSize = SIZE
     view.OrientationAxesVisibility = 0
     if "UseColorPaletteForBackground" in view.ListProperties():
         view.UseColorPaletteForBackground = 0
@@ -80,7 +103,7 @@ def build(name, spec, grid, photons, tau, device):
 
     dust = simple.NebulaDustDensity(registrationName="Dust density", GridShape=[grid] * 3, Stars=STAR,
                                     Device=device, **spec["density"])
-    colours = []
+    colours, lights = [], []
     for i, albedo in enumerate(ALBEDOS):
         # the input positionally: paraview.simple picks the DensityArray default from it
         light = simple.NebulaLightField(dust, registrationName=f"Light field, albedo {albedo}")
@@ -97,16 +120,21 @@ def build(name, spec, grid, photons, tau, device):
         colour = simple.NebulaColour(light, registrationName=f"Colour, albedo {albedo}")
         display = show_rgba_volume(colour, view)
         display.Position = [i * PITCH, 0.0, 0.0]
+        stars = show_stars(light, view)
+        stars.Position = [i * PITCH, 0.0, 0.0]
         colours.append(colour)
+        lights.append(light)
 
-        # label under the cube, anchored in the scene (follows the camera)
-        label = simple.Text(registrationName=f"Label, albedo {albedo}", Text=f"albedo {albedo}")
+        # label under the cube, anchored in the scene (follows the camera), from the data
+        label = simple.PythonAnnotation(registrationName=f"Label, albedo {albedo}", Input=light,
+                                        ArrayAssociation="Field Data", Expression=ALBEDO_LABEL)
         ld = simple.Show(label, view)
         ld.TextPropMode = "Billboard 3D Text"
         ld.BillboardPosition = [i * PITCH + 0.38, -0.1, 0.5]
         ld.FontSize = 15
         ld.Color = [0.8, 0.8, 0.8]
-    title = simple.Text(registrationName="Title", Text=spec["title"])
+    title = simple.PythonAnnotation(registrationName="Title", Input=lights[0], ArrayAssociation="Field Data",
+                                    Expression=title_expression(spec["title"]))
     td = simple.Show(title, view)
     td.WindowLocation = "Upper Center"
     td.FontSize = 14
@@ -128,6 +156,10 @@ def build(name, spec, grid, photons, tau, device):
     view.CameraPosition = [0.5 * width, 0.42, 6.0]
     view.CameraViewUp = [0.0, 1.0, 0.0]
     view.CameraParallelScale = 0.87
+    # only this figure's tab (CreateView may have made one before CreateLayout)
+    for other in list(simple.GetLayouts().values()):
+        if other is not layout:
+            simple.RemoveLayout(other)
     simple.SetActiveView(view)
     simple.SetActiveSource(colours[0])
     return view, colours
@@ -160,7 +192,7 @@ def main(argv=None):
         if args.screenshots:
             os.makedirs(args.screenshots, exist_ok=True)
             png = os.path.join(args.screenshots, f"paraview-{name}.png")
-            simple.SaveScreenshot(png, view, ImageResolution=[1600, 540])
+            simple.SaveScreenshot(png, view, ImageResolution=SIZE)
             print(f"wrote {png}")
 
 

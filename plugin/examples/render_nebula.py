@@ -4,8 +4,10 @@
     pvpython plugin/examples/render_nebula.py --out out/           # needs an X display
     xvfb-run -a pvpython plugin/examples/render_nebula.py --out out/
 
-Writes <out>/paraview-nebula-volume.png (the rgba volume, the camera of `nebula-rt render`)
-and <out>/paraview-sky-image.png (Nebula Sky Image: what a telescope sees along -z).
+Writes <out>/paraview-nebula-volume.png (the rgba volume with its star, the camera of
+`nebula-rt render`) and <out>/paraview-sky-image.png (Nebula Sky Image: what a telescope sees
+along -z). With the plugin loaded, ``Show`` alone gives these displays (the plugin's default
+display); the helpers used here set the same explicitly.
 The images in docs/images were made with: --out docs/images (64^3 voxels, 10^6 packets).
 """
 
@@ -16,7 +18,8 @@ import sys
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))  # plugin/
 
 from paraview import simple  # noqa: E402
-from nebula_rt_paraview.view import load_plugin, set_orbit_camera, show_rgba_volume, show_sky_image  # noqa: E402
+from nebula_rt_paraview.view import (load_plugin, set_orbit_camera, show_rgba_volume, show_sky_image,  # noqa: E402
+                                     show_stars)
 
 ap = argparse.ArgumentParser()
 ap.add_argument("--out", default=".")
@@ -45,18 +48,15 @@ if "UseColorPaletteForBackground" in view.ListProperties():  # ParaView >= 5.10
     view.UseColorPaletteForBackground = 0
 view.Background = [0.0, 0.0, 0.0]
 show_rgba_volume(colour, view)
+show_stars(light, view)  # the light field's second output: a point per star, drawn over the volume
 simple.Render(view)  # paraview.simple resets the camera on the first render
 set_orbit_camera(view, azimuth=30.0, elevation=20.0)
 simple.SaveScreenshot(os.path.join(args.out, "paraview-nebula-volume.png"), view, ImageResolution=[800, 800])
 
 sky = simple.NebulaSkyImage(light, ViewDirection=[0.0, 0.0, -1.0], ViewUp=[0.0, 1.0, 0.0], ImageSize=[320, 320],
                          Extent=1.1)
-sky_view = simple.CreateView("RenderView")
+sky_view = simple.CreateView("NebulaSkyView")  # the plugin's 2D view: black, parallel projection
 sky_view.ViewSize = [600, 600]
-sky_view.OrientationAxesVisibility = 0
-if "UseColorPaletteForBackground" in sky_view.ListProperties():
-    sky_view.UseColorPaletteForBackground = 0
-sky_view.Background = [0.0, 0.0, 0.0]
 show_sky_image(sky, sky_view)
 simple.Render(sky_view)
 simple.SaveScreenshot(os.path.join(args.out, "paraview-sky-image.png"), sky_view, ImageResolution=[600, 600])

@@ -14,8 +14,9 @@ what hints cannot, before the render that first shows a new representation:
   markers (:func:`nebula_rt_paraview.view.set_points_on_top`);
 - a sky image: its ``rgb`` as it is, the camera fitted face-on in 2D.
 
-Representations made by a state file keep what the state says; a new one is set up once (the
-user may change it afterwards). For every rgba volume whose opacity function is still the
+Representations made by a state file keep what the state says, its camera included (a
+loaded state stops paraview.simple's reset of the camera at a session's first Render); a new
+one is set up once (the user may change it afterwards). For every rgba volume whose opacity function is still the
 per-voxel mapping (a state's included, and the mapping of states written before the mapping
 followed the alpha range), the mapping is refitted before each render when the data's spacing
 or alpha range changed (a new grid, Tau, Opacity Scale), and the alpha channel's unit distance
@@ -75,6 +76,8 @@ class _Behaviour:
         self.fitted = {}  # (pxm key, representation GlobalID) -> (voxel, alpha range, unit, points)
         self.luts = {}  # pxm key -> GlobalIDs of the colour maps of NebulaRT's displays
         self.busy = False
+        self.busy_reset = False
+        self.reset_watched = {}  # key -> renderer of a sky view whose camera resets are fitted
         self.warned = False
         from paraview.modules.vtkRemotingServerManager import vtkSMProxyManager
 
@@ -91,7 +94,16 @@ class _Behaviour:
         self.known[_key(pxm)] = set(_gid(p) for p in self._group(pxm, "representations"))
         self.views[_key(pxm)] = set()
         pxm.AddObserver("RegisterEvent", self._on_register)
+        pxm.AddObserver("LoadStateEvent", self._on_state_loaded)
         self._watch_views(pxm)
+
+    @staticmethod
+    def _on_state_loaded(_pxm, _event):
+        """A state brings its own camera: paraview.simple's first Render of a session would
+        reset it (``LoadState(...); Render()`` lost the states' cameras)."""
+        simple = sys.modules.get("paraview.simple")
+        if simple is not None and hasattr(simple, "_DisableFirstRenderCameraReset"):
+            simple._DisableFirstRenderCameraReset()
 
     @staticmethod
     def _group(pxm, group):
@@ -109,26 +121,24 @@ class _Behaviour:
 
     def _on_register(self, pxm, _event):
         try:
-            known = self.known[_key(pxm)]
-            if pxm.GetNumberOfProxies("representations") != len(known):
-                loading = bool(pxm.GetInLoadXMLState())
-                for rep in self._group(pxm, "representations"):
-                    g = _gid(rep)
-                    if g not in known:
-                        known.add(g)
-                        if not loading:
-                            self.pending[_key(pxm)].add(g)
-            if pxm.GetNumberOfProxies("views") != len(self.views[_key(pxm)]):
-                self._watch_views(pxm)
+            key = _key(pxm)
+            current = {_gid(rep) for rep in self._group(pxm, "representations")}
+            new = current - self.known[key]
+            self.known[key] = current  # (the unregistered ones drop out: ids are not reused)
+            if new and not pxm.GetInLoadXMLState():
+                self.pending[key] |= new
+            self.pending[key] &= current
+            self._watch_views(pxm)
         except Exception as exc:  # noqa: BLE001 - a display default must never break a pipeline
             self._warn(exc)
 
     def _watch_views(self, pxm):
-        watched = self.views[_key(pxm)]
-        for view in self._group(pxm, "views"):
-            if _gid(view) not in watched and view.IsA("vtkSMViewProxy"):
-                watched.add(_gid(view))
+        key = _key(pxm)
+        views = {_gid(v): v for v in self._group(pxm, "views") if v.IsA("vtkSMViewProxy")}
+        for g, view in views.items():
+            if g not in self.views[key]:
                 view.AddObserver("StartEvent", lambda v, e, pxm=pxm: self._on_render(pxm, v))
+        self.views[key] = set(views)
 
     def _warn(self, exc):
         if not self.warned:  # once: the messages would repeat on every render
@@ -148,6 +158,8 @@ class _Behaviour:
             self.busy = False
 
     def _pass(self, pxm, view):
+        if view.GetXMLName() == "NebulaSkyView":
+            self._watch_camera_resets(view)
         reps = self._nebula_representations(view)
         if not reps:
             return
@@ -217,6 +229,32 @@ class _Behaviour:
                     and _gid(lut.GetProxy(0)) in luts and _gid(lut.GetProxy(0)) not in used and vis.GetElement(0)):
                 vis.SetElement(0, 0)
                 bar.UpdateVTKObjects()
+
+    def _watch_camera_resets(self, view):
+        """A sky view's Reset Camera (ParaView's, after Apply, or the button) fits the image to
+        the view instead of the bounds' sphere (nebula_rt_paraview.view.fit_sky_camera)."""
+        pvview = view.GetClientSideObject()  # the vtkPVRenderView: it says when it reset its camera
+        if pvview is None or not pvview.IsA("vtkPVRenderView") or _key(pvview) in self.reset_watched:
+            return
+        self.reset_watched[_key(pvview)] = pvview
+        pvview.AddObserver("ResetCameraEvent", lambda r, e, view=view: self._on_camera_reset(view, r))
+
+    def _on_camera_reset(self, view, pvview):
+        if self.busy_reset:
+            return
+        self.busy_reset = True
+        try:
+            from . import view as helpers
+
+            for kind, rep, src, port in self._nebula_representations(view):
+                vis = rep.GetProperty("Visibility")
+                if kind == "sky" and vis is not None and vis.GetElement(0):
+                    helpers.fit_sky_camera(pvview.GetActiveCamera(), src, port, pvview.GetSize())
+                    break
+        except Exception as exc:  # noqa: BLE001
+            self._warn(exc)
+        finally:
+            self.busy_reset = False
 
     @staticmethod
     def _nebula_representations(view):

@@ -231,8 +231,26 @@ def configure_sky_image(display, view, array: str = "rgb", fit_camera: bool = Tr
         view.CameraFocalPoint = [cx, cy, 0.0]
         view.CameraPosition = [cx, cy, 10.0]
         view.CameraViewUp = [0.0, 1.0, 0.0]
-        simple.ResetCamera(view)
+        simple.ResetCamera(view)  # (the clipping range)
+        view.CameraParallelScale = sky_parallel_scale(src, port, view.ViewSize)
     return display
+
+
+def sky_parallel_scale(src, port, view_size) -> float:
+    """The parallel scale (half the height seen) at which a 2D image fills a view of
+    ``view_size`` pixels: its width or its height, whichever the aspect ratio lets (pixel
+    edges, not centres; ResetCamera fits the bounds' sphere instead, a 40 % margin)."""
+    info = src.GetDataInformation(port)
+    b, ext = info.GetBounds(), info.GetExtent()
+    w, h = b[1] - b[0], b[3] - b[2]
+    px = w / max(ext[1] - ext[0], 1)
+    vw, vh = (max(int(v), 1) for v in view_size)
+    return 0.5 * max(h + px, (w + px) * vh / vw)
+
+
+def fit_sky_camera(camera, src, port, view_size) -> None:
+    """Give a (parallel) camera the scale of :func:`sky_parallel_scale`."""
+    camera.SetParallelScale(sky_parallel_scale(src, port, view_size))
 
 
 #: how the stars (port 1 of Nebula Light Field) are drawn: a sphere of this many pixels each

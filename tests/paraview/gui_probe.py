@@ -41,14 +41,17 @@ try:
                 view.GetPropertyValue(prop), "__len__") else float(view.GetPropertyValue(prop))
         v["UseColorPaletteForBackground"] = int(view.UseColorPaletteForBackground)
         v["InteractionMode"] = int(view.SMProxy.GetProperty("InteractionMode").GetElement(0))  # 0 3D, 1 2D
+        layout = simple.GetLayout(view)
+        v["preview"] = [int(x) for x in layout.PreviewMode] if layout is not None else None
         reps = []
         for rep in view.Representations:
             inp = rep.SMProxy.GetProperty("Input")
             if inp is None or inp.GetNumberOfProxies() == 0:
                 continue
             src, port = inp.GetProxy(0), inp.GetOutputPortForConnection(0)
+            rtype = rep.SMProxy.GetProperty("Representation")  # (text representations have none)
             r = {"producer": src.GetXMLName(), "port": int(port), "visible": int(rep.Visibility),
-                 "representation": rep.SMProxy.GetProperty("Representation").GetElement(0)}
+                 "representation": rtype.GetElement(0) if rtype is not None else None}
             if "ColorArrayName" in rep.ListProperties():
                 r["color"] = [str(c) for c in rep.ColorArrayName]
                 r["map_scalars"] = int(rep.MapScalars)
@@ -69,6 +72,25 @@ try:
                     ren.WorldToDisplay()
                     pos.append([float(c) for c in ren.GetDisplayPoint()[:2]])
                 r["stars"] = {"display": pos, "rgb": rgb.astype(int).tolist()}
+            if src.GetXMLName() == "NebulaColour" and r["visible"]:
+                # the display box of the volume (its bounds moved by the representation's Position)
+                b = src.GetDataInformation(0).GetBounds()
+                off = [float(c) for c in rep.Position]
+                ren = view.GetRenderer()
+                xs, ys = [], []
+                for i in (0, 1):
+                    for j in (2, 3):
+                        for k in (4, 5):
+                            ren.SetWorldPoint(b[i] + off[0], b[j] + off[1], b[k] + off[2], 1.0)
+                            ren.WorldToDisplay()
+                            x, y, _z = ren.GetDisplayPoint()
+                            xs.append(float(x))
+                            ys.append(float(y))
+                r["box"] = [min(xs), max(xs), min(ys), max(ys)]
+                light = src.GetProperty("Input").GetProxy(0)
+                r["albedo"] = float(light.GetProperty("Albedo").GetElement(0))
+            if src.GetXMLName() == "PythonAnnotation":
+                r["text"] = servermanager.Fetch(servermanager._getPyProxy(src)).GetColumn(0).GetValue(0)
             if src.GetXMLName() == "NebulaSkyImage":
                 img = servermanager.Fetch(servermanager._getPyProxy(src))
                 rgb = vtk_to_numpy(img.GetPointData().GetArray("rgb")).astype(np.float64)

@@ -1,27 +1,54 @@
-"""Load a state file safely, pin the test device, render, save a screenshot.
+"""Load a state file, pin the test device, render, save a screenshot.
 
-    pvpython|pvbatch render_state.py STATE.pvsm OUT.png
+    pvpython|pvbatch render_state.py STATE.pvsm OUT.png [--plain]
 
-RESULT: proxies found, last errors, the display-space box of each Nebula Colour volume (for
-the test to crop the cubes) and the view size.
+With --plain: ``LoadState(STATE); Render()`` as a user would type it (the plugin loaded at
+start-up from PV_PLUGIN_PATH), else load_state_safely. RESULT: proxies found, last errors,
+the display-space box of each Nebula Colour volume (for the test to crop the cubes), the view
+size and camera, the layouts (tabs) and their views, the labels' texts, and the albedo label
+after an edit of the first light field's Albedo to 0.3.
 """
 
 import sys
 import time
 
 import _common
-from paraview import simple
-from nebula_rt_paraview.view import load_state_safely, set_compute_device
+from paraview import servermanager, simple
+from nebula_rt_paraview.view import nebula_proxies, load_state_safely, set_compute_device
 
 state, png = sys.argv[1], sys.argv[2]
+plain = "--plain" in sys.argv[3:]
 t0 = time.time()
-found = load_state_safely(state, {"NebulaDustDensity": 1, "NebulaLightField": 4, "NebulaColour": 4})
+if plain:
+    simple.LoadState(state)
+    found = nebula_proxies()
+else:
+    found = load_state_safely(state, {"NebulaDustDensity": 1, "NebulaLightField": 4, "NebulaColour": 4})
 n_dev = set_compute_device(_common.TEST_DEVICE)
 view = simple.GetActiveView() or simple.GetRenderViews()[0]
 size = [int(v) for v in view.ViewSize]
 simple.Render(view)
 simple.SaveScreenshot(png, view, ImageResolution=size)
 elapsed = time.time() - t0
+camera = {p: [float(x) for x in view.GetPropertyValue(p)] for p in ("CameraPosition", "CameraFocalPoint", "CameraViewUp")}
+camera["CameraParallelScale"] = float(view.CameraParallelScale)
+layouts = {name: int(len([v for v in simple.GetViews() if simple.GetLayout(v) is lay]))
+           for (name, _id), lay in simple.GetLayouts().items()}
+preview = {name: [int(x) for x in lay.PreviewMode] for (name, _id), lay in simple.GetLayouts().items()}
+
+
+def labels():
+    """{registration name: text} of the Python Annotation and Text sources."""
+    out = {}
+    for (name, _id), px in simple.GetSources().items():
+        if px.GetXMLName() == "PythonAnnotation":
+            px.UpdatePipeline()
+            out[name] = servermanager.Fetch(px).GetColumn(0).GetValue(0)
+        elif px.GetXMLName() == "TextSource":
+            out[name] = px.Text
+    return out
+
+
 
 # display-space boxes of the colour volumes: project the 8 corners of each (moved) bounds
 ren = view.GetRenderer()
@@ -52,6 +79,14 @@ for name, proxies in found.items():
         errors.setdefault(name, []).append(p.GetClientSideObject().last_error)
 devices = [getattr(getattr(p.GetClientSideObject().last_light, "transport", None), "device", None)
            for p in found["NebulaLightField"]]
+texts = labels()
+first = next((px for (name, _id), px in simple.GetSources().items() if name == "Light field, albedo 0.2"), None)
+edited = None
+if first is not None and plain:  # (after everything above: the edit re-traces that branch)
+    first.Albedo = 0.3
+    edited = labels().get("Label, albedo 0.2")
+
 _common.result(devices=devices, proxies={k: len(v) for k, v in found.items()}, devices_pinned=n_dev, errors=errors,
-               boxes=boxes, size=size, seconds=elapsed,
+               boxes=boxes, size=size, seconds=elapsed, camera=camera, layouts=layouts, preview=preview,
+               labels=texts, edited_label=edited,
                points=[int(p.GetDataInformation().GetNumberOfPoints()) for p in found["NebulaColour"]])
