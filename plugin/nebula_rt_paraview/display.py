@@ -6,7 +6,8 @@ sky image); ParaView then colours the result with a colour map. This behaviour, 
 ``plugin/NebulaRT.py`` in every process that has a client (the GUI, pvpython, pvbatch), does
 what hints cannot, before the render that first shows a new representation:
 
-- a light field's or a colour's ``rgba``: a direct-RGBA volume (Map Scalars off, the alpha
+- a light field's or a colour's ``rgba`` (also a reader's of a NebulaRT file, e.g. the command
+  line's ``.vti``): a direct-RGBA volume (Map Scalars off, the alpha
   channel as opacity composited per voxel, :func:`nebula_rt_paraview.view.configure_rgba_volume`),
   and the light field's stars shown with it (in a script ``Show(light)`` shows port 0 only);
   a view still on the colour palette's background turns black (emission against the sky);
@@ -270,14 +271,12 @@ class _Behaviour:
                 continue
             src, port = inp.GetProxy(0), inp.GetOutputPortForConnection(0)
             name = src.GetXMLName()
-            if name in RGBA_PRODUCERS and port == 0:
-                info = src.GetDataInformation(0).GetPointDataInformation().GetArrayInformation("rgba")
-                if info is not None and info.GetNumberOfComponents() == 4:
-                    out.append(("rgba", rep, src, port))
-            elif name == "NebulaLightField" and port == 1:
+            if name == "NebulaLightField" and port == 1:
                 out.append(("stars", rep, src, port))
             elif name == "NebulaSkyImage":
                 out.append(("sky", rep, src, port))
+            elif _carries_rgba(src, port, name in RGBA_PRODUCERS):
+                out.append(("rgba", rep, src, port))
         return out
 
     @staticmethod
@@ -333,6 +332,19 @@ class _Behaviour:
         display.ScalarOpacityFunction.Points = helpers.per_voxel_opacity_points(voxel, alpha_range=arange,
                                                                                  unit_distance=unit)
         self.fitted[key] = (voxel, arange, unit, tuple(display.ScalarOpacityFunction.Points))
+
+
+def _carries_rgba(src, port, nebula_proxy: bool) -> bool:
+    """Whether an output holds a light field's ``rgba`` (uint8 x 4 point array): a NebulaRT
+    proxy's port 0, or any other source's output with the light-field field data
+    (``band_names``): a reader of the command line's ``.vti`` or of a saved ``.pvti``."""
+    info = src.GetDataInformation(port)
+    arr = info.GetPointDataInformation().GetArrayInformation("rgba")
+    if arr is None or arr.GetNumberOfComponents() != 4 or arr.GetDataType() != 3:  # VTK_UNSIGNED_CHAR
+        return False
+    if nebula_proxy:
+        return port == 0
+    return info.GetFieldDataInformation().GetArrayInformation("band_names") is not None
 
 
 def _is_mapping(points, n: int = 256, tol: float = 1e-6) -> bool:
