@@ -274,3 +274,29 @@ def test_state_file_in_the_gui_keeps_its_figure(pv_env, xdisplay, tmp_path, name
     texts = [x["text"] for x in view["representations"] if x["producer"] == "PythonAnnotation"]
     assert sorted(t for t in texts if t.startswith("albedo")) == [f"albedo {a}" for a in (0.2, 0.4, 0.6, 0.8)], texts
     assert sum("tau 128" in t and "albedo series" in t for t in texts) == 1, texts
+
+
+def test_opening_the_command_lines_file_shows_its_true_colour(pv_env, xdisplay, tmp_path):
+    """File > Open of the command line's ``.vti`` (``paraview --data=FILE``), Apply: the
+    reader's rgba shown the same way (a direct-RGBA volume, Map Scalars off, the per-voxel
+    mapping, no colour bar), a blue thesis-rgb nebula (mean linear B/R of the lit region above
+    1.5), bright (99th percentile of the lit region above 160, as after Apply on the light field;
+    measured 186)."""
+    import sys
+
+    vti = tmp_path / "neb.vti"
+    cli = Path(sys.executable).with_name("nebula-rt")
+    subprocess.run([str(cli), "render", str(REPO / "examples" / "scenes" / "thesis-default.toml"), "-o", str(vti),
+                    "--set", "grid.shape=[24,24,24]", "--set", "transport.photons=40000",
+                    "--device", pv_env["NEBULA_RT_TEST_DEVICE"], "-q"], check=True, timeout=300)
+    out = run_gui(pv_env, xdisplay, tmp_path, apply() + probe("file"), args=(f"--data={vti}",))
+    r = step_record(out, "file")
+    (view,) = r["views"]
+    (vol,) = [x for x in view["representations"] if x["producer"] == "XMLImageDataReader"]
+    assert vol["visible"] and vol["representation"] == "Volume" and vol["color"] == ["POINTS", "rgba"], vol
+    assert vol["map_scalars"] == 0 and vol["scalar_bar"] == 0 and vol["opacity_points"] == 256, vol
+    im = read_png(view["png"])
+    lit, m = lit_stats(im)
+    assert lit.mean() > 0.1 and np.percentile(m[lit], 99) > 160, (lit.mean(), np.percentile(m[lit], 99))
+    mean = srgb_to_linear(im[lit]).mean(axis=0)
+    assert mean[2] / mean[0] > 1.5, mean

@@ -2,26 +2,27 @@
 
 The proxies' XML hints pick the representation type and the view (Volume for the light field
 and its colour, Points for the light field's Stars port, Slice in a ``NebulaSkyView`` for the
-sky image); ParaView then colours the result with a colour map. This behaviour, installed by
-``plugin/NebulaRT.py`` in every process that has a client (the GUI, pvpython, pvbatch), does
+sky image); ParaView would then colour the result with a colour map. This behaviour, installed
+by ``plugin/NebulaRT.py`` in every process that has a client (the GUI, pvpython, pvbatch), does
 what hints cannot, before the render that first shows a new representation:
 
-- a light field's or a colour's ``rgba``: a direct-RGBA volume (Map Scalars off, the alpha
-  channel as opacity composited per voxel, :func:`nebula_rt_paraview.view.configure_rgba_volume`),
-  and the light field's stars shown with it (in a script ``Show(light)`` shows port 0 only);
-  a view still on the colour palette's background turns black (emission against the sky);
-- the stars: discs of a few pixels in each star's own colour, drawn over the volume as
-  markers (:func:`nebula_rt_paraview.view.set_points_on_top`);
-- a sky image: its ``rgb`` as it is, the camera fitted face-on in 2D.
+- ``rgba`` of a light field or a colour (or of a reader of a NebulaRT file, e.g. the command
+  line's ``.vti``): a direct-RGBA volume, Map Scalars off, the alpha channel as opacity
+  composited per voxel (:func:`nebula_rt_paraview.view.configure_rgba_volume`); the light
+  field's stars are shown with it (in a script ``Show(light)`` shows port 0 only); a view still
+  on the colour palette's background turns black (emission against the sky);
+- the stars: discs of a few pixels in each star's own colour, drawn over the volume as markers
+  (:func:`nebula_rt_paraview.view.set_points_on_top`);
+- a sky image: its ``rgb`` as it is, filling its view (a sky view's camera reset fills it too).
 
-Representations made by a state file keep what the state says, its camera included (a
-loaded state stops paraview.simple's reset of the camera at a session's first Render); a new
-one is set up once (the user may change it afterwards). For every rgba volume whose opacity function is still the
-per-voxel mapping (a state's included, and the mapping of states written before the mapping
-followed the alpha range), the mapping is refitted before each render when the data's spacing
-or alpha range changed (a new grid, Tau, Opacity Scale), and the alpha channel's unit distance
-is set on the rendering object (which a state cannot store). A function the user edited is
-left alone.
+Representations made by a state file keep what the state says, its camera included (a loaded
+state stops paraview.simple's camera reset at a session's first Render); a new one is set up
+once, and what the user changes afterwards is theirs. For every rgba volume whose opacity
+function is still a per-voxel mapping (a state's included, and the per-world-unit one of
+states written before the mapping followed the alpha range), the mapping is refitted before
+each render when the data's spacing or alpha range changed (a new grid, Tau, Opacity Scale);
+the alpha channel's unit distance and the stars' depth offset, which a state cannot store, are
+set on the rendering objects. A function the user edited is left alone.
 """
 
 from __future__ import annotations
@@ -70,14 +71,14 @@ class _Behaviour:
     def __init__(self, manager):
         self.manager = manager
         self.pxms = {}  # key -> session proxy manager (GlobalIDs are per session: state per manager)
-        self.pending = {}  # pxm id -> GlobalIDs of new representations not yet set up
-        self.known = {}  # pxm id -> GlobalIDs of the representations seen
-        self.views = {}  # pxm id -> GlobalIDs of the views observed
+        self.pending = {}  # pxm key -> GlobalIDs of new representations not yet set up
+        self.known = {}  # pxm key -> GlobalIDs of the representations registered
+        self.views = {}  # pxm key -> GlobalIDs of the views observed
         self.fitted = {}  # (pxm key, representation GlobalID) -> (voxel, alpha range, unit, points)
         self.luts = {}  # pxm key -> GlobalIDs of the colour maps of NebulaRT's displays
         self.busy = False
         self.busy_reset = False
-        self.reset_watched = {}  # key -> renderer of a sky view whose camera resets are fitted
+        self.reset_watched = {}  # key -> vtkPVRenderView of a sky view whose camera resets fit the image
         self.warned = False
         from paraview.modules.vtkRemotingServerManager import vtkSMProxyManager
 
@@ -270,14 +271,12 @@ class _Behaviour:
                 continue
             src, port = inp.GetProxy(0), inp.GetOutputPortForConnection(0)
             name = src.GetXMLName()
-            if name in RGBA_PRODUCERS and port == 0:
-                info = src.GetDataInformation(0).GetPointDataInformation().GetArrayInformation("rgba")
-                if info is not None and info.GetNumberOfComponents() == 4:
-                    out.append(("rgba", rep, src, port))
-            elif name == "NebulaLightField" and port == 1:
+            if name == "NebulaLightField" and port == 1:
                 out.append(("stars", rep, src, port))
             elif name == "NebulaSkyImage":
                 out.append(("sky", rep, src, port))
+            elif _carries_rgba(src, port, name in RGBA_PRODUCERS):
+                out.append(("rgba", rep, src, port))
         return out
 
     @staticmethod
@@ -333,6 +332,19 @@ class _Behaviour:
         display.ScalarOpacityFunction.Points = helpers.per_voxel_opacity_points(voxel, alpha_range=arange,
                                                                                  unit_distance=unit)
         self.fitted[key] = (voxel, arange, unit, tuple(display.ScalarOpacityFunction.Points))
+
+
+def _carries_rgba(src, port, nebula_proxy: bool) -> bool:
+    """Whether an output holds a light field's ``rgba`` (uint8 x 4 point array): a NebulaRT
+    proxy's port 0, or any other source's output with the light-field field data
+    (``band_names``): a reader of the command line's ``.vti`` or of a saved ``.pvti``."""
+    info = src.GetDataInformation(port)
+    arr = info.GetPointDataInformation().GetArrayInformation("rgba")
+    if arr is None or arr.GetNumberOfComponents() != 4 or arr.GetDataType() != 3:  # VTK_UNSIGNED_CHAR
+        return False
+    if nebula_proxy:
+        return port == 0
+    return info.GetFieldDataInformation().GetArrayInformation("band_names") is not None
 
 
 def _is_mapping(points, n: int = 256, tol: float = 1e-6) -> bool:

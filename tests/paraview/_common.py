@@ -50,10 +50,15 @@ def output_summary(proxy):
 
 def plain_rgba_recipe(reader, view, spacing):
     """The direct-RGBA recipe without the helper: Volume, ColorBy, MapScalars off, the colour
-    map fixed to 0..255, a linear opacity ramp, ScalarOpacityUnitDistance = spacing."""
+    map fixed to 0..255, a linear opacity ramp, ScalarOpacityUnitDistance = spacing (and the
+    alpha channel's unit distance VTK's default, 1). Set after a first render: where the
+    plugin's display behaviour sets up a new NebulaRT display, these are then the user's own
+    settings, which it leaves alone."""
     from paraview import simple
+    from nebula_rt_paraview.view import set_alpha_unit_distance
 
     display = simple.Show(reader, view)
+    simple.Render(view)
     display.SetRepresentationType("Volume")
     display.UseSeparateColorMap = 1
     simple.ColorBy(display, ("POINTS", "rgba"))
@@ -63,4 +68,5 @@ def plain_rgba_recipe(reader, view, spacing):
     display.ScalarOpacityFunction.Points = [0.0, 0.0, 0.5, 0.0, 255.0, 1.0, 0.5, 0.0]
     display.ScalarOpacityUnitDistance = spacing
     display.SetScalarBarVisibility(view, False)
+    set_alpha_unit_distance(display, 1.0)
     return display
