@@ -163,6 +163,26 @@ NRT_DEVICE float nrt_face_distance(float p, float d, float inv_d, int i, float h
     return NRT_INF_F;
 }
 
+/*
+ * Cross the face of axis ax (0 x, 1 y, 2 z) into the voxel whose index on that axis is i_next:
+ * that axis' index and face distance change (from the flight's start point p along d), the
+ * other two stay. By selects: the lanes of a SIMD group step along different axes.
+ */
+NRT_DEVICE void nrt_cross_face(int ax, int i_next, const float *p, float d_ax, const float *inv_d,
+                               float hx, float hy, float hz, int *ix, int *iy, int *iz,
+                               float *tx, float *ty, float *tz)
+{
+    float t_ax = nrt_face_distance(ax == 0 ? p[0] : (ax == 1 ? p[1] : p[2]), d_ax,
+                                   ax == 0 ? inv_d[0] : (ax == 1 ? inv_d[1] : inv_d[2]), i_next,
+                                   ax == 0 ? hx : (ax == 1 ? hy : hz));
+    *ix = ax == 0 ? i_next : *ix;
+    *iy = ax == 1 ? i_next : *iy;
+    *iz = ax == 2 ? i_next : *iz;
+    *tx = ax == 0 ? t_ax : *tx;
+    *ty = ax == 1 ? t_ax : *ty;
+    *tz = ax == 2 ? t_ax : *tz;
+}
+
 #ifndef NRT_PEEL
 #define NRT_PEEL 0
 #endif
@@ -215,15 +235,7 @@ NRT_DEVICE float nrt_tau_to_edge(const NRT_GLOBAL float *density, float sig_b, c
             return tau;
         nrt_idx stride = ax == 0 ? (nrt_idx)1 : (ax == 1 ? stride_y : stride_z);
         idx = up ? idx + stride : idx - stride;
-        float t_ax = nrt_face_distance(ax == 0 ? x[0] : (ax == 1 ? x[1] : x[2]), o_ax,
-                                       ax == 0 ? inv_o[0] : (ax == 1 ? inv_o[1] : inv_o[2]), i_next,
-                                       ax == 0 ? hx : (ax == 1 ? hy : hz));
-        ix = ax == 0 ? i_next : ix;
-        iy = ax == 1 ? i_next : iy;
-        iz = ax == 2 ? i_next : iz;
-        tx = ax == 0 ? t_ax : tx;
-        ty = ax == 1 ? t_ax : ty;
-        tz = ax == 2 ? t_ax : tz;
+        nrt_cross_face(ax, i_next, x, o_ax, inv_o, hx, hy, hz, &ix, &iy, &iz, &tx, &ty, &tz);
     }
 }
 
@@ -455,15 +467,7 @@ NRT_DEVICE void nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, f
             return;
         }
         idx = jdx;
-        float t_ax = nrt_face_distance(ax == 0 ? p0[0] : (ax == 1 ? p0[1] : p0[2]), d_ax,
-                                       ax == 0 ? inv_d[0] : (ax == 1 ? inv_d[1] : inv_d[2]), i_next,
-                                       ax == 0 ? hx : (ax == 1 ? hy : hz));
-        ix = ax == 0 ? i_next : ix;
-        iy = ax == 1 ? i_next : iy;
-        iz = ax == 2 ? i_next : iz;
-        tx = ax == 0 ? t_ax : tx;
-        ty = ax == 1 ? t_ax : ty;
-        tz = ax == 2 ? t_ax : tz;
+        nrt_cross_face(ax, i_next, p0, d_ax, inv_d, hx, hy, hz, &ix, &iy, &iz, &tx, &ty, &tz);
 #if NRT_PREFETCH
         rho = rho_next;
 #else
