@@ -27,6 +27,7 @@ LIGHT_FIELD_PROPERTIES = (
     Property("Albedo", "bands.albedo", enabled_by=("OverrideOptics", 1)),
     Property("G", "bands.g", enabled_by=("OverrideOptics", 1)),
     Property("Estimator", "transport.estimator", widget="enum"),
+    Property("Method", "transport.method", widget="enum"),
     Property("FilterRadius", "transport.filter_radius", enabled_by=("Estimator", 1)),
     Property("MaxScatterings", "transport.max_scatterings"),
     Property("Seed", "transport.seed"),

@@ -48,6 +48,7 @@ typedef long nrt_i64;
 #define NRT_GROUP_FIRST_ID() ((nrt_u64)get_group_id(0) * (nrt_u64)get_local_size(0))
 typedef uchar nrt_u8;
 #define NRT_FLOAT_AS_UINT(x) as_uint(x)
+#define NRT_FREXPF(x, e) frexp((float)(x), (e))
 /* double-precision sqrt, correctly rounded in both languages */
 #define NRT_DSQRT(x) sqrt((double)(x))
 #elif defined(__CUDACC__) || defined(__CUDACC_RTC__)
@@ -74,6 +75,7 @@ typedef long long nrt_i64;
 #define NRT_GROUP_FIRST_ID() ((nrt_u64)blockIdx.x * (nrt_u64)blockDim.x)
 typedef unsigned char nrt_u8;
 #define NRT_FLOAT_AS_UINT(x) __float_as_uint(x)
+#define NRT_FREXPF(x, e) frexpf((x), (e))
 /* (sqrt is mapped to sqrtf below, for the float code) */
 #define NRT_DSQRT(x) __dsqrt_rn((double)(x))
 /* single-precision functions under the OpenCL names, for the float code; double-precision
@@ -88,6 +90,8 @@ typedef unsigned char nrt_u8;
 #define copysign copysignf
 #define fabs fabsf
 #define exp2 exp2f
+#define expm1 expm1f
+#define log1p log1pf
 #else
 #error "nebula_common.h needs OpenCL C or CUDA C"
 #endif

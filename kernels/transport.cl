@@ -79,6 +79,16 @@
 #ifndef NRT_SORTED
 #define NRT_SORTED 0
 #endif
+/* weighted packets with 128-bit cells, images and tallies (transport.method = "biased") */
+#ifndef NRT_BIASED
+#define NRT_BIASED 0
+#endif
+#if NRT_BIASED && (NRT_GROUP_TALLY || NRT_ACC_RED)
+#error "NRT_BIASED takes checked 128-bit adds: no NRT_GROUP_TALLY or NRT_ACC_RED"
+#endif
+/* 64-bit words per accumulator cell and per tally block (5 tallies of 128 bits when biased) */
+#define NRT_CELL_WORDS (NRT_BIASED ? 2 : 1)
+#define NRT_TALLY_WORDS (NRT_BIASED ? 10 : 4)
 /* direction bins of the sort key: 2^NRT_SORT_BITS along mu and along phi, in Morton order */
 #ifndef NRT_SORT_BITS
 #define NRT_SORT_BITS 8
@@ -271,11 +281,11 @@ NRT_DEVICE nrt_u64 nrt_fixed_stochastic(float wgt, float scale, nrt_u64 seed, nr
     return n;
 }
 
-NRT_DEVICE void nrt_peel(const NRT_GLOBAL float *density, float sig_b, float g_b,
-                         const NRT_GLOBAL float *peel, float peel_scale, const float *x,
-                         const float *d, int ix, int iy, int iz, int nx, int ny, int nz,
-                         NRT_GLOBAL nrt_u64 *band_image, NRT_GLOBAL nrt_u32 *overflow,
-                         nrt_u64 seed, int band, nrt_u64 photon, int event)
+/* The peel-off weight phase x exp(-tau) of a scattering at x (incoming direction d) and its
+   pixel; -1 where x projects outside the image. */
+NRT_DEVICE float nrt_peel_weight(const NRT_GLOBAL float *density, float sig_b, float g_b,
+                                 const NRT_GLOBAL float *peel, const float *x, const float *d,
+                                 int ix, int iy, int iz, int nx, int ny, int nz, nrt_u64 *pixel)
 {
     const float o[3] = {peel[0], peel[1], peel[2]};
     float rx = x[0] - peel[9], ry = x[1] - peel[10], rz = x[2] - peel[11];
@@ -284,10 +294,23 @@ NRT_DEVICE void nrt_peel(const NRT_GLOBAL float *density, float sig_b, float g_b
     int pi = (int)floor(a + 0.5f), qi = (int)floor(b + 0.5f);
     int w = (int)peel[13], h = (int)peel[14];
     if (pi < 0 || pi >= w || qi < 0 || qi >= h)
-        return;
+        return -1.0f;
+    *pixel = (nrt_u64)pi * (nrt_u64)h + (nrt_u64)qi;
     float mu = d[0] * o[0] + d[1] * o[1] + d[2] * o[2];
-    float wgt = nrt_hg_phase(g_b, mu) * exp(-nrt_tau_to_edge(density, sig_b, x, o, ix, iy, iz, nx, ny, nz));
-    nrt_acc_add_checked(&band_image[(nrt_u64)pi * (nrt_u64)h + (nrt_u64)qi],
+    return nrt_hg_phase(g_b, mu) * exp(-nrt_tau_to_edge(density, sig_b, x, o, ix, iy, iz, nx, ny, nz));
+}
+
+NRT_DEVICE void nrt_peel(const NRT_GLOBAL float *density, float sig_b, float g_b,
+                         const NRT_GLOBAL float *peel, float peel_scale, const float *x,
+                         const float *d, int ix, int iy, int iz, int nx, int ny, int nz,
+                         NRT_GLOBAL nrt_u64 *band_image, NRT_GLOBAL nrt_u32 *overflow,
+                         nrt_u64 seed, int band, nrt_u64 photon, int event)
+{
+    nrt_u64 pixel;
+    float wgt = nrt_peel_weight(density, sig_b, g_b, peel, x, d, ix, iy, iz, nx, ny, nz, &pixel);
+    if (!(wgt >= 0.0f))
+        return;
+    nrt_acc_add_checked(&band_image[pixel],
                         nrt_fixed_stochastic(wgt, peel_scale, seed, (nrt_u64)band, photon, (nrt_u64)event),
                         overflow);
 }
@@ -476,6 +499,416 @@ NRT_DEVICE void nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, f
     }
 }
 
+#if NRT_BIASED
+/*
+ * Weighted packets (transport.method = "biased") for optically thick dust.
+ *
+ * A packet carries a weight W, an unsigned 128-bit integer in units of 2^-96 of its emitted
+ * energy (NRT_W0 = 2^96), and every change of W is an integer operation whose pieces add back
+ * exactly. Per flight, with tau_p the optical depth from the packet to the box's edge along
+ * its direction:
+ *   - forced scattering: the part W e^-tau_p that would escape is tallied as escaped, the rest
+ *     interacts inside the grid (Cashwell & Everett 1959; SKIRT forces every flight);
+ *   - composite biasing (Baes et al. 2016, A&A 590, A55; SKIRT 9's path-length stretching) of
+ *     the first NRT_STRETCH_FLIGHTS flights: the interaction depth is drawn from
+ *     q = xi p + (1 - xi) / tau_p, p the exponential truncated to [0, tau_p], and W is
+ *     multiplied by p / q (at most 1 / xi); the weight this adds or removes goes to the signed
+ *     "biasing" tally. Later flights sample p itself: p / q has E[(p / q)^2] up to 1 / xi, so
+ *     stretching every flight of a packet that scatters hundreds of times (high albedo, thick
+ *     dust) multiplies the weight's variance by up to 2 per flight; the first flights are the
+ *     ones that carry light deep into the cloud, and at most 2^4 growth keeps every weight far
+ *     below the 2^103 cap (so the cap never clips a weight and biases nothing);
+ *   - the interaction absorbs W (1 - albedo) (tallied as absorbed) and scatters the rest;
+ *   - Russian roulette below NRT_ROULETTE of the packet's reference weight (W0 times the product
+ *     of its p / q factors, so that a packet sent deep by the biasing is not killed for the
+ *     low weight the biasing gave it): it survives with probability W / T at weight T, else
+ *     ends; the weight created or removed goes to the biasing tally.
+ * So emitted = absorbed + escaped + terminated + biasing holds bit for bit per packet, and the
+ * biasing tally's expectation is zero.
+ *
+ * Estimators: the track-length one deposits each flight's expected track length, W e^-tau(s)
+ * integrated over every voxel of the ray to the edge (exact per voxel: e^-tau0 (1 - e^-sigma L)
+ * / sigma), formed on the walk that finds tau_p; the collision one deposits W at every
+ * interaction. The peel-off image uses W after the absorption. Cells, images and tallies are
+ * 128-bit (two 64-bit words, low first) so that weights down to about e^-60 of a packet keep
+ * their relative precision while the sums stay exact integers in any order.
+ */
+#ifndef NRT_BIAS_XI
+#define NRT_BIAS_XI 0.5f
+#endif
+#ifndef NRT_ROULETTE
+#define NRT_ROULETTE 1.0e-4f
+#endif
+#ifndef NRT_STRETCH_FLIGHTS
+#define NRT_STRETCH_FLIGHTS 4
+#endif
+/* a walk stops once the transmission e^-tau is below one weight unit of any packet
+   (W < 2^104: 2^104 e^-90 < 1e-20), so what it leaves out rounds to zero anyway */
+#define NRT_TAU_CUT 90.0f
+#define NRT_W0_HI 4294967296UL         /* W0 = 2^96: high word 2^32 */
+#define NRT_W_CAP_HI 549755813888UL    /* weights are kept below 2^103 (high word 2^39) */
+#define NRT_TWO64_F 18446744073709551616.0f
+#define NRT_TWO_M64_F 5.42101086242752217e-20f
+#define NRT_TWO_M96_F 1.26217744835361888e-29f
+
+typedef struct {
+    nrt_u64 lo, hi;
+} nrt_u128;
+
+NRT_DEVICE nrt_u128 nrt_u128_of(nrt_u64 lo, nrt_u64 hi)
+{
+    nrt_u128 r;
+    r.lo = lo;
+    r.hi = hi;
+    return r;
+}
+
+NRT_DEVICE nrt_u128 nrt_u128_add(nrt_u128 a, nrt_u128 b)
+{
+    nrt_u128 r;
+    r.lo = a.lo + b.lo;
+    r.hi = a.hi + b.hi + (r.lo < a.lo ? 1UL : 0UL);
+    return r;
+}
+
+/* a - b modulo 2^128 (a signed difference as the tallies hold it) */
+NRT_DEVICE nrt_u128 nrt_u128_sub(nrt_u128 a, nrt_u128 b)
+{
+    nrt_u128 r;
+    r.lo = a.lo - b.lo;
+    r.hi = a.hi - b.hi - (a.lo < b.lo ? 1UL : 0UL);
+    return r;
+}
+
+NRT_DEVICE int nrt_u128_less(nrt_u128 a, nrt_u128 b)
+{
+    return a.hi < b.hi || (a.hi == b.hi && a.lo < b.lo);
+}
+
+NRT_DEVICE int nrt_u128_is_zero(nrt_u128 a)
+{
+    return (a.lo | a.hi) == 0;
+}
+
+/* a >> s, s >= 0 */
+NRT_DEVICE nrt_u128 nrt_u128_shr(nrt_u128 a, int s)
+{
+    if (s <= 0)
+        return a;
+    if (s >= 128)
+        return nrt_u128_of(0, 0);
+    if (s >= 64)
+        return nrt_u128_of(a.hi >> (s - 64), 0);
+    return nrt_u128_of((a.lo >> s) | (a.hi << (64 - s)), a.hi >> s);
+}
+
+/* The weight relative to W0, as a float (rounded). */
+NRT_DEVICE float nrt_weight_rel(nrt_u128 w)
+{
+    return ((float)w.hi * NRT_TWO64_F + (float)w.lo) * NRT_TWO_M96_F;
+}
+
+/*
+ * floor(w x) for 0 <= x < 2^24 and w < 2^104, exactly: x = m 2^(e - 24) with m a 24-bit
+ * integer (frexp), so w x = (w m) >> (24 - e) with w m < 2^128. NaN and x <= 0 give 0.
+ */
+NRT_DEVICE nrt_u128 nrt_u128_times(nrt_u128 w, float x)
+{
+    if (!(x > 0.0f))
+        return nrt_u128_of(0, 0);
+    int e;
+    float f = NRT_FREXPF(x, &e);
+    nrt_u64 m = (nrt_u64)(f * 16777216.0f); /* exact: f in [0.5, 1) */
+    nrt_u128 p;
+    p.lo = w.lo * m;
+    p.hi = w.hi * m + NRT_MULHI64(w.lo, m);
+    return nrt_u128_shr(p, 24 - e);
+}
+
+/* floor(x) of a float 0 <= x < 2^128 as a 128-bit integer, exactly (NaN gives 0). */
+NRT_DEVICE nrt_u128 nrt_u128_floor(float x)
+{
+    if (!(x >= 1.0f))
+        return nrt_u128_of(0, 0);
+    if (x < NRT_TWO64_F)
+        return nrt_u128_of((nrt_u64)x, 0);
+    /* x >= 2^64 is a multiple of 2^41: its high and low words are exact floats */
+    float h = floor(x * NRT_TWO_M64_F);
+    return nrt_u128_of((nrt_u64)(x - h * NRT_TWO64_F), (nrt_u64)h);
+}
+
+/* Weight units of a relative weight x >= 0 (x W0), rounded down. */
+NRT_DEVICE nrt_u128 nrt_weight_units(float x)
+{
+    return nrt_u128_times(nrt_u128_of(0, NRT_W0_HI), fmin(x, 128.0f));
+}
+
+/*
+ * Add v to a 128-bit cell (two words, low first) with two 64-bit atomics: the carry out of
+ * the low word goes into the high one, so the cell is the exact sum modulo 2^128 in any order.
+ * checked: raise *overflow once the cell reaches 2^(64 + NRT_ACC_LIMIT_BITS) (every high-word
+ * increment comes through here, so the final high word passes the limit iff some add did).
+ */
+NRT_DEVICE void nrt_add_wide(NRT_GLOBAL nrt_u64 *cell, nrt_u128 v, NRT_GLOBAL nrt_u32 *overflow, int checked)
+{
+    nrt_u64 carry = 0;
+    if (v.lo != 0) {
+        nrt_u64 old = NRT_ATOMIC_ADD_U64(&cell[0], v.lo);
+        carry = (old + v.lo < old) ? 1UL : 0UL;
+    }
+    nrt_u64 h = v.hi + carry;
+    if (h != 0) {
+        nrt_u64 old = NRT_ATOMIC_ADD_U64(&cell[1], h);
+        if (checked && (h >= NRT_ACC_LIMIT || old >= NRT_ACC_LIMIT - h))
+            NRT_ATOMIC_OR_U32(overflow, 1u);
+    }
+}
+
+/* A deposit of x >= 0 units into a 128-bit voxel cell, rounded to nearest. */
+NRT_DEVICE void nrt_deposit_wide(NRT_GLOBAL nrt_u64 *band_acc, nrt_idx idx, float x, NRT_GLOBAL nrt_u32 *overflow)
+{
+    nrt_u128 v = nrt_u128_floor(x + 0.5f);
+    if (!nrt_u128_is_zero(v))
+        nrt_add_wide(band_acc + 2 * (nrt_u64)idx, v, overflow, 1);
+}
+
+/* tally t of a 128-bit tally block (5 tallies: emitted, absorbed, escaped, terminated, biasing) */
+NRT_DEVICE void nrt_count_wide(NRT_GLOBAL nrt_u64 *tally, int t, nrt_u128 w)
+{
+    if (!nrt_u128_is_zero(w))
+        nrt_add_wide(tally + 2 * t, w, 0, 0);
+}
+
+/* A straight ray through the grid, voxel by voxel (the DDA of nrt_trace_packet). */
+typedef struct {
+    float p[3], d[3], inv_d[3];
+    float tx, ty, tz, t_cur;
+    int ix, iy, iz;
+    nrt_idx idx;
+} nrt_ray;
+
+NRT_DEVICE void nrt_ray_start(nrt_ray *r, const float *p, const float *d, int ix, int iy, int iz, int nx, int ny, int nz)
+{
+    for (int k = 0; k < 3; ++k) {
+        r->p[k] = p[k];
+        r->d[k] = d[k];
+        r->inv_d[k] = 1.0f / d[k];
+    }
+    r->ix = ix;
+    r->iy = iy;
+    r->iz = iz;
+    r->t_cur = 0.0f;
+    r->tx = nrt_face_distance(p[0], d[0], r->inv_d[0], ix, 1.0f / (float)nx);
+    r->ty = nrt_face_distance(p[1], d[1], r->inv_d[1], iy, 1.0f / (float)ny);
+    r->tz = nrt_face_distance(p[2], d[2], r->inv_d[2], iz, 1.0f / (float)nz);
+    r->idx = nrt_voxel_index(ix, iy, iz, nx, ny);
+}
+
+/* Length of the ray inside its current voxel. */
+NRT_DEVICE float nrt_ray_segment(const nrt_ray *r)
+{
+    return fmax(0.0f, fmin(r->tx, fmin(r->ty, r->tz)) - r->t_cur);
+}
+
+/* Step into the next voxel; 0 if the ray leaves the box instead. */
+NRT_DEVICE int nrt_ray_advance(nrt_ray *r, int nx, int ny, int nz)
+{
+    float t_next = fmin(r->tx, fmin(r->ty, r->tz));
+    int ax = (r->tx <= r->ty && r->tx <= r->tz) ? 0 : ((r->ty <= r->tz) ? 1 : 2);
+    float d_ax = ax == 0 ? r->d[0] : (ax == 1 ? r->d[1] : r->d[2]);
+    int up = d_ax > 0.0f;
+    int i_next = (ax == 0 ? r->ix : (ax == 1 ? r->iy : r->iz)) + (up ? 1 : -1);
+    if (i_next < 0 || i_next >= (ax == 0 ? nx : (ax == 1 ? ny : nz)))
+        return 0;
+    r->t_cur = fmax(r->t_cur, t_next);
+    nrt_idx stride = ax == 0 ? (nrt_idx)1 : (ax == 1 ? (nrt_idx)nx : (nrt_idx)nx * (nrt_idx)ny);
+    r->idx = up ? r->idx + stride : r->idx - stride;
+    nrt_cross_face(ax, i_next, r->p, d_ax, r->inv_d, 1.0f / (float)nx, 1.0f / (float)ny, 1.0f / (float)nz,
+                   &r->ix, &r->iy, &r->iz, &r->tx, &r->ty, &r->tz);
+    return 1;
+}
+
+/*
+ * The forced flight's first walk, to the box's edge: returns tau_p (stopped past NRT_TAU_CUT)
+ * and, with the track-length estimator, deposits the flight's expected track length
+ * w e^-tau(s) over every voxel it crosses (w: the relative weight; scale: units per box unit).
+ */
+NRT_DEVICE float nrt_forced_walk(const NRT_GLOBAL float *density, float sig_b, const float *p, const float *d,
+                                 int ix, int iy, int iz, int nx, int ny, int nz, float w, float scale,
+                                 NRT_GLOBAL nrt_u64 *band_acc, NRT_GLOBAL nrt_u32 *overflow)
+{
+    nrt_ray r;
+    nrt_ray_start(&r, p, d, ix, iy, iz, nx, ny, nz);
+    float tau = 0.0f, att = w * scale;
+    for (;;) {
+        float seg = nrt_ray_segment(&r);
+        float sigma = sig_b * density[r.idx];
+        float ts = sigma * seg;
+        float em = expm1(-ts); /* e^-ts - 1, accurate for thin voxels */
+#if NRT_TRACK_LENGTH
+        /* integral of e^-tau over the segment: (1 - e^-ts) / sigma, or the length if empty */
+        float len = sigma > 0.0f ? -em / sigma : seg;
+        nrt_deposit_wide(band_acc, r.idx, att * len, overflow);
+#endif
+        att = att + att * em;
+        tau += ts;
+        if (tau > NRT_TAU_CUT || !nrt_ray_advance(&r, nx, ny, nz))
+            return tau;
+    }
+}
+
+/*
+ * The second walk: from p along d until optical depth tau_i is spent; the point and its voxel
+ * go to p, ix, iy, iz. Returns 0 if the ray leaves first (tau_i at the very edge, by rounding).
+ */
+NRT_DEVICE int nrt_walk_to(const NRT_GLOBAL float *density, float sig_b, float *p, const float *d,
+                           int *ix, int *iy, int *iz, int nx, int ny, int nz, float tau_i)
+{
+    nrt_ray r;
+    nrt_ray_start(&r, p, d, *ix, *iy, *iz, nx, ny, nz);
+    for (;;) {
+        float seg = nrt_ray_segment(&r);
+        float sigma = sig_b * density[r.idx];
+        float ts = sigma * seg;
+        if (sigma > 0.0f && ts >= tau_i) {
+            float t = r.t_cur + tau_i / sigma;
+            p[0] = p[0] + d[0] * t;
+            p[1] = p[1] + d[1] * t;
+            p[2] = p[2] + d[2] * t;
+            *ix = r.ix;
+            *iy = r.iy;
+            *iz = r.iz;
+            return 1;
+        }
+        tau_i -= ts;
+        if (!nrt_ray_advance(&r, nx, ny, nz))
+            return 0;
+    }
+}
+
+#if NRT_PEEL
+/* Weighted peel-off (w: relative weight after the absorption) into a 128-bit image. */
+NRT_DEVICE void nrt_peel_wide(const NRT_GLOBAL float *density, float sig_b, float g_b,
+                              const NRT_GLOBAL float *peel, float peel_scale, const float *x,
+                              const float *d, int ix, int iy, int iz, int nx, int ny, int nz,
+                              NRT_GLOBAL nrt_u64 *band_image, NRT_GLOBAL nrt_u32 *overflow,
+                              nrt_u64 seed, int band, nrt_u64 photon, int event, float w)
+{
+    nrt_u64 pixel;
+    float wgt = nrt_peel_weight(density, sig_b, g_b, peel, x, d, ix, iy, iz, nx, ny, nz, &pixel);
+    if (!(wgt >= 0.0f))
+        return; /* outside the image */
+    float xw = NRT_FMAF(wgt * w, peel_scale, 0.0f);
+    nrt_u128 v = xw < 16777216.0f
+        ? nrt_u128_of(nrt_fixed_stochastic(wgt * w, peel_scale, seed, (nrt_u64)band, photon, (nrt_u64)event), 0)
+        : nrt_u128_floor(xw);
+    if (!nrt_u128_is_zero(v))
+        nrt_add_wide(band_image + 2 * pixel, v, overflow, 1);
+}
+#endif
+
+/* Trace one weighted packet (see above); tally: this cell's 5 128-bit tallies. */
+NRT_DEVICE void nrt_trace_packet_biased(const NRT_GLOBAL float *density, float sig_b, float alb_b,
+                                        float g_b, const NRT_GLOBAL float *stars,
+                                        const NRT_GLOBAL float *cdf, int nx, int ny, int nz,
+                                        int n_stars, nrt_u64 seed, int band, nrt_u64 photon,
+                                        int max_scatterings, float track_scale, float collision_scale,
+                                        NRT_GLOBAL nrt_u64 *band_acc, NRT_GLOBAL nrt_u64 *tally,
+                                        NRT_GLOBAL nrt_u32 *overflow, const NRT_GLOBAL float *peel,
+                                        float peel_scale, NRT_GLOBAL nrt_u64 *band_image)
+{
+    nrt_rng rng;
+    nrt_rng_init(&rng, seed, (nrt_u64)band, photon);
+    /* the emitting star and first direction: the same draws as the analog packet */
+    int s = 0;
+    if (n_stars > 1) {
+        float u = nrt_rng_uniform(&rng);
+        while (s < n_stars - 1 && u >= cdf[s])
+            ++s;
+    }
+    float p[3] = {stars[4 * s], stars[4 * s + 1], stars[4 * s + 2]};
+    int ix, iy, iz;
+    nrt_voxel_of(p, nx, ny, nz, &ix, &iy, &iz);
+    float d[3];
+    nrt_sample_isotropic(&rng, d);
+
+    nrt_u128 w = nrt_u128_of(0, NRT_W0_HI);
+    nrt_count_wide(tally, 0, w);
+    nrt_u128 bias = nrt_u128_of(0, 0); /* weight created (wraps negative) or removed by biasing */
+    float ref = 1.0f;                  /* product of the p / q factors: the roulette's reference */
+    int scatterings = 0;
+    for (;;) {
+        float wr = nrt_weight_rel(w);
+        float tau_p = nrt_forced_walk(density, sig_b, p, d, ix, iy, iz, nx, ny, nz, wr, track_scale,
+                                      band_acc, overflow);
+        /* forced scattering: the part that would leave, exactly */
+        nrt_u128 out = (tau_p > 1.0e-30f) ? nrt_u128_times(w, exp(-tau_p)) : w;
+        nrt_count_wide(tally, 2, out);
+        w = nrt_u128_sub(w, out);
+        if (nrt_u128_is_zero(w))
+            break;
+        /* composite biasing of the interaction depth on [0, tau_p] */
+        float tau_c = fmin(tau_p, NRT_TAU_CUT);
+        float reach = -expm1(-tau_c); /* 1 - e^-tau_p */
+        float u1 = nrt_rng_uniform(&rng), u2 = nrt_rng_uniform(&rng);
+        /* (later flights: xi = 1, the truncated exponential itself, f = 1) */
+        float xi = scatterings < NRT_STRETCH_FLIGHTS ? NRT_BIAS_XI : 1.0f;
+        float tau_i = (u1 < xi) ? -log1p(-u2 * reach) : u2 * tau_c;
+        float pdf = exp(-tau_i) / reach;
+        float f = scatterings < NRT_STRETCH_FLIGHTS ? pdf / (xi * pdf + (1.0f - xi) / tau_c) : 1.0f;
+        nrt_u128 wf = f == 1.0f ? w : nrt_u128_times(w, f);
+        if (wf.hi >= NRT_W_CAP_HI) /* a guard only: weights stay below 2^4 W0 */
+            wf = nrt_u128_of(0, NRT_W_CAP_HI - 1UL);
+        bias = nrt_u128_add(bias, nrt_u128_sub(w, wf));
+        w = wf;
+        ref = fmin(ref * f, 128.0f);
+        if (nrt_u128_is_zero(w))
+            break;
+        if (!nrt_walk_to(density, sig_b, p, d, &ix, &iy, &iz, nx, ny, nz, tau_i)) {
+            nrt_count_wide(tally, 2, w); /* rounding put the point past the edge */
+            break;
+        }
+        nrt_idx idx = nrt_voxel_index(ix, iy, iz, nx, ny);
+#if NRT_COLLISION
+        nrt_deposit_wide(band_acc, idx, nrt_weight_rel(w) * collision_scale, overflow);
+#endif
+        (void)idx;
+        nrt_u128 absorbed = nrt_u128_times(w, 1.0f - alb_b);
+        nrt_count_wide(tally, 1, absorbed);
+        w = nrt_u128_sub(w, absorbed);
+        if (nrt_u128_is_zero(w))
+            break;
+        if (scatterings >= max_scatterings) {
+            nrt_count_wide(tally, 3, w);
+            w = nrt_u128_of(0, 0);
+            break;
+        }
+        ++scatterings;
+#if NRT_PEEL
+        nrt_peel_wide(density, sig_b, g_b, peel, peel_scale, p, d, ix, iy, iz, nx, ny, nz, band_image,
+                      overflow, seed, band, photon, scatterings, nrt_weight_rel(w));
+#endif
+        float mu, sin_theta;
+        nrt_sample_hg(g_b, nrt_rng_uniform(&rng), &mu, &sin_theta);
+        nrt_rotate(d, mu, sin_theta, 2.0f * NRT_PI_F * nrt_rng_uniform(&rng));
+        /* Russian roulette below NRT_ROULETTE of the reference weight */
+        nrt_u128 t = nrt_weight_units(NRT_ROULETTE * ref);
+        if (nrt_u128_less(w, t)) {
+            float u = nrt_rng_uniform(&rng);
+            if (u * nrt_weight_rel(t) < nrt_weight_rel(w)) {
+                bias = nrt_u128_add(bias, nrt_u128_sub(w, t));
+                w = t;
+            } else {
+                bias = nrt_u128_add(bias, w);
+                w = nrt_u128_of(0, 0);
+                break;
+            }
+        }
+    }
+    nrt_count_wide(tally, 4, bias);
+}
+#endif /* NRT_BIASED */
+
 /*
  * Batch index of a packet in a plan of n_batches batches whose sizes differ by at most one:
  * the first `extra` batches hold base + 1 packets, the others base.
@@ -551,6 +984,13 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
         nrt_u64 photon = photon_start + t % count;
         nrt_u64 slot = nrt_batch_of(photon, batch_base, batch_extra) - first_batch;
         nrt_u64 cell = slot * (nrt_u64)n_lbands + (nrt_u64)lband;
+#if NRT_BIASED
+        nrt_trace_packet_biased(density, optics[4 * band], optics[4 * band + 1], optics[4 * band + 2], stars,
+                                star_cdf + band * n_stars, nx, ny, nz, n_stars, seed, band, photon,
+                                max_scatterings, track_scale, prm->collision_scale, acc + 2 * cell * nvox,
+                                tallies + NRT_TALLY_WORDS * cell, overflow + slot, peel, peel_scale,
+                                image + 2 * cell * pixels);
+#else
         sink.tally = tallies + 4 * cell;
         sink.home = NRT_GROUP_TALLY && cell == home_cell;
 #if NRT_GROUP_TALLY
@@ -563,6 +1003,7 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
                          star_cdf + band * n_stars, nx, ny, nz, n_stars, seed, band, photon,
                          max_scatterings, track_scale, acc + cell * nvox, &sink,
                          overflow + slot, peel, peel_scale, image + cell * pixels);
+#endif
     }
 #if NRT_GROUP_TALLY
     /* the group's local sums go to global memory once */
@@ -639,6 +1080,10 @@ NRT_KERNEL void emission_keys(const NRT_GLOBAL nrt_trace_params *prm,
    stays normal. */
 #define NRT_M2_DOWN 5.42101086242752217e-20 /* 2^-64 */
 #define NRT_M2_UP 18446744073709551616.0    /* 2^64 */
+/* 128-bit totals are folded times 2^-32 (exact), so the statistics keep the 64-bit layout:
+   squares of totals up to the 2^127 limit stay within float32 x 2^64, and a deposit of 2^16
+   units (weights near 2^-72 of a packet) still gives a normal float32 square */
+#define NRT_FOLD_SCALE 2.3283064365386963e-10 /* 2^-32 */
 
 /*
  * Fold the batch slots 0..n_slots-1 of the accumulator, in batch order, into per-cell running
@@ -666,10 +1111,17 @@ NRT_KERNEL void fold_batches(NRT_GLOBAL nrt_u64 *acc, NRT_GLOBAL double *sum1, N
     int past = 0, changed = 0;
     for (int g = 0; g < n_slots; ++g) {
         nrt_u64 i = (nrt_u64)g * n + gid;
+#if NRT_BIASED
+        /* a 128-bit cell: low word, high word */
+        nrt_u64 a = acc[2 * i] | acc[2 * i + 1];
+        past |= acc[2 * i + 1] >= NRT_ACC_LIMIT;
+        double x = ((double)acc[2 * i + 1] * 18446744073709551616.0 + (double)acc[2 * i]) * NRT_FOLD_SCALE;
+#else
         nrt_u64 a = acc[i];
         past |= a >= NRT_ACC_LIMIT;
+        double x = (double)a;
+#endif
         if (!overflow[g]) {
-            double x = (double)a;
             if (k > 0.0) {
                 double mean_old = s1 / k;
                 s1 += x;
@@ -683,7 +1135,12 @@ NRT_KERNEL void fold_batches(NRT_GLOBAL nrt_u64 *acc, NRT_GLOBAL double *sum1, N
             k += 1.0;
         }
         if (a != 0) {
+#if NRT_BIASED
+            acc[2 * i] = 0;
+            acc[2 * i + 1] = 0;
+#else
             acc[i] = 0;
+#endif
             changed = 1;
         }
     }

@@ -49,20 +49,23 @@ def _ranks(tmp_path, n, *extra):
 
 
 @pytest.mark.parametrize("case", [("track-length", "plain"), ("collision-filter", "plain"),
-                                  ("track-length", "checked"), ("track-length", "checked+copied")],
+                                  ("track-length", "checked"), ("track-length", "checked+copied"),
+                                  ("track-length", "biased+checked"), ("collision-filter", "biased+copied")],
                          ids="-".join)
 def test_trace_is_the_same_bits_on_1_2_3_ranks(tmp_path, case):
     """Sums, centred squares, packet counts, peel-off image and batches per band: identical
     bytes on 1, 2 and 3 ranks (two bands, two stars, 9001 packets in batches of 1500, several
     batches per launch; 'checked': headroom 2^36, so batches overflow and are re-traced;
     '+copied': the slots summed in a host copy, the path of GPUs, instead of in PoCL's mapped
-    device memory)."""
+    device memory; 'biased': weighted packets, whose 128-bit cells, images and tallies the
+    ranks add limb by limb)."""
     estimator, mode = case
     runs = {n: _ranks(tmp_path, n, estimator, mode, TEST_DEVICE) for n in (1, 2, 3)}
     one = runs[1]
     assert int(one["size"]) == 1 and int(runs[3]["size"]) == 3
-    assert one["counts"][:, 0].tolist() == [9001, 9001]
-    if mode.startswith("checked"):
+    unit = 2**96 if "biased" in mode else 1  # weight units per packet
+    assert [int(x) for x in one["counts"][:, 0]] == [9001 * unit, 9001 * unit]
+    if "checked" in mode:
         assert one["band_batches"].min() > 7  # the overflow happened and batches were split
     for n in (2, 3):
         for key in ("raw_sum", "raw_m2", "counts", "peel", "band_batches"):

@@ -67,7 +67,7 @@ def chord(p, d):
     return np.nanmax(np.minimum(a, b), axis=-1), np.nanmin(np.maximum(a, b), axis=-1)
 
 
-def single_scattering_image(sub: int, nodes: int, g: float = G) -> np.ndarray:
+def single_scattering_image(sub: int, nodes: int, g: float = G, kappa: float = KAPPA) -> np.ndarray:
     """The expected peel-off image (W, H), luminosity per box-unit area per steradian."""
     d, u, v = CAMERA.basis()
     w, h = CAMERA.size
@@ -86,9 +86,9 @@ def single_scattering_image(sub: int, nodes: int, g: float = G) -> np.ndarray:
     mu = (ray / r[..., None]) @ TO_OBSERVER
     phase = (1 - g * g) / (4 * math.pi * (1 + g * g - 2 * g * mu) ** 1.5)
     lam0, lam1 = chord(STAR, ray)  # the star's ray reaches x at lambda = 1
-    tau_in = KAPPA * r * np.clip(np.minimum(lam1, 1.0) - np.maximum(lam0, 0.0), 0.0, None)
-    tau_out = KAPPA * (s - s0[..., None])
-    f = OMEGA * KAPPA * L * np.exp(-tau_in - tau_out) / (4 * math.pi * r * r) * phase
+    tau_in = kappa * r * np.clip(np.minimum(lam1, 1.0) - np.maximum(lam0, 0.0), 0.0, None)
+    tau_out = kappa * (s - s0[..., None])
+    f = OMEGA * kappa * L * np.exp(-tau_in - tau_out) / (4 * math.pi * r * r) * phase
     line = (f * wg).sum(axis=-1) * 0.5 * (s1 - s0)
     return np.where(hit, line, 0.0).mean(axis=(2, 3))
 

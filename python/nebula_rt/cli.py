@@ -185,7 +185,7 @@ def _render(args, cancel) -> int:
         "timings_s": {k: round(v, 3) for k, v in light.timings.items()},
         "peak_device_mib": round(light.memory.get("device_peak_bytes", 0) / 2**20, 1),
         "peak_host_rss_mib": round(light.memory.get("host_peak_rss_bytes", 0) / 2**20, 1),
-        "escaped_fraction": {b.name: float(tr.counts[i, 2] / tr.photons) for i, b in enumerate(light.bands)},
+        "escaped_fraction": {b.name: float(tr.counts[i, 2] / tr.counts[i, 0]) for i, b in enumerate(light.bands)},
         # packets stopped at transport.max_scatterings: their light is missing from J
         "terminated_fraction": {b.name: float(f) for b, f in zip(light.bands, tr.terminated_fraction)},
     }

@@ -32,6 +32,7 @@ TRACE_PARAMS = (
     ("max_scatterings", "i32", 1, "a packet is terminated past this many scatterings"),
     ("track_scale", "f32", 1, "fixed-point track units per box unit of path"),
     ("peel_scale", "f32", 1, "fixed-point peel-off units per 1/sr"),
+    ("collision_scale", "f32", 1, "fixed-point units per collision of a packet of weight 1"),
     ("peel", "f32", 15, "peel-off camera: direction to the observer, u, v, centre of pixel (0, 0), "
                         "pixel size, W, H (box units)"),
 )

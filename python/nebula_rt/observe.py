@@ -339,7 +339,7 @@ def observe_scene(scene, direction=(0.0, 0.0, -1.0), size: int = 128, edges=None
     photons, target = t.effective()
     rho = generate_density(scene, backend)
     res = trace(rho, bands, scene.stars, tau=scene.dust.tau, photons=photons,
-                estimator=t.estimator, max_scatterings=t.max_scatterings, seed=t.seed,
+                estimator=t.estimator, method=t.method, max_scatterings=t.max_scatterings, seed=t.seed,
                 batch_size=t.batch_size, backend=backend, target_error=target, time_limit=t.time_limit,
                 progress=progress, cancel=cancel, peel=cam, peel_bins=labels)
     sigma = np.array([scene.dust.tau * b.extinction for b in bands])[:, None, None, None] * \

@@ -313,8 +313,12 @@ class LightFieldData(ContractData):
     energy: Optional[np.ndarray] = _field(
         "float64", "energies (n_bands, 4): emitted = absorbed + escaped + terminated bit for bit",
         key="{tally}_{band}")
-    packets: Optional[np.ndarray] = _field("int64", "packet counts (n_bands, 4) behind the energies",
-                                           key="packets_{tally}_{band}")
+    packets: Optional[np.ndarray] = _field("int64", "packet counts (n_bands, 4) behind the energies "
+                                           "(analog transport)", key="packets_{tally}_{band}", optional=True)
+    biasing_energy: Optional[np.ndarray] = _field(
+        "float64", "biased transport: energy its roulette and path-length biasing removed (negative: "
+        "added), zero in expectation; emitted = absorbed + escaped + terminated + biasing",
+        key="biasing_{band}", optional=True)
     absorbed_fraction: Optional[np.ndarray] = _field(
         "float64", "absorbed packets / emitted packets, per band in band order", array=True)
     escaped_fraction: Optional[np.ndarray] = _field(
@@ -331,6 +335,7 @@ class LightFieldData(ContractData):
     batches: Optional[int] = _field("int64", "batches per band (the unit of the error estimate)")
     transport_ranks: Optional[int] = _field("int64", "processes that traced together")
     estimator: Optional[str] = _field("str", "transport.estimator")
+    transport_method: Optional[str] = _field("str", "transport.method", optional=True)
     device: Optional[str] = _field("str", "the compute device")
     exposure: Optional[float] = _field("float64", "exposure of rgba (NaN: no colour stage ran)")
     colour_temperature: Optional[float] = _field("float64", "temperature (K) of the most luminous star "

@@ -195,6 +195,30 @@ def sum_checked(comm, parts, rows: int, limit_bits: int) -> np.ndarray:
     return past
 
 
+def sum_wide(comm, buf) -> np.ndarray:
+    """Sum the ranks' 128-bit integers in place, exactly (modulo 2^128).
+
+    ``buf`` is a contiguous uint64 array of (low, high) word pairs. Each number is summed as
+    four 32-bit limbs (no limb sum can wrap for fewer than 2^32 ranks) and the carries are
+    propagated afterwards. Returns the high words of the sums, saturated to 2^64 - 1 where a
+    sum passed 2^128, for a caller to compare with a headroom limit.
+    """
+    pairs = buf.reshape(-1, 2)
+    lo, hi = pairs[:, 0].copy(), pairs[:, 1].copy()
+    limbs = [lo & _LOW32, lo >> np.uint64(32), hi & _LOW32, hi >> np.uint64(32)]
+    for limb in limbs:
+        comm.sum_u64(limb)
+    carry = np.zeros_like(lo)
+    words = []
+    for limb in limbs:
+        t = limb + carry
+        words.append(t & _LOW32)
+        carry = t >> np.uint64(32)
+    pairs[:, 0] = words[0] | (words[1] << np.uint64(32))
+    pairs[:, 1] = words[2] | (words[3] << np.uint64(32))
+    return np.where(carry > 0, np.uint64(0xFFFFFFFFFFFFFFFF), pairs[:, 1])
+
+
 def share(start: int, count: int, comm) -> tuple[int, int]:
     """The packets [first, first + n) of ``[start, start + count)`` that rank ``comm.rank``
     traces: contiguous, disjoint, covering the range, in rank order."""

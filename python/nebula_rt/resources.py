@@ -81,7 +81,8 @@ def estimate(scene, backend, peel_pixels: int = 0) -> Estimate:
     nb = len(scene.bands.resolve())
     ncell = nb * nvox
     photons, target = t.effective()
-    launches = plan_launches(photons, t.batch_size, target > 0, shape, nb, backend)
+    cell = 16 if t.method == "biased" else 8  # 128-bit cells for weighted packets
+    launches = plan_launches(photons, t.batch_size, target > 0, shape, nb, backend, cell)
     per_launch, slots = launches.bands_per_launch, launches.slots
     slot_cells = per_launch * nvox
     colour = nb > 1
@@ -98,10 +99,10 @@ def estimate(scene, backend, peel_pixels: int = 0) -> Estimate:
     # the finishing's outputs or the filter's work arrays, whichever is larger
     tracing = {
         "density": 4 * nvox,
-        "batch slots": 8 * slot_cells * slots,
+        "batch slots": cell * slot_cells * slots,
         "running sums": 12 * ncell,
-        "peel-off images": 8 * slots * per_launch * int(peel_pixels),
-        "tallies and parameters": 36 * per_launch * slots + 4096,
+        "peel-off images": cell * slots * per_launch * int(peel_pixels),
+        "tallies and parameters": (84 if cell == 16 else 36) * per_launch * slots + 4096,
         # error-targeted runs: a brightness key per voxel and partial sums per 256 voxels
         "error checks": (4 * nvox + 16 * (nvox // 256 + 1)) if target > 0 else 0,
     }

@@ -58,6 +58,8 @@ Vec3 = Tuple[float, float, float]
 
 DUST_MODELS = ("turbulence", "uniform", "file")
 ESTIMATORS = ("track-length", "collision-filter")
+#: transport.method: analog packets, or weighted ones for optically thick dust
+METHODS = ("analog", "biased")
 BACKENDS = ("auto", "opencl", "cuda")
 WHITE_POINTS = ("D65", "E", "star")
 MAX_PHOTONS = 2**53
@@ -215,6 +217,13 @@ class Transport:
         doc="Estimator of the mean intensity J per voxel. track-length: every packet's path through a "
             "voxel scores there (low noise); collision-filter: the thesis's estimator, collisions "
             "spread over filter_radius")
+    method: str = param(
+        "analog", type="str", choices=METHODS, label="Transport Method", group=G_TRANSPORT,
+        doc="How packets are traced. analog: every packet is one unit of energy, absorbed or "
+            "scattered with probability albedo (thin and moderate dust); biased: weighted packets "
+            "with forced scattering, composite path-length biasing and Russian roulette, so light "
+            "behind optically thick dust (tau of tens and more) is sampled at all "
+            "(docs/physics.md)")
     filter_radius: float = param(
         0.02, type="float", lo=0.0, lo_open=True, unit="box units", label="Filter Radius", group=G_TRANSPORT,
         doc="Radius of the collision filter (collision-filter only)")
@@ -516,6 +525,7 @@ TRANSPORT_RULES: Dict[str, _Rule] = {
         _to_int, "must be an integer in [1, 2**53]", lambda v: 1 <= v <= MAX_PHOTONS
     ),
     "estimator": _Rule(_to_str, _one_of(ESTIMATORS), lambda v: v in ESTIMATORS),
+    "method": _Rule(_to_str, _one_of(METHODS), lambda v: v in METHODS),
     "filter_radius": _Rule(_to_float, "must be a finite number > 0 (box units)", _finite_pos),
     "max_scatterings": _Rule(_to_int, f"must be an integer in [0, {INT32_MAX}] (int32 on the device)",
                              lambda v: 0 <= v <= INT32_MAX),

@@ -44,7 +44,8 @@ import numpy as np
 from . import colour_convert, limits
 from .array_api import array_module
 from .backends import Backend, TransportSetup
-from .errors import AccumulatorOverflowError, CancelledError, NebulaWarning, TimeLimitError
+from .scene import METHODS as _scene_methods
+from .errors import AccumulatorOverflowError, CancelledError, NebulaWarning, SceneError, TimeLimitError
 from .postprocess import DeviceSums
 
 #: Default largest batch (packets per band): larger batches fold less often; launches last at
@@ -61,6 +62,21 @@ MIN_BATCHES = 16
 FIXED_POINT_BITS = 32
 
 TALLY_NAMES = ("emitted", "absorbed", "escaped", "terminated")
+#: Weighted packets add a fifth tally: the weight the biasing game (composite biasing, Russian
+#: roulette) removed, signed (negative where it added weight), zero in expectation; then
+#: emitted = absorbed + escaped + terminated + biasing, bit for bit.
+BIASED_TALLY_NAMES = TALLY_NAMES + ("biasing",)
+
+#: How packets are traced (``transport.method``, declared in the scene schema): analog (every
+#: packet one unit, absorbed or scattered with probability albedo) or biased (weighted packets,
+#: kernels/transport.cl).
+METHODS = _scene_methods
+#: Weighted packets: weight units per packet (the tallies of a biased run are in these), and
+#: the extra resolution of their 128-bit cells over the analog 64-bit ones (2^56: a packet of
+#: weight 1 crossing one voxel deposits 2^88 units, so weights down to about 2^-80 of a
+#: packet keep 8 bits, and a cell holds 2^31 full crossings per batch below 2^127).
+WEIGHT_UNIT = 2.0**96
+WIDE_SCALE = 2.0**56
 
 
 @dataclass
@@ -74,7 +90,9 @@ class TransportResult:
     rel_error : ndarray, float64, (n_bands, nx, ny, nz)
         Batch-means relative standard error of J (1.0 where nothing was tallied).
     counts : ndarray, int64, (n_bands, 4)
-        Packets emitted, absorbed, escaped, terminated.
+        Packets emitted, absorbed, escaped, terminated. Biased runs: exact Python integers,
+        (n_bands, 5), weight sums in units of 1 / ``weight_unit`` packet with the signed
+        biasing tally last (:data:`BIASED_TALLY_NAMES`).
     packet_energy : ndarray, float64, (n_bands,)
         Energy q_b of one packet.
     band_luminosity : ndarray, float64, (n_bands,)
@@ -144,11 +162,14 @@ class TransportResult:
     device: str = ""
     ranks: int = 1  # processes that traced it together (nebula_rt.parallel)
     timings: dict = field(default_factory=dict)
+    method: str = "analog"
+    weight_unit: float = 1.0  # count units per packet (WEIGHT_UNIT for biased runs)
 
     @property
     def energy(self) -> np.ndarray:
-        """Energies (n_bands, 4) = counts * packet energy, exact in float64."""
-        return self.counts.astype(np.float64) * self.packet_energy[:, None]
+        """Energies (n_bands, 4, or 5 when biased) = counts * packet energy (exact in float64
+        for analog runs)."""
+        return self.counts.astype(np.float64) / self.weight_unit * self.packet_energy[:, None]
 
     @property
     def terminated_fraction(self) -> np.ndarray:
@@ -351,14 +372,15 @@ class LaunchPlan:
         return [(b, min(k, self.n_bands - b)) for b in range(0, self.n_bands, k)]
 
 
-def plan_launches(photons: int, batch_size: int, targeted: bool, shape, n_bands: int, backend) -> LaunchPlan:
+def plan_launches(photons: int, batch_size: int, targeted: bool, shape, n_bands: int, backend,
+                  cell_bytes: int = 8) -> LaunchPlan:
     """The :class:`LaunchPlan` of a run of ``photons`` packets per band on a grid of ``shape``
     (checks the batch count against the limits first)."""
     nvox = int(np.prod([int(n) for n in shape]))
     size = planned_batch_size(photons, batch_size, targeted, nvox)
     limits.check_batch_count(batch_count(photons, size, nvox), size)
     plan = batch_plan(photons, size, nvox)
-    per_launch, slots = backend.launch_plan(nvox, n_bands, plan.base + 1, len(plan))
+    per_launch, slots = backend.launch_plan(nvox, n_bands, plan.base + 1, len(plan), cell_bytes)
     return LaunchPlan(plan, size, per_launch, slots, int(n_bands))
 
 
@@ -553,14 +575,14 @@ def light_from_sums(s1, s2, batches, estimator: str, j_scale, sigma_scale, densi
 
 
 def _current_error(backend, sums, shape, folded, estimator, band_lum, photons, track_scale, nvox_inv,
-                   sigma_scale, albedo) -> float:
+                   sigma_scale, albedo, collision_scale=1.0) -> float:
     """The lit-region error of the batches folded so far, on the device
     (:func:`nebula_rt.postprocess.lit_region_error_on_device`): ``sums`` the (sum, centred
     squares, density) device arrays of the session or of the DeviceSums."""
     from .postprocess import lit_region_error_on_device
 
     q = np.array([exact_packet_energy(L, photons) for L in band_lum])
-    params = np.stack([_j_scale(q, estimator, track_scale, nvox_inv), sigma_scale, albedo], axis=1)
+    params = np.stack([_j_scale(q, estimator, track_scale, nvox_inv, collision_scale), sigma_scale, albedo], axis=1)
     s1, m2, rho = sums
     return lit_region_error_on_device(backend, s1, m2, rho, shape, params, folded,
                                       estimator != "track-length", LIT_FRACTION, LIT_PERCENTILE)
@@ -583,11 +605,11 @@ def _no_wrap(packets_per_batch: int, max_scatterings: int, estimator: str, track
     return packets_per_batch * (max_scatterings + 1) * per_deposit < 2.0**64
 
 
-def _j_scale(q, estimator: str, track_scale: float, nvox_inv: float):
-    """J per unit of the sums: per fixed-point track unit, or per collision count / sigma."""
+def _j_scale(q, estimator: str, track_scale: float, nvox_inv: float, collision_scale: float = 1.0):
+    """J per unit of the sums: per fixed-point track unit, or per collision unit / sigma."""
     if estimator == "track-length":
         return q / (track_scale * 4.0 * np.pi * nvox_inv)
-    return q / (4.0 * np.pi * nvox_inv)
+    return q / (collision_scale * 4.0 * np.pi * nvox_inv)
 
 
 #: A launch lasts at most about this long (sized by the speed measured on the run's earlier
@@ -772,7 +794,7 @@ class Tallies:
 def plan_transport(density, bands, stars, *, tau: float, photons: int, estimator: str = "track-length",
                    max_scatterings: int = 1000, seed: int = 1, batch_size: int = 0, backend: Backend,
                    target_error: float = 0.0, time_limit: float = 0.0, peel=None, peel_bins=None,
-                   checked_adds: bool = False, _acc_limit_bits: int = 63) -> TransportPlan:
+                   checked_adds: bool = False, _acc_limit_bits: int = 63, method: str = "analog") -> TransportPlan:
     """The first stage: check every input against what the device can represent, then resolve
     the run (see :func:`trace` for the parameters; ``checked_adds`` checks every deposit for
     the headroom as it is added)."""
@@ -781,6 +803,9 @@ def plan_transport(density, bands, stars, *, tau: float, photons: int, estimator
     wl = np.array([b.wavelength for b in bands], dtype=np.float64)
     slum = star_band_luminosities(stars, wl)
     band_lum = slum.sum(axis=0)
+    if method not in METHODS:
+        raise SceneError("transport.method", method, " or ".join(f'"{m}"' for m in METHODS))
+    biased = method == "biased"
     track_scale = float(2.0**FIXED_POINT_BITS * max(shape))
     # what the device forms from these inputs must fit float32/int32: checked before any work
     limits.check_transport(density, bands, stars, slum, tau=tau, photons=photons, max_scatterings=max_scatterings,
@@ -790,7 +815,8 @@ def plan_transport(density, bands, stars, *, tau: float, photons: int, estimator
     cdf[-1, :] = 1.0
     sigma_scale = np.array([tau * b.extinction for b in bands], dtype=np.float64)
     albedo = np.array([b.albedo for b in bands], dtype=np.float64)
-    launches = plan_launches(photons, batch_size, target_error > 0.0, shape, len(bands), backend)
+    launches = plan_launches(photons, batch_size, target_error > 0.0, shape, len(bands), backend,
+                             16 if biased else 8)
     base = launches.batches.base
     setup = TransportSetup(
         density=density,
@@ -802,12 +828,16 @@ def plan_transport(density, bands, stars, *, tau: float, photons: int, estimator
         estimator=estimator,
         max_scatterings=int(max_scatterings),
         seed=int(seed),
-        track_scale=track_scale,
+        track_scale=track_scale * (WIDE_SCALE if biased else 1.0),
         acc_limit_bits=int(_acc_limit_bits),
-        unchecked_adds=(not checked_adds) and _no_wrap(base + 1, max_scatterings, estimator, track_scale, shape),
+        unchecked_adds=(not biased and not checked_adds
+                        and _no_wrap(base + 1, max_scatterings, estimator, track_scale, shape)),
+        biased=biased,
+        collision_scale=float(2.0**FIXED_POINT_BITS * WIDE_SCALE) if biased else 1.0,
     )
     if peel is not None:
-        setup = dataclasses.replace(setup, peel=_peel_camera(peel), peel_scale=_peel_scale([b.g for b in bands]))
+        setup = dataclasses.replace(setup, peel=_peel_camera(peel),
+                                    peel_scale=_peel_scale([b.g for b in bands]) * (WIDE_SCALE if biased else 1.0))
     return TransportPlan(setup=setup, launches=launches, photons=int(photons),
                          band_names=tuple(b.name for b in bands), band_luminosity=band_lum,
                          star_band_luminosity=slum, sigma_scale=sigma_scale, albedo=albedo,
@@ -840,7 +870,8 @@ def run_transport(plan: TransportPlan, backend: Backend, *, progress=None, cance
     targeted = plan.target_error > 0.0
     track_scale = setup.track_scale
     peel_sums = None if plan.peel is None else _PeelSums(nb, plan.peel.size, plan.peel_bins)
-    counts = np.zeros((nb, 4), dtype=object)  # python ints: exact whatever the photon count
+    # python ints: exact whatever the photon count (and 128-bit weight sums)
+    counts = np.zeros((nb, len(BIASED_TALLY_NAMES) if setup.biased else 4), dtype=object)
     session = backend.transport_session(setup, slots, launches.bands_per_launch)
     out = Tallies(session=session, counts=np.zeros((nb, 4), np.int64), folded=np.zeros(nb, np.int64),
                   band_done=np.zeros(nb, np.int64), peel_sums=peel_sums, device_bytes=session.device_bytes(),
@@ -887,7 +918,7 @@ def run_transport(plan: TransportPlan, backend: Backend, *, progress=None, cance
             if images is not None:
                 peel_sums.add(images[k], b0)
             folded[b0:b0 + nlb] += 1
-            counts[b0:b0 + nlb] += tallies[k].astype(object)
+            counts[b0:b0 + nlb] += session.counts_of(tallies[k])
             band_done[b0:b0 + nlb] += b_count
 
     def fold_group(group, n, tallies, overflow, ranges):
@@ -932,8 +963,10 @@ def run_transport(plan: TransportPlan, backend: Backend, *, progress=None, cance
                 break
             if targeted and int(folded.min()) >= MIN_BATCHES and done >= next_check:
                 out.achieved_error = _current_error(backend, session.device_arrays(), shape, folded,
-                                                    plan.estimator, plan.band_luminosity, done, track_scale,
-                                                    plan.nvox_inv, plan.sigma_scale, plan.albedo)
+                                                    plan.estimator, plan.band_luminosity, done,
+                                                    track_scale * setup.fold_scale, plan.nvox_inv,
+                                                    plan.sigma_scale, plan.albedo,
+                                                    setup.collision_scale * setup.fold_scale)
                 if out.achieved_error <= plan.target_error:
                     break
                 # the error falls as 1/sqrt(N): check again near where it should reach the
@@ -966,7 +999,7 @@ def run_transport(plan: TransportPlan, backend: Backend, *, progress=None, cance
     except BaseException:
         session.close()
         raise
-    out.counts = np.array(counts.tolist(), dtype=np.int64)
+    out.counts = counts if setup.biased else np.array(counts.tolist(), dtype=np.int64)
     out.kernel_s = launcher.kernel_s
     return out
 
@@ -980,7 +1013,8 @@ def estimate_light(plan: TransportPlan, tallies: Tallies, backend: Backend, *, o
     photons = tallies.photons
     # per band: a band whose overflowed batch the time limit left unfinished has fewer
     q = np.array([exact_packet_energy(L, int(n)) for L, n in zip(plan.band_luminosity, band_done)])
-    j_scale = _j_scale(q, estimator, plan.setup.track_scale, plan.nvox_inv)
+    fs = plan.setup.fold_scale  # statistics units per cell unit
+    j_scale = _j_scale(q, estimator, plan.setup.track_scale * fs, plan.nvox_inv, plan.setup.collision_scale * fs)
     peel_image = peel_error = peel_groups = None
     if plan.peel is not None:  # packet energy x (phase x attenuation) per pixel area
         peel_image, peel_error, peel_groups = tallies.peel_sums.finish(
@@ -988,7 +1022,8 @@ def estimate_light(plan: TransportPlan, tallies: Tallies, backend: Backend, *, o
     achieved = float("nan")
     if plan.target_error > 0.0:
         achieved = _current_error(backend, session.device_arrays(), shape, folded, estimator, plan.band_luminosity,
-                                  photons, plan.setup.track_scale, plan.nvox_inv, plan.sigma_scale, plan.albedo)
+                                  photons, plan.setup.track_scale * fs, plan.nvox_inv, plan.sigma_scale,
+                                  plan.albedo, plan.setup.collision_scale * fs)
         # the stopping rule uses the statistical error alone (more packets do not shrink the
         # bias); the error reported adds the terminated packets' bias bound
         achieved = math.hypot(achieved, float(np.max(terminated_bias(tallies.counts))))
@@ -1024,6 +1059,8 @@ def estimate_light(plan: TransportPlan, tallies: Tallies, backend: Backend, *, o
         peel_bin_batches=peel_groups,
         device=backend.device_name,
         timings={"setup_s": tallies.setup_s, "kernel_s": tallies.kernel_s, "reduce_s": tallies.reduce_s},
+        method="biased" if plan.setup.biased else "analog",
+        weight_unit=WEIGHT_UNIT if plan.setup.biased else 1.0,
     )
 
 
@@ -1049,6 +1086,7 @@ def trace(
     peel_bins=None,
     comm=None,
     _checked_adds: bool = False,
+    method: str = "analog",
 ) -> TransportResult:
     """Trace ``photons`` packets per band through ``density`` and estimate J.
 
@@ -1101,11 +1139,14 @@ def trace(
         Trace with several processes (:func:`nebula_rt.parallel.world` under ``mpiexec``):
         every rank calls ``trace`` with the same arguments, traces a share of the packets, and
         gets the one-rank result, bit for bit.
+    method : {"analog", "biased"}
+        Analog packets, or weighted ones for optically thick dust (forced scattering,
+        composite path-length biasing, Russian roulette; kernels/transport.cl, docs/physics.md).
     """
     t0 = time.perf_counter()
     kw = dict(tau=tau, photons=photons, estimator=estimator, max_scatterings=max_scatterings, seed=seed,
               batch_size=batch_size, backend=backend, target_error=target_error, time_limit=time_limit,
-              peel=peel, peel_bins=peel_bins, _acc_limit_bits=_acc_limit_bits)
+              peel=peel, peel_bins=peel_bins, _acc_limit_bits=_acc_limit_bits, method=method)
     plan = plan_transport(density, bands, stars, checked_adds=_checked_adds, **kw)
     tallies = run_transport(plan, backend, progress=progress, cancel=cancel, started=t0, comm=comm)
     try:

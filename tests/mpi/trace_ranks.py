@@ -3,9 +3,9 @@
 
     mpiexec -n N python tests/mpi/trace_ranks.py OUT.npz ESTIMATOR MODE [DEVICE]
 
-MODE: ``plain``, ``checked`` (headroom 2^36: batches overflow and are re-traced), either with
-``+copied``: the slots are summed in a host copy, as on a GPU, instead of in the mapped device
-memory of PoCL (``Backend.map_host``).
+MODE: ``plain``, ``checked`` (headroom lowered: batches overflow and are re-traced) or ``biased``
+(weighted packets, 128-bit cells), joined by ``+`` with ``copied``: the slots are summed in a
+host copy, as on a GPU, instead of in the mapped device memory of PoCL (``Backend.map_host``).
 """
 
 import sys
@@ -23,7 +23,8 @@ from nebula_rt.transport import trace
 def main() -> int:
     out, estimator = sys.argv[1], sys.argv[2]
     mode = sys.argv[3] if len(sys.argv) > 3 else "plain"
-    checked = mode.split("+")[0] == "checked"
+    parts = mode.split("+")
+    checked, biased = "checked" in parts, "biased" in parts
     comm = world()
     backend = get_backend("opencl", sys.argv[4] if len(sys.argv) > 4 else "")
     if "+copied" in mode:
@@ -37,11 +38,15 @@ def main() -> int:
     kw = dict(tau=25.0, photons=9001, seed=4, estimator=estimator, backend=backend, batch_size=1500,
               peel=Camera(direction=(0.0, 0.0, -1.0), size=(12, 10)))
     if checked:  # headroom lowered: batches overflow and are re-traced in halves
-        kw["_acc_limit_bits"] = 36
+        kw["_acc_limit_bits"] = 31 if biased else 36  # 128-bit cells: 2^95, 2^7 voxel crossings
+    if biased:
+        kw["method"] = "biased"
     backend.launch_packets = 2 * 3 * 1500  # several launches, each of several batches
     res = trace(cloud, bands, stars, comm=comm, **kw)
     if comm.rank == 0:
-        np.savez(out, raw_sum=res.raw_sum, raw_m2=res.raw_m2, counts=res.counts, peel=res.peel_image,
+        # counts: exact integers (128-bit weight sums when biased) as decimal text
+        counts = np.array([[str(int(x)) for x in row] for row in res.counts])
+        np.savez(out, raw_sum=res.raw_sum, raw_m2=res.raw_m2, counts=counts, peel=res.peel_image,
                  band_batches=res.band_batches, size=comm.size)
     return 0
 

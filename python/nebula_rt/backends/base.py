@@ -41,7 +41,15 @@ class TransportSetup:
         Fixed-point units per box unit of path length.
     acc_limit_bits : int
         A fixed-point cell may hold up to 2^bits before the overflow flag is raised (63; lower
-        only to test the overflow handling).
+        only to test the overflow handling); with ``biased`` the 128-bit cells hold up to
+        2^(64 + bits).
+    biased : bool
+        Weighted packets (``transport.method = "biased"``: forced scattering, composite
+        biasing, Russian roulette; kernels/transport.cl): cells, images and tallies are
+        128-bit, and the tallies are five weight sums (:data:`TALLY_NAMES`) in units of
+        2^-96 of a packet.
+    collision_scale : float
+        Fixed-point units per collision of a packet of weight 1 (1 for analog packets).
     """
 
     density: np.ndarray
@@ -62,6 +70,24 @@ class TransportSetup:
     #: no fixed-point cell can wrap past 2^64 within one launch (see ``trace``), so deposits may
     #: be added without reading the old value back and checked by the fold instead
     unchecked_adds: bool = False
+    biased: bool = False
+    collision_scale: float = 1.0
+
+    @property
+    def cell_words(self) -> int:
+        """64-bit words per accumulator cell and image pixel (2: 128-bit cells when biased)."""
+        return 2 if self.biased else 1
+
+    @property
+    def fold_scale(self) -> float:
+        """The fold's factor from cell units to the units of the statistics (2^-32 for
+        128-bit cells, kernels/transport.cl NRT_FOLD_SCALE)."""
+        return 2.0**-32 if self.biased else 1.0
+
+    @property
+    def tally_words(self) -> int:
+        """64-bit words of one (batch, band) tally block: 4 counts, or 5 128-bit weight sums."""
+        return 10 if self.biased else 4
 
     @property
     def peel_pixels(self) -> int:
@@ -91,6 +117,9 @@ def transport_defines(setup: TransportSetup, tuning: dict | None = None) -> dict
     opts = dict(TRANSPORT_TUNING, **(tuning or {}))
     if not setup.unchecked_adds:
         opts["NRT_ACC_RED"] = 0
+    if setup.biased:  # checked 128-bit adds into global memory only
+        defines["NRT_BIASED"] = 1
+        opts["NRT_ACC_RED"] = opts["NRT_GROUP_TALLY"] = 0
     if int(np.prod(setup.density.shape)) < 2**32:
         opts.setdefault("NRT_IDX32", 1)
     defines.update({k: int(v) for k, v in opts.items() if v})
@@ -237,18 +266,20 @@ class Backend(abc.ABC):
 
         return DeviceTransport(self, setup, slots, bands_per_launch)
 
-    def launch_plan(self, nvox: int, n_bands: int, packets_per_batch: int, n_batches: int) -> tuple[int, int]:
+    def launch_plan(self, nvox: int, n_bands: int, packets_per_batch: int, n_batches: int,
+                    cell_bytes: int = 8) -> tuple[int, int]:
         """(bands per launch, batches per launch) of a transport run: enough packets to fill
-        the device (``launch_packets``) and to keep launches few, with batch slots (8 bytes per
-        voxel and band each) within ``slot_memory_budget`` and at most 32 batches (the fold
-        kernel's order). Where one slot of every band exceeds the budget, the bands are traced
-        in groups of as many as fit it (at least one), one batch at a time."""
+        the device (``launch_packets``) and to keep launches few, with batch slots
+        (``cell_bytes`` per voxel and band each: 8, or 16 for the 128-bit cells of weighted
+        packets) within ``slot_memory_budget`` and at most 32 batches (the fold kernel's
+        order). Where one slot of every band exceeds the budget, the bands are traced in groups
+        of as many as fit it (at least one), one batch at a time."""
         nvox, n_bands = max(int(nvox), 1), max(int(n_bands), 1)
-        budget = int(self.slot_memory_budget)
-        if 8 * nvox * n_bands > budget:
-            return int(max(1, min(n_bands, budget // (8 * nvox)))), 1
+        budget, cb = int(self.slot_memory_budget), int(cell_bytes)
+        if cb * nvox * n_bands > budget:
+            return int(max(1, min(n_bands, budget // (cb * nvox)))), 1
         by_work = max(1, -(-int(self.launch_packets) // max(int(packets_per_batch) * n_bands, 1)))
-        by_memory = max(1, budget // (8 * nvox * n_bands))
+        by_memory = max(1, budget // (cb * nvox * n_bands))
         return n_bands, int(max(1, min(32, n_batches, by_work, by_memory)))
 
     def memory_limits(self) -> tuple[int, int]:

@@ -50,6 +50,8 @@ class DeviceTransport(TransportSession):
         self.slots = int(slots)
         self.bands_per_launch = int(bands_per_launch) if bands_per_launch else nb
         self.slot_cells = self.bands_per_launch * self.nvox
+        self.words = setup.cell_words  # 64-bit words per cell (2: 128-bit, weighted packets)
+        self.tally_words = setup.tally_words
         resident = be.resident_density(setup.density)
         self.d_density = (resident if resident is not None else
                           be.to_device(np.ravel(np.asarray(setup.density, np.float32), order="F")))
@@ -64,17 +66,18 @@ class DeviceTransport(TransportSession):
         self.params = kernel_params.pack(
             seed=setup.seed, batch_base=0, batch_extra=0, nx=nx, ny=ny, nz=nz, n_bands=nb,
             n_stars=setup.stars.shape[0], max_scatterings=setup.max_scatterings,
-            track_scale=setup.track_scale, peel_scale=setup.peel_scale,
+            track_scale=setup.track_scale, peel_scale=setup.peel_scale, collision_scale=setup.collision_scale,
             peel=np.zeros(15, np.float32) if setup.peel is None else np.asarray(setup.peel, np.float32))
         self.d_params = be.to_device(self.params.view(np.uint8))
-        self.d_acc = be.device_zeros(self.slot_cells * self.slots, np.uint64)
+        self.d_acc = be.device_zeros(self.slot_cells * self.slots * self.words, np.uint64)
         self.d_sum1 = be.device_zeros(self.ncell, np.float64)
         self.d_m2 = be.device_zeros(self.ncell, np.float32)
-        self.d_tallies = be.device_zeros(self.slots * self.bands_per_launch * 4, np.uint64)
+        self.d_tallies = be.device_zeros(self.slots * self.bands_per_launch * self.tally_words, np.uint64)
         self.d_overflow = be.device_zeros(self.slots, np.uint32)
         self.d_seen = be.device_zeros(1, np.uint32)
         self.pixels = setup.peel_pixels
-        self.d_image = be.device_zeros(max(1, self.slots * self.bands_per_launch * self.pixels), np.uint64)
+        self.d_image = be.device_zeros(max(1, self.slots * self.bands_per_launch * self.pixels * self.words),
+                                       np.uint64)
         tuning = dict(be.transport_tuning)
         if "NRT_SORTED" not in tuning and self.nvox >= getattr(be, "sort_min_voxels", 0) > 0:
             tuning["NRT_SORTED"] = 1  # large grids: a warp's first flights side by side
@@ -117,7 +120,8 @@ class DeviceTransport(TransportSession):
             np.uint64(photon_start), np.uint64(count), np.uint64(first_batch),
             np.int32(band0), np.int32(n_lb),
             self.d_acc, self.d_tallies, self.d_overflow, self.d_image, self.d_keys, defines=self.defines)
-        tallies = be.to_host(self.d_tallies).reshape(self.slots, self.bands_per_launch, 4)  # synchronises
+        tallies = be.to_host(self.d_tallies).reshape(self.slots, self.bands_per_launch,
+                                                     self.tally_words)  # synchronises
         overflow = be.to_host(self.d_overflow)
         return tallies[:n_slots, :n_lb].copy(), overflow[:n_slots].astype(bool)
 
@@ -127,7 +131,18 @@ class DeviceTransport(TransportSession):
         n_lb = (bands or (0, self.setup.n_bands))[1]
         self.backend.fill_zero(self.d_tallies)
         self.backend.fill_zero(self.d_overflow)
-        return np.zeros((n_slots, n_lb, 4), np.uint64), np.zeros(n_slots, bool)
+        return np.zeros((n_slots, n_lb, self.tally_words), np.uint64), np.zeros(n_slots, bool)
+
+    def counts_of(self, tallies) -> np.ndarray:
+        """The counts of raw tally words (..., tally_words) as exact Python integers (object
+        array (..., 4), or (..., 5) 128-bit weight sums with the signed biasing last)."""
+        t = np.asarray(tallies, np.uint64)
+        if self.tally_words == 4:
+            return t.astype(object)
+        lo, hi = t[..., 0::2].astype(object), t[..., 1::2].astype(object)
+        v = lo + (hi << 64)
+        v[..., 4] = np.where(v[..., 4] >= 1 << 127, v[..., 4] - (1 << 128), v[..., 4])
+        return v
 
     def reduce_group(self, comm, n_slots, bands, tallies, overflow):
         """Add the ranks' slots, images, tallies and flags of a group and put the sums back on
@@ -144,7 +159,7 @@ class DeviceTransport(TransportSession):
         fold checks the limit. Returns (tallies, overflow)."""
         be = self.backend
         n_lb = bands[1]
-        cells = n_slots * n_lb * self.nvox
+        cells = n_slots * n_lb * self.nvox * self.words
         mapped = be.map_host(self.d_acc, cells)
         if mapped is None:
             return self._reduce(comm, n_slots, n_lb, tallies, overflow, None)
@@ -153,16 +168,17 @@ class DeviceTransport(TransportSession):
 
     def _reduce(self, comm, n_slots, n_lb, tallies, overflow, acc):
         """:meth:`reduce_group` with the group's slots mapped as ``acc`` (or None: copied)."""
-        from ..parallel import sum_checked
+        from ..parallel import sum_checked, sum_wide
 
         be = self.backend
-        cells = 0 if acc is not None else n_slots * n_lb * self.nvox
-        pix, nt = n_slots * n_lb * self.pixels, tallies.size
+        cells = 0 if acc is not None else n_slots * n_lb * self.nvox * self.words
+        pix, nt = n_slots * n_lb * self.pixels * self.words, tallies.size
         need = cells + pix + nt + n_slots
         if self._h_stage is None or self._h_stage.size < need:
             most = self.slots * self.bands_per_launch
-            self._h_stage = be.host_empty((0 if acc is not None else most * self.nvox)
-                                          + most * (self.pixels + 4) + self.slots, np.uint64)
+            self._h_stage = be.host_empty((0 if acc is not None else most * self.nvox * self.words)
+                                          + most * (self.pixels * self.words + self.tally_words)
+                                          + self.slots, np.uint64)
         buf = self._h_stage[:need]
         if acc is None:
             acc = buf[:cells]
@@ -171,12 +187,22 @@ class DeviceTransport(TransportSession):
             be.to_host(self.d_image[:pix], out=buf[cells:cells + pix])
         buf[cells + pix:cells + pix + nt] = tallies.reshape(-1)
         buf[cells + pix + nt:] = overflow
-        slots_checked = [] if self.setup.unchecked_adds else [(0, acc.size)]
-        if cells:  # one buffer
-            parts = [(buf, slots_checked + [(cells, cells + pix)])]
+        if self.words == 2:  # 128-bit cells, images and tallies; the flags as 64-bit counts
+            past = np.zeros(n_slots, bool)
+            for part, checked in ((acc, True), (buf[cells:cells + pix], True),
+                                  (buf[cells + pix:cells + pix + nt], False)):
+                if part.size:
+                    top = sum_wide(comm, part)
+                    if checked:
+                        past |= (top.reshape(n_slots, -1) >= np.uint64(1 << int(self.setup.acc_limit_bits))).any(1)
+            comm.sum_u64(buf[cells + pix + nt:])
         else:
-            parts = [(acc, slots_checked), (buf, [(0, pix)])]
-        past = sum_checked(comm, parts, n_slots, int(self.setup.acc_limit_bits))
+            slots_checked = [] if self.setup.unchecked_adds else [(0, acc.size)]
+            if cells:  # one buffer
+                parts = [(buf, slots_checked + [(cells, cells + pix)])]
+            else:
+                parts = [(acc, slots_checked), (buf, [(0, pix)])]
+            past = sum_checked(comm, parts, n_slots, int(self.setup.acc_limit_bits))
         flags = (buf[cells + pix + nt:] > 0) | past
         if cells:
             be.upload(self.d_acc, acc)
@@ -224,9 +250,13 @@ class DeviceTransport(TransportSession):
         if s.peel is None:
             return np.zeros((n_slots, n_lb, 0, 0), np.uint64)
         w, h = int(s.peel[13]), int(s.peel[14])
-        out = self.backend.to_host(self.d_image).reshape(self.slots, self.bands_per_launch, w, h)
+        out = self.backend.to_host(self.d_image).reshape(self.slots, self.bands_per_launch, w, h, self.words)
         self.backend.fill_zero(self.d_image)
-        return out[:n_slots, :n_lb]
+        out = out[:n_slots, :n_lb]
+        if self.words == 1:
+            return out[..., 0]
+        # 128-bit pixels as float64 (the image statistics are float64 anyway)
+        return out[..., 1].astype(np.float64) * 2.0**64 + out[..., 0].astype(np.float64)
 
     def release_sums(self):
         out = (self.d_sum1, self.d_m2, self.d_density)
@@ -238,9 +268,9 @@ class DeviceTransport(TransportSession):
     def device_bytes(self) -> int:
         """Device memory this run holds: the batch slots (8 B per slot cell), the statistics
         (12 B per cell), the density (4 B per voxel), the per-slot tallies and the images."""
-        return (8 * self.slot_cells * self.slots + 12 * self.ncell + 4 * self.nvox
-                + 32 * self.bands_per_launch * self.slots + 4 * self.slots
-                + 8 * self.slots * self.bands_per_launch * self.pixels)
+        return (8 * self.words * self.slot_cells * self.slots + 12 * self.ncell + 4 * self.nvox
+                + 8 * self.tally_words * self.bands_per_launch * self.slots + 4 * self.slots
+                + 8 * self.words * self.slots * self.bands_per_launch * self.pixels)
 
     def close(self):
         for name in ("d_acc", "d_sum1", "d_m2", "d_density", "d_image", "d_keys", "_h_stage"):
