@@ -7,7 +7,7 @@
 # WHEELDIR holds wheels for what the machine lacks (pyopencl and its pure-Python needs,
 # colour-science, tomli-w; pmcx for the MCX comparison), fetched elsewhere with
 # `pip download --only-binary=:all: --python-version 3.12 ...`.
-# STEPS (default "tests bench neb128 compare profile"; also "tests-cuda", "scaling", "large", "layout", "sorted", "probe", "ranks", "e2e1e9", "tune",
+# STEPS (default "tests bench neb128 compare profile"; also "tests-cuda", "scaling", "large", "layout", "sorted", "probe", "ranks", "e2e1e9", "biasing", "tune",
 # "stages", "trade", "presets", "empty", "fft") selects what runs. Everything printed
 # goes to OUTDIR/log.txt as well; JSON and .npz results beside it.
 set -uo pipefail
@@ -28,7 +28,7 @@ nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader
 python3 -m nebula_rt.cli devices
 git rev-parse --short HEAD 2>/dev/null || true
 
-physics="tests/test_rng.py tests/test_hg.py tests/test_density_kernel.py tests/test_transport_physics.py tests/test_estimators.py tests/test_postprocess.py tests/test_target_error.py tests/test_sky_physics.py tests/test_kernel_options.py tests/test_filter_boundary.py tests/test_terminated.py tests/test_peel_off_physics.py tests/test_band_independence.py tests/test_resources.py tests/test_extremes.py tests/test_memory_layout.py"
+physics="tests/test_rng.py tests/test_hg.py tests/test_density_kernel.py tests/test_transport_physics.py tests/test_estimators.py tests/test_postprocess.py tests/test_target_error.py tests/test_sky_physics.py tests/test_kernel_options.py tests/test_filter_boundary.py tests/test_terminated.py tests/test_peel_off_physics.py tests/test_band_independence.py tests/test_resources.py tests/test_extremes.py tests/test_memory_layout.py tests/test_biased_transport.py"
 if [[ " $steps " == *" tests "* ]]; then
     echo "== physics tests, CUDA"; NEBULA_RT_TEST_BACKEND=cuda python3 -m pytest -q -p no:cacheprovider $physics tests/test_cuda_sources.py 2>&1 | tail -n 8
     echo "== physics tests, NVIDIA OpenCL"; NEBULA_RT_TEST_DEVICE=NVIDIA python3 -m pytest -q -p no:cacheprovider $physics 2>&1 | tail -n 3
@@ -114,6 +114,11 @@ if [[ " $steps " == *" ranks "* ]]; then
     else
         echo "== ranks: no mpiexec on this machine"
     fi
+fi
+if [[ " $steps " == *" biasing "* ]]; then
+    echo "== analog vs biased transport, figure of merit over optical depth, CUDA"
+    python3 benchmarks/bench_biasing.py --backend cuda --grid 64 --photons 1e6 --seeds 2 --forced-flights 1 2 4 8 \
+        --out "$out/biasing-cuda.json" --plot "$out/biasing-cuda.png" 2>&1 | tail -n 30
 fi
 if [[ " $steps " == *" e2e1e9 "* ]]; then
     echo "== 512^3, 1e9 photons, end to end (target: 10 s)"

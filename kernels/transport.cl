@@ -505,42 +505,45 @@ NRT_DEVICE void nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, f
  *
  * A packet carries a weight W, an unsigned 128-bit integer in units of 2^-96 of its emitted
  * energy (NRT_W0 = 2^96), and every change of W is an integer operation whose pieces add back
- * exactly. Per flight, with tau_p the optical depth from the packet to the box's edge along
- * its direction:
+ * exactly. Its first NRT_FORCED_FLIGHTS flights are biased; with tau_p the optical depth from
+ * the packet to the box's edge along its direction:
  *   - forced scattering: the part W e^-tau_p that would escape is tallied as escaped, the rest
- *     interacts inside the grid (Cashwell & Everett 1959; SKIRT forces every flight);
- *   - composite biasing (Baes et al. 2016, A&A 590, A55; SKIRT 9's path-length stretching) of
- *     the first NRT_STRETCH_FLIGHTS flights: the interaction depth is drawn from
- *     q = xi p + (1 - xi) / tau_p, p the exponential truncated to [0, tau_p], and W is
- *     multiplied by p / q (at most 1 / xi); the weight this adds or removes goes to the signed
- *     "biasing" tally. Later flights sample p itself: p / q has E[(p / q)^2] up to 1 / xi, so
- *     stretching every flight of a packet that scatters hundreds of times (high albedo, thick
- *     dust) multiplies the weight's variance by up to 2 per flight; the first flights are the
- *     ones that carry light deep into the cloud, and at most 2^4 growth keeps every weight far
- *     below the 2^103 cap (so the cap never clips a weight and biases nothing);
- *   - the interaction absorbs W (1 - albedo) (tallied as absorbed) and scatters the rest;
- *   - Russian roulette below NRT_ROULETTE of the packet's reference weight (W0 times the product
- *     of its p / q factors, so that a packet sent deep by the biasing is not killed for the
- *     low weight the biasing gave it): it survives with probability W / T at weight T, else
- *     ends; the weight created or removed goes to the biasing tally.
+ *     interacts inside the grid (Cashwell & Everett 1959);
+ *   - composite biasing (Baes et al. 2016, A&A 590, A55; SKIRT 9's path-length stretching):
+ *     the interaction depth is drawn from q = xi p + (1 - xi) / tau_p, p the exponential
+ *     truncated to [0, tau_p], and W is multiplied by p / q (at most 1 / xi); the weight this
+ *     adds or removes goes to the signed "biasing" tally;
+ *   - implicit capture: the interaction absorbs W (1 - albedo) (tallied as absorbed) and
+ *     scatters the rest;
+ *   - Russian roulette below NRT_ROULETTE of the packet's reference weight (W0 times the
+ *     product of its p / q factors, so that a packet the biasing sent deep is not killed for
+ *     the low weight that gave it): it survives with probability W / T at weight T, else ends;
+ *     the weight created or removed goes to the biasing tally.
+ * Later flights are analog with the weight the packet has (exponential path, absorbed or
+ * scattered with probability albedo): the forced flights are the ones that carry light deep
+ * into the cloud and out of it, while each costs a walk to the box's edge, and stretching
+ * every flight of a packet that scatters hundreds of times (high albedo, thick dust) would
+ * multiply the weight's variance by up to 1 / xi per flight (E[(p / q)^2] <= 1 / xi). At most
+ * 2^4 growth keeps every weight far below the 2^103 cap, so the cap never clips one.
  * So emitted = absorbed + escaped + terminated + biasing holds bit for bit per packet, and the
  * biasing tally's expectation is zero.
  *
- * Estimators: the track-length one deposits each flight's expected track length, W e^-tau(s)
- * integrated over every voxel of the ray to the edge (exact per voxel: e^-tau0 (1 - e^-sigma L)
- * / sigma), formed on the walk that finds tau_p; the collision one deposits W at every
- * interaction. The peel-off image uses W after the absorption. Cells, images and tallies are
- * 128-bit (two 64-bit words, low first) so that weights down to about e^-60 of a packet keep
- * their relative precision while the sums stay exact integers in any order.
+ * Estimators: on a forced flight the track-length one deposits the flight's expected track
+ * length, W e^-tau(s) integrated over every voxel of the ray to the edge (exact per voxel:
+ * e^-tau0 (1 - e^-sigma L) / sigma), formed on the walk that finds tau_p; on an analog flight
+ * W times the path. The collision one deposits W at every interaction. The peel-off image
+ * uses W after the absorption. Cells, images and tallies are 128-bit (two 64-bit words, low
+ * first) so that weights down to about e^-60 of a packet keep their relative precision while
+ * the sums stay exact integers in any order.
  */
 #ifndef NRT_BIAS_XI
 #define NRT_BIAS_XI 0.5f
 #endif
 #ifndef NRT_ROULETTE
-#define NRT_ROULETTE 1.0e-4f
+#define NRT_ROULETTE 0.1f
 #endif
-#ifndef NRT_STRETCH_FLIGHTS
-#define NRT_STRETCH_FLIGHTS 4
+#ifndef NRT_FORCED_FLIGHTS
+#define NRT_FORCED_FLIGHTS 4
 #endif
 /* a walk stops once the transmission e^-tau is below one weight unit of any packet
    (W < 2^104: 2^104 e^-90 < 1e-20), so what it leaves out rounds to zero anyway */
@@ -758,11 +761,13 @@ NRT_DEVICE float nrt_forced_walk(const NRT_GLOBAL float *density, float sig_b, c
 }
 
 /*
- * The second walk: from p along d until optical depth tau_i is spent; the point and its voxel
- * go to p, ix, iy, iz. Returns 0 if the ray leaves first (tau_i at the very edge, by rounding).
+ * A walk from p along d until optical depth tau_i is spent; the point and its voxel go to p,
+ * ix, iy, iz. Returns 0 if the ray leaves the box first. scale > 0 (an analog flight with the
+ * track-length estimator): every voxel crossed gets scale x the length travelled in it.
  */
 NRT_DEVICE int nrt_walk_to(const NRT_GLOBAL float *density, float sig_b, float *p, const float *d,
-                           int *ix, int *iy, int *iz, int nx, int ny, int nz, float tau_i)
+                           int *ix, int *iy, int *iz, int nx, int ny, int nz, float tau_i, float scale,
+                           NRT_GLOBAL nrt_u64 *band_acc, NRT_GLOBAL nrt_u32 *overflow)
 {
     nrt_ray r;
     nrt_ray_start(&r, p, d, *ix, *iy, *iz, nx, ny, nz);
@@ -771,7 +776,10 @@ NRT_DEVICE int nrt_walk_to(const NRT_GLOBAL float *density, float sig_b, float *
         float sigma = sig_b * density[r.idx];
         float ts = sigma * seg;
         if (sigma > 0.0f && ts >= tau_i) {
-            float t = r.t_cur + tau_i / sigma;
+            float t_in = tau_i / sigma;
+            if (scale > 0.0f)
+                nrt_deposit_wide(band_acc, r.idx, scale * t_in, overflow);
+            float t = r.t_cur + t_in;
             p[0] = p[0] + d[0] * t;
             p[1] = p[1] + d[1] * t;
             p[2] = p[2] + d[2] * t;
@@ -780,6 +788,8 @@ NRT_DEVICE int nrt_walk_to(const NRT_GLOBAL float *density, float sig_b, float *
             *iz = r.iz;
             return 1;
         }
+        if (scale > 0.0f)
+            nrt_deposit_wide(band_acc, r.idx, scale * seg, overflow);
         tau_i -= ts;
         if (!nrt_ray_advance(&r, nx, ny, nz))
             return 0;
@@ -838,46 +848,62 @@ NRT_DEVICE void nrt_trace_packet_biased(const NRT_GLOBAL float *density, float s
     float ref = 1.0f;                  /* product of the p / q factors: the roulette's reference */
     int scatterings = 0;
     for (;;) {
+        /* the first NRT_FORCED_FLIGHTS flights forced and stretched, the later ones analog */
+        int forced = scatterings < NRT_FORCED_FLIGHTS;
         float wr = nrt_weight_rel(w);
-        float tau_p = nrt_forced_walk(density, sig_b, p, d, ix, iy, iz, nx, ny, nz, wr, track_scale,
-                                      band_acc, overflow);
-        /* forced scattering: the part that would leave, exactly */
-        nrt_u128 out = (tau_p > 1.0e-30f) ? nrt_u128_times(w, exp(-tau_p)) : w;
-        nrt_count_wide(tally, 2, out);
-        w = nrt_u128_sub(w, out);
-        if (nrt_u128_is_zero(w))
-            break;
-        /* composite biasing of the interaction depth on [0, tau_p] */
-        float tau_c = fmin(tau_p, NRT_TAU_CUT);
-        float reach = -expm1(-tau_c); /* 1 - e^-tau_p */
-        float u1 = nrt_rng_uniform(&rng), u2 = nrt_rng_uniform(&rng);
-        /* (later flights: xi = 1, the truncated exponential itself, f = 1) */
-        float xi = scatterings < NRT_STRETCH_FLIGHTS ? NRT_BIAS_XI : 1.0f;
-        float tau_i = (u1 < xi) ? -log1p(-u2 * reach) : u2 * tau_c;
-        float pdf = exp(-tau_i) / reach;
-        float f = scatterings < NRT_STRETCH_FLIGHTS ? pdf / (xi * pdf + (1.0f - xi) / tau_c) : 1.0f;
-        nrt_u128 wf = f == 1.0f ? w : nrt_u128_times(w, f);
-        if (wf.hi >= NRT_W_CAP_HI) /* a guard only: weights stay below 2^4 W0 */
-            wf = nrt_u128_of(0, NRT_W_CAP_HI - 1UL);
-        bias = nrt_u128_add(bias, nrt_u128_sub(w, wf));
-        w = wf;
-        ref = fmin(ref * f, 128.0f);
-        if (nrt_u128_is_zero(w))
-            break;
-        if (!nrt_walk_to(density, sig_b, p, d, &ix, &iy, &iz, nx, ny, nz, tau_i)) {
-            nrt_count_wide(tally, 2, w); /* rounding put the point past the edge */
+        if (forced) {
+            float tau_p = nrt_forced_walk(density, sig_b, p, d, ix, iy, iz, nx, ny, nz, wr, track_scale,
+                                          band_acc, overflow);
+            /* forced scattering: the part that would leave, exactly */
+            nrt_u128 out = (tau_p > 1.0e-30f) ? nrt_u128_times(w, exp(-tau_p)) : w;
+            nrt_count_wide(tally, 2, out);
+            w = nrt_u128_sub(w, out);
+            if (nrt_u128_is_zero(w))
+                break;
+            /* composite biasing of the interaction depth on [0, tau_p] */
+            float tau_c = fmin(tau_p, NRT_TAU_CUT);
+            float reach = -expm1(-tau_c); /* 1 - e^-tau_p */
+            float u1 = nrt_rng_uniform(&rng), u2 = nrt_rng_uniform(&rng);
+            float tau_i = (u1 < NRT_BIAS_XI) ? -log1p(-u2 * reach) : u2 * tau_c;
+            float pdf = exp(-tau_i) / reach;
+            float f = pdf / (NRT_BIAS_XI * pdf + (1.0f - NRT_BIAS_XI) / tau_c);
+            nrt_u128 wf = nrt_u128_times(w, f);
+            if (wf.hi >= NRT_W_CAP_HI) /* a guard only: weights stay below 2^NRT_FORCED_FLIGHTS W0 */
+                wf = nrt_u128_of(0, NRT_W_CAP_HI - 1UL);
+            bias = nrt_u128_add(bias, nrt_u128_sub(w, wf));
+            w = wf;
+            ref = fmin(ref * f, 128.0f);
+            if (nrt_u128_is_zero(w))
+                break;
+            if (!nrt_walk_to(density, sig_b, p, d, &ix, &iy, &iz, nx, ny, nz, tau_i, 0.0f, band_acc, overflow)) {
+                nrt_count_wide(tally, 2, w); /* rounding put the point past the edge */
+                break;
+            }
+        } else {
+            /* an analog flight of weight w: the track-length deposits along the path */
+            float tau_i = nrt_sample_tau(&rng);
+            if (!nrt_walk_to(density, sig_b, p, d, &ix, &iy, &iz, nx, ny, nz, tau_i,
+                             NRT_TRACK_LENGTH ? wr * track_scale : 0.0f, band_acc, overflow)) {
+                nrt_count_wide(tally, 2, w);
+                break;
+            }
+        }
+#if NRT_COLLISION
+        nrt_deposit_wide(band_acc, nrt_voxel_index(ix, iy, iz, nx, ny), nrt_weight_rel(w) * collision_scale,
+                         overflow);
+#endif
+        if (forced) {
+            /* implicit capture: the absorbed part of the weight, exactly */
+            nrt_u128 absorbed = nrt_u128_times(w, 1.0f - alb_b);
+            nrt_count_wide(tally, 1, absorbed);
+            w = nrt_u128_sub(w, absorbed);
+            if (nrt_u128_is_zero(w))
+                break;
+        } else if (nrt_rng_uniform(&rng) >= alb_b) {
+            nrt_count_wide(tally, 1, w);
+            w = nrt_u128_of(0, 0);
             break;
         }
-        nrt_idx idx = nrt_voxel_index(ix, iy, iz, nx, ny);
-#if NRT_COLLISION
-        nrt_deposit_wide(band_acc, idx, nrt_weight_rel(w) * collision_scale, overflow);
-#endif
-        (void)idx;
-        nrt_u128 absorbed = nrt_u128_times(w, 1.0f - alb_b);
-        nrt_count_wide(tally, 1, absorbed);
-        w = nrt_u128_sub(w, absorbed);
-        if (nrt_u128_is_zero(w))
-            break;
         if (scatterings >= max_scatterings) {
             nrt_count_wide(tally, 3, w);
             w = nrt_u128_of(0, 0);
@@ -891,17 +917,19 @@ NRT_DEVICE void nrt_trace_packet_biased(const NRT_GLOBAL float *density, float s
         float mu, sin_theta;
         nrt_sample_hg(g_b, nrt_rng_uniform(&rng), &mu, &sin_theta);
         nrt_rotate(d, mu, sin_theta, 2.0f * NRT_PI_F * nrt_rng_uniform(&rng));
-        /* Russian roulette below NRT_ROULETTE of the reference weight */
-        nrt_u128 t = nrt_weight_units(NRT_ROULETTE * ref);
-        if (nrt_u128_less(w, t)) {
-            float u = nrt_rng_uniform(&rng);
-            if (u * nrt_weight_rel(t) < nrt_weight_rel(w)) {
-                bias = nrt_u128_add(bias, nrt_u128_sub(w, t));
-                w = t;
-            } else {
-                bias = nrt_u128_add(bias, w);
-                w = nrt_u128_of(0, 0);
-                break;
+        if (forced) {
+            /* Russian roulette below NRT_ROULETTE of the reference weight */
+            nrt_u128 t = nrt_weight_units(NRT_ROULETTE * ref);
+            if (nrt_u128_less(w, t)) {
+                float u = nrt_rng_uniform(&rng);
+                if (u * nrt_weight_rel(t) < nrt_weight_rel(w)) {
+                    bias = nrt_u128_add(bias, nrt_u128_sub(w, t));
+                    w = t;
+                } else {
+                    bias = nrt_u128_add(bias, w);
+                    w = nrt_u128_of(0, 0);
+                    break;
+                }
             }
         }
     }
