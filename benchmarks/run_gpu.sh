@@ -117,7 +117,8 @@ if [[ " $steps " == *" ranks "* ]]; then
 fi
 if [[ " $steps " == *" biasing "* ]]; then
     echo "== analog vs biased transport, figure of merit over optical depth, CUDA"
-    python3 benchmarks/bench_biasing.py --backend cuda --grid 64 --photons 1e6 --seeds 2 --forced-flights 1 2 4 8 \
+    python3 benchmarks/bench_biasing.py --backend cuda --grid 64 --photons 1e7 --seeds 4 --forced-flights 1 2 4 8 \
+        --taus 0.1 0.3 1 3 10 20 30 60 \
         --out "$out/biasing-cuda.json" --plot "$out/biasing-cuda.png" 2>&1 | tail -n 30
 fi
 if [[ " $steps " == *" e2e1e9 "* ]]; then
