@@ -58,8 +58,8 @@ Vec3 = Tuple[float, float, float]
 
 DUST_MODELS = ("turbulence", "uniform", "file")
 ESTIMATORS = ("track-length", "collision-filter")
-#: transport.method: analog packets, or weighted ones for optically thick dust
-METHODS = ("analog", "biased")
+#: transport.method: chosen per run from the measurement (auto), analog packets, or weighted ones
+METHODS = ("auto", "analog", "biased")
 BACKENDS = ("auto", "opencl", "cuda")
 WHITE_POINTS = ("D65", "E", "star")
 MAX_PHOTONS = 2**53
@@ -218,12 +218,13 @@ class Transport:
             "voxel scores there (low noise); collision-filter: the thesis's estimator, collisions "
             "spread over filter_radius")
     method: str = param(
-        "analog", type="str", choices=METHODS, label="Transport Method", group=G_TRANSPORT,
+        "auto", type="str", choices=METHODS, label="Transport Method", group=G_TRANSPORT,
         doc="How packets are traced. analog: every packet is one unit of energy, absorbed or "
-            "scattered with probability albedo (thin and moderate dust); biased: weighted packets "
-            "with forced scattering, composite path-length biasing and Russian roulette, so light "
-            "behind optically thick dust (tau of tens and more) is sampled at all "
-            "(docs/physics.md)")
+            "scattered with probability albedo; biased: weighted packets with forced scattering, "
+            "composite path-length biasing and Russian roulette, which sample light behind "
+            "optically thick dust; auto: what was measured best for the run (docs/physics.md): "
+            "analog for the light field, biased for a peel-off image when the optical depth from "
+            "the stars to the box's edge is below 1 or above 40")
     filter_radius: float = param(
         0.02, type="float", lo=0.0, lo_open=True, unit="box units", label="Filter Radius", group=G_TRANSPORT,
         doc="Radius of the collision filter (collision-filter only)")

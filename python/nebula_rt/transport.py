@@ -68,9 +68,43 @@ TALLY_NAMES = ("emitted", "absorbed", "escaped", "terminated")
 BIASED_TALLY_NAMES = TALLY_NAMES + ("biasing",)
 
 #: How packets are traced (``transport.method``, declared in the scene schema): analog (every
-#: packet one unit, absorbed or scattered with probability albedo) or biased (weighted packets,
-#: kernels/transport.cl).
+#: packet one unit, absorbed or scattered with probability albedo), biased (weighted packets,
+#: kernels/transport.cl), or auto (:func:`resolve_method`).
 METHODS = _scene_methods
+#: ``auto``: the optical depths between which a peel-off run stays analog. Measured
+#: (benchmarks/bench_biasing.py, H200, slab and sphere; docs/physics.md): the biased method's
+#: figure of merit for the peel-off image is 2-10 times the analog one below depth 1 (forced
+#: scattering: every packet scatters and peels off), within a factor of 2 either way from 1 to
+#: 30, and the analog image is empty at 60; for the light field the analog one is better at
+#: every depth from 0.1 to 60.
+AUTO_THIN, AUTO_THICK = 1.0, 40.0
+
+
+def scene_optical_depth(density, tau: float, stars) -> float:
+    """The scene's optical depth in the reference band: the median, over the stars and the six
+    axis directions, of the optical depth from the star to the box's edge (an exact voxel
+    march, :func:`nebula_rt.observe.line_of_sight_tau`)."""
+    from .observe import line_of_sight_tau
+
+    sigma = float(tau) * np.asarray(density, np.float64)
+    depths = [float(line_of_sight_tau(sigma, s.position, d)[0]) for s in stars
+              for d in ((1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1))]
+    return float(np.median(depths)) if depths else 0.0
+
+
+def resolve_method(method: str, density, tau: float, stars, peel) -> str:
+    """The method a run takes: ``method`` itself unless it is ``"auto"``, which gives analog
+    for a light field alone and, for a run that makes a peel-off image, biased where the
+    scene's optical depth (:func:`scene_optical_depth`) is below ``AUTO_THIN`` or above
+    ``AUTO_THICK`` (see those for the measurement)."""
+    if method not in METHODS:
+        raise SceneError("transport.method", method, " or ".join(f'"{m}"' for m in METHODS))
+    if method != "auto":
+        return method
+    if peel is None:
+        return "analog"
+    t = scene_optical_depth(density, tau, stars)
+    return "biased" if (t < AUTO_THIN or t > AUTO_THICK) else "analog"
 #: Weighted packets: weight units per packet (the tallies of a biased run are in these), and
 #: the extra resolution of their 128-bit cells over the analog 64-bit ones (2^56: a packet of
 #: weight 1 crossing one voxel deposits 2^88 units, so weights down to about 2^-80 of a
@@ -803,9 +837,7 @@ def plan_transport(density, bands, stars, *, tau: float, photons: int, estimator
     wl = np.array([b.wavelength for b in bands], dtype=np.float64)
     slum = star_band_luminosities(stars, wl)
     band_lum = slum.sum(axis=0)
-    if method not in METHODS:
-        raise SceneError("transport.method", method, " or ".join(f'"{m}"' for m in METHODS))
-    biased = method == "biased"
+    biased = resolve_method(method, density, tau, stars, peel) == "biased"
     track_scale = float(2.0**FIXED_POINT_BITS * max(shape))
     # what the device forms from these inputs must fit float32/int32: checked before any work
     limits.check_transport(density, bands, stars, slum, tau=tau, photons=photons, max_scatterings=max_scatterings,
@@ -1139,9 +1171,11 @@ def trace(
         Trace with several processes (:func:`nebula_rt.parallel.world` under ``mpiexec``):
         every rank calls ``trace`` with the same arguments, traces a share of the packets, and
         gets the one-rank result, bit for bit.
-    method : {"analog", "biased"}
+    method : {"analog", "biased", "auto"}
         Analog packets, or weighted ones for optically thick dust (forced scattering,
-        composite path-length biasing, Russian roulette; kernels/transport.cl, docs/physics.md).
+        composite path-length biasing, Russian roulette; kernels/transport.cl, docs/physics.md),
+        or the one measured best for this run (:func:`resolve_method`); ``result.method`` says
+        which ran.
     """
     t0 = time.perf_counter()
     kw = dict(tau=tau, photons=photons, estimator=estimator, max_scatterings=max_scatterings, seed=seed,
