@@ -183,6 +183,9 @@ def model_values(rings: RingSums, table: ObservedTable, reference: str = "observ
 class TableResult:
     """One table against the model.
 
+    ``raw_model_err`` is the Monte Carlo error before any free scale (what ``model_errors`` of
+    :func:`compare_tables` takes).
+
     Attributes
     ----------
     table : ObservedTable
@@ -208,6 +211,7 @@ class TableResult:
     chi2: float
     dof: int
     scale: Optional[np.ndarray] = None
+    raw_model_err: Optional[np.ndarray] = None
 
     def to_dict(self) -> dict:
         t = self.table
@@ -260,17 +264,25 @@ class Comparison:
                 "tables": [r.to_dict() for r in self.results]}
 
 
-def compare_tables(rings: RingSums, tables: Sequence[ObservedTable], reference: str = "observed") -> Comparison:
+def compare_tables(rings: RingSums, tables: Sequence[ObservedTable], reference: str = "observed",
+                   model_errors: Optional[Sequence[np.ndarray]] = None) -> Comparison:
     """Residuals and chi^2 of ``tables`` against the ring sums of one run (see the module doc).
+
+    ``model_errors`` (one array per table, before any free scale) replaces the run's own Monte
+    Carlo errors: a fit holds them fixed while it moves the parameters (see
+    :mod:`nebula_rt.fit`).
 
     A free-normalised ratio table's model is scaled per annulus by s = sum(d m / v) / sum(m^2 / v)
     with v = sigma_d^2 + (s sigma_m)^2 (the weighted least-squares factor, iterated twice from
     v = sigma_d^2), and its degrees of freedom are the rows less one per annulus.
     """
     out = Comparison(reference=reference, rings=rings)
-    for t in tables:
+    for j, t in enumerate(tables):
         model, merr = model_values(rings, t, reference)
+        if model_errors is not None:
+            merr = np.asarray(model_errors[j], np.float64)
         scale = None
+        raw_err = merr
         dof = len(t)
         if t.kind == "ratio" and t.normalisation == "free":
             idx = t.annulus_index()
@@ -289,7 +301,7 @@ def compare_tables(rings: RingSums, tables: Sequence[ObservedTable], reference: 
         pull = res / np.sqrt(t.error ** 2 + merr ** 2)
         chi2 = float(np.sum(pull ** 2)) if np.all(np.isfinite(pull)) else math.inf
         out.results.append(TableResult(table=t, model=model, model_err=merr, residual=res, pull=pull, chi2=chi2,
-                                       dof=dof, scale=scale))
+                                       dof=dof, scale=scale, raw_model_err=raw_err))
     return out
 
 
