@@ -661,6 +661,11 @@ def fit_observations(scene, tables: Sequence[ObservedTable], free: Sequence, *, 
     if f_best is None:  # no quadratic: report the lowest trace
         f_best, z_best = obj.best[0], np.asarray(obj.best[1])
     obj.freeze(z_best)  # the errors of the best fit for the uncertainties (one more trace)
+    if obj(z_best) > obj.best[0] + 1.0:
+        # the quadratic's minimum is worse than a trace: the surface misled (too few or too rough
+        # points); keep the lowest trace, with its errors
+        z_best = np.asarray(obj.best[1])
+        obj.freeze(z_best)
     comp = obj.comparison(z_best)
     chi2_best = comp.chi2
     profile_check = {}
@@ -690,7 +695,7 @@ def fit_observations(scene, tables: Sequence[ObservedTable], free: Sequence, *, 
                 d = sd / math.sqrt(q) if q > 0.25 else 2.0 * sd
                 d = min(max(d, 0.5 * sd), 2.0 * sd)
                 zc = min(max(z_best[i] + s * d, 0.0), 1.0)
-                at_bound[i][0 if s < 0 else 1] = zc != z_best[i] + s * d
+                at_bound[i][0 if s < 0 else 1] = bool(zc != z_best[i] + s * d)
                 arr[i] = abs(params[i].from_unit(zc) - best[i])
                 checks[params[i].name + ("+" if s > 0 else "-")] = round(q, 3)
         profile_check = checks
