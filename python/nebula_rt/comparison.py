@@ -72,9 +72,10 @@ class RingSums:
 
 
 def ring_edges(tables: Sequence[ObservedTable]) -> np.ndarray:
-    """Sorted distinct annulus edges of all tables (box units)."""
+    """Sorted distinct annulus edges of all tables (box units), rounded to 1e-12 so that one edge
+    computed two ways (0.1 and (0.05 + 0.15) / 2) is one edge, not a ring of no width."""
     e = np.concatenate([np.concatenate([t.lo, t.hi]) for t in tables])
-    return np.unique(e)
+    return np.unique(np.round(e, 12))
 
 
 def _camera(star_position, direction, size, edges):
@@ -118,6 +119,8 @@ def trace_rings(scene, edges, *, direction=(0.0, 0.0, -1.0), size: int = DEFAULT
         np.asarray(rho, np.float64)[None]
     tau_star = line_of_sight_tau(sigma, star.position, -np.asarray(direction, float))
     xb = np.asarray(res.peel_bin_batches, np.float64)
+    if xb.shape[2] < len(e) - 1:  # the outermost rings hold no pixel centre (finer than a pixel)
+        xb = np.concatenate([xb, np.zeros(xb.shape[:2] + (len(e) - 1 - xb.shape[2],))], axis=2)
     return RingSums(edges=e, sums=xb.sum(axis=0), batches=xb, band_luminosity=np.asarray(res.band_luminosity,
                     np.float64), wavelength_nm=wl, pixel_area=cam.pixel_size ** 2, star_tau=tau_star,
                     source=_dominant_source(scene.stars), photons=int(res.photons))
@@ -125,8 +128,8 @@ def trace_rings(scene, edges, *, direction=(0.0, 0.0, -1.0), size: int = DEFAULT
 
 def _rings_of(edges, lo, hi) -> np.ndarray:
     """(n_rings,) 0/1 weights of the rings that make up the annulus [lo, hi)."""
-    i0 = int(np.searchsorted(edges, lo))
-    i1 = int(np.searchsorted(edges, hi))
+    i0 = int(np.searchsorted(edges, round(float(lo), 12)))
+    i1 = int(np.searchsorted(edges, round(float(hi), 12)))
     w = np.zeros(len(edges) - 1)
     w[i0:i1] = 1.0
     return w

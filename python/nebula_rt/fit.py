@@ -8,10 +8,14 @@ a change of g or of tau moves every packet's path continuously, and a change of 
 flips the absorption of the few packets whose uniform lies between the old and the new albedo
 (analog absorption), a step of one packet's light. The objective is thus a fine staircase
 about a smooth curve, not differentiable at the scale of one packet. Measured on a 16^3
-uniform cube, 8 bands, 20,000 packets (``tests/test_fit.py``): along albedo, g and tau the
-second differences of the model's Delta(B-V) and flux ratio are 3 to 15 times smaller with
-common random numbers than with a new seed per trial. Hence a derivative-free optimiser:
-a small grid, then Nelder-Mead (``scipy.optimize.minimize``) in the unit cube of the bounds.
+uniform cube, 4 bands, 20,000 packets (``tests/test_fit.py``, steps of 0.01 in albedo and g,
+0.02 in tau): the second differences of the model's Delta(B-V) and absolute flux ratio are 11
+to 160 times smaller with common random numbers than with a new seed per trial. What is left
+is a fine roughness: chi^2 scatters by about 1 about a parabola at the fits' Monte Carlo
+errors, as much as the rise that defines a 1-sigma error. Hence a derivative-free optimiser
+and a fitted surface rather than point-by-point derivatives: a small grid, Nelder-Mead
+(``scipy.optimize.minimize``) in the unit cube of the bounds, then a quadratic response
+surface fitted by least squares to designs about the minimum (:func:`_refine`).
 
 Parameters (``free``, :class:`FreeParameter`, parsed from ``name=lo:hi[:log]``):
 
@@ -28,16 +32,21 @@ Parameters (``free``, :class:`FreeParameter`, parsed from ``name=lo:hi[:log]``):
 Uncertainties (``uncertainty``):
 
 - ``"profile"`` (default): the profile likelihood, for each parameter the values where the
-  chi^2 minimised over the other parameters is chi^2_min + 1 (68.3 % for one parameter);
-  asymmetric errors, found by a secant search started from the local curvature;
+  chi^2 minimised over the other parameters is chi^2_min + 1 (68.3 % for one parameter):
+  started from the refined quadratic, traced there (the others re-minimised where chi^2 rose
+  by more than 1.5), corrected by one secant step; asymmetric errors, and the rises traced
+  (``profile_check``: near 1 where the quadratic holds, far from it in a curved valley);
 - ``"mcmc"``: emcee's affine-invariant ensemble sampler (``pip install emcee``) on
   exp(-chi^2 / 2) with a flat prior inside the bounds (flat in log for log parameters); the
   16th and 84th percentiles;
 - ``"none"``.
 
-The measurement behind the default (``benchmarks/bench_fit.py --compare-uncertainties``, CPU,
-docs/observations.md): on the synthetic 3-parameter problem both give the same intervals
-within their own scatter, the profile from about 10x fewer traces.
+The measurement behind the default (docs/observations.md, the test problem of
+``tests/test_fit.py`` on the CPU): the profile took 311 traces, MCMC (12 walkers x 150 steps)
+1894; both held the truth within 2 of their errors; MCMC's marginal intervals were up to 2x
+wider along the albedo-tau valley, which the profile's quadratic start underestimates. The
+profile is the default for its cost; ``mcmc`` is the choice when the profile check's rises
+are far from 1 (``benchmarks/bench_fit.py --uncertainty both`` measures both on a GPU).
 
 Progress and cancel as for a render: ``progress(done, total, best_chi2)`` after every trace
 (``total`` the planned number of traces, an estimate), ``cancel()`` polled before every trace
@@ -69,6 +78,9 @@ DEFAULT_BOUNDS = {"albedo": (0.02, 0.98), "g": (0.0, 0.95), "albedo_slope": (-0.
 #: Wavelength (nm) at which a linear albedo(lambda) or g(lambda) takes its base value, and the
 #: span (nm) its slope is given per.
 PIVOT_NM, SLOPE_NM = 550.0, 100.0
+#: Largest model/data error ratio a fit accepts without a warning (at 0.5 the combined error is
+#: 12 % above the data's).
+MAX_MODEL_ERROR = 0.5
 #: The star keeps at least this far from the box's faces when its depth is free (box units).
 DEPTH_MARGIN = 0.01
 
@@ -725,6 +737,16 @@ def fit_observations(scene, tables: Sequence[ObservedTable], free: Sequence, *, 
             tau_ac = None
         mcmc_info = {"walkers": walkers, "steps": mcmc_steps, "median": q50.tolist(),
                      "acceptance": float(np.mean(sampler.acceptance_fraction)), "autocorr_steps": tau_ac}
+    ratio = comp.model_error_ratio()
+    if ratio > MAX_MODEL_ERROR:
+        import warnings
+
+        from .errors import NebulaWarning
+
+        warnings.warn(NebulaWarning(
+            f"the model's Monte Carlo error is up to {ratio:.2f} of the data's at the best fit: one seed's noise "
+            "then moves the fit by about as much as the data's (chi^2 takes the errors as independent, the model's "
+            "are correlated across rows); raise transport.photons (the error falls as 1/sqrt(photons))"))
     n_scales = sum(len(r.scale) for r in comp.results if r.scale is not None)
     dof = comp.n - k - n_scales
     return FitResult(parameters=params, best=best, err_minus=err_m, err_plus=err_p, chi2=float(chi2_best), dof=dof,
