@@ -226,7 +226,8 @@ def _compare(args, cancel) -> int:
     if args.table:  # the user's own observations (nebula_rt.cli_fit)
         from .cli_fit import compare_tables_command
 
-        return compare_tables_command(args, cancel, scene, direction, _backend_for(scene), _inputs(args, scene))
+        return compare_tables_command(args, cancel, scene, direction, lambda: _backend_for(scene),
+                                      _inputs(args, scene), _print_summary)
     wl = sorted(b.wavelength for b in scene.bands.resolve())
     if len(wl) < 2 or wl[0] > 480.0 or wl[-1] < 520.0:
         raise SceneError("bands", [round(w, 1) for w in wl],
@@ -273,6 +274,17 @@ def _compare(args, cancel) -> int:
         pub.publish()
     _print_summary(summary)
     return 0
+
+
+def _fit(args, cancel) -> int:
+    """Fit the scene's dust to the user's tables (nebula_rt.cli_fit)."""
+    from .cli_fit import fit_command
+
+    scene = _scene_from_args(args)
+    direction = parse_direction(args.direction)
+    check_size(args.size)
+    return fit_command(args, cancel, scene, direction, lambda: _backend_for(scene), _inputs(args, scene),
+                       _print_summary)
 
 
 def _devices(args, cancel) -> int:
@@ -332,7 +344,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_table_options(c)
     c.set_defaults(func=_compare)
-    add_fit_parser(sub, _choices)
+    add_fit_parser(sub, _choices, _fit, (MIN_SKY_SIZE, MAX_SKY_SIZE))
     d = sub.add_parser("devices", help="list compute devices")
     d.set_defaults(func=_devices)
     return ap

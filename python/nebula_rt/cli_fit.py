@@ -83,19 +83,16 @@ def _outputs(args, scene, inputs):
     check_outputs(outs, inputs + [("--table", Path(t)) for t in args.table])
 
 
-def _print(summary) -> None:
-    from .cli import _print_summary
-
-    _print_summary(summary)
-
-
-def compare_tables_command(args, cancel, scene, direction, backend, inputs) -> int:
-    """``nebula-rt compare --table``: one trace, residuals and chi^2 of every table, the plot."""
+def compare_tables_command(args, cancel, scene, direction, backend_of, inputs, print_summary) -> int:
+    """``nebula-rt compare --table``: one trace, residuals and chi^2 of every table, the plot.
+    ``backend_of()`` makes the backend (after the tables are checked); ``inputs`` are the files
+    no output may replace; ``print_summary`` prints the JSON summary (nebula_rt.cli's)."""
     from . import comparison, resources
     from .outputs import Publication
 
     tables = read_tables(args, scene)
     comparison.check_tables_against_scene(scene, tables)
+    backend = backend_of()
     resources.check(scene, backend, peel_pixels=args.size * args.size, peel_option="--size", peel_value=args.size)
     _outputs(args, scene, inputs)
     cancel.check("start-up")
@@ -112,24 +109,23 @@ def compare_tables_command(args, cancel, scene, direction, backend, inputs) -> i
             pub.stage(args.json).write_text(json.dumps(summary, indent=2) + "\n")
         cancel.check("run")
         pub.publish()
-    _print(summary)
+    print_summary(summary)
     return 0
 
 
-def fit_command(args, cancel) -> int:
-    """``nebula-rt fit``."""
+def fit_command(args, cancel, scene, direction, backend_of, inputs, print_summary) -> int:
+    """``nebula-rt fit`` (arguments as :func:`compare_tables_command`'s)."""
     from . import comparison, fit, resources
-    from .cli import _backend_for, _inputs, _scene_from_args, check_size, parse_direction
     from .outputs import Publication
 
-    scene = _scene_from_args(args)
-    direction = parse_direction(args.direction)
-    check_size(args.size)
     tables = read_tables(args, scene)
     free = [fit.parse_free(s, scene, direction) for s in args.free]
-    backend = _backend_for(scene)
+    if not free:
+        raise SceneError("--free", [], "name at least one parameter to fit, e.g. --free albedo --free tau")
+    comparison.check_tables_against_scene(scene, tables)
+    backend = backend_of()
     resources.check(scene, backend, peel_pixels=args.size * args.size, peel_option="--size", peel_value=args.size)
-    _outputs(args, scene, _inputs(args, scene))
+    _outputs(args, scene, inputs)
     cancel.check("start-up")
     bar = None
     try:
@@ -164,14 +160,13 @@ def fit_command(args, cancel) -> int:
         pub.publish()
     if not args.quiet:
         print(res.summary(), file=sys.stderr, flush=True)
-    _print(summary)
+    print_summary(summary)
     return 0
 
 
-def add_fit_parser(sub, choices) -> None:
-    """The ``fit`` subcommand's options."""
-    from .cli import MAX_SKY_SIZE, MIN_SKY_SIZE
-
+def add_fit_parser(sub, choices, func, sizes) -> None:
+    """The ``fit`` subcommand's options; ``func(args, cancel)`` runs it, ``sizes`` = (min, max)
+    pixels per side of the image."""
     f = sub.add_parser("fit", help="fit the dust (albedo, g, tau, the star's depth, any scene key) to observations")
     f.add_argument("scene", help="scene file (TOML): the model, and the start")
     add_table_options(f)
@@ -193,11 +188,11 @@ def add_fit_parser(sub, choices) -> None:
     f.add_argument("--device", default=None, help="device selector (name substring or P:D)")
     f.add_argument("--direction", default="0,0,-1", help="viewing direction x,y,z (default 0,0,-1)")
     f.add_argument("--size", type=int, default=comparison_size(),
-                   help=f"peel-off image pixels per side ({MIN_SKY_SIZE}-{MAX_SKY_SIZE})")
+                   help=f"peel-off image pixels per side ({sizes[0]}-{sizes[1]})")
     f.add_argument("--reference", default="observed", choices=["observed", "intrinsic"],
                    help="star colour to measure against: as seen through its dust (default) or intrinsic")
     f.add_argument("-q", "--quiet", action="store_true", help="no progress bar or summary on stderr")
-    f.set_defaults(func=fit_command)
+    f.set_defaults(func=func)
 
 
 def argparse_suppress():

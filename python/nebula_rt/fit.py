@@ -388,7 +388,10 @@ class _Objective:
             if self.cancel is not None and self.cancel():
                 raise CancelledError(f"fit cancelled after {self.done} traces")
             values = self.values(z)
-            self.rings[key] = self._trace(values)
+            try:
+                self.rings[key] = self._trace(values)
+            except CancelledError as exc:  # say where the fit was, not only the trace
+                raise CancelledError(f"fit cancelled after {self.done} traces ({exc})") from None
             self.done += 1
             self.traces[self.stage] = self.traces.get(self.stage, 0) + 1
             chi2 = compare_tables(self.rings[key], self.tables, self.reference, self.model_errors).chi2
