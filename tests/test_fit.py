@@ -278,7 +278,7 @@ def test_fit_recovers_a_synthetic_observation(backend):
     side they lie; the errors are small beside the bounds (at most 1/5 of each range, so the test
     asserts a measurement); chi^2 at the best fit is plausible for its degrees of freedom (below
     the 99.9 % point); the traces were counted and progress reported; the best-fit scene holds
-    the values. Measured on this CPU: about 250 traces, 15-25 s."""
+    the values. Measured on this 2-core CPU: about 250 traces, 14-28 s."""
     truth, tables = _synthetic(backend)
     calls = []
     res = fit.fit_observations(cube(albedo=0.5, g=0.5, tau=1.0), tables, ["albedo", "g", "tau=0.3:10:log"], size=24,
