@@ -194,9 +194,26 @@ def _render(args, cancel) -> int:
     return 0
 
 
+def parse_direction(text: str) -> tuple:
+    """``--direction x,y,z`` -> a tuple of 3 finite floats, not all 0 (SceneError otherwise)."""
+    import math
+
+    try:
+        direction = tuple(float(x) for x in text.split(","))
+        assert len(direction) == 3 and any(direction) and all(math.isfinite(x) for x in direction)
+    except (ValueError, AssertionError):
+        raise SceneError("--direction", text, "must be three finite numbers x,y,z, not all 0") from None
+    return direction
+
+
+def check_size(size: int) -> None:
+    """``--size``: pixels per side of a sky image."""
+    if not MIN_SKY_SIZE <= size <= MAX_SKY_SIZE:
+        raise SceneError("--size", size, f"must be an integer in [{MIN_SKY_SIZE}, {MAX_SKY_SIZE}] (pixels per side)")
+
+
 def _compare(args, cancel) -> int:
     """Trace a scene and measure its colours as an observer would, beside observed values."""
-    import math
 
     import numpy as np
 
@@ -204,13 +221,13 @@ def _compare(args, cancel) -> int:
     from .outputs import Output, Publication, check_outputs
 
     scene = _scene_from_args(args)
-    try:
-        direction = tuple(float(x) for x in args.direction.split(","))
-        assert len(direction) == 3 and any(direction) and all(math.isfinite(x) for x in direction)
-    except (ValueError, AssertionError):
-        raise SceneError("--direction", args.direction, "must be three finite numbers x,y,z, not all 0") from None
-    if not MIN_SKY_SIZE <= args.size <= MAX_SKY_SIZE:
-        raise SceneError("--size", args.size, f"must be an integer in [{MIN_SKY_SIZE}, {MAX_SKY_SIZE}] (pixels per side)")
+    direction = parse_direction(args.direction)
+    check_size(args.size)
+    if args.table:  # the user's own observations (nebula_rt.cli_fit)
+        from .cli_fit import compare_tables_command
+
+        return compare_tables_command(args, cancel, scene, direction, lambda: _backend_for(scene),
+                                      _inputs(args, scene), _print_summary)
     wl = sorted(b.wavelength for b in scene.bands.resolve())
     if len(wl) < 2 or wl[0] > 480.0 or wl[-1] < 520.0:
         raise SceneError("bands", [round(w, 1) for w in wl],
@@ -257,6 +274,17 @@ def _compare(args, cancel) -> int:
         pub.publish()
     _print_summary(summary)
     return 0
+
+
+def _fit(args, cancel) -> int:
+    """Fit the scene's dust to the user's tables (nebula_rt.cli_fit)."""
+    from .cli_fit import fit_command
+
+    scene = _scene_from_args(args)
+    direction = parse_direction(args.direction)
+    check_size(args.size)
+    return fit_command(args, cancel, scene, direction, lambda: _backend_for(scene), _inputs(args, scene),
+                       _print_summary)
 
 
 def _devices(args, cancel) -> int:
@@ -312,7 +340,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"sky image pixels per side ({MIN_SKY_SIZE}-{MAX_SKY_SIZE})")
     c.add_argument("--reference", default="observed", choices=["observed", "intrinsic"],
                    help="star colour to measure against: as seen through its dust (default) or intrinsic")
+    from .cli_fit import add_fit_parser, add_table_options
+
+    add_table_options(c)
     c.set_defaults(func=_compare)
+    add_fit_parser(sub, _choices, _fit, (MIN_SKY_SIZE, MAX_SKY_SIZE))
     d = sub.add_parser("devices", help="list compute devices")
     d.set_defaults(func=_devices)
     return ap
