@@ -112,7 +112,7 @@ def trace_rings(scene, edges, *, direction=(0.0, 0.0, -1.0), size: int = DEFAULT
     t = scene.transport
     photons, target = t.effective()
     res = trace(rho, bands, scene.stars, tau=scene.dust.tau, photons=photons, estimator=t.estimator,
-                max_scatterings=t.max_scatterings, seed=t.seed, batch_size=t.batch_size, backend=backend,
+                method=t.method, max_scatterings=t.max_scatterings, seed=t.seed, batch_size=t.batch_size, backend=backend,
                 target_error=target, time_limit=t.time_limit, progress=progress, cancel=cancel, peel=cam,
                 peel_bins=labels)
     sigma = np.array([scene.dust.tau * b.extinction for b in bands])[:, None, None, None] * \
