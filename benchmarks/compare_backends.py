@@ -26,24 +26,27 @@ ROOT = Path(__file__).resolve().parents[1]
 SCENE_OVERRIDES = ["grid.shape=[64,64,64]", "transport.photons=1000000", "transport.seed=7"]
 
 
-def run(spec: str, save_dir: Path) -> Path:
+def run(spec: str, save_dir: Path, extra=()) -> Path:
     from nebula_rt.backends import get_backend
     from nebula_rt.pipeline import Pipeline
     from nebula_rt.scene import Scene
 
     name, _, device = spec.partition(":")
     backend = get_backend(name, device)
-    scene = Scene.load(ROOT / "examples/scenes/thesis-default.toml").with_overrides(SCENE_OVERRIDES)
+    scene = Scene.load(ROOT / "examples/scenes/thesis-default.toml").with_overrides(SCENE_OVERRIDES + list(extra))
     light = Pipeline(backend).run(scene, colour=False)
     slug = "".join(c if c.isalnum() else "-" for c in backend.device_name.lower())[:48]
-    out = save_dir / f"light-{slug}.npz"
-    np.savez_compressed(out, J=light.J, rel=light.rel_error, counts=light.transport.counts,
+    tag = "".join(c if c.isalnum() else "-" for c in "-".join(extra))[:40]
+    out = save_dir / f"light-{slug}{'-' + tag if tag else ''}.npz"
+    # counts as float64: a biased run's are 128-bit weight sums (their ratios are what compare)
+    np.savez_compressed(out, J=light.J, rel=light.rel_error,
+                        counts=np.array(light.transport.counts.tolist(), dtype=np.float64),
                         device=backend.device_name)
     print(f"{backend.device_name}: counts {light.transport.counts.tolist()} -> {out}")
     return out
 
 
-def compare(paths: list[Path]) -> dict:
+def compare(paths: list[Path], extra=()) -> dict:
     data = {p: np.load(p) for p in paths}
     report = []
     for a, b in itertools.combinations(paths, 2):
@@ -63,7 +66,8 @@ def compare(paths: list[Path]) -> dict:
         }
         report.append(row)
         print(json.dumps(row, indent=2))
-    return {"scene": "examples/scenes/thesis-default.toml", "overrides": SCENE_OVERRIDES, "pairs": report}
+    return {"scene": "examples/scenes/thesis-default.toml", "overrides": SCENE_OVERRIDES + list(extra),
+            "pairs": report}
 
 
 def main(argv=None) -> int:
@@ -72,11 +76,13 @@ def main(argv=None) -> int:
     ap.add_argument("--save-dir", default=".", help="where the .npz files go")
     ap.add_argument("--compare", nargs="*", default=None, help=".npz files to compare pairwise")
     ap.add_argument("--out", default=None, help="JSON report of the comparison")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="another scene override, e.g. transport.method=\"biased\"")
     args = ap.parse_args(argv)
-    saved = [run(spec, Path(args.save_dir)) for spec in args.run]
+    saved = [run(spec, Path(args.save_dir), args.set) for spec in args.run]
     paths = [Path(p) for p in (args.compare or [])] + saved
     if len(paths) >= 2:
-        rep = compare(paths)
+        rep = compare(paths, args.set)
         if args.out:
             Path(args.out).write_text(json.dumps(rep, indent=2) + "\n")
     return 0

@@ -129,6 +129,9 @@ fi
 if [[ " $steps " == *" compare "* ]]; then
     echo "== same seed on CUDA and NVIDIA OpenCL"
     python3 benchmarks/compare_backends.py --run cuda: --run opencl:NVIDIA --save-dir "$out" --out "$out/compare.json" | grep -E '"(a|b|max_count|median|z_std)'
+    echo "== same seed on CUDA and NVIDIA OpenCL, biased transport"
+    python3 benchmarks/compare_backends.py --run cuda: --run opencl:NVIDIA --set 'transport.method="biased"' \
+        --save-dir "$out" --out "$out/compare-biased.json" | grep -E '"(a|b|max_count|median|z_std)'
 fi
 if [[ " $steps " == *" profile "* ]] && command -v ncu >/dev/null; then
     echo "== ncu: transport kernel, neb128 2.1M photons (one batch)"

@@ -15,7 +15,8 @@ Scenes with known answers:
             here (its own variance is subtracted from the measured squared error).
 
 Axes: photons per band 1e4 .. --max-photons (x10 steps); estimator: track-length and the
-collision filter at radii 0.02 and 0.04 box units; grid 32^3, 64^3, 128^3 (at 1e6 photons).
+collision filter at radii 0.02 and 0.04 box units; transport method: analog, and biased
+(weighted packets, track-length); grid 32^3, 64^3, 128^3 (at 1e6 photons).
 Error: brightness-weighted (sigma J) RMS over the lit region (nebula_rt.transport.lit_region,
 from the known answer) of the relative error of J in each band, the largest over the bands; beside it the error the run
 reports (batch means over the same voxels; it does not see the filter's bias). Time: wall
@@ -38,7 +39,9 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-ESTIMATORS = [("track-length", 0.0), ("collision-filter", 0.02), ("collision-filter", 0.04)]
+#: (estimator, filter radius, transport method)
+CONFIGS = [("track-length", 0.0, "analog"), ("collision-filter", 0.02, "analog"),
+           ("collision-filter", 0.04, "analog"), ("track-length", 0.0, "biased")]
 
 
 def absorber_scene(n, photons, backend, device):
@@ -61,14 +64,14 @@ def thesis_scene(n, photons, backend, device):
          f'transport.backend="{backend}"', f'transport.device="{device}"'])
 
 
-def run(scene, backend, estimator, radius, seed, repeats):
+def run(scene, backend, estimator, radius, seed, repeats, method="analog"):
     """(J, reported error, sigma, median wall s, median kernel s) of one configuration."""
     from nebula_rt.pipeline import compute_light
     from nebula_rt.transport import lit_region_error
 
     from nebula_rt.pipeline import Pipeline
 
-    over = [f'transport.estimator="{estimator}"', f"transport.seed={seed}"]
+    over = [f'transport.estimator="{estimator}"', f"transport.seed={seed}", f'transport.method="{method}"']
     if radius:
         over.append(f"transport.filter_radius={radius}")
     scene = scene.with_overrides(over)
@@ -112,6 +115,7 @@ def study(args) -> dict:
             # warm-up (compile) on this grid
             run(make(n, 1000, args.backend, args.device), backend, "track-length", 0.0, 1, 1)
             run(make(n, 1000, args.backend, args.device), backend, "collision-filter", 0.02, 1, 1)
+            run(make(n, 1000, args.backend, args.device), backend, "track-length", 0.0, 1, 1, "biased")
             if name == "absorber":
                 shape = (n, n, n)
                 X, Y, Z = voxel_centres(shape)
@@ -132,16 +136,17 @@ def study(args) -> dict:
                 ref_info = f"track-length, {ref_photons} photons, seed 987654321, error {ref_err:.2e}, {time.perf_counter() - t0:.1f} s"
             print(f"== {name} {n}^3 (reference: {ref_info}; lit voxels {int(mask.sum())})", flush=True)
             for photons in photons_here:
-                for estimator, radius in ESTIMATORS:
+                for estimator, radius, method in CONFIGS:
                     repeats = 1 if photons >= args.max_photons / 10 else 3
                     J, rel, _, wall, kernel, reported = run(make(n, photons, args.backend, args.device), backend,
-                                                            estimator, radius, 1, repeats)
+                                                            estimator, radius, 1, repeats, method)
                     err = rms_error(J, truth, sigma, mask, ref_rel)
                     row = {"scene": name, "grid": n, "photons": photons, "estimator": estimator,
-                           "filter_radius": radius, "wall_s": round(wall, 5), "kernel_s": round(kernel, 5),
-                           "true_error": err, "reported_error": reported, "reference": ref_info}
+                           "filter_radius": radius, "method": method, "wall_s": round(wall, 5),
+                           "kernel_s": round(kernel, 5), "true_error": err, "reported_error": reported,
+                           "reference": ref_info}
                     rows.append(row)
-                    print(f"  {photons:>11,d} {estimator:16s} r={radius:<5} wall {wall * 1e3:9.1f} ms  "
+                    print(f"  {photons:>11,d} {estimator:16s} r={radius:<5} {method:6s} wall {wall * 1e3:9.1f} ms  "
                           f"error {err:.4f}  reported {reported:.4f}", flush=True)
     return _result("trade_study", backend, rows)
 
@@ -162,19 +167,19 @@ def presets(args) -> dict:
                                                    backend, "track-length", 0.0, 987654321, 1)
         mask = lit_region(truth, sigma) & (truth > 0)
         rho = Pipeline(backend).density(base)
-        for name in names:
-            scene = base.with_overrides([f'transport.quality="{name}"'])
+        for name, method in [(q, m) for m in ("analog", "biased") for q in names]:
+            scene = base.with_overrides([f'transport.quality="{name}"', f'transport.method="{method}"'])
             compute_light(scene.with_overrides(['transport.quality=""', "transport.photons=10000"]), rho, backend)
             t0 = time.perf_counter()
             res, J, rel = compute_light(scene, rho, backend)
             wall = time.perf_counter() - t0
             err = rms_error(J, truth, sigma, mask, ref_rel)
-            row = {"grid": n, "quality": name, "target_error": QUALITY_PRESETS[name]["target_error"],
+            row = {"grid": n, "quality": name, "method": method, "target_error": QUALITY_PRESETS[name]["target_error"],
                    "budget": QUALITY_PRESETS[name]["photons"], "photons_used": int(res.photons),
                    "reported_error": res.achieved_error, "true_error": err, "wall_s": round(wall, 4),
                    "reference": f"{ref_photons} photons, error {ref_err:.2e}"}
             rows.append(row)
-            print(f"{n}^3 {name:9s} target {row['target_error']:.2f}: {row['photons_used']:>11,d} photons, "
+            print(f"{n}^3 {name:9s} {method:6s} target {row['target_error']:.2f}: {row['photons_used']:>11,d} photons, "
                   f"reported {row['reported_error']:.4f}, true {err:.4f}, {wall * 1e3:8.1f} ms", flush=True)
     return _result("quality_presets", backend, rows)
 
@@ -186,7 +191,8 @@ def _result(name: str, backend, rows) -> dict:
 
 
 def label(row) -> str:
-    return "track-length" if row["estimator"] == "track-length" else f"collision filter r={row['filter_radius']}"
+    est = "track-length" if row["estimator"] == "track-length" else f"collision filter r={row['filter_radius']}"
+    return est + (", biased" if row.get("method") == "biased" else "")
 
 
 def plot(result: dict, png: Path, md: Path) -> None:
@@ -206,7 +212,7 @@ def plot(result: dict, png: Path, md: Path) -> None:
             if not sel:
                 continue
             line, = ax.loglog([r["wall_s"] for r in sel], [r["true_error"] for r in sel], "o-", label=lab)
-            if lab == "track-length":
+            if lab == "track-length":  # analog
                 ax.loglog([r["wall_s"] for r in sel], [r["reported_error"] for r in sel], "x--",
                           color=line.get_color(), label="track-length, reported")
             for r in sel:
