@@ -27,6 +27,7 @@ def _scene_from_args(args):
     from .scene import Scene
 
     scene = Scene.load(args.scene)
+    args.scene_used = scene  # a later error on a converted value names the physical key (units.attribute)
     if args.set:
         scene = scene.with_overrides(args.set)
     if args.backend:
@@ -39,6 +40,7 @@ def _scene_from_args(args):
         scene = scene.with_overrides([f"transport.target_error={args.target_error}"])
     if args.quality is not None:
         scene = scene.with_overrides([f'transport.quality="{args.quality}"'])
+    args.scene_used = scene
     return scene
 
 
@@ -349,11 +351,15 @@ def _main(argv) -> int:
     cancel = SignalCancel()
     with cancel:
         status = None
+        args = None
         try:
             args = build_parser().parse_args(argv)
             cancel.quiet = bool(getattr(args, "quiet", False))
             return args.func(args, cancel)
         except SceneError as exc:
+            from .units import attribute
+
+            exc = attribute(exc, getattr(args, "scene_used", None))
             _error(f"invalid scene: {exc}; nothing written")
             status = 2
         except (OutputError, ResourceError) as exc:
