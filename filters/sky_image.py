@@ -17,12 +17,20 @@ from nebula_rt.transport import star_band_luminosities
 
 from .base import ExposureMixin, NebulaAlgorithm
 from .image_data import add_field_data, add_point_arrays, field_data_dict, point_array
+from .properties import Property, bind, init_values, scene_values
+
+#: The picture's tone curve, bound to the scene's colour keys (as the Colour filter's)
+SKY_PICTURE_PROPERTIES = (
+    Property("Stretch", "colour.stretch", widget="enum"),
+    Property("AsinhQ", "colour.asinh_q", enabled_by=("Stretch", 1)),
+)
 
 #: Auto exposure of the sky image: this percentile of the scattered light's max colour
 #: component (among lit pixels) maps to full scale; star pixels saturate.
 SKY_EXPOSURE_PERCENTILE = 99.0
 
 
+@bind(SKY_PICTURE_PROPERTIES)
 class NebulaSkyImage(ExposureMixin, NebulaAlgorithm):
     """Orthographic image of the nebula seen from far away along ``ViewDirection``.
 
@@ -44,6 +52,7 @@ class NebulaSkyImage(ExposureMixin, NebulaAlgorithm):
 
     def __init__(self):
         super().__init__(nInputPorts=1, nOutputPorts=1, inputType="vtkImageData", outputType="vtkImageData")
+        init_values(self)
         self._direction = (0.0, 0.0, -1.0)
         self._up = (0.0, 1.0, 0.0)
         self._size = (256, 256)
@@ -99,8 +108,9 @@ class NebulaSkyImage(ExposureMixin, NebulaAlgorithm):
 
     def _execute(self, request, inInfo, outInfo):
         cam = self._camera()
-        if not self._auto_exposure:
-            Scene.from_dict({"colour": {"exposure": self._exposure}})  # the colour table's rule
+        # the colour table's rules (exposure, stretch, softening)
+        Scene.from_dict(scene_values(self._values, {"colour": {"exposure": "auto" if self._auto_exposure
+                                                               else self._exposure}}))
         inp = vtkImageData.GetData(inInfo[0])
         fd = contract.LightFieldData.from_field_data(
             field_data_dict(inp), need=("band_names", "band_wavelength_nm", "band_extinction", "tau", "scene"))
@@ -126,7 +136,8 @@ class NebulaSkyImage(ExposureMixin, NebulaAlgorithm):
             exposure = colour_convert.auto_exposure(scat, percentile=SKY_EXPOSURE_PERCENTILE)
         else:
             exposure = float(self._exposure)
-        rgb8 = colour_convert.encode_srgb(rgb, exposure)  # (W, H, 3)
+        rgb8 = colour_convert.encode_picture(rgb, exposure, self._values["colour.stretch"],
+                                             self._values["colour.asinh_q"])  # (W, H, 3)
 
         out = vtkImageData.GetData(outInfo)
         w, h = cam.size
