@@ -338,3 +338,66 @@ def test_cli_sky_writes_fits_png_and_json(tmp_path, capsys):
         status = cli.main(["sky", str(tmp_path / "s.toml"), "--fits", str(out / "new.fits"), "--set", override, "-q"])
         assert status == 2 and key in capsys.readouterr().err
     assert not (out / "new.fits").exists()
+
+
+# --- the VTK layer ----------------------------------------------------------------------------
+
+
+def test_the_sky_image_filter_calibrates_as_the_library_and_its_writer_writes_fits(tmp_path):
+    """Nebula Sky Image with Units MJy/sr gives the bits of calibrate.ray_march_sky on the same
+    light field (the library's calibration of the ray march), and NebulaSkyFitsWriter writes
+    them with the WCS; in box units the writer refuses, naming Units."""
+    import dataclasses
+
+    from astropy.io import fits
+    from astropy.wcs import WCS
+
+    from nebula_rt.filters import NebulaDustDensity, NebulaLightField, NebulaSkyFitsWriter, NebulaSkyImage
+    from nebula_rt.filters.image_data import point_array
+    from nebula_rt.sky import Camera
+
+    star = [0.61, 0.43, 0.5, 100.0, 9000.0, 0.0]
+    d = NebulaDustDensity()
+    d.SetGridShape(12, 12, 12)
+    d.SetBackend(TEST_BACKEND)
+    d.SetDevice(TEST_DEVICE)
+    d.SetStars(star)
+    lf = NebulaLightField()
+    lf.SetInputConnection(d.GetOutputPort())
+    lf.SetBackend(TEST_BACKEND)
+    lf.SetDevice(TEST_DEVICE)
+    lf.SetPhotons(4000)
+    lf.SetTau(3.0)
+    lf.SetLuminosityUnit("L_sun")
+    lf.SetBoxLength(0.2)
+    sky = NebulaSkyImage()
+    sky.SetInputConnection(lf.GetOutputPort())
+    sky.SetImageSize(20, 20)
+    sky.SetUnits(1)
+    for setter, v in (("Distance", "50 pc"), ("RA", 120.0), ("Dec", 33.0), ("PositionAngle", -40.0), ("PSFFWHM", 50.0)):
+        getattr(sky, "Set" + setter)(v)
+    sky.Update()
+    assert lf.last_error is None and sky.last_error is None, (lf.last_error, sky.last_error)
+    light = lf.last_light
+    scene = light.scene.with_overrides(["observer.distance='50 pc'", "observer.ra=120.0", "observer.dec=33.0",
+                                        "observer.position_angle=-40.0", "observer.psf_fwhm=50.0"])
+    assert scene.stars[0].luminosity_lsun == 100.0 and units.box_length_cm(scene.grid) == pytest.approx(0.2 * PC_M * 100)
+    cal = calibrate.ray_march_sky(dataclasses.replace(light, scene=scene), Camera(size=(20, 20)))
+    img = sky.GetOutputDataObject(0)
+    for b, name in enumerate(cal.band_names):
+        assert np.array_equal(point_array(img, f"sb_{name}")[:, :, 0], cal.surface_brightness[b].astype(np.float32))
+    for x, name in enumerate(cal.passbands):
+        assert np.array_equal(point_array(img, f"mag_{name}")[:, :, 0], cal.mag[x].astype(np.float32), equal_nan=True)
+    writer = NebulaSkyFitsWriter()
+    writer.SetInputConnection(sky.GetOutputPort())
+    writer.SetFileName(str(tmp_path / "sky.fits"))
+    writer.Write()
+    assert writer.last_error is None, writer.last_error
+    with fits.open(tmp_path / "sky.fits") as hdul:
+        assert np.array_equal(hdul["SB_G"].data, cal.surface_brightness[1].T.astype(np.float32))
+        w = WCS(hdul["SB_G"].header)
+        assert np.allclose(w.pixel_to_world_values(3.0, 17.0), cal.wcs.pixel_to_world_values(3.0, 17.0), atol=1e-12)
+    sky.SetUnits(0)
+    writer.SetFileName(str(tmp_path / "box.fits"))
+    writer.Write()
+    assert "Units" in writer.last_error and not (tmp_path / "box.fits").exists()

@@ -263,3 +263,15 @@ def test_a_physical_scene_traces_the_bits_of_its_box_unit_equivalent(backend):
     assert a.transport.counts.tolist() == b.transport.counts.tolist()
     assert np.array_equal(a.J, b.J) and np.array_equal(a.rel_error, b.rel_error)
     assert a.transport.counts[:, 1].sum() > 0  # the dust absorbed: the optical depth mattered
+
+
+def test_the_example_on_the_sky_is_the_merope_scene_in_physical_units():
+    """examples/scenes/merope-sky.toml: n_H 2700 cm^-3 in a 0.5 pc box gives merope.toml's
+    tau of 2 (within 0.2 %), the rest of the scene the same."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1] / "examples" / "scenes"
+    sky, box = Scene.load(root / "merope-sky.toml"), Scene.load(root / "merope.toml")
+    assert sky.dust.tau == pytest.approx(box.dust.tau, rel=2e-3)
+    assert (sky.grid.shape, sky.bands, sky.transport) == (box.grid.shape, box.bands, box.transport)
+    assert sky.stars[0].temperature == box.stars[0].temperature == 14000.0

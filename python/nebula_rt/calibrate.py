@@ -440,13 +440,15 @@ def peel_off_sky(scene, camera, backend=None, progress=None, cancel=None):
                 max_scatterings=t.max_scatterings, seed=t.seed, batch_size=t.batch_size, backend=backend,
                 target_error=target, time_limit=t.time_limit, progress=progress, cancel=cancel, peel=camera,
                 peel_bins=np.zeros(camera.size, np.int64))
-    tau = _star_tau(scene, bands, rho, camera)
+    tau = star_tau(scene, bands, rho, camera)
     cal = calibrate(scene, camera, res.peel_image, res.star_band_luminosity, tau, "peel-off",
                     {"NPHOTON": (int(res.photons), "packets per band"), "SEED": str(t.seed)})
     return cal, res
 
 
-def _star_tau(scene, bands, rho, camera) -> np.ndarray:
+def star_tau(scene, bands, rho, camera) -> np.ndarray:
+    """(n_stars, n_bands) optical depth from each star to the observer of ``camera`` (the exact
+    march of :func:`nebula_rt.observe.line_of_sight_tau` through ``rho``)."""
     from .observe import line_of_sight_tau
 
     sigma = np.array([scene.dust.tau * b.extinction for b in bands])[:, None, None, None] * \
@@ -466,7 +468,7 @@ def ray_march_sky(light, camera) -> CalibratedSky:
     rho = light.density.astype(np.float64)
     sigma = np.array([scene.dust.tau * b.extinction for b in bands])[:, None, None, None] * rho[None]
     img = sky_image(light.emissivity.astype(np.float64), sigma, camera)
-    tau = _star_tau(scene, bands, rho, camera)
+    tau = star_tau(scene, bands, rho, camera)
     return calibrate(scene, camera, img.scattered, light.transport.star_band_luminosity, tau, "ray-march",
                      {"NPHOTON": (int(light.transport.photons), "packets per band"),
                       "SEED": str(scene.transport.seed)})

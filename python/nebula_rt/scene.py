@@ -110,7 +110,7 @@ class Grid:
             "shape, so voxels need not be cubes; memory and trace time grow with the number of voxels "
             "(the thesis used 128^3)")
     length: Union[float, str] = param(
-        1.0, type="float or str", lo=0.0, lo_open=True, group=G_UNITS, advanced=True,
+        1.0, type="float or str", lo=0.0, lo_open=True, label="Box Length", group=G_UNITS, advanced=True,
         doc="Physical length of one box edge: a number in `unit`, or a quantity with its own unit "
             "(\"3 pc\", \"2e5 AU\"; astropy.units). The transport works in box units; the length "
             "converts the physical dust keys to dust.tau and scales calibrated sky images")
