@@ -381,6 +381,8 @@ SETTERS = {
     "colour.exposure": ("colour", "SetExposure", lambda v: (v,)),
     "colour.white_point": ("colour", "SetWhitePoint", lambda v: (v,)),
     "colour.opacity_scale": ("colour", "SetOpacityScale", lambda v: (v,)),
+    "colour.stretch": ("colour", "SetStretch", lambda v: (v,)),
+    "colour.asinh_q": ("colour", "SetAsinhQ", lambda v: (v,)),
 }
 #: rows whose value means something else to the setter than to the scene file
 SETTER_MEANS_ELSE = {
@@ -389,6 +391,7 @@ SETTER_MEANS_ELSE = {
     ("transport.backend", "type"): "an integer selects a backend by index",
     ("transport.estimator", "type"): "an integer selects an estimator by index",
     ("colour.white_point", "type"): "an integer selects a white point by index",
+    ("colour.stretch", "type"): "an integer selects a stretch by index",
     ("dust.model", "type"): "an integer selects a model by index",
     ("transport.quality", "type"): "an integer selects a quality by index",
     ("transport.batch_size", "single-batch"): "the filter's photon count is its own (100000)",

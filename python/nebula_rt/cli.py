@@ -235,14 +235,26 @@ def _sky(args, cancel) -> int:
     check_outputs(outputs, _inputs(args, scene))
     cancel.check("start-up")
     cam = calibrate.camera_for(scene, direction, args.size)
-    if args.method == "peel-off":
-        cal, res = calibrate.peel_off_sky(scene, cam, backend, cancel=cancel)
-    else:
-        from .pipeline import Pipeline
+    from tqdm import tqdm
 
-        light = Pipeline(backend).run(scene, cancel=cancel, colour=False)
-        res = light.transport
-        cal = calibrate.ray_march_sky(light, cam)
+    bar = tqdm(total=scene.transport.effective()[0], unit="pkt", unit_scale=True, desc="tracing",
+               disable=args.quiet, file=sys.stderr)
+
+    def progress(done, total):
+        bar.n = done
+        bar.refresh()
+
+    try:
+        if args.method == "peel-off":
+            cal, res = calibrate.peel_off_sky(scene, cam, backend, progress=progress, cancel=cancel)
+        else:
+            from .pipeline import Pipeline
+
+            light = Pipeline(backend).run(scene, progress=progress, cancel=cancel, colour=False)
+            res = light.transport
+            cal = calibrate.ray_march_sky(light, cam)
+    finally:
+        bar.close()
     cancel.check("run")
     summary = {
         "scene": str(args.scene), "fits": str(args.fits), "png": args.png, "method": cal.method,
