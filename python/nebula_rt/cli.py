@@ -198,7 +198,8 @@ def _render(args, cancel) -> int:
     return 0
 
 
-def _direction(text: str) -> tuple:
+def parse_direction(text: str) -> tuple:
+    """``--direction x,y,z`` -> a tuple of 3 finite floats, not all 0 (SceneError otherwise)."""
     import math
 
     try:
@@ -209,76 +210,10 @@ def _direction(text: str) -> tuple:
     return direction
 
 
-def _sky(args, cancel) -> int:
-    """A calibrated sky image of a scene (nebula_rt.calibrate): FITS in MJy/sr and mag/arcsec^2
-    with a celestial WCS, and a true-colour PNG."""
-    import numpy as np
-
-    from . import calibrate, resources
-    from .outputs import Output, Publication, check_outputs
-
-    scene = _scene_from_args(args)
-    direction = _direction(args.direction)
-    if not MIN_SKY_SIZE <= args.size <= MAX_SKY_SIZE:
-        raise SceneError("--size", args.size, f"must be an integer in [{MIN_SKY_SIZE}, {MAX_SKY_SIZE}] (pixels per side)")
-    calibrate.check_scene(scene)
-    npix = args.size * args.size
-    nb = len(scene.bands.resolve())
-    outputs = [Output("--fits", Path(args.fits), ".fits", (nb + len(calibrate.PASSBANDS)) * npix * 4 + (256 << 10))]
-    if args.png:
-        outputs.append(Output("--png", Path(args.png), ".png", npix * 4 + 65536))
-    if args.json:
-        outputs.append(Output("--json", Path(args.json), ".json", 1 << 20))
-    backend = _backend_for(scene)
-    resources.check(scene, backend, peel_pixels=npix if args.method == "peel-off" else 0, peel_option="--size",
-                    peel_value=args.size)
-    check_outputs(outputs, _inputs(args, scene))
-    cancel.check("start-up")
-    cam = calibrate.camera_for(scene, direction, args.size)
-    from tqdm import tqdm
-
-    bar = tqdm(total=scene.transport.effective()[0], unit="pkt", unit_scale=True, desc="tracing",
-               disable=args.quiet, file=sys.stderr)
-
-    def progress(done, total):
-        bar.n = done
-        bar.refresh()
-
-    try:
-        if args.method == "peel-off":
-            cal, res = calibrate.peel_off_sky(scene, cam, backend, progress=progress, cancel=cancel)
-        else:
-            from .pipeline import Pipeline
-
-            light = Pipeline(backend).run(scene, progress=progress, cancel=cancel, colour=False)
-            res = light.transport
-            cal = calibrate.ray_march_sky(light, cam)
-    finally:
-        bar.close()
-    cancel.check("run")
-    summary = {
-        "scene": str(args.scene), "fits": str(args.fits), "png": args.png, "method": cal.method,
-        "photons_per_band": int(res.photons), "pixel_scale_arcsec": round(cal.pixel_scale_arcsec, 6),
-        "psf_fwhm_arcsec": cal.psf_fwhm_arcsec, "bands": cal.band_names,
-        "total_flux_jy": {n: float(f) for n, f in zip(cal.band_names, cal.total_flux_jy())},
-        "star_flux_jy": [{n: float(f) for n, f in zip(cal.band_names, row)} for row in cal.star_flux_jy],
-        "star_mag_ab": [{n: round(float(m), 4) for n, m in zip(cal.passbands, row)} for row in cal.star_mag],
-        "faintest_lit_mag_arcsec2": {n: None if not (cal.mag[x] == cal.mag[x]).any() else
-                                     round(float(np.nanmax(cal.mag[x])), 3) for x, n in enumerate(cal.passbands)},
-    }
-    with Publication() as pub:  # the FITS, the PNG and the JSON: all or none
-        calibrate.write_fits(pub.stage(args.fits), cal, scene)
-        if args.png:
-            rgb8, exposure = calibrate.picture(cal, scene, scene.colour.exposure)
-            calibrate.write_png(pub.stage(args.png), rgb8)
-            summary["exposure"] = exposure
-        if args.json:
-            pub.stage(args.json).write_text(json.dumps(summary, indent=2) + "\n")
-        cancel.check("run")
-        pub.publish()
-    if not args.quiet:
-        _print_summary(summary)
-    return 0
+def check_size(size: int) -> None:
+    """``--size``: pixels per side of a sky image."""
+    if not MIN_SKY_SIZE <= size <= MAX_SKY_SIZE:
+        raise SceneError("--size", size, f"must be an integer in [{MIN_SKY_SIZE}, {MAX_SKY_SIZE}] (pixels per side)")
 
 
 def _compare(args, cancel) -> int:
@@ -357,6 +292,77 @@ def _devices(args, cancel) -> int:
         problem = probe_device(f"{p}:{d}")
         state = "usable" if problem is None else f"NOT usable: {problem}"
         print(f"opencl {p}:{d}  {name}  ({'GPU' if gpu else 'CPU/other'}; {state})", flush=True)
+    return 0
+
+
+def _sky(args, cancel) -> int:
+    """A calibrated sky image of a scene (nebula_rt.calibrate): FITS in MJy/sr and mag/arcsec^2
+    with a celestial WCS, and a true-colour PNG."""
+    import numpy as np
+
+    from . import calibrate, resources
+    from .outputs import Output, Publication, check_outputs
+
+    scene = _scene_from_args(args)
+    direction = parse_direction(args.direction)
+    check_size(args.size)
+    calibrate.check_scene(scene)
+    npix = args.size * args.size
+    nb = len(scene.bands.resolve())
+    outputs = [Output("--fits", Path(args.fits), ".fits", (nb + len(calibrate.PASSBANDS)) * npix * 4 + (256 << 10))]
+    if args.png:
+        outputs.append(Output("--png", Path(args.png), ".png", npix * 4 + 65536))
+    if args.json:
+        outputs.append(Output("--json", Path(args.json), ".json", 1 << 20))
+    backend = _backend_for(scene)
+    resources.check(scene, backend, peel_pixels=npix if args.method == "peel-off" else 0, peel_option="--size",
+                    peel_value=args.size)
+    check_outputs(outputs, _inputs(args, scene))
+    cancel.check("start-up")
+    cam = calibrate.camera_for(scene, direction, args.size)
+    from tqdm import tqdm
+
+    bar = tqdm(total=scene.transport.effective()[0], unit="pkt", unit_scale=True, desc="tracing",
+               disable=args.quiet, file=sys.stderr)
+
+    def progress(done, total):
+        bar.n = done
+        bar.refresh()
+
+    try:
+        if args.method == "peel-off":
+            cal, res = calibrate.peel_off_sky(scene, cam, backend, progress=progress, cancel=cancel)
+        else:
+            from .pipeline import Pipeline
+
+            light = Pipeline(backend).run(scene, progress=progress, cancel=cancel, colour=False)
+            res = light.transport
+            cal = calibrate.ray_march_sky(light, cam)
+    finally:
+        bar.close()
+    cancel.check("run")
+    summary = {
+        "scene": str(args.scene), "fits": str(args.fits), "png": args.png, "method": cal.method,
+        "photons_per_band": int(res.photons), "pixel_scale_arcsec": round(cal.pixel_scale_arcsec, 6),
+        "psf_fwhm_arcsec": cal.psf_fwhm_arcsec, "bands": cal.band_names,
+        "total_flux_jy": {n: float(f) for n, f in zip(cal.band_names, cal.total_flux_jy())},
+        "star_flux_jy": [{n: float(f) for n, f in zip(cal.band_names, row)} for row in cal.star_flux_jy],
+        "star_mag_ab": [{n: round(float(m), 4) for n, m in zip(cal.passbands, row)} for row in cal.star_mag],
+        "faintest_lit_mag_arcsec2": {n: None if not (cal.mag[x] == cal.mag[x]).any() else
+                                     round(float(np.nanmax(cal.mag[x])), 3) for x, n in enumerate(cal.passbands)},
+    }
+    with Publication() as pub:  # the FITS, the PNG and the JSON: all or none
+        calibrate.write_fits(pub.stage(args.fits), cal, scene)
+        if args.png:
+            rgb8, exposure = calibrate.picture(cal, scene, scene.colour.exposure)
+            calibrate.write_png(pub.stage(args.png), rgb8)
+            summary["exposure"] = exposure
+        if args.json:
+            pub.stage(args.json).write_text(json.dumps(summary, indent=2) + "\n")
+        cancel.check("run")
+        pub.publish()
+    if not args.quiet:
+        _print_summary(summary)
     return 0
 
 
