@@ -5,6 +5,8 @@ through the thin wrappers of ``plugin/``, ParaView.
 - :class:`NebulaLightField`   filter  vtkImageData (a density array) -> the light field
 - :class:`NebulaColour`       filter  light field -> ``rgba`` (+ ``rgb_linear``), no re-trace
 - :class:`NebulaSkyImage`     filter  light field -> 2D image of what a telescope sees
+  (with Units "MJy/sr" also calibrated: surface brightness, magnitudes, a celestial WCS)
+- :class:`NebulaSkyFitsWriter` writer  calibrated sky image -> FITS
 
 Each is a ``VTKPythonAlgorithmBase``: setters only store the value and call ``Modified()``;
 validation happens in ``RequestData`` with the library's errors (an invalid value produces an
@@ -27,6 +29,6 @@ The names and types of the outputs' arrays and field data are declared in
 from .colour import NebulaColour
 from .dust_density import NebulaDustDensity
 from .light_field import NebulaLightField
-from .sky_image import NebulaSkyImage
+from .sky_image import NebulaSkyFitsWriter, NebulaSkyImage
 
-__all__ = ["NebulaColour", "NebulaDustDensity", "NebulaLightField", "NebulaSkyImage"]
+__all__ = ["NebulaColour", "NebulaDustDensity", "NebulaLightField", "NebulaSkyFitsWriter", "NebulaSkyImage"]

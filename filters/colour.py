@@ -17,6 +17,8 @@ from .properties import Property, bind, init_values, scene_values
 COLOUR_PROPERTIES = (
     Property("WhitePoint", "colour.white_point", widget="enum"),
     Property("OpacityScale", "colour.opacity_scale"),
+    Property("Stretch", "colour.stretch", widget="enum"),
+    Property("AsinhQ", "colour.asinh_q", enabled_by=("Stretch", 1)),
 )
 
 
@@ -75,6 +77,8 @@ class NebulaColour(ExposureMixin, NebulaAlgorithm):
             temperature=colour_source_from_field_data(fd),
             exposure=exposure, white_point=self._values["colour.white_point"],
             opacity_scale=self._values["colour.opacity_scale"],
+            stretch=self._values["colour.stretch"],
+            asinh_q=self._values["colour.asinh_q"],
             return_linear=True,
         )
         out = vtkImageData.GetData(outInfo)

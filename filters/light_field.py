@@ -38,7 +38,11 @@ LIGHT_FIELD_PROPERTIES = (
     Property("Backend", "transport.backend"),
     Property("Device", "transport.device"),
     Property("BatchSize", "transport.batch_size"),
+    Property("BoxLength", "grid.length"),
 )
+#: What the Stars' luminosity column is (the filter's LuminosityUnit): the scene's luminosity, or
+#: the bolometric luminosity in L_sun (stars.luminosity_lsun; needs each star's temperature)
+LUMINOSITY_UNITS = ("scene units", "L_sun")
 
 
 @bind(LIGHT_FIELD_PROPERTIES)
@@ -79,6 +83,7 @@ class NebulaLightField(NebulaAlgorithm):
         self._stars_from_input = True
         self._input_stars = None  # the stars of the input's field data (Nebula Dust Density)
         self._density_name = None
+        self._luminosity_unit = LUMINOSITY_UNITS[0]
         self.last_light = None
 
     # -- the filter's own properties -----------------------------------------------------------
@@ -100,6 +105,16 @@ class NebulaLightField(NebulaAlgorithm):
         if self._stars_from_input and self._input_stars is not None and len(self._input_stars):
             return [float(v) for v in self._input_stars]
         return list(self._stars)
+
+    def SetLuminosityUnit(self, unit):
+        """What the Stars' luminosity column is: "scene units" (0, default) or "L_sun" (1): the
+        bolometric luminosity in solar units (``stars.luminosity_lsun``: the traced luminosity
+        becomes the blackbody's part inside the bands, and a sky image can be calibrated)."""
+        unit = LUMINOSITY_UNITS[unit] if isinstance(unit, int) and not isinstance(unit, bool) \
+            and 0 <= unit < len(LUMINOSITY_UNITS) else unit
+        if unit != self._luminosity_unit:
+            self._luminosity_unit = unit
+            self.Modified()
 
     def SetOverrideOptics(self, flag):
         """Apply Albedo and G to every band (else each band's own values; default off, as a scene
@@ -127,8 +142,15 @@ class NebulaLightField(NebulaAlgorithm):
         if not self._override_optics:
             values.pop("bands.albedo")
             values.pop("bands.g")
+        stars = stars_from_flat(self.stars())
+        if self._luminosity_unit not in LUMINOSITY_UNITS:
+            raise SceneError("LuminosityUnit", self._luminosity_unit, "must be one of " +
+                             ", ".join(repr(u) for u in LUMINOSITY_UNITS))
+        if self._luminosity_unit == "L_sun":
+            for star in stars:
+                star["luminosity_lsun"] = star.pop("luminosity")
         return Scene.from_dict(scene_values(values, {"grid": {"shape": list(shape)}, "dust": {"model": "uniform"},
-                                                     "stars": stars_from_flat(self.stars())}))
+                                                     "stars": stars}))
 
     # -- pipeline ------------------------------------------------------------------------------
     def RequestInformation(self, request, inInfo, outInfo):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+from vtkmodules.util.vtkAlgorithm import VTKPythonAlgorithmBase
 from vtkmodules.vtkCommonDataModel import vtkImageData
 from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
 
@@ -17,12 +18,30 @@ from nebula_rt.transport import star_band_luminosities
 
 from .base import ExposureMixin, NebulaAlgorithm
 from .image_data import add_field_data, add_point_arrays, field_data_dict, point_array
+from .properties import Property, bind, init_values, scene_values
+
+#: The picture's tone curve, bound to the scene's colour keys (as the Colour filter's), and
+#: where the scene is on the sky, bound to the [observer] keys (a calibrated image, Units 1)
+SKY_PICTURE_PROPERTIES = (
+    Property("Stretch", "colour.stretch", widget="enum"),
+    Property("AsinhQ", "colour.asinh_q", enabled_by=("Stretch", 1)),
+)
+SKY_OBSERVER_PROPERTIES = (
+    Property("Distance", "observer.distance", enabled_by=("Units", 1)),
+    Property("RA", "observer.ra", enabled_by=("Units", 1)),
+    Property("Dec", "observer.dec", enabled_by=("Units", 1)),
+    Property("PositionAngle", "observer.position_angle", enabled_by=("Units", 1)),
+    Property("PSFFWHM", "observer.psf_fwhm", enabled_by=("Units", 1)),
+)
+#: The Units property: box units only, or also the calibrated arrays (nebula_rt.calibrate)
+SKY_UNITS = ("box units", "MJy/sr")
 
 #: Auto exposure of the sky image: this percentile of the scattered light's max colour
 #: component (among lit pixels) maps to full scale; star pixels saturate.
 SKY_EXPOSURE_PERCENTILE = 99.0
 
 
+@bind(SKY_PICTURE_PROPERTIES + SKY_OBSERVER_PROPERTIES)
 class NebulaSkyImage(ExposureMixin, NebulaAlgorithm):
     """Orthographic image of the nebula seen from far away along ``ViewDirection``.
 
@@ -35,20 +54,31 @@ class NebulaSkyImage(ExposureMixin, NebulaAlgorithm):
     ``rgb`` (uint8 x 3, sRGB through the same band -> XYZ matrix as the volume colours).
     Field data: the camera, ``tau_star_<band>`` (optical depth from the first star to the
     observer), ``exposure``.
+
+    With ``SetUnits(1)`` ("MJy/sr") the image is also calibrated (:mod:`nebula_rt.calibrate`,
+    the ray march): ``sb_<band>`` (MJy/sr, scattered light and the stars through a Gaussian PSF)
+    and ``mag_<passband>`` (AB mag/arcsec^2 in B, V, R, g, r, i), with the celestial WCS as
+    FITS header text in the field data (``wcs_header``; :func:`write_fits` writes the FITS). It
+    needs the stars' luminosity in L_sun (Nebula Light Field's LuminosityUnit) and a distance:
+    the Distance, RA, Dec, Position Angle and PSF FWHM properties, or, while Distance is empty,
+    the light field's scene's ``[observer]`` table.
     """
 
-    PROPERTIES = {"colour.exposure": "Exposure"}
+    PROPERTIES = {"colour.exposure": "Exposure", "stars[0].luminosity": "Nebula Light Field's LuminosityUnit"}
     #: Camera's parameter names -> the properties that set them
     _CAMERA_PROPERTIES = {"Camera.direction": "ViewDirection", "Camera.up": "ViewUp", "Camera.size": "ImageSize",
                           "Camera.extent": "Extent"}
 
     def __init__(self):
         super().__init__(nInputPorts=1, nOutputPorts=1, inputType="vtkImageData", outputType="vtkImageData")
+        init_values(self)
         self._direction = (0.0, 0.0, -1.0)
         self._up = (0.0, 1.0, 0.0)
         self._size = (256, 256)
         self._extent = 0.0
         self._include_stars = True
+        self._units = SKY_UNITS[0]
+        self._values["observer.distance"] = ""
         self._auto_exposure = True
         self._exposure = 1.0
 
@@ -68,6 +98,23 @@ class NebulaSkyImage(ExposureMixin, NebulaAlgorithm):
         """Field of view (box units); 0 fits the whole box whatever the direction."""
         self._extent = e
         self.Modified()
+
+    def SetUnits(self, units):
+        """"box units" (0, default) or "MJy/sr" (1): also the calibrated arrays."""
+        units = SKY_UNITS[units] if isinstance(units, int) and not isinstance(units, bool) \
+            and 0 <= units < len(SKY_UNITS) else units
+        if units != self._units:
+            self._units = units
+            self.Modified()
+
+    def _observer(self, scene):
+        """The scene placed on the sky: the Distance ... properties, or the scene's own
+        [observer] table while Distance is empty."""
+        d = self._values["observer.distance"]
+        if d in ("", None):
+            return scene
+        obs = {k.split(".")[1]: self._values[k] for k in (p.key for p in SKY_OBSERVER_PROPERTIES)}
+        return scene.with_overrides([f"observer.{k}={v!r}" for k, v in obs.items()])
 
     def SetIncludeStars(self, flag):
         self._include_stars = bool(flag)
@@ -99,8 +146,12 @@ class NebulaSkyImage(ExposureMixin, NebulaAlgorithm):
 
     def _execute(self, request, inInfo, outInfo):
         cam = self._camera()
-        if not self._auto_exposure:
-            Scene.from_dict({"colour": {"exposure": self._exposure}})  # the colour table's rule
+        # the colour table's rules (exposure, stretch, softening) and the observer's
+        values = {k: v for k, v in self._values.items() if not (k == "observer.distance" and v in ("", None))}
+        Scene.from_dict(scene_values(values, {"colour": {"exposure": "auto" if self._auto_exposure
+                                                         else self._exposure}}))
+        if self._units not in SKY_UNITS:
+            raise SceneError("Units", self._units, "must be one of " + ", ".join(repr(u) for u in SKY_UNITS))
         inp = vtkImageData.GetData(inInfo[0])
         fd = contract.LightFieldData.from_field_data(
             field_data_dict(inp), need=("band_names", "band_wavelength_nm", "band_extinction", "tau", "scene"))
@@ -126,7 +177,8 @@ class NebulaSkyImage(ExposureMixin, NebulaAlgorithm):
             exposure = colour_convert.auto_exposure(scat, percentile=SKY_EXPOSURE_PERCENTILE)
         else:
             exposure = float(self._exposure)
-        rgb8 = colour_convert.encode_srgb(rgb, exposure)  # (W, H, 3)
+        rgb8 = colour_convert.encode_picture(rgb, exposure, self._values["colour.stretch"],
+                                             self._values["colour.asinh_q"])  # (W, H, 3)
 
         out = vtkImageData.GetData(outInfo)
         w, h = cam.size
@@ -144,9 +196,106 @@ class NebulaSkyImage(ExposureMixin, NebulaAlgorithm):
             arrays[contract.SKY_RELATIVE.name(n)] = (
                 (img.intensity[b] * (4.0 * np.pi / band_lum[b]))[:, :, None].astype(np.float32))
         arrays[contract.SKY_RGB.name()] = rgb8[:, :, None, :]
+        calibrated = {}
+        if self._units == "MJy/sr":
+            from nebula_rt import calibrate
+
+            sky_scene = self._observer(scene)
+            calibrate.check_scene(sky_scene)
+            cal = calibrate.calibrate(sky_scene, cam, img.scattered, star_band_luminosities(scene.stars, wl),
+                                      calibrate.star_tau(scene, scene.bands.resolve(), rho, cam), "ray-march")
+            for b, n in enumerate(names):
+                arrays[contract.SKY_SURFACE_BRIGHTNESS.name(n)] = cal.surface_brightness[b][:, :, None].astype(np.float32)
+            for x, n in enumerate(cal.passbands):
+                arrays[contract.SKY_MAG.name(n)] = cal.mag[x][:, :, None].astype(np.float32)
+            calibrated = dict(sky_units="MJy/sr", wcs_header=cal.wcs.to_header().tostring(),
+                              pixel_scale_arcsec=cal.pixel_scale_arcsec, psf_fwhm_arcsec=cal.psf_fwhm_arcsec,
+                              passband_names=",".join(cal.passbands))
+            self.last_calibrated = cal
         add_point_arrays(out, arrays)
         add_field_data(out, contract.SkyImageData(
             band_names=names, band_luminosity=band_lum, view_direction=cam.basis()[0], view_up=img.v_axis,
             pixel_size=img.pixel_size, exposure=exposure,
-            tau_star=img.tau_star[0] if len(img.tau_star) else None).to_field_data())
+            tau_star=img.tau_star[0] if len(img.tau_star) else None, **calibrated).to_field_data())
         out.GetPointData().SetActiveScalars(contract.SKY_RGB.name())
+
+
+def write_fits(image, path) -> None:
+    """Write a calibrated sky image (Nebula Sky Image's output with Units "MJy/sr") as FITS:
+    one image HDU per band (``SB_<band>``, MJy/sr) and per passband (``MAG_BESSELL_B`` ...,
+    AB mag/arcsec^2), each with the celestial WCS, as :func:`nebula_rt.calibrate.write_fits`
+    names them (without its table of stars).
+
+    Raises
+    ------
+    SceneError
+        (parameter ``Units``) the image was made in box units only.
+    """
+    from astropy.io import fits
+
+    from nebula_rt.calibrate import PASSBAND_EXTENSIONS, PASSBANDS
+
+    fd = contract.SkyImageData.from_field_data(field_data_dict(image), need=("band_names",))
+    if fd.sky_units != "MJy/sr" or not fd.wcs_header:
+        raise SceneError("Units", "box units", "a FITS sky image needs the calibrated image: set Units to MJy/sr")
+    wcs = fits.Header.fromstring(fd.wcs_header)
+    hdr = fits.Header()
+    hdr["ORIGIN"] = "NebulaRT"
+    hdr["METHOD"] = "ray-march"
+    hdr["PIXSCALE"] = (fd.pixel_scale_arcsec, "pixel side, arcsec")
+    hdr["PSFFWHM"] = (fd.psf_fwhm_arcsec, "arcsec")
+    hdr["MAGSYS"] = ("AB", "magnitudes: AB (3631 Jy)")
+    hdus = [fits.PrimaryHDU(header=hdr)]
+    for n in fd.band_names:
+        hh = wcs.copy()
+        hh["BUNIT"] = "MJy/sr"
+        hh["BAND"] = n
+        data = point_array(image, contract.SKY_SURFACE_BRIGHTNESS.name(n))[:, :, 0].T
+        hdus.append(fits.ImageHDU(np.ascontiguousarray(data, np.float32), header=hh, name=f"SB_{n}"))
+    for n in fd.passband_names.split(","):
+        hh = wcs.copy()
+        hh["BUNIT"] = "mag/arcsec2"
+        hh["FILTER"] = (PASSBANDS[n], "speclite passband")
+        hh["MAGSYS"] = "AB"
+        data = point_array(image, contract.SKY_MAG.name(n))[:, :, 0].T
+        hdus.append(fits.ImageHDU(np.ascontiguousarray(data, np.float32), header=hh, name=PASSBAND_EXTENSIONS[n]))
+    fits.HDUList(hdus).writeto(path, overwrite=True)
+
+
+class NebulaSkyFitsWriter(VTKPythonAlgorithmBase):
+    """Writes a calibrated sky image (Nebula Sky Image, Units "MJy/sr") to ``FileName`` as FITS
+    (:func:`write_fits`): ``SetFileName``, ``SetInputConnection``, ``Write()``. A failure is
+    kept in ``last_error`` and shown on VTK's output window (a writer has no output to empty)."""
+
+    def __init__(self):
+        VTKPythonAlgorithmBase.__init__(self, nInputPorts=1, nOutputPorts=0, inputType="vtkImageData")
+        self._file_name = ""
+        self.last_error = None
+
+    def SetFileName(self, name):
+        if name != self._file_name:
+            self._file_name = name
+            self.Modified()
+
+    def GetFileName(self):
+        return self._file_name
+
+    def RequestData(self, request, inInfo, outInfo):
+        self.last_error = None
+        try:
+            name = str(self._file_name or "")
+            if not name.lower().endswith((".fits", ".fit", ".fts")):
+                raise SceneError("FileName", self._file_name, "must name a .fits file")
+            write_fits(vtkImageData.GetData(inInfo[0]), name)
+        except Exception as exc:  # noqa: BLE001 - reported, as the NebulaRT filters report
+            from vtkmodules.vtkCommonCore import vtkOutputWindow
+
+            self.last_error = f"{type(self).__name__}: {exc}"
+            vtkOutputWindow.GetInstance().DisplayErrorText(f"NebulaRT error: {self.last_error}\n")
+        return 1
+
+    def Write(self):
+        """Write the input now (as VTK writers do)."""
+        self.Modified()
+        self.Update()
+        return 1

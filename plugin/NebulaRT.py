@@ -9,6 +9,7 @@ this level). It adds the NebulaRT menu (Filters > NebulaRT and Sources > NebulaR
 - Nebula Colour (filter)              proxy name ``NebulaColour``
 - Nebula Sky Image (filter)           proxy name ``NebulaSkyImage``
 - Nebula Sky View (view)              proxy name ``NebulaSkyView`` (where sky images open)
+- a writer of calibrated sky images   proxy name ``NebulaSkyFitsWriter`` (File > Save Data, .fits)
 
 Modelled on ParaView's ``Examples/Plugins/ComplexPythonArchitecture``: this file only makes the
 package ``nebula_rt_paraview`` (next to it) importable and imports its proxies, thin
@@ -74,6 +75,7 @@ from nebula_rt_paraview import (  # noqa: E402,F401
     NebulaColour,
     NebulaDustDensity,
     NebulaLightField,
+    NebulaSkyFitsWriter,
     NebulaSkyImage,
     NebulaSkyView,
 )

@@ -88,10 +88,15 @@ class Row:
 
 #: the allowed-range text each key's messages must contain (one of, for a tuple)
 RANGES = {
-    "grid.shape": "[2, 2147483647]", "grid.length": "> 0", "grid.unit": "string",
+    "grid.shape": "[2, 2147483647]", "grid.length": ("> 0", "units: pc"), "grid.unit": "length unit: pc",
     "dust.model": "'turbulence', 'uniform', 'file'", "dust.density": FLOAT32_RANGE_TEXT, "dust.file": "string",
     "dust.array": "string", "dust.scale": FLOAT32_RANGE_TEXT, "dust.offset": "[-10000, 10000]",
     "dust.floor": FLOAT32_RANGE_TEXT, "dust.tau": FLOAT32_RANGE_TEXT,
+    # the key's own rule, or the range of the dust.tau it converts to
+    "dust.hydrogen_density": ("H nuclei per cm^3 >= 0", "gives dust.tau"),
+    "dust.mass_density": ("g cm^-3 >= 0", "gives dust.tau"), "dust.visual_extinction": ("A_V in mag >= 0", "gives dust.tau"),
+    "stars.0.luminosity_lsun": ("in L_sun: a finite number > 0", "gives a luminosity"),
+    "stars.0.absolute_magnitude": ("M_V in mag", "gives a luminosity"),
     "stars.0.position": "[0, 1]", "stars.0.luminosity": FLOAT32_RANGE_TEXT,
     "stars.0.temperature": "[1000, 1e+07]", "stars.0.bump_radius": "[1.1754944e-38, 1)",
     # the pairs' own rule, or where a valid spectrum must have power
@@ -105,6 +110,9 @@ RANGES = {
     "transport.batch_size": ("[0, 9007199254740992]", "less than the 2000 photons"), "transport.target_error": "(0, 1)",
     "transport.time_limit": ">= 0", "transport.quality": "'preview'",
     "colour.exposure": FLOAT32_RANGE_TEXT, "colour.white_point": "'D65', 'E', 'star'", "colour.opacity_scale": "> 0",
+    "colour.stretch": "'linear', 'asinh'", "colour.asinh_q": "(0, 1e10]",
+    "observer.distance": ("distance > 0", "units: pc"), "observer.ra": "[0, 360)", "observer.dec": "[-90, 90]",
+    "observer.position_angle": "[-360, 360]", "observer.psf_fwhm": "arcsec >= 0",
 }
 
 FLOAT_KINDS = {"type": '"x"', "nan": "nan", "inf": "inf", "-inf": "-inf", "negative": "-1.5", "zero": "0.0",
@@ -113,16 +121,18 @@ INT_KINDS = {"type": '"x"', "fraction": "1.5", "nan": "nan", "inf": "inf", "nega
              "huge": "1e300", "beyond-int32": str(2**31), "beyond-int64": str(2**63), "beyond-uint64": str(2**64)}
 
 
-def floats(key, allowed=None, literal=None, vector=None):
-    """Rows for a float key: every kind refused unless listed in ``allowed`` ({kind: note});
-    ``vector``: the key is a 3-vector, the bad value goes into its first component."""
+def floats(key, allowed=None, literal=None, vector=None, runtime=None):
+    """Rows for a float key: every kind refused unless listed in ``allowed`` or ``runtime``
+    ({kind: note}); ``vector``: the key is a 3-vector, the bad value goes into its first component."""
     allowed = allowed or {}
+    runtime = runtime or {}
     rows = []
     for kind, lit in FLOAT_KINDS.items():
         lit = (literal or {}).get(kind, lit)
         if vector is not None:
             lit = f"[{lit}, {vector[1]}, {vector[2]}]"
-        rows.append(Row(key, kind, lit, ALLOWED if kind in allowed else REFUSED, allowed.get(kind, "")))
+        expect = ALLOWED if kind in allowed else RUNTIME if kind in runtime else REFUSED
+        rows.append(Row(key, kind, lit, expect, allowed.get(kind, runtime.get(kind, ""))))
     return rows
 
 
@@ -145,11 +155,16 @@ def strings(key, bad_choices=(), allowed=None, runtime=None):
     return rows
 
 
-LABEL = "a label: host float64, never on the device"
+LABEL = "host float64, never on the device (used by the physical keys and calibrated images only)"
+SKY = "host float64: used by calibrated sky images only"
 TABLE = [
     *ints("grid.shape", vector=(None, 8, 8)),
     *floats("grid.length", {"huge": LABEL, "beyond-float32": LABEL, "below-float32": LABEL}),
-    *strings("grid.unit", allowed={"au": "any unit name"}),
+    Row("grid.length", "quantity", '"0.3 pc"', ALLOWED, "a length with its unit"),
+    Row("grid.length", "light-years", '"1 ly"', ALLOWED, "ly is astropy's lyr"),
+    Row("grid.length", "not-a-length", '"3 kg"'),
+    Row("grid.length", "unknown-unit", '"3 furlong"'),
+    *strings("grid.unit", ["kg", "parsecs"], allowed={"au": "astropy's AU", "km": "any astropy length unit"}),
     *strings("dust.model", ["fractal"]),
     *floats("dust.density", {"zero": "no dust"}),
     *strings("dust.file", runtime={"missing.npy": "checked when the density is made (dust.model = 'file')"}),
@@ -161,6 +176,14 @@ TABLE = [
     Row("dust.offset", "beyond-precision", "[2e4, 0.5, 0.5]"),
     *floats("dust.floor", {"zero": "no minimum density"}),
     *floats("dust.tau", {"zero": "vacuum"}),
+    # tau = n_H x 4.86e-22 cm^2 x 3.09e18 cm (the base scene's 1 pc box) = 1.5e-3 n_H
+    *floats("dust.hydrogen_density", {"zero": "no dust: tau 0"},
+            runtime={"beyond-float32": "tau 1.5e36: the densest voxel's mean free path is below the track-length "
+                                       "resolution"}),
+    # tau = rho_d / 1.87e-26 g x 4.86e-22 cm^2 x 3.09e18 cm = 8.0e22 rho_d
+    *floats("dust.mass_density", {"zero": "no dust: tau 0", "below-float32": "tau 8e-18: thin dust"}),
+    # tau = 0.914 A_V
+    *floats("dust.visual_extinction", {"zero": "no dust: tau 0"}),
     *floats("stars.0.position", {"zero": "on the box face",
                                  "below-float32": "rounded to float32: moves the star by < 1e-38 box units"},
             vector=(None, 0.5, 0.5)),
@@ -168,6 +191,10 @@ TABLE = [
     Row("stars.0.luminosity", "J-overflow", "1e38", RUNTIME, "J of this grid and max_scatterings overflows float32"),
     Row("stars.0.luminosity", "J-underflow", "1e-30", RUNTIME, "J's smallest tally underflows float32"),
     *floats("stars.0.temperature", literal={"negative": "-5000.0"}),
+    # 13.3 % of a 20,000 K blackbody lies inside the bands' 380-780 nm
+    *floats("stars.0.luminosity_lsun", runtime={"beyond-float32": "1.3e38 L_sun inside the bands: J overflows"}),
+    *floats("stars.0.absolute_magnitude", {"negative": "a bright star, M_V = -1.5", "zero": "M_V = 0",
+                                           "below-float32": "M_V = 1e-40, i.e. 0"}),
     Row("stars.0.temperature", "too-cool", "10.0"),
     *floats("stars.0.bump_radius", {"zero": "no bump"}),
     *[Row("stars.0.spectrum", kind, lit) for kind, lit in {
@@ -207,6 +234,18 @@ TABLE = [
     *floats("colour.opacity_scale", {"huge": "opacity 1 wherever there is dust (host float64)",
                                      "beyond-float32": "opacity 1 wherever there is dust (host float64)",
                                      "below-float32": "transparent (host float64)"}),
+    *strings("colour.stretch", ["log"], allowed={"asinh": "Lupton et al. (2004)"}),
+    *floats("colour.asinh_q", {"below-float32": "host float64: the linear curve in the limit"}),
+    *floats("observer.distance", {"huge": SKY, "beyond-float32": SKY, "below-float32": SKY}),
+    Row("observer.distance", "quantity", '"140 pc"', ALLOWED, "a distance with its unit"),
+    Row("observer.distance", "not-a-length", '"3 s"'),
+    *floats("observer.ra", {"zero": SKY, "below-float32": SKY}),
+    Row("observer.ra", "full-circle", "360.0"),
+    *floats("observer.dec", {"negative": SKY, "zero": SKY, "below-float32": SKY}),
+    Row("observer.dec", "beyond-pole", "90.5"),
+    *floats("observer.position_angle", {"negative": SKY, "zero": SKY, "below-float32": SKY}),
+    *floats("observer.psf_fwhm", {"zero": "no PSF", "huge": SKY + " (wider than the image: the light leaves it)",
+                                  "beyond-float32": SKY, "below-float32": SKY}),
 ]
 # "negative" is -1.5 for every float key: below g's -1 too
 
@@ -239,8 +278,13 @@ def _toml_with(row: Row) -> str:
     tokens = row.key.split(".")
     node = d
     for t in tokens[:-1]:
-        node = node[int(t)] if t.isdigit() else node[t]
+        node = node[int(t)] if t.isdigit() else node.setdefault(t, {})
     node[tokens[-1]] = row.value
+    # a physical key sets the box-unit value it replaces: the file gives one of them
+    if row.key in ("dust.hydrogen_density", "dust.mass_density", "dust.visual_extinction"):
+        del node["tau"]
+    if row.key in ("stars.0.luminosity_lsun", "stars.0.absolute_magnitude"):
+        del node["luminosity"]
     return tomli_w.dumps(d)
 
 
@@ -337,6 +381,8 @@ SETTERS = {
     "colour.exposure": ("colour", "SetExposure", lambda v: (v,)),
     "colour.white_point": ("colour", "SetWhitePoint", lambda v: (v,)),
     "colour.opacity_scale": ("colour", "SetOpacityScale", lambda v: (v,)),
+    "colour.stretch": ("colour", "SetStretch", lambda v: (v,)),
+    "colour.asinh_q": ("colour", "SetAsinhQ", lambda v: (v,)),
 }
 #: rows whose value means something else to the setter than to the scene file
 SETTER_MEANS_ELSE = {
@@ -345,6 +391,7 @@ SETTER_MEANS_ELSE = {
     ("transport.backend", "type"): "an integer selects a backend by index",
     ("transport.estimator", "type"): "an integer selects an estimator by index",
     ("colour.white_point", "type"): "an integer selects a white point by index",
+    ("colour.stretch", "type"): "an integer selects a stretch by index",
     ("dust.model", "type"): "an integer selects a model by index",
     ("transport.quality", "type"): "an integer selects a quality by index",
     ("transport.batch_size", "single-batch"): "the filter's photon count is its own (100000)",

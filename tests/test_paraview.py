@@ -111,7 +111,7 @@ def test_plugin_loads_and_every_proxy_executes(pv_env, xdisplay, exe):
     assert 0 < q["achieved_error"] <= 0.10
     assert "vtkSMEnumerationDomain" in r["definitions"]["NebulaColour"]["properties"]["WhitePoint"]["domains"]
     assert r["definitions"]["NebulaLightField"]["property_groups"] == [
-        "Dust", "Dust optics", "Stars", "Photon transport", "Quality", "Compute device"]
+        "Dust", "Dust optics", "Stars", "Photon transport", "Quality", "Compute device", "Physical units"]
 
     out = r["outputs"]
     bands = ("R", "G", "B")
@@ -194,7 +194,8 @@ def test_paraview_proxy_is_the_schema_and_gives_the_same_bits(pv_env, xdisplay, 
     assert order.index("Quality") < order.index("TargetError") < order.index("Photons")
     assert order.index("DensityArray") < order.index("Tau") < order.index("BandPreset") < order.index("Stars") \
         < order.index("Estimator") < order.index("Quality") < order.index("Backend")
-    assert list(r["groups"]) == ["Dust", "Dust optics", "Stars", "Photon transport", "Quality", "Compute device"]
+    assert list(r["groups"]) == ["Dust", "Dust optics", "Stars", "Photon transport", "Quality", "Compute device",
+                                 "Physical units"]
     assert r["int_photons_from_float"] == 10000
     # the same values through the proxy, the plain VTK filter and a scene file, in ParaView's
     # Python on its OpenCL device: the same bits (test_schema_layers compares the last two in
@@ -202,6 +203,33 @@ def test_paraview_proxy_is_the_schema_and_gives_the_same_bits(pv_env, xdisplay, 
     h = r["hashes"]
     assert h["proxy"] == h["vtk"] == h["scene"] and len(h["proxy"]) == 3, h
 
+
+
+def test_calibrated_sky_image_and_fits_from_the_plugin(pv_env, xdisplay, tmp_path):
+    """Luminosity Unit L_sun and Box Length on the light field, Units MJy/sr and the observer
+    on the sky image, SaveData(.fits) through the plugin's writer: the calibrated arrays, the
+    same bits as the plain VTK filters in ParaView's Python, and a FITS file whose extensions,
+    units and celestial WCS astropy reads back (the WCS's numbers: tests/test_calibrate.py)."""
+    from astropy.io import fits
+    from astropy.wcs import WCS
+
+    out = tmp_path / "sky.fits"
+    r, _ = run_pv(pv_env, xdisplay, "sky_fits.py", out, 4000)
+    assert r["last_errors"] == {"light": None, "sky": None} and r["vtk_error"] is None, r
+    assert {"sb_R", "sb_G", "sb_B", "mag_B", "mag_V", "mag_R", "mag_g", "mag_r", "mag_i"} <= set(r["arrays"])
+    assert {"wcs_header", "sky_units", "pixel_scale_arcsec"} <= set(r["field_data"])
+    assert r["same_as_vtk"]
+    assert "Observer" in r["groups"]
+    with fits.open(out) as hdul:
+        assert [h.name for h in hdul] == ["PRIMARY", "SB_R", "SB_G", "SB_B", "MAG_BESSELL_B", "MAG_BESSELL_V",
+                                          "MAG_BESSELL_R", "MAG_SDSS_G", "MAG_SDSS_R", "MAG_SDSS_I"]
+        assert hdul["SB_G"].header["BUNIT"] == "MJy/sr"
+        assert float(hdul["SB_G"].data.astype(np.float64).sum()) == pytest.approx(r["sb_G_sum"], rel=1e-12)
+        w = WCS(hdul["MAG_SDSS_R"].header)
+        assert np.allclose(w.wcs.crval, [30.0, -20.0])
+        x, y = np.meshgrid(np.arange(24.0), np.arange(24.0))
+        back = w.world_to_pixel_values(*w.pixel_to_world_values(x, y))
+        assert np.max(np.abs(back[0] - x)) < 1e-8 and np.max(np.abs(back[1] - y)) < 1e-8
 
 
 # -- state files -------------------------------------------------------------------------------

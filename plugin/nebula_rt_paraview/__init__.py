@@ -18,10 +18,12 @@ file); ``nebula_rt_paraview.views`` defines the view ``NebulaSkyView``.
 from .colour import NebulaColour
 from .dust_density import NebulaDustDensity
 from .light_field import NebulaLightField
+from .sky_fits_writer import NebulaSkyFitsWriter
 from .sky_image import NebulaSkyImage
 from .views import NebulaSkyView
 
 #: proxy names (group "sources" for the dust density, "filters" for the others)
 PROXY_NAMES = ("NebulaDustDensity", "NebulaLightField", "NebulaColour", "NebulaSkyImage")
 
-__all__ = ["NebulaColour", "NebulaDustDensity", "NebulaLightField", "NebulaSkyImage", "NebulaSkyView", "PROXY_NAMES"]
+__all__ = ["NebulaColour", "NebulaDustDensity", "NebulaLightField", "NebulaSkyFitsWriter", "NebulaSkyImage",
+           "NebulaSkyView", "PROXY_NAMES"]

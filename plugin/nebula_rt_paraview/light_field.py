@@ -23,13 +23,24 @@ OVERRIDE_OPTICS = """
     without bands.albedo and bands.g).</Documentation>
 </IntVectorProperty>"""
 
+LUMINOSITY_UNIT = """
+<IntVectorProperty name="LuminosityUnit" label="Luminosity Unit" command="SetLuminosityUnit"
+    number_of_elements="1" default_values="0" panel_visibility="advanced">
+  <EnumerationDomain name="enum"><Entry value="0" text="scene units"/><Entry value="1" text="L_sun"/></EnumerationDomain>
+  <Documentation>What the Stars' luminosity column is: scene units, or the bolometric luminosity
+    in L_sun (scene key stars.luminosity_lsun: the traced luminosity is then the blackbody's part
+    inside the bands, and Nebula Sky Image can calibrate its image; each star needs its
+    temperature).</Documentation>
+</IntVectorProperty>"""
+
 PANEL = "\n".join([
     _xml.DENSITY_ARRAY,
     _xml.bound_properties(
         _base.LIGHT_FIELD_PROPERTIES,
         defaults={"bands.albedo": _REF.albedo, "bands.g": _REF.g},
         extra={"<Albedo": OVERRIDE_OPTICS,
-               "<Estimator": _xml.STARS_FROM_INPUT + _xml.stars_property(default_star_row(), ("StarsFromInput", 0))}),
+               "<Estimator": _xml.STARS_FROM_INPUT + _xml.stars_property(default_star_row(), ("StarsFromInput", 0)),
+               "<BoxLength": LUMINOSITY_UNIT}),
     _xml.property_groups(
         ("Dust", ["DensityArray", "Tau"]),
         ("Dust optics", ["BandPreset", "OverrideOptics", "Albedo", "G"]),
@@ -37,6 +48,7 @@ PANEL = "\n".join([
         ("Photon transport", ["Estimator", "FilterRadius", "MaxScatterings", "Seed"]),
         ("Quality", ["Quality", "TargetError", "Photons", "TimeLimit"]),
         ("Compute device", ["Backend", "Device", "BatchSize"]),
+        ("Physical units", ["LuminosityUnit", "BoxLength"]),
     ),
 ])
 

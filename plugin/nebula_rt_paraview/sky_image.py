@@ -7,8 +7,25 @@ from nebula_rt.filters import sky_image as _base
 from . import _xml
 
 
+UNITS = """
+<IntVectorProperty name="Units" label="Units" command="SetUnits" number_of_elements="1" default_values="0">
+  <EnumerationDomain name="enum"><Entry value="0" text="box units"/><Entry value="1" text="MJy/sr"/></EnumerationDomain>
+  <Documentation>box units: the image in the light field's units; MJy/sr: also calibrated, sb_&lt;band&gt;
+    (MJy/sr) and mag_&lt;passband&gt; (AB mag/arcsec^2) with a celestial WCS (File &gt; Save Data as
+    .fits writes it). Needs the stars in L_sun (Nebula Light Field's Luminosity Unit) and a
+    Distance (or the scene's [observer] table).</Documentation>
+</IntVectorProperty>"""
+
+PANEL = "\n".join([
+    _xml.bound_properties(_base.SKY_PICTURE_PROPERTIES),
+    UNITS,
+    _xml.bound_properties(_base.SKY_OBSERVER_PROPERTIES, defaults={"observer.distance": ""}),
+])
+
+
 @smproxy.filter(name="NebulaSkyImage", label="Nebula Sky Image", support_reload=False)
 @smhint.xml(_xml.MENU)
+@smproperty.xml(PANEL)
 @smhint.xml(_xml.SKY_IMAGE_DISPLAY)
 @smproperty.input(name="Input", port_index=0)
 @smdomain.datatype(dataTypes=["vtkImageData"], composite_data_supported=False)
@@ -61,7 +78,8 @@ class NebulaSkyImage(_base.NebulaSkyImage):
 
     @smproperty.xml(_xml.property_groups(
         ("Camera", ["ViewDirection", "ViewUp", "ImageSize", "Extent"]),
-        ("Picture", ["IncludeStars", "AutoExposure", "Exposure"]),
+        ("Picture", ["IncludeStars", "AutoExposure", "Exposure", "Stretch", "AsinhQ"]),
+        ("Observer", ["Units", "Distance", "RA", "Dec", "PositionAngle", "PSFFWHM"]),
     ))
     def zz_property_groups(self):
         """Carries the PropertyGroups (its name sorts last)."""

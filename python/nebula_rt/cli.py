@@ -27,6 +27,7 @@ def _scene_from_args(args):
     from .scene import Scene
 
     scene = Scene.load(args.scene)
+    args.scene_used = scene  # a later error on a converted value names the physical key (units.attribute)
     if args.set:
         scene = scene.with_overrides(args.set)
     if args.backend:
@@ -39,6 +40,9 @@ def _scene_from_args(args):
         scene = scene.with_overrides([f"transport.target_error={args.target_error}"])
     if args.quality is not None:
         scene = scene.with_overrides([f'transport.quality="{args.quality}"'])
+    if getattr(args, "stretch", None) is not None:
+        scene = scene.with_overrides([f'colour.stretch="{args.stretch}"'])
+    args.scene_used = scene
     return scene
 
 
@@ -301,6 +305,77 @@ def _devices(args, cancel) -> int:
     return 0
 
 
+def _sky(args, cancel) -> int:
+    """A calibrated sky image of a scene (nebula_rt.calibrate): FITS in MJy/sr and mag/arcsec^2
+    with a celestial WCS, and a true-colour PNG."""
+    import numpy as np
+
+    from . import calibrate, resources
+    from .outputs import Output, Publication, check_outputs
+
+    scene = _scene_from_args(args)
+    direction = parse_direction(args.direction)
+    check_size(args.size)
+    calibrate.check_scene(scene)
+    npix = args.size * args.size
+    nb = len(scene.bands.resolve())
+    outputs = [Output("--fits", Path(args.fits), ".fits", (nb + len(calibrate.PASSBANDS)) * npix * 4 + (256 << 10))]
+    if args.png:
+        outputs.append(Output("--png", Path(args.png), ".png", npix * 4 + 65536))
+    if args.json:
+        outputs.append(Output("--json", Path(args.json), ".json", 1 << 20))
+    backend = _backend_for(scene)
+    resources.check(scene, backend, peel_pixels=npix if args.method == "peel-off" else 0, peel_option="--size",
+                    peel_value=args.size)
+    check_outputs(outputs, _inputs(args, scene))
+    cancel.check("start-up")
+    cam = calibrate.camera_for(scene, direction, args.size)
+    from tqdm import tqdm
+
+    bar = tqdm(total=scene.transport.effective()[0], unit="pkt", unit_scale=True, desc="tracing",
+               disable=args.quiet, file=sys.stderr)
+
+    def progress(done, total):
+        bar.n = done
+        bar.refresh()
+
+    try:
+        if args.method == "peel-off":
+            cal, res = calibrate.peel_off_sky(scene, cam, backend, progress=progress, cancel=cancel)
+        else:
+            from .pipeline import Pipeline
+
+            light = Pipeline(backend).run(scene, progress=progress, cancel=cancel, colour=False)
+            res = light.transport
+            cal = calibrate.ray_march_sky(light, cam)
+    finally:
+        bar.close()
+    cancel.check("run")
+    summary = {
+        "scene": str(args.scene), "fits": str(args.fits), "png": args.png, "method": cal.method,
+        "photons_per_band": int(res.photons), "pixel_scale_arcsec": round(cal.pixel_scale_arcsec, 6),
+        "psf_fwhm_arcsec": cal.psf_fwhm_arcsec, "bands": cal.band_names,
+        "total_flux_jy": {n: float(f) for n, f in zip(cal.band_names, cal.total_flux_jy())},
+        "star_flux_jy": [{n: float(f) for n, f in zip(cal.band_names, row)} for row in cal.star_flux_jy],
+        "star_mag_ab": [{n: round(float(m), 4) for n, m in zip(cal.passbands, row)} for row in cal.star_mag],
+        "faintest_lit_mag_arcsec2": {n: None if not (cal.mag[x] == cal.mag[x]).any() else
+                                     round(float(np.nanmax(cal.mag[x])), 3) for x, n in enumerate(cal.passbands)},
+    }
+    with Publication() as pub:  # the FITS, the PNG and the JSON: all or none
+        calibrate.write_fits(pub.stage(args.fits), cal, scene)
+        if args.png:
+            rgb8, exposure = calibrate.picture(cal, scene, scene.colour.exposure)
+            calibrate.write_png(pub.stage(args.png), rgb8)
+            summary["exposure"] = exposure
+        if args.json:
+            pub.stage(args.json).write_text(json.dumps(summary, indent=2) + "\n")
+        cancel.check("run")
+        pub.publish()
+    if not args.quiet:
+        _print_summary(summary)
+    return 0
+
+
 def _choices(key: str) -> list:
     """The non-empty choices of a scene key, from the scene schema (its flags take those)."""
     return [c for c in _scene.declaration(key).choices if c]
@@ -323,8 +398,30 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--backend", default=None, choices=_choices("transport.backend"),
                    help=_scene.declaration("transport.backend").doc)
     r.add_argument("--device", default=None, help="device selector (name substring or P:D)")
+    r.add_argument("--stretch", default=None, choices=_choices("colour.stretch"),
+                   help="shorthand for --set colour.stretch=S: " + _scene.declaration("colour.stretch").doc)
     r.add_argument("-q", "--quiet", action="store_true", help="no progress bar or summary")
     r.set_defaults(func=_render)
+    k = sub.add_parser("sky", help="a calibrated sky image: FITS (MJy/sr, mag/arcsec^2, celestial WCS) and PNG")
+    k.add_argument("scene", help="scene file (TOML) with [observer] distance and stars in L_sun or M_V")
+    k.add_argument("--fits", required=True, help="output FITS file")
+    k.add_argument("--png", default=None, help="also write the true-colour picture to this PNG")
+    k.add_argument("--json", default=None, help="also write the summary (fluxes, magnitudes) as JSON")
+    k.add_argument("--method", default="peel-off", choices=["peel-off", "ray-march"],
+                   help="peel-off during the transport (the phase function; default) or the ray march of the "
+                        "light field's emissivity (isotropic per voxel)")
+    k.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a scene key")
+    k.add_argument("--photons", default=None, help="shorthand for --set transport.photons=N")
+    k.add_argument("--target-error", default=None, help="trace until this lit-region error")
+    k.add_argument("--quality", default=None, choices=_choices("transport.quality"))
+    k.add_argument("--backend", default=None, choices=_choices("transport.backend"))
+    k.add_argument("--device", default=None, help="device selector (name substring or P:D)")
+    k.add_argument("--direction", default="0,0,-1", help="viewing direction x,y,z (default 0,0,-1)")
+    k.add_argument("--size", type=int, default=256, help=f"pixels per side ({MIN_SKY_SIZE}-{MAX_SKY_SIZE})")
+    k.add_argument("--stretch", default=None, choices=_choices("colour.stretch"),
+                   help="the picture's tone curve (shorthand for --set colour.stretch=S)")
+    k.add_argument("-q", "--quiet", action="store_true", help="no summary")
+    k.set_defaults(func=_sky)
     c = sub.add_parser("compare", help="a scene's colours (Delta(B-V), nebula/star ratio) against observed nebulae")
     c.add_argument("scene", help="scene file (TOML)")
     c.add_argument("--png", default="compare.png", help="plot (default compare.png)")
@@ -381,11 +478,15 @@ def _main(argv) -> int:
     cancel = SignalCancel()
     with cancel:
         status = None
+        args = None
         try:
             args = build_parser().parse_args(argv)
             cancel.quiet = bool(getattr(args, "quiet", False))
             return args.func(args, cancel)
         except SceneError as exc:
+            from .units import attribute
+
+            exc = attribute(exc, getattr(args, "scene_used", None))
             _error(f"invalid scene: {exc}; nothing written")
             status = 2
         except (OutputError, ResourceError) as exc:

@@ -26,6 +26,7 @@ This module is part of the library core and never imports VTK.
 
 from __future__ import annotations
 
+import math
 from typing import Union
 
 import colour
@@ -39,6 +40,8 @@ __all__ = [
     "band_luminosity_fractions",
     "band_to_xyz_matrix",
     "bands_to_srgb8",
+    "encode_asinh",
+    "encode_picture",
     "encode_srgb",
     "gamut_map",
     "hat_basis",
@@ -368,6 +371,58 @@ def encode_srgb(linear, exposure: float) -> np.ndarray:
     x = x / xp.maximum(mx, 1.0)
     encoded = xp.where(x <= 0.0031308, 12.92 * x, 1.055 * xp.power(x, 1.0 / 2.4) - 0.055)
     return xp.clip(xp.rint(encoded * 255.0), 0, 255).astype(xp.uint8)
+
+
+def encode_asinh(linear, exposure: float, q: float = 8.0) -> np.ndarray:
+    """Lupton et al. (2004, PASP 116, 133) asinh stretch of linear sRGB to 8 bits.
+
+    With I = (R + G + B) / 3 the pixel's intensity (their eq. 2's I), every channel is scaled
+    by f(I) / I, ``f(I) = asinh(Q alpha I) / asinh(Q)`` with alpha = ``exposure``: the colour
+    (the ratios of the channels) is kept whatever the brightness, faint light is lifted by up to
+    Q / asinh(Q) (2.9 for Q = 8) over the linear curve, and bright light compressed
+    logarithmically. The asinh(Q) normalisation (Lupton et al. write f = asinh(alpha Q I) / Q)
+    keeps the exposure's meaning: an intensity of 1 / exposure maps to full scale, as with
+    :func:`encode_srgb`. A colour whose largest channel then exceeds 1 is divided by it (their
+    section 3.2), and the values are rounded to 0..255; the stretch is the display curve, no
+    sRGB transfer curve follows. ``q`` -> 0 gives the linear curve alpha x.
+
+    Parameters
+    ----------
+    linear : array_like, shape (..., 3)
+        Linear sRGB, relative units (>= 0 after :func:`gamut_map`; negatives are clipped).
+    exposure : float
+        alpha, > 0.
+    q : float
+        Softening Q, > 0.
+
+    Returns
+    -------
+    ndarray of uint8, shape (..., 3)
+    """
+    e = _check_exposure(exposure)
+    q = float(q)
+    if not (np.isfinite(q) and q > 0.0):
+        raise ValueError(f"q must be a positive finite number, got {q!r}")
+    xp = array_module(linear)
+    x = xp.clip(xp.asarray(linear, dtype=xp.float64), 0.0, None)
+    i = x.mean(axis=-1, keepdims=True)
+    # asinh(q e i) / asinh(q) / i: its limit e for i -> 0, and e also where q e i underflows
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        scale = xp.where(i > 0.0, xp.arcsinh(q * e * i) / (math.asinh(q) * xp.where(i > 0.0, i, 1.0)),
+                         e * q / math.asinh(q))
+    y = x * scale
+    y = y / xp.maximum(y.max(axis=-1, keepdims=True), 1.0)
+    return xp.clip(xp.rint(y * 255.0), 0, 255).astype(xp.uint8)
+
+
+def encode_picture(linear, exposure: float, stretch: str = "linear", q: float = 8.0) -> np.ndarray:
+    """8-bit colours of linear sRGB with the scene's tone curve ``colour.stretch``:
+    "linear" (:func:`encode_srgb`) or "asinh" (:func:`encode_asinh` with softening ``q``)."""
+    if stretch == "linear":
+        return encode_srgb(linear, exposure)
+    if stretch == "asinh":
+        return encode_asinh(linear, exposure, q)
+    raise ValueError(f'stretch must be "linear" or "asinh", got {stretch!r}')
 
 
 def auto_exposure(linear_rgb, percentile: float = 99.5) -> float:

@@ -51,6 +51,34 @@ def _data_dir() -> Path:
     return Path(list(spec.submodule_search_locations)[0]) / "data"
 
 
+def _lines(rv: str) -> list[str]:
+    if rv not in DRAINE_FILES:
+        raise ValueError(f"rv must be one of {sorted(DRAINE_FILES)}, got {rv!r}")
+    return (_data_dir() / DRAINE_FILES[rv]).read_text().splitlines()
+
+
+@functools.lru_cache(maxsize=None)
+def dust_mass_per_h(rv: str = "3.1") -> float:
+    """Dust mass per H nucleon (g per H) of Draine's model ``rv``, as its table's header states
+    it ("1.870E-26 = M_dust per H nucleon (gram/H) for this dust model" for R_V = 3.1; 1.969e-26
+    for 4.0, 2.199e-26 for 5.5)."""
+    for line in _lines(rv):
+        if "M_dust per H nucleon" in line:
+            return float(line.split("=")[0])
+    raise ValueError(f"{DRAINE_FILES[rv]}: no 'M_dust per H nucleon' line in the header")
+
+
+@functools.lru_cache(maxsize=None)
+def v_filter_cext(rv: str = "3.1") -> float:
+    """Extinction cross-section per H nucleon (cm^2 per H) of the row Draine's table marks
+    "V filter" (0.547 um): 4.896e-22 cm^2 per H for R_V = 3.1, i.e. A_V / N_H = 1.0857 x that
+    = 5.32e-22 mag cm^2 (Draine 2003, ARA&A 41, 241)."""
+    for line in _lines(rv):
+        if line.rstrip().endswith("V filter"):
+            return float(line.split()[3])
+    raise ValueError(f"{DRAINE_FILES[rv]}: no row marked 'V filter'")
+
+
 @functools.lru_cache(maxsize=None)
 def draine_table(rv: str = "3.1") -> dict:
     """Draine's table for ``rv`` ("3.1", "4.0" or "5.5") as arrays in ascending wavelength.
@@ -60,9 +88,7 @@ def draine_table(rv: str = "3.1") -> dict:
     dict with ``wavelength_nm``, ``albedo``, ``g`` (<cos theta>), ``cext`` (cm^2 per H
     nucleon), float64 arrays.
     """
-    if rv not in DRAINE_FILES:
-        raise ValueError(f"rv must be one of {sorted(DRAINE_FILES)}, got {rv!r}")
-    lines = (_data_dir() / DRAINE_FILES[rv]).read_text().splitlines()
+    lines = _lines(rv)
     start = next(i for i, line in enumerate(lines) if line.startswith("-----------")) + 1
     rows = []
     for line in lines[start:]:
@@ -85,6 +111,22 @@ def band_average(rv: str, lo_nm: float, hi_nm: float) -> tuple[float, float, flo
     g = np.interp(wl, t["wavelength_nm"], t["g"])
     sca = alb * cext
     return float(cext.mean()), float(sca.mean() / cext.mean()), float((g * sca).mean() / sca.mean())
+
+
+def cext_at(rv: str, wavelength_nm: float) -> float:
+    """Extinction cross-section per H nucleon (cm^2 per H) at one wavelength, the table
+    interpolated linearly in wavelength (as :func:`band_average` does)."""
+    t = draine_table(rv)
+    return float(np.interp(float(wavelength_nm), t["wavelength_nm"], t["cext"]))
+
+
+def spectral_reference_cext(n: int, rv: str = "3.1", lo_nm: float = 380.0, hi_nm: float = 780.0) -> float:
+    """The band-averaged extinction cross-section per H (cm^2 per H) of the reference band of
+    :func:`spectral_band_properties` (the band holding 550 nm), the scale its relative
+    extinctions are divided by: a band's extinction x this = its own band-averaged C_ext / H."""
+    edges = np.linspace(lo_nm, hi_nm, n + 1)
+    ref = int(np.searchsorted(edges, 550.0, side="right")) - 1
+    return band_average(rv, edges[ref], edges[ref + 1])[0]
 
 
 def spectral_band_properties(n: int, rv: str = "3.1", lo_nm: float = 380.0,

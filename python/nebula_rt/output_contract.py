@@ -102,6 +102,12 @@ SKY_RELATIVE = PointArray("relative_{band}", "float32", 1, "surface brightness r
 SKY_RGB = PointArray("rgb", "uint8", 3, "sRGB of the sky image")
 #: the arrays of a sky image (Nebula Sky Image)
 SKY_IMAGE_ARRAYS = (SKY_INTENSITY, SKY_SCATTERED, SKY_RELATIVE, SKY_RGB)
+SKY_SURFACE_BRIGHTNESS = PointArray("sb_{band}", "float32", 1, "calibrated surface brightness (scattered light "
+                                    "and the stars, PSF-convolved), MJy/sr, band-averaged per unit frequency")
+SKY_MAG = PointArray("mag_{band}", "float32", 1, "AB surface brightness through a passband (B, V, R: Bessell; "
+                     "g, r, i: SDSS), mag/arcsec^2; NaN without light")
+#: the arrays a calibrated sky image adds (Nebula Sky Image with Units MJy/sr; per band, per passband)
+CALIBRATED_SKY_ARRAYS = (SKY_SURFACE_BRIGHTNESS, SKY_MAG)
 
 
 # --------------------------------------------------------------------------- field data
@@ -374,3 +380,13 @@ class SkyImageData(ContractData):
     exposure: Optional[float] = _field("float64", "exposure of rgb")
     tau_star: Optional[np.ndarray] = _field("float64", "optical depth from the first star to the observer",
                                             key="tau_star_{band}", optional=True)
+    sky_units: Optional[str] = _field("str", "units of the calibrated arrays (\"MJy/sr\"; absent: box units only)",
+                                      optional=True)
+    wcs_header: Optional[str] = _field("str", "the celestial WCS as FITS header cards (calibrated images)",
+                                       optional=True)
+    pixel_scale_arcsec: Optional[float] = _field("float64", "pixel side on the sky, arcsec (calibrated images)",
+                                                 optional=True)
+    psf_fwhm_arcsec: Optional[float] = _field("float64", "FWHM of the Gaussian PSF, arcsec (calibrated images)",
+                                              optional=True)
+    passband_names: Optional[str] = _field("str", "the passbands of the mag_ arrays, comma-separated "
+                                           "(calibrated images)", optional=True)

@@ -344,6 +344,9 @@ def finish_light_field(scene, rho, res: TransportResult, J=None, rel=None, colou
         return light
     params = np.stack([res.j_scale, res.sigma_scale, [b.albedo for b in bands]], axis=1)
     csetup = None
+    # the device's colour pass has the linear curve only; another stretch colours on the host
+    host_colour = colour and scene.colour.stretch != "linear"
+    colour = colour and not host_colour
     if colour:
         ref = reference_band_index(bands)
         cfg = scene.colour
@@ -379,6 +382,9 @@ def finish_light_field(scene, rho, res: TransportResult, J=None, rel=None, colou
         reference_band=reference_band_index(bands),
     )
     light.memory = _memory(res, out.device_bytes, out.peak_device_bytes)
+    if host_colour:
+        light.rgba, light.exposure = colour_rgba(scene, bands, np.asarray(rho, np.float64),
+                                                 light.emissivity.astype(np.float64), res)
     return light
 
 
@@ -483,6 +489,8 @@ def colour_rgba(scene, bands, rho, emissivity, res: TransportResult) -> tuple[np
         exposure=cfg.exposure,
         white_point=cfg.white_point,
         opacity_scale=cfg.opacity_scale,
+        stretch=cfg.stretch,
+        asinh_q=cfg.asinh_q,
     )
 
 
@@ -523,6 +531,8 @@ def rgba_from_emissivity(
     white_point: str = "D65",
     opacity_scale: float = 1.0,
     return_linear: bool = False,
+    stretch: str = "linear",
+    asinh_q: float = 8.0,
 ):
     """The ``rgba`` array for direct volume rendering.
 
@@ -548,6 +558,9 @@ def rgba_from_emissivity(
     white_point : {"D65", "E", "star"}
     opacity_scale : float
         Multiplies the optical depth of a voxel in alpha.
+    stretch, asinh_q : str, float
+        The tone curve (``colour.stretch``: "linear", the exposure and the sRGB curve, or
+        "asinh", :func:`nebula_rt.colour_convert.encode_asinh` with softening ``asinh_q``).
     return_linear : bool
         Also return the exposed linear sRGB (float32, (nx, ny, nz, 3)) before the sRGB curve.
 
@@ -575,7 +588,7 @@ def rgba_from_emissivity(
         exposure = colour_convert.auto_exposure(sample, percentile=AUTO_EXPOSURE_PERCENTILE)
     else:
         exposure = float(exposure)
-    srgb8 = colour_convert.encode_srgb(rgb, exposure)
+    srgb8 = colour_convert.encode_picture(rgb, exposure, stretch, asinh_q)
     a8 = xp.clip(xp.rint(alpha * 255.0), 0, 255).astype(xp.uint8)
     rgba = to_numpy(xp.concatenate([srgb8, a8[..., None]], axis=-1))
     if return_linear:

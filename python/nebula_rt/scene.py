@@ -9,14 +9,20 @@ keys are public API, see DESIGN.md "Scene file contract")::
     [bands]         -> BandsConfig  (explicit bands: [[bands.list]])
     [transport]     -> Transport
     [colour]        -> Colour       (extension table)
+    [observer]      -> Observer     (where the scene is on the sky; calibrated images)
 
 Units
 -----
 Positions and lengths are in *box units*: the simulation box is ``[0, 1]^3``
-whatever ``grid.shape`` is.  ``grid.length`` / ``grid.unit`` only label the
+whatever ``grid.shape`` is.  ``grid.length`` / ``grid.unit`` give the
 physical size of one box edge.  ``dust.tau`` is the optical depth across one
 box edge at density 1 in the reference band (see
-:func:`nebula_rt.bands.reference_band_index`).
+:func:`nebula_rt.bands.reference_band_index`).  Physical quantities may replace
+the box-unit ones (``dust.hydrogen_density``, ``dust.mass_density``,
+``dust.visual_extinction`` set ``dust.tau``; ``stars.luminosity_lsun``,
+``stars.absolute_magnitude`` set ``stars.luminosity``): they are converted
+when the scene is built (:mod:`nebula_rt.units`), so the transport sees box
+units only.
 
 This module never imports VTK.
 """
@@ -42,6 +48,7 @@ from .bands import BAND_KEYS, PRESETS, Band, resolve_bands
 from .errors import SceneError
 from .limits import FLOAT32_RANGE_TEXT, INT32_MAX, MAX_OFFSET, TEMPERATURE_RANGE, float32_allowed, in_float32_range
 from . import schema
+from . import units
 from .schema import document, param
 
 __all__ = [
@@ -51,6 +58,7 @@ __all__ = [
     "BandsConfig",
     "Transport",
     "Colour",
+    "Observer",
     "Scene",
 ]
 
@@ -62,6 +70,7 @@ ESTIMATORS = ("track-length", "collision-filter")
 METHODS = ("auto", "analog", "biased")
 BACKENDS = ("auto", "opencl", "cuda")
 WHITE_POINTS = ("D65", "E", "star")
+STRETCHES = ("linear", "asinh")
 MAX_PHOTONS = 2**53
 MAX_SEED = 2**64
 
@@ -89,6 +98,7 @@ QUALITIES = ("",) + tuple(QUALITY_PRESETS)
 # quality, device)
 G_GRID, G_DUST, G_OPTICS, G_STARS = "Dust", "Dust", "Dust optics", "Stars"
 G_TRANSPORT, G_QUALITY, G_DEVICE, G_COLOUR = "Photon transport", "Quality", "Compute device", "Colour"
+G_UNITS, G_OBSERVER = "Physical units", "Observer"
 
 
 @document
@@ -101,11 +111,13 @@ class Grid:
         doc="Voxels along x, y, z (non-cubic allowed). The grid spans the box [0, 1]^3 whatever its "
             "shape, so voxels need not be cubes; memory and trace time grow with the number of voxels "
             "(the thesis used 128^3)")
-    length: float = param(
-        1.0, type="float", lo=0.0, lo_open=True, group=G_GRID, advanced=True,
-        doc="Physical length of one box edge, in `unit`. A label only: the transport works in "
-            "box units")
-    unit: str = param("pc", type="str", group=G_GRID, advanced=True, doc="Unit of `length` (e.g. \"pc\")")
+    length: Union[float, str] = param(
+        1.0, type="float or str", lo=0.0, lo_open=True, label="Box Length", group=G_UNITS, advanced=True,
+        doc="Physical length of one box edge: a number in `unit`, or a quantity with its own unit "
+            "(\"3 pc\", \"2e5 AU\"; astropy.units). The transport works in box units; the length "
+            "converts the physical dust keys to dust.tau and scales calibrated sky images")
+    unit: str = param("pc", type="str", group=G_UNITS, advanced=True,
+                      doc="Length unit of a numeric `length` (pc, AU, ly, km, ...; astropy.units)")
 
 
 @document
@@ -140,7 +152,21 @@ class Dust:
         1.0, type="float", lo=0.0, label="Tau", group=G_OPTICS,
         doc="Optical depth across one box edge at density 1 in the reference band: the extinction "
             "per box edge is tau x extinction_b x density (the thesis's 128^3 nebula: 128, i.e. "
-            "extinction = density per voxel)")
+            "extinction = density per voxel). Set by hydrogen_density, mass_density or "
+            "visual_extinction where one of them is given")
+    hydrogen_density: Optional[float] = param(
+        None, type="float or None", lo=0.0, unit="cm^-3", label="Hydrogen Density", group=G_UNITS, advanced=True,
+        doc="H nuclei per cm^3 at density 1: sets tau = n_H x C_ext per H in the reference band "
+            "(Draine 2003 dust of the band preset) x the box edge (grid.length) in cm")
+    mass_density: Optional[float] = param(
+        None, type="float or None", lo=0.0, unit="g cm^-3", label="Dust Mass Density", group=G_UNITS,
+        advanced=True,
+        doc="Grams of dust per cm^3 at density 1: sets tau through the dust model's dust mass per "
+            "H nucleon (1.870e-26 g for R_V = 3.1, Draine's table) as hydrogen_density does")
+    visual_extinction: Optional[float] = param(
+        None, type="float or None", lo=0.0, unit="mag", label="Visual Extinction", group=G_UNITS, advanced=True,
+        doc="A_V across one box edge at density 1: sets tau = A_V / 1.0857 x C_ext(reference band) "
+            "/ C_ext(V) of the dust model")
 
 
 @document
@@ -153,7 +179,8 @@ class Star:
         doc="Where the star is, inside [0, 1]^3")
     luminosity: float = param(
         1.0, type="float", lo=0.0, lo_open=True, unit="scene units", group=G_STARS,
-        doc="Total luminosity over all bands")
+        doc="Total luminosity over all bands; set (in L_sun inside the bands' range) by "
+            "luminosity_lsun or absolute_magnitude where one is given")
     temperature: Optional[float] = param(
         None, type="float or None", lo=TEMPERATURE_RANGE[0], hi=TEMPERATURE_RANGE[1], unit="K", group=G_STARS,
         doc="Effective temperature: a blackbody spectrum then splits the luminosity over the bands "
@@ -166,6 +193,14 @@ class Star:
         None, type="tuple of (wavelength nm, relative power) pairs, or None", group=G_STARS,
         doc="A measured spectrum (at least 2 pairs, wavelengths increasing): it replaces the "
             "blackbody of `temperature` for the split over the bands and for the colour")
+    luminosity_lsun: Optional[float] = param(
+        None, type="float or None", lo=0.0, lo_open=True, unit="L_sun", group=G_STARS,
+        doc="Bolometric luminosity in nominal solar luminosities (3.828e26 W): sets `luminosity` "
+            "to the part of the blackbody of `temperature` inside the bands' range, in L_sun")
+    absolute_magnitude: Optional[float] = param(
+        None, type="float or None", unit="mag", group=G_STARS,
+        doc="Absolute magnitude M_V (AB, Bessell V): sets `luminosity` as luminosity_lsun does, "
+            "from the blackbody of `temperature` with that magnitude at 10 pc")
 
     def spectral_source(self):
         """What sets the star's spectrum: the measured pairs, else the temperature (K), else
@@ -285,12 +320,44 @@ class Colour:
     opacity_scale: float = param(
         1.0, type="float", lo=0.0, lo_open=True, label="Opacity Scale", group=G_COLOUR,
         doc="Factor on each voxel's reference-band optical depth in the volume's alpha")
+    stretch: str = param(
+        "linear", type="str", choices=STRETCHES, label="Stretch", group=G_COLOUR,
+        doc="Tone curve of the pictures: linear (the exposure, then the sRGB transfer curve) or "
+            "asinh (Lupton et al. 2004, PASP 116, 133: colour-preserving, with softening asinh_q; "
+            "the exposure's level still maps to full scale)")
+    asinh_q: float = param(
+        8.0, type="float", lo=0.0, lo_open=True, hi=1e10, label="Asinh Q", group=G_COLOUR,
+        doc="The asinh stretch's softening Q: how far the faint light is lifted (about Q / asinh(Q) "
+            "times the linear exposure)")
+
+
+@document
+@dataclass
+class Observer:
+    """Where the scene lies on the sky, for calibrated sky images, TOML table ``[observer]``."""
+
+    distance: Optional[Union[float, str]] = param(
+        None, type="float or str or None", lo=0.0, lo_open=True, unit="pc", group=G_OBSERVER,
+        doc="Distance from the observer to the box centre: a quantity (\"140 pc\") or a number in "
+            "pc; sets the image's angular scale and the stars' flux")
+    ra: float = param(0.0, type="float", lo=0.0, hi=360.0, unit="deg", label="RA", group=G_OBSERVER,
+                      doc="Right ascension (ICRS) of the box centre, the sky image's reference point")
+    dec: float = param(0.0, type="float", lo=-90.0, hi=90.0, unit="deg", label="Dec", group=G_OBSERVER,
+                       doc="Declination (ICRS) of the box centre")
+    position_angle: float = param(
+        0.0, type="float", lo=-360.0, hi=360.0, unit="deg", label="Position Angle", group=G_OBSERVER,
+        doc="Position angle of the image's up axis, from north through east (0: up is north and "
+            "east is left)")
+    psf_fwhm: float = param(
+        0.0, type="float", lo=0.0, unit="arcsec", label="PSF FWHM", group=G_OBSERVER,
+        doc="FWHM of the Gaussian point-spread function the calibrated image is convolved with "
+            "(0: none; a star then fills the pixel it falls in)")
 
 
 #: The scene file's tables with their dataclasses, in the file's order: the schema
 #: (:mod:`nebula_rt.schema`). A star's keys are ``stars.<field>`` (the same for every star).
 SECTIONS = (("grid", Grid), ("dust", Dust), ("stars", Star), ("bands", BandsConfig), ("transport", Transport),
-            ("colour", Colour))
+            ("colour", Colour), ("observer", Observer))
 
 
 def parameters():
@@ -397,6 +464,23 @@ def _to_ivec3(v: Any) -> Tuple[int, int, int]:
     return tuple(_to_int(x) for x in _three(v))  # type: ignore[return-value]
 
 
+def _to_length(v: Any) -> Union[float, str]:
+    """A length: a number (float) or a quantity string ("3 pc"), checked by units.valid_length."""
+    return v if isinstance(v, str) else _to_float(v)
+
+
+def _to_opt_length(v: Any) -> Optional[Union[float, str]]:
+    return None if v is None else _to_length(v)
+
+
+def _finite(v: Optional[float]) -> bool:
+    return v is None or math.isfinite(v)
+
+
+def _opt_nonneg(v: Optional[float]) -> bool:
+    return v is None or (math.isfinite(v) and v >= 0)
+
+
 def _to_exposure(v: Any) -> Union[float, str]:
     if v == "auto" and isinstance(v, str):
         return v
@@ -460,8 +544,8 @@ GRID_RULES: Dict[str, _Rule] = {
         f"must be a list of 3 integers, each in [2, {INT32_MAX}] (int32 on the device)",
         lambda v: all(2 <= n <= INT32_MAX for n in v),
     ),
-    "length": _Rule(_to_float, "must be a finite number > 0", _finite_pos),
-    "unit": _ANY_STR,
+    "length": _Rule(_to_length, units.length_allowed("a finite length > 0"), units.valid_length),
+    "unit": _Rule(_to_str, f"must be a length unit: {units.LENGTH_UNITS_TEXT}", units.is_length_unit),
 }
 
 DUST_RULES: Dict[str, _Rule] = {
@@ -478,6 +562,11 @@ DUST_RULES: Dict[str, _Rule] = {
     ),
     "floor": _Rule(_to_float, float32_allowed("a number"), _float32_nonneg),
     "tau": _Rule(_to_float, float32_allowed("a number"), _float32_nonneg),
+    "hydrogen_density": _Rule(_to_opt_float, "must be a number of H nuclei per cm^3 >= 0 (finite; or omitted)",
+                              _opt_nonneg),
+    "mass_density": _Rule(_to_opt_float, "must be a dust mass density in g cm^-3 >= 0 (finite; or omitted)",
+                          _opt_nonneg),
+    "visual_extinction": _Rule(_to_opt_float, "must be an A_V in mag >= 0 (finite; or omitted)", _opt_nonneg),
 }
 
 STAR_RULES: Dict[str, _Rule] = {
@@ -503,6 +592,10 @@ STAR_RULES: Dict[str, _Rule] = {
         "increasing in (0, 1e5], powers finite, >= 0 and not all 0 (or omitted)",
         _valid_spectrum,
     ),
+    "luminosity_lsun": _Rule(_to_opt_float, "must be a bolometric luminosity in L_sun: a finite number > 0 "
+                             "(or omitted)", lambda v: v is None or _finite_pos(v)),
+    "absolute_magnitude": _Rule(_to_opt_float, "must be an absolute magnitude M_V in mag (AB, Bessell V): a "
+                                "finite number (or omitted)", _finite),
 }
 
 # Type-only rules for [bands]; ranges are checked by resolve_bands().
@@ -550,6 +643,19 @@ COLOUR_RULES: Dict[str, _Rule] = {
     ),
     "white_point": _Rule(_to_str, _one_of(WHITE_POINTS), lambda v: v in WHITE_POINTS),
     "opacity_scale": _Rule(_to_float, "must be a finite number > 0", _finite_pos),
+    "stretch": _Rule(_to_str, _one_of(STRETCHES), lambda v: v in STRETCHES),
+    "asinh_q": _Rule(_to_float, "must be a number in (0, 1e10] (the asinh softening Q)",
+                     lambda v: 0.0 < v <= 1e10),
+}
+
+OBSERVER_RULES: Dict[str, _Rule] = {
+    "distance": _Rule(_to_opt_length, units.length_allowed("a distance > 0", "pc") + " (or omitted)",
+                      lambda v: v is None or units.valid_length(v)),
+    "ra": _Rule(_to_float, "must be a right ascension in degrees in [0, 360)", lambda v: 0.0 <= v < 360.0),
+    "dec": _Rule(_to_float, "must be a declination in degrees in [-90, 90]", lambda v: -90.0 <= v <= 90.0),
+    "position_angle": _Rule(_to_float, "must be an angle in degrees in [-360, 360] (east of north)",
+                            lambda v: -360.0 <= v <= 360.0),
+    "psf_fwhm": _Rule(_to_float, "must be a FWHM in arcsec >= 0 (finite; 0 = no PSF)", _finite_nonneg),
 }
 
 # Schema tree, used by from_dict and with_overrides: a dict is a table, a
@@ -561,6 +667,7 @@ _SCHEMA: Dict[str, Any] = {
     "bands": {**BANDS_RULES, "list": [BAND_ENTRY_RULES]},
     "transport": TRANSPORT_RULES,
     "colour": COLOUR_RULES,
+    "observer": OBSERVER_RULES,
 }
 _TABLE_NAMES = {
     "grid": "[grid]",
@@ -569,6 +676,7 @@ _TABLE_NAMES = {
     "bands": "[bands]",
     "transport": "[transport]",
     "colour": "[colour]",
+    "observer": "[observer]",
 }
 
 
@@ -672,6 +780,7 @@ class Scene:
     bands : BandsConfig
     transport : Transport
     colour : Colour
+    observer : Observer
     base_dir : Path or None
         Folder against which a relative ``dust.file`` is resolved (the scene
         file's folder for :meth:`load`).  Not part of the TOML, and not
@@ -690,6 +799,7 @@ class Scene:
     bands: BandsConfig = field(default_factory=BandsConfig)
     transport: Transport = field(default_factory=Transport)
     colour: Colour = field(default_factory=Colour)
+    observer: Observer = field(default_factory=Observer)
     base_dir: Optional[Path] = field(default=None, compare=False)
 
     # -- constructors -------------------------------------------------------
@@ -754,6 +864,7 @@ class Scene:
 
         transport = Transport(**_parse_table("transport", d.get("transport", {}), TRANSPORT_RULES))
         colour = Colour(**_parse_table("colour", d.get("colour", {}), COLOUR_RULES))
+        observer = Observer(**_parse_table("observer", d.get("observer", {}), OBSERVER_RULES))
 
         scene = cls(
             grid=grid,
@@ -762,8 +873,14 @@ class Scene:
             bands=bands,
             transport=transport,
             colour=colour,
+            observer=observer,
             base_dir=Path(base_dir) if base_dir is not None else None,
         )
+        # the box-unit values a physical key sets, where the table gave them too: they must agree
+        given_tau = dust.tau if "tau" in d.get("dust", {}) else None
+        given_lum = {i: s.luminosity for i, s in enumerate(stars)
+                     if "stars" in d and "luminosity" in d["stars"][i]}
+        scene._apply_units(given_tau, given_lum)
         scene.validate()
         return scene
 
@@ -818,7 +935,7 @@ class Scene:
                 out[f.name] = v
             return out
 
-        return {
+        out = {
             "grid": table(self.grid),
             "dust": table(self.dust),
             "stars": [table(s) for s in self.stars],
@@ -826,6 +943,9 @@ class Scene:
             "transport": table(self.transport),
             "colour": table(self.colour),
         }
+        if self.observer != Observer():  # a scene that does not place itself on the sky has no [observer]
+            out["observer"] = table(self.observer)
+        return out
 
     def to_toml(self) -> str:
         """The scene as TOML text; ``Scene.loads(s.to_toml()) == s``."""
@@ -884,10 +1004,58 @@ class Scene:
         for key, rule in BANDS_RULES.items():
             rule.coerce(f"bands.{key}", getattr(self.bands, key))
         bands = self.bands.resolve()
+        self._apply_units()
         _check_dataclass("transport", self.transport, TRANSPORT_RULES)
         _check_dataclass("colour", self.colour, COLOUR_RULES)
+        if not isinstance(self.observer, Observer):
+            raise SceneError("observer", self.observer, "must be an Observer")
+        _check_dataclass("observer", self.observer, OBSERVER_RULES)
         self._check_batches()
         _check_star_spectra(self.stars, bands)
+
+    def _apply_units(self, given_tau: Optional[float] = None, given_luminosity: Optional[Mapping[int, float]] = None
+                     ) -> None:
+        """Set ``dust.tau`` and the stars' ``luminosity`` from the physical keys that are given
+        (:mod:`nebula_rt.units`); ``given_*``: the values the scene table gave for them too,
+        which must then be the converted ones (bit for bit: a scene written by :meth:`to_toml`
+        holds both)."""
+        key = units.physical_dust_key(self.dust)
+        physical = [units.physical_star(s) for s in self.stars]
+        if key is None and not any(physical):
+            return
+        bands = self.bands.resolve()
+        if key is not None:
+            value = getattr(self.dust, key)
+            try:
+                tau, how = units.dust_tau(self, bands)
+            except (ValueError, OverflowError):
+                tau, how = math.inf, "overflow"
+            if not DUST_RULES["tau"].check(tau):
+                raise SceneError(f"dust.{key}", value, f"gives dust.tau = {tau:.6g} ({how}), which "
+                                 + DUST_RULES["tau"].allowed)
+            if given_tau is not None and given_tau != tau:
+                raise SceneError("dust.tau", given_tau, f"is set by dust.{key} = {value!r}, which gives {tau!r} "
+                                 f"({how}): give one of them")
+            self.dust.tau = tau
+        if not any(physical):
+            return
+        j = physical.index(True)
+        for i, s in enumerate(self.stars):
+            if not physical[i]:
+                raise SceneError(f"stars[{i}].luminosity", s.luminosity,
+                                 f"must be physical too (luminosity_lsun or absolute_magnitude), as stars[{j}]'s is: "
+                                 "scene units and L_sun do not mix")
+            lum, lbol = units.star_luminosity(s, i, bands)
+            k = "luminosity_lsun" if s.luminosity_lsun is not None else "absolute_magnitude"
+            if not STAR_RULES["luminosity"].check(lum):
+                raise SceneError(f"stars[{i}].{k}", getattr(s, k),
+                                 f"gives a luminosity of {lum:.6g} L_sun inside the bands (bolometric {lbol:.6g} "
+                                 f"L_sun), which " + STAR_RULES["luminosity"].allowed)
+            if given_luminosity and i in given_luminosity and given_luminosity[i] != lum:
+                raise SceneError(f"stars[{i}].luminosity", given_luminosity[i],
+                                 f"is set by stars[{i}].{k} = {getattr(s, k)!r}, which gives {lum!r} L_sun inside "
+                                 "the bands: give one of them")
+            s.luminosity = lum
 
     def _check_batches(self) -> None:
         """An explicit batch size must leave at least 2 batches: the error estimate is the
@@ -930,13 +1098,32 @@ class Scene:
         if isinstance(items, str):
             items = [items]
         d = self.to_dict()
+        overridden = set()
         for item in items:
             if not isinstance(item, str) or "=" not in item:
                 raise SceneError(str(item), item, "an override has the form dotted.key=value")
             key, raw = item.split("=", 1)
             key, raw = key.strip(), raw.strip()
             _apply_override(d, key, _parse_value(raw))
+            overridden.add(re.sub(r"\[(\d+)\]", r".\1", key))
+        _drop_derived(d, overridden)
         return Scene.from_dict(d, base_dir=self.base_dir)
+
+
+def _drop_derived(d: Dict[str, Any], overridden) -> None:
+    """Drop the box-unit values that physical keys set (dust.tau, a star's luminosity) from
+    the scene dict of :meth:`Scene.with_overrides`, so that they are converted again from the
+    physical keys as overridden; one overridden itself stays (and must then agree)."""
+    dust = d.get("dust")
+    if isinstance(dust, dict) and any(dust.get(k) is not None for k in units.DUST_KEYS) \
+            and not overridden & {"dust.tau", "dust"}:
+        dust.pop("tau", None)
+    stars = d.get("stars")
+    if isinstance(stars, list) and "stars" not in overridden:
+        for i, s in enumerate(stars):
+            if isinstance(s, dict) and (s.get("luminosity_lsun") is not None or s.get("absolute_magnitude")
+                                        is not None) and not overridden & {f"stars.{i}.luminosity", f"stars.{i}"}:
+                s.pop("luminosity", None)
 
 
 def _parse_toml(text: str, where: str) -> Dict[str, Any]:
