@@ -120,10 +120,14 @@ def main(argv=None) -> int:
     ap.add_argument("--g", type=float, default=0.6)
     ap.add_argument("--forced-flights", type=int, nargs="+", default=[4],
                     help="biased: forced flights per packet (kernel option NRT_FORCED_FLIGHTS), one row each")
+    ap.add_argument("--program", default=None,
+                    help="a variant of kernels/transport.cl to time instead (e.g. transport_x.cl)")
     ap.add_argument("--out", default=None)
     ap.add_argument("--plot", default=None)
     a = ap.parse_args(argv)
     backend = get_backend(a.backend, a.device)
+    if a.program:
+        backend.transport_program = a.program
     rows = []
     tuning = dict(backend.transport_tuning)
     for kind in a.scenes:
