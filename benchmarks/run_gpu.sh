@@ -7,7 +7,7 @@
 # WHEELDIR holds wheels for what the machine lacks (pyopencl and its pure-Python needs,
 # colour-science, tomli-w; pmcx for the MCX comparison), fetched elsewhere with
 # `pip download --only-binary=:all: --python-version 3.12 ...`.
-# STEPS (default "tests bench neb128 compare profile"; also "tests-cuda", "scaling", "large", "layout", "sorted", "probe", "ranks", "e2e1e9", "biasing", "tune",
+# STEPS (default "tests bench neb128 compare profile"; also "tests-cuda", "scaling", "large", "layout", "sorted", "probe", "ranks", "e2e1e9", "biasing", "fit", "tune",
 # "stages", "trade", "presets", "empty", "fft") selects what runs. Everything printed
 # goes to OUTDIR/log.txt as well; JSON and .npz results beside it.
 set -uo pipefail
@@ -120,6 +120,11 @@ if [[ " $steps " == *" biasing "* ]]; then
     python3 benchmarks/bench_biasing.py --backend cuda --grid 64 --photons 1e7 --seeds 4 --forced-flights 1 2 4 8 \
         --taus 0.1 0.3 1 3 10 20 30 60 \
         --out "$out/biasing-cuda.json" --plot "$out/biasing-cuda.png" 2>&1 | tail -n 30
+fi
+if [[ " $steps " == *" fit "* ]]; then
+    echo "== fit of the thesis scene, 3 free parameters, CUDA (64^3, then the thesis's 128^3)"
+    python3 benchmarks/bench_fit.py --backend cuda --out "$out/fit-cuda-64.json" 2>&1 | tail -n 14
+    python3 benchmarks/bench_fit.py --backend cuda --shape 128 --photons 2.1e6 --out "$out/fit-cuda-128.json" 2>&1 | tail -n 14
 fi
 if [[ " $steps " == *" e2e1e9 "* ]]; then
     echo "== 512^3, 1e9 photons, end to end (target: 10 s)"
