@@ -61,7 +61,11 @@ ESTIMATORS = ("track-length", "collision-filter")
 BACKENDS = ("auto", "opencl", "cuda")
 WHITE_POINTS = ("D65", "E", "star")
 MAX_PHOTONS = 2**53
-MAX_SEED = 2**64
+#: Seeds are [0, 2**53]: the RNG's key is 64 bits (any uint64 would work on the device), but a
+#: seed travels as a double in ParaView's panel, in pvpython and in JSON, which hold every
+#: integer exactly up to 2**53 and no further (2**53 + 1 becomes 2**53 without a word). So the
+#: scene declares what every layer holds exactly rather than a range the panel would round.
+MAX_SEED = 2**53
 
 
 # ---------------------------------------------------------------------------
@@ -222,7 +226,7 @@ class Transport:
         1000, type="int", lo=0, hi=INT32_MAX, label="Max Scatterings", group=G_TRANSPORT, advanced=True,
         doc="A packet is terminated (and tallied as such) after this many scatterings")
     seed: int = param(
-        1, type="int", lo=0, hi=MAX_SEED - 1, group=G_TRANSPORT, advanced=True,
+        1, type="int", lo=0, hi=MAX_SEED, group=G_TRANSPORT, advanced=True,
         doc="Random seed: the same seed, scene and device give the same bits")
     backend: str = param(
         "auto", type="str", choices=BACKENDS, group=G_DEVICE, advanced=True,
@@ -519,7 +523,8 @@ TRANSPORT_RULES: Dict[str, _Rule] = {
     "filter_radius": _Rule(_to_float, "must be a finite number > 0 (box units)", _finite_pos),
     "max_scatterings": _Rule(_to_int, f"must be an integer in [0, {INT32_MAX}] (int32 on the device)",
                              lambda v: 0 <= v <= INT32_MAX),
-    "seed": _Rule(_to_int, "must be an integer in [0, 2**64)", lambda v: 0 <= v < MAX_SEED),
+    "seed": _Rule(_to_int, "must be an integer in [0, 2**53] (exact as a double: ParaView's panel, pvpython)",
+                  lambda v: 0 <= v <= MAX_SEED),
     "backend": _Rule(_to_str, _one_of(BACKENDS), lambda v: v in BACKENDS),
     "device": _ANY_STR,
     "batch_size": _Rule(_to_int, f"must be an integer in [0, {MAX_PHOTONS}] (0 = automatic)",
