@@ -189,3 +189,20 @@ def test_schema_ranges_are_closed_numbers_or_none():
     for key, p, _ in sc.parameters():
         for b in (p.lo, p.hi):
             assert b is None or (isinstance(b, (int, float)) and math.isfinite(b)), key
+
+
+def test_integer_ranges_are_what_a_panel_holds_exactly():
+    """An integer past int32 travels as a double (ParaView's panel, pvpython, JSON), exact up to
+    2^53: every integer parameter's declared range stays within it, so no layer rounds a value
+    the scene accepts (the seed's 2^64 - 1 became 2^64 in a panel). The last integer of the
+    range survives the trip through a double and the next one does not."""
+    for key, p, _ in sc.parameters():
+        if p.type.startswith("int") or p.type.endswith("int"):
+            assert p.lo is not None and p.hi is not None, key
+            assert -2**53 <= p.lo and p.hi <= 2**53, key
+            assert int(float(p.hi)) == p.hi
+    seed = sc.declaration("transport.seed")
+    assert int(float(seed.hi + 1)) != seed.hi + 1  # 2^53 + 1: what a double cannot hold
+    lf = NebulaLightField()
+    lf.SetSeed(float(seed.hi))  # as the panel hands it over
+    assert lf.scene((4, 4, 4)).transport.seed == 2**53

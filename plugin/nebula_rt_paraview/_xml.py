@@ -116,8 +116,8 @@ DENSITY_ARRAY = """
 
 # -- properties made from the scene schema (nebula_rt.filters.properties) ---------------------
 INT32 = (-2**31, 2**31 - 1)
-#: integers past int32 (photon counts, seeds) travel as doubles: exact up to 2^53, and a
-#: pvpython ``Photons=1e5`` is taken as the integer it is
+#: integers past int32 (photon counts, seeds) travel as doubles: exact up to 2^53, which the
+#: scene's ranges keep to, and a pvpython ``Photons=1e5`` is taken as the integer it is
 DOUBLE_EXACT = 2**53
 
 
@@ -167,7 +167,10 @@ def bound_property(prop, default=None):
             lo, hi = p.lo, p.hi
         else:
             tag, dom = "DoubleVectorProperty", "DoubleRangeDomain"
-            lo, hi = p.lo, (min(p.hi, DOUBLE_EXACT) if integer and p.hi is not None else p.hi)
+            lo, hi = p.lo, p.hi
+            if integer and (hi is None or hi > DOUBLE_EXACT or lo is None or lo < -DOUBLE_EXACT):
+                # the scene must declare what the panel holds (nebula_rt.scene.MAX_SEED)
+                raise ValueError(f"{prop.key}: an integer range past 2**53 cannot be a panel property exactly")
         bounds = "".join(' %s="%s"' % (k, _values_text(v)) for k, v in (("min", lo), ("max", hi)) if v is not None)
         if n > 1 and bounds:  # every element in the same range
             bounds = "".join(' %s="%s"' % (k, " ".join([_values_text(v)] * n)) for k, v in (("min", lo), ("max", hi))
