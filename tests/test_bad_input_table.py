@@ -208,6 +208,7 @@ TABLE = [
     *floats("colour.opacity_scale", {"huge": "opacity 1 wherever there is dust (host float64)",
                                      "beyond-float32": "opacity 1 wherever there is dust (host float64)",
                                      "below-float32": "transparent (host float64)"}),
+    Row("colour.opacity_scale", "auto", '"auto"', ALLOWED, "the factor chosen from the data (the default)"),
 ]
 # "negative" is -1.5 for every float key: below g's -1 too
 
@@ -405,7 +406,8 @@ def test_c_filter_setter_refuses(row, light_field_image):
         alg = NebulaColour()
         alg._producer = _producer(light_field_image)
         alg.SetInputConnection(alg._producer.GetOutputPort())
-        alg.SetAutoExposure(False)
+        alg.SetAutoExposure(False)  # the numbers apply (the rows of colour.exposure and opacity_scale)
+        alg.SetAutoOpacity(False)
     getattr(alg, setter)(*args(row.value))
     alg.Update()
     assert alg.GetOutputDataObject(0).GetNumberOfPoints() == 0

@@ -41,7 +41,7 @@ def test_default_values_match_contract():
     assert s.stars == [Star((0.5, 0.5, 0.5), 1.0, None, 0.0)]
     assert s.bands.preset == "thesis-rgb"
     assert s.transport.photons == 2_100_000 and s.transport.estimator == "track-length"
-    assert s.colour == Colour("auto", "D65", 1.0)
+    assert s.colour == Colour("auto", "D65", "auto")
 
 
 def test_empty_dict_is_default():

@@ -100,11 +100,28 @@ def test_density_source_defaults_are_the_schema_defaults():
 
 
 def test_colour_defaults_are_the_schema_defaults():
+    """The colour's properties start at the schema's defaults (an "auto or number" key as its
+    check box on and the declared number), so an untouched Nebula Colour colours as a scene
+    file with no [colour] table; the check box and the number make the key's value."""
+    from nebula_rt.filters.properties import scene_values
+
     c = NebulaColour()
     for prop in COLOUR_PROPERTIES:
-        assert getattr(c, "Get" + prop.name)() == sc.default(prop.key), prop.name
+        want = sc.default(prop.key)
+        if prop.widget == "auto":
+            assert getattr(c, "Get" + prop.flag)() == int(want == "auto"), prop.flag
+            assert getattr(c, "Get" + prop.name)() == prop.param.number, prop.name
+        else:
+            assert getattr(c, "Get" + prop.name)() == want, prop.name
+    assert sc.Scene.from_dict(scene_values(c._values)).colour == sc.Scene.default().colour
     c.SetWhitePoint(2)
     assert c.GetWhitePoint() == sc.WHITE_POINTS[2]
+    c.SetAutoOpacity(0)  # off: the number the panel shows
+    assert c._values["colour.opacity_scale"] == 1.0
+    c.SetOpacityScale(4.0)
+    assert c._values["colour.opacity_scale"] == 4.0
+    c.SetAutoOpacity(1)  # on again: "auto", the number kept for later
+    assert c._values["colour.opacity_scale"] == "auto" and c.GetOpacityScale() == 4.0
 
 
 def test_vtk_setters_take_enumeration_indices_and_whole_floats():

@@ -147,6 +147,11 @@ def bound_property(prop, default=None):
     if p.advanced:
         attrs += ' panel_visibility="advanced"'
     n = prop.elements
+    flag, enabled_by = "", prop.enabled_by
+    if prop.widget == "auto":
+        # "auto" or a number: the check box first, then the number it disables
+        flag = _auto_flag(prop, p, d == "auto")
+        d, enabled_by = prop.number, (prop.flag, 0)
     if prop.widget == "enum":
         texts = [p.choice_labels[p.choices.index(c)] if p.choice_labels else c for c in prop.choices]
         items = "".join('<Entry value="%d" text=%s/>' % (i, quoteattr(t)) for i, t in enumerate(texts))
@@ -178,14 +183,30 @@ def bound_property(prop, default=None):
         domain = '<%s name="range"%s/>' % (dom, bounds) if bounds else ""
         dflt = _values_text(d)
     hints = ""
-    for mode, rule in (("enabled_state", prop.enabled_by), ("visibility", prop.shown_by)):
+    for mode, rule in (("enabled_state", enabled_by), ("visibility", prop.shown_by)):
         if rule:
             hints += ('<PropertyWidgetDecorator type="GenericDecorator" mode="%s" property=%s value=%s />'
                       % (mode, quoteattr(rule[0]), quoteattr(str(rule[1]))))
     if hints:
         hints = "<Hints>%s</Hints>" % hints
-    return ('<%s %s number_of_elements="%d" default_values="%s">%s<Documentation>%s</Documentation>%s</%s>'
-            % (tag, attrs, n, dflt, domain, _tooltip(prop, p), hints, tag))
+    return flag + ('<%s %s number_of_elements="%d" default_values="%s">%s<Documentation>%s</Documentation>%s</%s>'
+                   % (tag, attrs, n, dflt, domain, _tooltip(prop, p), hints, tag))
+
+
+def _auto_flag(prop, p, on):
+    """The check box of an "auto or number" property (``Auto Exposure``: its label from its
+    name), shown with the same visibility as the number."""
+    import re
+
+    from nebula_rt.schema import label
+
+    text = re.sub(r"(?<!^)(?=[A-Z])", " ", prop.flag)
+    tip = escape(" ".join((f"On: {label(prop.key, p)} is chosen from the data (scene key {prop.key} = "
+                           f"'auto'); off: the number below. {p.doc}.").split()))
+    vis = ' panel_visibility="advanced"' if p.advanced else ""
+    return ('<IntVectorProperty name=%s label=%s command=%s number_of_elements="1" default_values="%d"%s>'
+            '<BooleanDomain name="bool"/><Documentation>%s</Documentation></IntVectorProperty>'
+            % (quoteattr(prop.flag), quoteattr(text), quoteattr("Set" + prop.flag), int(on), vis, tip))
 
 
 def bound_properties(props, defaults=None, extra=None):

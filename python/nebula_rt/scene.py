@@ -270,15 +270,19 @@ class Colour:
     """Conversion of the band results to sRGB, TOML table ``[colour]`` (extension)."""
 
     exposure: Union[float, str] = param(
-        "auto", type="\"auto\" or float", group=G_COLOUR,
-        doc="\"auto\" or a finite factor > 0 applied to the linear colour before the sRGB transfer")
+        "auto", type="\"auto\" or float", lo=0.0, lo_open=True, auto=True, number=1.0, group=G_COLOUR,
+        doc="Factor applied to the linear colour before the sRGB transfer; \"auto\": the one that maps "
+            "the 95th percentile of the visible voxels' brightest colour component to full scale")
     white_point: str = param(
         "D65", type="str", choices=WHITE_POINTS, label="White Point", group=G_COLOUR,
         doc="White balance: D65 (daylight), E (equal energy) or star (the first star's blackbody "
             "colour is white)")
-    opacity_scale: float = param(
-        1.0, type="float", lo=0.0, lo_open=True, label="Opacity Scale", group=G_COLOUR,
-        doc="Factor on each voxel's reference-band optical depth in the volume's alpha")
+    opacity_scale: Union[float, str] = param(
+        "auto", type="\"auto\" or float", lo=0.0, lo_open=True, auto=True, number=1.0, label="Opacity Scale",
+        group=G_COLOUR,
+        doc="Factor on each voxel's reference-band optical depth in the volume's alpha (1: the dust's own "
+            "opacity); \"auto\": the factor that gives the box a mean optical depth of 3 across, so that a "
+            "thin or a thick nebula is seen through as a whole (nebula_rt.pipeline.AUTO_OPACITY_MEAN_TAU)")
 
 
 #: The scene file's tables with their dataclasses, in the file's order: the schema
@@ -391,7 +395,7 @@ def _to_ivec3(v: Any) -> Tuple[int, int, int]:
     return tuple(_to_int(x) for x in _three(v))  # type: ignore[return-value]
 
 
-def _to_exposure(v: Any) -> Union[float, str]:
+def _to_auto_or_float(v: Any) -> Union[float, str]:
     if v == "auto" and isinstance(v, str):
         return v
     return _to_float(v)
@@ -538,12 +542,13 @@ TRANSPORT_RULES: Dict[str, _Rule] = {
 
 COLOUR_RULES: Dict[str, _Rule] = {
     "exposure": _Rule(
-        _to_exposure,
+        _to_auto_or_float,
         "must be 'auto' or a number > 0 in " + FLOAT32_RANGE_TEXT + " (the colours are float32)",
         lambda v: v == "auto" or _float32_pos(v),
     ),
     "white_point": _Rule(_to_str, _one_of(WHITE_POINTS), lambda v: v in WHITE_POINTS),
-    "opacity_scale": _Rule(_to_float, "must be a finite number > 0", _finite_pos),
+    "opacity_scale": _Rule(_to_auto_or_float, "must be 'auto' or a finite number > 0",
+                           lambda v: v == "auto" or _finite_pos(v)),
 }
 
 # Schema tree, used by from_dict and with_overrides: a dict is a table, a
