@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 from vtkmodules.vtkCommonDataModel import vtkImageData
 from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
@@ -15,15 +17,30 @@ from nebula_rt.scene import Scene
 from nebula_rt.sky import Camera, sky_image
 from nebula_rt.transport import star_band_luminosities
 
-from .base import ExposureMixin, NebulaAlgorithm
+from nebula_rt.sky_schema import validate_exposure
+
+from .base import NebulaAlgorithm
 from .image_data import add_field_data, add_point_arrays, field_data_dict, point_array
+from .properties import Property, bind, init_values
+
+#: The sky image's properties, bound to its declarations (nebula_rt.sky_schema), in the
+#: panel's order: the camera, then the picture
+SKY_IMAGE_PROPERTIES = (
+    Property("ViewDirection", "sky.direction"),
+    Property("ViewUp", "sky.up"),
+    Property("ImageSize", "sky.size"),
+    Property("Extent", "sky.extent"),
+    Property("IncludeStars", "sky.include_stars", widget="bool"),
+    Property("Exposure", "sky.exposure", widget="auto", flag="AutoExposure"),
+)
 
 #: Auto exposure of the sky image: this percentile of the scattered light's max colour
 #: component (among lit pixels) maps to full scale; star pixels saturate.
 SKY_EXPOSURE_PERCENTILE = 99.0
 
 
-class NebulaSkyImage(ExposureMixin, NebulaAlgorithm):
+@bind(SKY_IMAGE_PROPERTIES)
+class NebulaSkyImage(NebulaAlgorithm):
     """Orthographic image of the nebula seen from far away along ``ViewDirection``.
 
     Per band, the scattered emissivity is integrated along each pixel's ray with that band's
@@ -35,55 +52,31 @@ class NebulaSkyImage(ExposureMixin, NebulaAlgorithm):
     ``rgb`` (uint8 x 3, sRGB through the same band -> XYZ matrix as the volume colours).
     Field data: the camera, ``tau_star_<band>`` (optical depth from the first star to the
     observer), ``exposure``.
-    """
 
-    PROPERTIES = {"colour.exposure": "Exposure"}
-    #: Camera's parameter names -> the properties that set them
-    _CAMERA_PROPERTIES = {"Camera.direction": "ViewDirection", "Camera.up": "ViewUp", "Camera.size": "ImageSize",
-                          "Camera.extent": "Extent"}
+    The setters (:data:`SKY_IMAGE_PROPERTIES`: ``SetViewDirection``, ``SetImageSize``, ...,
+    ``SetAutoExposure`` / ``SetExposure``) start at the declared defaults
+    (:mod:`nebula_rt.sky_schema`).
+    """
 
     def __init__(self):
         super().__init__(nInputPorts=1, nOutputPorts=1, inputType="vtkImageData", outputType="vtkImageData")
-        self._direction = (0.0, 0.0, -1.0)
-        self._up = (0.0, 1.0, 0.0)
-        self._size = (256, 256)
-        self._extent = 0.0
-        self._include_stars = True
-        self._auto_exposure = True
-        self._exposure = 1.0
-
-    def SetViewDirection(self, x, y, z):
-        self._direction = (x, y, z)
-        self.Modified()
-
-    def SetViewUp(self, x, y, z):
-        self._up = (x, y, z)
-        self.Modified()
-
-    def SetImageSize(self, w, h):
-        self._size = (w, h)
-        self.Modified()
-
-    def SetExtent(self, e):
-        """Field of view (box units); 0 fits the whole box whatever the direction."""
-        self._extent = e
-        self.Modified()
-
-    def SetIncludeStars(self, flag):
-        self._include_stars = bool(flag)
-        self.Modified()
+        init_values(self)
 
     def _camera(self) -> Camera:
+        v = self._values
         # whole numbers given as floats (ParaView's int properties may arrive so) are pixels; 16.5 is not
-        size = tuple(int(v) if isinstance(v, float) and v.is_integer() else v for v in self._size)
+        size = tuple(int(x) if isinstance(x, float) and x.is_integer() else x for x in v["sky.size"])
         try:
-            return Camera(direction=tuple(self._direction), up=tuple(self._up), size=size, extent=self._extent)
+            return Camera(direction=tuple(v["sky.direction"]), up=tuple(v["sky.up"]), size=size,
+                          extent=v["sky.extent"])
         except (ValueError, TypeError) as exc:
-            text = str(exc)
-            name = next((p for c, p in self._CAMERA_PROPERTIES.items() if text.startswith(c)), "camera")
-            value = {"ViewDirection": self._direction, "ViewUp": self._up, "ImageSize": self._size,
-                     "Extent": self._extent}.get(name, (self._direction, self._up, self._size, self._extent))
-            raise SceneError(name, value, text) from None
+            # "Camera.size must be ..., got ...": the key of the field, and what is allowed
+            m = re.match(r"Camera\.(\w+) (.*?)(?:, got .*)?$", str(exc))
+            if m is None or f"sky.{m.group(1)}" not in v:
+                raise SceneError("camera", (v["sky.direction"], v["sky.up"], v["sky.size"], v["sky.extent"]),
+                                 str(exc)) from None
+            key = f"sky.{m.group(1)}"
+            raise SceneError(key, v[key], m.group(2)) from None
 
     def RequestInformation(self, request, inInfo, outInfo):
         try:
@@ -99,8 +92,8 @@ class NebulaSkyImage(ExposureMixin, NebulaAlgorithm):
 
     def _execute(self, request, inInfo, outInfo):
         cam = self._camera()
-        if not self._auto_exposure:
-            Scene.from_dict({"colour": {"exposure": self._exposure}})  # the colour table's rule
+        exposure = validate_exposure(self._values["sky.exposure"])
+        include_stars = bool(self._values["sky.include_stars"])
         inp = vtkImageData.GetData(inInfo[0])
         fd = contract.LightFieldData.from_field_data(
             field_data_dict(inp), need=("band_names", "band_wavelength_nm", "band_extinction", "tau", "scene"))
@@ -112,20 +105,18 @@ class NebulaSkyImage(ExposureMixin, NebulaAlgorithm):
         rho = point_array(inp, contract.DENSITY.name()).astype(np.float64)
         sigma = fd.tau * ext[:, None, None, None] * rho[None]
         scene = Scene.loads(fd.scene)
-        stars = [s.position for s in scene.stars] if self._include_stars else []
-        slum = star_band_luminosities(scene.stars, wl) if self._include_stars else None
+        stars = [s.position for s in scene.stars] if include_stars else []
+        slum = star_band_luminosities(scene.stars, wl) if include_stars else None
         self._report(0.1, "NebulaRT: ray marching the sky image")
         img = sky_image(emissivity, sigma, cam, stars=stars, star_band_luminosity=slum)
         band_lum = star_band_luminosities(scene.stars, wl).sum(axis=0)
         m = colour_convert.band_to_xyz_matrix(wl, colour_source_from_field_data(fd))
         ratio = img.intensity / band_lum[:, None, None]
         rgb = colour_convert.gamut_map(colour_convert.xyz_to_linear_srgb(np.tensordot(ratio, m, axes=([0], [1]))))
-        if self._auto_exposure:
+        if exposure == "auto":
             scat = colour_convert.xyz_to_linear_srgb(
                 np.tensordot(img.scattered / band_lum[:, None, None], m, axes=([0], [1])))
             exposure = colour_convert.auto_exposure(scat, percentile=SKY_EXPOSURE_PERCENTILE)
-        else:
-            exposure = float(self._exposure)
         rgb8 = colour_convert.encode_srgb(rgb, exposure)  # (W, H, 3)
 
         out = vtkImageData.GetData(outInfo)
@@ -134,7 +125,7 @@ class NebulaSkyImage(ExposureMixin, NebulaAlgorithm):
         out.SetSpacing(cam.pixel_size, cam.pixel_size, 1.0)
         out.SetOrigin(0.5 * cam.pixel_size, 0.5 * cam.pixel_size, 0.0)
         # float32 outputs: the star's pixel (L / (4 pi pixel^2)) is the brightest
-        check_float32_array("ImageSize", list(cam.size), img.intensity * (4.0 * np.pi / band_lum.min()),
+        check_float32_array("sky.size", list(cam.size), img.intensity * (4.0 * np.pi / band_lum.min()),
                             "the sky image's intensities (relative ones included)", underflow=False)
         arrays = {}
         for b, n in enumerate(names):

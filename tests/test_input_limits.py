@@ -375,7 +375,7 @@ def test_sky_image_refuses_fractional_sizes():
     image_input(s, np.ones((4, 4, 4), np.float32))
     s.SetImageSize(16.5, 16)
     s.Update()
-    assert s.GetOutputDataObject(0).GetNumberOfPoints() == 0 and s.last_error.startswith("NebulaSkyImage: ImageSize")
+    assert s.GetOutputDataObject(0).GetNumberOfPoints() == 0 and s.last_error.startswith("NebulaSkyImage: Image Size (sky.size) = (16.5, 16)")
 
 
 # --- 4. weak spots ---------------------------------------------------------------------------

@@ -163,17 +163,30 @@ def test_paraview_proxy_is_the_schema_and_gives_the_same_bits(pv_env, xdisplay, 
     npy, vti, rho = schema_density
     r, _ = run_pv(pv_env, xdisplay, "schema_layers.py", vti, npy, PHOTONS)
     assert r["last_error"] is None, r["last_error"]
+    from nebula_rt.filters.sky_image import SKY_IMAGE_PROPERTIES
     from test_schema_layers import COLOUR_PROPERTIES, DUST_DENSITY_PROPERTIES
 
     for proxy_props, bound in ((r["properties"], LIGHT_FIELD_PROPERTIES),
                                (r["density_properties"], DUST_DENSITY_PROPERTIES),
-                               (r["colour_properties"], COLOUR_PROPERTIES)):
+                               (r["colour_properties"], COLOUR_PROPERTIES),
+                               (r["sky_properties"], SKY_IMAGE_PROPERTIES)):
         props = {e["name"]: e for e in proxy_props}
+        order = [e["name"] for e in proxy_props]
+        # every property of the panel is a bound one (or its check box), bar the filters' own
+        own = {"Input", "DensityArray", "OverrideOptics", "StarsFromInput", "Stars"}
+        assert set(order) - own == {x.name for x in bound} | {x.flag for x in bound if x.flag}, order
         for prop in bound:
-            e, p, want = props[prop.name], prop.param, sc.default(prop.key)
+            e, p, want = props[prop.name], prop.param, prop.default
             assert e["label"] == label(prop.key, p), prop.name
             assert (e["panel_visibility"] == "advanced") == p.advanced, prop.name
-            if prop.widget == "enum":
+            if prop.widget == "auto":
+                # "auto" or a number: its check box, right before the number, then the number
+                f = props[prop.flag]
+                assert f["bool"] and f["default"] == [int(want == "auto")], prop.flag
+                assert order.index(prop.flag) == order.index(prop.name) - 1, prop.flag
+                assert e["default"] == [prop.number], prop.name
+                assert e["range"][0] == p.lo and e["range"][1] == p.hi, prop.name
+            elif prop.widget == "enum":
                 texts = [p.choice_labels[p.choices.index(c)] if p.choice_labels else c for c in prop.choices]
                 assert e["enum"] == texts and e["default"] == [prop.choices.index(want)], prop.name
             elif prop.choices:
@@ -188,6 +201,8 @@ def test_paraview_proxy_is_the_schema_and_gives_the_same_bits(pv_env, xdisplay, 
                 # 2^53 the scene's ranges keep to: Seed, Photons and Batch Size end there)
                 assert hi == p.hi, prop.name
     assert list(r["density_groups"]) == ["Dust", "Stars", "Compute device"]
+    assert r["sky_groups"] == {"Camera": ["ViewDirection", "ViewUp", "ImageSize", "Extent"],
+                               "Picture": ["IncludeStars", "AutoExposure", "Exposure"]}
     # the panel's order: the workflow, a controlling property before what it controls
     order = [e["name"] for e in r["properties"]]
     assert order.index("OverrideOptics") < order.index("Albedo") < order.index("G")
@@ -202,6 +217,9 @@ def test_paraview_proxy_is_the_schema_and_gives_the_same_bits(pv_env, xdisplay, 
     # the venv, on its own PoCL build)
     h = r["hashes"]
     assert h["proxy"] == h["vtk"] == h["scene"] and len(h["proxy"]) == 3, h
+    # a .vti density named by a scene file loads in ParaView's Python, which has no pyvista
+    # (VTK's own reader, nebula_rt.filters.density_file): the same bits as the .npy
+    assert not r["pyvista_importable"] and h["scene_vti"] == h["scene"], h
 
 
 

@@ -28,7 +28,9 @@ from conftest import TEST_DEVICE
 def test_every_scene_field_is_declared_with_a_doc():
     import dataclasses
 
-    for section, cls in sc.SECTIONS:
+    from nebula_rt import sky_schema
+
+    for section, cls in sc.SECTIONS + sky_schema.SECTIONS:
         for f in dataclasses.fields(cls):
             p = f.metadata.get("param")
             assert p is not None, f"{section}.{f.name} has no declaration"
@@ -122,6 +124,37 @@ def test_colour_defaults_are_the_schema_defaults():
     assert c._values["colour.opacity_scale"] == 4.0
     c.SetAutoOpacity(1)  # on again: "auto", the number kept for later
     assert c._values["colour.opacity_scale"] == "auto" and c.GetOpacityScale() == 4.0
+
+
+def test_sky_image_defaults_are_the_declared_defaults():
+    """Nebula Sky Image's properties are bound to the sky image's declarations
+    (nebula_rt.sky_schema): one property per declaration, each at its declared default (Auto
+    Exposure on, Exposure the declared number), and the camera they make is the library's
+    default Camera, whose defaults and size range are the same declarations."""
+    import dataclasses
+
+    from nebula_rt import sky_schema
+    from nebula_rt.filters.sky_image import SKY_IMAGE_PROPERTIES, NebulaSkyImage
+    from nebula_rt.sky import Camera
+
+    s = NebulaSkyImage()
+    for prop in SKY_IMAGE_PROPERTIES:
+        want = sky_schema.default(prop.key)
+        if prop.widget == "auto":
+            assert getattr(s, "Get" + prop.flag)() == int(want == "auto"), prop.flag
+            assert getattr(s, "Get" + prop.name)() == prop.param.number, prop.name
+        else:
+            assert getattr(s, "Get" + prop.name)() == want, prop.name
+    assert {p.key for p in SKY_IMAGE_PROPERTIES} == {k for k, _, _ in sky_schema.parameters()}
+    assert s._camera() == Camera()
+    for f in dataclasses.fields(Camera):
+        if f"sky.{f.name}" in {p.key for p in SKY_IMAGE_PROPERTIES}:
+            assert f.default == sky_schema.default(f"sky.{f.name}"), f.name
+    size = sky_schema.declaration("sky.size")
+    Camera(size=(size.lo, size.hi))  # the declared bounds are accepted, and just past them refused
+    for bad in ((size.lo - 1, 4), (4, size.hi + 1)):
+        with pytest.raises(ValueError, match="Camera.size"):
+            Camera(size=bad)
 
 
 def test_vtk_setters_take_enumeration_indices_and_whole_floats():

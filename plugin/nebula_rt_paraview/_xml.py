@@ -126,10 +126,15 @@ def _values_text(v):
     return " ".join(repr(float(x)) if isinstance(x, float) else str(int(x)) for x in vals)
 
 
+def _key_text(key):
+    """How a tooltip names the parameter: a scene key, or the sky image's own (not in scene files)."""
+    return ("key " if key.startswith("sky.") else "scene key ") + key
+
+
 def _tooltip(prop, p):
     from nebula_rt.schema import range_text
 
-    extra = [x for x in (p.unit, range_text(p), "scene key " + prop.key) if x]
+    extra = [x for x in (p.unit, range_text(p), _key_text(prop.key)) if x]
     return escape(" ".join(f"{p.doc} ({'; '.join(extra)}).".split()))
 
 
@@ -201,7 +206,7 @@ def _auto_flag(prop, p, on):
     from nebula_rt.schema import label
 
     text = re.sub(r"(?<!^)(?=[A-Z])", " ", prop.flag)
-    tip = escape(" ".join((f"On: {label(prop.key, p)} is chosen from the data (scene key {prop.key} = "
+    tip = escape(" ".join((f"On: {label(prop.key, p)} is chosen from the data ({_key_text(prop.key)} = "
                            f"'auto'); off: the number below. {p.doc}.").split()))
     vis = ' panel_visibility="advanced"' if p.advanced else ""
     return ('<IntVectorProperty name=%s label=%s command=%s number_of_elements="1" default_values="%d"%s>'

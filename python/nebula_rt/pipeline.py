@@ -378,7 +378,8 @@ def finish_light_field(scene, rho, res: TransportResult, J=None, rel=None, colou
     if ds is None:
         light, emissivity, rho_x = assemble_light_field(scene, rho, res, J, rel, with_device_emissivity=True)
         if colour:
-            light.rgba, light.exposure, light.opacity_scale = colour_rgba(scene, bands, rho_x, emissivity, res)
+            light.rgba, light.exposure = colour_rgba(scene, bands, rho_x, emissivity, res)
+            light.opacity_scale = scene_opacity_factor(scene, bands, rho_x)
         light.memory = _memory(res, 0)
         return light
     params = np.stack([res.j_scale, res.sigma_scale, [b.albedo for b in bands]], axis=1)
@@ -392,7 +393,7 @@ def finish_light_field(scene, rho, res: TransportResult, J=None, rel=None, colou
                                  _dominant_source(scene.stars), cfg.white_point),
             sigma_ref_scale=sigma_ref_scale,
             voxel_edge=_voxel_edge(ds.shape),
-            opacity_scale=opacity_factor(cfg.opacity_scale, mean_optical_depth(rho, sigma_ref_scale)),
+            opacity_scale=scene_opacity_factor(scene, bands, rho),
             exposure=cfg.exposure,
             percentile=AUTO_EXPOSURE_PERCENTILE,
             min_alpha=AUTO_EXPOSURE_MIN_ALPHA,
@@ -511,14 +512,20 @@ def _dominant_source(stars):
     return star.spectral_source()
 
 
-def colour_rgba(scene, bands, rho, emissivity, res: TransportResult) -> tuple[np.ndarray, float, float]:
-    """Stage 3 for a scene: see :func:`rgba_from_emissivity`. Returns (rgba, exposure used,
-    opacity factor used)."""
+def scene_opacity_factor(scene, bands, rho) -> float:
+    """The factor on the reference band's optical depth in a scene's rgba alpha
+    (:func:`opacity_factor` of ``colour.opacity_scale`` and the density ``rho``)."""
+    sigma_ref_scale = scene.dust.tau * bands[reference_band_index(bands)].extinction
+    return opacity_factor(scene.colour.opacity_scale, mean_optical_depth(rho, sigma_ref_scale))
+
+
+def colour_rgba(scene, bands, rho, emissivity, res: TransportResult) -> tuple[np.ndarray, float]:
+    """Stage 3 for a scene: see :func:`rgba_from_emissivity` (the opacity factor is
+    :func:`scene_opacity_factor`'s). Returns (rgba, exposure used)."""
     ref = reference_band_index(bands)
     cfg = scene.colour
     sigma_ref_scale = scene.dust.tau * bands[ref].extinction
-    opacity = opacity_factor(cfg.opacity_scale, mean_optical_depth(rho, sigma_ref_scale))
-    rgba, exposure = rgba_from_emissivity(
+    return rgba_from_emissivity(
         emissivity,
         sigma_ref_scale * rho,
         wavelengths_nm=np.array([b.wavelength for b in bands]),
@@ -526,9 +533,8 @@ def colour_rgba(scene, bands, rho, emissivity, res: TransportResult) -> tuple[np
         temperature=_dominant_source(scene.stars),
         exposure=cfg.exposure,
         white_point=cfg.white_point,
-        opacity_scale=opacity,
+        opacity_scale=scene_opacity_factor(scene, bands, rho),
     )
-    return rgba, exposure, opacity
 
 
 def colour_matrix(wavelengths_nm, band_luminosity, temperature: Optional[float], white_point: str = "D65") -> np.ndarray:
