@@ -65,15 +65,42 @@ def property_groups(*groups):
     return "\n".join(out)
 
 
+def star_columns():
+    """The Stars table's column headers, in the order of the flat Stars vector
+    (nebula_rt.filters.base.STAR_FIELDS): x, y, z, then the star's own scene fields' labels."""
+    from nebula_rt import scene
+    from nebula_rt.filters.base import STAR_FIELDS
+    from nebula_rt.schema import label
+
+    out = []
+    for name in STAR_FIELDS:
+        if name in ("x", "y", "z"):
+            out.append(name.upper())
+        else:
+            key = "stars." + name
+            out.append(" ".join(w.capitalize() for w in label(key, scene.declaration(key)).split()))
+    return out
+
+
 def stars_property(default, enabled_by=None):
     """The repeatable ``Stars`` property: 6 numbers per star, ``AddStar`` once per star after
     ``RemoveAllStars``; ``default``: the rows (6 numbers each) it starts with; ``enabled_by``:
-    ``(property, value)`` that enables the table."""
+    ``(property, value)`` that enables the table.
+
+    The table's columns have headers (``ShowComponentLabels``, read by ParaView's
+    pqDoubleVectorPropertyWidget for a repeatable property and handed to its
+    pqScalarValueListPropertyWidget). Its "+" copies the selected row, or the last one (5.11's
+    pqScalarValueListPropertyWidget; no XML sets a new row's values): the table starts with
+    the default star, so "+" adds a visible star, and only a table emptied first gets a row of
+    zeros (luminosity 0, refused on Apply naming the star's luminosity)."""
     values = " ".join(repr(float(v)) for v in default)
-    hints = ""
+    labels = "".join('<ComponentLabel component="%d" label=%s/>' % (i, quoteattr(t))
+                     for i, t in enumerate(star_columns()))
+    hints = "<ShowComponentLabels>%s</ShowComponentLabels>" % labels
     if enabled_by:
-        hints = ('<Hints><PropertyWidgetDecorator type="GenericDecorator" mode="enabled_state" property=%s '
-                 'value=%s /></Hints>' % (quoteattr(enabled_by[0]), quoteattr(str(enabled_by[1]))))
+        hints += ('<PropertyWidgetDecorator type="GenericDecorator" mode="enabled_state" property=%s '
+                  'value=%s />' % (quoteattr(enabled_by[0]), quoteattr(str(enabled_by[1]))))
+    hints = "<Hints>%s</Hints>" % hints
     return """
 <DoubleVectorProperty name="Stars" label="Stars" command="AddStar" clean_command="RemoveAllStars"
     repeat_command="1" number_of_elements_per_command="6" use_index="0"
