@@ -385,7 +385,7 @@ def test_default_display_in_pvpython_follows_the_data(pv_env, xdisplay):
     """Where the plugin is loaded, Show + Render (no helper) give the direct-RGBA volume and the
     stars in their own colours; the opacity mapping is the per-voxel one for the data's voxel
     and alpha range, with the alpha channel's unit distance the voxel on the rendering object;
-    it is refitted when the alpha range changes (Opacity Scale 3), a user's own function is
+    it is refitted when the alpha range changes (Auto Opacity off, Opacity Scale 3), a user's own function is
     kept through a later change, and the per-world-unit mapping of older states is adopted and
     refitted. Points compare to 1e-9 (the same formula in double precision)."""
     r, _ = run_pv(pv_env, xdisplay, "display_behaviour.py")
@@ -397,7 +397,7 @@ def test_default_display_in_pvpython_follows_the_data(pv_env, xdisplay):
         np.testing.assert_allclose(f["points"], f["expected"], rtol=0, atol=1e-9, err_msg=name)
         assert f["unit_distance_3"] == pytest.approx(f["voxel"], rel=1e-12), name
     assert st["stars"] == {"representation": "Points", "color": ["POINTS", "star_rgb"], "map_scalars": 0, "visible": 1}
-    assert st["opacity_scale_3"]["alpha_range"][1] > st["colour"]["alpha_range"][1] + 30  # 185 -> 250
+    assert st["opacity_scale_3"]["alpha_range"][1] > st["colour"]["alpha_range"][1] + 30  # 173 -> 250
     assert st["user_function"]["points"] == st["user_function"]["custom"]
 
 

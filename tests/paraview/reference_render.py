@@ -7,7 +7,9 @@ the test device; Tau 128 and the thesis's 20 000 K star as the GUI test's user s
 nothing else with ``--defaults``), shown with show_rgba_volume and show_stars in a render view of the size,
 camera and background that VIEW.json (one view of gui_probe.py's record) gives. With the
 plugin loaded, its display behaviour is installed too; the helpers set everything it would.
-RESULT: the PNG and the light field's last error.
+With ``--defaults`` also OUT-own-opacity.png: the same data through a Nebula Colour with Auto
+Opacity off (Opacity Scale 1, the dust's own opacity), shown instead of the light field.
+RESULT: the PNG(s) and the light field's last error.
 """
 
 import json
@@ -42,4 +44,12 @@ view.CameraParallelProjection = int(spec["CameraParallelProjection"])
 view.CameraParallelScale = spec["CameraParallelScale"]
 simple.Render(view)
 simple.SaveScreenshot(png, view, ImageResolution=spec["size"])
-_common.result(png=png, error=light.GetClientSideObject().last_error)
+own = None
+if sys.argv[3:] == ["--defaults"]:
+    colour = simple.NebulaColour(light, AutoOpacity=0, OpacityScale=1.0)
+    simple.Hide(light, view)
+    show_rgba_volume(colour, view)
+    simple.Render(view)
+    own = png.replace(".png", "-own-opacity.png")
+    simple.SaveScreenshot(own, view, ImageResolution=spec["size"])
+_common.result(png=png, own_opacity_png=own, error=light.GetClientSideObject().last_error)
