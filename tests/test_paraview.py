@@ -71,10 +71,18 @@ def test_plugin_loads_and_every_proxy_executes(pv_env, xdisplay, exe):
     assert r["loaded_at_start"], "PV_PLUGIN_PATH=plugin/ should load NebulaRT.py at start-up"
     assert r["numpy_interface_error"] is None  # sitecustomize's numpy.in1d alias
     assert sorted(r["functions"]) == sorted(PROXIES), "paraview.simple lacks constructors"
+    import inspect
+
+    import nebula_rt.filters as vtk_filters
+
     for name, (group, label) in PROXIES.items():
         d = r["definitions"][name]
         assert d["defined"] and d["group"] == group and d["label"] == label, d
         assert d["menu"] == "NebulaRT", d
+        # help text of its own, from the VTK algorithm's docstring: its summary line, and more
+        summary = " ".join(inspect.cleandoc(getattr(vtk_filters, name).__doc__).split("\n\n")[0].split())
+        assert d["help"]["short"] == d["help"]["long"] == summary.replace("``", ""), d["help"]
+        assert len(d["help"]["description"]) > 150 and "``" not in d["help"]["description"], d["help"]
         for prop, e in d["properties"].items():
             if prop != "Input":
                 assert e["doc"], f"{name}.{prop} has no tooltip"

@@ -6,7 +6,7 @@ Only decorators of ParaView 5.11's ``paraview.util.vtkAlgorithm`` are used (``sm
 
 from xml.sax.saxutils import escape, quoteattr
 
-from paraview.util.vtkAlgorithm import smdomain, smhint
+from paraview.util.vtkAlgorithm import smdomain, smhint, smproperty
 
 #: proxy hint: Filters > NebulaRT / Sources > NebulaRT
 MENU = '<ShowInMenu category="NebulaRT" />'
@@ -22,6 +22,26 @@ SKY_IMAGE_DISPLAY = ('<View type="NebulaSkyView" />'
                      '<RepresentationType view="NebulaSkyView" type="Slice" />'
                      '<RepresentationType view="RenderView" type="Slice" />'
                      '<PipelineIcon name="GEOMETRY" />')  # (the icon would be the view's, which has none)
+
+
+def help_text(cls):
+    """(short help, description) of a proxy from its VTK algorithm's docstring (the one place
+    it is written): the summary line, and the paragraphs after it as plain text."""
+    import inspect
+    import re
+
+    text = inspect.cleandoc(cls.__doc__ or "")
+    text = re.sub(r":\w+:`~?([^`]+)`", r"\1", text).replace("``", "")
+    paras = [" ".join(p.split()) for p in text.split("\n\n") if p.strip()]
+    return paras[0], " ".join(paras[1:]) or paras[0]
+
+
+def proxy_doc(cls):
+    """Class decorator: the proxy's ``<Documentation>`` (its help text: the properties panel's
+    help and the menus' status tips) from :func:`help_text` of the VTK algorithm ``cls``."""
+    short, body = help_text(cls)
+    return smproperty.xml("<Documentation long_help=%s short_help=%s>%s</Documentation>"
+                          % (quoteattr(short), quoteattr(short), escape(body)))
 
 
 def doc(text):

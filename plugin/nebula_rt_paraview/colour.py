@@ -17,6 +17,7 @@ PANEL = _xml.bound_properties(_base.COLOUR_PROPERTIES)
 
 @smproxy.filter(name="NebulaColour", label="Nebula Colour", support_reload=False)
 @smhint.xml(_xml.MENU)
+@_xml.proxy_doc(_base.NebulaColour)
 @smhint.xml(_xml.VOLUME)
 @smproperty.xml(PANEL)
 @smproperty.input(name="Input", port_index=0)

@@ -22,6 +22,7 @@ PANEL = "\n".join([
 
 @smproxy.filter(name="NebulaSkyImage", label="Nebula Sky Image", support_reload=False)
 @smhint.xml(_xml.MENU)
+@_xml.proxy_doc(_base.NebulaSkyImage)
 @smhint.xml(_xml.SKY_IMAGE_DISPLAY)
 @smproperty.xml(PANEL)
 @smproperty.input(name="Input", port_index=0)
