@@ -102,6 +102,21 @@ def star_columns():
     return out
 
 
+def stars_doc():
+    """The Stars table's tooltip: its columns with the star's declarations (scene keys
+    ``stars.position``, ``stars.luminosity``, ``stars.temperature``, ``stars.bump_radius``)."""
+    from nebula_rt import scene
+    from nebula_rt.schema import range_text
+
+    parts = []
+    for cols, key in (("X, Y, Z", "stars.position"), ("Luminosity", "stars.luminosity"),
+                      ("Temperature", "stars.temperature"), ("Bump Radius", "stars.bump_radius")):
+        p = scene.declaration(key)
+        extra = "; ".join(x for x in (p.unit, range_text(p), "scene key " + key) if x)
+        parts.append(f"{cols}: {p.doc} ({extra}).")
+    return "One row per star. " + " ".join(parts)
+
+
 def stars_property(default, enabled_by=None):
     """The repeatable ``Stars`` property: 6 numbers per star, ``AddStar`` once per star after
     ``RemoveAllStars``; ``default``: the rows (6 numbers each) it starts with; ``enabled_by``:
@@ -116,6 +131,7 @@ def stars_property(default, enabled_by=None):
     values = " ".join(repr(float(v)) for v in default)
     labels = "".join('<ComponentLabel component="%d" label=%s/>' % (i, quoteattr(t))
                      for i, t in enumerate(star_columns()))
+    doc = escape(stars_doc())
     hints = "<ShowComponentLabels>%s</ShowComponentLabels>" % labels
     if enabled_by:
         hints += ('<PropertyWidgetDecorator type="GenericDecorator" mode="enabled_state" property=%s '
@@ -125,10 +141,8 @@ def stars_property(default, enabled_by=None):
 <DoubleVectorProperty name="Stars" label="Stars" command="AddStar" clean_command="RemoveAllStars"
     repeat_command="1" number_of_elements_per_command="6" use_index="0"
     number_of_elements="%d" default_values="%s">
-  <Documentation>One row per star: x, y, z (box units, [0, 1]), luminosity, temperature (K; 0 =
-    flat spectrum), bump radius (box units; the cubic dust bump around the star, used by Nebula
-    Dust Density only).</Documentation>%s
-</DoubleVectorProperty>""" % (len(default), values, hints)
+  <Documentation>%s</Documentation>%s
+</DoubleVectorProperty>""" % (len(default), values, doc, hints)
 
 
 STARS_FROM_INPUT = """
