@@ -44,7 +44,7 @@ view.CameraParallelProjection = int(spec["CameraParallelProjection"])
 view.CameraParallelScale = spec["CameraParallelScale"]
 simple.Render(view)
 simple.SaveScreenshot(png, view, ImageResolution=spec["size"])
-own = None
+own = own_error = own_alpha = None
 if sys.argv[3:] == ["--defaults"]:
     colour = simple.NebulaColour(light, AutoOpacity=0, OpacityScale=1.0)
     simple.Hide(light, view)
@@ -52,4 +52,7 @@ if sys.argv[3:] == ["--defaults"]:
     simple.Render(view)
     own = png.replace(".png", "-own-opacity.png")
     simple.SaveScreenshot(own, view, ImageResolution=spec["size"])
-_common.result(png=png, own_opacity_png=own, error=light.GetClientSideObject().last_error)
+    own_error = colour.GetClientSideObject().last_error
+    own_alpha = list(colour.PointData["rgba"].GetRange(3))
+_common.result(png=png, own_opacity_png=own, own_opacity_error=own_error, own_opacity_alpha=own_alpha,
+               error=light.GetClientSideObject().last_error)
