@@ -21,7 +21,7 @@ SHAPE = (24, 20, 16)
 
 def run(backend, **colour_and_dust):
     dust = {k: v for k, v in colour_and_dust.items() if k in ("tau", "model", "density")}
-    colour = {k: v for k, v in colour_and_dust.items() if k == "opacity_scale"}
+    colour = {k: v for k, v in colour_and_dust.items() if k in ("opacity_scale", "stretch")}
     scene = Scene.from_dict({"grid": {"shape": list(SHAPE)}, "dust": dust, "colour": colour,
                              "transport": {"photons": 4000}})
     return Pipeline(backend).run(scene)
@@ -77,6 +77,21 @@ def test_a_number_is_the_factor_on_the_dusts_own_opacity(backend):
         want = np.clip(np.rint((1.0 - np.exp(-(sigma * h * k))) * 255.0), 0, 255).astype(np.uint8)
         np.testing.assert_array_equal(light.rgba[..., 3], want)
         assert light.field_data()["opacity_scale"] == k
+
+
+def test_the_asinh_stretch_keeps_the_auto_opacity(backend):
+    """colour.stretch = "asinh" colours on the host (the device's colour pass has the linear
+    curve only): the opacity is still the auto factor of the density, written to the field
+    data, and the alpha bytes are the float64 formula with it, bit for bit (as a number's
+    are above); the stretch changes the colour only."""
+    light = run(backend, tau=20.0, stretch="asinh")
+    sigma_scale = 20.0 * light.bands[light.reference_band].extinction
+    k = light.field_data()["opacity_scale"]
+    assert k == AUTO_OPACITY_MEAN_TAU / mean_optical_depth(light.density, sigma_scale)
+    sigma = sigma_scale * light.density.astype(np.float64)
+    h = math.prod(1.0 / n for n in SHAPE) ** (1.0 / 3.0)
+    want = np.clip(np.rint((1.0 - np.exp(-(sigma * h * k))) * 255.0), 0, 255).astype(np.uint8)
+    np.testing.assert_array_equal(light.rgba[..., 3], want)
 
 
 def test_no_dust_keeps_a_transparent_volume(backend):

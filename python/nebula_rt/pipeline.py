@@ -428,8 +428,9 @@ def finish_light_field(scene, rho, res: TransportResult, J=None, rel=None, colou
     )
     light.memory = _memory(res, out.device_bytes, out.peak_device_bytes)
     if host_colour:
-        light.rgba, light.exposure = colour_rgba(scene, bands, np.asarray(rho, np.float64),
-                                                 light.emissivity.astype(np.float64), res)
+        rho_h = np.asarray(rho, np.float64)
+        light.rgba, light.exposure = colour_rgba(scene, bands, rho_h, light.emissivity.astype(np.float64), res)
+        light.opacity_scale = scene_opacity_factor(scene, bands, rho_h)
     return light
 
 
