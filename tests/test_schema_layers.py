@@ -127,34 +127,85 @@ def test_colour_defaults_are_the_schema_defaults():
 
 
 def test_sky_image_defaults_are_the_declared_defaults():
-    """Nebula Sky Image's properties are bound to the sky image's declarations
-    (nebula_rt.sky_schema): one property per declaration, each at its declared default (Auto
-    Exposure on, Exposure the declared number), and the camera they make is the library's
-    default Camera, whose defaults and size range are the same declarations."""
+    """Nebula Sky Image's properties are bound to declarations: the camera and the picture's
+    stars and exposure to the sky image's own (nebula_rt.sky_schema: one property per
+    declaration), the tone curve and the observer to the scene's ([colour], [observer]); each
+    starts at its declared default (Auto Exposure on, Exposure the declared number; Distance,
+    declared None, empty: the light field's scene's own [observer]), so the untouched filter's
+    tone curve and observer are a scene file's defaults. Units is the filter's own (box units).
+    The camera they make is the library's default Camera, whose defaults and size range are the
+    same declarations."""
     import dataclasses
 
     from nebula_rt import sky_schema
-    from nebula_rt.filters.sky_image import SKY_IMAGE_PROPERTIES, NebulaSkyImage
+    from nebula_rt.filters.properties import scene_values
+    from nebula_rt.filters.sky_image import SKY_IMAGE_PROPERTIES, SKY_PANEL_DEFAULTS, SKY_UNITS, NebulaSkyImage
     from nebula_rt.sky import Camera
 
     s = NebulaSkyImage()
+    assert s.BOUND_PROPERTIES == SKY_IMAGE_PROPERTIES
     for prop in SKY_IMAGE_PROPERTIES:
-        want = sky_schema.default(prop.key)
+        schema = sky_schema if prop.key.startswith("sky.") else sc
+        want = schema.default(prop.key)
+        assert prop.default == want and prop.param is schema.declaration(prop.key), prop.name
         if prop.widget == "auto":
             assert getattr(s, "Get" + prop.flag)() == int(want == "auto"), prop.flag
             assert getattr(s, "Get" + prop.name)() == prop.param.number, prop.name
         else:
-            assert getattr(s, "Get" + prop.name)() == want, prop.name
-    assert {p.key for p in SKY_IMAGE_PROPERTIES} == {k for k, _, _ in sky_schema.parameters()}
+            assert getattr(s, "Get" + prop.name)() == SKY_PANEL_DEFAULTS.get(prop.key, want), prop.name
+    keys = [p.key for p in SKY_IMAGE_PROPERTIES]
+    assert len(set(keys)) == len(keys)
+    assert {k for k in keys if k.startswith("sky.")} == {k for k, _, _ in sky_schema.parameters()}
+    assert {k for k in keys if not k.startswith("sky.")} == {"colour.stretch", "colour.asinh_q"} | {
+        k for k, _, _ in sc.parameters() if k.startswith("observer.")}
+    # the panel's empty Distance is the scene's None: the rest is a scene file's defaults
+    scene_keys = {k: v for k, v in s._values.items() if not k.startswith("sky.") and v != ""}
+    d, default = sc.Scene.from_dict(scene_values(scene_keys)), sc.Scene.default()
+    assert d.colour == default.colour and d.observer == default.observer
+    assert s.GetUnits() == SKY_UNITS[0]
     assert s._camera() == Camera()
     for f in dataclasses.fields(Camera):
-        if f"sky.{f.name}" in {p.key for p in SKY_IMAGE_PROPERTIES}:
+        if f"sky.{f.name}" in keys:
             assert f.default == sky_schema.default(f"sky.{f.name}"), f.name
     size = sky_schema.declaration("sky.size")
     Camera(size=(size.lo, size.hi))  # the declared bounds are accepted, and just past them refused
     for bad in ((size.lo - 1, 4), (4, size.hi + 1)):
         with pytest.raises(ValueError, match="Camera.size"):
             Camera(size=bad)
+
+
+def test_sky_image_messages_name_the_panel_label_and_the_key():
+    """A bad value of any of Nebula Sky Image's bound properties, whichever declares it (the
+    sky image's own camera and exposure, the scene's tone curve and observer), ends the run
+    with an empty output and ``<Label> (<key>) = <value>: <allowed>``; Units, the filter's own,
+    is named as it is. The checks come before the ray march, so a bare 2^3 image serves as
+    the input."""
+    from vtkmodules.vtkCommonExecutionModel import vtkTrivialProducer
+
+    from nebula_rt.filters.image_data import to_image_data
+    from nebula_rt.filters.sky_image import NebulaSkyImage
+
+    cases = [
+        (("SetImageSize", 0, 4), "Image Size (sky.size) = (0, 4): "),
+        (("SetExtent", -1.0), "Extent (sky.extent) = -1.0: "),
+        (("SetAutoExposure", 0), ("SetExposure", -2.0), "Exposure (sky.exposure) = -2.0: "),
+        (("SetStretch", "log"), "Stretch (colour.stretch) = 'log': "),
+        (("SetStretch", 1), ("SetAsinhQ", 0.0), "Asinh Q (colour.asinh_q) = 0.0: "),
+        (("SetDistance", "3 s"), "Distance (observer.distance) = '3 s': "),
+        (("SetDec", 90.5), "Dec (observer.dec) = 90.5: "),
+        (("SetPSFFWHM", -1.0), "PSF FWHM (observer.psf_fwhm) = -1.0: "),
+        (("SetUnits", "Jy"), "Units = 'Jy': must be one of 'box units', 'MJy/sr'"),
+    ]
+    producer = vtkTrivialProducer()
+    producer.SetOutput(to_image_data({"density": np.ones((2, 2, 2), np.float32)}, None, (1, 1, 1)))
+    for *calls, message in cases:
+        s = NebulaSkyImage()
+        s.SetInputConnection(producer.GetOutputPort())
+        for name, *args in calls:
+            getattr(s, name)(*args)
+        s.Update()
+        assert s.GetOutputDataObject(0).GetNumberOfPoints() == 0, message
+        assert s.last_error is not None and s.last_error.startswith("NebulaSkyImage: " + message), s.last_error
 
 
 def test_vtk_setters_take_enumeration_indices_and_whole_floats():
