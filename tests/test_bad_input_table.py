@@ -388,6 +388,11 @@ SETTERS = {
     "colour.opacity_scale": ("colour", "SetOpacityScale", lambda v: (v,)),
     "colour.stretch": ("colour", "SetStretch", lambda v: (v,)),
     "colour.asinh_q": ("colour", "SetAsinhQ", lambda v: (v,)),
+    "observer.distance": ("sky", "SetDistance", lambda v: (v,)),
+    "observer.ra": ("sky", "SetRA", lambda v: (v,)),
+    "observer.dec": ("sky", "SetDec", lambda v: (v,)),
+    "observer.position_angle": ("sky", "SetPositionAngle", lambda v: (v,)),
+    "observer.psf_fwhm": ("sky", "SetPSFFWHM", lambda v: (v,)),
 }
 #: rows whose value means something else to the setter than to the scene file
 SETTER_MEANS_ELSE = {
@@ -443,7 +448,7 @@ def _light():
 
 @pytest.mark.parametrize("row", FILTER_ROWS, ids=_ids(FILTER_ROWS))
 def test_c_filter_setter_refuses(row, light_field_image):
-    from nebula_rt.filters import NebulaColour, NebulaDustDensity
+    from nebula_rt.filters import NebulaColour, NebulaDustDensity, NebulaSkyImage
 
     which, setter, args = SETTERS[row.key]
     if which == "density":
@@ -453,6 +458,11 @@ def test_c_filter_setter_refuses(row, light_field_image):
         alg.SetDevice(TEST_DEVICE)
     elif which == "light":
         alg = _light()
+    elif which == "sky":  # the observer is checked in box units too, before the ray march
+        alg = NebulaSkyImage()
+        alg._producer = _producer(light_field_image)
+        alg.SetInputConnection(alg._producer.GetOutputPort())
+        alg.SetImageSize(4, 4)
     else:
         alg = NebulaColour()
         alg._producer = _producer(light_field_image)
