@@ -171,7 +171,7 @@ def test_paraview_proxy_is_the_schema_and_gives_the_same_bits(pv_env, xdisplay, 
     npy, vti, rho = schema_density
     r, _ = run_pv(pv_env, xdisplay, "schema_layers.py", vti, npy, PHOTONS)
     assert r["last_error"] is None, r["last_error"]
-    from nebula_rt.filters.sky_image import SKY_IMAGE_PROPERTIES
+    from nebula_rt.filters.sky_image import SKY_IMAGE_PROPERTIES, SKY_PANEL_DEFAULTS
     from test_schema_layers import COLOUR_PROPERTIES, DUST_DENSITY_PROPERTIES
 
     for proxy_props, bound in ((r["properties"], LIGHT_FIELD_PROPERTIES),
@@ -181,10 +181,12 @@ def test_paraview_proxy_is_the_schema_and_gives_the_same_bits(pv_env, xdisplay, 
         props = {e["name"]: e for e in proxy_props}
         order = [e["name"] for e in proxy_props]
         # every property of the panel is a bound one (or its check box), bar the filters' own
-        own = {"Input", "DensityArray", "OverrideOptics", "StarsFromInput", "Stars"}
+        own = {"Input", "DensityArray", "OverrideOptics", "StarsFromInput", "Stars", "LuminosityUnit", "Units"}
         assert set(order) - own == {x.name for x in bound} | {x.flag for x in bound if x.flag}, order
         for prop in bound:
-            e, p, want = props[prop.name], prop.param, prop.default
+            e, p = props[prop.name], prop.param
+            # the sky image's Distance, declared None: the panel holds it empty
+            want = SKY_PANEL_DEFAULTS.get(prop.key, prop.default) if bound is SKY_IMAGE_PROPERTIES else prop.default
             assert e["label"] == label(prop.key, p), prop.name
             assert (e["panel_visibility"] == "advanced") == p.advanced, prop.name
             if prop.widget == "auto":
@@ -210,7 +212,13 @@ def test_paraview_proxy_is_the_schema_and_gives_the_same_bits(pv_env, xdisplay, 
                 assert hi == p.hi, prop.name
     assert list(r["density_groups"]) == ["Dust", "Stars", "Compute device"]
     assert r["sky_groups"] == {"Camera": ["ViewDirection", "ViewUp", "ImageSize", "Extent"],
-                               "Picture": ["IncludeStars", "AutoExposure", "Exposure"]}
+                               "Picture": ["IncludeStars", "AutoExposure", "Exposure", "Stretch", "AsinhQ"],
+                               "Observer": ["Units", "Distance", "RA", "Dec", "PositionAngle", "PSFFWHM"]}
+    # the sky image's panel: the camera, the picture, then Units before the observer it enables
+    sky_order = [e["name"] for e in r["sky_properties"] if e["name"] != "Input"]
+    assert sky_order == [n for g in r["sky_groups"].values() for n in g], sky_order
+    units = {e["name"]: e for e in r["sky_properties"]}["Units"]
+    assert units["enum"] == ["box units", "MJy/sr"] and units["default"] == [0], units
     # the panel's order: the workflow, a controlling property before what it controls
     order = [e["name"] for e in r["properties"]]
     assert order.index("OverrideOptics") < order.index("Albedo") < order.index("G")
