@@ -254,21 +254,6 @@ class NebulaAlgorithm(VTKPythonAlgorithmBase):
         raise NotImplementedError
 
 
-class ExposureMixin:
-    """``AutoExposure`` / ``Exposure`` properties shared by the colour and sky-image filters."""
-
-    _auto_exposure = True
-    _exposure = 1.0
-
-    def SetAutoExposure(self, flag):
-        self._auto_exposure = bool(flag)
-        self.Modified()
-
-    def SetExposure(self, v):
-        self._exposure = v
-        self.Modified()
-
-
 def shallow_copy_image(out, inp) -> None:
     """``out.ShallowCopy(inp)`` with field data of its own (ShallowCopy shares the container,
     so adding field data to the output would change the input)."""

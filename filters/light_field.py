@@ -60,7 +60,7 @@ class NebulaLightField(NebulaAlgorithm):
 
     Output port 0: the input's arrays plus, per band, ``J_<band>``, ``emissivity_<band>``,
     ``rel_error_<band>``, ``rgba`` (the colour of the scene's defaults: auto exposure, D65,
-    opacity scale 1, as the command line's file has it; Nebula Colour downstream changes it
+    auto opacity, as the command line's file has it; Nebula Colour downstream changes it
     without re-tracing), and the run's field data (energies, photons, seed, scene TOML): the
     output contract of DESIGN.md. Port 1 (``Stars``): a vtkPolyData with one vertex per star
     at its place in port 0's world coordinates, ``star_rgb`` and ``luminosity``

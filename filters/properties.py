@@ -35,8 +35,12 @@ class Property:
         The scene key it sets (``"transport.photons"``).
     widget : str
         How a choice or a flag is stored: ``"enum"`` (an integer index into the choices, as
-        older state files hold it), ``"bool"``; "" chooses from the declaration (a string
-        list for choices, a number or text otherwise).
+        older state files hold it), ``"bool"``, ``"auto"`` (a parameter that is ``"auto"`` or a
+        number: the check box ``flag`` and this number, ``Set<flag>`` / ``Set<name>``); ""
+        chooses from the declaration (a string list for choices, a number or text otherwise).
+    flag : str
+        With ``widget="auto"``: the name of the check box that chooses ``"auto"``
+        (``"AutoExposure"``; also a state-file name).
     enabled_by : tuple
         ``(property name, value)``: the panel enables the widget only while that property has
         that value (the controlling property comes first in the panel).
@@ -50,6 +54,7 @@ class Property:
     name: str
     key: str
     widget: str = ""
+    flag: str = ""
     enabled_by: Tuple = ()
     shown_by: Tuple = ()
     only: Tuple[str, ...] = ()
@@ -60,16 +65,32 @@ class Property:
 
     @property
     def param(self) -> Param:
-        return _scene.declaration(self.key)
+        return _schema_of(self.key).declaration(self.key)
 
     @property
     def default(self) -> Any:
-        return _scene.default(self.key)
+        return _schema_of(self.key).default(self.key)
+
+    @property
+    def number(self) -> Any:
+        """With ``widget="auto"``: the number the property holds while ``"auto"`` is chosen."""
+        d = self.default
+        return self.param.number if d == "auto" else d
 
     @property
     def elements(self) -> int:
         d = self.default
         return len(d) if isinstance(d, (tuple, list)) else 1
+
+
+def _schema_of(key: str):
+    """The module declaring ``key``: the scene's (:mod:`nebula_rt.scene`), or for ``sky.*`` the
+    sky image's (:mod:`nebula_rt.sky_schema`), which a scene file does not hold."""
+    if key.startswith("sky."):
+        from nebula_rt import sky_schema
+
+        return sky_schema
+    return _scene
 
 
 def _coerce(prop: Property, args):
@@ -99,6 +120,10 @@ def bind(props: Sequence[Property]):
     def decorate(cls):
         cls.BOUND_PROPERTIES = tuple(getattr(cls, "BOUND_PROPERTIES", ())) + tuple(props)
         for prop in props:
+            if prop.widget == "auto":
+                _bind_auto(cls, prop)
+                continue
+
             def setter(self, *args, _p=prop):
                 value = _coerce(_p, args)
                 if self._values.get(_p.key, object()) != value:
@@ -119,9 +144,47 @@ def bind(props: Sequence[Property]):
     return decorate
 
 
+def _bind_auto(cls, prop: Property) -> None:
+    """``Set<flag>(on)`` and ``Set<name>(number)`` of an "auto or number" parameter: the value
+    is ``"auto"`` while the flag is on, else the number (kept while the flag is on, as a
+    panel keeps it)."""
+    key = prop.key
+
+    def set_flag(self, on, _p=prop):
+        value = "auto" if bool(on) else self._numbers[key]
+        if self._values[key] != value:
+            self._values[key] = value
+            self.Modified()
+
+    def get_flag(self):
+        return int(self._values[key] == "auto")
+
+    def set_number(self, *args, _p=prop):
+        value = _coerce(_p, args)
+        if self._numbers[key] != value:
+            self._numbers[key] = value
+            if self._values[key] != "auto":
+                self._values[key] = value
+            self.Modified()
+
+    def get_number(self):
+        return self._numbers[key]
+
+    p = prop.param
+    set_flag.__name__, get_flag.__name__ = "Set" + prop.flag, "Get" + prop.flag
+    set_number.__name__, get_number.__name__ = "Set" + prop.name, "Get" + prop.name
+    set_flag.__doc__ = f'On: ``{key}`` = "auto" (chosen from the data); off: the number of Set{prop.name}.'
+    set_number.__doc__ = f"{p.doc} (scene key ``{key}`` while {prop.flag} is off; default {prop.number!r})."
+    for f in (set_flag, get_flag, set_number, get_number):
+        setattr(cls, f.__name__, f)
+
+
 def init_values(obj) -> None:
-    """The schema's defaults of every bound property of ``obj``'s class."""
-    obj._values = {p.key: p.default for p in type(obj).BOUND_PROPERTIES}
+    """The schema's defaults of every bound property of ``obj``'s class (and the numbers of
+    the "auto or number" ones)."""
+    props = type(obj).BOUND_PROPERTIES
+    obj._values = {p.key: p.default for p in props}
+    obj._numbers = {p.key: p.number for p in props if p.widget == "auto"}
 
 
 def scene_values(values: Dict[str, Any], base: Optional[dict] = None) -> dict:

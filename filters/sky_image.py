@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 from vtkmodules.util.vtkAlgorithm import VTKPythonAlgorithmBase
 from vtkmodules.vtkCommonDataModel import vtkImageData
@@ -16,23 +18,37 @@ from nebula_rt.scene import Scene
 from nebula_rt.sky import Camera, sky_image
 from nebula_rt.transport import star_band_luminosities
 
-from .base import ExposureMixin, NebulaAlgorithm
+from nebula_rt.sky_schema import validate_exposure
+
+from .base import NebulaAlgorithm
 from .image_data import add_field_data, add_point_arrays, field_data_dict, point_array
 from .properties import Property, bind, init_values, scene_values
 
-#: The picture's tone curve, bound to the scene's colour keys (as the Colour filter's), and
-#: where the scene is on the sky, bound to the [observer] keys (a calibrated image, Units 1)
-SKY_PICTURE_PROPERTIES = (
+#: The sky image's properties, in the panel's order: the camera and the picture's stars and
+#: exposure, bound to the sky image's own declarations (nebula_rt.sky_schema, keys ``sky.*``);
+#: the picture's tone curve, bound to the scene's colour keys (as the Colour filter's); and where
+#: the scene is on the sky, bound to the [observer] keys, used by a calibrated image (enabled by
+#: Units, the filter's own property, which the panel shows right before them)
+SKY_IMAGE_PROPERTIES = (
+    Property("ViewDirection", "sky.direction"),
+    Property("ViewUp", "sky.up"),
+    Property("ImageSize", "sky.size"),
+    Property("Extent", "sky.extent"),
+    Property("IncludeStars", "sky.include_stars", widget="bool"),
+    Property("Exposure", "sky.exposure", widget="auto", flag="AutoExposure"),
     Property("Stretch", "colour.stretch", widget="enum"),
     Property("AsinhQ", "colour.asinh_q", enabled_by=("Stretch", 1)),
-)
-SKY_OBSERVER_PROPERTIES = (
     Property("Distance", "observer.distance", enabled_by=("Units", 1)),
     Property("RA", "observer.ra", enabled_by=("Units", 1)),
     Property("Dec", "observer.dec", enabled_by=("Units", 1)),
     Property("PositionAngle", "observer.position_angle", enabled_by=("Units", 1)),
     Property("PSFFWHM", "observer.psf_fwhm", enabled_by=("Units", 1)),
 )
+#: The observer's properties among them (the [observer] table's keys)
+SKY_OBSERVER_PROPERTIES = tuple(p for p in SKY_IMAGE_PROPERTIES if p.key.startswith("observer."))
+#: What the filter and the panel hold where the declared default is None: Distance empty (the
+#: light field's scene's own [observer] table is used)
+SKY_PANEL_DEFAULTS = {"observer.distance": ""}
 #: The Units property: box units only, or also the calibrated arrays (nebula_rt.calibrate)
 SKY_UNITS = ("box units", "MJy/sr")
 
@@ -41,8 +57,8 @@ SKY_UNITS = ("box units", "MJy/sr")
 SKY_EXPOSURE_PERCENTILE = 99.0
 
 
-@bind(SKY_PICTURE_PROPERTIES + SKY_OBSERVER_PROPERTIES)
-class NebulaSkyImage(ExposureMixin, NebulaAlgorithm):
+@bind(SKY_IMAGE_PROPERTIES)
+class NebulaSkyImage(NebulaAlgorithm):
     """Orthographic image of the nebula seen from far away along ``ViewDirection``.
 
     Per band, the scattered emissivity is integrated along each pixel's ray with that band's
@@ -55,6 +71,11 @@ class NebulaSkyImage(ExposureMixin, NebulaAlgorithm):
     Field data: the camera, ``tau_star_<band>`` (optical depth from the first star to the
     observer), ``exposure``.
 
+    The setters (:data:`SKY_IMAGE_PROPERTIES`: ``SetViewDirection``, ``SetImageSize``, ...,
+    ``SetAutoExposure`` / ``SetExposure``, ``SetStretch``, ``SetDistance``, ...) start at the
+    declared defaults (:mod:`nebula_rt.sky_schema` for the camera and the exposure, the scene's
+    ``[colour]`` and ``[observer]`` tables for the tone curve and the sky).
+
     With ``SetUnits(1)`` ("MJy/sr") the image is also calibrated (:mod:`nebula_rt.calibrate`,
     the ray march): ``sb_<band>`` (MJy/sr, scattered light and the stars through a Gaussian PSF)
     and ``mag_<passband>`` (AB mag/arcsec^2 in B, V, R, g, r, i), with the celestial WCS as
@@ -64,40 +85,14 @@ class NebulaSkyImage(ExposureMixin, NebulaAlgorithm):
     the light field's scene's ``[observer]`` table.
     """
 
-    PROPERTIES = {"colour.exposure": "Exposure", "stars[0].luminosity": "Nebula Light Field's LuminosityUnit"}
-    #: Camera's parameter names -> the properties that set them
-    _CAMERA_PROPERTIES = {"Camera.direction": "ViewDirection", "Camera.up": "ViewUp", "Camera.size": "ImageSize",
-                          "Camera.extent": "Extent"}
+    #: what names the parameters no bound property sets, in messages
+    PROPERTIES = {"stars[0].luminosity": "Nebula Light Field's LuminosityUnit"}
 
     def __init__(self):
         super().__init__(nInputPorts=1, nOutputPorts=1, inputType="vtkImageData", outputType="vtkImageData")
         init_values(self)
-        self._direction = (0.0, 0.0, -1.0)
-        self._up = (0.0, 1.0, 0.0)
-        self._size = (256, 256)
-        self._extent = 0.0
-        self._include_stars = True
+        self._values.update(SKY_PANEL_DEFAULTS)
         self._units = SKY_UNITS[0]
-        self._values["observer.distance"] = ""
-        self._auto_exposure = True
-        self._exposure = 1.0
-
-    def SetViewDirection(self, x, y, z):
-        self._direction = (x, y, z)
-        self.Modified()
-
-    def SetViewUp(self, x, y, z):
-        self._up = (x, y, z)
-        self.Modified()
-
-    def SetImageSize(self, w, h):
-        self._size = (w, h)
-        self.Modified()
-
-    def SetExtent(self, e):
-        """Field of view (box units); 0 fits the whole box whatever the direction."""
-        self._extent = e
-        self.Modified()
 
     def SetUnits(self, units):
         """"box units" (0, default) or "MJy/sr" (1): also the calibrated arrays."""
@@ -106,6 +101,9 @@ class NebulaSkyImage(ExposureMixin, NebulaAlgorithm):
         if units != self._units:
             self._units = units
             self.Modified()
+
+    def GetUnits(self):
+        return self._units
 
     def _observer(self, scene):
         """The scene placed on the sky: the Distance ... properties, or the scene's own
@@ -116,21 +114,21 @@ class NebulaSkyImage(ExposureMixin, NebulaAlgorithm):
         obs = {k.split(".")[1]: self._values[k] for k in (p.key for p in SKY_OBSERVER_PROPERTIES)}
         return scene.with_overrides([f"observer.{k}={v!r}" for k, v in obs.items()])
 
-    def SetIncludeStars(self, flag):
-        self._include_stars = bool(flag)
-        self.Modified()
-
     def _camera(self) -> Camera:
+        v = self._values
         # whole numbers given as floats (ParaView's int properties may arrive so) are pixels; 16.5 is not
-        size = tuple(int(v) if isinstance(v, float) and v.is_integer() else v for v in self._size)
+        size = tuple(int(x) if isinstance(x, float) and x.is_integer() else x for x in v["sky.size"])
         try:
-            return Camera(direction=tuple(self._direction), up=tuple(self._up), size=size, extent=self._extent)
+            return Camera(direction=tuple(v["sky.direction"]), up=tuple(v["sky.up"]), size=size,
+                          extent=v["sky.extent"])
         except (ValueError, TypeError) as exc:
-            text = str(exc)
-            name = next((p for c, p in self._CAMERA_PROPERTIES.items() if text.startswith(c)), "camera")
-            value = {"ViewDirection": self._direction, "ViewUp": self._up, "ImageSize": self._size,
-                     "Extent": self._extent}.get(name, (self._direction, self._up, self._size, self._extent))
-            raise SceneError(name, value, text) from None
+            # "Camera.size must be ..., got ...": the key of the field, and what is allowed
+            m = re.match(r"Camera\.(\w+) (.*?)(?:, got .*)?$", str(exc))
+            if m is None or f"sky.{m.group(1)}" not in v:
+                raise SceneError("camera", (v["sky.direction"], v["sky.up"], v["sky.size"], v["sky.extent"]),
+                                 str(exc)) from None
+            key = f"sky.{m.group(1)}"
+            raise SceneError(key, v[key], m.group(2)) from None
 
     def RequestInformation(self, request, inInfo, outInfo):
         try:
@@ -146,10 +144,13 @@ class NebulaSkyImage(ExposureMixin, NebulaAlgorithm):
 
     def _execute(self, request, inInfo, outInfo):
         cam = self._camera()
-        # the colour table's rules (exposure, stretch, softening) and the observer's
-        values = {k: v for k, v in self._values.items() if not (k == "observer.distance" and v in ("", None))}
-        Scene.from_dict(scene_values(values, {"colour": {"exposure": "auto" if self._auto_exposure
-                                                         else self._exposure}}))
+        exposure = validate_exposure(self._values["sky.exposure"])
+        include_stars = bool(self._values["sky.include_stars"])
+        # the scene's rules of the tone curve (colour.stretch, colour.asinh_q) and of the
+        # observer (an empty Distance: the light field's scene's own [observer] table)
+        values = {k: v for k, v in self._values.items()
+                  if not k.startswith("sky.") and not (k == "observer.distance" and v in ("", None))}
+        Scene.from_dict(scene_values(values))
         if self._units not in SKY_UNITS:
             raise SceneError("Units", self._units, "must be one of " + ", ".join(repr(u) for u in SKY_UNITS))
         inp = vtkImageData.GetData(inInfo[0])
@@ -163,20 +164,18 @@ class NebulaSkyImage(ExposureMixin, NebulaAlgorithm):
         rho = point_array(inp, contract.DENSITY.name()).astype(np.float64)
         sigma = fd.tau * ext[:, None, None, None] * rho[None]
         scene = Scene.loads(fd.scene)
-        stars = [s.position for s in scene.stars] if self._include_stars else []
-        slum = star_band_luminosities(scene.stars, wl) if self._include_stars else None
+        stars = [s.position for s in scene.stars] if include_stars else []
+        slum = star_band_luminosities(scene.stars, wl) if include_stars else None
         self._report(0.1, "NebulaRT: ray marching the sky image")
         img = sky_image(emissivity, sigma, cam, stars=stars, star_band_luminosity=slum)
         band_lum = star_band_luminosities(scene.stars, wl).sum(axis=0)
         m = colour_convert.band_to_xyz_matrix(wl, colour_source_from_field_data(fd))
         ratio = img.intensity / band_lum[:, None, None]
         rgb = colour_convert.gamut_map(colour_convert.xyz_to_linear_srgb(np.tensordot(ratio, m, axes=([0], [1]))))
-        if self._auto_exposure:
+        if exposure == "auto":
             scat = colour_convert.xyz_to_linear_srgb(
                 np.tensordot(img.scattered / band_lum[:, None, None], m, axes=([0], [1])))
             exposure = colour_convert.auto_exposure(scat, percentile=SKY_EXPOSURE_PERCENTILE)
-        else:
-            exposure = float(self._exposure)
         rgb8 = colour_convert.encode_picture(rgb, exposure, self._values["colour.stretch"],
                                              self._values["colour.asinh_q"])  # (W, H, 3)
 
@@ -186,7 +185,7 @@ class NebulaSkyImage(ExposureMixin, NebulaAlgorithm):
         out.SetSpacing(cam.pixel_size, cam.pixel_size, 1.0)
         out.SetOrigin(0.5 * cam.pixel_size, 0.5 * cam.pixel_size, 0.0)
         # float32 outputs: the star's pixel (L / (4 pi pixel^2)) is the brightest
-        check_float32_array("ImageSize", list(cam.size), img.intensity * (4.0 * np.pi / band_lum.min()),
+        check_float32_array("sky.size", list(cam.size), img.intensity * (4.0 * np.pi / band_lum.min()),
                             "the sky image's intensities (relative ones included)", underflow=False)
         arrays = {}
         for b, n in enumerate(names):

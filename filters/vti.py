@@ -9,8 +9,9 @@ VTK algorithms' outputs hold.
   headers (arrays above 4 GiB), into a temporary file of its own in the target's folder that
   is renamed onto the target once complete (:class:`nebula_rt.outputs.Publication`): readers
   never see a half-written file and concurrent writers never share one.
-- Reading (:func:`read_vti`, :func:`read_density_array`): pyvista's XML image reader, with its
-  array selection so that only the array asked for is read.
+- Reading (:func:`read_vti`): pyvista's XML image reader; :func:`read_density_array` (one
+  array, with the reader's array selection) is :mod:`nebula_rt.filters.density_file`'s, which
+  needs VTK only (ParaView's Python has no pyvista).
 
 VTK's messages of a read or write (the reader's, the writer's and those of their helpers, such
 as the XML parser) are caught by pyvista's ``VtkErrorCatcher`` with VTK's logger silenced, and
@@ -31,38 +32,12 @@ import numpy as np
 import pyvista as pv
 from vtkmodules.vtkIOXML import vtkXMLImageDataWriter
 
-from nebula_rt.errors import NebulaError
 from nebula_rt.outputs import Publication
 
-from .image_data import (cell_array, check_numeric_dtype, field_data_dict, image_geometry, point_array,
-                         to_image_data)
+from .density_file import ArrayNotFoundError, read_density_array  # noqa: F401 - this module's API too
+from .image_data import check_numeric_dtype, field_data_dict, image_geometry, point_array, to_image_data
 
 __all__ = ["ArrayNotFoundError", "read_density_array", "read_vti", "write_vti"]
-
-
-class ArrayNotFoundError(NebulaError, KeyError, ValueError):
-    """A named array is not present in a data file.
-
-    Attributes
-    ----------
-    path : pathlib.Path
-        The file searched.
-    array_name : str
-        The name asked for.
-    available : list of str
-        The names of the arrays that the file has.
-    """
-
-    def __init__(self, path: Path, array_name: str, available: list[str]):
-        self.path = Path(path)
-        self.array_name = array_name
-        self.available = list(available)
-        listed = ", ".join(repr(a) for a in self.available) if self.available else "none"
-        self.message = f"{self.path}: no array named {array_name!r}; available arrays: {listed}"
-        super().__init__(self.message)
-
-    def __str__(self) -> str:  # KeyError would quote the message
-        return self.message
 
 
 _VTK_MESSAGES = threading.Lock()
@@ -244,48 +219,3 @@ def read_vti(path):
     pd = img.GetPointData()
     names = [pd.GetArrayName(i) for i in range(pd.GetNumberOfArrays()) if pd.GetArray(i) is not None]
     return {n: point_array(img, n) for n in names}, field_data_dict(img), spacing, origin, dims
-
-
-def read_density_array(path, array_name: str) -> np.ndarray:
-    """Read one scalar array of a ``.vti`` file as a ``float64`` grid.
-
-    The array is looked up among the point data first (shape ``(nx, ny, nz)``, the image's
-    dimensions), then among the cell data, for images whose cells are the voxels (shape
-    ``dimensions - 1``). Only that array is read from the file.
-
-    Raises
-    ------
-    FileNotFoundError
-        ``path`` does not exist.
-    ArrayNotFoundError
-        (a ``KeyError`` and ``ValueError``) no point or cell array has that name; the message
-        lists the arrays there are.
-    ValueError
-        Unsupported file type, unreadable file, or the array has more than one component.
-    """
-    path = Path(os.fspath(path))
-    if path.suffix.lower() != ".vti":
-        if not path.exists():
-            raise FileNotFoundError(2, f"no such file: {path}", str(path))
-        raise ValueError(f"{path}: unsupported density file type {path.suffix!r}; expected .vti")
-    reader = _open(path)
-    point_names, cell_names = list(reader.point_array_names), list(reader.cell_array_names)
-    if array_name in point_names:
-        where = "point"
-    elif array_name in cell_names:
-        where = "cell"
-    else:
-        available = [f"{n} (point)" for n in point_names] + [f"{n} (cell)" for n in cell_names]
-        raise ArrayNotFoundError(path, array_name, available)
-    reader.disable_all_point_arrays()
-    reader.disable_all_cell_arrays()
-    (reader.enable_point_array if where == "point" else reader.enable_cell_array)(array_name)
-    img = _read(path, reader)
-    try:
-        grid = point_array(img, array_name) if where == "point" else cell_array(img, array_name)
-    except KeyError:
-        raise ValueError(f"{path}: array {array_name!r} is not a numeric array") from None
-    if grid.ndim != 3:
-        raise ValueError(f"{path}: array {array_name!r} has {grid.shape[3]} components; "
-                         "a density must be a scalar array")
-    return grid.astype(np.float64)

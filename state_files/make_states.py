@@ -21,7 +21,8 @@ source and of each light field). The states leave Device empty and Backend "auto
 used where there is one, else the CPU OpenCL device.
 
 The shared exposure is the automatic exposure of the albedo-0.8 branch (the brightest),
-measured while generating; the Exposure property of each Nebula Colour holds it.
+measured while generating; the Exposure property of each Nebula Colour holds it. The colours'
+opacity is the dust's own (Auto Opacity off, Opacity Scale 1), as in the thesis.
 
 What a plain ``LoadState`` (or File > Load State) gets from the file itself:
 
@@ -118,6 +119,10 @@ def build(name, spec, grid, photons, tau, device):
         light.Seed = 1 + i
         light.Device = device
         colour = simple.NebulaColour(light, registrationName=f"Colour, albedo {albedo}")
+        # the thesis's figures show the dust's own opacity (Opacity Scale 1), not the auto
+        # opacity of a new Nebula Colour: the homogeneous box's optical depth is the point
+        colour.AutoOpacity = 0
+        colour.OpacityScale = 1.0
         display = show_rgba_volume(colour, view)
         display.Position = [i * PITCH, 0.0, 0.0]
         stars = show_stars(light, view)

@@ -107,7 +107,7 @@ RANGES = {
     "transport.photons": "[1, 2**53]", "transport.estimator": "'track-length', 'collision-filter'",
     "transport.method": "'auto', 'analog', 'biased'",
     "transport.filter_radius": "> 0", "transport.max_scatterings": "[0, 2147483647]",
-    "transport.seed": "[0, 2**64)", "transport.backend": "'auto', 'opencl', 'cuda'", "transport.device": "string",
+    "transport.seed": "[0, 2**53]", "transport.backend": "'auto', 'opencl', 'cuda'", "transport.device": "string",
     "transport.batch_size": ("[0, 9007199254740992]", "less than the 2000 photons"), "transport.target_error": "(0, 1)",
     "transport.time_limit": ">= 0", "transport.quality": "'preview'",
     "colour.exposure": FLOAT32_RANGE_TEXT, "colour.white_point": "'D65', 'E', 'star'", "colour.opacity_scale": "> 0",
@@ -219,8 +219,9 @@ TABLE = [
                                         "beyond-float32": "smooths J to the box average (host float64)",
                                         "below-float32": "no smoothing (the kernel is one voxel)"}),
     *ints("transport.max_scatterings", {"zero": "single scattering off; packets terminate at the first"}),
-    *ints("transport.seed", {"zero": "any uint64", "beyond-int32": "any uint64", "beyond-int64": "any uint64"}),
-    Row("transport.seed", "largest", str(2**64 - 1), ALLOWED, "the largest uint64"),
+    *ints("transport.seed", {"zero": "any integer up to 2**53", "beyond-int32": "any integer up to 2**53"}),
+    Row("transport.seed", "largest", str(2**53), ALLOWED, "the largest: what a double holds exactly"),
+    Row("transport.seed", "past-double", str(2**53 + 1), note="a double (the panel, pvpython) would round it"),
     *strings("transport.backend", ["metal"]),
     *strings("transport.device"),
     *ints("transport.batch_size", {"zero": "automatic"}),
@@ -236,6 +237,7 @@ TABLE = [
     *floats("colour.opacity_scale", {"huge": "opacity 1 wherever there is dust (host float64)",
                                      "beyond-float32": "opacity 1 wherever there is dust (host float64)",
                                      "below-float32": "transparent (host float64)"}),
+    Row("colour.opacity_scale", "auto", '"auto"', ALLOWED, "the factor chosen from the data (the default)"),
     *strings("colour.stretch", ["log"], allowed={"asinh": "Lupton et al. (2004)"}),
     *floats("colour.asinh_q", {"below-float32": "host float64: the linear curve in the limit"}),
     *floats("observer.distance", {"huge": SKY, "beyond-float32": SKY, "below-float32": SKY}),
@@ -386,6 +388,11 @@ SETTERS = {
     "colour.opacity_scale": ("colour", "SetOpacityScale", lambda v: (v,)),
     "colour.stretch": ("colour", "SetStretch", lambda v: (v,)),
     "colour.asinh_q": ("colour", "SetAsinhQ", lambda v: (v,)),
+    "observer.distance": ("sky", "SetDistance", lambda v: (v,)),
+    "observer.ra": ("sky", "SetRA", lambda v: (v,)),
+    "observer.dec": ("sky", "SetDec", lambda v: (v,)),
+    "observer.position_angle": ("sky", "SetPositionAngle", lambda v: (v,)),
+    "observer.psf_fwhm": ("sky", "SetPSFFWHM", lambda v: (v,)),
 }
 #: rows whose value means something else to the setter than to the scene file
 SETTER_MEANS_ELSE = {
@@ -441,7 +448,7 @@ def _light():
 
 @pytest.mark.parametrize("row", FILTER_ROWS, ids=_ids(FILTER_ROWS))
 def test_c_filter_setter_refuses(row, light_field_image):
-    from nebula_rt.filters import NebulaColour, NebulaDustDensity
+    from nebula_rt.filters import NebulaColour, NebulaDustDensity, NebulaSkyImage
 
     which, setter, args = SETTERS[row.key]
     if which == "density":
@@ -451,11 +458,17 @@ def test_c_filter_setter_refuses(row, light_field_image):
         alg.SetDevice(TEST_DEVICE)
     elif which == "light":
         alg = _light()
+    elif which == "sky":  # the observer is checked in box units too, before the ray march
+        alg = NebulaSkyImage()
+        alg._producer = _producer(light_field_image)
+        alg.SetInputConnection(alg._producer.GetOutputPort())
+        alg.SetImageSize(4, 4)
     else:
         alg = NebulaColour()
         alg._producer = _producer(light_field_image)
         alg.SetInputConnection(alg._producer.GetOutputPort())
-        alg.SetAutoExposure(False)
+        alg.SetAutoExposure(False)  # the numbers apply (the rows of colour.exposure and opacity_scale)
+        alg.SetAutoOpacity(False)
     getattr(alg, setter)(*args(row.value))
     alg.Update()
     assert alg.GetOutputDataObject(0).GetNumberOfPoints() == 0

@@ -229,7 +229,7 @@ def test_offset_limit_is_where_the_float32_turbulence_keeps_its_structure(backen
 def test_largest_seed_is_traced_and_written_losslessly(tmp_path, backend):
     from nebula_rt import cli
 
-    seed = 2**64 - 1
+    seed = 2**53  # the scene's largest: what a double (ParaView's panel, pvpython) holds exactly
     scene = tiny_scene(transport={"seed": seed})
     light = Pipeline(backend).run(scene)
     path = write_vti(tmp_path / "a.vti", light.point_arrays(), light.field_data(), light.spacing, light.origin)
@@ -256,10 +256,13 @@ def test_largest_seed_through_the_filter():
     from nebula_rt.filters.image_data import field_data_dict
 
     lf = pinned_light_field(photons=1000)
-    lf.SetSeed(2**64 - 1)
+    lf.SetSeed(float(2**53))  # as ParaView hands it over: a double
     lf.Update()
     assert lf.last_error is None
-    assert field_data_dict(lf.GetOutputDataObject(0))["seed"] == 2**64 - 1
+    assert field_data_dict(lf.GetOutputDataObject(0))["seed"] == 2**53
+    lf.SetSeed(2**53 + 1)  # past what a double holds: refused, naming the property
+    lf.Update()
+    assert "Seed (transport.seed) = 9007199254740993" in lf.last_error and "[0, 2**53]" in lf.last_error
 
 
 @pytest.mark.parametrize("value", [3e9, 2**31])
@@ -372,7 +375,7 @@ def test_sky_image_refuses_fractional_sizes():
     image_input(s, np.ones((4, 4, 4), np.float32))
     s.SetImageSize(16.5, 16)
     s.Update()
-    assert s.GetOutputDataObject(0).GetNumberOfPoints() == 0 and s.last_error.startswith("NebulaSkyImage: ImageSize")
+    assert s.GetOutputDataObject(0).GetNumberOfPoints() == 0 and s.last_error.startswith("NebulaSkyImage: Image Size (sky.size) = (16.5, 16)")
 
 
 # --- 4. weak spots ---------------------------------------------------------------------------

@@ -174,6 +174,41 @@ def test_the_vtk_layer_that_paraview_runs_needs_no_pyvista():
     assert proc.stdout.strip() == "vti needs pyvista"
 
 
+def test_a_vti_density_reads_without_pyvista(tmp_path):
+    """dust.model = "file" with a .vti where pyvista is absent (ParaView's Python): VTK's own
+    reader (nebula_rt.filters.density_file) gives the array bit for bit, a cell array too, and
+    a file that is not VTK, or lacks the array, is refused naming dust.file and the file.
+    (tests/test_paraview.py runs the same in pvpython.)"""
+    code = _block(["pyvista"]) + f"""
+import numpy as np
+from pathlib import Path
+from vtkmodules.util.numpy_support import numpy_to_vtk
+from vtkmodules.vtkCommonDataModel import vtkImageData
+from vtkmodules.vtkIOXML import vtkXMLImageDataWriter
+from nebula_rt.density import load_density_file
+from nebula_rt.errors import SceneError
+d = Path({str(tmp_path)!r})
+a = np.random.default_rng(3).random((5, 4, 3)).astype(np.float32)
+img = vtkImageData(); img.SetDimensions(5, 4, 3)
+arr = numpy_to_vtk(np.ravel(a, order="F"), deep=True); arr.SetName("rho"); img.GetPointData().AddArray(arr)
+w = vtkXMLImageDataWriter(); w.SetInputData(img); w.SetFileName(str(d / "a.vti")); assert w.Write() == 1
+got = load_density_file(d / "a.vti", "rho", (5, 4, 3))
+assert np.array_equal(got, a.astype(np.float64)), "values"
+(d / "bad.vti").write_bytes(b"not VTK at all" * 20)
+for name, array in (("bad.vti", "rho"), ("a.vti", "density")):
+    try:
+        load_density_file(d / name, array, (5, 4, 3))
+    except SceneError as e:
+        print(e.parameter, Path(e.value).name, e.allowed)
+assert "pyvista" not in sys.modules or sys.modules["pyvista"] is None
+"""
+    proc = _run(code)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    lines = proc.stdout.strip().splitlines()
+    assert lines[0].startswith("dust.file bad.vti could not be read as density data") and "unreadable" in lines[0]
+    assert lines[1].startswith("dust.file a.vti") and "no array named 'density'" in lines[1] and "rho (point)" in lines[1]
+
+
 def test_old_io_vti_name_forwards_to_the_vtk_layer():
     """``nebula_rt.io_vti`` (shown by earlier docs) imports without VTK and hands out the VTK
     layer's functions on use, with a DeprecationWarning naming the new place."""

@@ -71,10 +71,18 @@ def test_plugin_loads_and_every_proxy_executes(pv_env, xdisplay, exe):
     assert r["loaded_at_start"], "PV_PLUGIN_PATH=plugin/ should load NebulaRT.py at start-up"
     assert r["numpy_interface_error"] is None  # sitecustomize's numpy.in1d alias
     assert sorted(r["functions"]) == sorted(PROXIES), "paraview.simple lacks constructors"
+    import inspect
+
+    import nebula_rt.filters as vtk_filters
+
     for name, (group, label) in PROXIES.items():
         d = r["definitions"][name]
         assert d["defined"] and d["group"] == group and d["label"] == label, d
         assert d["menu"] == "NebulaRT", d
+        # help text of its own, from the VTK algorithm's docstring: its summary line, and more
+        summary = " ".join(inspect.cleandoc(getattr(vtk_filters, name).__doc__).split("\n\n")[0].split())
+        assert d["help"]["short"] == d["help"]["long"] == summary.replace("``", ""), d["help"]
+        assert len(d["help"]["description"]) > 150 and "``" not in d["help"]["description"], d["help"]
         for prop, e in d["properties"].items():
             if prop != "Input":
                 assert e["doc"], f"{name}.{prop} has no tooltip"
@@ -163,17 +171,32 @@ def test_paraview_proxy_is_the_schema_and_gives_the_same_bits(pv_env, xdisplay, 
     npy, vti, rho = schema_density
     r, _ = run_pv(pv_env, xdisplay, "schema_layers.py", vti, npy, PHOTONS)
     assert r["last_error"] is None, r["last_error"]
+    from nebula_rt.filters.sky_image import SKY_IMAGE_PROPERTIES, SKY_PANEL_DEFAULTS
     from test_schema_layers import COLOUR_PROPERTIES, DUST_DENSITY_PROPERTIES
 
     for proxy_props, bound in ((r["properties"], LIGHT_FIELD_PROPERTIES),
                                (r["density_properties"], DUST_DENSITY_PROPERTIES),
-                               (r["colour_properties"], COLOUR_PROPERTIES)):
+                               (r["colour_properties"], COLOUR_PROPERTIES),
+                               (r["sky_properties"], SKY_IMAGE_PROPERTIES)):
         props = {e["name"]: e for e in proxy_props}
+        order = [e["name"] for e in proxy_props]
+        # every property of the panel is a bound one (or its check box), bar the filters' own
+        own = {"Input", "DensityArray", "OverrideOptics", "StarsFromInput", "Stars", "LuminosityUnit", "Units"}
+        assert set(order) - own == {x.name for x in bound} | {x.flag for x in bound if x.flag}, order
         for prop in bound:
-            e, p, want = props[prop.name], prop.param, sc.default(prop.key)
+            e, p = props[prop.name], prop.param
+            # the sky image's Distance, declared None: the panel holds it empty
+            want = SKY_PANEL_DEFAULTS.get(prop.key, prop.default) if bound is SKY_IMAGE_PROPERTIES else prop.default
             assert e["label"] == label(prop.key, p), prop.name
             assert (e["panel_visibility"] == "advanced") == p.advanced, prop.name
-            if prop.widget == "enum":
+            if prop.widget == "auto":
+                # "auto" or a number: its check box, right before the number, then the number
+                f = props[prop.flag]
+                assert f["bool"] and f["default"] == [int(want == "auto")], prop.flag
+                assert order.index(prop.flag) == order.index(prop.name) - 1, prop.flag
+                assert e["default"] == [prop.number], prop.name
+                assert e["range"][0] == p.lo and e["range"][1] == p.hi, prop.name
+            elif prop.widget == "enum":
                 texts = [p.choice_labels[p.choices.index(c)] if p.choice_labels else c for c in prop.choices]
                 assert e["enum"] == texts and e["default"] == [prop.choices.index(want)], prop.name
             elif prop.choices:
@@ -184,9 +207,18 @@ def test_paraview_proxy_is_the_schema_and_gives_the_same_bits(pv_env, xdisplay, 
                 assert e["default"] == (list(want) if isinstance(want, tuple) else [want]), prop.name
                 lo, hi = e["range"] if "range" in e else (None, None)
                 assert lo == p.lo, prop.name
-                # the panel's bound is the schema's, or 2^53 for integers travelling as doubles
-                assert hi == (None if p.hi is None else min(p.hi, 2**53) if p.hi > 2**31 - 1 else p.hi), prop.name
+                # the panel's bound is the schema's (integers past int32 travel as doubles, whose
+                # 2^53 the scene's ranges keep to: Seed, Photons and Batch Size end there)
+                assert hi == p.hi, prop.name
     assert list(r["density_groups"]) == ["Dust", "Stars", "Compute device"]
+    assert r["sky_groups"] == {"Camera": ["ViewDirection", "ViewUp", "ImageSize", "Extent"],
+                               "Picture": ["IncludeStars", "AutoExposure", "Exposure", "Stretch", "AsinhQ"],
+                               "Observer": ["Units", "Distance", "RA", "Dec", "PositionAngle", "PSFFWHM"]}
+    # the sky image's panel: the camera, the picture, then Units before the observer it enables
+    sky_order = [e["name"] for e in r["sky_properties"] if e["name"] != "Input"]
+    assert sky_order == [n for g in r["sky_groups"].values() for n in g], sky_order
+    units = {e["name"]: e for e in r["sky_properties"]}["Units"]
+    assert units["enum"] == ["box units", "MJy/sr"] and units["default"] == [0], units
     # the panel's order: the workflow, a controlling property before what it controls
     order = [e["name"] for e in r["properties"]]
     assert order.index("OverrideOptics") < order.index("Albedo") < order.index("G")
@@ -202,6 +234,9 @@ def test_paraview_proxy_is_the_schema_and_gives_the_same_bits(pv_env, xdisplay, 
     # the venv, on its own PoCL build)
     h = r["hashes"]
     assert h["proxy"] == h["vtk"] == h["scene"] and len(h["proxy"]) == 3, h
+    # a .vti density named by a scene file loads in ParaView's Python, which has no pyvista
+    # (VTK's own reader, nebula_rt.filters.density_file): the same bits as the .npy
+    assert not r["pyvista_importable"] and h["scene_vti"] == h["scene"], h
 
 
 
@@ -394,7 +429,7 @@ def test_default_display_in_pvpython_follows_the_data(pv_env, xdisplay):
     """Where the plugin is loaded, Show + Render (no helper) give the direct-RGBA volume and the
     stars in their own colours; the opacity mapping is the per-voxel one for the data's voxel
     and alpha range, with the alpha channel's unit distance the voxel on the rendering object;
-    it is refitted when the alpha range changes (Opacity Scale 3), a user's own function is
+    it is refitted when the alpha range changes (Auto Opacity off, Opacity Scale 3), a user's own function is
     kept through a later change, and the per-world-unit mapping of older states is adopted and
     refitted. Points compare to 1e-9 (the same formula in double precision)."""
     r, _ = run_pv(pv_env, xdisplay, "display_behaviour.py")
@@ -406,7 +441,7 @@ def test_default_display_in_pvpython_follows_the_data(pv_env, xdisplay):
         np.testing.assert_allclose(f["points"], f["expected"], rtol=0, atol=1e-9, err_msg=name)
         assert f["unit_distance_3"] == pytest.approx(f["voxel"], rel=1e-12), name
     assert st["stars"] == {"representation": "Points", "color": ["POINTS", "star_rgb"], "map_scalars": 0, "visible": 1}
-    assert st["opacity_scale_3"]["alpha_range"][1] > st["colour"]["alpha_range"][1] + 30  # 185 -> 250
+    assert st["opacity_scale_3"]["alpha_range"][1] > st["colour"]["alpha_range"][1] + 30  # 173 -> 250
     assert st["user_function"]["points"] == st["user_function"]["custom"]
 
 

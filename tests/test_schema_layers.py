@@ -28,7 +28,9 @@ from conftest import TEST_DEVICE
 def test_every_scene_field_is_declared_with_a_doc():
     import dataclasses
 
-    for section, cls in sc.SECTIONS:
+    from nebula_rt import sky_schema
+
+    for section, cls in sc.SECTIONS + sky_schema.SECTIONS:
         for f in dataclasses.fields(cls):
             p = f.metadata.get("param")
             assert p is not None, f"{section}.{f.name} has no declaration"
@@ -63,7 +65,7 @@ def test_numeric_bounds_of_the_schema_are_what_the_scene_accepts():
     """At each declared bound the scene accepts the value; just past it, it refuses it (where
     the bound is closed and the next representable value is past it)."""
     cases = {"transport.photons": (1, 2**53), "transport.max_scatterings": (0, 2**31 - 1),
-             "transport.seed": (0, 2**64 - 1)}
+             "transport.seed": (0, 2**53)}
     for key, (lo, hi) in cases.items():
         p = sc.declaration(key)
         assert (p.lo, p.hi) == (lo, hi), key
@@ -100,11 +102,110 @@ def test_density_source_defaults_are_the_schema_defaults():
 
 
 def test_colour_defaults_are_the_schema_defaults():
+    """The colour's properties start at the schema's defaults (an "auto or number" key as its
+    check box on and the declared number), so an untouched Nebula Colour colours as a scene
+    file with no [colour] table; the check box and the number make the key's value."""
+    from nebula_rt.filters.properties import scene_values
+
     c = NebulaColour()
     for prop in COLOUR_PROPERTIES:
-        assert getattr(c, "Get" + prop.name)() == sc.default(prop.key), prop.name
+        want = sc.default(prop.key)
+        if prop.widget == "auto":
+            assert getattr(c, "Get" + prop.flag)() == int(want == "auto"), prop.flag
+            assert getattr(c, "Get" + prop.name)() == prop.param.number, prop.name
+        else:
+            assert getattr(c, "Get" + prop.name)() == want, prop.name
+    assert sc.Scene.from_dict(scene_values(c._values)).colour == sc.Scene.default().colour
     c.SetWhitePoint(2)
     assert c.GetWhitePoint() == sc.WHITE_POINTS[2]
+    c.SetAutoOpacity(0)  # off: the number the panel shows
+    assert c._values["colour.opacity_scale"] == 1.0
+    c.SetOpacityScale(4.0)
+    assert c._values["colour.opacity_scale"] == 4.0
+    c.SetAutoOpacity(1)  # on again: "auto", the number kept for later
+    assert c._values["colour.opacity_scale"] == "auto" and c.GetOpacityScale() == 4.0
+
+
+def test_sky_image_defaults_are_the_declared_defaults():
+    """Nebula Sky Image's properties are bound to declarations: the camera and the picture's
+    stars and exposure to the sky image's own (nebula_rt.sky_schema: one property per
+    declaration), the tone curve and the observer to the scene's ([colour], [observer]); each
+    starts at its declared default (Auto Exposure on, Exposure the declared number; Distance,
+    declared None, empty: the light field's scene's own [observer]), so the untouched filter's
+    tone curve and observer are a scene file's defaults. Units is the filter's own (box units).
+    The camera they make is the library's default Camera, whose defaults and size range are the
+    same declarations."""
+    import dataclasses
+
+    from nebula_rt import sky_schema
+    from nebula_rt.filters.properties import scene_values
+    from nebula_rt.filters.sky_image import SKY_IMAGE_PROPERTIES, SKY_PANEL_DEFAULTS, SKY_UNITS, NebulaSkyImage
+    from nebula_rt.sky import Camera
+
+    s = NebulaSkyImage()
+    assert s.BOUND_PROPERTIES == SKY_IMAGE_PROPERTIES
+    for prop in SKY_IMAGE_PROPERTIES:
+        schema = sky_schema if prop.key.startswith("sky.") else sc
+        want = schema.default(prop.key)
+        assert prop.default == want and prop.param is schema.declaration(prop.key), prop.name
+        if prop.widget == "auto":
+            assert getattr(s, "Get" + prop.flag)() == int(want == "auto"), prop.flag
+            assert getattr(s, "Get" + prop.name)() == prop.param.number, prop.name
+        else:
+            assert getattr(s, "Get" + prop.name)() == SKY_PANEL_DEFAULTS.get(prop.key, want), prop.name
+    keys = [p.key for p in SKY_IMAGE_PROPERTIES]
+    assert len(set(keys)) == len(keys)
+    assert {k for k in keys if k.startswith("sky.")} == {k for k, _, _ in sky_schema.parameters()}
+    assert {k for k in keys if not k.startswith("sky.")} == {"colour.stretch", "colour.asinh_q"} | {
+        k for k, _, _ in sc.parameters() if k.startswith("observer.")}
+    # the panel's empty Distance is the scene's None: the rest is a scene file's defaults
+    scene_keys = {k: v for k, v in s._values.items() if not k.startswith("sky.") and v != ""}
+    d, default = sc.Scene.from_dict(scene_values(scene_keys)), sc.Scene.default()
+    assert d.colour == default.colour and d.observer == default.observer
+    assert s.GetUnits() == SKY_UNITS[0]
+    assert s._camera() == Camera()
+    for f in dataclasses.fields(Camera):
+        if f"sky.{f.name}" in keys:
+            assert f.default == sky_schema.default(f"sky.{f.name}"), f.name
+    size = sky_schema.declaration("sky.size")
+    Camera(size=(size.lo, size.hi))  # the declared bounds are accepted, and just past them refused
+    for bad in ((size.lo - 1, 4), (4, size.hi + 1)):
+        with pytest.raises(ValueError, match="Camera.size"):
+            Camera(size=bad)
+
+
+def test_sky_image_messages_name_the_panel_label_and_the_key():
+    """A bad value of any of Nebula Sky Image's bound properties, whichever declares it (the
+    sky image's own camera and exposure, the scene's tone curve and observer), ends the run
+    with an empty output and ``<Label> (<key>) = <value>: <allowed>``; Units, the filter's own,
+    is named as it is. The checks come before the ray march, so a bare 2^3 image serves as
+    the input."""
+    from vtkmodules.vtkCommonExecutionModel import vtkTrivialProducer
+
+    from nebula_rt.filters.image_data import to_image_data
+    from nebula_rt.filters.sky_image import NebulaSkyImage
+
+    cases = [
+        (("SetImageSize", 0, 4), "Image Size (sky.size) = (0, 4): "),
+        (("SetExtent", -1.0), "Extent (sky.extent) = -1.0: "),
+        (("SetAutoExposure", 0), ("SetExposure", -2.0), "Exposure (sky.exposure) = -2.0: "),
+        (("SetStretch", "log"), "Stretch (colour.stretch) = 'log': "),
+        (("SetStretch", 1), ("SetAsinhQ", 0.0), "Asinh Q (colour.asinh_q) = 0.0: "),
+        (("SetDistance", "3 s"), "Distance (observer.distance) = '3 s': "),
+        (("SetDec", 90.5), "Dec (observer.dec) = 90.5: "),
+        (("SetPSFFWHM", -1.0), "PSF FWHM (observer.psf_fwhm) = -1.0: "),
+        (("SetUnits", "Jy"), "Units = 'Jy': must be one of 'box units', 'MJy/sr'"),
+    ]
+    producer = vtkTrivialProducer()
+    producer.SetOutput(to_image_data({"density": np.ones((2, 2, 2), np.float32)}, None, (1, 1, 1)))
+    for *calls, message in cases:
+        s = NebulaSkyImage()
+        s.SetInputConnection(producer.GetOutputPort())
+        for name, *args in calls:
+            getattr(s, name)(*args)
+        s.Update()
+        assert s.GetOutputDataObject(0).GetNumberOfPoints() == 0, message
+        assert s.last_error is not None and s.last_error.startswith("NebulaSkyImage: " + message), s.last_error
 
 
 def test_vtk_setters_take_enumeration_indices_and_whole_floats():
@@ -189,3 +290,20 @@ def test_schema_ranges_are_closed_numbers_or_none():
     for key, p, _ in sc.parameters():
         for b in (p.lo, p.hi):
             assert b is None or (isinstance(b, (int, float)) and math.isfinite(b)), key
+
+
+def test_integer_ranges_are_what_a_panel_holds_exactly():
+    """An integer past int32 travels as a double (ParaView's panel, pvpython, JSON), exact up to
+    2^53: every integer parameter's declared range stays within it, so no layer rounds a value
+    the scene accepts (the seed's 2^64 - 1 became 2^64 in a panel). The last integer of the
+    range survives the trip through a double and the next one does not."""
+    for key, p, _ in sc.parameters():
+        if p.type.startswith("int") or p.type.endswith("int"):
+            assert p.lo is not None and p.hi is not None, key
+            assert -2**53 <= p.lo and p.hi <= 2**53, key
+            assert int(float(p.hi)) == p.hi
+    seed = sc.declaration("transport.seed")
+    assert int(float(seed.hi + 1)) != seed.hi + 1  # 2^53 + 1: what a double cannot hold
+    lf = NebulaLightField()
+    lf.SetSeed(float(seed.hi))  # as the panel hands it over
+    assert lf.scene((4, 4, 4)).transport.seed == 2**53

@@ -6,7 +6,7 @@ Only decorators of ParaView 5.11's ``paraview.util.vtkAlgorithm`` are used (``sm
 
 from xml.sax.saxutils import escape, quoteattr
 
-from paraview.util.vtkAlgorithm import smdomain, smhint
+from paraview.util.vtkAlgorithm import smdomain, smhint, smproperty
 
 #: proxy hint: Filters > NebulaRT / Sources > NebulaRT
 MENU = '<ShowInMenu category="NebulaRT" />'
@@ -22,6 +22,26 @@ SKY_IMAGE_DISPLAY = ('<View type="NebulaSkyView" />'
                      '<RepresentationType view="NebulaSkyView" type="Slice" />'
                      '<RepresentationType view="RenderView" type="Slice" />'
                      '<PipelineIcon name="GEOMETRY" />')  # (the icon would be the view's, which has none)
+
+
+def help_text(cls):
+    """(short help, description) of a proxy from its VTK algorithm's docstring (the one place
+    it is written): the summary line, and the paragraphs after it as plain text."""
+    import inspect
+    import re
+
+    text = inspect.cleandoc(cls.__doc__ or "")
+    text = re.sub(r":\w+:`~?([^`]+)`", r"\1", text).replace("``", "")
+    paras = [" ".join(p.split()) for p in text.split("\n\n") if p.strip()]
+    return paras[0], " ".join(paras[1:]) or paras[0]
+
+
+def proxy_doc(cls):
+    """Class decorator: the proxy's ``<Documentation>`` (its help text: the properties panel's
+    help and the menus' status tips) from :func:`help_text` of the VTK algorithm ``cls``."""
+    short, body = help_text(cls)
+    return smproperty.xml("<Documentation long_help=%s short_help=%s>%s</Documentation>"
+                          % (quoteattr(short), quoteattr(short), escape(body)))
 
 
 def doc(text):
@@ -65,23 +85,64 @@ def property_groups(*groups):
     return "\n".join(out)
 
 
+def star_columns():
+    """The Stars table's column headers, in the order of the flat Stars vector
+    (nebula_rt.filters.base.STAR_FIELDS): x, y, z, then the star's own scene fields' labels."""
+    from nebula_rt import scene
+    from nebula_rt.filters.base import STAR_FIELDS
+    from nebula_rt.schema import label
+
+    out = []
+    for name in STAR_FIELDS:
+        if name in ("x", "y", "z"):
+            out.append(name.upper())
+        else:
+            key = "stars." + name
+            out.append(" ".join(w.capitalize() for w in label(key, scene.declaration(key)).split()))
+    return out
+
+
+def stars_doc():
+    """The Stars table's tooltip: its columns with the star's declarations (scene keys
+    ``stars.position``, ``stars.luminosity``, ``stars.temperature``, ``stars.bump_radius``)."""
+    from nebula_rt import scene
+    from nebula_rt.schema import range_text
+
+    parts = []
+    for cols, key in (("X, Y, Z", "stars.position"), ("Luminosity", "stars.luminosity"),
+                      ("Temperature", "stars.temperature"), ("Bump Radius", "stars.bump_radius")):
+        p = scene.declaration(key)
+        extra = "; ".join(x for x in (p.unit, range_text(p), "scene key " + key) if x)
+        parts.append(f"{cols}: {p.doc} ({extra}).")
+    return "One row per star. " + " ".join(parts)
+
+
 def stars_property(default, enabled_by=None):
     """The repeatable ``Stars`` property: 6 numbers per star, ``AddStar`` once per star after
     ``RemoveAllStars``; ``default``: the rows (6 numbers each) it starts with; ``enabled_by``:
-    ``(property, value)`` that enables the table."""
+    ``(property, value)`` that enables the table.
+
+    The table's columns have headers (``ShowComponentLabels``, read by ParaView's
+    pqDoubleVectorPropertyWidget for a repeatable property and handed to its
+    pqScalarValueListPropertyWidget). Its "+" copies the selected row, or the last one (5.11's
+    pqScalarValueListPropertyWidget; no XML sets a new row's values): the table starts with
+    the default star, so "+" adds a visible star, and only a table emptied first gets a row of
+    zeros (luminosity 0, refused on Apply naming the star's luminosity)."""
     values = " ".join(repr(float(v)) for v in default)
-    hints = ""
+    labels = "".join('<ComponentLabel component="%d" label=%s/>' % (i, quoteattr(t))
+                     for i, t in enumerate(star_columns()))
+    doc = escape(stars_doc())
+    hints = "<ShowComponentLabels>%s</ShowComponentLabels>" % labels
     if enabled_by:
-        hints = ('<Hints><PropertyWidgetDecorator type="GenericDecorator" mode="enabled_state" property=%s '
-                 'value=%s /></Hints>' % (quoteattr(enabled_by[0]), quoteattr(str(enabled_by[1]))))
+        hints += ('<PropertyWidgetDecorator type="GenericDecorator" mode="enabled_state" property=%s '
+                  'value=%s />' % (quoteattr(enabled_by[0]), quoteattr(str(enabled_by[1]))))
+    hints = "<Hints>%s</Hints>" % hints
     return """
 <DoubleVectorProperty name="Stars" label="Stars" command="AddStar" clean_command="RemoveAllStars"
     repeat_command="1" number_of_elements_per_command="6" use_index="0"
     number_of_elements="%d" default_values="%s">
-  <Documentation>One row per star: x, y, z (box units, [0, 1]), luminosity, temperature (K; 0 =
-    flat spectrum), bump radius (box units; the cubic dust bump around the star, used by Nebula
-    Dust Density only).</Documentation>%s
-</DoubleVectorProperty>""" % (len(default), values, hints)
+  <Documentation>%s</Documentation>%s
+</DoubleVectorProperty>""" % (len(default), values, doc, hints)
 
 
 STARS_FROM_INPUT = """
@@ -116,8 +177,8 @@ DENSITY_ARRAY = """
 
 # -- properties made from the scene schema (nebula_rt.filters.properties) ---------------------
 INT32 = (-2**31, 2**31 - 1)
-#: integers past int32 (photon counts, seeds) travel as doubles: exact up to 2^53, and a
-#: pvpython ``Photons=1e5`` is taken as the integer it is
+#: integers past int32 (photon counts, seeds) travel as doubles: exact up to 2^53, which the
+#: scene's ranges keep to, and a pvpython ``Photons=1e5`` is taken as the integer it is
 DOUBLE_EXACT = 2**53
 
 
@@ -126,10 +187,15 @@ def _values_text(v):
     return " ".join(repr(float(x)) if isinstance(x, float) else str(int(x)) for x in vals)
 
 
+def _key_text(key):
+    """How a tooltip names the parameter: a scene key, or the sky image's own (not in scene files)."""
+    return ("key " if key.startswith("sky.") else "scene key ") + key
+
+
 def _tooltip(prop, p):
     from nebula_rt.schema import range_text
 
-    extra = [x for x in (p.unit, range_text(p), "scene key " + prop.key) if x]
+    extra = [x for x in (p.unit, range_text(p), _key_text(prop.key)) if x]
     return escape(" ".join(f"{p.doc} ({'; '.join(extra)}).".split()))
 
 
@@ -147,6 +213,11 @@ def bound_property(prop, default=None):
     if p.advanced:
         attrs += ' panel_visibility="advanced"'
     n = prop.elements
+    flag, enabled_by = "", prop.enabled_by
+    if prop.widget == "auto":
+        # "auto" or a number: the check box first, then the number it disables
+        flag = _auto_flag(prop, p, d == "auto")
+        d, enabled_by = prop.number, (prop.flag, 0)
     if prop.widget == "enum":
         texts = [p.choice_labels[p.choices.index(c)] if p.choice_labels else c for c in prop.choices]
         items = "".join('<Entry value="%d" text=%s/>' % (i, quoteattr(t)) for i, t in enumerate(texts))
@@ -167,7 +238,10 @@ def bound_property(prop, default=None):
             lo, hi = p.lo, p.hi
         else:
             tag, dom = "DoubleVectorProperty", "DoubleRangeDomain"
-            lo, hi = p.lo, (min(p.hi, DOUBLE_EXACT) if integer and p.hi is not None else p.hi)
+            lo, hi = p.lo, p.hi
+            if integer and (hi is None or hi > DOUBLE_EXACT or lo is None or lo < -DOUBLE_EXACT):
+                # the scene must declare what the panel holds (nebula_rt.scene.MAX_SEED)
+                raise ValueError(f"{prop.key}: an integer range past 2**53 cannot be a panel property exactly")
         bounds = "".join(' %s="%s"' % (k, _values_text(v)) for k, v in (("min", lo), ("max", hi)) if v is not None)
         if n > 1 and bounds:  # every element in the same range
             bounds = "".join(' %s="%s"' % (k, " ".join([_values_text(v)] * n)) for k, v in (("min", lo), ("max", hi))
@@ -175,14 +249,30 @@ def bound_property(prop, default=None):
         domain = '<%s name="range"%s/>' % (dom, bounds) if bounds else ""
         dflt = _values_text(d)
     hints = ""
-    for mode, rule in (("enabled_state", prop.enabled_by), ("visibility", prop.shown_by)):
+    for mode, rule in (("enabled_state", enabled_by), ("visibility", prop.shown_by)):
         if rule:
             hints += ('<PropertyWidgetDecorator type="GenericDecorator" mode="%s" property=%s value=%s />'
                       % (mode, quoteattr(rule[0]), quoteattr(str(rule[1]))))
     if hints:
         hints = "<Hints>%s</Hints>" % hints
-    return ('<%s %s number_of_elements="%d" default_values="%s">%s<Documentation>%s</Documentation>%s</%s>'
-            % (tag, attrs, n, dflt, domain, _tooltip(prop, p), hints, tag))
+    return flag + ('<%s %s number_of_elements="%d" default_values="%s">%s<Documentation>%s</Documentation>%s</%s>'
+                   % (tag, attrs, n, dflt, domain, _tooltip(prop, p), hints, tag))
+
+
+def _auto_flag(prop, p, on):
+    """The check box of an "auto or number" property (``Auto Exposure``: its label from its
+    name), shown with the same visibility as the number."""
+    import re
+
+    from nebula_rt.schema import label
+
+    text = re.sub(r"(?<!^)(?=[A-Z])", " ", prop.flag)
+    tip = escape(" ".join((f"On: {label(prop.key, p)} is chosen from the data ({_key_text(prop.key)} = "
+                           f"'auto'); off: the number below. {p.doc}.").split()))
+    vis = ' panel_visibility="advanced"' if p.advanced else ""
+    return ('<IntVectorProperty name=%s label=%s command=%s number_of_elements="1" default_values="%d"%s>'
+            '<BooleanDomain name="bool"/><Documentation>%s</Documentation></IntVectorProperty>'
+            % (quoteattr(prop.flag), quoteattr(text), quoteattr("Set" + prop.flag), int(on), vis, tip))
 
 
 def bound_properties(props, defaults=None, extra=None):

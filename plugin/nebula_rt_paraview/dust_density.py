@@ -25,6 +25,7 @@ PANEL = "\n".join([
 
 @smproxy.source(name="NebulaDustDensity", label="Nebula Dust Density", support_reload=False)
 @smhint.xml(_xml.MENU)
+@_xml.proxy_doc(_base.NebulaDustDensity)
 @smhint.xml(_xml.VOLUME)
 @smproperty.xml(PANEL)
 class NebulaDustDensity(_base.NebulaDustDensity):

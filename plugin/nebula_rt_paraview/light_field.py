@@ -55,6 +55,7 @@ PANEL = "\n".join([
 
 @smproxy.filter(name="NebulaLightField", label="Nebula Light Field", support_reload=False)
 @smhint.xml(_xml.MENU)
+@_xml.proxy_doc(_base.NebulaLightField)
 @smhint.xml(_xml.LIGHT_FIELD_DISPLAY)
 @smproperty.xml(_xml.LIGHT_FIELD_PORTS)
 @smproperty.xml(PANEL)

@@ -12,7 +12,7 @@ With the stars' luminosities in L_sun (``stars.luminosity_lsun`` or ``absolute_m
   frequency width (its edges: :func:`nebula_rt.colour_convert.band_edges`, over which the band
   carries the star's light). Surface brightness does not depend on the distance;
 - each star as a point source of flux density ``F_nu,b = L_b exp(-tau_b) L_sun / (4 pi D^2) /
-  dnu_b``, tau_b its optical depth to the observer (:func:`nebula_rt.observe.line_of_sight_tau`),
+  dnu_b``, tau_b its optical depth to the observer (:func:`nebula_rt.line_of_sight.line_of_sight_tau`),
   at its projected position;
 - the image (scattered light and stars) convolved with a Gaussian PSF of FWHM
   ``observer.psf_fwhm`` (arcsec), integrated over each pixel (so the flux is kept exactly
@@ -425,7 +425,7 @@ def camera_for(scene, direction=(0.0, 0.0, -1.0), size: int = 256, up=(0.0, 1.0,
 def peel_off_sky(scene, camera, backend=None, progress=None, cancel=None):
     """Trace ``scene`` with a peel-off image for ``camera`` and calibrate it; returns
     (CalibratedSky, transport result). The stars' optical depths to the observer are the
-    exact march of :func:`nebula_rt.observe.line_of_sight_tau`."""
+    exact march of :func:`nebula_rt.line_of_sight.line_of_sight_tau`."""
     from .backends import get_backend
     from .density import generate_density
     from .transport import trace
@@ -448,8 +448,8 @@ def peel_off_sky(scene, camera, backend=None, progress=None, cancel=None):
 
 def star_tau(scene, bands, rho, camera) -> np.ndarray:
     """(n_stars, n_bands) optical depth from each star to the observer of ``camera`` (the exact
-    march of :func:`nebula_rt.observe.line_of_sight_tau` through ``rho``)."""
-    from .observe import line_of_sight_tau
+    march of :func:`nebula_rt.line_of_sight.line_of_sight_tau` through ``rho``)."""
+    from .line_of_sight import line_of_sight_tau
 
     sigma = np.array([scene.dust.tau * b.extinction for b in bands])[:, None, None, None] * \
         np.asarray(rho, np.float64)[None]

@@ -60,8 +60,8 @@ def load_density_file(path: Path, array: str, shape: tuple[int, int, int]) -> np
         if suffix == ".npy":
             data = np.load(path, allow_pickle=False)
         elif suffix == ".vti":
-            try:  # the VTK layer (the io extra)
-                from .filters.vti import read_density_array
+            try:  # the VTK layer: VTK's own reader (the io extra, or ParaView's VTK; no pyvista needed)
+                from .filters.density_file import read_density_array
             except ImportError as exc:
                 raise SceneError("dust.file", str(path), f"a .vti density needs {(exc.name or 'vtk').split('.')[0]}: "
                                                          "pip install 'nebula-rt[io]', or give a .npy file") from None

@@ -337,13 +337,16 @@ class LightFieldData(ContractData):
     photons: Optional[int] = _field("int64", "packets traced per band")
     photons_budget: Optional[int] = _field("int64", "packet budget per band (= photons unless error-targeted)")
     achieved_error: Optional[float] = _field("float64", "lit-region relative error reached (NaN: not measured)")
-    seed: Optional[int] = _field("uint64", "transport.seed, the whole range [0, 2^64)")
+    seed: Optional[int] = _field("uint64", "transport.seed (the scene's [0, 2^53]; files may hold any uint64)")
     batches: Optional[int] = _field("int64", "batches per band (the unit of the error estimate)")
     transport_ranks: Optional[int] = _field("int64", "processes that traced together")
     estimator: Optional[str] = _field("str", "transport.estimator")
     transport_method: Optional[str] = _field("str", "transport.method", optional=True)
     device: Optional[str] = _field("str", "the compute device")
     exposure: Optional[float] = _field("float64", "exposure of rgba (NaN: no colour stage ran)")
+    opacity_scale: Optional[float] = _field(
+        "float64", "factor on the reference band's optical depth in rgba's alpha (colour.opacity_scale, or "
+        "the one 'auto' chose from the data; NaN: no colour stage ran)")
     colour_temperature: Optional[float] = _field("float64", "temperature (K) of the most luminous star "
                                                             "(0: flat or measured spectrum)")
     device_memory_peak_bytes: Optional[int] = _field("int64", "peak device memory of the run (bytes)",

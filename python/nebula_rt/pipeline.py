@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import time
 from collections import Counter
 from dataclasses import dataclass, field
@@ -44,6 +45,8 @@ class LightField:
     transport: TransportResult
     exposure: float
     reference_band: int
+    #: the factor on the reference band's optical depth in rgba's alpha (NaN: no colour)
+    opacity_scale: float = float("nan")
     timings: dict = field(default_factory=dict)
     #: peak device memory of the run and peak host RSS of the process (bytes)
     memory: dict = field(default_factory=dict)
@@ -103,6 +106,7 @@ class LightField:
             estimator=tr.estimator,
             device=tr.device,
             exposure=self.exposure,
+            opacity_scale=self.opacity_scale,
             colour_temperature=t if t is not None else 0.0,
             device_memory_peak_bytes=int(self.memory.get("device_peak_bytes", 0)) if self.memory else None,
             scene=_reproducible_scene(self.scene).to_toml(),
@@ -144,6 +148,44 @@ def dust_file_digest(scene):
 #: Auto exposure: percentile of the per-voxel max colour component, over voxels at least this opaque.
 AUTO_EXPOSURE_PERCENTILE = 95.0
 AUTO_EXPOSURE_MIN_ALPHA = 0.01
+
+#: Auto opacity (colour.opacity_scale = "auto"): the rgba volume's alpha gets the optical depth
+#: scaled so that the box's mean optical depth across one edge is this. A composited ray then
+#: sums S (1 - exp(-tau)) over its path, S the colour (the source function, which the opacity
+#: does not change): with the dust's own opacity a thin nebula (the scene's default, tau 1: a
+#: mean of 0.027) showed under 3 % of its colour and a very thick one only its near face. At 3 a
+#: ray through the box keeps exp(-1.5) = 22 % of the light of the far half, so the whole nebula
+#: shows and lit rays reach most of the display range; the thesis's 128^3 nebula has 3.4 of its
+#: own (factor 0.88), so its picture hardly changes (docs/paraview.md has both measured).
+AUTO_OPACITY_MEAN_TAU = 3.0
+
+
+def mean_optical_depth(density, sigma_scale: float = 1.0) -> float:
+    """The reference band's mean optical depth across the box (one box edge): ``sigma_scale``
+    (extinction per box unit at density 1) x the mean density, which is also the mean over the
+    box's columns, along any axis, of their optical depths.
+
+    Summed in float64, one z slice at a time in the VTK point order (x fastest), whatever the
+    array's dtype and memory layout: the light field's colour (from the density stage) and Nebula
+    Colour's (from the output's density array) find the same bits, with one slice of memory."""
+    rho = to_numpy(density)
+    if rho.size == 0:
+        return 0.0
+    total = 0.0
+    for k in range(rho.shape[2]):
+        total += float(np.sum(np.ravel(np.asarray(rho[:, :, k], dtype=np.float64), order="F")))
+    return float(sigma_scale) * (total / rho.size)
+
+
+def opacity_factor(opacity_scale, mean_tau: float) -> float:
+    """The factor on each voxel's optical depth in rgba's alpha: ``opacity_scale`` when it is a
+    number; for ``"auto"`` the one that makes ``mean_tau`` (:func:`mean_optical_depth`)
+    :data:`AUTO_OPACITY_MEAN_TAU` (1 where there is no dust to scale)."""
+    if opacity_scale != "auto":
+        return float(opacity_scale)
+    if not (math.isfinite(mean_tau) and mean_tau > 0.0):
+        return 1.0
+    return AUTO_OPACITY_MEAN_TAU / mean_tau
 
 
 def _key(obj) -> str:
@@ -243,9 +285,9 @@ class Pipeline:
         light = finish_light_field(scene, rho, res, J, rel, colour=need_colour)
         if need_colour:
             self.executions["colour"] += 1
-            self._cache["colour"] = (ckey, (light.rgba, light.exposure))
+            self._cache["colour"] = (ckey, (light.rgba, light.exposure, light.opacity_scale))
         elif colour:
-            light.rgba, light.exposure = hit[1]
+            light.rgba, light.exposure, light.opacity_scale = hit[1]
         t3 = time.perf_counter()
         light.dust_file_sha256 = digest or ""
         light.timings = {"density_s": t1 - t0, "transport_s": t2 - t1, "finish_s": t3 - t2,
@@ -340,6 +382,7 @@ def finish_light_field(scene, rho, res: TransportResult, J=None, rel=None, colou
         light, emissivity, rho_x = assemble_light_field(scene, rho, res, J, rel, with_device_emissivity=True)
         if colour:
             light.rgba, light.exposure = colour_rgba(scene, bands, rho_x, emissivity, res)
+            light.opacity_scale = scene_opacity_factor(scene, bands, rho_x)
         light.memory = _memory(res, 0)
         return light
     params = np.stack([res.j_scale, res.sigma_scale, [b.albedo for b in bands]], axis=1)
@@ -350,12 +393,13 @@ def finish_light_field(scene, rho, res: TransportResult, J=None, rel=None, colou
     if colour:
         ref = reference_band_index(bands)
         cfg = scene.colour
+        sigma_ref_scale = scene.dust.tau * bands[ref].extinction
         csetup = postprocess.ColourSetup(
             to_rgb=colour_matrix([b.wavelength for b in bands], res.band_luminosity,
                                  _dominant_source(scene.stars), cfg.white_point),
-            sigma_ref_scale=scene.dust.tau * bands[ref].extinction,
+            sigma_ref_scale=sigma_ref_scale,
             voxel_edge=_voxel_edge(ds.shape),
-            opacity_scale=cfg.opacity_scale,
+            opacity_scale=scene_opacity_factor(scene, bands, rho),
             exposure=cfg.exposure,
             percentile=AUTO_EXPOSURE_PERCENTILE,
             min_alpha=AUTO_EXPOSURE_MIN_ALPHA,
@@ -380,11 +424,13 @@ def finish_light_field(scene, rho, res: TransportResult, J=None, rel=None, colou
         transport=res,
         exposure=out.exposure,
         reference_band=reference_band_index(bands),
+        opacity_scale=csetup.opacity_scale if csetup is not None else float("nan"),
     )
     light.memory = _memory(res, out.device_bytes, out.peak_device_bytes)
     if host_colour:
-        light.rgba, light.exposure = colour_rgba(scene, bands, np.asarray(rho, np.float64),
-                                                 light.emissivity.astype(np.float64), res)
+        rho_h = np.asarray(rho, np.float64)
+        light.rgba, light.exposure = colour_rgba(scene, bands, rho_h, light.emissivity.astype(np.float64), res)
+        light.opacity_scale = scene_opacity_factor(scene, bands, rho_h)
     return light
 
 
@@ -476,19 +522,28 @@ def _dominant_source(stars):
     return star.spectral_source()
 
 
+def scene_opacity_factor(scene, bands, rho) -> float:
+    """The factor on the reference band's optical depth in a scene's rgba alpha
+    (:func:`opacity_factor` of ``colour.opacity_scale`` and the density ``rho``)."""
+    sigma_ref_scale = scene.dust.tau * bands[reference_band_index(bands)].extinction
+    return opacity_factor(scene.colour.opacity_scale, mean_optical_depth(rho, sigma_ref_scale))
+
+
 def colour_rgba(scene, bands, rho, emissivity, res: TransportResult) -> tuple[np.ndarray, float]:
-    """Stage 3 for a scene: see :func:`rgba_from_emissivity`."""
+    """Stage 3 for a scene: see :func:`rgba_from_emissivity` (the opacity factor is
+    :func:`scene_opacity_factor`'s). Returns (rgba, exposure used)."""
     ref = reference_band_index(bands)
     cfg = scene.colour
+    sigma_ref_scale = scene.dust.tau * bands[ref].extinction
     return rgba_from_emissivity(
         emissivity,
-        scene.dust.tau * bands[ref].extinction * rho,
+        sigma_ref_scale * rho,
         wavelengths_nm=np.array([b.wavelength for b in bands]),
         band_luminosity=res.band_luminosity,
         temperature=_dominant_source(scene.stars),
         exposure=cfg.exposure,
         white_point=cfg.white_point,
-        opacity_scale=cfg.opacity_scale,
+        opacity_scale=scene_opacity_factor(scene, bands, rho),
         stretch=cfg.stretch,
         asinh_q=cfg.asinh_q,
     )
@@ -556,8 +611,10 @@ def rgba_from_emissivity(
         (wavelength nm, power) pairs.
     exposure : "auto" or float
     white_point : {"D65", "E", "star"}
-    opacity_scale : float
-        Multiplies the optical depth of a voxel in alpha.
+    opacity_scale : float or "auto"
+        Multiplies the optical depth of a voxel in alpha; "auto": :func:`opacity_factor` of
+        ``sigma_ref``'s mean (callers that hold the density pass the factor of
+        :func:`mean_optical_depth` of it, which the device's colour uses too).
     stretch, asinh_q : str, float
         The tone curve (``colour.stretch``: "linear", the exposure and the sRGB curve, or
         "asinh", :func:`nebula_rt.colour_convert.encode_asinh` with softening ``asinh_q``).
@@ -577,6 +634,8 @@ def rgba_from_emissivity(
     rgb = xp.where(sigma_ref[..., None] > 0, rgb / safe[..., None], 0.0)
     rgb = colour_convert.gamut_map(rgb)
     h = _voxel_edge(shape)
+    if opacity_scale == "auto":
+        opacity_scale = opacity_factor("auto", mean_optical_depth(sigma_ref))
     alpha = 1.0 - xp.exp(-sigma_ref * h * opacity_scale)
     if exposure == "auto":
         # J falls as 1/r^2 from the star, so a percentile over all voxels is set by the few

@@ -72,7 +72,11 @@ BACKENDS = ("auto", "opencl", "cuda")
 WHITE_POINTS = ("D65", "E", "star")
 STRETCHES = ("linear", "asinh")
 MAX_PHOTONS = 2**53
-MAX_SEED = 2**64
+#: Seeds are [0, 2**53]: the RNG's key is 64 bits (any uint64 would work on the device), but a
+#: seed travels as a double in ParaView's panel, in pvpython and in JSON, which hold every
+#: integer exactly up to 2**53 and no further (2**53 + 1 becomes 2**53 without a word). So the
+#: scene declares what every layer holds exactly rather than a range the panel would round.
+MAX_SEED = 2**53
 
 
 # ---------------------------------------------------------------------------
@@ -267,7 +271,7 @@ class Transport:
         1000, type="int", lo=0, hi=INT32_MAX, label="Max Scatterings", group=G_TRANSPORT, advanced=True,
         doc="A packet is terminated (and tallied as such) after this many scatterings")
     seed: int = param(
-        1, type="int", lo=0, hi=MAX_SEED - 1, group=G_TRANSPORT, advanced=True,
+        1, type="int", lo=0, hi=MAX_SEED, group=G_TRANSPORT, advanced=True,
         doc="Random seed: the same seed, scene and device give the same bits")
     backend: str = param(
         "auto", type="str", choices=BACKENDS, group=G_DEVICE, advanced=True,
@@ -311,15 +315,19 @@ class Colour:
     """Conversion of the band results to sRGB, TOML table ``[colour]`` (extension)."""
 
     exposure: Union[float, str] = param(
-        "auto", type="\"auto\" or float", group=G_COLOUR,
-        doc="\"auto\" or a finite factor > 0 applied to the linear colour before the sRGB transfer")
+        "auto", type="\"auto\" or float", lo=0.0, lo_open=True, auto=True, number=1.0, group=G_COLOUR,
+        doc="Factor applied to the linear colour before the sRGB transfer; \"auto\": the one that maps "
+            "the 95th percentile of the visible voxels' brightest colour component to full scale")
     white_point: str = param(
         "D65", type="str", choices=WHITE_POINTS, label="White Point", group=G_COLOUR,
         doc="White balance: D65 (daylight), E (equal energy) or star (the first star's blackbody "
             "colour is white)")
-    opacity_scale: float = param(
-        1.0, type="float", lo=0.0, lo_open=True, label="Opacity Scale", group=G_COLOUR,
-        doc="Factor on each voxel's reference-band optical depth in the volume's alpha")
+    opacity_scale: Union[float, str] = param(
+        "auto", type="\"auto\" or float", lo=0.0, lo_open=True, auto=True, number=1.0, label="Opacity Scale",
+        group=G_COLOUR,
+        doc="Factor on each voxel's reference-band optical depth in the volume's alpha (1: the dust's own "
+            "opacity); \"auto\": the factor that gives the box a mean optical depth of 3 across, so that a "
+            "thin or a thick nebula is seen through as a whole (nebula_rt.pipeline.AUTO_OPACITY_MEAN_TAU)")
     stretch: str = param(
         "linear", type="str", choices=STRETCHES, label="Stretch", group=G_COLOUR,
         doc="Tone curve of the pictures: linear (the exposure, then the sRGB transfer curve) or "
@@ -481,7 +489,7 @@ def _opt_nonneg(v: Optional[float]) -> bool:
     return v is None or (math.isfinite(v) and v >= 0)
 
 
-def _to_exposure(v: Any) -> Union[float, str]:
+def _to_auto_or_float(v: Any) -> Union[float, str]:
     if v == "auto" and isinstance(v, str):
         return v
     return _to_float(v)
@@ -623,7 +631,8 @@ TRANSPORT_RULES: Dict[str, _Rule] = {
     "filter_radius": _Rule(_to_float, "must be a finite number > 0 (box units)", _finite_pos),
     "max_scatterings": _Rule(_to_int, f"must be an integer in [0, {INT32_MAX}] (int32 on the device)",
                              lambda v: 0 <= v <= INT32_MAX),
-    "seed": _Rule(_to_int, "must be an integer in [0, 2**64)", lambda v: 0 <= v < MAX_SEED),
+    "seed": _Rule(_to_int, "must be an integer in [0, 2**53] (exact as a double: ParaView's panel, pvpython)",
+                  lambda v: 0 <= v <= MAX_SEED),
     "backend": _Rule(_to_str, _one_of(BACKENDS), lambda v: v in BACKENDS),
     "device": _ANY_STR,
     "batch_size": _Rule(_to_int, f"must be an integer in [0, {MAX_PHOTONS}] (0 = automatic)",
@@ -637,12 +646,13 @@ TRANSPORT_RULES: Dict[str, _Rule] = {
 
 COLOUR_RULES: Dict[str, _Rule] = {
     "exposure": _Rule(
-        _to_exposure,
+        _to_auto_or_float,
         "must be 'auto' or a number > 0 in " + FLOAT32_RANGE_TEXT + " (the colours are float32)",
         lambda v: v == "auto" or _float32_pos(v),
     ),
     "white_point": _Rule(_to_str, _one_of(WHITE_POINTS), lambda v: v in WHITE_POINTS),
-    "opacity_scale": _Rule(_to_float, "must be a finite number > 0", _finite_pos),
+    "opacity_scale": _Rule(_to_auto_or_float, "must be 'auto' or a finite number > 0",
+                           lambda v: v == "auto" or _finite_pos(v)),
     "stretch": _Rule(_to_str, _one_of(STRETCHES), lambda v: v in STRETCHES),
     "asinh_q": _Rule(_to_float, "must be a number in (0, 1e10] (the asinh softening Q)",
                      lambda v: 0.0 < v <= 1e10),

@@ -60,6 +60,12 @@ class Param:
         The panel group ("" = none).
     advanced : bool
         Shown only under the panel's advanced (gear) toggle.
+    auto : bool
+        The parameter is ``"auto"`` (the value chosen from the data) or a number in the range:
+        a panel shows a check box ("Auto <label>") and the number, enabled while it is off.
+    number : float or None
+        With ``auto``: the number a panel holds until one is chosen (and the scene's value once
+        the check box is cleared).
     """
 
     doc: str
@@ -73,6 +79,8 @@ class Param:
     label: str = ""
     group: str = ""
     advanced: bool = False
+    auto: bool = False
+    number: Optional[float] = None
 
 
 def param(default: Any = dataclasses.MISSING, *, default_factory: Any = dataclasses.MISSING, **kw) -> Any:
@@ -122,13 +130,16 @@ def range_text(p: Param) -> str:
     if p.choices:
         return "one of " + ", ".join(repr(c) for c in p.choices)
     lo_op = ">" if p.lo_open else ">="
+    text = ""
     if p.lo is not None and p.hi is not None:
-        return f"in {'(' if p.lo_open else '['}{_num(p.lo)}, {_num(p.hi)}]"
-    if p.lo is not None:
-        return f"{lo_op} {_num(p.lo)}"
-    if p.hi is not None:
-        return f"<= {_num(p.hi)}"
-    return ""
+        text = f"in {'(' if p.lo_open else '['}{_num(p.lo)}, {_num(p.hi)}]"
+    elif p.lo is not None:
+        text = f"{lo_op} {_num(p.lo)}"
+    elif p.hi is not None:
+        text = f"<= {_num(p.hi)}"
+    if p.auto:
+        return "'auto' or a number " + text if text else "'auto' or a number"
+    return text
 
 
 def document(cls: type) -> type:

@@ -36,6 +36,8 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from . import sky_schema as _declared
+
 __all__ = ["Camera", "SkyImage", "sky_image"]
 
 #: Below this optical depth of a segment, ``(1 - exp(-x)) / sigma`` is replaced by its series
@@ -72,7 +74,7 @@ class Camera:
         axis ``v``.  If it is (nearly) parallel to ``direction``, the first of the box axes
         ``+y, +z, +x`` least aligned with ``direction`` is used instead (deterministic).
     size : tuple of 2 int
-        Image size in pixels ``(W, H)``, each >= 1.
+        Image size in pixels ``(W, H)``, each in [1, 2**31 - 1] (VTK's int32 extents).
     extent : float
         Side of the field of view along ``u`` (the width) in box units; the height is
         ``extent * H / W`` so pixels are square.  ``0`` (default) means ``sqrt(3)``, the box's
@@ -92,10 +94,11 @@ class Camera:
         A parameter is malformed; the message names it (``Camera.direction`` ...).
     """
 
-    direction: tuple[float, float, float] = (0.0, 0.0, -1.0)
-    up: tuple[float, float, float] = (0.0, 1.0, 0.0)
-    size: tuple[int, int] = (256, 256)
-    extent: float = 0.0
+    # the defaults and the size's range are the sky image's declarations (nebula_rt.sky_schema)
+    direction: tuple[float, float, float] = _declared.default("sky.direction")
+    up: tuple[float, float, float] = _declared.default("sky.up")
+    size: tuple[int, int] = _declared.default("sky.size")
+    extent: float = _declared.default("sky.extent")
     center: tuple[float, float, float] = (0.5, 0.5, 0.5)
 
     def __post_init__(self):
@@ -111,12 +114,13 @@ class Camera:
             size = tuple(self.size)
         except TypeError as exc:
             raise ValueError(f"Camera.size must be 2 integers (W, H) >= 1, got {self.size!r}") from exc
+        lo, hi = _declared.declaration("sky.size").lo, _declared.declaration("sky.size").hi
         if (
             len(size) != 2
             or any(isinstance(s, bool) or not isinstance(s, numbers.Integral) for s in size)
-            or any(int(s) < 1 for s in size)
+            or any(not lo <= int(s) <= hi for s in size)
         ):
-            raise ValueError(f"Camera.size must be 2 integers (W, H) >= 1, got {self.size!r}")
+            raise ValueError(f"Camera.size must be 2 integers (W, H) in [{lo}, {hi}], got {self.size!r}")
         if isinstance(self.extent, bool) or not isinstance(self.extent, numbers.Real):
             raise ValueError(f"Camera.extent must be a real number >= 0, got {self.extent!r}")
         extent = float(self.extent)

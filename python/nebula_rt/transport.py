@@ -83,8 +83,8 @@ AUTO_THIN, AUTO_THICK = 1.0, 40.0
 def scene_optical_depth(density, tau: float, stars) -> float:
     """The scene's optical depth in the reference band: the median, over the stars and the six
     axis directions, of the optical depth from the star to the box's edge (an exact voxel
-    march, :func:`nebula_rt.observe.line_of_sight_tau`)."""
-    from .observe import line_of_sight_tau
+    march, :func:`nebula_rt.line_of_sight.line_of_sight_tau`)."""
+    from .line_of_sight import line_of_sight_tau
 
     sigma = float(tau) * np.asarray(density, np.float64)
     depths = [float(line_of_sight_tau(sigma, s.position, d)[0]) for s in stars

@@ -2,7 +2,7 @@
 
     pvpython|pvbatch check_plugin.py
 
-RESULT: per proxy its group/label/menu/representation hints and property facts; the outputs
+RESULT: per proxy its group/label/menu/representation hints, help text and property facts; the outputs
 (points, arrays with their stats, field data) of a 16^3 pipeline: density -> light field
 (two stars) -> colour, light field -> sky image, and a light field on a cell-data density.
 """
@@ -23,6 +23,8 @@ for name in PROXY_NAMES:
     info = {"group": group, "defined": proto is not None}
     if proto is not None:
         info["label"] = proto.GetXMLLabel()
+        d = proto.GetDocumentation()  # the proxy's help text
+        info["help"] = {"short": d.GetShortHelp(), "long": d.GetLongHelp(), "description": d.GetDescription()}
         hints = proto.GetHints()
         menu = hints.FindNestedElementByName("ShowInMenu") if hints else None
         info["menu"] = menu.GetAttribute("category") if menu else None

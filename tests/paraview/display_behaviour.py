@@ -4,7 +4,7 @@ mapping follows the data (nebula_rt_paraview.display).
     pvpython display_behaviour.py
 
 1. Show(light field) and Render, no helper: the rgba volume and the Stars port;
-2. a Nebula Colour shown the same way; Opacity Scale 3 -> the alpha range grows -> the mapping
+2. a Nebula Colour shown the same way; Auto Opacity off, Opacity Scale 3 -> the alpha range grows -> the mapping
    is refitted at the next render;
 3. the user's own opacity function is kept through a later data change;
 4. a representation with the per-world-unit mapping of older states is adopted and refitted.
@@ -55,6 +55,7 @@ colour = simple.NebulaColour(light)
 d_colour = simple.Show(colour, view)
 simple.Render(view)
 steps["colour"] = facts(d_colour)
+colour.AutoOpacity = 0  # the number from now on: 3 times the dust's own opacity (auto: 0.9 here)
 colour.OpacityScale = 3.0
 simple.Render(view)
 steps["opacity_scale_3"] = facts(d_colour)

@@ -9,7 +9,8 @@ $NEBULA_GUI_OUT:
 - ``<step>.json``: the layouts (tabs) and their views, each view's type, size, camera,
   background and representations (producer, port, representation type, colouring, Map
   Scalars, visibility, colour bar), the stars' display positions, and data facts (the sky
-  image's mean rgb);
+  image's mean rgb); the NebulaRT proxies' Stars values, last errors, exposure and opacity
+  factor;
 - with ``GRAB = True``: ``<step>-window.png``, the whole screen (the docs' picture).
 """
 
@@ -111,6 +112,21 @@ try:
         v["png"] = png
         record["views"].append(v)
     record["sources"] = sorted(k[0] for k in simple.GetSources())
+    # the NebulaRT proxies: their Stars table's values, the last error, the light field's
+    # exposure and opacity factor (field data)
+    record["proxies"] = {}
+    for (name, _id), px in simple.GetSources().items():
+        if not px.GetXMLName().startswith("Nebula"):
+            continue
+        entry = {"xml": px.GetXMLName(), "last_error": px.GetClientSideObject().last_error}
+        if "Stars" in px.ListProperties():
+            entry["Stars"] = [float(x) for x in px.Stars]
+        if px.GetXMLName() in ("NebulaLightField", "NebulaColour") and entry["last_error"] is None:
+            fd = servermanager.Fetch(px).GetFieldData()
+            for key in ("exposure", "opacity_scale"):
+                arr = fd.GetArray(key)
+                entry[key] = float(arr.GetValue(0)) if arr is not None else None
+        record["proxies"][name] = entry
     if globals().get("GRAB"):
         from PIL import ImageGrab
 

@@ -1,4 +1,4 @@
-"""The Nebula Light Field proxy as ParaView built it from the scene schema, and one run.
+"""The NebulaRT proxies as ParaView built them from the schema, and one run.
 
     pvpython schema_layers.py DENSITY.vti DENSITY.npy PHOTONS
 
@@ -9,8 +9,10 @@ SHA-256 of each J_<band> array's bytes of a light field with every property at i
 except Photons and Device, three ways in this process (so on this ParaView's OpenCL device):
 ``proxy`` (the proxy on ParaView's reader of DENSITY.vti), ``vtk`` (the plain VTK filter on
 VTK's reader of the same file), ``scene`` (a scene file's dict with dust.file = DENSITY.npy
-through the Pipeline); ``int_photons_from_float``: the photons a ``Photons=1e4`` assignment
-stores.
+through the Pipeline), and ``scene_vti`` (the same with dust.file = DENSITY.vti: read by VTK's
+own reader in this Python, which has no pyvista: ``pyvista_importable``);
+``int_photons_from_float``: the photons a ``Photons=1e4`` assignment stores. The same
+descriptions for the density source, the colour and the sky image (``*_properties``).
 """
 
 import hashlib
@@ -70,6 +72,7 @@ def describe(group, name):
 props, groups = describe("filters", "NebulaLightField")
 density_props, density_groups = describe("sources", "NebulaDustDensity")
 colour_props, _ = describe("filters", "NebulaColour")
+sky_props, sky_groups = describe("filters", "NebulaSkyImage")
 
 reader = simple.XMLImageDataReader(FileName=[path])
 light = simple.NebulaLightField(reader, Photons=photons, Device=_common.TEST_DEVICE)
@@ -108,8 +111,20 @@ res = Pipeline(get_backend("auto", _common.TEST_DEVICE)).run(scene, colour=False
 # J is indexed [x, y, z]; VTK's arrays run x fastest
 hashes["scene"] = {f"J_{b.name}": hashlib.sha256(np.ascontiguousarray(res.J[i].ravel(order="F"), np.float32).tobytes()).hexdigest()
                    for i, b in enumerate(res.bands)}
+# the same density from the .vti, as a scene file names it (dust.model = "file"): VTK's reader
+scene_vti = Scene.from_dict({"grid": {"shape": list(rho.shape)}, "dust": {"model": "file", "file": path},
+                             "transport": {"photons": photons, "device": _common.TEST_DEVICE}})
+res = Pipeline(get_backend("auto", _common.TEST_DEVICE)).run(scene_vti, colour=False)
+hashes["scene_vti"] = {f"J_{b.name}": hashlib.sha256(np.ascontiguousarray(res.J[i].ravel(order="F"), np.float32).tobytes()).hexdigest()
+                       for i, b in enumerate(res.bands)}
+try:
+    import pyvista  # noqa: F401
+    pyvista_importable = True
+except ImportError:
+    pyvista_importable = False
 light.Photons = 1e4  # a float where an integer is meant
 stored = light.GetProperty("Photons").GetData()
 _common.result(properties=props, groups=groups, density_properties=density_props,
-               density_groups=density_groups, colour_properties=colour_props, hashes=hashes, int_photons_from_float=stored,
+               density_groups=density_groups, colour_properties=colour_props, sky_properties=sky_props,
+               sky_groups=sky_groups, hashes=hashes, int_photons_from_float=stored, pyvista_importable=pyvista_importable,
                last_error=light.GetClientSideObject().last_error)

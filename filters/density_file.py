@@ -1,0 +1,144 @@
+"""Reading a density array from a ``.vti`` file with VTK's own XML reader.
+
+The reader of ``dust.model = "file"`` with a ``.vti`` (:func:`nebula_rt.density.load_density_file`
+imports it when it meets one), in every Python that has VTK: the command line's (VTK and pyvista,
+the ``io`` extra) and ParaView's, which has its own VTK but no pyvista (and must not get one, see
+docs/paraview.md). Only ``vtkXMLImageDataReader`` with its array selection is used, so only the
+array asked for is read; the grid comes out through :mod:`nebula_rt.filters.image_data` (shape
+``(nx, ny, nz)`` indexed [x, y, z]).
+
+The reader's own errors are observed (VTK then does not print them) and go into the exception
+raised. With pyvista present, the messages of the XML parser and of any other helper are caught
+as well (:class:`nebula_rt.filters.vti.VtkMessages`); in ParaView they go where ParaView puts
+VTK's messages (Output Messages), and the exception still says what failed.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from pathlib import Path
+
+import numpy as np
+
+from nebula_rt.errors import NebulaError
+
+from .image_data import cell_array, point_array
+
+__all__ = ["ArrayNotFoundError", "read_density_array"]
+
+
+class ArrayNotFoundError(NebulaError, KeyError, ValueError):
+    """A named array is not present in a data file.
+
+    Attributes
+    ----------
+    path : pathlib.Path
+        The file searched.
+    array_name : str
+        The name asked for.
+    available : list of str
+        The names of the arrays that the file has.
+    """
+
+    def __init__(self, path: Path, array_name: str, available: list[str]):
+        self.path = Path(path)
+        self.array_name = array_name
+        self.available = list(available)
+        listed = ", ".join(repr(a) for a in self.available) if self.available else "none"
+        self.message = f"{self.path}: no array named {array_name!r}; available arrays: {listed}"
+        super().__init__(self.message)
+
+    def __str__(self) -> str:  # KeyError would quote the message
+        return self.message
+
+
+def _messages():
+    """pyvista's catcher of every VTK message where pyvista is installed, else nothing more
+    than the reader's own observer."""
+    try:
+        from .vti import VtkMessages
+    except ImportError:  # ParaView's Python: no pyvista
+        return contextlib.nullcontext(None)
+    return VtkMessages()
+
+
+class _Reader:
+    """``vtkXMLImageDataReader`` of one file, its errors observed."""
+
+    def __init__(self, path: Path):
+        from vtkmodules.vtkCommonCore import vtkCommand
+        from vtkmodules.vtkIOXML import vtkXMLImageDataReader
+
+        self.path = path
+        self.errors: list[str] = []
+        self.reader = vtkXMLImageDataReader()
+        self.reader.AddObserver(vtkCommand.ErrorEvent, self._on_error)
+        self.reader.SetFileName(str(path))
+
+    def _on_error(self, _obj, _event, text=None):
+        self.errors.append(" ".join(str(text or "VTK error").split()))
+
+    _on_error.CallDataType = 8  # VTK_STRING: the message comes with the event
+
+    def run(self, step) -> None:
+        """``step`` (UpdateInformation or Update); ValueError naming the file if it failed."""
+        with _messages() as caught:
+            step()
+        errors = self.errors + (caught.errors if caught is not None else [])
+        if self.reader.GetErrorCode() != 0 or errors:
+            detail = "; ".join(errors) or f"VTK error code {self.reader.GetErrorCode()}"
+            raise ValueError(f"{self.path}: unreadable .vti file: {detail}")
+
+
+def read_density_array(path, array_name: str) -> np.ndarray:
+    """Read one scalar array of a ``.vti`` file as a ``float64`` grid.
+
+    The array is looked up among the point data first (shape ``(nx, ny, nz)``, the image's
+    dimensions), then among the cell data, for images whose cells are the voxels (shape
+    ``dimensions - 1``). Only that array is read from the file.
+
+    Raises
+    ------
+    FileNotFoundError
+        ``path`` does not exist.
+    IsADirectoryError
+        ``path`` is a folder.
+    nebula_rt.filters.vti.ArrayNotFoundError
+        (a ``KeyError`` and ``ValueError``) no point or cell array has that name; the message
+        lists the arrays there are.
+    ValueError
+        Unsupported file type, unreadable file, or the array has more than one component.
+    """
+    path = Path(os.fspath(path))
+    if not path.exists():
+        raise FileNotFoundError(2, f"no such file: {path}", str(path))
+    if path.suffix.lower() != ".vti":
+        raise ValueError(f"{path}: unsupported density file type {path.suffix!r}; expected .vti")
+    if path.is_dir():
+        raise IsADirectoryError(21, f"is a directory, not a .vti file: {path}", str(path))
+    r = _Reader(path)
+    r.run(r.reader.UpdateInformation)
+    psel, csel = r.reader.GetPointDataArraySelection(), r.reader.GetCellDataArraySelection()
+    point_names = [psel.GetArrayName(i) for i in range(psel.GetNumberOfArrays())]
+    cell_names = [csel.GetArrayName(i) for i in range(csel.GetNumberOfArrays())]
+    if array_name in point_names:
+        where = "point"
+    elif array_name in cell_names:
+        where = "cell"
+    else:
+        available = [f"{n} (point)" for n in point_names] + [f"{n} (cell)" for n in cell_names]
+        raise ArrayNotFoundError(path, array_name, available)
+    psel.DisableAllArrays()
+    csel.DisableAllArrays()
+    (psel if where == "point" else csel).EnableArray(array_name)
+    r.run(r.reader.Update)
+    img = r.reader.GetOutput()
+    try:
+        grid = point_array(img, array_name) if where == "point" else cell_array(img, array_name)
+    except KeyError:
+        raise ValueError(f"{path}: array {array_name!r} is not a numeric array") from None
+    if grid.ndim != 3:
+        raise ValueError(f"{path}: array {array_name!r} has {grid.shape[3]} components; "
+                         "a density must be a scalar array")
+    return grid.astype(np.float64)
