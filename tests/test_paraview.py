@@ -228,6 +228,9 @@ def test_paraview_proxy_is_the_schema_and_gives_the_same_bits(pv_env, xdisplay, 
         < order.index("Estimator") < order.index("Quality") < order.index("Backend")
     assert list(r["groups"]) == ["Dust", "Dust optics", "Stars", "Photon transport", "Quality", "Compute device",
                                  "Physical units"]
+    # every panel property but the input sits in a group (one left out shows below the groups)
+    grouped = [p for names in r["groups"].values() for p in names]
+    assert sorted(set(order) - set(grouped)) == ["Input"] and len(grouped) == len(set(grouped)), (order, r["groups"])
     assert r["int_photons_from_float"] == 10000
     # the same values through the proxy, the plain VTK filter and a scene file, in ParaView's
     # Python on its OpenCL device: the same bits (test_schema_layers compares the last two in
