@@ -269,6 +269,27 @@ def test_chi2_of_an_independent_run_plus_noise_follows_its_distribution(tmp_path
     assert 0.0 < d["p_value"] < 1.0 and d["error_propagation"] == "lattice"
 
 
+def test_the_model_error_is_the_transports_batch_error_calibrated(backend):
+    """Without a PSF a band's calibrated pixel is its peel-off pixel times the band's constant
+    (L_sun / L^2 / dnu in MJy/sr), so the model's Monte Carlo error, computed from each batch's
+    calibrated deviation, is the transport's own batch-means error of the pixel (folded on the
+    host by Welford's update, another path) times that constant, to rounding. A passband's image
+    is the calibrated image's, with a positive error wherever light was scattered."""
+    s = sky_scene(photons=4000, psf=0.0)
+    cam, _, _ = model_grid(s, 16)
+    cal, res = calibrate.peel_off_sky(s, cam, backend)
+    b = 1
+    m = ic.model_image(s, ic.resolve_band(s, "G"), cam, backend)
+    lit = res.peel_image[b] > 0
+    factor = (cal.scattered[b][lit] / res.peel_image[b][lit]).mean()
+    np.testing.assert_allclose(cal.scattered[b][lit], factor * res.peel_image[b][lit], rtol=1e-12)
+    np.testing.assert_allclose(m.error.T, factor * res.peel_error[b], rtol=1e-9, atol=1e-12 * m.error.max())
+    np.testing.assert_allclose(m.image.T, cal.surface_brightness[b], rtol=1e-12)
+    v = ic.model_image(s, ic.resolve_band(s, "bessell-V"), cam, backend)
+    np.testing.assert_allclose(v.image.T, cal.passband_sb[cal.passbands.index("V")], rtol=1e-12)
+    assert (v.error.T[lit] > 0).all() and v.batches == m.batches >= 16
+
+
 def test_same_grid_chi2_is_the_sum_of_squared_pulls():
     """compare_image against an independent sum: chi^2 = sum (o - m)^2 / (sigma_o^2 + sigma_m^2)
     over the pixels with a positive combined error; images of another shape are refused."""
@@ -392,3 +413,7 @@ def test_cli_compare_image_writes_the_plot_and_prints_chi2(tmp_path, capsys, bac
     err = capsys.readouterr().err
     assert "adu.fits[SCI]" in err and "MJy/sr" in err
     assert not (out / "bad.png").exists()
+    # an image's option without --image is refused, not ignored
+    lone = ["compare", str(tmp_path / "s.toml"), "--fits", str(out / "x.fits"), "--png", str(out / "x.png")]
+    assert cli.main(lone) == 2
+    assert "--fits" in capsys.readouterr().err and not (out / "x.png").exists()

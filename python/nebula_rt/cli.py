@@ -227,9 +227,10 @@ def _compare(args, cancel) -> int:
     scene = _scene_from_args(args)
     direction = parse_direction(args.direction)
     check_size(args.size)
-    if args.image:  # the user's observed image (nebula_rt.cli_image)
-        from .cli_image import compare_image_command
+    from .cli_image import check_image_options, compare_image_command
 
+    check_image_options(args)
+    if args.image:  # the user's observed image (nebula_rt.cli_image)
         return compare_image_command(args, cancel, scene, direction, lambda: _backend_for(scene),
                                      _inputs(args, scene), _print_summary)
     if args.table:  # the user's own observations (nebula_rt.cli_fit)

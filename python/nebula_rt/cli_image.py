@@ -40,6 +40,16 @@ def add_image_options(p) -> None:
                    help="with --image: also write model, data, errors, residual and pull as FITS on the model's WCS")
 
 
+def check_image_options(args) -> None:
+    """The image's options without ``--image``: refused rather than ignored."""
+    given = [opt for opt, val in (("--image-hdu", args.image_hdu), ("--image-band", args.image_band),
+                                  ("--image-unit", args.image_unit), ("--image-error", args.image_error),
+                                  ("--mask-stars", args.mask_stars), ("--fits", args.fits)) if val]
+    if args.image is None and given:
+        raise SceneError(given[0], getattr(args, given[0][2:].replace("-", "_")),
+                         "applies to an observed image: give it with --image obs.fits")
+
+
 def compare_image_command(args, cancel, scene, direction, backend_of, inputs, print_summary) -> int:
     """``nebula-rt compare --image``: arguments as :func:`nebula_rt.cli_fit.compare_tables_command`'s."""
     from . import calibrate, image_compare as ic, resources

@@ -455,7 +455,8 @@ def compare_observed_image(scene, obs: ObservedImage, *, band=None, direction=(0
 
     calibrate.check_scene(scene)
     kind = resolve_band(scene, band, obs.header_band)
-    if not (isinstance(mask_stars_arcsec, (int, float)) and math.isfinite(mask_stars_arcsec) and mask_stars_arcsec >= 0):
+    r = mask_stars_arcsec
+    if not (isinstance(r, (int, float)) and math.isfinite(r) and r >= 0):
         raise SceneError("--mask-stars", mask_stars_arcsec, "must be a radius in arcsec >= 0")
     check_pixel_batches(scene, size)
     cam = calibrate.camera_for(scene, direction, size)
