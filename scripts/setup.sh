@@ -9,7 +9,8 @@
 #     to run is printed).
 #     Also ParaView 5.11 (paraview, python3-paraview), Xvfb and Debian's PoCL
 #     OpenCL driver for the ParaView plugin and its tests.
-# (b) The virtual environment .venv with `pip install -e ".[io,pocl,test,mpi]"`.
+# (b) The virtual environment .venv with `pip install -e ".[io,pocl,test,mpi,observe]"`
+#     (observe: reproject, for the observed FITS images of nebula-rt compare --image and their tests).
 #     .venv/.nebula-setup-stamp holds the sha256 of pyproject.toml; while it
 #     matches, step (b) is skipped.
 # (b2) pyvkfft (VkFFT), the optional OpenCL FFTs of the collision filter: it has no
@@ -49,7 +50,7 @@ FORCE=0
 for arg in "$@"; do
     case "$arg" in
         --force) FORCE=1 ;;
-        -h|--help) sed -n '2,33p' "$0"; exit 0 ;;
+        -h|--help) sed -n '2,34p' "$0"; exit 0 ;;
         *) echo "setup.sh: unknown argument: $arg" >&2; exit 2 ;;
     esac
 done
@@ -142,8 +143,8 @@ if [[ ! -x "$VENV/bin/python" ]]; then
     "$PYTHON" -m venv "$VENV"
 fi
 
-log "pip install -e \".[io,pocl,test,mpi]\" (this takes a while the first time; log: $VENV/.nebula-setup-pip.log)"
-if ! "$VENV/bin/python" -m pip install --disable-pip-version-check -e ".[io,pocl,test,mpi]" \
+log "pip install -e \".[io,pocl,test,mpi,observe]\" (this takes a while the first time; log: $VENV/.nebula-setup-pip.log)"
+if ! "$VENV/bin/python" -m pip install --disable-pip-version-check -e ".[io,pocl,test,mpi,observe]" \
         >"$VENV/.nebula-setup-pip.log" 2>&1; then
     tail -n 30 "$VENV/.nebula-setup-pip.log" >&2
     log "pip install failed (full log: $VENV/.nebula-setup-pip.log)"

@@ -312,31 +312,6 @@ def test_fit_cancels_between_traces(backend):
     assert done == [1, 2, 3]
 
 
-def test_image_comparison_on_one_grid_and_its_wcs():
-    """Same-grid chi^2 against an independent sum, and the model WCS: the centre is the pointing,
-    one pixel is pixel_size x box / distance radians, image right is west at position angle 0."""
-    import astropy.units as u
-
-    from nebula_rt.image_compare import compare_image, model_wcs
-
-    rng = np.random.default_rng(1)
-    m, me = rng.uniform(1, 2, (5, 6)), np.full((5, 6), 0.1)
-    o, oe = m + 0.2 * rng.standard_normal((5, 6)), np.full((5, 6), 0.2)
-    oe[0, 0] = 0.0  # not used
-    r = compare_image(m, me, o, oe)
-    ok = oe > 0
-    assert r.n == 29 and r.chi2 == pytest.approx(np.sum(((o - m) ** 2 / (oe ** 2 + me ** 2))[ok]))
-    with pytest.raises(SceneError, match="shape"):
-        compare_image(m, me, o[:4], oe[:4])
-    w = model_wcs((64, 64), 1.0 / 64, 1.0 * u.pc, 500.0 * u.pc, 315.4, 68.16)
-    c = w.pixel_to_world(31.5, 31.5)  # the centre of a 64-pixel image (0-based)
-    assert c.ra.deg == pytest.approx(315.4) and c.dec.deg == pytest.approx(68.16)
-    right = w.pixel_to_world(32.5, 31.5)
-    scale = math.degrees(1.0 / 64 / 500.0)
-    assert c.separation(right).deg == pytest.approx(scale, rel=1e-4)
-    assert c.position_angle(right).deg == pytest.approx(270.0, abs=1e-3)  # west
-
-
 def test_compare_and_fit_commands(tmp_path):
     """nebula-rt compare --table and nebula-rt fit on a small scene: JSON, plot and best-fit
     scene written; a bad table exits 2 naming its column, writing nothing."""

@@ -422,10 +422,14 @@ def camera_for(scene, direction=(0.0, 0.0, -1.0), size: int = 256, up=(0.0, 1.0,
     return Camera(direction=tuple(direction), up=tuple(up), size=(size, size), extent=extent, center=(0.5, 0.5, 0.5))
 
 
-def peel_off_sky(scene, camera, backend=None, progress=None, cancel=None):
+def peel_off_sky(scene, camera, backend=None, progress=None, cancel=None, pixel_batches: bool = False):
     """Trace ``scene`` with a peel-off image for ``camera`` and calibrate it; returns
     (CalibratedSky, transport result). The stars' optical depths to the observer are the
-    exact march of :func:`nebula_rt.line_of_sight.line_of_sight_tau`."""
+    exact march of :func:`nebula_rt.line_of_sight.line_of_sight_tau`.
+
+    ``pixel_batches``: keep every batch's image (``result.peel_bin_batches``, (batches,
+    n_bands, W * H), pixel p * H + q), for the Monte Carlo error of any linear function of the
+    calibrated image (:mod:`nebula_rt.image_compare`); otherwise each batch's image sum."""
     from .backends import get_backend
     from .density import generate_density
     from .transport import trace
@@ -436,10 +440,13 @@ def peel_off_sky(scene, camera, backend=None, progress=None, cancel=None):
     t = scene.transport
     photons, target = t.effective()
     rho = generate_density(scene, backend)
+    bins = (np.arange(camera.size[0] * camera.size[1], dtype=np.int64).reshape(camera.size) if pixel_batches
+            else np.zeros(camera.size, np.int64))
     res = trace(rho, bands, scene.stars, tau=scene.dust.tau, photons=photons, estimator=t.estimator,
-                max_scatterings=t.max_scatterings, seed=t.seed, batch_size=t.batch_size, backend=backend,
-                target_error=target, time_limit=t.time_limit, progress=progress, cancel=cancel, peel=camera,
-                peel_bins=np.zeros(camera.size, np.int64))
+                method=t.method, max_scatterings=t.max_scatterings, seed=t.seed, batch_size=t.batch_size,
+                backend=backend, target_error=target, time_limit=t.time_limit, progress=progress,
+                cancel=cancel, peel=camera,
+                peel_bins=bins)
     tau = star_tau(scene, bands, rho, camera)
     cal = calibrate(scene, camera, res.peel_image, res.star_band_luminosity, tau, "peel-off",
                     {"NPHOTON": (int(res.photons), "packets per band"), "SEED": str(t.seed)})

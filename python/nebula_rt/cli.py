@@ -227,6 +227,12 @@ def _compare(args, cancel) -> int:
     scene = _scene_from_args(args)
     direction = parse_direction(args.direction)
     check_size(args.size)
+    from .cli_image import check_image_options, compare_image_command
+
+    check_image_options(args)
+    if args.image:  # the user's observed image (nebula_rt.cli_image)
+        return compare_image_command(args, cancel, scene, direction, lambda: _backend_for(scene),
+                                     _inputs(args, scene), _print_summary)
     if args.table:  # the user's own observations (nebula_rt.cli_fit)
         from .cli_fit import compare_tables_command
 
@@ -422,7 +428,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the picture's tone curve (shorthand for --set colour.stretch=S)")
     k.add_argument("-q", "--quiet", action="store_true", help="no summary")
     k.set_defaults(func=_sky)
-    c = sub.add_parser("compare", help="a scene's colours (Delta(B-V), nebula/star ratio) against observed nebulae")
+    c = sub.add_parser("compare", help="a scene's colours (Delta(B-V), nebula/star ratio) against observed nebulae, "
+                                       "the user's tables (--table) or FITS image (--image)")
     c.add_argument("scene", help="scene file (TOML)")
     c.add_argument("--png", default="compare.png", help="plot (default compare.png)")
     c.add_argument("--json", default=None, help="also write the measured profiles as JSON")
@@ -440,6 +447,9 @@ def build_parser() -> argparse.ArgumentParser:
     from .cli_fit import add_fit_parser, add_table_options
 
     add_table_options(c)
+    from .cli_image import add_image_options
+
+    add_image_options(c)
     c.set_defaults(func=_compare)
     add_fit_parser(sub, _choices, _fit, (MIN_SKY_SIZE, MAX_SKY_SIZE))
     d = sub.add_parser("devices", help="list compute devices")
