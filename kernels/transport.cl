@@ -316,6 +316,19 @@ NRT_DEVICE void nrt_peel(const NRT_GLOBAL float *density, float sig_b, float g_b
 }
 #endif
 
+/* The emitting star: star s with probability cdf[s] - cdf[s - 1] (one uniform, drawn only
+   when there are several stars, so a one-star scene's stream starts at the direction). */
+NRT_DEVICE int nrt_choose_star(nrt_rng *rng, const NRT_GLOBAL float *cdf, int n_stars)
+{
+    int s = 0;
+    if (n_stars > 1) {
+        float u = nrt_rng_uniform(rng);
+        while (s < n_stars - 1 && u >= cdf[s])
+            ++s;
+    }
+    return s;
+}
+
 /*
  * Where a packet's tallies and its deposits into its star's voxel go: global memory, or, for
  * the packets of a work group's home cell (NRT_GROUP_TALLY), the group's local sums.
@@ -377,13 +390,7 @@ NRT_DEVICE void nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, f
 
     const float hx = 1.0f / (float)nx, hy = 1.0f / (float)ny, hz = 1.0f / (float)nz;
 
-    /* choose the emitting star */
-    int s = 0;
-    if (n_stars > 1) {
-        float u = nrt_rng_uniform(&rng);
-        while (s < n_stars - 1 && u >= cdf[s])
-            ++s;
-    }
+    int s = nrt_choose_star(&rng, cdf, n_stars);
     float p[3] = {stars[4 * s], stars[4 * s + 1], stars[4 * s + 2]};
     int ix, iy, iz;
     nrt_voxel_of(p, nx, ny, nz, &ix, &iy, &iz);
@@ -830,12 +837,7 @@ NRT_DEVICE void nrt_trace_packet_biased(const NRT_GLOBAL float *density, float s
     nrt_rng rng;
     nrt_rng_init(&rng, seed, (nrt_u64)band, photon);
     /* the emitting star and first direction: the same draws as the analog packet */
-    int s = 0;
-    if (n_stars > 1) {
-        float u = nrt_rng_uniform(&rng);
-        while (s < n_stars - 1 && u >= cdf[s])
-            ++s;
-    }
+    int s = nrt_choose_star(&rng, cdf, n_stars);
     float p[3] = {stars[4 * s], stars[4 * s + 1], stars[4 * s + 2]};
     int ix, iy, iz;
     nrt_voxel_of(p, nx, ny, nz, &ix, &iy, &iz);
@@ -1084,13 +1086,7 @@ NRT_KERNEL void emission_keys(const NRT_GLOBAL nrt_trace_params *prm,
         nrt_u64 slot = nrt_batch_of(photon, prm->batch_base, prm->batch_extra) - first_batch;
         nrt_rng rng;
         nrt_rng_init(&rng, prm->seed, (nrt_u64)band, photon);
-        int s = 0;
-        if (prm->n_stars > 1) {
-            const NRT_GLOBAL float *cdf = star_cdf + band * prm->n_stars;
-            float u = nrt_rng_uniform(&rng);
-            while (s < prm->n_stars - 1 && u >= cdf[s])
-                ++s;
-        }
+        int s = nrt_choose_star(&rng, star_cdf + band * prm->n_stars, prm->n_stars);
         const nrt_u32 bins = 1u << NRT_SORT_BITS;
         nrt_u32 bm = (nrt_u32)(nrt_rng_uniform(&rng) * (float)bins);
         nrt_u32 bp = (nrt_u32)(nrt_rng_uniform(&rng) * (float)bins);

@@ -194,21 +194,13 @@ def test_biased_error_is_honest_across_seeds(backend):
     runs, by the statistic of test_estimators.test_track_length_error_is_honest_across_seeds
     (pure absorber on a sparse lattice of voxels, E[R] = 1, sd from the formula there), at an
     optical depth (extinction 12 per box unit) where the biasing changes the weights."""
+    from test_estimators import error_honesty, honesty_lattice
+
     shape, runs, batches = (20, 20, 20), 16, 16
     rho = np.ones(shape, np.float32)
-    X, Y, Z = voxel_centres(shape)
-    r = np.sqrt((X - 0.5) ** 2 + (Y - 0.5) ** 2 + (Z - 0.5) ** 2)
-    i, j, k = np.meshgrid(*[np.arange(n) for n in shape], indexing="ij")
-    mask = (r > 0.2) & (r < 0.48) & (i % 2 == 0) & (j % 2 == 0) & (k % 2 == 0)
     res = [trace(rho, one_band(albedo=0.0), centre_star(), tau=12.0, photons=20_000, seed=s, backend=backend,
                  method="biased") for s in range(1, runs + 1)]
-    assert all(x.batches == batches for x in res)
-    J = np.array([x.J[0][mask] for x in res])
-    sigma = np.array([(x.J[0] * x.rel_error[0])[mask] for x in res])
-    norm = J.mean(axis=0) ** 2
-    ratio = np.sum(J.var(axis=0, ddof=1) / norm) / np.sum((sigma**2).mean(axis=0) / norm)
-    n = int(mask.sum())
-    sd = math.sqrt((2 / (runs - 1) + 2 / (runs * (batches - 1))) / n)
+    ratio, sd, n = error_honesty(res, honesty_lattice(shape), batches)
     assert abs(ratio - 1) < 5 * sd, (ratio, sd, n)
 
 

@@ -375,18 +375,12 @@ def parameters():
 
 def declaration(key: str) -> "schema.Param":
     """The declaration of scene key ``key`` (``"transport.photons"``); KeyError if none."""
-    for k, p, _ in parameters():
-        if k == key:
-            return p
-    raise KeyError(key)
+    return schema.declaration(SECTIONS, key)
 
 
 def default(key: str):
     """The default value of scene key ``key``."""
-    for k, _, d in parameters():
-        if k == key:
-            return d
-    raise KeyError(key)
+    return schema.default(SECTIONS, key)
 
 
 # ---------------------------------------------------------------------------

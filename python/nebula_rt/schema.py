@@ -109,6 +109,22 @@ def parameters(sections) -> Iterator[Tuple[str, Param, Any]]:
                 yield f"{section}.{f.name}", p, _field_default(f)
 
 
+def declaration(sections, key: str) -> Param:
+    """The declaration of ``key`` among ``sections``' parameters; KeyError if none."""
+    for k, p, _ in parameters(sections):
+        if k == key:
+            return p
+    raise KeyError(key)
+
+
+def default(sections, key: str) -> Any:
+    """The default value of ``key`` among ``sections``' parameters; KeyError if none."""
+    for k, _, d in parameters(sections):
+        if k == key:
+            return d
+    raise KeyError(key)
+
+
 def label(key: str, p: Param) -> str:
     """The panel label of ``key`` declared by ``p``."""
     return p.label or key.rsplit(".", 1)[1].replace("_", " ").capitalize()
