@@ -166,6 +166,43 @@ def _build_kernels(backend, n: int, photons: int, n_bands: int) -> None:
     backend.transport_session(plan.setup, plan.launches.slots, plan.launches.bands_per_launch).close()
 
 
+def _watch_region_passes() -> list:
+    """Give every transport session a pass log (transport by regions; the tail pass is then
+    waited for, a few microseconds per launch); returns the list the sessions are appended to."""
+    from nebula_rt.backends.session import DeviceTransport
+
+    sessions = []
+    init = DeviceTransport.__init__
+
+    def watched(self, *a, **k):
+        init(self, *a, **k)
+        self.region_log = []
+        sessions.append(self)
+
+    DeviceTransport.__init__ = watched
+    return sessions
+
+
+def _region_summary(sessions) -> dict | None:
+    """The last run's passes: how many, the packets they stopped (region crossings), the time
+    in region passes and in tail passes, and the first launch's passes one by one."""
+    s = sessions[-1] if sessions else None
+    if s is None or not s.region_shift:
+        return None
+    log = s.region_log
+    region = [e for e in log if e[3] != 31]
+    tail = [e for e in log if e[3] == 31]
+    first, launches = [], sum(1 for e in log if e[3] == 31) or 1
+    for e in log:
+        first.append({"in": e[0], "stopped": e[1], "ms": round(e[2] * 1e3, 3)})
+        if e[3] == 31 or e[1] == 0:
+            break
+    return {"shift": s.region_shift, "capacity": s.region_capacity, "tail_below": s.region_tail,
+            "passes": len(log), "launch_parts": launches, "crossings": int(sum(e[1] for e in log)),
+            "region_pass_s": float(sum(e[2] for e in region)), "tail_pass_s": float(sum(e[2] for e in tail)),
+            "first_part": first}
+
+
 def child_nebula(n: int, photons: int, n_bands: int, repeats: int, repeat_below_s: float) -> dict:
     import resource
 
@@ -185,6 +222,7 @@ def child_nebula(n: int, photons: int, n_bands: int, repeats: int, repeat_below_
     else:
         backend = get_backend("cuda", "")
     Pipeline(backend).run(Scene.from_dict(scene_dict(16, 10_000, n_bands)), colour=False)  # compile, warm up
+    sessions = _watch_region_passes()
     scene = Scene.from_dict(scene_dict(n, photons, n_bands))
     _build_kernels(backend, n, photons, n_bands)
     pool = cp.get_default_memory_pool()
@@ -266,6 +304,7 @@ def child_nebula(n: int, photons: int, n_bands: int, repeats: int, repeat_below_
         "track_box_units_band0_from_J": track_j0,
         "per_band": per_band,
         "voxel_visits_per_packet": visits,
+        "region_passes": _region_summary(sessions),
         "memory": {
             "pool_used_peak_bytes": hook.used,
             "pool_used_before_bytes": base_used,
@@ -569,6 +608,12 @@ def print_row(r: dict) -> None:
               f"RSS {_gib(m['host_peak_rss_bytes'])} GiB  visits/pkt {neb['voxel_visits_per_packet']:.1f}  "
               f"limit {_num(lim.get('limit_packets_per_ms'))} pkt/ms  frac {_num(lim.get('fraction_of_limit'), '{:.3f}')}",
               flush=True)
+        rp = neb.get("region_passes")
+        if rp:
+            print(f"{'':22s}  regions 2^{rp['shift']}: {rp['passes']} passes in {rp['launch_parts']} launch parts, "
+                  f"{rp['crossings'] / max(neb['kernel_packets_per_ms'] * neb['kernel_s'] * 1e3, 1):.2f} stops/packet, "
+                  f"region passes {rp['region_pass_s']:.3f} s, tail passes {rp['tail_pass_s']:.3f} s; first part "
+                  + " ".join(f"{e['in']}>{e['stopped']}:{e['ms']:.1f}" for e in rp["first_part"]), flush=True)
     mcx = r.get("mcx")
     if mcx:
         print(f"{'':22s}  MCX kernel {mcx['kernel_ms'] / 1e3:8.3f} s  e2e {mcx['end_to_end_s']:8.3f} s  "

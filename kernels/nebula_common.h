@@ -42,6 +42,7 @@ typedef long nrt_i64;
 #define NRT_LOCAL __local
 #define NRT_LOCAL_MEM __local
 #define NRT_ATOMIC_ADD_U64_LOCAL(p, v) atom_add((volatile __local ulong *)(p), (ulong)(v))
+#define NRT_ATOMIC_ADD_U32_LOCAL(p, v) atomic_add((volatile __local uint *)(p), (uint)(v))
 #define NRT_BARRIER() barrier(CLK_LOCAL_MEM_FENCE)
 #define NRT_LOCAL_ID() ((nrt_u64)get_local_id(0))
 #define NRT_LOCAL_SIZE() ((nrt_u64)get_local_size(0))
@@ -69,6 +70,7 @@ typedef long long nrt_i64;
 #define NRT_LOCAL
 #define NRT_LOCAL_MEM __shared__
 #define NRT_ATOMIC_ADD_U64_LOCAL(p, v) atomicAdd((unsigned long long *)(p), (unsigned long long)(v))
+#define NRT_ATOMIC_ADD_U32_LOCAL(p, v) atomicAdd((unsigned int *)(p), (unsigned int)(v))
 #define NRT_BARRIER() __syncthreads()
 #define NRT_LOCAL_ID() ((nrt_u64)threadIdx.x)
 #define NRT_LOCAL_SIZE() ((nrt_u64)blockDim.x)

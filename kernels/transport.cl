@@ -373,62 +373,120 @@ NRT_DEVICE void nrt_deposit(const nrt_sink *k, NRT_GLOBAL nrt_u64 *band_acc, nrt
 }
 
 /*
- * Trace one packet of one band to its end. Deposits go to band_acc (this batch's slot, this
- * band), the outcome to tally 1..3 of the sink (emitted is counted by the caller).
+ * Transport by regions (NRT_REGIONS; large grids): the grid is cut into cubes of 2^shift
+ * voxels a side, and a packet's walk stops where it steps into another cube. Its state
+ * (nrt_packet) is written to memory and the host sorts the stopped packets by (cell, region)
+ * before the next pass resumes them: the packets traced side by side then deposit into one
+ * region of one slot, whose cells and density stay in the GPU's L2 cache, instead of
+ * scattering their atomics over a grid many times the cache's size. The walk resumes with
+ * exactly the state it stopped with (the random stream included), and integer deposits add
+ * alike in any order, so the result is the same bits as tracing each packet in one go.
+ * region_shift 31 never stops (the last pass of a launch: its few packets run to the end).
  */
-NRT_DEVICE void nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, float alb_b,
-                                 float g_b, const NRT_GLOBAL float *stars,
-                                 const NRT_GLOBAL float *cdf, int nx, int ny, int nz,
-                                 int n_stars, nrt_u64 seed, int band, nrt_u64 photon,
-                                 int max_scatterings, float track_scale,
-                                 NRT_GLOBAL nrt_u64 *band_acc, nrt_sink *sink,
-                                 NRT_GLOBAL nrt_u32 *overflow, const NRT_GLOBAL float *peel,
-                                 float peel_scale, NRT_GLOBAL nrt_u64 *band_image)
+#ifndef NRT_REGIONS
+#define NRT_REGIONS 0
+#endif
+#define NRT_NO_REGIONS 31
+/* the key of a packet that ended (nothing to resume) */
+#define NRT_NO_KEY 0xFFFFFFFFFFFFFFFFUL
+
+/* Bin of a stopped packet: its cell (batch slot and band of the launch), then its region
+   (regions numbered x fastest, rx x ry x rz of them). */
+NRT_DEVICE nrt_u32 nrt_region_bin(nrt_u64 cell, int ix, int iy, int iz, int nx, int ny, int nz, int shift)
+{
+    nrt_u32 rx = (nrt_u32)((nx + (1 << shift) - 1) >> shift), ry = (nrt_u32)((ny + (1 << shift) - 1) >> shift);
+    nrt_u32 rz = (nrt_u32)((nz + (1 << shift) - 1) >> shift);
+    nrt_u32 r = (nrt_u32)(ix >> shift) + rx * ((nrt_u32)(iy >> shift) + ry * (nrt_u32)(iz >> shift));
+    return (nrt_u32)cell * (rx * ry * rz) + r;
+}
+
+/* The random stream as a stopped packet left it: the same block of draws and position. */
+NRT_DEVICE void nrt_rng_resume(nrt_rng *r, nrt_u64 seed, nrt_u64 band, nrt_u64 photon, int block, int pos)
+{
+    nrt_rng_init(r, seed, band, photon);
+    if (pos < 8 && block > 0) {
+        r->block = (nrt_u64)(block - 1);
+        r->pos = 8;
+        nrt_rng_u32(r); /* draws block - 1 again (and sets block) */
+    }
+    r->block = (nrt_u64)block;
+    r->pos = pos;
+}
+
+/*
+ * Trace one packet of one band to its end, or (NRT_REGIONS) until it steps into another
+ * region: then its state goes to *save and the function returns 1 (else 0). resume: the
+ * state of a stopped packet to go on from (0: emit a new one). Deposits go to band_acc (this
+ * batch's slot, this band), the outcome to tally 1..3 of the sink (emitted is counted by the
+ * caller).
+ */
+NRT_DEVICE int nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, float alb_b,
+                                float g_b, const NRT_GLOBAL float *stars,
+                                const NRT_GLOBAL float *cdf, int nx, int ny, int nz,
+                                int n_stars, nrt_u64 seed, int band, nrt_u64 photon,
+                                int max_scatterings, float track_scale,
+                                NRT_GLOBAL nrt_u64 *band_acc, nrt_sink *sink,
+                                NRT_GLOBAL nrt_u32 *overflow, const NRT_GLOBAL float *peel,
+                                float peel_scale, NRT_GLOBAL nrt_u64 *band_image,
+                                const NRT_GLOBAL nrt_packet *resume, NRT_GLOBAL nrt_packet *save,
+                                int region_shift)
 {
     nrt_rng rng;
-    nrt_rng_init(&rng, seed, (nrt_u64)band, photon);
-
     const float hx = 1.0f / (float)nx, hy = 1.0f / (float)ny, hz = 1.0f / (float)nz;
-
-    int s = nrt_choose_star(&rng, cdf, n_stars);
-    float p[3] = {stars[4 * s], stars[4 * s + 1], stars[4 * s + 2]};
-    int ix, iy, iz;
-    nrt_voxel_of(p, nx, ny, nz, &ix, &iy, &iz);
-    nrt_idx idx = nrt_voxel_index(ix, iy, iz, nx, ny);
-    nrt_idx hot = NRT_NO_VOXEL;
-#if NRT_GROUP_TALLY
-    if (sink->home && s < NRT_HOT_STARS) {
-        hot = idx;
-        sink->l_hot += s;
-    }
-#endif
-    float d[3];
-    nrt_sample_isotropic(&rng, d);
-
-    int scatterings = 0;
-    /* One loop, one voxel step per iteration; an interaction ends a flight and starts the next
-       inside the same iteration. Nesting a flight loop inside a scattering loop made every lane
-       of a SIMD group wait at the end of each flight for the group's longest flight; here a lane
-       whose flight ends scatters and steps on at once (same random numbers in the same order,
-       so the same bits). */
-    float tau = nrt_sample_tau(&rng);
-    float inv_d[3] = {1.0f / d[0], 1.0f / d[1], 1.0f / d[2]};
-    /* Distances are measured from the flight's start point p0: each face crossing is
-       ((face index) h - p0) / d, computed afresh, so float32 rounding does not accumulate
-       along the flight (advancing the position voxel by voxel drifted the transverse
-       coordinates by up to k 2^-25 after k voxels), and the segment lengths telescope to
-       the flight's length. */
-    float p0[3] = {p[0], p[1], p[2]};
-    float t_cur = 0.0f;
-    float rho = NRT_RHO(density, idx);
-    /* The current voxel's face distances are kept from step to step: a step changes the voxel
-       on one axis only, so only that axis' distance is formed again (by the same expression,
-       so the same bits as forming all three every step), and the flat index moves by that
-       axis' stride. */
-    float tx = nrt_face_distance(p0[0], d[0], inv_d[0], ix, hx);
-    float ty = nrt_face_distance(p0[1], d[1], inv_d[1], iy, hy);
-    float tz = nrt_face_distance(p0[2], d[2], inv_d[2], iz, hz);
     const nrt_idx stride_y = (nrt_idx)nx, stride_z = (nrt_idx)nx * (nrt_idx)ny;
+    int ix, iy, iz, scatterings;
+    nrt_idx idx, hot = NRT_NO_VOXEL;
+    float d[3], inv_d[3], p0[3], tau, t_cur, tx, ty, tz, rho;
+#if NRT_REGIONS
+    if (resume) {
+        nrt_packet q = *resume;
+        nrt_rng_resume(&rng, seed, (nrt_u64)band, photon, q.rng_block, q.rng_pos);
+        p0[0] = q.p0[0], p0[1] = q.p0[1], p0[2] = q.p0[2];
+        d[0] = q.d[0], d[1] = q.d[1], d[2] = q.d[2];
+        inv_d[0] = q.inv_d[0], inv_d[1] = q.inv_d[1], inv_d[2] = q.inv_d[2];
+        tx = q.tx, ty = q.ty, tz = q.tz, t_cur = q.t_cur, tau = q.tau;
+        ix = q.ix, iy = q.iy, iz = q.iz, scatterings = q.scatterings;
+        idx = nrt_voxel_index(ix, iy, iz, nx, ny);
+        rho = NRT_RHO(density, idx);
+    } else
+#endif
+    {
+        nrt_rng_init(&rng, seed, (nrt_u64)band, photon);
+        int s = nrt_choose_star(&rng, cdf, n_stars);
+        p0[0] = stars[4 * s], p0[1] = stars[4 * s + 1], p0[2] = stars[4 * s + 2];
+        nrt_voxel_of(p0, nx, ny, nz, &ix, &iy, &iz);
+        idx = nrt_voxel_index(ix, iy, iz, nx, ny);
+#if NRT_GROUP_TALLY
+        if (sink->home && s < NRT_HOT_STARS) {
+            hot = idx;
+            sink->l_hot += s;
+        }
+#endif
+        nrt_sample_isotropic(&rng, d);
+
+        scatterings = 0;
+        /* One loop, one voxel step per iteration; an interaction ends a flight and starts the next
+           inside the same iteration. Nesting a flight loop inside a scattering loop made every lane
+           of a SIMD group wait at the end of each flight for the group's longest flight; here a lane
+           whose flight ends scatters and steps on at once (same random numbers in the same order,
+           so the same bits). */
+        tau = nrt_sample_tau(&rng);
+        inv_d[0] = 1.0f / d[0], inv_d[1] = 1.0f / d[1], inv_d[2] = 1.0f / d[2];
+        /* Distances are measured from the flight's start point p0: each face crossing is
+           ((face index) h - p0) / d, computed afresh, so float32 rounding does not accumulate
+           along the flight (advancing the position voxel by voxel drifted the transverse
+           coordinates by up to k 2^-25 after k voxels), and the segment lengths telescope to
+           the flight's length. */
+        t_cur = 0.0f;
+        rho = NRT_RHO(density, idx);
+        /* The current voxel's face distances are kept from step to step: a step changes the voxel
+           on one axis only, so only that axis' distance is formed again (by the same expression,
+           so the same bits as forming all three every step), and the flat index moves by that
+           axis' stride. */
+        tx = nrt_face_distance(p0[0], d[0], inv_d[0], ix, hx);
+        ty = nrt_face_distance(p0[1], d[1], inv_d[1], iy, hy);
+        tz = nrt_face_distance(p0[2], d[2], inv_d[2], iz, hz);
+    }
     for (;;) {
         float t_next = fmin(tx, fmin(ty, tz));
         float seg = fmax(0.0f, t_next - t_cur);
@@ -462,11 +520,11 @@ NRT_DEVICE void nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, f
             /* scatter with probability albedo (analog Russian roulette), else absorbed */
             if (nrt_rng_uniform(&rng) >= alb_b) {
                 nrt_count(sink, 1);
-                return;
+                return 0;
             }
             if (scatterings >= max_scatterings) {
                 nrt_count(sink, 3);
-                return;
+                return 0;
             }
             ++scatterings;
 #if NRT_PEEL
@@ -494,10 +552,27 @@ NRT_DEVICE void nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, f
         t_cur = fmax(t_cur, t_next);
         if (leaving) {
             nrt_count(sink, 2);
-            return;
+            return 0;
         }
+#if NRT_REGIONS
+        /* the voxel index on the stepped axis changes its region (shift 31: never) */
+        int crossing = ((i_next ^ (ax == 0 ? ix : (ax == 1 ? iy : iz))) >> region_shift) != 0;
+#endif
         idx = jdx;
         nrt_cross_face(ax, i_next, p0, d_ax, inv_d, hx, hy, hz, &ix, &iy, &iz, &tx, &ty, &tz);
+#if NRT_REGIONS
+        if (crossing) {
+            nrt_packet q;
+            q.p0[0] = p0[0], q.p0[1] = p0[1], q.p0[2] = p0[2];
+            q.d[0] = d[0], q.d[1] = d[1], q.d[2] = d[2];
+            q.inv_d[0] = inv_d[0], q.inv_d[1] = inv_d[1], q.inv_d[2] = inv_d[2];
+            q.tx = tx, q.ty = ty, q.tz = tz, q.t_cur = t_cur, q.tau = tau;
+            q.ix = ix, q.iy = iy, q.iz = iz, q.scatterings = scatterings;
+            q.rng_block = (int)rng.block, q.rng_pos = rng.pos;
+            *save = q;
+            return 1;
+        }
+#endif
 #if NRT_PREFETCH
         rho = rho_next;
 #else
@@ -971,7 +1046,10 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
                               NRT_GLOBAL nrt_u64 *tallies,  /* slots * n_lbands * 4 */
                               NRT_GLOBAL nrt_u32 *overflow, /* slots */
                               NRT_GLOBAL nrt_u64 *image,    /* slots * n_lbands * W * H */
-                              const NRT_GLOBAL nrt_u64 *order) /* NRT_SORTED: sorted keys */
+                              const NRT_GLOBAL nrt_u64 *order, /* NRT_SORTED or resuming: sorted keys */
+                              NRT_GLOBAL nrt_packet *states,   /* NRT_REGIONS: per work item t */
+                              NRT_GLOBAL nrt_u64 *keys_out,    /* NRT_REGIONS: per item it */
+                              nrt_u64 n_resume, int region_shift)
 {
     const int nx = prm->nx, ny = prm->ny, nz = prm->nz, n_stars = prm->n_stars;
     const nrt_u64 seed = prm->seed, batch_base = prm->batch_base, batch_extra = prm->batch_extra;
@@ -979,7 +1057,10 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
     const float track_scale = prm->track_scale, peel_scale = prm->peel_scale;
     const NRT_GLOBAL float *peel = prm->peel;
     nrt_u64 nvox = (nrt_u64)nx * (nrt_u64)ny * (nrt_u64)nz;
-    nrt_u64 total = count * (nrt_u64)n_lbands;
+    /* NRT_REGIONS: n_resume > 0 resumes the stopped packets order[0 .. n_resume) */
+    const int resuming = NRT_REGIONS && n_resume > 0;
+    const int ordered = NRT_SORTED || resuming;
+    nrt_u64 total = resuming ? n_resume : count * (nrt_u64)n_lbands;
     nrt_u64 stride = NRT_GLOBAL_SIZE();
     nrt_u64 pixels = NRT_PEEL ? (nrt_u64)peel[13] * (nrt_u64)peel[14] : 0;
     /* the home cell (batch slot and band) of the group: that of its first packet */
@@ -997,7 +1078,7 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
         l_hot[i] = 0;
     {
         nrt_u64 t0 = NRT_GROUP_FIRST_ID();
-        if (NRT_SORTED && t0 < total)
+        if (ordered && t0 < total)
             t0 = order[t0] & 0xFFFFFFFFUL;
         home_slot = nrt_batch_of(photon_start + t0 % count, batch_base, batch_extra) - first_batch;
         home_cell = home_slot * (nrt_u64)n_lbands + (nrt_u64)(t0 / count);
@@ -1008,7 +1089,7 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
     sink.l_tally = 0;
 #endif
     for (nrt_u64 it = NRT_GLOBAL_ID(); it < total; it += stride) {
-        nrt_u64 t = NRT_SORTED ? (order[it] & 0xFFFFFFFFUL) : it;
+        nrt_u64 t = ordered ? (order[it] & 0xFFFFFFFFUL) : it;
         int lband = (int)(t / count);
         int band = band0 + lband;
         nrt_u64 photon = photon_start + t % count;
@@ -1028,11 +1109,26 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
 #else
         sink.l_hot = 0;
 #endif
-        nrt_count(&sink, 0);
+        if (!resuming)
+            nrt_count(&sink, 0);
+#if NRT_REGIONS
+        int stopped = nrt_trace_packet(density, optics[4 * band], optics[4 * band + 1], optics[4 * band + 2], stars,
+                                       star_cdf + band * n_stars, nx, ny, nz, n_stars, seed, band, photon,
+                                       max_scatterings, track_scale, acc + cell * nvox, &sink,
+                                       overflow + slot, peel, peel_scale, image + cell * pixels,
+                                       resuming ? states + t : 0, states + t, region_shift);
+        if (stopped) {
+            const NRT_GLOBAL nrt_packet *q = states + t;
+            keys_out[it] = ((nrt_u64)nrt_region_bin(cell, q->ix, q->iy, q->iz, nx, ny, nz, region_shift) << 32) | t;
+        } else {
+            keys_out[it] = NRT_NO_KEY;
+        }
+#else
         nrt_trace_packet(density, optics[4 * band], optics[4 * band + 1], optics[4 * band + 2], stars,
                          star_cdf + band * n_stars, nx, ny, nz, n_stars, seed, band, photon,
                          max_scatterings, track_scale, acc + cell * nvox, &sink,
-                         overflow + slot, peel, peel_scale, image + cell * pixels);
+                         overflow + slot, peel, peel_scale, image + cell * pixels, 0, 0, NRT_NO_REGIONS);
+#endif
 #endif
     }
 #if NRT_GROUP_TALLY
@@ -1097,6 +1193,74 @@ NRT_KERNEL void emission_keys(const NRT_GLOBAL nrt_trace_params *prm,
                         & ((1UL << (32 - 2 * NRT_SORT_BITS)) - 1UL);
         keys[t] = ((group << (2 * NRT_SORT_BITS) | (nrt_u64)dir) << 32) | t;
     }
+}
+
+/*
+ * Counting sort of the packets a pass stopped (NRT_REGIONS): keys (bin << 32 | work item),
+ * NRT_NO_KEY for the packets that ended. region_histogram counts the keys of every bin,
+ * the host turns the counts into each bin's first position, and region_scatter writes each
+ * key to its bin's range. Each work group counts its keys in local memory first and adds
+ * one total per bin to global memory (without, every packet leaving the star's region hit
+ * the same few counters); with more bins than NRT_LOCAL_BINS the keys go to global memory
+ * one by one. The order within a bin depends on the thread order, which changes no bit of
+ * the result (integer deposits).
+ */
+#ifndef NRT_LOCAL_BINS
+#define NRT_LOCAL_BINS 4096
+#endif
+
+NRT_KERNEL void region_histogram(const NRT_GLOBAL nrt_u64 *keys, nrt_u64 n, NRT_GLOBAL nrt_u32 *counts, int n_bins)
+{
+    NRT_LOCAL_MEM nrt_u32 l_count[NRT_LOCAL_BINS];
+    const int local_bins = n_bins <= NRT_LOCAL_BINS;
+    nrt_u64 lid = NRT_LOCAL_ID(), it = NRT_GLOBAL_ID();
+    if (local_bins)
+        for (nrt_u64 b = lid; b < (nrt_u64)n_bins; b += NRT_LOCAL_SIZE())
+            l_count[b] = 0;
+    NRT_BARRIER();
+    nrt_u64 key = it < n ? keys[it] : NRT_NO_KEY;
+    if (key != NRT_NO_KEY) {
+        nrt_u32 bin = (nrt_u32)(key >> 32);
+        if (local_bins)
+            NRT_ATOMIC_ADD_U32_LOCAL(&l_count[bin], 1u);
+        else
+            NRT_ATOMIC_ADD_U32(&counts[bin], 1u);
+    }
+    NRT_BARRIER();
+    if (local_bins)
+        for (nrt_u64 b = lid; b < (nrt_u64)n_bins; b += NRT_LOCAL_SIZE())
+            if (l_count[b] != 0)
+                NRT_ATOMIC_ADD_U32(&counts[b], l_count[b]);
+}
+
+/* cursor[b]: the next free position of bin b (its first position before the first call). */
+NRT_KERNEL void region_scatter(const NRT_GLOBAL nrt_u64 *keys, nrt_u64 n, NRT_GLOBAL nrt_u32 *cursor, int n_bins,
+                               NRT_GLOBAL nrt_u64 *out)
+{
+    NRT_LOCAL_MEM nrt_u32 l_count[NRT_LOCAL_BINS];
+    NRT_LOCAL_MEM nrt_u32 l_base[NRT_LOCAL_BINS];
+    const int local_bins = n_bins <= NRT_LOCAL_BINS;
+    nrt_u64 lid = NRT_LOCAL_ID(), it = NRT_GLOBAL_ID();
+    if (local_bins)
+        for (nrt_u64 b = lid; b < (nrt_u64)n_bins; b += NRT_LOCAL_SIZE())
+            l_count[b] = 0;
+    NRT_BARRIER();
+    nrt_u64 key = it < n ? keys[it] : NRT_NO_KEY;
+    nrt_u32 bin = (nrt_u32)(key >> 32), rank = 0;
+    if (key != NRT_NO_KEY) {
+        if (local_bins)
+            rank = NRT_ATOMIC_ADD_U32_LOCAL(&l_count[bin], 1u);
+        else
+            out[NRT_ATOMIC_ADD_U32(&cursor[bin], 1u)] = key;
+    }
+    NRT_BARRIER();
+    if (local_bins)
+        for (nrt_u64 b = lid; b < (nrt_u64)n_bins; b += NRT_LOCAL_SIZE())
+            if (l_count[b] != 0)
+                l_base[b] = NRT_ATOMIC_ADD_U32(&cursor[b], l_count[b]);
+    NRT_BARRIER();
+    if (local_bins && key != NRT_NO_KEY)
+        out[l_base[bin] + rank] = key;
 }
 
 /* The centred sums of squares are stored in float32 times 2^-64, so that any sum of squared

@@ -37,7 +37,27 @@ TRACE_PARAMS = (
                         "pixel size, W, H (box units)"),
 )
 
-STRUCTS = {"nrt_trace_params": TRACE_PARAMS}
+#: nrt_packet: a packet suspended where it crosses into another region of the grid
+#: (transport by regions, kernels/transport.cl): everything its walk needs to go on with the
+#: same bits. Its work item (hence band and photon) is in the key that points to it.
+PACKET_STATE = (
+    ("p0", "f32", 3, "start point of the current flight (box units)"),
+    ("d", "f32", 3, "direction (unit vector)"),
+    ("inv_d", "f32", 3, "1 / d, as the walk formed it"),
+    ("tx", "f32", 1, "distance from p0 to the current voxel's exit face along x"),
+    ("ty", "f32", 1, "the same along y"),
+    ("tz", "f32", 1, "the same along z"),
+    ("t_cur", "f32", 1, "distance from p0 to the current voxel's entry"),
+    ("tau", "f32", 1, "optical depth left of the current flight"),
+    ("ix", "i32", 1, "current voxel along x"),
+    ("iy", "i32", 1, "current voxel along y"),
+    ("iz", "i32", 1, "current voxel along z"),
+    ("scatterings", "i32", 1, "scatterings so far"),
+    ("rng_block", "i32", 1, "Philox blocks drawn so far"),
+    ("rng_pos", "i32", 1, "next 32-bit word of the current block (8: none left)"),
+)
+
+STRUCTS = {"nrt_trace_params": TRACE_PARAMS, "nrt_packet": PACKET_STATE}
 
 
 @functools.lru_cache(maxsize=None)

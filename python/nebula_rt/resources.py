@@ -57,6 +57,17 @@ def _parts(d: dict) -> str:
     return ", ".join(f"{k} {_gib(v)}" for k, v in sorted(d.items(), key=lambda kv: -kv[1]) if v)
 
 
+def region_bytes(backend, nvox: int, biased: bool) -> int:
+    """Device bytes of the transport by regions on ``backend`` for a grid of ``nvox`` voxels
+    (0 where the backend traces it without regions)."""
+    from .backends.session import region_shift_for, region_state_bytes
+
+    tuning = getattr(backend, "transport_tuning", {}) or {}
+    if not hasattr(backend, "transport_tuning") or not region_shift_for(backend, nvox, biased, tuning):
+        return 0
+    return region_state_bytes(nvox, tuning)
+
+
 def filter_fft_points(shape, radius: float) -> int:
     """Points of the padded FFT of the collision filter's convolution on ``shape``."""
     from .filtering import kernel_half_widths
@@ -103,6 +114,8 @@ def estimate(scene, backend, peel_pixels: int = 0) -> Estimate:
         "running sums": 12 * ncell,
         "peel-off images": cell * slots * per_launch * int(peel_pixels),
         "tallies and parameters": (84 if cell == 16 else 36) * per_launch * slots + 4096,
+        # transport by regions: the stopped packets' states and keys, per-bin counts
+        "region passes": region_bytes(backend, nvox, t.method == "biased"),
         # error-targeted runs: a brightness key per voxel and partial sums per 256 voxels
         "error checks": (4 * nvox + 16 * (nvox // 256 + 1)) if target > 0 else 0,
     }

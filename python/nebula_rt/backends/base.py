@@ -122,7 +122,7 @@ def transport_defines(setup: TransportSetup, tuning: dict | None = None) -> dict
         opts["NRT_ACC_RED"] = opts["NRT_GROUP_TALLY"] = 0
     if int(np.prod(setup.density.shape)) < 2**32:
         opts.setdefault("NRT_IDX32", 1)
-    defines.update({k: int(v) for k, v in opts.items() if v})
+    defines.update({k: int(v) for k, v in opts.items() if v and k.startswith("NRT_")})
     return defines
 
 
@@ -295,6 +295,12 @@ class Backend(abc.ABC):
         from ..resources import check_grid
 
         check_grid(shape, self, n_bands)
+
+    #: transport by regions: ((least voxels, region shift), ...) ascending; none: never
+    #: (backends/session.py, region_shift_of)
+    region_shifts: tuple = ()
+    #: a launch's last region pass once fewer packets than this are left
+    region_tail: int = 0
 
     #: kernel file of the transport (benchmarks swap in variants to compare them)
     transport_program: str = "transport.cl"

@@ -74,6 +74,11 @@ class CUDABackend(Backend):
     #: photons/ms unsorted -> sorted: 128^3 493k -> 479k, 512^3 30.9k -> 32.7k, 1024^3
     #: 17.9k -> 26.0k; benchmarks/results/h200-2026-12-01-sorted/)
     sort_min_voxels = 512**3
+    #: transport by regions (kernels/transport.cl, NRT_REGIONS) from 256^3 on, regions of 64
+    #: voxels a side, 128 from 1024^3 on (H200, neb medium, 1e8 photons, kernel packets/ms
+    #: without -> 64 / 128: 256^3 144k -> 182k / 154k, 512^3 54.9k -> 73.4k / 74.2k, 1024^3
+    #: 27.2k -> 32.3k / 33.7k; benchmarks/results/h200-2026-12-02c/)
+    region_shifts = ((256**3, 6), (1024**3, 7))
 
     def __init__(self, selector: str = "", *, compile_options: tuple = (), trace_block: int = TRACE_BLOCK,
                  transport_tuning: dict | None = None, fmad: bool = False):
@@ -110,6 +115,10 @@ class CUDABackend(Backend):
         self.launch_packets = self.sm_count * int(props["maxThreadsPerMultiProcessor"]) * 32
         # a GPU traces a full launch in milliseconds: the first needs no shortening
         self.first_launch_packets = self.launch_packets
+        # transport by regions (kernels/transport.cl, NRT_REGIONS) on grids past the L2 cache:
+        # regions of 2^region_shift voxels a side; a launch's last pass runs its packets to the
+        # end once fewer than half the GPU's resident threads are left
+        self.region_tail = self.sm_count * int(props["maxThreadsPerMultiProcessor"]) // 2
 
     def _compile(self, name, defines):
         # --fmad=false: no contraction of a * b + c into one rounding (as OpenCL's FP_CONTRACT

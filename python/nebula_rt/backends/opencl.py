@@ -145,6 +145,13 @@ class OpenCLBackend(Backend):
         # page-locked result buffers on GPUs (host_empty); on a CPU device memory is host memory
         self.pinned_host = self.is_gpu
         self.slot_memory_budget = min(mem // 4, 1 << 30)
+        if self.is_gpu:
+            # transport by regions on large grids, as on CUDA (backends/cuda.py); the last pass
+            # of a launch once fewer packets are left than 2^17 (half an H200's resident threads)
+            from .cuda import CUDABackend
+
+            self.region_shifts = CUDABackend.region_shifts
+            self.region_tail = 1 << 17
 
     def _compile(self, name, defines):
         options = [f"-D{k}={v}" for k, v in sorted(defines.items())]

@@ -17,6 +17,8 @@ voxel plus the budget: within twice the minimum (density and one 64-bit accumula
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from .. import kernel_params
@@ -24,6 +26,46 @@ from .base import TransportSession, TransportSetup, transport_defines
 
 #: centred sums of squares are stored as float32 x 2^-64 (kernels/transport.cl)
 M2_SCALE = 2.0**64
+
+#: region shift that never stops a packet (kernels/transport.cl, NRT_NO_REGIONS)
+NO_REGIONS = 31
+#: device memory for the stopped packets of the transport by regions (80 B of state and two
+#: 8 B keys per packet), at most REGION_STATE_BYTES and REGION_STATE_PER_VOXEL per voxel (within
+#: the memory target of 2 x (density + one 64-bit cell per band) + 1 GiB at 256^3 and beyond):
+#: a launch of more packets is traced in parts. On an H200 at 512^3, 128 MiB of state traced
+#: 60k packets/ms, 512 MiB 74k (more parts, each ending in a few poorly filled passes)
+REGION_STATE_BYTES = 512 << 20
+REGION_STATE_PER_VOXEL = 24
+#: passes after which a launch's remaining packets are traced to the end in one
+MAX_REGION_PASSES = 256
+
+
+def region_shift_of(backend, setup: TransportSetup, tuning: dict) -> int:
+    """Side of the regions (as log2 voxels) of the transport by regions, 0 for none: the
+    tuning's ``NRT_REGIONS`` where given, else the backend's ``region_shifts`` entry for the
+    grid's size ((least voxels, shift) pairs, ascending; none: never). Weighted packets walk
+    whole rays for the forced flights and have no region path."""
+    return region_shift_for(backend, int(np.prod(setup.density.shape)), setup.biased, tuning)
+
+
+def region_state_bytes(nvox: int, tuning: dict | None = None) -> int:
+    """Device bytes of the stopped packets' states and keys of the transport by regions."""
+    budget = int((tuning or {}).get("region_state_bytes", min(REGION_STATE_BYTES, REGION_STATE_PER_VOXEL * nvox)))
+    per = kernel_params.dtype("nrt_packet").itemsize + 16
+    return max(1024, budget // per) * per
+
+
+def region_shift_for(backend, nvox: int, biased: bool, tuning: dict | None = None) -> int:
+    """:func:`region_shift_of` from the grid's voxel count (for the memory estimate)."""
+    tuning = backend.transport_tuning if tuning is None else tuning
+    if biased:
+        return 0
+    if "NRT_REGIONS" in tuning:
+        return int(tuning["NRT_REGIONS"])
+    shift = 0
+    for least, s in getattr(backend, "region_shifts", ()):  # (from voxels, shift), ascending
+        shift = int(s) if nvox >= int(least) else shift
+    return shift
 
 
 class DeviceTransport(TransportSession):
@@ -81,15 +123,43 @@ class DeviceTransport(TransportSession):
         tuning = dict(be.transport_tuning)
         if "NRT_SORTED" not in tuning and self.nvox >= getattr(be, "sort_min_voxels", 0) > 0:
             tuning["NRT_SORTED"] = 1  # large grids: a warp's first flights side by side
+        self.region_shift = region_shift_of(be, setup, tuning)
+        tuning["NRT_REGIONS"] = 1 if self.region_shift else 0
         self.defines = transport_defines(setup, tuning)
         self.sorted = bool(self.defines.get("NRT_SORTED"))
         self.d_keys = be.device_zeros(1, np.uint64)  # NRT_SORTED: the launch's sorted packets
+        if self.region_shift:
+            self._setup_regions(tuning)
         self._plan = (0, 0)
         self._h_stage = None  # several ranks: the host buffer of reduce_group
         # build the kernels of this option set now (setup time): compiled inside the first
         # launch, they were counted as tracing (up to 1 s per option set on CUDA)
-        for name in ("trace_photons", "fold_batches") + (("emission_keys",) if self.sorted else ()):
+        names = ("trace_photons", "fold_batches") + (("emission_keys",) if self.sorted else ())
+        for name in names + (("region_histogram", "region_scatter") if self.region_shift else ()):
             be.kernel(be.transport_program, name, self.defines)
+
+    def _setup_regions(self, tuning):
+        """Buffers of the transport by regions: each stopped packet's state and two key lists
+        (what a pass stopped, and the next pass's packets sorted by cell and region), for up to
+        ``region_capacity`` packets of a launch; the per-bin counts of the counting sort."""
+        be = self.backend
+        state_bytes = kernel_params.dtype("nrt_packet").itemsize
+        self.region_capacity = region_state_bytes(self.nvox, tuning) // (state_bytes + 16)
+        self.region_tail = int(tuning.get("region_tail", getattr(be, "region_tail", 0)))
+        shift = self.region_shift
+        regions = int(np.prod([-(-n // (1 << shift)) for n in self.shape]))
+        self.n_bins = self.slots * self.bands_per_launch * regions
+        if self.n_bins >= 2**32:
+            raise ValueError(f"{self.n_bins} region bins do not fit a 32-bit key")
+        self.d_states = be.device_zeros(self.region_capacity * state_bytes // 8, np.uint64)
+        self.d_stopped = be.device_zeros(self.region_capacity, np.uint64)
+        self.d_keys = be.device_zeros(self.region_capacity, np.uint64)
+        self.d_bins = be.device_zeros(self.n_bins, np.uint32)
+        self.region_passes = 0  # passes traced so far (a diagnostic for benchmarks)
+        #: benchmarks set a list here: every pass appends (packets in, packets stopped, seconds
+        #: from its launch to the stopped count on the host, region shift); the tail pass is
+        #: waited for then, which a run otherwise does not do
+        self.region_log = None
 
     def run_group(self, photon_start, count, batch_base, batch_extra, first_batch, n_slots, fresh=True,
                   bands=None):
@@ -104,26 +174,97 @@ class DeviceTransport(TransportSession):
         if fresh:
             be.fill_zero(self.d_tallies)
             be.fill_zero(self.d_overflow)
-        items = int(count) * n_lb
-        if self.sorted:
-            if self.d_keys.size < items:
-                self.d_keys = None
-                self.d_keys = be.device_zeros(items, np.uint64)
-            be.launch(be.transport_program, "emission_keys", items, self.d_params, self.d_cdf,
-                      np.uint64(photon_start), np.uint64(count), np.uint64(first_batch),
-                      np.int32(band0), np.int32(n_lb), np.int32(self.slots), self.d_keys,
-                      defines=self.defines)
-            self.d_keys = be.sort_u64(self.d_keys, items)
-        be.launch_trace(
-            be.transport_program, "trace_photons", int(count) * n_lb,
-            self.d_params, self.d_density, self.d_optics, self.d_stars, self.d_cdf,
-            np.uint64(photon_start), np.uint64(count), np.uint64(first_batch),
-            np.int32(band0), np.int32(n_lb),
-            self.d_acc, self.d_tallies, self.d_overflow, self.d_image, self.d_keys, defines=self.defines)
+        if self.region_shift:
+            # at most region_capacity packets (all bands) per launch: the stopped states' room
+            step = max(1, self.region_capacity // n_lb)
+            for start in range(int(photon_start), int(photon_start) + int(count), step):
+                n = min(step, int(photon_start) + int(count) - start)
+                self._trace_by_regions(start, n, first_batch, band0, n_lb)
+        else:
+            self._emission_order(photon_start, count, first_batch, band0, n_lb)
+            self._launch_trace(photon_start, count, first_batch, band0, n_lb, 0, NO_REGIONS)
         tallies = be.to_host(self.d_tallies).reshape(self.slots, self.bands_per_launch,
                                                      self.tally_words)  # synchronises
         overflow = be.to_host(self.d_overflow)
         return tallies[:n_slots, :n_lb].copy(), overflow[:n_slots].astype(bool)
+
+    def _emission_order(self, photon_start, count, first_batch, band0, n_lb):
+        """NRT_SORTED: the launch's packets sorted by cell, star and first direction, into
+        d_keys (the order the trace takes them in)."""
+        if not self.sorted:
+            return
+        be = self.backend
+        items = int(count) * n_lb
+        if self.d_keys.size < items:
+            self.d_keys = None
+            self.d_keys = be.device_zeros(items, np.uint64)
+        be.launch(be.transport_program, "emission_keys", items, self.d_params, self.d_cdf,
+                  np.uint64(photon_start), np.uint64(count), np.uint64(first_batch),
+                  np.int32(band0), np.int32(n_lb), np.int32(self.slots), self.d_keys,
+                  defines=self.defines)
+        self.d_keys = be.sort_u64(self.d_keys, items)
+
+    def _launch_trace(self, photon_start, count, first_batch, band0, n_lb, n_resume, shift):
+        """One launch of trace_photons: the launch's new packets (n_resume 0) or the n_resume
+        stopped ones listed in d_keys; packets stop at region faces of 2^shift voxels."""
+        be = self.backend
+        regions = bool(self.region_shift)
+        be.launch_trace(
+            be.transport_program, "trace_photons", n_resume if n_resume else int(count) * n_lb,
+            self.d_params, self.d_density, self.d_optics, self.d_stars, self.d_cdf,
+            np.uint64(photon_start), np.uint64(count), np.uint64(first_batch),
+            np.int32(band0), np.int32(n_lb),
+            self.d_acc, self.d_tallies, self.d_overflow, self.d_image, self.d_keys,
+            self.d_states if regions else self.d_keys, self.d_stopped if regions else self.d_keys,
+            np.uint64(n_resume), np.int32(shift), defines=self.defines)
+
+    def _trace_by_regions(self, photon_start, count, first_batch, band0, n_lb):
+        """Trace a launch's packets in passes: each pass runs its packets until they end or
+        step into another region, and the stopped ones, sorted by (cell, region), are the next
+        pass's packets. Once fewer than ``region_tail`` are left (or after MAX_REGION_PASSES
+        passes) the last pass runs them to the end."""
+        be = self.backend
+        self._emission_order(photon_start, count, first_batch, band0, n_lb)
+        shift, n_in, passes = self.region_shift, 0, 0
+        log = self.region_log
+        while True:
+            t0 = time.perf_counter() if log is not None else 0.0
+            self._launch_trace(photon_start, count, first_batch, band0, n_lb, n_in, shift)
+            passes += 1
+            if shift == NO_REGIONS:
+                if log is not None:
+                    be.to_host(self.d_overflow)  # waits for the pass
+                    log.append((n_in, 0, time.perf_counter() - t0, shift))
+                break
+            items = n_in if n_in else int(count) * n_lb
+            n_in = self._sort_stopped(items)
+            if log is not None:
+                log.append((items, n_in, time.perf_counter() - t0, shift))
+            if n_in == 0:
+                break
+            if n_in < self.region_tail or passes >= MAX_REGION_PASSES:
+                shift = NO_REGIONS
+        self.region_passes += passes
+
+    def _sort_stopped(self, n):
+        """Counting sort of the keys the last pass wrote (d_stopped[0..n)) into d_keys by bin;
+        returns how many packets stopped. (Keys that also held the place and direction in the
+        region, radix-sorted so that a warp's packets enter side by side, flying alike, traced
+        no faster on an H200: 71.1k against 70.5k packets/ms at 512^3.)"""
+        be = self.backend
+        be.fill_zero(self.d_bins)
+        args = (np.int32(self.n_bins),)
+        be.launch_trace(be.transport_program, "region_histogram", n, self.d_stopped, np.uint64(n), self.d_bins,
+                        *args, defines=self.defines)
+        counts = be.to_host(self.d_bins).astype(np.int64)
+        live = int(counts.sum())
+        if live:
+            first = np.zeros(self.n_bins, np.uint32)  # each bin's first position
+            first[1:] = np.cumsum(counts[:-1])
+            be.upload(self.d_bins, first)
+            be.launch_trace(be.transport_program, "region_scatter", n, self.d_stopped, np.uint64(n), self.d_bins,
+                            *args, self.d_keys, defines=self.defines)
+        return live
 
     def empty_group(self, n_slots, bands=None):
         """Clear the group's tallies and flags without tracing (a rank with no packets of a
@@ -262,16 +403,20 @@ class DeviceTransport(TransportSession):
         out = (self.d_sum1, self.d_m2, self.d_density)
         self.d_sum1 = self.d_m2 = self.d_density = None
         self.d_acc = self.d_image = self.d_keys = None  # the slots' memory goes to the finishing
+        self.d_states = self.d_stopped = self.d_bins = None
         self._h_stage = None
         return out
 
     def device_bytes(self) -> int:
         """Device memory this run holds: the batch slots (8 B per slot cell), the statistics
         (12 B per cell), the density (4 B per voxel), the per-slot tallies and the images."""
+        regions = (self.region_capacity * (kernel_params.dtype("nrt_packet").itemsize + 16) + 4 * self.n_bins
+                   if self.region_shift else 0)
         return (8 * self.words * self.slot_cells * self.slots + 12 * self.ncell + 4 * self.nvox
                 + 8 * self.tally_words * self.bands_per_launch * self.slots + 4 * self.slots
-                + 8 * self.words * self.slots * self.bands_per_launch * self.pixels)
+                + 8 * self.words * self.slots * self.bands_per_launch * self.pixels + regions)
 
     def close(self):
-        for name in ("d_acc", "d_sum1", "d_m2", "d_density", "d_image", "d_keys", "_h_stage"):
+        for name in ("d_acc", "d_sum1", "d_m2", "d_density", "d_image", "d_keys", "_h_stage", "d_states",
+                     "d_stopped", "d_bins"):
             setattr(self, name, None)

@@ -1,0 +1,159 @@
+"""Transport by regions: packets stopped at region faces and resumed give the same bits.
+
+On large grids the GPU traces each launch in passes (kernels/transport.cl, NRT_REGIONS): a
+packet's walk stops where it steps into another cube of 2^shift voxels, its state is stored,
+and the stopped packets, sorted by (cell, region), are resumed by the next pass, so that the
+packets in flight deposit into one region's cells. Stopping and resuming must change nothing:
+the state holds everything the walk needs (its random stream included) and integer deposits
+add alike in any order. These tests hold every sum, centred square, tally and peel-off pixel
+to the bit against tracing each packet in one go, with regions small enough that packets stop
+tens of times, and check the pass machinery itself (the counting sort, launches split for the
+state memory, the tail pass, the overflow re-trace).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import TEST_BACKEND, TEST_DEVICE
+
+from nebula_rt import sky
+from nebula_rt.backends.session import DeviceTransport
+from nebula_rt.bands import Band
+from nebula_rt.scene import Star
+from nebula_rt.transport import trace
+
+
+def _backend(tuning):
+    if TEST_BACKEND == "cuda":
+        from nebula_rt.backends.cuda import CUDABackend
+
+        return CUDABackend(TEST_DEVICE, transport_tuning=tuning)
+    from nebula_rt.backends.opencl import OpenCLBackend
+
+    return OpenCLBackend(TEST_DEVICE, transport_tuning=tuning)
+
+
+def _bands():
+    return [Band(name="B", wavelength=450.0, extinction=1.3, albedo=0.6, g=0.5),
+            Band(name="R", wavelength=650.0, extinction=0.8, albedo=0.9, g=-0.3)]
+
+
+def _stars():
+    # one star on a region corner (the centre), one inside a region
+    return [Star(position=(0.5, 0.5, 0.5), luminosity=1.0, temperature=None, bump_radius=0.0),
+            Star(position=(0.25, 0.625, 0.4), luminosity=0.6, temperature=None, bump_radius=0.0)]
+
+
+@pytest.fixture(scope="module")
+def cloud():
+    # a grid that is no multiple of the regions (partial regions at the far faces)
+    rng = np.random.default_rng(17)
+    return (rng.random((21, 16, 13)) ** 3).astype(np.float32)
+
+
+def _run(cloud, tuning, estimator="track-length", peel=True, launch=3 * 2 * 1500, **kw):
+    be = _backend(tuning)
+    be.launch_packets = launch
+    camera = sky.Camera(direction=(0.3, -0.2, -1.0), size=(12, 10)) if peel else None
+    return trace(cloud, _bands(), _stars(), tau=kw.pop("tau", 12.0), photons=kw.pop("photons", 9000),
+                 batch_size=1500, seed=21, estimator=estimator, backend=be, peel=camera, **kw)
+
+
+def _same(a, b):
+    assert a.raw_sum.tobytes() == b.raw_sum.tobytes()
+    assert a.raw_m2.tobytes() == b.raw_m2.tobytes()
+    np.testing.assert_array_equal(a.counts, b.counts)
+    if a.peel_image is not None:
+        np.testing.assert_array_equal(a.peel_image, b.peel_image)
+
+
+@pytest.mark.parametrize("estimator", ["track-length", "collision-filter"])
+def test_regions_give_the_same_bits(cloud, estimator):
+    """Regions of 2, 4 and 8 voxels (a packet stops up to hundreds of times), with and without
+    the sorted emission order and the work-group sums: every sum, square, count and peel-off
+    pixel equals the one-go trace's, for two bands, two stars and several batches per launch."""
+    plain = _run(cloud, {"NRT_REGIONS": 0}, estimator)
+    assert plain.counts[:, 0].tolist() == [9000, 9000]
+    for tuning in ({"NRT_REGIONS": 1}, {"NRT_REGIONS": 2}, {"NRT_REGIONS": 3, "NRT_SORTED": 1},
+                   {"NRT_REGIONS": 2, "NRT_GROUP_TALLY": 1, "NRT_PREFETCH": 0}):
+        _same(_run(cloud, dict(tuning, region_tail=0), estimator), plain)
+
+
+FULL = {"NRT_REGIONS": 2, "region_tail": 0, "region_state_bytes": 10**6}
+TAIL = dict(FULL, region_tail=500)
+SPLIT = dict(FULL, region_state_bytes=300 * 96)
+
+
+def test_passes_stop_and_resume_packets(cloud):
+    """The passes do what they are for: with regions of 4 voxels every launch takes many passes
+    (a packet of this cloud crosses tens of region faces), the tail pass cuts them short, and
+    a state budget of a few hundred packets splits each launch into parts; the bits stay."""
+    plain = _run(cloud, {"NRT_REGIONS": 0}, peel=False)
+    seen = {}
+    real_init = DeviceTransport.__init__
+
+    def spy(self, *a, **k):
+        real_init(self, *a, **k)
+        seen["session"] = self
+
+    DeviceTransport.__init__ = spy
+    try:
+        for tuning in (FULL, TAIL, SPLIT):
+            res = _run(cloud, tuning, peel=False)
+            _same(res, plain)
+            s = seen["session"]
+            assert s.region_shift == 2
+            # room for a whole launch (9000 packets), or the least: parts of 512 packets x 2 bands
+            assert s.region_capacity == (1024 if tuning is SPLIT else 10416)
+            seen[id(tuning)] = s.region_passes
+    finally:
+        DeviceTransport.__init__ = real_init
+    full, tail, split = (seen[id(t)] for t in (FULL, TAIL, SPLIT))
+    launches = 2  # 9000 packets x 2 bands in launches of 3 batches x 2 bands x 1500
+    assert full >= 10 * launches  # packets stop again and again
+    assert tail < full
+    assert split > full  # 1024 packets of state per part: each launch in several parts
+
+
+def test_regions_overflow_retrace_gives_the_same_bits(cloud):
+    """Headroom lowered to 2^36 so that the hottest cells overflow (with unchecked adds too):
+    the re-trace in halves runs through the passes as well, and the regions' run ends with the
+    bits of the one-go runs, with and without the lowered headroom."""
+    normal = _run(cloud, {"NRT_REGIONS": 0}, peel=False)
+    for acc_red in (0, 1):
+        plain = _run(cloud, {"NRT_REGIONS": 0, "NRT_ACC_RED": acc_red}, peel=False, _acc_limit_bits=36)
+        regions = _run(cloud, {"NRT_REGIONS": 2, "region_tail": 0, "NRT_ACC_RED": acc_red}, peel=False,
+                       _acc_limit_bits=36)
+        assert regions.batches > normal.batches  # the overflow happened and was split
+        _same(regions, plain)
+        np.testing.assert_array_equal(regions.raw_sum, normal.raw_sum)
+
+
+def test_region_sort_counts_and_orders_every_stopped_packet(backend):
+    """The counting sort on its own: keys of random bins (and ended packets' empty keys) come
+    out grouped by bin, each key exactly once, with more bins than the work group holds in
+    local memory and with fewer."""
+    rng = np.random.default_rng(3)
+    for n_bins in (7, 900, 5000):
+        n = 20011
+        bins = rng.integers(0, n_bins, n).astype(np.uint64)
+        keys = (bins << np.uint64(32)) | np.arange(n, dtype=np.uint64)
+        keys[rng.random(n) < 0.3] = np.uint64(2**64 - 1)
+        d_keys = backend.to_device(keys)
+        d_counts = backend.device_zeros(n_bins, np.uint32)
+        defines = {"NRT_TRACK_LENGTH": 1, "NRT_REGIONS": 1}
+        backend.launch_trace("transport.cl", "region_histogram", n, d_keys, np.uint64(n), d_counts,
+                             np.int32(n_bins), defines=defines)
+        counts = backend.to_host(d_counts)
+        live = keys[keys != np.uint64(2**64 - 1)]
+        np.testing.assert_array_equal(counts, np.bincount((live >> np.uint64(32)).astype(np.int64), minlength=n_bins))
+        first = np.zeros(n_bins, np.uint32)
+        first[1:] = np.cumsum(counts[:-1])
+        d_cursor = backend.to_device(first)
+        d_out = backend.device_zeros(live.size, np.uint64)
+        backend.launch_trace("transport.cl", "region_scatter", n, d_keys, np.uint64(n), d_cursor,
+                             np.int32(n_bins), d_out, defines=defines)
+        out = backend.to_host(d_out)
+        assert sorted(out.tolist()) == sorted(live.tolist())
+        assert np.all(np.diff((out >> np.uint64(32)).astype(np.int64)) >= 0)
