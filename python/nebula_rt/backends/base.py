@@ -276,6 +276,10 @@ class Backend(abc.ABC):
         of as many as fit it (at least one), one batch at a time."""
         nvox, n_bands = max(int(nvox), 1), max(int(n_bands), 1)
         budget, cb = int(self.slot_memory_budget), int(cell_bytes)
+        # the transport by regions' stopped packets share the budget (within the memory target)
+        from ..resources import region_bytes
+
+        budget = max(budget - region_bytes(self, nvox, cb == 16), 0)
         if cb * nvox * n_bands > budget:
             return int(max(1, min(n_bands, budget // (cb * nvox)))), 1
         by_work = max(1, -(-int(self.launch_packets) // max(int(packets_per_batch) * n_bands, 1)))

@@ -175,11 +175,13 @@ class DeviceTransport(TransportSession):
             be.fill_zero(self.d_tallies)
             be.fill_zero(self.d_overflow)
         if self.region_shift:
-            # at most region_capacity packets (all bands) per launch: the stopped states' room
-            step = max(1, self.region_capacity // n_lb)
-            for start in range(int(photon_start), int(photon_start) + int(count), step):
-                n = min(step, int(photon_start) + int(count) - start)
-                self._trace_by_regions(start, n, first_batch, band0, n_lb)
+            # at most region_capacity packets (all bands) per part, the stopped states' room;
+            # parts of equal size (a small last part would take as many passes as a full one)
+            parts = -(-int(count) // max(1, self.region_capacity // n_lb))
+            for k in range(parts):
+                start = int(count) * k // parts
+                n = int(count) * (k + 1) // parts - start
+                self._trace_by_regions(int(photon_start) + start, n, first_batch, band0, n_lb)
         else:
             self._emission_order(photon_start, count, first_batch, band0, n_lb)
             self._launch_trace(photon_start, count, first_batch, band0, n_lb, 0, NO_REGIONS)
