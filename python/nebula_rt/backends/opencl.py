@@ -152,6 +152,13 @@ class OpenCLBackend(Backend):
 
             self.region_shifts = CUDABackend.region_shifts
             self.region_tail = 1 << 17
+        else:
+            # on a CPU the caches are MiBs: regions of 32 voxels from 128^3 on (PoCL, 2 cores,
+            # neb medium, 4e5 packets, kernel packets/ms without -> with: 128^3 253 -> 316,
+            # 256^3 78 -> 89; at 64^3 they cost more than they save: 957 -> 808;
+            # benchmarks/results/pocl-2026-12-02b/regions-pocl.json)
+            self.region_shifts = ((128**3, 5),)
+            self.region_tail = 4096
 
     def _compile(self, name, defines):
         options = [f"-D{k}={v}" for k, v in sorted(defines.items())]
