@@ -7,7 +7,7 @@
 # WHEELDIR holds wheels for what the machine lacks (pyopencl and its pure-Python needs,
 # colour-science, tomli-w; pmcx for the MCX comparison), fetched elsewhere with
 # `pip download --only-binary=:all: --python-version 3.12 ...`.
-# STEPS (default "tests bench neb128 compare profile"; also "tests-cuda", "scaling", "large", "layout", "sorted", "probe", "ranks", "e2e1e9", "biasing", "fit", "tune",
+# STEPS (default "tests bench neb128 compare profile"; also "tests-cuda", "scaling", "large", "regions", "layout", "sorted", "probe", "ranks", "e2e1e9", "biasing", "fit", "tune",
 # "stages", "trade", "presets", "empty", "fft") selects what runs. Everything printed
 # goes to OUTDIR/log.txt as well; JSON and .npz results beside it.
 set -uo pipefail
@@ -28,7 +28,7 @@ nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader
 python3 -m nebula_rt.cli devices
 git rev-parse --short HEAD 2>/dev/null || true
 
-physics="tests/test_rng.py tests/test_hg.py tests/test_density_kernel.py tests/test_transport_physics.py tests/test_estimators.py tests/test_postprocess.py tests/test_target_error.py tests/test_sky_physics.py tests/test_kernel_options.py tests/test_filter_boundary.py tests/test_terminated.py tests/test_peel_off_physics.py tests/test_band_independence.py tests/test_resources.py tests/test_extremes.py tests/test_memory_layout.py tests/test_biased_transport.py"
+physics="tests/test_rng.py tests/test_hg.py tests/test_density_kernel.py tests/test_transport_physics.py tests/test_estimators.py tests/test_postprocess.py tests/test_target_error.py tests/test_sky_physics.py tests/test_kernel_options.py tests/test_filter_boundary.py tests/test_terminated.py tests/test_peel_off_physics.py tests/test_band_independence.py tests/test_resources.py tests/test_extremes.py tests/test_memory_layout.py tests/test_biased_transport.py tests/test_regions.py"
 if [[ " $steps " == *" tests "* ]]; then
     echo "== physics tests, CUDA"; NEBULA_RT_TEST_BACKEND=cuda python3 -m pytest -q -p no:cacheprovider $physics tests/test_cuda_sources.py 2>&1 | tail -n 8
     echo "== physics tests, NVIDIA OpenCL"; NEBULA_RT_TEST_DEVICE=NVIDIA python3 -m pytest -q -p no:cacheprovider $physics 2>&1 | tail -n 3
@@ -74,6 +74,12 @@ if [[ " $steps " == *" large "* ]]; then
     # (355 s measured without n1024-p1e8-b3, which adds about 1 min: --skip n1024-p1e8-b3 drops it)
     echo "== large grids, CUDA vs pmcx, 1 and 3 bands, atomic adds"
     python3 benchmarks/bench_large_grids.py --bands 1 3 --out "$out/large-grids-cuda.json"
+fi
+if [[ " $steps " == *" regions "* ]]; then
+    # the transport by regions: none, 32, 64 and 128 voxels a side, 1e8 photons (about 3 min)
+    echo "== transport by regions, region size, CUDA"
+    python3 benchmarks/bench_regions.py --backend cuda --grids 128 256 512 1024 --shifts 0 5 6 7 --photons 1e8 \
+        --repeats 1 --tail 135168 --out "$out/regions-cuda.json"
 fi
 if [[ " $steps " == *" layout "* ]]; then
     echo "== memory layout, sorted packet order and transport physics, CUDA"
