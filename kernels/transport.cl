@@ -1059,7 +1059,7 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
     nrt_u64 nvox = (nrt_u64)nx * (nrt_u64)ny * (nrt_u64)nz;
     /* NRT_REGIONS: n_resume > 0 resumes the stopped packets order[0 .. n_resume) */
     const int resuming = NRT_REGIONS && n_resume > 0;
-    const int ordered = NRT_SORTED || resuming;
+    const int ordered = resuming ? 1 : NRT_SORTED;
     nrt_u64 total = resuming ? n_resume : count * (nrt_u64)n_lbands;
     nrt_u64 stride = NRT_GLOBAL_SIZE();
     nrt_u64 pixels = NRT_PEEL ? (nrt_u64)peel[13] * (nrt_u64)peel[14] : 0;
@@ -1197,9 +1197,9 @@ NRT_KERNEL void emission_keys(const NRT_GLOBAL nrt_trace_params *prm,
 
 /*
  * Counting sort of the packets a pass stopped (NRT_REGIONS): keys (bin << 32 | work item),
- * NRT_NO_KEY for the packets that ended. region_histogram counts the keys of every bin,
- * the host turns the counts into each bin's first position, and region_scatter writes each
- * key to its bin's range. Each work group counts its keys in local memory first and adds
+ * NRT_NO_KEY for the packets that ended. A first pass counts the keys of every bin, the host
+ * turns the counts into each bin's first position, and a second pass writes each key to its
+ * bin's range. Each work group counts its keys in local memory first and adds
  * one total per bin to global memory (without, every packet leaving the star's region hit
  * the same few counters); with more bins than NRT_LOCAL_BINS the keys go to global memory
  * one by one. The order within a bin depends on the thread order, which changes no bit of
@@ -1209,33 +1209,13 @@ NRT_KERNEL void emission_keys(const NRT_GLOBAL nrt_trace_params *prm,
 #define NRT_LOCAL_BINS 4096
 #endif
 
-NRT_KERNEL void region_histogram(const NRT_GLOBAL nrt_u64 *keys, nrt_u64 n, NRT_GLOBAL nrt_u32 *counts, int n_bins)
-{
-    NRT_LOCAL_MEM nrt_u32 l_count[NRT_LOCAL_BINS];
-    const int local_bins = n_bins <= NRT_LOCAL_BINS;
-    nrt_u64 lid = NRT_LOCAL_ID(), it = NRT_GLOBAL_ID();
-    if (local_bins)
-        for (nrt_u64 b = lid; b < (nrt_u64)n_bins; b += NRT_LOCAL_SIZE())
-            l_count[b] = 0;
-    NRT_BARRIER();
-    nrt_u64 key = it < n ? keys[it] : NRT_NO_KEY;
-    if (key != NRT_NO_KEY) {
-        nrt_u32 bin = (nrt_u32)(key >> 32);
-        if (local_bins)
-            NRT_ATOMIC_ADD_U32_LOCAL(&l_count[bin], 1u);
-        else
-            NRT_ATOMIC_ADD_U32(&counts[bin], 1u);
-    }
-    NRT_BARRIER();
-    if (local_bins)
-        for (nrt_u64 b = lid; b < (nrt_u64)n_bins; b += NRT_LOCAL_SIZE())
-            if (l_count[b] != 0)
-                NRT_ATOMIC_ADD_U32(&counts[b], l_count[b]);
-}
-
-/* cursor[b]: the next free position of bin b (its first position before the first call). */
-NRT_KERNEL void region_scatter(const NRT_GLOBAL nrt_u64 *keys, nrt_u64 n, NRT_GLOBAL nrt_u32 *cursor, int n_bins,
-                               NRT_GLOBAL nrt_u64 *out)
+/*
+ * One pass of the counting sort over keys[0 .. n). bins[b]: with scatter 0, the count of bin b
+ * (added to); with scatter 1, the next free position of bin b in out (its first position
+ * before the call), each key written there.
+ */
+NRT_KERNEL void region_sort_pass(const NRT_GLOBAL nrt_u64 *keys, nrt_u64 n, NRT_GLOBAL nrt_u32 *bins, int n_bins,
+                                 int scatter, NRT_GLOBAL nrt_u64 *out)
 {
     NRT_LOCAL_MEM nrt_u32 l_count[NRT_LOCAL_BINS];
     NRT_LOCAL_MEM nrt_u32 l_base[NRT_LOCAL_BINS];
@@ -1248,18 +1228,22 @@ NRT_KERNEL void region_scatter(const NRT_GLOBAL nrt_u64 *keys, nrt_u64 n, NRT_GL
     nrt_u64 key = it < n ? keys[it] : NRT_NO_KEY;
     nrt_u32 bin = (nrt_u32)(key >> 32), rank = 0;
     if (key != NRT_NO_KEY) {
-        if (local_bins)
+        if (local_bins) {
             rank = NRT_ATOMIC_ADD_U32_LOCAL(&l_count[bin], 1u);
-        else
-            out[NRT_ATOMIC_ADD_U32(&cursor[bin], 1u)] = key;
+        } else {
+            nrt_u32 pos = NRT_ATOMIC_ADD_U32(&bins[bin], 1u);
+            if (scatter)
+                out[pos] = key;
+        }
     }
     NRT_BARRIER();
+    /* the group's count of each bin: added to the total, or its range reserved */
     if (local_bins)
         for (nrt_u64 b = lid; b < (nrt_u64)n_bins; b += NRT_LOCAL_SIZE())
             if (l_count[b] != 0)
-                l_base[b] = NRT_ATOMIC_ADD_U32(&cursor[b], l_count[b]);
+                l_base[b] = NRT_ATOMIC_ADD_U32(&bins[b], l_count[b]);
     NRT_BARRIER();
-    if (local_bins && key != NRT_NO_KEY)
+    if (scatter && local_bins && key != NRT_NO_KEY)
         out[l_base[bin] + rank] = key;
 }
 

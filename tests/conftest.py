@@ -31,6 +31,19 @@ def backend():
     return get_backend(TEST_BACKEND, TEST_DEVICE)
 
 
+def tuned_backend(tuning):
+    """A new backend of the test device with transport kernel options ``tuning`` (see
+    ``backends.base.TRANSPORT_TUNING``; ``NRT_REGIONS`` and the ``region_*`` keys for the
+    transport by regions)."""
+    if TEST_BACKEND == "cuda":
+        from nebula_rt.backends.cuda import CUDABackend
+
+        return CUDABackend(TEST_DEVICE, transport_tuning=tuning)
+    from nebula_rt.backends.opencl import OpenCLBackend
+
+    return OpenCLBackend(TEST_DEVICE, transport_tuning=tuning)
+
+
 def one_band(albedo=0.6, g=0.6, extinction=1.0, name="V", wavelength=550.0):
     """A single band; extinction 1 makes it the reference band, so sigma = tau * rho."""
     return [Band(name=name, wavelength=wavelength, extinction=extinction, albedo=albedo, g=g)]

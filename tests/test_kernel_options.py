@@ -13,7 +13,8 @@ import itertools
 
 import numpy as np
 import pytest
-from conftest import TEST_BACKEND, TEST_DEVICE, centre_star, one_band
+from conftest import TEST_BACKEND, centre_star, one_band
+from conftest import tuned_backend as _backend
 
 from nebula_rt import sky
 from nebula_rt.backends.base import TRANSPORT_TUNING, transport_defines
@@ -39,16 +40,6 @@ def _stars():
 def cloud():
     rng = np.random.default_rng(11)
     return (rng.random((20, 16, 12)) ** 3).astype(np.float32)
-
-
-def _backend(tuning):
-    if TEST_BACKEND == "cuda":
-        from nebula_rt.backends.cuda import CUDABackend
-
-        return CUDABackend(TEST_DEVICE, transport_tuning=tuning)
-    from nebula_rt.backends.opencl import OpenCLBackend
-
-    return OpenCLBackend(TEST_DEVICE, transport_tuning=tuning)
 
 
 @pytest.mark.parametrize("estimator", ["track-length", "collision-filter"])

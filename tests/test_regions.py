@@ -15,23 +15,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import TEST_BACKEND, TEST_DEVICE
+from conftest import tuned_backend as _backend
 
 from nebula_rt import sky
 from nebula_rt.backends.session import DeviceTransport
 from nebula_rt.bands import Band
 from nebula_rt.scene import Star
 from nebula_rt.transport import trace
-
-
-def _backend(tuning):
-    if TEST_BACKEND == "cuda":
-        from nebula_rt.backends.cuda import CUDABackend
-
-        return CUDABackend(TEST_DEVICE, transport_tuning=tuning)
-    from nebula_rt.backends.opencl import OpenCLBackend
-
-    return OpenCLBackend(TEST_DEVICE, transport_tuning=tuning)
 
 
 def _bands():
@@ -85,7 +75,7 @@ TAIL = dict(FULL, region_tail=500)
 SPLIT = dict(FULL, region_state_bytes=300 * 96)
 
 
-def test_passes_stop_and_resume_packets(cloud):
+def test_passes_stop_and_resume_packets(cloud, monkeypatch):
     """The passes do what they are for: with regions of 4 voxels every launch takes many passes
     (a packet of this cloud crosses tens of region faces), the tail pass cuts them short, and
     a state budget of a few hundred packets splits each launch into parts; the bits stay."""
@@ -97,23 +87,43 @@ def test_passes_stop_and_resume_packets(cloud):
         real_init(self, *a, **k)
         seen["session"] = self
 
-    DeviceTransport.__init__ = spy
-    try:
-        for tuning in (FULL, TAIL, SPLIT):
-            res = _run(cloud, tuning, peel=False)
-            _same(res, plain)
-            s = seen["session"]
-            assert s.region_shift == 2
-            # room for a whole launch (9000 packets), or the least: parts of 512 packets x 2 bands
-            assert s.region_capacity == (1024 if tuning is SPLIT else 10416)
-            seen[id(tuning)] = s.region_passes
-    finally:
-        DeviceTransport.__init__ = real_init
+    monkeypatch.setattr(DeviceTransport, "__init__", spy)
+    for tuning in (FULL, TAIL, SPLIT):
+        res = _run(cloud, tuning, peel=False)
+        _same(res, plain)
+        s = seen["session"]
+        assert s.region_shift == 2
+        # room for a whole launch (9000 packets), or the least: parts of 512 packets x 2 bands
+        assert s.region_capacity == (1024 if tuning is SPLIT else 10416)
+        seen[id(tuning)] = s.region_passes
     full, tail, split = (seen[id(t)] for t in (FULL, TAIL, SPLIT))
     launches = 2  # 9000 packets x 2 bands in launches of 3 batches x 2 bands x 1500
     assert full >= 10 * launches  # packets stop again and again
     assert tail < full
     assert split > full  # 1024 packets of state per part: each launch in several parts
+
+
+def test_backend_default_uses_regions_from_its_grid_size(monkeypatch):
+    """Without a tuning, the backend's own rule decides (PoCL: regions of 32 voxels from 128^3
+    on; GPUs: 64 from 256^3, 128 from 1024^3): a 128^3 cloud on the test device is traced as
+    its rule says, with the one-go trace's bits, and a 64^3 one on PoCL without regions."""
+    from nebula_rt.backends.session import region_shift_for
+
+    be = _backend({})
+    rule = dict(be.region_shifts)
+    expect = 0
+    for least, shift in sorted(rule.items()):
+        expect = shift if 128**3 >= least else expect
+    assert region_shift_for(be, 128**3, False) == expect
+    assert region_shift_for(be, 128**3, True) == 0  # weighted packets: no region path
+    if "Portable" in be.device_name:
+        assert expect == 5 and region_shift_for(be, 64**3, False) == 0
+    rng = np.random.default_rng(2)
+    cloud = (0.5 + rng.random((128, 128, 128))).astype(np.float32)
+    kw = dict(tau=4.0, photons=20_000, batch_size=5_000, seed=5)
+    auto = trace(cloud, _bands()[:1], _stars(), backend=be, **kw)
+    plain = trace(cloud, _bands()[:1], _stars(), backend=_backend({"NRT_REGIONS": 0}), **kw)
+    _same(auto, plain)
 
 
 def test_regions_overflow_retrace_gives_the_same_bits(cloud):
@@ -143,17 +153,17 @@ def test_region_sort_counts_and_orders_every_stopped_packet(backend):
         d_keys = backend.to_device(keys)
         d_counts = backend.device_zeros(n_bins, np.uint32)
         defines = {"NRT_TRACK_LENGTH": 1, "NRT_REGIONS": 1}
-        backend.launch_trace("transport.cl", "region_histogram", n, d_keys, np.uint64(n), d_counts,
-                             np.int32(n_bins), defines=defines)
+        d_out = backend.device_zeros(n, np.uint64)
+        backend.launch_trace("transport.cl", "region_sort_pass", n, d_keys, np.uint64(n), d_counts,
+                             np.int32(n_bins), np.int32(0), d_out, defines=defines)
         counts = backend.to_host(d_counts)
         live = keys[keys != np.uint64(2**64 - 1)]
         np.testing.assert_array_equal(counts, np.bincount((live >> np.uint64(32)).astype(np.int64), minlength=n_bins))
         first = np.zeros(n_bins, np.uint32)
         first[1:] = np.cumsum(counts[:-1])
         d_cursor = backend.to_device(first)
-        d_out = backend.device_zeros(live.size, np.uint64)
-        backend.launch_trace("transport.cl", "region_scatter", n, d_keys, np.uint64(n), d_cursor,
-                             np.int32(n_bins), d_out, defines=defines)
-        out = backend.to_host(d_out)
+        backend.launch_trace("transport.cl", "region_sort_pass", n, d_keys, np.uint64(n), d_cursor,
+                             np.int32(n_bins), np.int32(1), d_out, defines=defines)
+        out = backend.to_host(d_out)[:live.size]
         assert sorted(out.tolist()) == sorted(live.tolist())
         assert np.all(np.diff((out >> np.uint64(32)).astype(np.int64)) >= 0)

@@ -135,7 +135,7 @@ class DeviceTransport(TransportSession):
         # build the kernels of this option set now (setup time): compiled inside the first
         # launch, they were counted as tracing (up to 1 s per option set on CUDA)
         names = ("trace_photons", "fold_batches") + (("emission_keys",) if self.sorted else ())
-        for name in names + (("region_histogram", "region_scatter") if self.region_shift else ()):
+        for name in names + (("region_sort_pass",) if self.region_shift else ()):
             be.kernel(be.transport_program, name, self.defines)
 
     def _setup_regions(self, tuning):
@@ -255,17 +255,17 @@ class DeviceTransport(TransportSession):
         no faster on an H200: 71.1k against 70.5k packets/ms at 512^3.)"""
         be = self.backend
         be.fill_zero(self.d_bins)
-        args = (np.int32(self.n_bins),)
-        be.launch_trace(be.transport_program, "region_histogram", n, self.d_stopped, np.uint64(n), self.d_bins,
-                        *args, defines=self.defines)
+        args = (self.d_stopped, np.uint64(n), self.d_bins, np.int32(self.n_bins))
+        be.launch_trace(be.transport_program, "region_sort_pass", n, *args, np.int32(0), self.d_keys,
+                        defines=self.defines)
         counts = be.to_host(self.d_bins).astype(np.int64)
         live = int(counts.sum())
         if live:
             first = np.zeros(self.n_bins, np.uint32)  # each bin's first position
             first[1:] = np.cumsum(counts[:-1])
             be.upload(self.d_bins, first)
-            be.launch_trace(be.transport_program, "region_scatter", n, self.d_stopped, np.uint64(n), self.d_bins,
-                            *args, self.d_keys, defines=self.defines)
+            be.launch_trace(be.transport_program, "region_sort_pass", n, *args, np.int32(1), self.d_keys,
+                            defines=self.defines)
         return live
 
     def empty_group(self, n_slots, bands=None):
