@@ -344,22 +344,32 @@ def test_compare_and_fit_commands(tmp_path):
     assert p.returncode == 2 and "delta_bv_err" in p.stderr and not (tmp_path / "g.png").exists()
 
 
+def _colour_table():
+    return ObservedTable("colour", "c", np.array([0.1, 0.2, 0.3]), np.array([-0.3, -0.28, -0.25]), np.full(3, 0.05),
+                         np.array([0.05, 0.15, 0.25]), np.array([0.15, 0.25, 0.35]))
+
+
 @pytest.mark.filterwarnings("ignore:the model's Monte Carlo error")  # 5,000 packets: a chain, not a measurement
-def test_mcmc_uncertainties_or_a_clear_error(backend):
-    """uncertainty="mcmc": with emcee (the fit extra) a short chain gives the 16-84 % interval
-    about the median, inside the bounds and containing the best fit's neighbourhood; without it
-    a SceneError says what to install, before any trace."""
-    col = ObservedTable("colour", "c", np.array([0.1, 0.2, 0.3]), np.array([-0.3, -0.28, -0.25]), np.full(3, 0.05),
-                        np.array([0.05, 0.15, 0.25]), np.array([0.15, 0.25, 0.35]))
-    try:
-        import emcee  # noqa: F401
-    except ImportError:
-        with pytest.raises(SceneError, match="emcee"):
-            fit.fit_observations(cube(photons=5_000), [col], ["g"], uncertainty="mcmc", backend=backend)
-        return
-    res = fit.fit_observations(cube(photons=5_000), [col], ["g"], uncertainty="mcmc", mcmc_walkers=8, mcmc_steps=8,
-                               grid=3, size=16, backend=backend)
+def test_mcmc_uncertainties(backend):
+    """uncertainty="mcmc" with emcee (installed with the test extra): a short chain gives the
+    16-84 % interval about the median, inside the bounds, and its acceptance fraction."""
+    pytest.importorskip("emcee", reason="the test extra installs emcee (nebula-rt[fit])")
+    res = fit.fit_observations(cube(photons=5_000), [_colour_table()], ["g"], uncertainty="mcmc", mcmc_walkers=8,
+                               mcmc_steps=8, grid=3, size=16, backend=backend)
     med = res.mcmc["median"][0]
     assert res.mcmc["walkers"] == 8 and res.traces["mcmc"] <= 8 * 8
     assert 0.0 <= med - res.err_minus[0] <= med <= med + res.err_plus[0] <= 0.95
     assert 0.0 < res.mcmc["acceptance"] <= 1.0
+
+
+def test_mcmc_without_emcee_is_a_clear_error(backend, monkeypatch):
+    """Without emcee, uncertainty="mcmc" is refused with a SceneError saying what to install,
+    before any trace."""
+    import sys
+
+    monkeypatch.setitem(sys.modules, "emcee", None)  # import emcee raises ImportError
+    traced = []
+    monkeypatch.setattr(fit, "trace_rings", lambda *a, **k: traced.append(1))
+    with pytest.raises(SceneError, match="emcee"):
+        fit.fit_observations(cube(photons=5_000), [_colour_table()], ["g"], uncertainty="mcmc", backend=backend)
+    assert not traced
