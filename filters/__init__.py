@@ -7,6 +7,7 @@ through the thin wrappers of ``plugin/``, ParaView.
 - :class:`NebulaSkyImage`     filter  light field -> 2D image of what a telescope sees
   (with Units "MJy/sr" also calibrated: surface brightness, magnitudes, a celestial WCS)
 - :class:`NebulaSkyFitsWriter` writer  calibrated sky image -> FITS
+- :class:`NebulaFitResultReader` reader  `nebula-rt fit --json` -> parameters and comparison tables
 
 Each is a ``VTKPythonAlgorithmBase``: setters only store the value and call ``Modified()``;
 validation happens in ``RequestData`` with the library's errors (an invalid value produces an
@@ -28,7 +29,9 @@ The names and types of the outputs' arrays and field data are declared in
 
 from .colour import NebulaColour
 from .dust_density import NebulaDustDensity
+from .fit_result import NebulaFitResultReader
 from .light_field import NebulaLightField
 from .sky_image import NebulaSkyFitsWriter, NebulaSkyImage
 
-__all__ = ["NebulaColour", "NebulaDustDensity", "NebulaLightField", "NebulaSkyFitsWriter", "NebulaSkyImage"]
+__all__ = ["NebulaColour", "NebulaDustDensity", "NebulaFitResultReader", "NebulaLightField", "NebulaSkyFitsWriter",
+           "NebulaSkyImage"]

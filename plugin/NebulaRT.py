@@ -10,6 +10,8 @@ this level). It adds the NebulaRT menu (Filters > NebulaRT and Sources > NebulaR
 - Nebula Sky Image (filter)           proxy name ``NebulaSkyImage``
 - Nebula Sky View (view)              proxy name ``NebulaSkyView`` (where sky images open)
 - a writer of calibrated sky images   proxy name ``NebulaSkyFitsWriter`` (File > Save Data, .fits)
+- a reader of fit results             proxy name ``NebulaFitResultReader`` (File > Open, the
+  ``nebula-rt fit --json`` file)
 
 Modelled on ParaView's ``Examples/Plugins/ComplexPythonArchitecture``: this file only makes the
 package ``nebula_rt_paraview`` (next to it) importable and imports its proxies, thin
@@ -74,6 +76,7 @@ _ensure_nebula_rt()
 from nebula_rt_paraview import (  # noqa: E402,F401
     NebulaColour,
     NebulaDustDensity,
+    NebulaFitResultReader,
     NebulaLightField,
     NebulaSkyFitsWriter,
     NebulaSkyImage,

@@ -270,6 +270,42 @@ def test_calibrated_sky_image_and_fits_from_the_plugin(pv_env, xdisplay, tmp_pat
         assert np.max(np.abs(back[0] - x)) < 1e-8 and np.max(np.abs(back[1] - y)) < 1e-8
 
 
+def test_fit_result_from_the_plugin(pv_env, xdisplay, tmp_path, backend):
+    """A real fit's ``--json`` result opened in pvpython with OpenDataFile (the plugin's reader,
+    plugin/examples/fit_result.py): the parameters, errors, bounds, chi^2 and the comparison
+    rows are the file's, value for value; the line chart is saved; a JSON file that is no fit
+    result leaves the reader's error and empty outputs, and pvpython carries on."""
+    from test_fit import cube
+
+    from nebula_rt import fit
+    from nebula_rt.observed_tables import ObservedTable
+
+    col = ObservedTable("colour", "rings.csv", np.array([0.1, 0.2, 0.3]), np.array([-0.3, -0.28, -0.25]),
+                        np.full(3, 0.05), np.array([0.05, 0.15, 0.25]), np.array([0.15, 0.25, 0.35]))
+    res = fit.fit_observations(cube(photons=5_000), [col], ["g", "albedo"], grid=2, size=16, backend=backend)
+    path, png = tmp_path / "fit.json", tmp_path / "chart.png"
+    saved = res.to_dict()
+    path.write_text(json.dumps(saved))
+    example = REPO / "plugin" / "examples" / "fit_result.py"
+    r, _ = run_pv(pv_env, xdisplay, example, path, "--result", "--png", png)
+    assert r["proxy"] == "NebulaFitResultReader" and r["last_error"] is None and r["ports"] == 2, r
+    p = r["parameters"]
+    assert p["parameter"] == ["g", "albedo"]
+    for i, name in enumerate(p["parameter"]):
+        want = saved["parameters"][name]
+        assert [p["value"][i], p["err_minus"][i], p["err_plus"][i]] == [want["value"], want["err_minus"], want["err_plus"]]
+        assert [p["lower"][i], p["upper"][i]] == want["bounds"]
+    assert (r["chi2"], r["dof"], r["uncertainty"]) == (saved["chi2"], saved["dof"], "profile")
+    (table,) = saved["comparison"]["tables"]
+    for key in ("x", "data", "data_err", "model", "model_err", "pull"):
+        assert r["comparison"][key] == table[key]
+    assert r["png"] and read_png(png).std() > 0  # a chart, not a blank image
+    bad = tmp_path / "scene.json"
+    bad.write_text(json.dumps({"grid": {"shape": [8, 8, 8]}}))
+    r, _ = run_pv(pv_env, xdisplay, example, bad, "--result")
+    assert r["rows"] == 0 and "not a NebulaRT fit result" in r["last_error"] and str(bad) in r["last_error"]
+
+
 # -- state files -------------------------------------------------------------------------------
 #: the last commit whose state files were written before the states stored a preview size,
 #: the stars and labels from the data (and before the opacity mapping followed the alpha

@@ -17,6 +17,7 @@ file); ``nebula_rt_paraview.views`` defines the view ``NebulaSkyView``.
 # Import ParaView proxies from the Python files; keep helpers internal.
 from .colour import NebulaColour
 from .dust_density import NebulaDustDensity
+from .fit_result import NebulaFitResultReader
 from .light_field import NebulaLightField
 from .sky_fits_writer import NebulaSkyFitsWriter
 from .sky_image import NebulaSkyImage
@@ -25,5 +26,5 @@ from .views import NebulaSkyView
 #: proxy names (group "sources" for the dust density, "filters" for the others)
 PROXY_NAMES = ("NebulaDustDensity", "NebulaLightField", "NebulaColour", "NebulaSkyImage")
 
-__all__ = ["NebulaColour", "NebulaDustDensity", "NebulaLightField", "NebulaSkyFitsWriter", "NebulaSkyImage",
-           "NebulaSkyView", "PROXY_NAMES"]
+__all__ = ["NebulaColour", "NebulaDustDensity", "NebulaFitResultReader", "NebulaLightField", "NebulaSkyFitsWriter",
+           "NebulaSkyImage", "NebulaSkyView", "PROXY_NAMES"]
