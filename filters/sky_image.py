@@ -43,6 +43,7 @@ SKY_IMAGE_PROPERTIES = (
     Property("Dec", "observer.dec", enabled_by=("Units", 1)),
     Property("PositionAngle", "observer.position_angle", enabled_by=("Units", 1)),
     Property("PSFFWHM", "observer.psf_fwhm", enabled_by=("Units", 1)),
+    Property("MagnitudeSystem", "observer.magnitude_system", widget="enum", enabled_by=("Units", 1)),
 )
 #: The observer's properties among them (the [observer] table's keys)
 SKY_OBSERVER_PROPERTIES = tuple(p for p in SKY_IMAGE_PROPERTIES if p.key.startswith("observer."))
@@ -209,7 +210,7 @@ class NebulaSkyImage(NebulaAlgorithm):
                 arrays[contract.SKY_MAG.name(n)] = cal.mag[x][:, :, None].astype(np.float32)
             calibrated = dict(sky_units="MJy/sr", wcs_header=cal.wcs.to_header().tostring(),
                               pixel_scale_arcsec=cal.pixel_scale_arcsec, psf_fwhm_arcsec=cal.psf_fwhm_arcsec,
-                              passband_names=",".join(cal.passbands))
+                              passband_names=",".join(cal.passbands), mag_system=cal.mag_system)
             self.last_calibrated = cal
         add_point_arrays(out, arrays)
         add_field_data(out, contract.SkyImageData(
@@ -222,7 +223,7 @@ class NebulaSkyImage(NebulaAlgorithm):
 def write_fits(image, path) -> None:
     """Write a calibrated sky image (Nebula Sky Image's output with Units "MJy/sr") as FITS:
     one image HDU per band (``SB_<band>``, MJy/sr) and per passband (``MAG_BESSELL_B`` ...,
-    AB mag/arcsec^2), each with the celestial WCS, as :func:`nebula_rt.calibrate.write_fits`
+    mag/arcsec^2 in the image's magnitude system), each with the celestial WCS, as :func:`nebula_rt.calibrate.write_fits`
     names them (without its table of stars).
 
     Raises
@@ -232,7 +233,7 @@ def write_fits(image, path) -> None:
     """
     from astropy.io import fits
 
-    from nebula_rt.calibrate import PASSBAND_EXTENSIONS, PASSBANDS
+    from nebula_rt.calibrate import MAGSYS_COMMENT, PASSBAND_EXTENSIONS, passband_header
 
     fd = contract.SkyImageData.from_field_data(field_data_dict(image), need=("band_names",))
     if fd.sky_units != "MJy/sr" or not fd.wcs_header:
@@ -243,7 +244,8 @@ def write_fits(image, path) -> None:
     hdr["METHOD"] = "ray-march"
     hdr["PIXSCALE"] = (fd.pixel_scale_arcsec, "pixel side, arcsec")
     hdr["PSFFWHM"] = (fd.psf_fwhm_arcsec, "arcsec")
-    hdr["MAGSYS"] = ("AB", "magnitudes: AB (3631 Jy)")
+    system = fd.mag_system or "AB"
+    hdr["MAGSYS"] = (system, MAGSYS_COMMENT[system])
     hdus = [fits.PrimaryHDU(header=hdr)]
     for n in fd.band_names:
         hh = wcs.copy()
@@ -253,9 +255,7 @@ def write_fits(image, path) -> None:
         hdus.append(fits.ImageHDU(np.ascontiguousarray(data, np.float32), header=hh, name=f"SB_{n}"))
     for n in fd.passband_names.split(","):
         hh = wcs.copy()
-        hh["BUNIT"] = "mag/arcsec2"
-        hh["FILTER"] = (PASSBANDS[n], "speclite passband")
-        hh["MAGSYS"] = "AB"
+        passband_header(hh, n, system)
         data = point_array(image, contract.SKY_MAG.name(n))[:, :, 0].T
         hdus.append(fits.ImageHDU(np.ascontiguousarray(data, np.float32), header=hh, name=PASSBAND_EXTENSIONS[n]))
     fits.HDUList(hdus).writeto(path, overwrite=True)

@@ -114,6 +114,7 @@ RANGES = {
     "colour.stretch": "'linear', 'asinh'", "colour.asinh_q": "(0, 1e10]",
     "observer.distance": ("distance > 0", "units: pc"), "observer.ra": "[0, 360)", "observer.dec": "[-90, 90]",
     "observer.position_angle": "[-360, 360]", "observer.psf_fwhm": "arcsec >= 0",
+    "observer.magnitude_system": "'AB', 'Vega'",
 }
 
 FLOAT_KINDS = {"type": '"x"', "nan": "nan", "inf": "inf", "-inf": "-inf", "negative": "-1.5", "zero": "0.0",
@@ -250,6 +251,7 @@ TABLE = [
     *floats("observer.position_angle", {"negative": SKY, "zero": SKY, "below-float32": SKY}),
     *floats("observer.psf_fwhm", {"zero": "no PSF", "huge": SKY + " (wider than the image: the light leaves it)",
                                   "beyond-float32": SKY, "below-float32": SKY}),
+    *strings("observer.magnitude_system", ["ST", "ab"], allowed={"Vega": "AB minus Blanton & Roweis (2007)'s offsets"}),
 ]
 # "negative" is -1.5 for every float key: below g's -1 too
 
@@ -393,6 +395,7 @@ SETTERS = {
     "observer.dec": ("sky", "SetDec", lambda v: (v,)),
     "observer.position_angle": ("sky", "SetPositionAngle", lambda v: (v,)),
     "observer.psf_fwhm": ("sky", "SetPSFFWHM", lambda v: (v,)),
+    "observer.magnitude_system": ("sky", "SetMagnitudeSystem", lambda v: (v,)),
 }
 #: rows whose value means something else to the setter than to the scene file
 SETTER_MEANS_ELSE = {

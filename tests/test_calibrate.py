@@ -105,6 +105,32 @@ def test_magnitudes_of_a_star_and_of_the_image():
     assert np.isnan(cal.mag[:, 0, 0]).all()  # no light in the corner: no magnitude
 
 
+def test_vega_magnitudes_are_ab_minus_the_passbands_offsets(tmp_path):
+    """observer.magnitude_system = "Vega": every passband's image and star magnitude is the AB
+    one minus m_AB - m_Vega of Blanton & Roweis (2007, AJ 133, 734, Table 1: B -0.09, V +0.02,
+    R +0.21, g -0.08, r +0.16, i +0.37); the surface brightness in MJy/sr does not change; the
+    FITS extensions say which system and which offset."""
+    from astropy.io import fits
+
+    ab_scene, vega_scene = base(), base(observer={"magnitude_system": "Vega"})
+    ab = vacuum_image(ab_scene, calibrate.camera_for(ab_scene, size=32))
+    vega = vacuum_image(vega_scene, calibrate.camera_for(vega_scene, size=32))
+    offsets = {"B": -0.09, "V": 0.02, "R": 0.21, "g": -0.08, "r": 0.16, "i": 0.37}
+    assert (ab.mag_system, vega.mag_system) == ("AB", "Vega")
+    np.testing.assert_array_equal(vega.surface_brightness, ab.surface_brightness)
+    for x, name in enumerate(ab.passbands):
+        np.testing.assert_array_equal(vega.mag[x], ab.mag[x] - offsets[name])
+        assert vega.star_mag[0, x] == ab.star_mag[0, x] - offsets[name]
+    # Vega is brighter than its AB magnitude in B and g (offsets < 0), fainter in R, r, i
+    assert vega.star_mag[0, 0] > ab.star_mag[0, 0] and vega.star_mag[0, 2] < ab.star_mag[0, 2]
+    calibrate.write_fits(tmp_path / "vega.fits", vega, vega_scene)
+    with fits.open(tmp_path / "vega.fits") as hdul:
+        assert hdul[0].header["MAGSYS"] == "Vega"
+        for name, ext in calibrate.PASSBAND_EXTENSIONS.items():
+            assert hdul[ext].header["MAGSYS"] == "Vega" and hdul[ext].header["ABVEGA"] == offsets[name]
+        assert hdul["STARS"].data["mag_V"][0] == pytest.approx(ab.star_mag[0, 1] - 0.02, abs=1e-12)
+
+
 def sky_position(scene, camera, position):
     """(RA, Dec) in degrees of a box position by hand: its offset from the box centre along the
     image axes u (right) and v (up), times L / D, are tangent-plane coordinates; at position
@@ -398,6 +424,19 @@ def test_the_sky_image_filter_calibrates_as_the_library_and_its_writer_writes_fi
         assert np.array_equal(hdul["SB_G"].data, cal.surface_brightness[1].T.astype(np.float32))
         w = WCS(hdul["SB_G"].header)
         assert np.allclose(w.pixel_to_world_values(3.0, 17.0), cal.wcs.pixel_to_world_values(3.0, 17.0), atol=1e-12)
+        assert hdul[0].header["MAGSYS"] == hdul["MAG_BESSELL_V"].header["MAGSYS"] == "AB"
+    # Magnitude System Vega (index 1): the mag_ arrays and the writer's extensions follow
+    sky.SetMagnitudeSystem(1)
+    sky.Update()
+    img = sky.GetOutputDataObject(0)
+    for x, name in enumerate(cal.passbands):
+        want = (cal.mag[x] - calibrate.AB_MINUS_VEGA[name]).astype(np.float32)
+        assert np.array_equal(point_array(img, f"mag_{name}")[:, :, 0], want, equal_nan=True)
+    writer.SetFileName(str(tmp_path / "vega.fits"))
+    writer.Write()
+    with fits.open(tmp_path / "vega.fits") as hdul:
+        assert hdul[0].header["MAGSYS"] == hdul["MAG_SDSS_R"].header["MAGSYS"] == "Vega"
+        assert hdul["MAG_SDSS_R"].header["ABVEGA"] == calibrate.AB_MINUS_VEGA["r"]
     sky.SetUnits(0)
     writer.SetFileName(str(tmp_path / "box.fits"))
     writer.Write()

@@ -29,7 +29,7 @@ PANEL = "\n".join([
     _xml.property_groups(
         ("Camera", ["ViewDirection", "ViewUp", "ImageSize", "Extent"]),
         ("Picture", ["IncludeStars", "AutoExposure", "Exposure", "Stretch", "AsinhQ"]),
-        ("Observer", ["Units", "Distance", "RA", "Dec", "PositionAngle", "PSFFWHM"]),
+        ("Observer", ["Units", "Distance", "RA", "Dec", "PositionAngle", "PSFFWHM", "MagnitudeSystem"]),
     ),
 ])
 

@@ -23,7 +23,9 @@ With the stars' luminosities in L_sun (``stars.luminosity_lsun`` or ``absolute_m
   ``observer.dec``) and the image's up axis at ``observer.position_angle`` east of north;
   east is to the left at position angle 0 (the sky as seen from inside);
 - in passbands X (Bessell B, V, R and SDSS g, r, i, ``speclite``), the AB surface brightness
-  ``mu_X = -2.5 log10(S_nu,X arcsec^2 / 3631 Jy)`` mag/arcsec^2, with S_nu,X the photon-counting
+  ``mu_X = -2.5 log10(S_nu,X arcsec^2 / 3631 Jy)`` mag/arcsec^2 (with
+  ``observer.magnitude_system = "Vega"``: minus the passband's m_AB - m_Vega of Blanton &
+  Roweis 2007, AJ 133, 734, Table 1, :data:`AB_MINUS_VEGA`), with S_nu,X the photon-counting
   mean ``int S_lambda R lambda dl / int (c / lambda^2) R lambda dl``. S_lambda is the
   per-band nebula/star ratio interpolated across wavelength (the hat functions of the colour
   conversion) times the stars' full blackbody spectrum, so the parts of a passband beyond the
@@ -51,6 +53,11 @@ PASSBANDS = {"B": "bessell-B", "V": "bessell-V", "R": "bessell-R", "g": "sdss201
 #: FITS extension of each passband's magnitude image (extension names are case-blind: R and r differ by system)
 PASSBAND_EXTENSIONS = {"B": "MAG_BESSELL_B", "V": "MAG_BESSELL_V", "R": "MAG_BESSELL_R", "g": "MAG_SDSS_G",
                        "r": "MAG_SDSS_R", "i": "MAG_SDSS_I"}
+#: m_AB - m_Vega of each passband (Blanton & Roweis 2007, AJ 133, 734, Table 1): a Vega
+#: magnitude is the AB magnitude minus this (observer.magnitude_system = "Vega")
+AB_MINUS_VEGA = {"B": -0.09, "V": 0.02, "R": 0.21, "g": -0.08, "r": 0.16, "i": 0.37}
+MAGSYS_COMMENT = {"AB": "magnitudes: AB (3631 Jy)",
+                  "Vega": "magnitudes: Vega (AB - offset, Blanton+ 2007)"}
 ARCSEC_RAD = math.pi / (180.0 * 3600.0)
 C_LIGHT = 299_792_458.0
 #: W m^-2 Hz^-1 in MJy
@@ -213,13 +220,13 @@ class CalibratedSky:
     passband_sb : ndarray (np, W, H)
         Photon-counting mean surface brightness through each passband, MJy/sr.
     mag : ndarray (np, W, H)
-        AB surface brightness, mag/arcsec^2 (NaN where there is no light).
+        Surface brightness, mag/arcsec^2 in ``mag_system`` (NaN where there is no light).
     star_pixel : ndarray (n_stars, 2)
         Image pixel coordinates (p, q) of each star (pixel centres at integers).
     star_flux_jy : ndarray (n_stars, nb)
         Each star's flux density as seen (through its dust), Jy.
     star_mag : ndarray (n_stars, np)
-        Each star's AB magnitude as seen through each passband.
+        Each star's magnitude (``mag_system``) as seen through each passband.
     intensity_box, scattered_box : ndarray (nb, W, H)
         The PSF-convolved image and its scattered light in box units (traced luminosity per
         box-unit area per sr), for the true-colour picture.
@@ -230,6 +237,8 @@ class CalibratedSky:
     method : str
     meta : dict
         FITS header cards of the primary HDU.
+    mag_system : str
+        "AB" or "Vega" (``observer.magnitude_system``).
     """
 
     band_names: list
@@ -252,6 +261,7 @@ class CalibratedSky:
     psf_fwhm_arcsec: float
     method: str
     meta: dict = field(default_factory=dict)
+    mag_system: str = "AB"
 
     def total_flux_jy(self) -> np.ndarray:
         """(nb,) the image's flux density, Jy: the sum of the pixels times their solid angle."""
@@ -326,17 +336,32 @@ def calibrate(scene, camera, scattered, star_band_luminosity, tau_star, method: 
             star_mag[k, x] = -2.5 * math.log10(f / units.AB_ZERO_JY) if f > 0 else math.nan
     with np.errstate(divide="ignore", invalid="ignore"):
         mag = np.where(psb > 0, -2.5 * np.log10(psb * 1e6 * ARCSEC_RAD**2 / units.AB_ZERO_JY), np.nan)
+    system = scene.observer.magnitude_system
+    if system == "Vega":
+        offset = np.array([AB_MINUS_VEGA[name] for name in pb])
+        mag = mag - offset[:, None, None]
+        star_mag = star_mag - offset[None, :]
     info = {"METHOD": method, "DISTANCE": (dist_m / units._pc_metres(), "distance to the box centre, pc"),
             "BOXEDGE": (box_m / units._pc_metres(), "box edge, pc"),
             "PIXSCALE": (scale_arcsec, "pixel side, arcsec"), "PSFFWHM": (scene.observer.psf_fwhm, "arcsec"),
-            "MAGSYS": ("AB", "magnitudes: AB (3631 Jy)")}
+            "MAGSYS": (system, MAGSYS_COMMENT[system])}
     info.update(meta or {})
     return CalibratedSky(
         band_names=names, band_wavelength_nm=wl, band_edges_nm=edges, surface_brightness=sb,
         scattered=scat_psf * to_mjy, passbands=pb, passband_sb=psb, mag=mag, star_pixel=star_pixel,
         star_flux_jy=star_flux, star_mag=star_mag, intensity_box=box_total, scattered_box=scat_psf, band_luminosity=band_lum,
         wcs=celestial_wcs(scene, camera), pixel_scale_arcsec=scale_arcsec, pixel_solid_angle_sr=omega,
-        psf_fwhm_arcsec=float(scene.observer.psf_fwhm), method=method, meta=info)
+        psf_fwhm_arcsec=float(scene.observer.psf_fwhm), method=method, meta=info, mag_system=system)
+
+
+def passband_header(hh, name: str, system: str) -> None:
+    """The cards of a passband's magnitude image: unit, filter, magnitude system and, for Vega,
+    the AB - Vega offset applied."""
+    hh["BUNIT"] = "mag/arcsec2"
+    hh["FILTER"] = (PASSBANDS[name], "speclite passband")
+    hh["MAGSYS"] = (system, MAGSYS_COMMENT[system])
+    if system == "Vega":
+        hh["ABVEGA"] = (AB_MINUS_VEGA[name], "m_AB - m_Vega subtracted (Blanton+ 2007)")
 
 
 def write_fits(path, cal: CalibratedSky, scene=None) -> None:
@@ -364,9 +389,7 @@ def write_fits(path, cal: CalibratedSky, scene=None) -> None:
         hdus.append(fits.ImageHDU(cal.surface_brightness[b].T.astype(np.float32), header=hh, name=f"SB_{name}"))
     for x, name in enumerate(cal.passbands):
         hh = wcs_hdr.copy()
-        hh["BUNIT"] = "mag/arcsec2"
-        hh["FILTER"] = (PASSBANDS[name], "speclite passband")
-        hh["MAGSYS"] = "AB"
+        passband_header(hh, name, cal.mag_system)
         hdus.append(fits.ImageHDU(cal.mag[x].T.astype(np.float32), header=hh, name=PASSBAND_EXTENSIONS[name]))
     world = cal.wcs.pixel_to_world_values(cal.star_pixel[:, 0], cal.star_pixel[:, 1])
     stars = Table({"x_pixel": cal.star_pixel[:, 0] + 1.0, "y_pixel": cal.star_pixel[:, 1] + 1.0,

@@ -393,3 +393,5 @@ class SkyImageData(ContractData):
                                               optional=True)
     passband_names: Optional[str] = _field("str", "the passbands of the mag_ arrays, comma-separated "
                                            "(calibrated images)", optional=True)
+    mag_system: Optional[str] = _field("str", "magnitude system of the mag_ arrays, AB or Vega (calibrated images)",
+                                       optional=True)

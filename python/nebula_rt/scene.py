@@ -71,6 +71,8 @@ METHODS = ("auto", "analog", "biased")
 BACKENDS = ("auto", "opencl", "cuda")
 WHITE_POINTS = ("D65", "E", "star")
 STRETCHES = ("linear", "asinh")
+#: magnitude systems of calibrated sky images (nebula_rt.calibrate.AB_MINUS_VEGA)
+MAG_SYSTEMS = ("AB", "Vega")
 MAX_PHOTONS = 2**53
 #: Seeds are [0, 2**53]: the RNG's key is 64 bits (any uint64 would work on the device), but a
 #: seed travels as a double in ParaView's panel, in pvpython and in JSON, which hold every
@@ -360,6 +362,10 @@ class Observer:
         0.0, type="float", lo=0.0, unit="arcsec", label="PSF FWHM", group=G_OBSERVER,
         doc="FWHM of the Gaussian point-spread function the calibrated image is convolved with "
             "(0: none; a star then fills the pixel it falls in)")
+    magnitude_system: str = param(
+        "AB", type="str", choices=MAG_SYSTEMS, label="Magnitude System", group=G_OBSERVER,
+        doc="Zero point of the calibrated images' magnitudes: AB (3631 Jy) or Vega (AB minus the "
+            "passband's AB - Vega offset of Blanton & Roweis 2007, AJ 133, 734, Table 1)")
 
 
 #: The scene file's tables with their dataclasses, in the file's order: the schema
@@ -660,6 +666,7 @@ OBSERVER_RULES: Dict[str, _Rule] = {
     "position_angle": _Rule(_to_float, "must be an angle in degrees in [-360, 360] (east of north)",
                             lambda v: -360.0 <= v <= 360.0),
     "psf_fwhm": _Rule(_to_float, "must be a FWHM in arcsec >= 0 (finite; 0 = no PSF)", _finite_nonneg),
+    "magnitude_system": _Rule(_to_str, _one_of(MAG_SYSTEMS), lambda v: v in MAG_SYSTEMS),
 }
 
 # Schema tree, used by from_dict and with_overrides: a dict is a table, a
