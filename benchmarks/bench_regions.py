@@ -56,7 +56,8 @@ def run(args) -> dict:
             if shift:
                 tuning["region_tail"] = int(args.tail)
             be = make_backend(args.backend, args.device, tuning)
-            trace(rho[:16, :16, :16].copy(), bands, stars, tau=2.0, photons=20_000, backend=be)  # build, warm up
+            if args.warmup:  # build the kernels, warm the device up
+                trace(rho[:16, :16, :16].copy(), bands, stars, tau=2.0, photons=20_000, backend=be)
             best = None
             for _ in range(max(1, args.repeats)):
                 t0 = time.perf_counter()
@@ -88,6 +89,8 @@ def main(argv=None) -> int:
     ap.add_argument("--photons", type=float, default=4e5)
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--tail", type=int, default=4096)
+    ap.add_argument("--warmup", type=int, default=1, help="0: no warm-up trace (the profiler then counts "
+                                                         "the measured run's launches from 0)")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     out = run(args)

@@ -7,7 +7,7 @@
 # WHEELDIR holds wheels for what the machine lacks (pyopencl and its pure-Python needs,
 # colour-science, tomli-w; pmcx for the MCX comparison), fetched elsewhere with
 # `pip download --only-binary=:all: --python-version 3.12 ...`.
-# STEPS (default "tests bench neb128 compare profile"; also "tests-cuda", "scaling", "large", "regions", "layout", "sorted", "probe", "ranks", "e2e1e9", "biasing", "fit", "tune",
+# STEPS (default "tests bench neb128 compare profile"; also "tests-cuda", "scaling", "large", "regions", "profile-regions", "layout", "sorted", "probe", "ranks", "e2e1e9", "biasing", "fit", "tune",
 # "stages", "trade", "presets", "empty", "fft") selects what runs. Everything printed
 # goes to OUTDIR/log.txt as well; JSON and .npz results beside it.
 set -uo pipefail
@@ -80,6 +80,23 @@ if [[ " $steps " == *" regions "* ]]; then
     echo "== transport by regions, region size, CUDA"
     python3 benchmarks/bench_regions.py --backend cuda --grids 128 256 512 1024 --shifts 0 5 6 7 --photons 1e8 \
         --repeats 1 --tail 135168 --out "$out/regions-cuda.json"
+fi
+if [[ " $steps " == *" profile-regions "* ]] && command -v ncu >/dev/null; then
+    # what limits a region pass: ncu on the 2nd and 6th trace_photons launches of 512^3 (the
+    # first part's passes 2 and 6: packets spread over many regions), and on a 128^3 launch
+    # without regions for comparison (L2 hit rate, atomics, warp activity, stalls)
+    echo "== ncu: region passes, 512^3 neb medium, CUDA"
+    for skip in 1 5; do
+        ncu --target-processes all -k regex:trace_photons -s $skip -c 1 --section SpeedOfLight \
+            --section MemoryWorkloadAnalysis --section WarpStateStats --section SchedulerStats --section Occupancy \
+            python3 benchmarks/bench_regions.py --backend cuda --grids 512 --shifts 6 --photons 6e6 --repeats 1 --warmup 0 \
+            2>&1 | grep -v "^==PROF==" | tail -n 90
+    done
+    echo "== ncu: 128^3 without regions, CUDA"
+    ncu --target-processes all -k regex:trace_photons -s 1 -c 1 --section SpeedOfLight \
+        --section MemoryWorkloadAnalysis --section WarpStateStats --section SchedulerStats --section Occupancy \
+        python3 benchmarks/bench_regions.py --backend cuda --grids 128 --shifts 0 --photons 6e6 --repeats 1 --warmup 0 \
+        2>&1 | grep -v "^==PROF==" | tail -n 90
 fi
 if [[ " $steps " == *" layout "* ]]; then
     echo "== memory layout, sorted packet order and transport physics, CUDA"
