@@ -213,7 +213,8 @@ def test_paraview_proxy_is_the_schema_and_gives_the_same_bits(pv_env, xdisplay, 
     assert list(r["density_groups"]) == ["Dust", "Stars", "Compute device"]
     assert r["sky_groups"] == {"Camera": ["ViewDirection", "ViewUp", "ImageSize", "Extent"],
                                "Picture": ["IncludeStars", "AutoExposure", "Exposure", "Stretch", "AsinhQ"],
-                               "Observer": ["Units", "Distance", "RA", "Dec", "PositionAngle", "PSFFWHM"]}
+                               "Observer": ["Units", "Distance", "RA", "Dec", "PositionAngle", "PSFFWHM",
+                                            "MagnitudeSystem"]}
     # the sky image's panel: the camera, the picture, then Units before the observer it enables
     sky_order = [e["name"] for e in r["sky_properties"] if e["name"] != "Input"]
     assert sky_order == [n for g in r["sky_groups"].values() for n in g], sky_order
