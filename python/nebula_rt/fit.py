@@ -648,7 +648,8 @@ def fit_observations(scene, tables: Sequence[ObservedTable], free: Sequence, *, 
         except ImportError:
             raise SceneError("uncertainty", "mcmc", "needs emcee: pip install 'nebula-rt[fit]' (or emcee)") from None
     walkers = max(8, 4 * k) if not mcmc_walkers else int(mcmc_walkers)
-    unc_budget = {"profile": 2 * k, "mcmc": walkers * mcmc_steps, "none": 0}[uncertainty]
+    # MCMC: emcee evaluates the starting ensemble too
+    unc_budget = {"profile": 2 * k, "mcmc": walkers * (mcmc_steps + 1), "none": 0}[uncertainty]
     total = grid ** k + 1 + max(0, int(starts)) * maxfev + 3 * len(_design(k)) + 1 + unc_budget
     obj = _Objective(scene, params, list(tables), direction, size, reference, backend, progress, cancel, total)
 
