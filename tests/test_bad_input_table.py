@@ -97,6 +97,7 @@ RANGES = {
     "dust.mass_density": ("g cm^-3 >= 0", "gives dust.tau"), "dust.visual_extinction": ("A_V in mag >= 0", "gives dust.tau"),
     "stars.0.luminosity_lsun": ("in L_sun: a finite number > 0", "gives a luminosity"),
     "stars.0.absolute_magnitude": ("M_V in mag", "gives a luminosity"),
+    "stars.0.spectral_type": "MK spectral type",
     "stars.0.position": "[0, 1]", "stars.0.luminosity": FLOAT32_RANGE_TEXT,
     "stars.0.temperature": "[1000, 1e+07]", "stars.0.bump_radius": "[1.1754944e-38, 1)",
     # the pairs' own rule, or where a valid spectrum must have power
@@ -198,6 +199,10 @@ TABLE = [
     *floats("stars.0.absolute_magnitude", {"negative": "a bright star, M_V = -1.5", "zero": "M_V = 0",
                                            "below-float32": "M_V = 1e-40, i.e. 0"}),
     Row("stars.0.temperature", "too-cool", "10.0"),
+    # no luminosity class, O0 and B10 (no such types), a class letter DJ87 does not calibrate
+    *strings("stars.0.spectral_type", ["B2", "O0V", "B10V", "X5III", "B2 VI"],
+             allowed={"B2.5 IV": "a decimal subtype, a space", "M10V": "DJ87's coolest type",
+                      "O1Ia+": "DJ87's hottest type, a hypergiant"}),
     *floats("stars.0.bump_radius", {"zero": "no bump"}),
     *[Row("stars.0.spectrum", kind, lit) for kind, lit in {
         "type": '"x"', "nan": "[[nan, 1.0], [700.0, 1.0]]", "inf": "[[400.0, inf], [700.0, 1.0]]",
@@ -291,6 +296,8 @@ def _toml_with(row: Row) -> str:
         del node["tau"]
     if row.key in ("stars.0.luminosity_lsun", "stars.0.absolute_magnitude"):
         del node["luminosity"]
+    if row.key == "stars.0.spectral_type":
+        node.pop("temperature", None)
     return tomli_w.dumps(d)
 
 

@@ -185,6 +185,51 @@ def test_the_sun_as_a_blackbody_is_near_its_measured_absolute_magnitude():
     assert abs(units.blackbody_absolute_magnitude(5772.0) - 4.81) < 0.1
 
 
+# --- spectral type -> T_eff (de Jager & Nieuwenhuijzen 1987) -----------------------------------
+
+
+def test_spectral_type_sets_the_temperature_and_the_luminosity_follows_it():
+    """The scene's temperature is DJ87's (PyAstronomy's evaluation of their Eq. 2b), and an
+    absolute magnitude then gives the bits of the same star with that temperature given."""
+    from PyAstronomy.pyasl import SpecTypeDeJager
+
+    t = 10.0 ** SpecTypeDeJager().lumAndTeff("B2.5", "IV")[1]
+    s = scene(stars=[{"spectral_type": "B2.5 IV", "absolute_magnitude": -1.0}])
+    assert s.stars[0].temperature == t
+    same = scene(stars=[{"temperature": t, "absolute_magnitude": -1.0}])
+    assert s.stars[0].luminosity == same.stars[0].luminosity
+    assert Scene.loads(s.to_toml()) == s  # the file holds the temperature too, as converted
+    cooler = s.with_overrides(['stars.0.spectral_type="A0V"'])  # converted again
+    assert cooler.stars[0].temperature == pytest.approx(10.0 ** SpecTypeDeJager().lumAndTeff("A0", "V")[1], rel=1e-15)
+    assert cooler.stars[0].luminosity != s.stars[0].luminosity
+
+
+def test_spectral_types_order_as_temperatures_do():
+    """Plausibility of the calibration over its range: hotter along M10 .. O1 on the main
+    sequence, giants cooler than dwarfs of the same late type, the Sun (G2V) within the few
+    per cent DJ87 state of its nominal 5772 K (IAU 2015 Resolution B3)."""
+    seq = [f"{c}{n}V" for c in "OBAFGKM" for n in range(10) if f"{c}{n}" != "O0"] + ["M10V"]
+    temps = [units.temperature_from_spectral_type(t) for t in seq]
+    assert all(a > b for a, b in zip(temps, temps[1:])), list(zip(seq, temps))
+    assert 2000.0 < temps[-1] < 3500.0 and 40000.0 < temps[0] < 60000.0
+    for sub in ("G8", "K0", "K5"):
+        assert units.temperature_from_spectral_type(sub + "III") < units.temperature_from_spectral_type(sub + "V")
+    assert units.temperature_from_spectral_type("G2V") == pytest.approx(5772.0, rel=0.05)
+    assert units.temperature_from_spectral_type("M10V") == pytest.approx(
+        units.temperature_from_spectral_type("M9.99999V"), rel=1e-5)
+
+
+@pytest.mark.parametrize("star, key, words", [
+    ({"spectral_type": "B2V", "temperature": 20000.0}, "stars[0].temperature", "is set by stars[0].spectral_type"),
+    ({"spectral_type": "B2"}, "stars[0].spectral_type", "luminosity class"),
+    ({"luminosity_lsun": 100.0}, "stars[0].luminosity_lsun", "or stars[0].spectral_type"),
+])
+def test_spectral_type_errors(star, key, words):
+    with pytest.raises(SceneError) as info:
+        scene(stars=[star])
+    assert info.value.parameter == key and words in str(info.value), str(info.value)
+
+
 @pytest.mark.parametrize("star, key, words", [
     ({"luminosity_lsun": 100.0}, "stars[0].luminosity_lsun", "give stars[0].temperature"),
     ({"luminosity_lsun": 100.0, "temperature": 9000.0, "spectrum": [[400, 1], [700, 1]]},

@@ -207,6 +207,11 @@ class Star:
         None, type="float or None", unit="mag", group=G_STARS,
         doc="Absolute magnitude M_V (AB, Bessell V): sets `luminosity` as luminosity_lsun does, "
             "from the blackbody of `temperature` with that magnitude at 10 pc")
+    spectral_type: Optional[str] = param(
+        None, type="str or None", group=G_STARS,
+        doc="MK spectral type and luminosity class (\"B2V\", \"B2.5 IV\", \"K0III\"; O1-M10): sets "
+            "`temperature` from the calibration of de Jager & Nieuwenhuijzen (1987, A&A 177, 217), "
+            "accurate to a few per cent")
 
     def spectral_source(self):
         """What sets the star's spectrum: the measured pairs, else the temperature (K), else
@@ -604,6 +609,8 @@ STAR_RULES: Dict[str, _Rule] = {
                              "(or omitted)", lambda v: v is None or _finite_pos(v)),
     "absolute_magnitude": _Rule(_to_opt_float, "must be an absolute magnitude M_V in mag (AB, Bessell V): a "
                                 "finite number (or omitted)", _finite),
+    "spectral_type": _Rule(_to_opt_str, "must be " + units.SPECTRAL_TYPE_FORM + " (or omitted)",
+                           lambda v: v is None or units.parse_spectral_type(v) is not None),
 }
 
 # Type-only rules for [bands]; ranges are checked by resolve_bands().
@@ -891,7 +898,9 @@ class Scene:
         given_tau = dust.tau if "tau" in d.get("dust", {}) else None
         given_lum = {i: s.luminosity for i, s in enumerate(stars)
                      if "stars" in d and "luminosity" in d["stars"][i]}
-        scene._apply_units(given_tau, given_lum)
+        given_temp = {i: s.temperature for i, s in enumerate(stars)
+                      if "stars" in d and d["stars"][i].get("temperature") is not None}
+        scene._apply_units(given_tau, given_lum, given_temp)
         scene.validate()
         return scene
 
@@ -1024,12 +1033,21 @@ class Scene:
         self._check_batches()
         _check_star_spectra(self.stars, bands)
 
-    def _apply_units(self, given_tau: Optional[float] = None, given_luminosity: Optional[Mapping[int, float]] = None
-                     ) -> None:
-        """Set ``dust.tau`` and the stars' ``luminosity`` from the physical keys that are given
-        (:mod:`nebula_rt.units`); ``given_*``: the values the scene table gave for them too,
-        which must then be the converted ones (bit for bit: a scene written by :meth:`to_toml`
-        holds both)."""
+    def _apply_units(self, given_tau: Optional[float] = None, given_luminosity: Optional[Mapping[int, float]] = None,
+                     given_temperature: Optional[Mapping[int, float]] = None) -> None:
+        """Set ``dust.tau``, the stars' ``temperature`` and ``luminosity`` from the physical keys
+        that are given (:mod:`nebula_rt.units`); ``given_*``: the values the scene table gave for
+        them too, which must then be the converted ones (bit for bit: a scene written by
+        :meth:`to_toml` holds both)."""
+        for i, s in enumerate(self.stars):
+            if s.spectral_type is None:
+                continue
+            temperature = units.temperature_from_spectral_type(s.spectral_type)
+            if given_temperature and i in given_temperature and given_temperature[i] != temperature:
+                raise SceneError(f"stars[{i}].temperature", given_temperature[i],
+                                 f"is set by stars[{i}].spectral_type = {s.spectral_type!r}, which gives "
+                                 f"{temperature!r} K (de Jager & Nieuwenhuijzen 1987): give one of them")
+            s.temperature = temperature
         key = units.physical_dust_key(self.dust)
         physical = [units.physical_star(s) for s in self.stars]
         if key is None and not any(physical):
@@ -1135,6 +1153,9 @@ def _drop_derived(d: Dict[str, Any], overridden) -> None:
             if isinstance(s, dict) and (s.get("luminosity_lsun") is not None or s.get("absolute_magnitude")
                                         is not None) and not overridden & {f"stars.{i}.luminosity", f"stars.{i}"}:
                 s.pop("luminosity", None)
+            if isinstance(s, dict) and s.get("spectral_type") is not None \
+                    and not overridden & {f"stars.{i}.temperature", f"stars.{i}"}:
+                s.pop("temperature", None)
 
 
 def _parse_toml(text: str, where: str) -> Dict[str, Any]:

@@ -31,6 +31,13 @@ with the converted values (``tests/test_units.py``):
     the blackbody of ``temperature`` whose AB magnitude in V at 10 pc is M_V
     (:func:`bolometric_from_absolute_magnitude`), then as above.
 
+- a star's ``temperature`` from its MK spectral type ``stars.spectral_type`` ("B2V",
+  "B2.5 IV", "K0III"): the calibration of de Jager & Nieuwenhuijzen (1987, A&A 177, 217),
+  their 20-coefficient Chebyshev polynomial in spectral type and luminosity class (Eq. 2b),
+  as PyAstronomy's ``SpecTypeDeJager`` evaluates it (:func:`temperature_from_spectral_type`).
+  It holds O1-M10 and the classes V, IV, III, II, Ib, Iab, Ia, Ia+; the authors give its
+  accuracy as a few per cent in T_eff (the Sun, G2V, comes out at 5587 K against 5772 K).
+
 The dust model is Draine's (2003, ARA&A 41, 241; ApJ 598, 1017) Milky Way dust
 (:mod:`nebula_rt.dust_tables`) of the band preset: R_V = 3.1 for ``spectral-8`` /
 ``spectral-16``, 5.5 for ``spectral-8-dense``, where C_ref is the reference band's band average
@@ -332,6 +339,52 @@ def _pc_metres() -> float:
     return _unit_metres("pc")
 
 
+#: an MK spectral type: class letter, subtype 0-9 (decimals allowed; O1-M10 in DJ87) and
+#: luminosity class, with optional spaces between
+SPECTRAL_TYPE_FORM = ("an MK spectral type: a class O, B, A, F, G, K or M, a subtype (0-9.9, "
+                      "O from 1, M up to 10) and a luminosity class V, IV, III, II, Ib, Iab, Ia or "
+                      "Ia+, such as \"B2V\", \"B2.5 IV\" or \"K0III\"")
+_SPECTRAL_TYPE = r"\s*([OBAFGKM])\s*(\d+(?:\.\d+)?)\s*(Ia\+|Iab|Ia|Ib|III|II|IV|V)\s*"
+
+
+def parse_spectral_type(text: Any) -> Optional[Tuple[str, str]]:
+    """(spectral type, luminosity class) of an MK type ("B2.5 IV" -> ("B2.5", "IV")), or None
+    where ``text`` is not one within DJ87's range (O1 to M10)."""
+    import re
+
+    m = re.fullmatch(_SPECTRAL_TYPE, text) if isinstance(text, str) else None
+    if m is None:
+        return None
+    letter, sub, lclass = m.groups()
+    x = float(sub)
+    if not (0.0 <= x < 10.0 or (letter == "M" and x == 10.0)) or (letter == "O" and x < 1.0):
+        return None
+    return letter + sub, lclass
+
+
+@functools.lru_cache(maxsize=64)
+def temperature_from_spectral_type(text: str) -> float:
+    """Effective temperature (K) of an MK spectral type from de Jager & Nieuwenhuijzen (1987),
+    through PyAstronomy (imported here: about 2 s the first time). ValueError where ``text``
+    is not :data:`SPECTRAL_TYPE_FORM`."""
+    parsed = parse_spectral_type(text)
+    if parsed is None:
+        raise ValueError(f"{text!r} is not {SPECTRAL_TYPE_FORM}")
+    # M10 is DJ87's last type, which PyAstronomy's parser (one subtype digit) cannot spell:
+    # its s-value is that of M9 plus one subtype, the same as "M9" with subtype 10 - 9
+    spt, lclass = parsed
+    import warnings
+
+    with warnings.catch_warnings():  # PyAstronomy's package import touches scipy.misc
+        warnings.simplefilter("ignore", DeprecationWarning)
+        from PyAstronomy.pyasl.asl.aslExt_1.spectralClass import SpecTypeDeJager
+
+    if spt == "M10" or spt.startswith("M10."):
+        spt = "M9.999999"
+    _, log_teff = SpecTypeDeJager().lumAndTeff(spt, lclass)
+    return float(10.0 ** float(log_teff))
+
+
 def physical_star(star) -> bool:
     return star.luminosity_lsun is not None or star.absolute_magnitude is not None
 
@@ -347,7 +400,8 @@ def star_luminosity(star, index: int, bands) -> Tuple[float, float]:
     if star.spectrum or star.temperature is None:
         raise SceneError(f"stars[{index}].{key}", value,
                          f"a bolometric luminosity (L_sun) or an absolute magnitude needs the star's "
-                         f"blackbody: give stars[{index}].temperature (K) and no measured spectrum, or "
+                         f"blackbody: give stars[{index}].temperature (K) or stars[{index}].spectral_type and no "
+                         f"measured spectrum, or "
                          f"give stars[{index}].luminosity in scene units")
     lbol = float(value) if key == "luminosity_lsun" else bolometric_from_absolute_magnitude(value, star.temperature)
     lo, hi = band_range_nm(bands)
