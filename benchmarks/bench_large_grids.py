@@ -194,7 +194,7 @@ def _region_summary(sessions) -> dict | None:
     tail = [e for e in log if e[3] == 31]
     first, launches = [], sum(1 for e in log if e[3] == 31) or 1
     for e in log:
-        first.append({"in": e[0], "stopped": e[1], "ms": round(e[2] * 1e3, 3)})
+        first.append({"in": e[0], "new": e[4], "stopped": e[1], "ms": round(e[2] * 1e3, 3)})
         if e[3] == 31 or e[1] == 0:
             break
     return {"shift": s.region_shift, "capacity": s.region_capacity, "tail_below": s.region_tail,

@@ -381,14 +381,23 @@ NRT_DEVICE void nrt_deposit(const nrt_sink *k, NRT_GLOBAL nrt_u64 *band_acc, nrt
  * scattering their atomics over a grid many times the cache's size. The walk resumes with
  * exactly the state it stopped with (the random stream included), and integer deposits add
  * alike in any order, so the result is the same bits as tracing each packet in one go.
+ * A pass also starts new packets in the state slots of those that ended (nrt_pass_item), so
+ * that passes stay full while the launch has new packets: a region's packets per pass, and
+ * with them the deposits that hit L2, would otherwise dwindle pass by pass.
  * region_shift 31 never stops (the last pass of a launch: its few packets run to the end).
  */
 #ifndef NRT_REGIONS
 #define NRT_REGIONS 0
 #endif
 #define NRT_NO_REGIONS 31
-/* the key of a packet that ended (nothing to resume) */
+/* the key of no packet (nothing to resume) */
 #define NRT_NO_KEY 0xFFFFFFFFFFFFFFFFUL
+/* the bin of a free state slot (its packet ended): the counting sort puts these keys after
+   every stopped packet's, and the next pass starts new packets in those slots */
+#define NRT_FREE_BIN 0xFFFFFFFEu
+#define NRT_KEY_LOW 0xFFFFFFFFUL
+/* nrt_packet.item: photon number (< 2^53) | band of the launch << 56 */
+#define NRT_ITEM_BAND_SHIFT 56
 
 /* Bin of a stopped packet: its cell (batch slot and band of the launch), then its region
    (regions numbered x fastest, rx x ry x rz of them). */
@@ -413,6 +422,40 @@ NRT_DEVICE void nrt_rng_resume(nrt_rng *r, nrt_u64 seed, nrt_u64 band, nrt_u64 p
     r->pos = pos;
 }
 
+#if NRT_REGIONS
+/*
+ * Work item it of a pass by regions. Items [0, n_resume) resume the stopped packets whose keys
+ * (bin << 32 | state slot) lead order[]; the next n_fresh start the current chunk's packets
+ * fresh0, fresh0 + 1, ... (photon_start + t % count, band t / count of the chunk's item t, in
+ * the emission order emit[] with NRT_SORTED), in the free state slots listed in order[] after
+ * the stopped keys (n_free of them), then in the never used ones from hwm on. Items past n_fresh
+ * up to n_free only pass their free slot on to the next pass (returns 0).
+ */
+NRT_DEVICE int nrt_pass_item(nrt_u64 it, const NRT_GLOBAL nrt_u64 *order, const NRT_GLOBAL nrt_u64 *emit,
+                             const NRT_GLOBAL nrt_packet *states, nrt_u64 n_resume, nrt_u64 n_fresh,
+                             nrt_u64 fresh0, nrt_u64 n_free, nrt_u64 hwm, nrt_u64 photon_start,
+                             nrt_u64 count, nrt_u64 *photon, int *lband, nrt_u64 *sl, int *fresh)
+{
+    if (it < n_resume) {
+        *sl = order[it] & NRT_KEY_LOW;
+        nrt_u64 item = states[*sl].item;
+        *photon = item & ((1UL << NRT_ITEM_BAND_SHIFT) - 1UL);
+        *lband = (int)(item >> NRT_ITEM_BAND_SHIFT);
+        *fresh = 0;
+        return 1;
+    }
+    nrt_u64 j = it - n_resume;
+    *sl = j < n_free ? (order[n_resume + j] & NRT_KEY_LOW) : hwm + (j - n_free);
+    if (j >= n_fresh)
+        return 0;
+    nrt_u64 t = NRT_SORTED ? (emit[fresh0 + j] & NRT_KEY_LOW) : fresh0 + j;
+    *lband = (int)(t / count);
+    *photon = photon_start + t % count;
+    *fresh = 1;
+    return 1;
+}
+#endif
+
 /*
  * Trace one packet of one band to its end, or (NRT_REGIONS) until it steps into another
  * region: then its state goes to *save and the function returns 1 (else 0). resume: the
@@ -429,7 +472,7 @@ NRT_DEVICE int nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, fl
                                 NRT_GLOBAL nrt_u32 *overflow, const NRT_GLOBAL float *peel,
                                 float peel_scale, NRT_GLOBAL nrt_u64 *band_image,
                                 const NRT_GLOBAL nrt_packet *resume, NRT_GLOBAL nrt_packet *save,
-                                int region_shift)
+                                int region_shift, nrt_u64 item)
 {
     nrt_rng rng;
     const float hx = 1.0f / (float)nx, hy = 1.0f / (float)ny, hz = 1.0f / (float)nz;
@@ -569,6 +612,7 @@ NRT_DEVICE int nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, fl
             q.tx = tx, q.ty = ty, q.tz = tz, q.t_cur = t_cur, q.tau = tau;
             q.ix = ix, q.iy = iy, q.iz = iz, q.scatterings = scatterings;
             q.rng_block = (int)rng.block, q.rng_pos = rng.pos;
+            q.item = item;
             *save = q;
             return 1;
         }
@@ -1046,10 +1090,14 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
                               NRT_GLOBAL nrt_u64 *tallies,  /* slots * n_lbands * 4 */
                               NRT_GLOBAL nrt_u32 *overflow, /* slots */
                               NRT_GLOBAL nrt_u64 *image,    /* slots * n_lbands * W * H */
-                              const NRT_GLOBAL nrt_u64 *order, /* NRT_SORTED or resuming: sorted keys */
-                              NRT_GLOBAL nrt_packet *states,   /* NRT_REGIONS: per work item t */
+                              const NRT_GLOBAL nrt_u64 *order, /* NRT_SORTED: emission order; NRT_REGIONS:
+                                                                  stopped packets' keys, then free slots' */
+                              const NRT_GLOBAL nrt_u64 *emit,  /* NRT_REGIONS, NRT_SORTED: the chunk's
+                                                                  emission order */
+                              NRT_GLOBAL nrt_packet *states,   /* NRT_REGIONS: per state slot */
                               NRT_GLOBAL nrt_u64 *keys_out,    /* NRT_REGIONS: per item it */
-                              nrt_u64 n_resume, int region_shift)
+                              nrt_u64 n_resume, nrt_u64 n_fresh, nrt_u64 fresh0, nrt_u64 n_free,
+                              nrt_u64 hwm, int region_shift)
 {
     const int nx = prm->nx, ny = prm->ny, nz = prm->nz, n_stars = prm->n_stars;
     const nrt_u64 seed = prm->seed, batch_base = prm->batch_base, batch_extra = prm->batch_extra;
@@ -1057,10 +1105,12 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
     const float track_scale = prm->track_scale, peel_scale = prm->peel_scale;
     const NRT_GLOBAL float *peel = prm->peel;
     nrt_u64 nvox = (nrt_u64)nx * (nrt_u64)ny * (nrt_u64)nz;
-    /* NRT_REGIONS: n_resume > 0 resumes the stopped packets order[0 .. n_resume) */
-    const int resuming = NRT_REGIONS && n_resume > 0;
-    const int ordered = resuming ? 1 : NRT_SORTED;
-    nrt_u64 total = resuming ? n_resume : count * (nrt_u64)n_lbands;
+#if NRT_REGIONS
+    /* a pass (nrt_pass_item): the stopped packets, the chunk's new ones, free slots passed on */
+    nrt_u64 total = n_resume + (n_fresh > n_free ? n_fresh : n_free);
+#else
+    nrt_u64 total = count * (nrt_u64)n_lbands;
+#endif
     nrt_u64 stride = NRT_GLOBAL_SIZE();
     nrt_u64 pixels = NRT_PEEL ? (nrt_u64)peel[13] * (nrt_u64)peel[14] : 0;
     /* the home cell (batch slot and band) of the group: that of its first packet */
@@ -1077,11 +1127,21 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
     for (nrt_u64 i = lid; i < NRT_HOT_STARS; i += NRT_LOCAL_SIZE())
         l_hot[i] = 0;
     {
-        nrt_u64 t0 = NRT_GROUP_FIRST_ID();
-        if (ordered && t0 < total)
-            t0 = order[t0] & 0xFFFFFFFFUL;
-        home_slot = nrt_batch_of(photon_start + t0 % count, batch_base, batch_extra) - first_batch;
-        home_cell = home_slot * (nrt_u64)n_lbands + (nrt_u64)(t0 / count);
+        nrt_u64 it0 = NRT_GROUP_FIRST_ID(), photon0 = photon_start;
+        int lband0 = 0;
+#if NRT_REGIONS
+        nrt_u64 sl0;
+        int fresh0_;
+        if (it0 < total)
+            nrt_pass_item(it0, order, emit, states, n_resume, n_fresh, fresh0, n_free, hwm, photon_start, count,
+                          &photon0, &lband0, &sl0, &fresh0_);
+#else
+        nrt_u64 t0 = it0 < total && NRT_SORTED ? (order[it0] & NRT_KEY_LOW) : it0;
+        photon0 = photon_start + t0 % count;
+        lband0 = (int)(t0 / count);
+#endif
+        home_slot = nrt_batch_of(photon0, batch_base, batch_extra) - first_batch;
+        home_cell = home_slot * (nrt_u64)n_lbands + (nrt_u64)lband0;
     }
     sink.l_tally = l_tally;
     NRT_BARRIER();
@@ -1089,10 +1149,21 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
     sink.l_tally = 0;
 #endif
     for (nrt_u64 it = NRT_GLOBAL_ID(); it < total; it += stride) {
-        nrt_u64 t = ordered ? (order[it] & 0xFFFFFFFFUL) : it;
+#if NRT_REGIONS
+        nrt_u64 photon, sl;
+        int lband, fresh;
+        if (!nrt_pass_item(it, order, emit, states, n_resume, n_fresh, fresh0, n_free, hwm, photon_start, count,
+                           &photon, &lband, &sl, &fresh)) {
+            keys_out[it] = ((nrt_u64)NRT_FREE_BIN << 32) | sl; /* a free slot no new packet took */
+            continue;
+        }
+#else
+        nrt_u64 t = NRT_SORTED ? (order[it] & NRT_KEY_LOW) : it;
         int lband = (int)(t / count);
-        int band = band0 + lband;
         nrt_u64 photon = photon_start + t % count;
+        const int fresh = 1;
+#endif
+        int band = band0 + lband;
         nrt_u64 slot = nrt_batch_of(photon, batch_base, batch_extra) - first_batch;
         nrt_u64 cell = slot * (nrt_u64)n_lbands + (nrt_u64)lband;
 #if NRT_BIASED
@@ -1109,25 +1180,27 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
 #else
         sink.l_hot = 0;
 #endif
-        if (!resuming)
+        if (fresh)
             nrt_count(&sink, 0);
 #if NRT_REGIONS
         int stopped = nrt_trace_packet(density, optics[4 * band], optics[4 * band + 1], optics[4 * band + 2], stars,
                                        star_cdf + band * n_stars, nx, ny, nz, n_stars, seed, band, photon,
                                        max_scatterings, track_scale, acc + cell * nvox, &sink,
                                        overflow + slot, peel, peel_scale, image + cell * pixels,
-                                       resuming ? states + t : 0, states + t, region_shift);
+                                       fresh ? 0 : states + sl, states + sl, region_shift,
+                                       photon | ((nrt_u64)lband << NRT_ITEM_BAND_SHIFT));
         if (stopped) {
-            const NRT_GLOBAL nrt_packet *q = states + t;
-            keys_out[it] = ((nrt_u64)nrt_region_bin(cell, q->ix, q->iy, q->iz, nx, ny, nz, region_shift) << 32) | t;
+            const NRT_GLOBAL nrt_packet *q = states + sl;
+            keys_out[it] = ((nrt_u64)nrt_region_bin(cell, q->ix, q->iy, q->iz, nx, ny, nz, region_shift) << 32) | sl;
         } else {
-            keys_out[it] = NRT_NO_KEY;
+            keys_out[it] = ((nrt_u64)NRT_FREE_BIN << 32) | sl;
         }
 #else
+        (void)fresh;
         nrt_trace_packet(density, optics[4 * band], optics[4 * band + 1], optics[4 * band + 2], stars,
                          star_cdf + band * n_stars, nx, ny, nz, n_stars, seed, band, photon,
                          max_scatterings, track_scale, acc + cell * nvox, &sink,
-                         overflow + slot, peel, peel_scale, image + cell * pixels, 0, 0, NRT_NO_REGIONS);
+                         overflow + slot, peel, peel_scale, image + cell * pixels, 0, 0, NRT_NO_REGIONS, 0);
 #endif
 #endif
     }
@@ -1196,8 +1269,9 @@ NRT_KERNEL void emission_keys(const NRT_GLOBAL nrt_trace_params *prm,
 }
 
 /*
- * Counting sort of the packets a pass stopped (NRT_REGIONS): keys (bin << 32 | work item),
- * NRT_NO_KEY for the packets that ended. A first pass counts the keys of every bin, the host
+ * Counting sort of the packets a pass stopped (NRT_REGIONS): keys (bin << 32 | state slot),
+ * NRT_FREE_BIN for the slots of the packets that ended (counted in the last bin, n_bins - 1,
+ * so they follow every stopped packet), NRT_NO_KEY for none. A first pass counts the keys of every bin, the host
  * turns the counts into each bin's first position, and a second pass writes each key to its
  * bin's range. Each work group counts its keys in local memory first and adds
  * one total per bin to global memory (without, every packet leaving the star's region hit
@@ -1227,6 +1301,8 @@ NRT_KERNEL void region_sort_pass(const NRT_GLOBAL nrt_u64 *keys, nrt_u64 n, NRT_
     NRT_BARRIER();
     nrt_u64 key = it < n ? keys[it] : NRT_NO_KEY;
     nrt_u32 bin = (nrt_u32)(key >> 32), rank = 0;
+    if (bin == NRT_FREE_BIN)
+        bin = (nrt_u32)n_bins - 1u; /* free slots: the last bin, after every stopped packet */
     if (key != NRT_NO_KEY) {
         if (local_bins) {
             rank = NRT_ATOMIC_ADD_U32_LOCAL(&l_count[bin], 1u);

@@ -70,7 +70,7 @@ def test_regions_give_the_same_bits(cloud, estimator):
         _same(_run(cloud, dict(tuning, region_tail=0), estimator), plain)
 
 
-FULL = {"NRT_REGIONS": 2, "region_tail": 0, "region_state_bytes": 10**6}
+FULL = {"NRT_REGIONS": 2, "region_tail": 0, "region_state_bytes": 2 * 10**6}
 TAIL = dict(FULL, region_tail=500)
 SPLIT = dict(FULL, region_state_bytes=300 * 96)
 
@@ -78,29 +78,45 @@ SPLIT = dict(FULL, region_state_bytes=300 * 96)
 def test_passes_stop_and_resume_packets(cloud, monkeypatch):
     """The passes do what they are for: with regions of 4 voxels every launch takes many passes
     (a packet of this cloud crosses tens of region faces), the tail pass cuts them short, and
-    a state budget of a few hundred packets splits each launch into parts; the bits stay."""
+    with room for only 1024 packets in flight new packets take the state slots of those that
+    ended, pass by pass, so that every pass is full while new packets are left; the bits
+    stay."""
+    from nebula_rt import kernel_params
+    from nebula_rt.backends.session import REGION_KEY_BYTES
+
     plain = _run(cloud, {"NRT_REGIONS": 0}, peel=False)
     seen = {}
     real_init = DeviceTransport.__init__
 
     def spy(self, *a, **k):
         real_init(self, *a, **k)
+        self.region_log = []
         seen["session"] = self
 
     monkeypatch.setattr(DeviceTransport, "__init__", spy)
+    per = kernel_params.dtype("nrt_packet").itemsize + REGION_KEY_BYTES
     for tuning in (FULL, TAIL, SPLIT):
         res = _run(cloud, tuning, peel=False)
         _same(res, plain)
         s = seen["session"]
         assert s.region_shift == 2
-        # room for a whole launch (9000 packets), or the least: parts of 512 packets x 2 bands
-        assert s.region_capacity == (1024 if tuning is SPLIT else 10416)
+        # room for a whole launch (9000 packets), or the least (1024)
+        assert s.region_capacity == (1024 if tuning is SPLIT else FULL["region_state_bytes"] // per)
         seen[id(tuning)] = s.region_passes
+        log = s.region_log
+        launches = 2  # 9000 packets x 2 bands in launches of 3 batches x 2 bands x 1500
+        assert sum(e[4] for e in log) == launches * 9000  # every packet started once
+        if tuning is SPLIT:
+            # chunks of 512 photons x 2 bands: 9 per launch; a pass with new packets is full
+            # but where its chunk ran out
+            fresh = [e for e in log if e[4] > 0]
+            assert len(fresh) > 2 * 9 * launches
+            assert all(e[0] <= 1024 for e in log)
+            assert sum(e[0] < 1024 for e in fresh) <= 9 * launches
     full, tail, split = (seen[id(t)] for t in (FULL, TAIL, SPLIT))
-    launches = 2  # 9000 packets x 2 bands in launches of 3 batches x 2 bands x 1500
-    assert full >= 10 * launches  # packets stop again and again
+    assert full >= 10 * 2  # packets stop again and again
     assert tail < full
-    assert split > full  # 1024 packets of state per part: each launch in several parts
+    assert split > full  # fewer packets in flight: more passes
 
 
 def test_backend_default_uses_regions_from_its_grid_size(monkeypatch):

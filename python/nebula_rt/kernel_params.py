@@ -55,6 +55,7 @@ PACKET_STATE = (
     ("scatterings", "i32", 1, "scatterings so far"),
     ("rng_block", "i32", 1, "Philox blocks drawn so far"),
     ("rng_pos", "i32", 1, "next 32-bit word of the current block (8: none left)"),
+    ("item", "u64", 1, "the packet: its photon number | its band of the launch << 56"),
 )
 
 STRUCTS = {"nrt_trace_params": TRACE_PARAMS, "nrt_packet": PACKET_STATE}

@@ -29,11 +29,12 @@ M2_SCALE = 2.0**64
 
 #: region shift that never stops a packet (kernels/transport.cl, NRT_NO_REGIONS)
 NO_REGIONS = 31
-#: device memory for the stopped packets of the transport by regions (80 B of state and two
-#: 8 B keys per packet), at most REGION_STATE_BYTES and REGION_STATE_PER_VOXEL per voxel (within
-#: the memory target of 2 x (density + one 64-bit cell per band) + 1 GiB at 256^3 and beyond):
-#: a launch of more packets is traced in parts. On an H200 at 512^3, 128 MiB of state traced
-#: 60k packets/ms, 512 MiB 74k (more parts, each ending in a few poorly filled passes)
+#: device memory for the packets in flight of the transport by regions (88 B of state, two
+#: 8 B keys and one 8 B emission key per packet), at most REGION_STATE_BYTES and
+#: REGION_STATE_PER_VOXEL per voxel (within the memory target of 2 x (density + one 64-bit
+#: cell per band) + 1 GiB at 256^3 and beyond): a launch of more packets starts new ones as
+#: the earlier ones end. On an H200 at 512^3, 128 MiB of state traced 60k packets/ms, 512 MiB
+#: 74k (then traced in parts, each ending in a few poorly filled passes)
 REGION_STATE_BYTES = 512 << 20
 REGION_STATE_PER_VOXEL = 24
 #: passes after which a launch's remaining packets are traced to the end in one
@@ -51,8 +52,13 @@ def region_shift_of(backend, setup: TransportSetup, tuning: dict) -> int:
 def region_state_bytes(nvox: int, tuning: dict | None = None) -> int:
     """Device bytes of the stopped packets' states and keys of the transport by regions."""
     budget = int((tuning or {}).get("region_state_bytes", min(REGION_STATE_BYTES, REGION_STATE_PER_VOXEL * nvox)))
-    per = kernel_params.dtype("nrt_packet").itemsize + 16
+    per = REGION_KEY_BYTES + kernel_params.dtype("nrt_packet").itemsize
     return max(1024, budget // per) * per
+
+
+#: bytes of keys per packet in flight of the transport by regions: what a pass stopped, the
+#: next pass's packets sorted by bin, and the chunk's emission order
+REGION_KEY_BYTES = 24
 
 
 def region_shift_for(backend, nvox: int, biased: bool, tuning: dict | None = None) -> int:
@@ -139,26 +145,29 @@ class DeviceTransport(TransportSession):
             be.kernel(be.transport_program, name, self.defines)
 
     def _setup_regions(self, tuning):
-        """Buffers of the transport by regions: each stopped packet's state and two key lists
-        (what a pass stopped, and the next pass's packets sorted by cell and region), for up to
-        ``region_capacity`` packets of a launch; the per-bin counts of the counting sort."""
+        """Buffers of the transport by regions: up to ``region_capacity`` packets in flight,
+        each with a state slot and two keys (what a pass stopped, and the next pass's packets
+        sorted by cell and region, then the free slots), the emission order of a chunk of new
+        packets, and the per-bin counts of the counting sort (one bin per cell and region, and
+        the free slots' bin last)."""
         be = self.backend
         state_bytes = kernel_params.dtype("nrt_packet").itemsize
-        self.region_capacity = region_state_bytes(self.nvox, tuning) // (state_bytes + 16)
+        self.region_capacity = region_state_bytes(self.nvox, tuning) // (state_bytes + REGION_KEY_BYTES)
         self.region_tail = int(tuning.get("region_tail", getattr(be, "region_tail", 0)))
         shift = self.region_shift
         regions = int(np.prod([-(-n // (1 << shift)) for n in self.shape]))
-        self.n_bins = self.slots * self.bands_per_launch * regions
-        if self.n_bins >= 2**32:
+        self.n_bins = self.slots * self.bands_per_launch * regions + 1
+        if self.n_bins >= 0xFFFFFFFE:
             raise ValueError(f"{self.n_bins} region bins do not fit a 32-bit key")
         self.d_states = be.device_zeros(self.region_capacity * state_bytes // 8, np.uint64)
         self.d_stopped = be.device_zeros(self.region_capacity, np.uint64)
         self.d_keys = be.device_zeros(self.region_capacity, np.uint64)
+        self.d_emit = be.device_zeros(self.region_capacity if self.sorted else 1, np.uint64)
         self.d_bins = be.device_zeros(self.n_bins, np.uint32)
         self.region_passes = 0  # passes traced so far (a diagnostic for benchmarks)
-        #: benchmarks set a list here: every pass appends (packets in, packets stopped, seconds
-        #: from its launch to the stopped count on the host, region shift); the tail pass is
-        #: waited for then, which a run otherwise does not do
+        #: benchmarks set a list here: every pass appends (work items, packets stopped, seconds
+        #: from its launch to the stopped count on the host, region shift, new packets); the
+        #: tail pass is waited for then, which a run otherwise does not do
         self.region_log = None
 
     def run_group(self, photon_start, count, batch_base, batch_extra, first_batch, n_slots, fresh=True,
@@ -175,98 +184,117 @@ class DeviceTransport(TransportSession):
             be.fill_zero(self.d_tallies)
             be.fill_zero(self.d_overflow)
         if self.region_shift:
-            # at most region_capacity packets (all bands) per part, the stopped states' room;
-            # parts of equal size (a small last part would take as many passes as a full one)
-            parts = -(-int(count) // max(1, self.region_capacity // n_lb))
-            for k in range(parts):
-                start = int(count) * k // parts
-                n = int(count) * (k + 1) // parts - start
-                self._trace_by_regions(int(photon_start) + start, n, first_batch, band0, n_lb)
+            self._trace_by_regions(int(photon_start), int(count), first_batch, band0, n_lb)
         else:
-            self._emission_order(photon_start, count, first_batch, band0, n_lb)
-            self._launch_trace(photon_start, count, first_batch, band0, n_lb, 0, NO_REGIONS)
+            if self.sorted:
+                self.d_keys = self._emission_order(self.d_keys, photon_start, count, first_batch, band0, n_lb)
+            self._launch_trace(photon_start, count, first_batch, band0, n_lb)
         tallies = be.to_host(self.d_tallies).reshape(self.slots, self.bands_per_launch,
                                                      self.tally_words)  # synchronises
         overflow = be.to_host(self.d_overflow)
         return tallies[:n_slots, :n_lb].copy(), overflow[:n_slots].astype(bool)
 
-    def _emission_order(self, photon_start, count, first_batch, band0, n_lb):
-        """NRT_SORTED: the launch's packets sorted by cell, star and first direction, into
-        d_keys (the order the trace takes them in)."""
-        if not self.sorted:
-            return
+    def _emission_order(self, keys, photon_start, count, first_batch, band0, n_lb):
+        """NRT_SORTED: ``count`` packets (all bands) from ``photon_start`` sorted by cell, star
+        and first direction, into ``keys`` (grown where too small; returned): the order the
+        trace starts them in."""
         be = self.backend
         items = int(count) * n_lb
-        if self.d_keys.size < items:
-            self.d_keys = None
-            self.d_keys = be.device_zeros(items, np.uint64)
+        if keys.size < items:
+            keys = None
+            keys = be.device_zeros(items, np.uint64)
         be.launch(be.transport_program, "emission_keys", items, self.d_params, self.d_cdf,
                   np.uint64(photon_start), np.uint64(count), np.uint64(first_batch),
-                  np.int32(band0), np.int32(n_lb), np.int32(self.slots), self.d_keys,
+                  np.int32(band0), np.int32(n_lb), np.int32(self.slots), keys,
                   defines=self.defines)
-        self.d_keys = be.sort_u64(self.d_keys, items)
+        return be.sort_u64(keys, items)
 
-    def _launch_trace(self, photon_start, count, first_batch, band0, n_lb, n_resume, shift):
-        """One launch of trace_photons: the launch's new packets (n_resume 0) or the n_resume
-        stopped ones listed in d_keys; packets stop at region faces of 2^shift voxels."""
+    def _launch_trace(self, photon_start, count, first_batch, band0, n_lb, n_resume=0, n_fresh=0, fresh0=0,
+                      n_free=0, hwm=0, shift=NO_REGIONS):
+        """One launch of trace_photons. Without regions: the launch's ``count`` packets of
+        ``n_lb`` bands. By regions, one pass (kernels/transport.cl, nrt_pass_item): the
+        ``n_resume`` stopped packets listed in d_keys and ``n_fresh`` new ones of the chunk of
+        ``count`` packets from ``photon_start`` (its items ``fresh0`` on), started in the
+        ``n_free`` free slots listed after the stopped keys, then in slots ``hwm`` on; packets
+        stop at region faces of 2^shift voxels."""
         be = self.backend
         regions = bool(self.region_shift)
+        items = n_resume + max(n_fresh, n_free) if regions else int(count) * n_lb
         be.launch_trace(
-            be.transport_program, "trace_photons", n_resume if n_resume else int(count) * n_lb,
+            be.transport_program, "trace_photons", items,
             self.d_params, self.d_density, self.d_optics, self.d_stars, self.d_cdf,
             np.uint64(photon_start), np.uint64(count), np.uint64(first_batch),
             np.int32(band0), np.int32(n_lb),
             self.d_acc, self.d_tallies, self.d_overflow, self.d_image, self.d_keys,
-            self.d_states if regions else self.d_keys, self.d_stopped if regions else self.d_keys,
-            np.uint64(n_resume), np.int32(shift), defines=self.defines)
+            self.d_emit if regions else self.d_keys, self.d_states if regions else self.d_keys,
+            self.d_stopped if regions else self.d_keys, np.uint64(n_resume), np.uint64(n_fresh),
+            np.uint64(fresh0), np.uint64(n_free), np.uint64(hwm), np.int32(shift), defines=self.defines)
+        return items
 
     def _trace_by_regions(self, photon_start, count, first_batch, band0, n_lb):
-        """Trace a launch's packets in passes: each pass runs its packets until they end or
-        step into another region, and the stopped ones, sorted by (cell, region), are the next
-        pass's packets. Once fewer than ``region_tail`` are left (or after MAX_REGION_PASSES
-        passes) the last pass runs them to the end."""
+        """Trace a launch's packets in passes. Each pass runs its packets until they end or
+        step into another region; the stopped ones, sorted by (cell, region), are the next
+        pass's, and new packets take the places of those that ended, so that every pass holds
+        as many packets as the state memory has room for (``region_capacity``) while the launch
+        has new ones: the packets per region, and with them the share of deposits that stay in
+        L2, do not dwindle pass by pass. The new packets come in chunks of at most
+        ``region_capacity`` (all bands), each in its emission order. Once no new packets are
+        left and fewer than ``region_tail`` are in flight (or after MAX_REGION_PASSES such
+        passes), the last pass runs them to the end."""
         be = self.backend
-        self._emission_order(photon_start, count, first_batch, band0, n_lb)
-        shift, n_in, passes = self.region_shift, 0, 0
-        log = self.region_log
+        cap, shift, log = self.region_capacity, self.region_shift, self.region_log
+        chunk = max(1, cap // n_lb)  # photons of one chunk (all bands)
+        next_photon, c_start, c_count, c_pos = 0, photon_start, 0, 0
+        n_in, n_free, hwm, passes, draining = 0, 0, 0, 0, 0
         while True:
+            if c_pos == c_count * n_lb and next_photon < count and n_in < cap:
+                c_start, c_count, c_pos = photon_start + next_photon, min(chunk, count - next_photon), 0
+                next_photon += c_count
+                if self.sorted:
+                    self.d_emit = self._emission_order(self.d_emit, c_start, c_count, first_batch, band0, n_lb)
+            n_new = min(c_count * n_lb - c_pos, cap - n_in)
+            more = c_pos + n_new < c_count * n_lb or next_photon < count
             t0 = time.perf_counter() if log is not None else 0.0
-            self._launch_trace(photon_start, count, first_batch, band0, n_lb, n_in, shift)
+            # the free slots the new packets do not take are passed on while more will need them
+            items = self._launch_trace(c_start, c_count, first_batch, band0, n_lb, n_in, n_new, c_pos,
+                                       n_free if more else min(n_free, n_new), hwm, shift)
+            hwm += max(0, n_new - n_free)
+            c_pos += n_new
             passes += 1
             if shift == NO_REGIONS:
                 if log is not None:
                     be.to_host(self.d_overflow)  # waits for the pass
-                    log.append((n_in, 0, time.perf_counter() - t0, shift))
+                    log.append((items, 0, time.perf_counter() - t0, shift, n_new))
                 break
-            items = n_in if n_in else int(count) * n_lb
-            n_in = self._sort_stopped(items)
+            n_in, n_free = self._sort_stopped(items)
             if log is not None:
-                log.append((items, n_in, time.perf_counter() - t0, shift))
-            if n_in == 0:
-                break
-            if n_in < self.region_tail or passes >= MAX_REGION_PASSES:
-                shift = NO_REGIONS
+                log.append((items, n_in, time.perf_counter() - t0, shift, n_new))
+            if not more:
+                draining += 1
+                if n_in == 0:
+                    break
+                if n_in < self.region_tail or draining >= MAX_REGION_PASSES:
+                    shift = NO_REGIONS
         self.region_passes += passes
 
     def _sort_stopped(self, n):
-        """Counting sort of the keys the last pass wrote (d_stopped[0..n)) into d_keys by bin;
-        returns how many packets stopped. (Keys that also held the place and direction in the
-        region, radix-sorted so that a warp's packets enter side by side, flying alike, traced
-        no faster on an H200: 71.1k against 70.5k packets/ms at 512^3.)"""
+        """Counting sort of the keys the last pass wrote (d_stopped[0..n)) into d_keys by bin,
+        the free slots last; returns (stopped packets, free slots). (Keys that also held the
+        place and direction in the region, radix-sorted so that a warp's packets enter side by
+        side, flying alike, traced no faster on an H200: 71.1k against 70.5k packets/ms at
+        512^3.)"""
         be = self.backend
         be.fill_zero(self.d_bins)
         args = (self.d_stopped, np.uint64(n), self.d_bins, np.int32(self.n_bins))
         be.launch_trace(be.transport_program, "region_sort_pass", n, *args, np.int32(0), self.d_keys,
                         defines=self.defines)
         counts = be.to_host(self.d_bins).astype(np.int64)
-        live = int(counts.sum())
-        if live:
-            first = np.zeros(self.n_bins, np.uint32)  # each bin's first position
-            first[1:] = np.cumsum(counts[:-1])
-            be.upload(self.d_bins, first)
-            be.launch_trace(be.transport_program, "region_sort_pass", n, *args, np.int32(1), self.d_keys,
-                            defines=self.defines)
-        return live
+        first = np.zeros(self.n_bins, np.uint32)  # each bin's first position
+        first[1:] = np.cumsum(counts[:-1])
+        be.upload(self.d_bins, first)
+        be.launch_trace(be.transport_program, "region_sort_pass", n, *args, np.int32(1), self.d_keys,
+                        defines=self.defines)
+        return int(counts[:-1].sum()), int(counts[-1])
 
     def empty_group(self, n_slots, bands=None):
         """Clear the group's tallies and flags without tracing (a rank with no packets of a
@@ -405,14 +433,15 @@ class DeviceTransport(TransportSession):
         out = (self.d_sum1, self.d_m2, self.d_density)
         self.d_sum1 = self.d_m2 = self.d_density = None
         self.d_acc = self.d_image = self.d_keys = None  # the slots' memory goes to the finishing
-        self.d_states = self.d_stopped = self.d_bins = None
+        self.d_states = self.d_stopped = self.d_bins = self.d_emit = None
         self._h_stage = None
         return out
 
     def device_bytes(self) -> int:
         """Device memory this run holds: the batch slots (8 B per slot cell), the statistics
         (12 B per cell), the density (4 B per voxel), the per-slot tallies and the images."""
-        regions = (self.region_capacity * (kernel_params.dtype("nrt_packet").itemsize + 16) + 4 * self.n_bins
+        regions = (self.region_capacity * (kernel_params.dtype("nrt_packet").itemsize + REGION_KEY_BYTES)
+                   + 4 * self.n_bins
                    if self.region_shift else 0)
         return (8 * self.words * self.slot_cells * self.slots + 12 * self.ncell + 4 * self.nvox
                 + 8 * self.tally_words * self.bands_per_launch * self.slots + 4 * self.slots
@@ -420,5 +449,5 @@ class DeviceTransport(TransportSession):
 
     def close(self):
         for name in ("d_acc", "d_sum1", "d_m2", "d_density", "d_image", "d_keys", "_h_stage", "d_states",
-                     "d_stopped", "d_bins"):
+                     "d_stopped", "d_bins", "d_emit"):
             setattr(self, name, None)
