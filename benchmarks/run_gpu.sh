@@ -7,7 +7,7 @@
 # WHEELDIR holds wheels for what the machine lacks (pyopencl and its pure-Python needs,
 # colour-science, tomli-w; pmcx for the MCX comparison), fetched elsewhere with
 # `pip download --only-binary=:all: --python-version 3.12 ...`.
-# STEPS (default "tests bench neb128 compare profile"; also "tests-cuda", "scaling", "large", "regions", "profile-regions", "layout", "sorted", "probe", "ranks", "e2e1e9", "biasing", "fit", "tune",
+# STEPS (default "tests bench neb128 compare profile"; also "tests-cuda", "scaling", "large", "regions", "regcaps", "profile-regions", "layout", "sorted", "probe", "ranks", "e2e1e9", "biasing", "fit", "tune",
 # "stages", "trade", "presets", "empty", "fft") selects what runs. Everything printed
 # goes to OUTDIR/log.txt as well; JSON and .npz results beside it.
 set -uo pipefail
@@ -81,6 +81,14 @@ if [[ " $steps " == *" regions "* ]]; then
     python3 benchmarks/bench_regions.py --backend cuda --grids 128 256 512 1024 --shifts 0 5 6 7 --photons 1e8 \
         --repeats 1 --tail 135168 --out "$out/regions-cuda.json"
 fi
+if [[ " $steps " == *" regcaps "* ]]; then
+    # the transport kernel's register cap against occupancy, by regions at 512^3 and without at 128^3
+    echo "== register caps, CUDA"
+    python3 benchmarks/bench_regions.py --backend cuda --grids 128 --shifts 0 --regcaps 0 96 80 72 64 --photons 3e7 \
+        --repeats 2 --out "$out/regcaps-128-cuda.json"
+    python3 benchmarks/bench_regions.py --backend cuda --grids 512 --shifts 6 --regcaps 0 96 80 72 64 --photons 1e8 \
+        --repeats 1 --tail 135168 --out "$out/regcaps-512-cuda.json"
+fi
 if [[ " $steps " == *" profile-regions "* ]] && command -v ncu >/dev/null; then
     # what limits a region pass: ncu on the 2nd and 6th trace_photons launches of 512^3 (the
     # first part's passes 2 and 6: packets spread over many regions), and on a 128^3 launch
@@ -93,7 +101,7 @@ if [[ " $steps " == *" profile-regions "* ]] && command -v ncu >/dev/null; then
             2>&1 | grep -v "^==PROF==" | tail -n 90
     done
     echo "== ncu: 128^3 without regions, CUDA"
-    ncu --target-processes all -k regex:trace_photons -s 1 -c 1 --section SpeedOfLight \
+    ncu --target-processes all -k regex:trace_photons -s 0 -c 1 --section SpeedOfLight \
         --section MemoryWorkloadAnalysis --section WarpStateStats --section SchedulerStats --section Occupancy \
         python3 benchmarks/bench_regions.py --backend cuda --grids 128 --shifts 0 --photons 6e6 --repeats 1 --warmup 0 \
         2>&1 | grep -v "^==PROF==" | tail -n 90
