@@ -33,12 +33,11 @@ from nebula_rt.scene import Star  # noqa: E402
 from nebula_rt.transport import trace  # noqa: E402
 
 
-def make_backend(kind: str, device: str, tuning: dict, regcap: int = 0):
+def make_backend(kind: str, device: str, tuning: dict):
     if kind == "cuda":
         from nebula_rt.backends.cuda import CUDABackend
 
-        options = (f"--maxrregcount={regcap}",) if regcap else ()
-        return CUDABackend(device, transport_tuning=tuning, compile_options=options)
+        return CUDABackend(device, transport_tuning=tuning)
     from nebula_rt.backends.opencl import OpenCLBackend
 
     return OpenCLBackend(device or "Portable Computing Language", transport_tuning=tuning)
@@ -61,11 +60,13 @@ def run(args) -> dict:
     for n in args.grids:
         rho = np.ones((n, n, n), np.float32)
         counts0 = None
-        for shift, regcap in [(s, r) for s in args.shifts for r in args.regcaps]:
+        for shift, regcap in [(s, r) for s in args.shifts for r in (args.regcaps or [None])]:
             tuning = {"NRT_REGIONS": int(shift)}
             if shift:
                 tuning["region_tail"] = int(args.tail)
-            be = make_backend(args.backend, args.device, tuning, regcap)
+            if regcap is not None:
+                tuning["max_registers"] = int(regcap)
+            be = make_backend(args.backend, args.device, tuning)
             if args.warmup:  # build the kernels, warm the device up
                 trace(rho[:16, :16, :16].copy(), bands, stars, tau=2.0, photons=20_000, backend=be)
             best = None
@@ -77,13 +78,13 @@ def run(args) -> dict:
                 best = (k, wall) if best is None or k < best[0] else best
             counts = np.asarray(res.counts).tolist()
             counts0 = counts if counts0 is None else counts0
-            row = {"grid": n, "shift": int(shift), "regcap": int(regcap), "registers": _registers(be),
+            row = {"grid": n, "shift": int(shift), "regcap": regcap, "registers": _registers(be),
                    "photons": photons, "kernel_s": best[0], "wall_s": best[1],
                    "kernel_packets_per_ms": photons / (best[0] * 1e3), "counts": counts,
                    "same_counts_as_first": counts == counts0}
             rows.append(row)
             print(f"{n:5d}^3  regions {'2^' + str(shift) if shift else 'none':>5s}  registers {row['registers']} "
-                  f"(cap {regcap or '-'})  kernel {best[0]:7.3f} s  "
+                  f"(cap {'default' if regcap is None else regcap or 'none'})  kernel {best[0]:7.3f} s  "
                   f"wall {best[1]:7.3f} s  {row['kernel_packets_per_ms']:9.1f} pkt/ms  counts {counts}", flush=True)
     return {"benchmark": "bench_regions", "device": be.device_name, "backend": args.backend,
             "host": platform.node(), "date": time.strftime("%Y-%m-%d"),
@@ -101,8 +102,9 @@ def main(argv=None) -> int:
     ap.add_argument("--photons", type=float, default=4e5)
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--tail", type=int, default=4096)
-    ap.add_argument("--regcaps", type=int, nargs="+", default=[0],
-                    help="CUDA: --maxrregcount values to build the kernels with (0: none)")
+    ap.add_argument("--regcaps", type=int, nargs="+", default=None,
+                    help="CUDA: register caps to build the transport kernel with (tuning max_registers; "
+                         "0: none; default: the backend's)")
     ap.add_argument("--warmup", type=int, default=1, help="0: no warm-up trace (the profiler then counts "
                                                          "the measured run's launches from 0)")
     ap.add_argument("--out", default=None)

@@ -84,10 +84,10 @@ fi
 if [[ " $steps " == *" regcaps "* ]]; then
     # the transport kernel's register cap against occupancy, by regions at 512^3 and without at 128^3
     echo "== register caps, CUDA"
-    python3 benchmarks/bench_regions.py --backend cuda --grids 128 --shifts 0 --regcaps 0 96 80 72 64 --photons 3e7 \
-        --repeats 2 --out "$out/regcaps-128-cuda.json"
-    python3 benchmarks/bench_regions.py --backend cuda --grids 512 --shifts 6 --regcaps 0 96 80 72 64 --photons 1e8 \
-        --repeats 1 --tail 135168 --out "$out/regcaps-512-cuda.json"
+    python3 benchmarks/bench_regions.py --backend cuda --grids 128 --shifts 0 --regcaps ${REGCAPS:-0 96 80 72 64} \
+        --photons 3e7 --repeats 2 --out "$out/regcaps-128-cuda.json"
+    python3 benchmarks/bench_regions.py --backend cuda --grids 512 --shifts 6 --regcaps ${REGCAPS:-0 96 80 72 64} \
+        --photons 1e8 --repeats 1 --tail 135168 --out "$out/regcaps-512-cuda.json"
 fi
 if [[ " $steps " == *" profile-regions "* ]] && command -v ncu >/dev/null; then
     # what limits a region pass: ncu on the 2nd and 6th trace_photons launches of 512^3 (the
