@@ -39,14 +39,11 @@ TRACE_PARAMS = (
 
 #: nrt_packet: a packet suspended where it crosses into another region of the grid
 #: (transport by regions, kernels/transport.cl): everything its walk needs to go on with the
-#: same bits. Its work item (hence band and photon) is in the key that points to it.
+#: same bits (1 / d and the face distances are formed again from these, by the walk's own
+#: expressions). Its state slot is in the key that points to it.
 PACKET_STATE = (
     ("p0", "f32", 3, "start point of the current flight (box units)"),
     ("d", "f32", 3, "direction (unit vector)"),
-    ("inv_d", "f32", 3, "1 / d, as the walk formed it"),
-    ("tx", "f32", 1, "distance from p0 to the current voxel's exit face along x"),
-    ("ty", "f32", 1, "the same along y"),
-    ("tz", "f32", 1, "the same along z"),
     ("t_cur", "f32", 1, "distance from p0 to the current voxel's entry"),
     ("tau", "f32", 1, "optical depth left of the current flight"),
     ("ix", "i32", 1, "current voxel along x"),

@@ -29,7 +29,7 @@ M2_SCALE = 2.0**64
 
 #: region shift that never stops a packet (kernels/transport.cl, NRT_NO_REGIONS)
 NO_REGIONS = 31
-#: device memory for the packets in flight of the transport by regions (88 B of state, two
+#: device memory for the packets in flight of the transport by regions (64 B of state, two
 #: 8 B keys and one 8 B emission key per packet), at most REGION_STATE_BYTES and
 #: REGION_STATE_PER_VOXEL per voxel (within the memory target of 2 x (density + one 64-bit
 #: cell per band) + 1 GiB at 256^3 and beyond): a launch of more packets starts new ones as
