@@ -175,12 +175,14 @@ def test_large_grid_memory_within_twice_the_minimum(n, bands, photons):
 
 
 def test_auto_batches_grow_with_the_grid():
-    """Automatic batches hold up to a packet per 8 voxels on large grids (a fold touches every
-    cell), at least 16 batches, and never depend on the device."""
+    """Automatic batches hold up to a packet per 2 voxels on large grids (a fold touches every
+    cell, and by regions a batch ends in a dwindling tail of passes), at least 16 batches, and
+    never depend on the device."""
     from nebula_rt.transport import batch_count
 
     assert batch_count(10**8) == math.ceil(10**8 / 2**20)
     assert batch_count(10**8, nvox=128**3) == math.ceil(10**8 / 2**20)  # small grids: as before
     assert batch_count(10**8, nvox=1024**3) == 16
-    assert batch_count(10**9, nvox=512**3) == math.ceil(10**9 / (512**3 // 8))
+    assert batch_count(10**9, nvox=512**3) == 16  # batches of up to 512^3 / 2 packets
+    assert batch_count(10**10, nvox=512**3) == math.ceil(10**10 / (512**3 // 2))
     assert batch_count(10**6, nvox=1024**3) == 16

@@ -183,3 +183,51 @@ def test_region_sort_counts_and_orders_every_stopped_packet(backend):
         out = backend.to_host(d_out)[:live.size]
         assert sorted(out.tolist()) == sorted(live.tolist())
         assert np.all(np.diff((out >> np.uint64(32)).astype(np.int64)) >= 0)
+
+
+def test_a_group_traced_in_several_launches_streams_across_them(cloud, monkeypatch):
+    """Launches of about 300 packets (a group of 3 batches of 1500 then takes about 30): the
+    packets in flight at the end of one launch go on in the next launch of the group, so each
+    group ends in one tail pass, not one per launch, with the one-go trace's bits. A time limit
+    that stops the run between two launches of a group first finishes the packets in flight:
+    every packet emitted is absorbed, escaped or terminated."""
+    from nebula_rt import transport as transport_mod
+
+    plain = _run(cloud, {"NRT_REGIONS": 0}, peel=False)
+    sessions, drains = [], []
+    real_init, real_run = DeviceTransport.__init__, DeviceTransport.run_group
+
+    def spy(self, *a, **k):
+        real_init(self, *a, **k)
+        self.region_log = []
+        sessions.append(self)
+
+    def run_group(self, *a, **k):
+        drains.append(k.get("drain", True))
+        return real_run(self, *a, **k)
+
+    monkeypatch.setattr(DeviceTransport, "__init__", spy)
+    monkeypatch.setattr(DeviceTransport, "run_group", run_group)
+    monkeypatch.setattr(transport_mod, "LAUNCH_SECONDS", 1e-6)  # the smallest launches: 1 packet per band
+
+    def small(tuning, **kw):
+        be = _backend(tuning)
+        be.launch_packets, be.first_launch_packets = 3 * 2 * 1500, 600
+        return trace(cloud, _bands(), _stars(), tau=12.0, photons=kw.pop("photons", 9000),
+                     batch_size=kw.pop("batch_size", 1500), seed=21, backend=be, **kw)
+
+    res = small({"NRT_REGIONS": 2, "region_tail": 50})
+    _same(res, plain)
+    log = sessions[-1].region_log
+    assert drains.count(False) >= 20 and drains.count(True) == 2  # many launches, 2 groups
+    assert sum(e[3] == 31 for e in log) == 2  # one tail pass per group
+    assert sum(e[4] for e in log) == 2 * 9000
+
+    # stopped by the time limit after the first launch of a group of batches of 150 (its
+    # first 300 packets per band: two whole batches are kept)
+    drains.clear()
+    cut = small({"NRT_REGIONS": 2, "region_tail": 50}, photons=90_000, time_limit=1e-9, batch_size=150)
+    counts = np.asarray(cut.counts, dtype=np.int64)
+    assert counts[0, 0] == 300 and drains[:2] == [False, True]
+    np.testing.assert_array_equal(counts[:, 0], counts[:, 1] + counts[:, 2] + counts[:, 3])
+    assert drains[-1] is True and sessions[-1]._stream is None

@@ -52,9 +52,11 @@ from .postprocess import DeviceSums
 #: most LAUNCH_SECONDS whatever the batch. 16 batches at least, for the error estimate. On
 #: grids of more than 8 MAX_AUTO_BATCH voxels a batch may hold up to a packet per
 #: AUTO_VOXELS_PER_PACKET voxels: each fold reads and writes every cell (about 40 bytes), which
-#: a batch of fewer packets would not pay for (512^3: 1.5 ms per fold on an H200).
+#: a batch of fewer packets would not pay for (512^3: 1.5 ms per fold on an H200), and by
+#: regions each batch ends in a dwindling tail of passes (512^3: about 10 ms of an H200 lost
+#: per batch), which a batch of more packets spreads thinner.
 MAX_AUTO_BATCH = 1 << 20
-AUTO_VOXELS_PER_PACKET = 8
+AUTO_VOXELS_PER_PACKET = 2
 MIN_BATCHES = 16
 #: Fixed-point units per voxel edge (the smallest edge): 2^32, so one crossing of the smallest
 #: voxel is 2^32 units; a cell holds 2^63 units = 2^31 full crossings per batch before the
@@ -687,10 +689,13 @@ class _Launcher:
         while traced < count:
             self.poll()
             if traced and time.perf_counter() >= self.deadline:
+                # finish the packets still in flight (transport by regions), adding none
+                tallies, overflow = self._launch(start + traced, 0, base, extra, first_batch, n_slots,
+                                                 False, bands)
                 break
             chunk = max(1, min(count - traced, self._budget(nb) // nb))
             tallies, overflow = self._launch(start + traced, chunk, base, extra, first_batch, n_slots,
-                                             traced == 0, bands)
+                                             traced == 0, bands, drain=traced + chunk >= count)
             traced += chunk
             if on_progress is not None and traced < count:
                 on_progress(traced)
@@ -702,13 +707,16 @@ class _Launcher:
         speed traces in ``LAUNCH_SECONDS``."""
         return self.first if self.rate is None else max(nb, int(self.rate * LAUNCH_SECONDS))
 
-    def _launch(self, start, chunk, base, extra, first_batch, n_slots, fresh, bands):
-        """One launch, timed (its speed sizes the next)."""
+    def _launch(self, start, chunk, base, extra, first_batch, n_slots, fresh, bands, drain=True):
+        """One launch, timed (its speed sizes the next); ``drain`` False: not the group's last
+        (:meth:`TransportSession.run_group`)."""
         tk = time.perf_counter()
-        out = self.session.run_group(start, chunk, base, extra, first_batch, n_slots, fresh=fresh, bands=bands)
+        out = self.session.run_group(start, chunk, base, extra, first_batch, n_slots, fresh=fresh, bands=bands,
+                                     drain=drain)
         dt = time.perf_counter() - tk
         self.kernel_s += dt
-        self.rate = chunk * bands[1] / max(dt, 1e-6)
+        if chunk:
+            self.rate = chunk * bands[1] / max(dt, 1e-6)
         return out
 
     def run_together(self, comm, start: int, count: int, base: int, extra: int, first_batch: int,
@@ -726,7 +734,7 @@ class _Launcher:
             chunk = count * (i + 1) // launches - count * i // launches
             if chunk:
                 tallies, overflow = self._launch(start + traced, chunk, base, extra, first_batch, n_slots,
-                                                 traced == 0, bands)
+                                                 traced == 0, bands, drain=i + 1 == launches)
                 traced += chunk
                 if on_progress is not None and i + 1 < launches:
                     on_progress(traced * comm.size)

@@ -139,7 +139,7 @@ class TransportSession(abc.ABC):
     @abc.abstractmethod
     def run_group(self, photon_start: int, count: int, batch_base: int, batch_extra: int,
                   first_batch: int, n_slots: int, fresh: bool = True,
-                  bands: tuple[int, int] | None = None) -> tuple[np.ndarray, np.ndarray]:
+                  bands: tuple[int, int] | None = None, drain: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """Trace packets ``[photon_start, photon_start + count)`` of the group's bands in one launch.
 
         They belong to batches ``first_batch .. first_batch + n_slots - 1`` of a plan whose
@@ -151,6 +151,9 @@ class TransportSession(abc.ABC):
         ``fresh`` False continues the previous launch's group: tallies and overflow flags are
         not cleared, so a group may be traced in several shorter launches (packet indices are
         absolute and deposits integer: the same bits) and the results are the group's so far.
+        ``drain`` False (the transport by regions; a launch that is not the group's last) may
+        leave packets in flight for the next launch of the group to finish: its tallies then
+        lack them until a launch with ``drain`` True.
         """
 
     @abc.abstractmethod

@@ -137,6 +137,7 @@ class DeviceTransport(TransportSession):
         if self.region_shift:
             self._setup_regions(tuning)
         self._plan = (0, 0)
+        self._stream = None  # by regions: (group, packets in flight, free slots, slots used) between launches
         self._h_stage = None  # several ranks: the host buffer of reduce_group
         # build the kernels of this option set now (setup time): compiled inside the first
         # launch, they were counted as tracing (up to 1 s per option set on CUDA)
@@ -171,7 +172,7 @@ class DeviceTransport(TransportSession):
         self.region_log = None
 
     def run_group(self, photon_start, count, batch_base, batch_extra, first_batch, n_slots, fresh=True,
-                  bands=None):
+                  bands=None, drain=True):
         be = self.backend
         band0, n_lb = bands if bands is not None else (0, self.setup.n_bands)
         if n_lb > self.bands_per_launch:
@@ -183,8 +184,9 @@ class DeviceTransport(TransportSession):
         if fresh:
             be.fill_zero(self.d_tallies)
             be.fill_zero(self.d_overflow)
+            self._stream = None  # packets of an abandoned group (a cancelled run) are dropped
         if self.region_shift:
-            self._trace_by_regions(int(photon_start), int(count), first_batch, band0, n_lb)
+            self._trace_by_regions(int(photon_start), int(count), first_batch, band0, n_lb, drain)
         else:
             if self.sorted:
                 self.d_keys = self._emission_order(self.d_keys, photon_start, count, first_batch, band0, n_lb)
@@ -231,7 +233,7 @@ class DeviceTransport(TransportSession):
             np.uint64(fresh0), np.uint64(n_free), np.uint64(hwm), np.int32(shift), defines=self.defines)
         return items
 
-    def _trace_by_regions(self, photon_start, count, first_batch, band0, n_lb):
+    def _trace_by_regions(self, photon_start, count, first_batch, band0, n_lb, drain=True):
         """Trace a launch's packets in passes. Each pass runs its packets until they end or
         step into another region; the stopped ones, sorted by (cell, region), are the next
         pass's, and new packets take the places of those that ended, so that every pass holds
@@ -240,12 +242,21 @@ class DeviceTransport(TransportSession):
         L2, do not dwindle pass by pass. The new packets come in chunks of at most
         ``region_capacity`` (all bands), each in its emission order. Once no new packets are
         left and fewer than ``region_tail`` are in flight (or after MAX_REGION_PASSES such
-        passes), the last pass runs them to the end."""
+        passes), the last pass runs them to the end. With ``drain`` False the launch ends once
+        its last new packets have run their first pass, and the next launch of the same group
+        goes on with the packets in flight (a group's launches then end in one dwindling tail,
+        not one each)."""
         be = self.backend
         cap, shift, log = self.region_capacity, self.region_shift, self.region_log
         chunk = max(1, cap // n_lb)  # photons of one chunk (all bands)
         next_photon, c_start, c_count, c_pos = 0, photon_start, 0, 0
         n_in, n_free, hwm, passes, draining = 0, 0, 0, 0, 0
+        group = (first_batch, band0, n_lb, self._plan)
+        if self._stream is not None:
+            if self._stream[0] != group:
+                raise RuntimeError(f"packets of group {self._stream[0]} are in flight, not of {group}")
+            _, n_in, n_free, hwm = self._stream
+            self._stream = None
         while True:
             if c_pos == c_count * n_lb and next_photon < count and n_in < cap:
                 c_start, c_count, c_pos = photon_start + next_photon, min(chunk, count - next_photon), 0
@@ -253,7 +264,7 @@ class DeviceTransport(TransportSession):
                 if self.sorted:
                     self.d_emit = self._emission_order(self.d_emit, c_start, c_count, first_batch, band0, n_lb)
             n_new = min(c_count * n_lb - c_pos, cap - n_in)
-            more = c_pos + n_new < c_count * n_lb or next_photon < count
+            more = c_pos + n_new < c_count * n_lb or next_photon < count or not drain
             t0 = time.perf_counter() if log is not None else 0.0
             # the free slots the new packets do not take are passed on while more will need them
             items = self._launch_trace(c_start, c_count, first_batch, band0, n_lb, n_in, n_new, c_pos,
@@ -269,6 +280,9 @@ class DeviceTransport(TransportSession):
             n_in, n_free = self._sort_stopped(items)
             if log is not None:
                 log.append((items, n_in, time.perf_counter() - t0, shift, n_new))
+            if not drain and c_pos == c_count * n_lb and next_photon == count:
+                self._stream = (group, n_in, n_free, hwm)  # the group's next launch goes on
+                break
             if not more:
                 draining += 1
                 if n_in == 0:
