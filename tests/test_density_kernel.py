@@ -65,3 +65,23 @@ def test_other_offset_is_another_nebula(backend):
     a = backend.generate_density(shape, MODEL_TURBULENCE, (0.5, 0.5, 0.5), 0.15, 0.0, 1e-4, none, 8)
     b = backend.generate_density(shape, MODEL_TURBULENCE, (3.5, 0.5, 0.5), 0.15, 0.0, 1e-4, none, 8)
     assert np.mean(np.abs(a - b) > 1e-3) > 0.3
+
+
+def test_a_density_past_float32_is_refused_naming_its_key(backend):
+    """Scale x turbulence can pass float32's range although the key is within it: the generated
+    density is checked (on the device where the backend can) and the error names the key and
+    the allowed bound; a finite one passes."""
+    from nebula_rt.density import generate_density
+    from nebula_rt.errors import SceneError
+    from nebula_rt.scene import Scene
+
+    base = {"grid": {"shape": [12, 10, 8]}, "stars": [{"position": [0.5, 0.5, 0.5], "bump_radius": 0.2}]}
+    for dust, key in (({"model": "turbulence", "scale": 3.0e38}, "dust.scale"),):
+        scene = Scene.from_dict(dict(base, dust=dust))
+        with pytest.raises(SceneError) as info:
+            generate_density(scene, backend)
+        assert info.value.parameter == key and "overflows float32" in str(info.value), str(info.value)
+        ok = Scene.from_dict(dict(base, dust={k: v * 1e-30 if isinstance(v, float) else v for k, v in dust.items()}))
+        assert np.isfinite(generate_density(ok, backend)).all()
+    dev_check = backend.all_finite(backend.to_device(np.array([1.0, np.inf], np.float32)))
+    assert dev_check in (None, False)

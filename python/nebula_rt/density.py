@@ -93,11 +93,14 @@ def load_density_file(path: Path, array: str, shape: tuple[int, int, int]) -> np
 TURBULENCE_MAX = sum(2.0 ** -e for e in (0.05, 2, 4, 6, 12, 8, 0))
 
 
-def _check_generated(scene, rho: np.ndarray) -> np.ndarray:
+def _check_generated(scene, rho: np.ndarray, backend: Backend) -> np.ndarray:
     """The device density must be finite: scale x turbulence (or density) plus the stars' bumps
     may pass float32's range although each parameter is within it."""
-    # two reductions, no temporaries (NaN propagates through max): cheap beside the kernel
-    if rho.size == 0 or (math.isfinite(float(rho.max())) and math.isfinite(float(rho.min()))):
+    dev = backend.resident_density(rho)
+    finite = backend.all_finite(dev) if dev is not None else None
+    if finite is None:  # on the host: two reductions, no temporaries (NaN propagates through max)
+        finite = rho.size == 0 or (math.isfinite(float(rho.max())) and math.isfinite(float(rho.min())))
+    if finite:
         return rho
     dust = scene.dust
     n = len(scene.stars)
@@ -131,9 +134,9 @@ def generate_density(scene, backend: Backend) -> np.ndarray:
     if dust.model == "turbulence":
         return _check_generated(scene, backend.generate_density(
             shape, MODEL_TURBULENCE, dust.offset, dust.scale, 0.0, dust.floor, stars, BUMP_SUBSAMPLES
-        ))
+        ), backend)
     if dust.model == "uniform":
         return _check_generated(scene, backend.generate_density(
             shape, MODEL_UNIFORM, (0.0, 0.0, 0.0), 0.0, dust.density, dust.floor, stars, BUMP_SUBSAMPLES
-        ))
+        ), backend)
     raise SceneError("dust.model", dust.model, "one of: 'turbulence', 'uniform', 'file'")

@@ -369,6 +369,11 @@ class Backend(abc.ABC):
     def wait_copy(self, handle) -> None:
         """Wait until the copy started by :meth:`to_host_async` has arrived."""
 
+    def all_finite(self, dev) -> bool | None:
+        """Whether every element of a float device array is finite, checked on the device, or
+        None where the host copy is as cheap to check (the default)."""
+        return None
+
     def sort_u64(self, dev, n: int):
         """Sort the first ``n`` elements of a uint64 device array ascending; returns the array
         holding the result (``dev`` itself, or a new one). Default: through the host (for
