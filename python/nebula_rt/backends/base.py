@@ -104,6 +104,16 @@ class TransportSetup:
 #: ``transport_tuning`` overrides them (the tuning benchmark switches them one by one).
 TRANSPORT_TUNING = {"NRT_ACC_RED": 1, "NRT_PREFETCH": 1, "NRT_GROUP_TALLY": 1, "NRT_SORTED": 0}
 
+#: NVIDIA GPUs (CUDA, NVIDIA OpenCL): registers per thread of the analog transport kernel
+#: without and with regions. The compiler's own choice (112; 120 by regions) allows 4 blocks
+#: of 128 threads per SM (25 % occupancy), too few warps to hide the latency of the density
+#: read at each voxel step; capped, more fit (CUDA on an H200, neb medium, kernel packets/ms,
+#: no cap -> 96 / 80 / 72 / 64: 128^3 3e7 photons 584k -> 632k / 631k / 629k / 616k; 512^3 by
+#: regions of 64, 1e8 photons 75.6k -> 85.5k / 90.3k / 93.6k / 95.1k; 56 and below lose again;
+#: benchmarks/results/h200-2026-12-02d/). The weighted packets' kernel (128-bit arithmetic)
+#: keeps the compiler's choice. Tuning key ``max_registers`` (0: no cap).
+NVIDIA_TRACE_REGISTERS = {False: 80, True: 64}
+
 
 def transport_defines(setup: TransportSetup, tuning: dict | None = None) -> dict:
     """Compile-time options of the transport kernel: only the estimator the scene asks for is
@@ -308,6 +318,18 @@ class Backend(abc.ABC):
     region_shifts: tuple = ()
     #: a launch's last region pass once fewer packets than this are left
     region_tail: int = 0
+
+    #: registers per thread the analog transport kernel is built with, without and with
+    #: regions, where the compiler takes a cap (NVIDIA_TRACE_REGISTERS); None: its own choice
+    trace_registers: dict | None = None
+
+    def register_cap(self, name: str, defines: dict) -> int:
+        """Register cap of program ``name`` built with ``defines`` (0: none): the analog
+        transport kernel's, from ``trace_registers`` or the tuning key ``max_registers``."""
+        if self.trace_registers is None or name != self.transport_program or int(defines.get("NRT_BIASED", 0)):
+            return 0
+        regions = bool(int(defines.get("NRT_REGIONS", 0)))
+        return int(self.transport_tuning.get("max_registers", self.trace_registers[regions]))
 
     #: kernel file of the transport (benchmarks swap in variants to compare them)
     transport_program: str = "transport.cl"

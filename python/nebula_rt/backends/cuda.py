@@ -12,7 +12,7 @@ import numpy as np
 
 from ..errors import BackendUnavailableError
 from ..kernel_source import kernel_source
-from .base import Backend
+from .base import NVIDIA_TRACE_REGISTERS, Backend
 
 BLOCK = 256
 #: threads per block of the transport kernel: smaller blocks retire sooner after their slowest
@@ -79,15 +79,9 @@ class CUDABackend(Backend):
     #: without -> 64 / 128: 256^3 144k -> 182k / 154k, 512^3 54.9k -> 73.4k / 74.2k, 1024^3
     #: 27.2k -> 32.3k / 33.7k; benchmarks/results/h200-2026-12-02c/)
     region_shifts = ((256**3, 6), (1024**3, 7))
-    #: registers per thread the analog transport kernel is built with (NVRTC --maxrregcount),
-    #: without and with regions: NVRTC's own choice (112; 120 by regions) allows 4 blocks of 128
-    #: threads per SM (25 % occupancy), too few warps to hide the latency of the density reads
-    #: at each voxel step; capped, more fit (H200, neb medium, kernel packets/ms, no cap -> 96 /
-    #: 80 / 72 / 64: 128^3 3e7 photons 584k -> 632k / 631k / 629k / 616k; 512^3 by regions of
-    #: 64, 1e8 photons 75.6k -> 85.5k / 90.3k / 93.6k / 95.1k; benchmarks/results/h200-2026-12-02d/).
-    #: The weighted packets' kernel (128-bit arithmetic) keeps NVRTC's choice. Tuning key
-    #: ``max_registers`` (0: no cap); a ``--maxrregcount`` among ``compile_options`` wins.
-    trace_registers = {False: 80, True: 64}
+    #: the analog transport kernel's register cap (NVRTC --maxrregcount; a --maxrregcount among
+    #: ``compile_options`` wins)
+    trace_registers = NVIDIA_TRACE_REGISTERS
 
     def __init__(self, selector: str = "", *, compile_options: tuple = (), trace_block: int = TRACE_BLOCK,
                  transport_tuning: dict | None = None, fmad: bool = False):
@@ -135,11 +129,9 @@ class CUDABackend(Backend):
         # makes of the surrounding code: every kernel option and both GPU backends give the
         # same bits, and CUDA, NVIDIA OpenCL and PoCL differ only in their math functions
         options = ("--std=c++14", f"--fmad={'true' if self.fmad else 'false'}") + self.compile_options + tuple(f"-D{k}={v}" for k, v in sorted(defines.items()))
-        if name == self.transport_program and not int(defines.get("NRT_BIASED", 0)) \
-                and not any(o.startswith("--maxrregcount") for o in self.compile_options):
-            cap = int(self.transport_tuning.get("max_registers",
-                                                self.trace_registers[bool(int(defines.get("NRT_REGIONS", 0)))]))
-            options += (f"--maxrregcount={cap}",) if cap else ()
+        cap = self.register_cap(name, defines)
+        if cap and not any(o.startswith("--maxrregcount") for o in self.compile_options):
+            options += (f"--maxrregcount={cap}",)
         return self.cp.RawModule(code=kernel_source(name), options=options)
 
     def _get_kernel(self, module, kernel_name):

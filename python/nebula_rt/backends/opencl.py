@@ -9,7 +9,7 @@ import numpy as np
 
 from ..errors import BackendUnavailableError
 from ..kernel_source import kernel_source
-from .base import Backend
+from .base import NVIDIA_TRACE_REGISTERS, Backend
 
 try:  # pyopencl is a hard dependency, but give a clear message if the ICD loader is broken
     import pyopencl as cl
@@ -131,6 +131,8 @@ class OpenCLBackend(Backend):
         self.context = cl.Context([self.device])
         self.queue = cl.CommandQueue(self.context)
         self.is_gpu = bool(self.device.type & cl.device_type.GPU)
+        if self.is_gpu and "NVIDIA" in self.device.platform.name:
+            self.trace_registers = NVIDIA_TRACE_REGISTERS
         # On a CPU the work-group tallies cost more (barriers split PoCL's work-item loops) than
         # the contention they save: neb128 2e5 packets, 2-core PoCL, 665 vs 567 ms.
         self.transport_tuning = {} if self.is_gpu else {"NRT_GROUP_TALLY": 0}
@@ -162,6 +164,9 @@ class OpenCLBackend(Backend):
 
     def _compile(self, name, defines):
         options = [f"-D{k}={v}" for k, v in sorted(defines.items())]
+        cap = self.register_cap(name, defines)
+        if cap:  # NVIDIA's OpenCL compiler takes a register cap (as NVRTC's --maxrregcount)
+            options.append(f"-cl-nv-maxrregcount={cap}")
         return cl.Program(self.context, kernel_source(name)).build(options=options)
 
     def _get_kernel(self, program, kernel_name):
