@@ -185,7 +185,8 @@ def _watch_region_passes() -> list:
 
 def _region_summary(sessions) -> dict | None:
     """The last run's passes: how many, the packets they stopped (region crossings), the time
-    in region passes and in tail passes, and the first launch's passes one by one."""
+    in region passes and in tail passes, and the first group's passes one by one
+    (``launch_parts``: the streams that ended in a tail pass, one per group of batches)."""
     s = sessions[-1] if sessions else None
     if s is None or not s.region_shift:
         return None
@@ -610,7 +611,7 @@ def print_row(r: dict) -> None:
               flush=True)
         rp = neb.get("region_passes")
         if rp:
-            print(f"{'':22s}  regions 2^{rp['shift']}: {rp['passes']} passes in {rp['launch_parts']} launch parts, "
+            print(f"{'':22s}  regions 2^{rp['shift']}: {rp['passes']} passes, {rp['launch_parts']} ending in a tail pass, "
                   f"{rp['crossings'] / max(neb['kernel_packets_per_ms'] * neb['kernel_s'] * 1e3, 1):.2f} stops/packet, "
                   f"region passes {rp['region_pass_s']:.3f} s, tail passes {rp['tail_pass_s']:.3f} s; first part "
                   + " ".join(f"{e['in']}>{e['stopped']}:{e['ms']:.1f}" for e in rp["first_part"]), flush=True)
