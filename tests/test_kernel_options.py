@@ -186,3 +186,25 @@ def test_sorted_packet_order_gives_the_same_bits(cloud, estimator):
         np.testing.assert_array_equal(ordered.counts, plain.counts)
         if TEST_BACKEND == "cuda" or "Portable" in _backend({}).device_name:
             np.testing.assert_array_equal(ordered.peel_image, plain.peel_image)
+
+
+def test_register_cap_of_the_analog_transport_kernel_only():
+    """The register cap (NVIDIA: CUDA's --maxrregcount, NVIDIA OpenCL's -cl-nv-maxrregcount) is
+    the backend's per region mode, or the tuning's ``max_registers`` (0: none); the weighted
+    packets' kernel and every other program keep the compiler's choice, and a backend without
+    caps (PoCL) never sets one. Building with a cap changes no bit: the tests of the transport
+    run on the capped builds on NVIDIA GPUs (benchmarks/run_gpu.sh)."""
+    from nebula_rt.backends.base import NVIDIA_TRACE_REGISTERS
+
+    be = _backend({})
+    assert be.register_cap(be.transport_program, {"NRT_REGIONS": 1}) == (
+        NVIDIA_TRACE_REGISTERS[True] if be.trace_registers else 0)
+    be.trace_registers = NVIDIA_TRACE_REGISTERS
+    assert be.register_cap(be.transport_program, {"NRT_TRACK_LENGTH": 1}) == NVIDIA_TRACE_REGISTERS[False]
+    assert be.register_cap(be.transport_program, {"NRT_REGIONS": 1}) == NVIDIA_TRACE_REGISTERS[True]
+    assert be.register_cap(be.transport_program, {"NRT_BIASED": 1}) == 0
+    assert be.register_cap("density.cl", {}) == 0
+    be.transport_tuning = dict(be.transport_tuning, max_registers=96)
+    assert be.register_cap(be.transport_program, {"NRT_REGIONS": 1}) == 96
+    be.transport_tuning["max_registers"] = 0
+    assert be.register_cap(be.transport_program, {}) == 0
