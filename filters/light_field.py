@@ -84,6 +84,7 @@ class NebulaLightField(NebulaAlgorithm):
         self._input_stars = None  # the stars of the input's field data (Nebula Dust Density)
         self._density_name = None
         self._luminosity_unit = LUMINOSITY_UNITS[0]
+        self._spectral_types = ""
         self.last_light = None
 
     # -- the filter's own properties -----------------------------------------------------------
@@ -114,6 +115,16 @@ class NebulaLightField(NebulaAlgorithm):
             and 0 <= unit < len(LUMINOSITY_UNITS) else unit
         if unit != self._luminosity_unit:
             self._luminosity_unit = unit
+            self.Modified()
+
+    def SetSpectralTypes(self, text):
+        """MK spectral types of the stars in the Stars' order, separated by ";" ("B2V; A0 III";
+        an empty entry keeps that star's temperature column; default none): each sets its
+        star's temperature (scene key ``stars.spectral_type``: de Jager & Nieuwenhuijzen 1987),
+        in place of the column."""
+        text = "" if text is None else text
+        if text != self._spectral_types:
+            self._spectral_types = text
             self.Modified()
 
     def SetOverrideOptics(self, flag):
@@ -149,6 +160,16 @@ class NebulaLightField(NebulaAlgorithm):
         if self._luminosity_unit == "L_sun":
             for star in stars:
                 star["luminosity_lsun"] = star.pop("luminosity")
+        if not isinstance(self._spectral_types, str):
+            raise SceneError("SpectralTypes", self._spectral_types, "must be a text of MK types separated by ';'")
+        types = [t.strip() for t in self._spectral_types.split(";")] if self._spectral_types.strip() else []
+        if len(types) > len(stars):
+            raise SceneError("SpectralTypes", self._spectral_types,
+                             f"must hold at most one type per star ({len(stars)}), separated by ';'")
+        for star, text in zip(stars, types):
+            if text:
+                star["spectral_type"] = text
+                star.pop("temperature", None)
         return Scene.from_dict(scene_values(values, {"grid": {"shape": list(shape)}, "dust": {"model": "uniform"},
                                                      "stars": stars}))
 

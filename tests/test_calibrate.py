@@ -441,3 +441,25 @@ def test_the_sky_image_filter_calibrates_as_the_library_and_its_writer_writes_fi
     writer.SetFileName(str(tmp_path / "box.fits"))
     writer.Write()
     assert "Units" in writer.last_error and not (tmp_path / "box.fits").exists()
+
+
+def test_light_field_filter_spectral_types():
+    """The Light Field filter's Spectral Types: ";"-separated, in the Stars' order, an empty
+    entry keeps that star's temperature column, a type replaces it (scene key
+    stars.spectral_type); more types than stars, or a malformed one, are refused naming the
+    property or the scene key before anything is traced."""
+    from nebula_rt.errors import SceneError
+    from nebula_rt.filters import NebulaLightField
+
+    lf = NebulaLightField()
+    lf.SetStars([0.3, 0.5, 0.5, 1.0, 9000.0, 0.0, 0.7, 0.5, 0.5, 1.0, 7000.0, 0.0])
+    lf.SetSpectralTypes(" ; K0 III")
+    s = lf.scene((8, 8, 8))
+    assert s.stars[0].spectral_type is None and s.stars[0].temperature == 9000.0
+    assert s.stars[1].spectral_type == "K0 III"
+    assert s.stars[1].temperature == units.temperature_from_spectral_type("K0III")
+    for bad, key in (("B2V; A0V; F5V", "SpectralTypes"), ("B2", "stars[0].spectral_type")):
+        lf.SetSpectralTypes(bad)
+        with pytest.raises(SceneError) as info:
+            lf.scene((8, 8, 8))
+        assert info.value.parameter == key, str(info.value)

@@ -181,7 +181,8 @@ def test_paraview_proxy_is_the_schema_and_gives_the_same_bits(pv_env, xdisplay, 
         props = {e["name"]: e for e in proxy_props}
         order = [e["name"] for e in proxy_props]
         # every property of the panel is a bound one (or its check box), bar the filters' own
-        own = {"Input", "DensityArray", "OverrideOptics", "StarsFromInput", "Stars", "LuminosityUnit", "Units"}
+        own = {"Input", "DensityArray", "OverrideOptics", "StarsFromInput", "Stars", "LuminosityUnit", "SpectralTypes",
+               "Units"}
         assert set(order) - own == {x.name for x in bound} | {x.flag for x in bound if x.flag}, order
         for prop in bound:
             e, p = props[prop.name], prop.param
@@ -245,12 +246,14 @@ def test_paraview_proxy_is_the_schema_and_gives_the_same_bits(pv_env, xdisplay, 
 
 
 def test_calibrated_sky_image_and_fits_from_the_plugin(pv_env, xdisplay, tmp_path):
-    """Luminosity Unit L_sun and Box Length on the light field, Units MJy/sr and the observer
+    """Luminosity Unit L_sun, Spectral Types and Box Length on the light field, Units MJy/sr and the observer
     on the sky image, SaveData(.fits) through the plugin's writer: the calibrated arrays, the
     same bits as the plain VTK filters in ParaView's Python, and a FITS file whose extensions,
     units and celestial WCS astropy reads back (the WCS's numbers: tests/test_calibrate.py)."""
     from astropy.io import fits
     from astropy.wcs import WCS
+
+    from nebula_rt import units
 
     out = tmp_path / "sky.fits"
     r, _ = run_pv(pv_env, xdisplay, "sky_fits.py", out, 4000)
@@ -259,6 +262,8 @@ def test_calibrated_sky_image_and_fits_from_the_plugin(pv_env, xdisplay, tmp_pat
     assert {"wcs_header", "sky_units", "pixel_scale_arcsec"} <= set(r["field_data"])
     assert r["same_as_vtk"]
     assert "Observer" in r["groups"]
+    # Spectral Types set the star's temperature in place of the Stars' column
+    assert r["star"] == ["A0 V", units.temperature_from_spectral_type("A0 V")]
     with fits.open(out) as hdul:
         assert [h.name for h in hdul] == ["PRIMARY", "SB_R", "SB_G", "SB_B", "MAG_BESSELL_B", "MAG_BESSELL_V",
                                           "MAG_BESSELL_R", "MAG_SDSS_G", "MAG_SDSS_R", "MAG_SDSS_I"]

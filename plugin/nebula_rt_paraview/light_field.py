@@ -33,6 +33,15 @@ LUMINOSITY_UNIT = """
     temperature).</Documentation>
 </IntVectorProperty>"""
 
+SPECTRAL_TYPES = """
+<StringVectorProperty name="SpectralTypes" label="Spectral Types" command="SetSpectralTypes"
+    number_of_elements="1" default_values="" panel_visibility="advanced">
+  <Documentation>MK spectral types of the stars, in the Stars' order, separated by ";" (such as
+    "B2V; A0 III"; an empty entry keeps that star's temperature): each sets its star's
+    temperature in place of the Stars' column (scene key stars.spectral_type, from the
+    calibration of de Jager and Nieuwenhuijzen 1987).</Documentation>
+</StringVectorProperty>"""
+
 PANEL = "\n".join([
     _xml.DENSITY_ARRAY,
     _xml.bound_properties(
@@ -40,7 +49,7 @@ PANEL = "\n".join([
         defaults={"bands.albedo": _REF.albedo, "bands.g": _REF.g},
         extra={"<Albedo": OVERRIDE_OPTICS,
                "<Estimator": _xml.STARS_FROM_INPUT + _xml.stars_property(default_star_row(), ("StarsFromInput", 0)),
-               "<BoxLength": LUMINOSITY_UNIT}),
+               "<BoxLength": LUMINOSITY_UNIT + SPECTRAL_TYPES}),
     _xml.property_groups(
         ("Dust", ["DensityArray", "Tau"]),
         ("Dust optics", ["BandPreset", "OverrideOptics", "Albedo", "G"]),
@@ -48,7 +57,7 @@ PANEL = "\n".join([
         ("Photon transport", ["Estimator", "Method", "FilterRadius", "MaxScatterings", "Seed"]),
         ("Quality", ["Quality", "TargetError", "Photons", "TimeLimit"]),
         ("Compute device", ["Backend", "Device", "BatchSize"]),
-        ("Physical units", ["LuminosityUnit", "BoxLength"]),
+        ("Physical units", ["LuminosityUnit", "SpectralTypes", "BoxLength"]),
     ),
 ])
 

@@ -2,7 +2,8 @@
 
     pvpython sky_fits.py OUT.fits PHOTONS
 
-The light field of a uniform 12^3 density (Luminosity Unit L_sun, Box Length 0.2 pc), its sky
+The light field of a uniform 12^3 density (Luminosity Unit L_sun, Spectral Types "A0 V", Box
+Length 0.2 pc), its sky
 image calibrated at 50 pc (RA 30, Dec -20, PA 25 deg, PSF 40 arcsec) and saved with
 ``SaveData(OUT.fits)``. RESULT: ``last_errors`` of the three algorithms, the sky image's arrays
 and field-data keys, the proxies' property groups of the sky image, and the sum of the
@@ -25,6 +26,7 @@ dust = simple.NebulaDustDensity(GridShape=[12, 12, 12], Model="uniform", Uniform
 light = simple.NebulaLightField(dust, Stars=star, Tau=1.5, Photons=photons, Device=_common.TEST_DEVICE)
 light.DensityArray = ["POINTS", "density"]
 light.LuminosityUnit = "L_sun"
+light.SpectralTypes = "A0 V"  # in place of the Stars' 9000 K
 light.BoxLength = 0.2
 sky = simple.NebulaSkyImage(light, ImageSize=[24, 24], Units="MJy/sr", Distance="50 pc", RA=30.0, Dec=-20.0,
                             PositionAngle=25.0, PSFFWHM=40.0, Stretch="asinh", AsinhQ=4.0)
@@ -53,6 +55,7 @@ l2.SetTau(1.5)
 l2.SetPhotons(photons)
 l2.SetDevice(_common.TEST_DEVICE)
 l2.SetLuminosityUnit(1)
+l2.SetSpectralTypes("A0 V")
 l2.SetBoxLength(0.2)
 s2 = NebulaSkyImage()
 s2.SetInputConnection(l2.GetOutputPort())
@@ -67,6 +70,8 @@ s2.Update()
 sb2 = vtk_to_numpy(s2.GetOutputDataObject(0).GetPointData().GetArray("sb_G")).astype(np.float64)
 _common.result(last_errors={n: a.last_error for n, a in algs.items()}, arrays=names, field_data=fd,
                sb_G_sum=float(sb.sum()), same_as_vtk=bool(np.array_equal(sb, sb2)), vtk_error=s2.last_error,
+               star=[algs["light"].last_light.scene.stars[0].spectral_type,
+                     algs["light"].last_light.scene.stars[0].temperature],
                groups=[g.GetXMLLabel() for g in
                                                   [sky.SMProxy.GetPropertyGroup(i)
                                                    for i in range(sky.SMProxy.GetNumberOfPropertyGroups())]])
