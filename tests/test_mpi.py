@@ -50,7 +50,8 @@ def _ranks(tmp_path, n, *extra):
 
 @pytest.mark.parametrize("case", [("track-length", "plain"), ("collision-filter", "plain"),
                                   ("track-length", "checked"), ("track-length", "checked+copied"),
-                                  ("track-length", "biased+checked"), ("collision-filter", "biased+copied")],
+                                  ("track-length", "biased+checked"), ("collision-filter", "biased+copied"),
+                                  ("track-length", "regions+checked")],
                          ids="-".join)
 def test_trace_is_the_same_bits_on_1_2_3_ranks(tmp_path, case):
     """Sums, centred squares, packet counts, peel-off image and batches per band: identical
@@ -58,7 +59,8 @@ def test_trace_is_the_same_bits_on_1_2_3_ranks(tmp_path, case):
     batches per launch; 'checked': headroom 2^36, so batches overflow and are re-traced;
     '+copied': the slots summed in a host copy, the path of GPUs, instead of in PoCL's mapped
     device memory; 'biased': weighted packets, whose 128-bit cells, images and tallies the
-    ranks add limb by limb)."""
+    ranks add limb by limb; 'regions': by regions of 4 voxels, each rank's share of a group
+    streamed through launches of about 300 packets and drained at the group's last)."""
     estimator, mode = case
     runs = {n: _ranks(tmp_path, n, estimator, mode, TEST_DEVICE) for n in (1, 2, 3)}
     one = runs[1]

@@ -3,8 +3,9 @@
 
     mpiexec -n N python tests/mpi/trace_ranks.py OUT.npz ESTIMATOR MODE [DEVICE]
 
-MODE: ``plain``, ``checked`` (headroom lowered: batches overflow and are re-traced) or ``biased``
-(weighted packets, 128-bit cells), joined by ``+`` with ``copied``: the slots are summed in a
+MODE: ``plain``, ``checked`` (headroom lowered: batches overflow and are re-traced), ``biased``
+(weighted packets, 128-bit cells) or ``regions`` (the transport by regions, each group streamed
+through launches of about 300 packets), joined by ``+`` with ``copied``: the slots are summed in a
 host copy, as on a GPU, instead of in the mapped device memory of PoCL (``Backend.map_host``).
 """
 
@@ -42,6 +43,11 @@ def main() -> int:
     if biased:
         kw["method"] = "biased"
     backend.launch_packets = 2 * 3 * 1500  # several launches, each of several batches
+    if "regions" in parts:  # by regions of 4 voxels, each group in launches of about 300 packets
+        import nebula_rt.transport as transport_mod
+
+        backend.transport_tuning.update({"NRT_REGIONS": 2, "region_tail": 50})
+        transport_mod._Launcher._budget = lambda self, nb: 600  # packets (all bands) per launch
     res = trace(cloud, bands, stars, comm=comm, **kw)
     if comm.rank == 0:
         # counts: exact integers (128-bit weight sums when biased) as decimal text
