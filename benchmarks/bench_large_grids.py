@@ -679,14 +679,11 @@ def main(argv=None) -> int:
                   f"target {c['budget_target_bytes'] / GIB:7.2f} GiB{'  SKIPPED' if c['skip'] else ''}")
         return 0
 
-    try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
-                                text=True).stdout.strip() or "unknown"
-    except Exception:
-        commit = "unknown"
+    from provenance import provenance  # benchmarks/provenance.py
+
     t_start = time.perf_counter()
     result = {"benchmark": "large_grids", "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-              "commit": commit, "tuning": args.tuning, "command": " ".join(["benchmarks/bench_large_grids.py"] + (argv or sys.argv[1:])),
+              **provenance(), "tuning": args.tuning, "command": " ".join(["benchmarks/bench_large_grids.py"] + (argv or sys.argv[1:])),
               "scene": {"dust_tau_across_box": TAU, "optical_depth_centre_to_face": TAU / 2, "albedo": ALBEDO,
                         "g": G, "max_scatterings": 1000, "source": "isotropic point at the box centre"},
               "absorbed_expected": EXPECTED_ABSORBED, "budget_target_rule": "2 * (4 B + 8 B * bands) * voxels + 1 GiB",

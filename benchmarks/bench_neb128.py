@@ -142,12 +142,10 @@ def main(argv=None) -> int:
             print(f"{r['code']:9s} {r['photons']:>11,d} photons  kernel {r['kernel_ms']:9.2f} ms  "
                   f"{r['photons_per_ms']!s:>9} photons/ms  end to end {r['end_to_end_ms']:9.2f} ms  "
                   f"absorbed {r['absorbed_fraction']}", flush=True)
-    try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
-    except Exception:
-        commit = "unknown"
+    from provenance import provenance  # benchmarks/provenance.py
+
     result = {"benchmark": "neb128", "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-              "commit": commit, "command": " ".join(["benchmarks/bench_neb128.py"] + (argv or sys.argv[1:])),
+              **provenance(), "command": " ".join(["benchmarks/bench_neb128.py"] + (argv or sys.argv[1:])),
               "reference_absorbed_fraction_mcx": 0.4078, "rows": rows}
     if args.out:
         Path(args.out).write_text(json.dumps(result, indent=2) + "\n")

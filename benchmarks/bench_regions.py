@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import json
 import platform
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -27,6 +26,7 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent / "python"))
+from provenance import provenance  # noqa: E402  (benchmarks/provenance.py)
 
 from nebula_rt.bands import Band  # noqa: E402
 from nebula_rt.scene import Star  # noqa: E402
@@ -88,8 +88,7 @@ def run(args) -> dict:
                   f"wall {best[1]:7.3f} s  {row['kernel_packets_per_ms']:9.1f} pkt/ms  counts {counts}", flush=True)
     return {"benchmark": "bench_regions", "device": be.device_name, "backend": args.backend,
             "host": platform.node(), "date": time.strftime("%Y-%m-%d"),
-            "commit": subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                     cwd=HERE).stdout.strip(),
+            **provenance(),
             "command": " ".join(["benchmarks/bench_regions.py"] + sys.argv[1:]), "tail": args.tail, "rows": rows}
 
 

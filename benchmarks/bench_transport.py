@@ -27,6 +27,8 @@ import sys
 import time
 from pathlib import Path
 
+from provenance import provenance  # noqa: E402  (benchmarks/provenance.py, beside this script)
+
 ROOT = Path(__file__).resolve().parents[1]
 SCENE = ROOT / "examples" / "scenes" / "thesis-default.toml"
 
@@ -92,12 +94,7 @@ def run_single(cfg: dict, device: str, backend_name: str = "opencl") -> dict:
     }
 
 
-def git_commit() -> str:
-    try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
-                              text=True, check=True).stdout.strip()
-    except Exception:
-        return "unknown"
+
 
 
 def main(argv=None) -> int:
@@ -134,7 +131,7 @@ def main(argv=None) -> int:
     result = {
         "benchmark": "transport",
         "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-        "commit": git_commit(),
+        **provenance(),
         "command": " ".join([Path(sys.executable).name, "benchmarks/bench_transport.py"] + (argv if argv is not None else sys.argv[1:])),
         "device": device,
         "host": {"machine": platform.machine(), "cpus": os.cpu_count(), "python": platform.python_version()},
