@@ -72,6 +72,7 @@ import datetime as _dt
 import importlib.util
 import json
 import math
+import os
 import statistics
 import subprocess
 import sys
@@ -103,8 +104,15 @@ def scene_dict(n: int, photons: int, n_bands: int) -> dict:
         "dust": {"model": "uniform", "density": 1.0, "floor": 0.0, "tau": TAU},
         "stars": [{"position": [0.5, 0.5, 0.5], "luminosity": 1.0}],
         "bands": {"list": bands},
-        "transport": {"photons": int(photons), "max_scatterings": 1000, "seed": 1, "backend": "cuda"},
+        "transport": {"photons": int(photons), "max_scatterings": 1000, "seed": 1, "backend": "cuda",
+                      "batch_size": _batch_size_from_env(),
+                      "error_estimate": os.environ.get("NRT_BENCH_ERROR_ESTIMATE", "auto")},
     }
+
+
+def _batch_size_from_env() -> int:
+    """``--batch-size`` (passed to the child processes as NRT_BENCH_BATCH_SIZE; 0 automatic)."""
+    return int(float(os.environ.get("NRT_BENCH_BATCH_SIZE", "0")))
 
 
 def budget_target(n: int, n_bands: int) -> int:
@@ -162,7 +170,8 @@ def _build_kernels(backend, n: int, photons: int, n_bands: int) -> None:
              for i in range(n_bands)]
     stars = [Star(position=(0.5, 0.5, 0.5), luminosity=1.0, temperature=None, bump_radius=0.0)]
     plan = plan_transport(np.ones((n, n, n), np.float32), bands, stars, tau=TAU, photons=int(photons),
-                          backend=backend)
+                          batch_size=_batch_size_from_env(), backend=backend,
+                          error_estimate=os.environ.get("NRT_BENCH_ERROR_ESTIMATE", "auto"))
     backend.transport_session(plan.setup, plan.launches.slots, plan.launches.bands_per_launch).close()
 
 
@@ -258,7 +267,8 @@ def child_nebula(n: int, photons: int, n_bands: int, repeats: int, repeat_below_
     nvox = n**3
     scale = 2.0**FIXED_POINT_BITS * n
     ds = tr.device_sums
-    if ds is not None and type(ds.sum1).__module__.startswith("cupy"):
+    packets_estimate = tr.batches == photons and photons > 1  # its own fixed point: from J
+    if ds is not None and type(ds.sum1).__module__.startswith("cupy") and not packets_estimate:
         s1 = ds.sum1.reshape(n_bands, nvox)
         track = [float(s1[b].sum()) / scale for b in range(n_bands)]
         track_source = "device sums / (2^FIXED_POINT_BITS n)"
@@ -300,6 +310,7 @@ def child_nebula(n: int, photons: int, n_bands: int, repeats: int, repeat_below_
         "absorbed_expected": EXPECTED_ABSORBED,
         "absorbed_z_vs_expected": (p_abs - EXPECTED_ABSORBED) / math.sqrt(p_abs * (1 - p_abs) / packets),
         "batches": int(tr.batches),
+        "error_estimate": "packets" if packets_estimate else "batches",
         "timings": {k: float(v) for k, v in light.timings.items()},
         "track_source": track_source,
         "track_box_units_band0_from_J": track_j0,
@@ -643,6 +654,10 @@ def main(argv=None) -> int:
     ap.add_argument("--timeout", type=float, default=300.0, help="seconds per child process")
     ap.add_argument("--tuning", nargs="*", default=[], metavar="KEY=VALUE",
                     help="transport kernel options for NebulaRT, e.g. NRT_SORTED=1 (base.TRANSPORT_TUNING)")
+    ap.add_argument("--batch-size", type=float, default=0,
+                    help="transport.batch_size of every configuration (0: automatic)")
+    ap.add_argument("--error-estimate", default="auto", choices=("auto", "batches", "packets"),
+                    help="transport.error_estimate of every configuration")
     ap.add_argument("--out", default=None)
     ap.add_argument("--dry-run", action="store_true", help="print the configurations and exit")
     ap.add_argument("--child-nebula", nargs=3, type=float, help=argparse.SUPPRESS)
@@ -650,9 +665,11 @@ def main(argv=None) -> int:
     ap.add_argument("--child-micro", type=int, nargs="+", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     args.skip = [s.lower() for s in args.skip]
+    if not (args.child_nebula or args.child_mcx or args.child_micro):  # the children read it
+        os.environ["NRT_BENCH_ERROR_ESTIMATE"] = args.error_estimate
+    if args.batch_size:  # the children read it
+        os.environ["NRT_BENCH_BATCH_SIZE"] = str(int(args.batch_size))
     if args.tuning:  # the children read it
-        import os
-
         os.environ["NRT_BENCH_TUNING"] = " ".join(args.tuning)
 
     if args.child_nebula:
@@ -683,7 +700,8 @@ def main(argv=None) -> int:
 
     t_start = time.perf_counter()
     result = {"benchmark": "large_grids", "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-              **provenance(), "tuning": args.tuning, "command": " ".join(["benchmarks/bench_large_grids.py"] + (argv or sys.argv[1:])),
+              **provenance(), "tuning": args.tuning, "batch_size": int(args.batch_size),
+              "error_estimate": args.error_estimate, "command": " ".join(["benchmarks/bench_large_grids.py"] + (argv or sys.argv[1:])),
               "scene": {"dust_tau_across_box": TAU, "optical_depth_centre_to_face": TAU / 2, "albedo": ALBEDO,
                         "g": G, "max_scatterings": 1000, "source": "isotropic point at the box centre"},
               "absorbed_expected": EXPECTED_ABSORBED, "budget_target_rule": "2 * (4 B + 8 B * bands) * voxels + 1 GiB",

@@ -26,6 +26,12 @@
  * same random numbers).
  *
  * Tallies per band (tallies[4 b + t]): 0 emitted, 1 absorbed, 2 escaped, 3 terminated.
+ *
+ * NRT_PACKET_SQ (the error estimate by packets, transport.error_estimate = "packets"): besides
+ * its deposits, a packet adds the square of what it deposited into a voxel during one visit
+ * (its consecutive deposits there, summed) to that voxel's cell of sq, rounded to nearest in
+ * units of 2^sq_shift (square) fixed-point units. The host then has, per cell, the sum of the
+ * packets' contributions and of their squares, and the error of the total without batches.
  */
 #include "nebula_common.h"
 
@@ -34,6 +40,9 @@
 #endif
 #ifndef NRT_COLLISION
 #define NRT_COLLISION 0
+#endif
+#ifndef NRT_PACKET_SQ
+#define NRT_PACKET_SQ 0
 #endif
 
 /* Headroom limit of a fixed-point cell: 2^63 (tests lower it to exercise the overflow path). */
@@ -99,6 +108,9 @@
  *   NRT_PROBE_DEPOSIT 1  no voxel deposits (the walk, the density loads and the tallies only);
  *                    2  each deposit as a 32-bit atomic add of v >> 28 into the low half of the
  *                       slot (the memory traffic of an accumulator half as wide);
+ *                    3  each deposit also adds its square into the voxel whose index differs in
+ *                       bit NRT_PROBE_MIRROR_BIT (the traffic of a second array of the grid's
+ *                       size, as a per-packet sum of squares would make);
  *   NRT_PROBE_UNIFORM 1  every density load reads voxel 0 (no density traffic).
  */
 #ifndef NRT_PROBE_DEPOSIT
@@ -106,6 +118,9 @@
 #endif
 #ifndef NRT_PROBE_UNIFORM
 #define NRT_PROBE_UNIFORM 0
+#endif
+#ifndef NRT_PROBE_MIRROR_BIT
+#define NRT_PROBE_MIRROR_BIT 20
 #endif
 #if NRT_PROBE_UNIFORM
 #define NRT_RHO(density, i) ((density)[0])
@@ -337,6 +352,7 @@ typedef struct {
     NRT_GLOBAL nrt_u64 *tally;  /* this cell's 4 global tallies */
     NRT_LOCAL nrt_u64 *l_tally; /* the group's 4 local tallies (home cell) */
     NRT_LOCAL nrt_u64 *l_hot;   /* the group's sum for this packet's star voxel (home cell) */
+    NRT_LOCAL nrt_u64 *l_hot_sq; /* NRT_PACKET_SQ: the same for the squares */
     int home;                   /* the packet belongs to the group's home cell */
 } nrt_sink;
 
@@ -368,9 +384,55 @@ NRT_DEVICE void nrt_deposit(const nrt_sink *k, NRT_GLOBAL nrt_u64 *band_acc, nrt
     if ((v >> 28) != 0)
         NRT_ATOMIC_ADD_U32((NRT_GLOBAL nrt_u32 *)band_acc + idx, (nrt_u32)(v >> 28));
     return;
+#elif NRT_PROBE_DEPOSIT == 3
+    if (v != 0)
+        NRT_ATOMIC_ADD_U64(&band_acc[idx ^ ((nrt_idx)1 << NRT_PROBE_MIRROR_BIT)], (v >> 16) * (v >> 16));
 #endif
     nrt_acc_add(&band_acc[idx], v, overflow);
 }
+
+/*
+ * NRT_PACKET_SQ: add the square of x (a packet's deposits during one visit of voxel idx) to the
+ * voxel's cell of band_sq, in units of 2^shift, rounded to nearest (the host's choice of shift
+ * keeps every cell below 2^64 whatever the packets do, so the adds need no check).
+ */
+NRT_DEVICE void nrt_square(const nrt_sink *k, NRT_GLOBAL nrt_u64 *band_sq, nrt_idx idx, nrt_idx hot, nrt_u64 x,
+                           int shift)
+{
+    if (x == 0)
+        return;
+    nrt_u64 lo = x * x, hi = NRT_MULHI64(x, x);
+    nrt_u64 v = shift == 0 ? lo : ((hi << (64 - shift)) | (lo >> shift)) + ((lo >> (shift - 1)) & 1UL);
+    if (v == 0)
+        return;
+#if NRT_GROUP_TALLY
+    if (idx == hot) {
+        NRT_ATOMIC_ADD_U64_LOCAL(k->l_hot_sq, v);
+        return;
+    }
+#endif
+    NRT_ATOMIC_ADD_U64(&band_sq[idx], v);
+}
+
+/* A deposit of the walk; with NRT_PACKET_SQ the visit's running sum goes on or, in a new
+   voxel, the last visit's square is added first. NRT_VISIT_END: the packet stops or ends. */
+#if NRT_PACKET_SQ
+#define NRT_SCORE(i_, v_)                                                        \
+    do {                                                                         \
+        nrt_u64 v__ = (v_);                                                      \
+        if ((i_) != run_idx) {                                                   \
+            nrt_square(sink, band_sq, run_idx, hot, run, sq_shift);              \
+            run_idx = (i_);                                                      \
+            run = 0;                                                             \
+        }                                                                        \
+        run += v__;                                                              \
+        nrt_deposit(sink, band_acc, (i_), hot, v__, overflow);                   \
+    } while (0)
+#define NRT_VISIT_END() nrt_square(sink, band_sq, run_idx, hot, run, sq_shift)
+#else
+#define NRT_SCORE(i_, v_) nrt_deposit(sink, band_acc, (i_), hot, (v_), overflow)
+#define NRT_VISIT_END() ((void)0)
+#endif
 
 /*
  * Transport by regions (NRT_REGIONS; large grids): the grid is cut into cubes of 2^shift
@@ -472,8 +534,15 @@ NRT_DEVICE int nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, fl
                                 NRT_GLOBAL nrt_u32 *overflow, const NRT_GLOBAL float *peel,
                                 float peel_scale, NRT_GLOBAL nrt_u64 *band_image,
                                 const NRT_GLOBAL nrt_packet *resume, NRT_GLOBAL nrt_packet *save,
-                                int region_shift, nrt_u64 item)
+                                int region_shift, nrt_u64 item, NRT_GLOBAL nrt_u64 *band_sq, int sq_shift)
 {
+#if NRT_PACKET_SQ
+    nrt_idx run_idx = NRT_NO_VOXEL; /* the voxel of the visit under way and its deposits so far */
+    nrt_u64 run = 0;
+#else
+    (void)band_sq;
+    (void)sq_shift;
+#endif
     nrt_rng rng;
     const float hx = 1.0f / (float)nx, hy = 1.0f / (float)ny, hz = 1.0f / (float)nz;
     const nrt_idx stride_y = (nrt_idx)nx, stride_z = (nrt_idx)nx * (nrt_idx)ny;
@@ -508,6 +577,7 @@ NRT_DEVICE int nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, fl
         if (sink->home && s < NRT_HOT_STARS) {
             hot = idx;
             sink->l_hot += s;
+            sink->l_hot_sq += s;
         }
 #endif
         nrt_sample_isotropic(&rng, d);
@@ -556,10 +626,10 @@ NRT_DEVICE int nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, fl
             /* the interaction happens inside this voxel */
             float t = tau / sigma;
 #if NRT_TRACK_LENGTH
-            nrt_deposit(sink, band_acc, idx, hot, nrt_fixed(t, track_scale), overflow);
+            NRT_SCORE(idx, nrt_fixed(t, track_scale));
 #endif
 #if NRT_COLLISION
-            nrt_deposit(sink, band_acc, idx, hot, 1UL, overflow);
+            NRT_SCORE(idx, 1UL);
 #endif
             float t_int = t_cur + t;
             p0[0] = p0[0] + d[0] * t_int;
@@ -567,10 +637,12 @@ NRT_DEVICE int nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, fl
             p0[2] = p0[2] + d[2] * t_int;
             /* scatter with probability albedo (analog Russian roulette), else absorbed */
             if (nrt_rng_uniform(&rng) >= alb_b) {
+                NRT_VISIT_END();
                 nrt_count(sink, 1);
                 return 0;
             }
             if (scatterings >= max_scatterings) {
+                NRT_VISIT_END();
                 nrt_count(sink, 3);
                 return 0;
             }
@@ -594,11 +666,12 @@ NRT_DEVICE int nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, fl
             continue;
         }
 #if NRT_TRACK_LENGTH
-        nrt_deposit(sink, band_acc, idx, hot, nrt_fixed(seg, track_scale), overflow);
+        NRT_SCORE(idx, nrt_fixed(seg, track_scale));
 #endif
         tau -= tau_seg;
         t_cur = fmax(t_cur, t_next);
         if (leaving) {
+            NRT_VISIT_END();
             nrt_count(sink, 2);
             return 0;
         }
@@ -618,6 +691,7 @@ NRT_DEVICE int nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, fl
             q.rng_block = (int)rng.block, q.rng_pos = rng.pos;
             q.item = item;
             *save = q;
+            NRT_VISIT_END(); /* the walk stops as it enters another voxel */
             return 1;
         }
 #endif
@@ -1091,6 +1165,7 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
                               nrt_u64 photon_start, nrt_u64 count, nrt_u64 first_batch,
                               int band0, int n_lbands,
                               NRT_GLOBAL nrt_u64 *acc,      /* slots * n_lbands * nvox */
+                              NRT_GLOBAL nrt_u64 *sq,       /* NRT_PACKET_SQ: as acc, the squares */
                               NRT_GLOBAL nrt_u64 *tallies,  /* slots * n_lbands * 4 */
                               NRT_GLOBAL nrt_u32 *overflow, /* slots */
                               NRT_GLOBAL nrt_u64 *image,    /* slots * n_lbands * W * H */
@@ -1106,6 +1181,7 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
     const int nx = prm->nx, ny = prm->ny, nz = prm->nz, n_stars = prm->n_stars;
     const nrt_u64 seed = prm->seed, batch_base = prm->batch_base, batch_extra = prm->batch_extra;
     const int max_scatterings = prm->max_scatterings;
+    const int sq_shift = prm->sq_shift;
     const float track_scale = prm->track_scale, peel_scale = prm->peel_scale;
     const NRT_GLOBAL float *peel = prm->peel;
     nrt_u64 nvox = (nrt_u64)nx * (nrt_u64)ny * (nrt_u64)nz;
@@ -1123,13 +1199,14 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
 #if NRT_GROUP_TALLY
     NRT_LOCAL_MEM nrt_u64 l_tally[4];
     NRT_LOCAL_MEM nrt_u64 l_hot[NRT_HOT_STARS];
+    NRT_LOCAL_MEM nrt_u64 l_hot_sq[NRT_HOT_STARS];
     nrt_u64 lid = NRT_LOCAL_ID();
     /* strided: a runtime may choose groups of fewer than 4 (or NRT_HOT_STARS) work items,
        e.g. OpenCL's own choice of local size for a global size with no small factor */
     for (nrt_u64 i = lid; i < 4; i += NRT_LOCAL_SIZE())
         l_tally[i] = 0;
     for (nrt_u64 i = lid; i < NRT_HOT_STARS; i += NRT_LOCAL_SIZE())
-        l_hot[i] = 0;
+        l_hot[i] = l_hot_sq[i] = 0;
     {
         nrt_u64 it0 = NRT_GROUP_FIRST_ID(), photon0 = photon_start;
         int lband0 = 0;
@@ -1181,8 +1258,9 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
         sink.home = NRT_GROUP_TALLY && cell == home_cell;
 #if NRT_GROUP_TALLY
         sink.l_hot = l_hot;
+        sink.l_hot_sq = l_hot_sq;
 #else
-        sink.l_hot = 0;
+        sink.l_hot = sink.l_hot_sq = 0;
 #endif
         if (fresh)
             nrt_count(&sink, 0);
@@ -1192,7 +1270,7 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
                                        max_scatterings, track_scale, acc + cell * nvox, &sink,
                                        overflow + slot, peel, peel_scale, image + cell * pixels,
                                        fresh ? 0 : states + sl, states + sl, region_shift,
-                                       photon | ((nrt_u64)lband << NRT_ITEM_BAND_SHIFT));
+                                       photon | ((nrt_u64)lband << NRT_ITEM_BAND_SHIFT), sq + cell * nvox, sq_shift);
         if (stopped) {
             const NRT_GLOBAL nrt_packet *q = states + sl;
             keys_out[it] = ((nrt_u64)nrt_region_bin(cell, q->ix, q->iy, q->iz, nx, ny, nz, region_shift) << 32) | sl;
@@ -1204,7 +1282,8 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
         nrt_trace_packet(density, optics[4 * band], optics[4 * band + 1], optics[4 * band + 2], stars,
                          star_cdf + band * n_stars, nx, ny, nz, n_stars, seed, band, photon,
                          max_scatterings, track_scale, acc + cell * nvox, &sink,
-                         overflow + slot, peel, peel_scale, image + cell * pixels, 0, 0, NRT_NO_REGIONS, 0);
+                         overflow + slot, peel, peel_scale, image + cell * pixels, 0, 0, NRT_NO_REGIONS, 0,
+                         sq + cell * nvox, sq_shift);
 #endif
 #endif
     }
@@ -1220,8 +1299,12 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
         float p[3] = {stars[4 * i], stars[4 * i + 1], stars[4 * i + 2]};
         int ix, iy, iz;
         nrt_voxel_of(p, nx, ny, nz, &ix, &iy, &iz);
-        nrt_acc_add(&acc[home_cell * nvox + (nrt_u64)nrt_voxel_index(ix, iy, iz, nx, ny)], l_hot[i],
-                    overflow + home_slot);
+        nrt_u64 v = home_cell * nvox + (nrt_u64)nrt_voxel_index(ix, iy, iz, nx, ny);
+        nrt_acc_add(&acc[v], l_hot[i], overflow + home_slot);
+#if NRT_PACKET_SQ
+        if (l_hot_sq[i] != 0)
+            NRT_ATOMIC_ADD_U64(&sq[v], l_hot_sq[i]);
+#endif
     }
 #endif
 }
@@ -1403,6 +1486,37 @@ NRT_KERNEL void fold_batches(NRT_GLOBAL nrt_u64 *acc, NRT_GLOBAL double *sum1, N
     }
     if (NRT_ACC_RED && past)
         NRT_ATOMIC_OR_U32(seen, 1u);
+}
+
+/*
+ * The error estimate by packets (NRT_PACKET_SQ), after the run's one batch: the centred sum of
+ * squares of the packets' totals per cell, q = S 2^sq_shift - T^2 / N (T the cell's sum, S its
+ * sum of squares, N the packets per band), stored as float32 x 2^-64 as the fold stores it,
+ * in place of the squares: element i of the float32 view of sq, for cells [i0, i1). Float i
+ * lies in 64-bit word i / 2, so a launch over [i0, 2 i0) (or [0, 1)) only overwrites words
+ * earlier launches have read: the host launches [0, 1), [1, 2), [2, 4), ... . A cell at or past
+ * the headroom limit raises *seen (the shift and scale keep every cell below it).
+ */
+NRT_KERNEL void packet_m2(const NRT_GLOBAL nrt_u64 *acc, NRT_GLOBAL nrt_u64 *sq, nrt_u64 i0, nrt_u64 i1,
+                          double inv_n, double sq_unit, NRT_GLOBAL nrt_u32 *seen)
+{
+    nrt_u64 i = i0 + NRT_GLOBAL_ID();
+    if (i >= i1)
+        return;
+    nrt_u64 a = acc[i], b = sq[i];
+    double t = (double)a;
+    double q = (double)b * sq_unit - t * t * inv_n;
+    if (a >= NRT_ACC_LIMIT || b >= NRT_ACC_LIMIT)
+        NRT_ATOMIC_OR_U32(seen, 1u);
+    ((NRT_GLOBAL float *)sq)[i] = (float)(q > 0.0 ? q * NRT_M2_DOWN : 0.0);
+}
+
+/* The sums of the run's one batch (NRT_PACKET_SQ) as float64, in place (same width). */
+NRT_KERNEL void packet_sum1(NRT_GLOBAL nrt_u64 *acc, nrt_u64 n)
+{
+    nrt_u64 i = NRT_GLOBAL_ID();
+    if (i < n)
+        ((NRT_GLOBAL double *)acc)[i] = (double)acc[i];
 }
 
 /* Clear a 64-bit buffer. */

@@ -30,6 +30,7 @@ TRACE_PARAMS = (
     ("n_bands", "i32", 1, "bands of the run"),
     ("n_stars", "i32", 1, "stars"),
     ("max_scatterings", "i32", 1, "a packet is terminated past this many scatterings"),
+    ("sq_shift", "i32", 1, "NRT_PACKET_SQ: squares are added in units of 2^sq_shift (square) track units"),
     ("track_scale", "f32", 1, "fixed-point track units per box unit of path"),
     ("peel_scale", "f32", 1, "fixed-point peel-off units per 1/sr"),
     ("collision_scale", "f32", 1, "fixed-point units per collision of a packet of weight 1"),

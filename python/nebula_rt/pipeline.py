@@ -331,6 +331,7 @@ def compute_light(scene, density: np.ndarray, backend: Backend, progress=None, c
         time_limit=t.time_limit,
         estimator=t.estimator,
         method=t.method,
+        error_estimate=t.error_estimate,
         max_scatterings=t.max_scatterings,
         seed=t.seed,
         batch_size=t.batch_size,

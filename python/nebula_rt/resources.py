@@ -93,7 +93,10 @@ def estimate(scene, backend, peel_pixels: int = 0) -> Estimate:
     ncell = nb * nvox
     photons, target = t.effective()
     cell = 16 if t.method == "biased" else 8  # 128-bit cells for weighted packets
-    launches = plan_launches(photons, t.batch_size, target > 0, shape, nb, backend, cell)
+    launches = plan_launches(photons, t.batch_size, target > 0, shape, nb, backend, cell,
+                             error_estimate=t.error_estimate, peel=object() if peel_pixels else None,
+                             time_limit=t.time_limit, max_scatterings=t.max_scatterings, estimator=t.estimator)
+    packets = launches.packet_scales is not None
     per_launch, slots = launches.bands_per_launch, launches.slots
     slot_cells = per_launch * nvox
     colour = nb > 1
@@ -111,7 +114,8 @@ def estimate(scene, backend, peel_pixels: int = 0) -> Estimate:
     tracing = {
         "density": 4 * nvox,
         "batch slots": cell * slot_cells * slots,
-        "running sums": 12 * ncell,
+        # (by packets: the squares' slot, which becomes them in place)
+        "running sums": 8 * ncell if packets else 12 * ncell,
         "peel-off images": cell * slots * per_launch * int(peel_pixels),
         "tallies and parameters": (84 if cell == 16 else 36) * per_launch * slots + 4096,
         # transport by regions: the stopped packets' states and keys, per-bin counts
@@ -123,7 +127,7 @@ def estimate(scene, backend, peel_pixels: int = 0) -> Estimate:
     # float64 half gone and the emissivity, key and rgba made
     finishing = {
         "density": 4 * nvox,
-        "running sums": 12 * ncell,
+        "running sums": 16 * ncell if packets else 12 * ncell,
         "outputs": 4 * ncell,
         "filter FFT": fft if on_device_fft else 0,
         "parameters": 64 * nb + 4096,

@@ -68,6 +68,8 @@ DUST_MODELS = ("turbulence", "uniform", "file")
 ESTIMATORS = ("track-length", "collision-filter")
 #: transport.method: chosen per run from the measurement (auto), analog packets, or weighted ones
 METHODS = ("auto", "analog", "biased")
+#: transport.error_estimate: how the error of J is estimated (nebula_rt.transport)
+ERROR_ESTIMATES = ("auto", "batches", "packets")
 BACKENDS = ("auto", "opencl", "cuda")
 WHITE_POINTS = ("D65", "E", "star")
 STRETCHES = ("linear", "asinh")
@@ -271,6 +273,14 @@ class Transport:
             "optically thick dust; auto: what was measured best for the run (docs/physics.md): "
             "analog for the light field, biased for a peel-off image when the optical depth from "
             "the stars to the box's edge is below 1 or above 40")
+    error_estimate: str = param(
+        "auto", type="str", choices=ERROR_ESTIMATES, label="Error Estimate", group=G_TRANSPORT, advanced=True,
+        doc="How the error of J is estimated. batches: the spread of the totals of at least 16 batches "
+            "of packets, each traced into its own slot; packets: from every packet's contribution to "
+            "every voxel and its square (no batches: all packets in one stream, the memory of one "
+            "64-bit slot per band more; analog packets without a target error, time limit or "
+            "peel-off image); auto: packets on grids of 256^3 voxels and more where it stays within "
+            "the memory target, else batches (docs/physics.md)")
     filter_radius: float = param(
         0.02, type="float", lo=0.0, lo_open=True, unit="box units", label="Filter Radius", group=G_TRANSPORT,
         doc="Radius of the collision filter (collision-filter only)")
@@ -635,6 +645,7 @@ TRANSPORT_RULES: Dict[str, _Rule] = {
     ),
     "estimator": _Rule(_to_str, _one_of(ESTIMATORS), lambda v: v in ESTIMATORS),
     "method": _Rule(_to_str, _one_of(METHODS), lambda v: v in METHODS),
+    "error_estimate": _Rule(_to_str, _one_of(ERROR_ESTIMATES), lambda v: v in ERROR_ESTIMATES),
     "filter_radius": _Rule(_to_float, "must be a finite number > 0 (box units)", _finite_pos),
     "max_scatterings": _Rule(_to_int, f"must be an integer in [0, {INT32_MAX}] (int32 on the device)",
                              lambda v: 0 <= v <= INT32_MAX),

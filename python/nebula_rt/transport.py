@@ -44,6 +44,7 @@ import numpy as np
 from . import colour_convert, limits
 from .array_api import array_module
 from .backends import Backend, TransportSetup
+from .scene import ERROR_ESTIMATES
 from .scene import METHODS as _scene_methods
 from .errors import AccumulatorOverflowError, CancelledError, NebulaWarning, SceneError, TimeLimitError
 from .postprocess import DeviceSums
@@ -92,6 +93,72 @@ def scene_optical_depth(density, tau: float, stars) -> float:
     depths = [float(line_of_sight_tau(sigma, s.position, d)[0]) for s in stars
               for d in ((1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1))]
     return float(np.median(depths)) if depths else 0.0
+
+
+#: ``transport.error_estimate = "auto"`` takes the estimate by packets from this many voxels on
+#: (where batch slots no longer all fit one launch, so that batches are traced one group after
+#: another, each ending in its own tail of passes and fold), within the memory target.
+AUTO_PACKETS_MIN_VOXELS = 256**3
+#: the estimate by packets keeps at least this many fixed-point bits per voxel crossing
+MIN_PACKET_TRACK_BITS = 12
+
+
+def packet_scales(photons: int, max_scatterings: int, shape, estimator: str):
+    """(track bits k, square shift j) of the error estimate by packets, or None where k would
+    fall below MIN_PACKET_TRACK_BITS.
+
+    The run is one batch, its deposits added unchecked, so no cell may reach 2^63 whatever the
+    packets do: a flight crosses a (convex) voxel at most once, so a packet deposits into a
+    cell at most max_scatterings + 1 times, each at most a voxel diagonal of track (or one
+    collision); k, the fixed-point bits per crossing of the smallest voxel (at most
+    FIXED_POINT_BITS), is the largest that keeps N such packets below 2^63. A packet's
+    squares per cell add up to at most the square of its total there, so the squares, in
+    units of 2^j, stay below 2^63 too (with one unit of rounding per visit)."""
+    n, ms = int(photons), int(max_scatterings) + 1
+    if estimator == "track-length":
+        crossings = max(shape) * math.sqrt(sum((1.0 / m) ** 2 for m in shape)) * 1.001  # per deposit
+        k = FIXED_POINT_BITS
+        while k >= MIN_PACKET_TRACK_BITS and n * ms * (crossings * 2.0**k + 1.0) >= 2.0**63:
+            k -= 1
+        if k < MIN_PACKET_TRACK_BITS:
+            return None
+        per_deposit = crossings * 2.0**k + 1.0
+    else:
+        k, per_deposit = FIXED_POINT_BITS, 1.0
+        if n * ms >= 2.0**63:
+            return None
+    x_max = ms * per_deposit
+    j = 0
+    while n * (x_max * x_max / 2.0**j + ms) >= 2.0**62:
+        j += 1
+    return k, j
+
+
+def resolve_error_estimate(choice: str, *, biased: bool, peel, targeted: bool, time_limit: float,
+                           batch_size: int, launches: "LaunchPlan", scales, nvox: int) -> bool:
+    """Whether the run estimates its error by packets (``transport.error_estimate``)."""
+    if choice not in ERROR_ESTIMATES:
+        raise SceneError("transport.error_estimate", choice, " or ".join(f'"{m}"' for m in ERROR_ESTIMATES))
+    if choice == "batches":
+        return False
+    why = ("weighted packets (transport.method = \"biased\")" if biased else
+           "a peel-off image" if peel is not None else
+           "a target error" if targeted else
+           "a time limit" if time_limit > 0 else
+           "a transport.batch_size" if batch_size else
+           "more packets than the 64-bit cells can hold with max_scatterings" if scales is None else None)
+    if choice == "packets":
+        if why is not None:
+            raise SceneError("transport.error_estimate", choice,
+                             f'"batches" or "auto" for a run with {why}: the estimate by packets is one batch '
+                             "of analog packets without a stopping rule")
+        return True
+    if why is not None or nvox < AUTO_PACKETS_MIN_VOXELS or launches.slots >= len(launches.batches):
+        return False
+    # within the memory target, 2 x (density + one 64-bit cell per band) + 1 GiB, also while
+    # finishing (density, the two slots turned statistics, J)
+    nb = launches.n_bands
+    return (4 + 20 * nb) * nvox <= 2 * (4 + 8 * nb) * nvox + 2**30
 
 
 def resolve_method(method: str, density, tau: float, stars, peel) -> str:
@@ -393,6 +460,9 @@ class LaunchPlan:
         Bands and batches one launch traces (``slots`` batch slots of ``bands_per_launch``
         bands each).
     n_bands : int
+    packet_scales : (int, int) or None
+        The error estimate by packets (``transport.error_estimate``): (track bits, square
+        shift) of :func:`packet_scales`; then the run is one batch of every band in one slot.
     """
 
     batches: BatchPlan
@@ -400,6 +470,7 @@ class LaunchPlan:
     bands_per_launch: int
     slots: int
     n_bands: int
+    packet_scales: Optional[tuple] = None
 
     @property
     def band_groups(self) -> list[tuple[int, int]]:
@@ -409,15 +480,24 @@ class LaunchPlan:
 
 
 def plan_launches(photons: int, batch_size: int, targeted: bool, shape, n_bands: int, backend,
-                  cell_bytes: int = 8) -> LaunchPlan:
+                  cell_bytes: int = 8, *, error_estimate: str = "batches", peel=None, time_limit: float = 0.0,
+                  max_scatterings: int = 1000, estimator: str = "track-length") -> LaunchPlan:
     """The :class:`LaunchPlan` of a run of ``photons`` packets per band on a grid of ``shape``
-    (checks the batch count against the limits first)."""
+    (checks the batch count against the limits first); ``error_estimate`` and the arguments
+    after it as :func:`resolve_error_estimate` takes them (``cell_bytes`` 16: weighted
+    packets)."""
     nvox = int(np.prod([int(n) for n in shape]))
     size = planned_batch_size(photons, batch_size, targeted, nvox)
     limits.check_batch_count(batch_count(photons, size, nvox), size)
     plan = batch_plan(photons, size, nvox)
     per_launch, slots = backend.launch_plan(nvox, n_bands, plan.base + 1, len(plan), cell_bytes)
-    return LaunchPlan(plan, size, per_launch, slots, int(n_bands))
+    launches = LaunchPlan(plan, size, per_launch, slots, int(n_bands))
+    scales = packet_scales(photons, max_scatterings, shape, estimator)
+    if resolve_error_estimate(error_estimate, biased=cell_bytes == 16, peel=peel, targeted=targeted,
+                              time_limit=time_limit, batch_size=batch_size, launches=launches, scales=scales,
+                              nvox=nvox):
+        return LaunchPlan(BatchPlan(int(photons), 1), 0, int(n_bands), 1, int(n_bands), scales)
+    return launches
 
 
 def star_band_luminosities(stars, wavelengths_nm) -> np.ndarray:
@@ -836,7 +916,8 @@ class Tallies:
 def plan_transport(density, bands, stars, *, tau: float, photons: int, estimator: str = "track-length",
                    max_scatterings: int = 1000, seed: int = 1, batch_size: int = 0, backend: Backend,
                    target_error: float = 0.0, time_limit: float = 0.0, peel=None, peel_bins=None,
-                   checked_adds: bool = False, _acc_limit_bits: int = 63, method: str = "analog") -> TransportPlan:
+                   checked_adds: bool = False, _acc_limit_bits: int = 63, method: str = "analog",
+                   error_estimate: str = "batches") -> TransportPlan:
     """The first stage: check every input against what the device can represent, then resolve
     the run (see :func:`trace` for the parameters; ``checked_adds`` checks every deposit for
     the headroom as it is added)."""
@@ -856,7 +937,11 @@ def plan_transport(density, bands, stars, *, tau: float, photons: int, estimator
     sigma_scale = np.array([tau * b.extinction for b in bands], dtype=np.float64)
     albedo = np.array([b.albedo for b in bands], dtype=np.float64)
     launches = plan_launches(photons, batch_size, target_error > 0.0, shape, len(bands), backend,
-                             16 if biased else 8)
+                             16 if biased else 8, error_estimate=error_estimate, peel=peel, time_limit=time_limit,
+                             max_scatterings=max_scatterings, estimator=estimator)
+    packets = launches.packet_scales is not None
+    if packets:  # the fixed point the one batch's bound allows (packet_scales)
+        track_scale = float(2.0**launches.packet_scales[0] * max(shape))
     base = launches.batches.base
     setup = TransportSetup(
         density=density,
@@ -871,9 +956,11 @@ def plan_transport(density, bands, stars, *, tau: float, photons: int, estimator
         track_scale=track_scale * (WIDE_SCALE if biased else 1.0),
         acc_limit_bits=int(_acc_limit_bits),
         unchecked_adds=(not biased and not checked_adds
-                        and _no_wrap(base + 1, max_scatterings, estimator, track_scale, shape)),
+                        and (packets or _no_wrap(base + 1, max_scatterings, estimator, track_scale, shape))),
         biased=biased,
         collision_scale=float(2.0**FIXED_POINT_BITS * WIDE_SCALE) if biased else 1.0,
+        packet_sq=packets,
+        sq_shift=launches.packet_scales[1] if packets else 0,
     )
     if peel is not None:
         setup = dataclasses.replace(setup, peel=_peel_camera(peel),
@@ -963,7 +1050,7 @@ def run_transport(plan: TransportPlan, backend: Backend, *, progress=None, cance
 
     def fold_group(group, n, tallies, overflow, ranges):
         """Fold a group's first ``n`` slots on the device and its tallies on the host."""
-        session.fold(n, group, int(folded[group[0]]))
+        session.fold(n, group, int(folded[group[0]]), packets=sum(c for _, c in ranges))
         images = session.take_images(n, group)[:len(ranges)] if plan.peel is not None else None
         take(tallies, overflow, images, ranges, group)
 
@@ -1016,6 +1103,9 @@ def run_transport(plan: TransportPlan, backend: Backend, *, progress=None, cance
         # A batch whose fixed-point cell would have passed 2^63 was not folded. Same packets,
         # same random numbers: tracing it in two halves gives the same integer deposits with
         # more headroom each (each half then counts as a batch of the error estimate).
+        if redo and setup.packet_sq:  # packet_scales keeps every cell below the limit
+            raise AccumulatorOverflowError("a voxel tally of the error estimate by packets reached 2^63; "
+                                           'set transport.error_estimate = "batches"')
         while redo:
             b_start, b_count, group = redo.pop()
             if b_count == 1:
@@ -1054,6 +1144,8 @@ def estimate_light(plan: TransportPlan, tallies: Tallies, backend: Backend, *, o
     # per band: a band whose overflowed batch the time limit left unfinished has fewer
     q = np.array([exact_packet_energy(L, int(n)) for L, n in zip(plan.band_luminosity, band_done)])
     fs = plan.setup.fold_scale  # statistics units per cell unit
+    if plan.setup.packet_sq:  # the error estimate by packets: batches of one packet
+        folded = band_done.copy()
     j_scale = _j_scale(q, estimator, plan.setup.track_scale * fs, plan.nvox_inv, plan.setup.collision_scale * fs)
     peel_image = peel_error = peel_groups = None
     if plan.peel is not None:  # packet energy x (phase x attenuation) per pixel area
@@ -1127,6 +1219,7 @@ def trace(
     comm=None,
     _checked_adds: bool = False,
     method: str = "analog",
+    error_estimate: str = "batches",
 ) -> TransportResult:
     """Trace ``photons`` packets per band through ``density`` and estimate J.
 
@@ -1184,11 +1277,16 @@ def trace(
         composite path-length biasing, Russian roulette; kernels/transport.cl, docs/physics.md),
         or the one measured best for this run (:func:`resolve_method`); ``result.method`` says
         which ran.
+    error_estimate : {"batches", "packets", "auto"}
+        How the error of J is estimated (:func:`resolve_error_estimate`): the spread of batch
+        totals, or every packet's contribution per voxel and its square (then
+        ``result.batches`` is the packet count: batches of one packet).
     """
     t0 = time.perf_counter()
     kw = dict(tau=tau, photons=photons, estimator=estimator, max_scatterings=max_scatterings, seed=seed,
               batch_size=batch_size, backend=backend, target_error=target_error, time_limit=time_limit,
-              peel=peel, peel_bins=peel_bins, _acc_limit_bits=_acc_limit_bits, method=method)
+              peel=peel, peel_bins=peel_bins, _acc_limit_bits=_acc_limit_bits, method=method,
+              error_estimate=error_estimate)
     plan = plan_transport(density, bands, stars, checked_adds=_checked_adds, **kw)
     tallies = run_transport(plan, backend, progress=progress, cancel=cancel, started=t0, comm=comm)
     try:

@@ -72,6 +72,11 @@ class TransportSetup:
     unchecked_adds: bool = False
     biased: bool = False
     collision_scale: float = 1.0
+    #: the error estimate by packets (``transport.error_estimate``): the kernel also adds the
+    #: square of each packet's deposits per voxel visit, in units of 2^sq_shift square track
+    #: units, to a second slot; one batch, all bands in one launch
+    packet_sq: bool = False
+    sq_shift: int = 0
 
     @property
     def cell_words(self) -> int:
@@ -130,6 +135,8 @@ def transport_defines(setup: TransportSetup, tuning: dict | None = None) -> dict
     if setup.biased:  # checked 128-bit adds into global memory only
         defines["NRT_BIASED"] = 1
         opts["NRT_ACC_RED"] = opts["NRT_GROUP_TALLY"] = 0
+    if setup.packet_sq:
+        defines["NRT_PACKET_SQ"] = 1
     if int(np.prod(setup.density.shape)) < 2**32:
         opts.setdefault("NRT_IDX32", 1)
     defines.update({k: int(v) for k, v in opts.items() if v and k.startswith("NRT_")})

@@ -13,6 +13,9 @@ centred sum of squares), batch slots 8 per band and slot. :meth:`Backend.launch_
 how many bands and batches one launch's slots hold, within ``slot_memory_budget`` (or one band
 of one batch, whatever the grid), so the transport needs at most 4 + 8 + 12 n_b bytes per
 voxel plus the budget: within twice the minimum (density and one 64-bit accumulator per band).
+The error estimate by packets (``setup.packet_sq``) holds one slot of every band and one of
+their squares, 16 n_b, and turns them into the statistics in place (:meth:`_finish_packets`):
+4 + 16 n_b bytes per voxel throughout.
 """
 
 from __future__ import annotations
@@ -113,13 +116,22 @@ class DeviceTransport(TransportSession):
         nx, ny, nz = self.shape
         self.params = kernel_params.pack(
             seed=setup.seed, batch_base=0, batch_extra=0, nx=nx, ny=ny, nz=nz, n_bands=nb,
-            n_stars=setup.stars.shape[0], max_scatterings=setup.max_scatterings,
+            n_stars=setup.stars.shape[0], max_scatterings=setup.max_scatterings, sq_shift=setup.sq_shift,
             track_scale=setup.track_scale, peel_scale=setup.peel_scale, collision_scale=setup.collision_scale,
             peel=np.zeros(15, np.float32) if setup.peel is None else np.asarray(setup.peel, np.float32))
         self.d_params = be.to_device(self.params.view(np.uint8))
         self.d_acc = be.device_zeros(self.slot_cells * self.slots * self.words, np.uint64)
-        self.d_sum1 = be.device_zeros(self.ncell, np.float64)
-        self.d_m2 = be.device_zeros(self.ncell, np.float32)
+        self.packet_sq = bool(setup.packet_sq)
+        if self.packet_sq:
+            if self.slots != 1 or self.bands_per_launch != nb:
+                raise ValueError("the error estimate by packets traces one slot of every band")
+            # the sums and squares of the run's one batch become the statistics in place
+            self.d_sq = be.device_zeros(self.slot_cells, np.uint64)
+            self.d_sum1 = self.d_m2 = None
+        else:
+            self.d_sq = be.device_zeros(1, np.uint64)
+            self.d_sum1 = be.device_zeros(self.ncell, np.float64)
+            self.d_m2 = be.device_zeros(self.ncell, np.float32)
         self.d_tallies = be.device_zeros(self.slots * self.bands_per_launch * self.tally_words, np.uint64)
         self.d_overflow = be.device_zeros(self.slots, np.uint32)
         self.d_seen = be.device_zeros(1, np.uint32)
@@ -141,7 +153,8 @@ class DeviceTransport(TransportSession):
         self._h_stage = None  # several ranks: the host buffer of reduce_group
         # build the kernels of this option set now (setup time): compiled inside the first
         # launch, they were counted as tracing (up to 1 s per option set on CUDA)
-        names = ("trace_photons", "fold_batches") + (("emission_keys",) if self.sorted else ())
+        names = (("trace_photons",) + (("packet_m2", "packet_sum1") if self.packet_sq else ("fold_batches",))
+                 + (("emission_keys",) if self.sorted else ()))
         for name in names + (("region_sort_pass",) if self.region_shift else ()):
             be.kernel(be.transport_program, name, self.defines)
 
@@ -227,7 +240,7 @@ class DeviceTransport(TransportSession):
             self.d_params, self.d_density, self.d_optics, self.d_stars, self.d_cdf,
             np.uint64(photon_start), np.uint64(count), np.uint64(first_batch),
             np.int32(band0), np.int32(n_lb),
-            self.d_acc, self.d_tallies, self.d_overflow, self.d_image, self.d_keys,
+            self.d_acc, self.d_sq, self.d_tallies, self.d_overflow, self.d_image, self.d_keys,
             self.d_emit if regions else self.d_keys, self.d_states if regions else self.d_keys,
             self.d_stopped if regions else self.d_keys, np.uint64(n_resume), np.uint64(n_fresh),
             np.uint64(fresh0), np.uint64(n_free), np.uint64(hwm), np.int32(shift), defines=self.defines)
@@ -345,11 +358,27 @@ class DeviceTransport(TransportSession):
         be = self.backend
         n_lb = bands[1]
         cells = n_slots * n_lb * self.nvox * self.words
+        if self.packet_sq:
+            self._reduce_squares(comm)
         mapped = be.map_host(self.d_acc, cells)
         if mapped is None:
             return self._reduce(comm, n_slots, n_lb, tallies, overflow, None)
         with mapped as acc:
             return self._reduce(comm, n_slots, n_lb, tallies, overflow, acc)
+
+    def _reduce_squares(self, comm):
+        """The error estimate by packets: add the ranks' squares (exact: integers, and the
+        shift keeps every cell of the sum below 2^63), in place where the device's memory is
+        the host's, else through a host copy."""
+        be, n = self.backend, int(self.d_sq.size)
+        mapped = be.map_host(self.d_sq, n)
+        if mapped is not None:
+            with mapped as sq:
+                comm.sum_u64(sq)
+            return
+        sq = be.to_host(self.d_sq)
+        comm.sum_u64(sq)
+        be.upload(self.d_sq, sq)
 
     def _reduce(self, comm, n_slots, n_lb, tallies, overflow, acc):
         """:meth:`reduce_group` with the group's slots mapped as ``acc`` (or None: copied)."""
@@ -396,13 +425,38 @@ class DeviceTransport(TransportSession):
         be.upload(self.d_overflow, flags.astype(np.uint32))
         return buf[cells + pix:cells + pix + nt].reshape(tallies.shape).copy(), flags
 
-    def fold(self, n_slots, bands=None, folded_before: int = 0):
+    def fold(self, n_slots, bands=None, folded_before: int = 0, packets: int = 0):
+        if self.packet_sq:
+            if n_slots != 1 or folded_before:
+                raise RuntimeError("the error estimate by packets folds its one batch once")
+            self._finish_packets(int(packets))
+            return
         band0, n_lb = bands if bands is not None else (0, self.setup.n_bands)
         n = n_lb * self.nvox
         self.backend.launch(self.backend.transport_program, "fold_batches", n,
                             self.d_acc, self.d_sum1, self.d_m2, self.d_overflow, np.int32(n_slots),
                             np.uint64(n), np.uint64(band0 * self.nvox), np.int32(folded_before),
                             self.d_seen, defines=self.defines)
+
+    def _finish_packets(self, packets: int):
+        """The run's one batch (the error estimate by packets) as the statistics the fold
+        would have made: the centred sum of squares of the packets' totals, q = S 2^sq_shift
+        - T^2 / N, as float32 x 2^-64 in the first half of the squares' slot (launched over
+        [0, 1), [1, 2), [2, 4), ... so that no launch overwrites a square it has yet to read:
+        kernels/transport.cl, packet_m2), then the sums as float64 in the sums' slot. The
+        batch count of the estimate is then N (batches of one packet)."""
+        be, n = self.backend, self.ncell
+        inv_n, unit = 1.0 / max(packets, 1), float(2.0**self.setup.sq_shift)
+        lo, hi = 0, 1
+        while lo < n:
+            be.launch(be.transport_program, "packet_m2", hi - lo, self.d_acc, self.d_sq, np.uint64(lo),
+                      np.uint64(min(hi, n)), np.float64(inv_n), np.float64(unit), self.d_seen,
+                      defines=self.defines)
+            lo, hi = hi, 2 * hi
+        be.launch(be.transport_program, "packet_sum1", n, self.d_acc, np.uint64(n), defines=self.defines)
+        self.d_sum1 = self.d_acc.view(np.float64)
+        self.d_m2 = self.d_sq.view(np.float32)[:n]
+        self.d_acc = self.d_sq = None
 
     def overflow_seen(self):
         return bool(self.backend.to_host(self.d_seen)[0])
@@ -446,7 +500,7 @@ class DeviceTransport(TransportSession):
     def release_sums(self):
         out = (self.d_sum1, self.d_m2, self.d_density)
         self.d_sum1 = self.d_m2 = self.d_density = None
-        self.d_acc = self.d_image = self.d_keys = None  # the slots' memory goes to the finishing
+        self.d_acc = self.d_sq = self.d_image = self.d_keys = None  # the slots' memory goes to the finishing
         self.d_states = self.d_stopped = self.d_bins = self.d_emit = None
         self._h_stage = None
         return out
@@ -457,11 +511,12 @@ class DeviceTransport(TransportSession):
         regions = (self.region_capacity * (kernel_params.dtype("nrt_packet").itemsize + REGION_KEY_BYTES)
                    + 4 * self.n_bins
                    if self.region_shift else 0)
-        return (8 * self.words * self.slot_cells * self.slots + 12 * self.ncell + 4 * self.nvox
+        stats = 8 * self.ncell if self.packet_sq else 12 * self.ncell  # (packets: the squares' slot)
+        return (8 * self.words * self.slot_cells * self.slots + stats + 4 * self.nvox
                 + 8 * self.tally_words * self.bands_per_launch * self.slots + 4 * self.slots
                 + 8 * self.words * self.slots * self.bands_per_launch * self.pixels + regions)
 
     def close(self):
-        for name in ("d_acc", "d_sum1", "d_m2", "d_density", "d_image", "d_keys", "_h_stage", "d_states",
+        for name in ("d_acc", "d_sq", "d_sum1", "d_m2", "d_density", "d_image", "d_keys", "_h_stage", "d_states",
                      "d_stopped", "d_bins", "d_emit"):
             setattr(self, name, None)
