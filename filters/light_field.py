@@ -28,6 +28,7 @@ LIGHT_FIELD_PROPERTIES = (
     Property("G", "bands.g", enabled_by=("OverrideOptics", 1)),
     Property("Estimator", "transport.estimator", widget="enum"),
     Property("Method", "transport.method", widget="enum"),
+    Property("ErrorEstimate", "transport.error_estimate", widget="enum"),
     Property("FilterRadius", "transport.filter_radius", enabled_by=("Estimator", 1)),
     Property("MaxScatterings", "transport.max_scatterings"),
     Property("Seed", "transport.seed"),

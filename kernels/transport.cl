@@ -112,12 +112,18 @@
  *                       bit NRT_PROBE_MIRROR_BIT (the traffic of a second array of the grid's
  *                       size, as a per-packet sum of squares would make);
  *   NRT_PROBE_UNIFORM 1  every density load reads voxel 0 (no density traffic).
+ *   NRT_PROBE_SQ      1  NRT_PACKET_SQ without the squares' adds (what the visit bookkeeping
+ *                       costs); 2  the squares added into the slot's neighbouring cell (idx ^ 1,
+ *                       the same 32-byte sector: what the adds would cost interleaved).
  */
 #ifndef NRT_PROBE_DEPOSIT
 #define NRT_PROBE_DEPOSIT 0
 #endif
 #ifndef NRT_PROBE_UNIFORM
 #define NRT_PROBE_UNIFORM 0
+#endif
+#ifndef NRT_PROBE_SQ
+#define NRT_PROBE_SQ 0
 #endif
 #ifndef NRT_PROBE_MIRROR_BIT
 #define NRT_PROBE_MIRROR_BIT 20
@@ -397,8 +403,9 @@ NRT_DEVICE void nrt_deposit(const nrt_sink *k, NRT_GLOBAL nrt_u64 *band_acc, nrt
  * keeps every cell below 2^64 whatever the packets do, so the adds need no check).
  */
 NRT_DEVICE void nrt_square(const nrt_sink *k, NRT_GLOBAL nrt_u64 *band_sq, nrt_idx idx, nrt_idx hot, nrt_u64 x,
-                           int shift)
+                           int shift, NRT_GLOBAL nrt_u64 *band_acc)
 {
+    (void)band_acc; /* NRT_PROBE_SQ 2 only */
     if (x == 0)
         return;
     nrt_u64 lo = x * x, hi = NRT_MULHI64(x, x);
@@ -411,24 +418,34 @@ NRT_DEVICE void nrt_square(const nrt_sink *k, NRT_GLOBAL nrt_u64 *band_sq, nrt_i
         return;
     }
 #endif
+#if NRT_PROBE_SQ == 1
+    return;
+#elif NRT_PROBE_SQ == 2
+    NRT_ATOMIC_ADD_U64(&band_acc[idx ^ 1], v);
+    return;
+#endif
     NRT_ATOMIC_ADD_U64(&band_sq[idx], v);
 }
 
-/* A deposit of the walk; with NRT_PACKET_SQ the visit's running sum goes on or, in a new
-   voxel, the last visit's square is added first. NRT_VISIT_END: the packet stops or ends. */
+/* A deposit of the walk. With NRT_PACKET_SQ the packet also sums its deposits during the
+   visit of its voxel; NRT_VISIT_END adds the square of that sum as the packet steps into
+   another voxel or ends. The visit, not the deposit, is the unit, so where a walk stops for
+   the transport by regions (as it steps into another voxel) changes no square. A packet that
+   comes back to a voxel later makes a second visit, squared apart (the variance then misses
+   the two visits' covariance: small where packets seldom scatter back into a voxel they
+   left, see docs/physics.md). */
 #if NRT_PACKET_SQ
 #define NRT_SCORE(i_, v_)                                                        \
     do {                                                                         \
         nrt_u64 v__ = (v_);                                                      \
-        if ((i_) != run_idx) {                                                   \
-            nrt_square(sink, band_sq, run_idx, hot, run, sq_shift);              \
-            run_idx = (i_);                                                      \
-            run = 0;                                                             \
-        }                                                                        \
         run += v__;                                                              \
         nrt_deposit(sink, band_acc, (i_), hot, v__, overflow);                   \
     } while (0)
-#define NRT_VISIT_END() nrt_square(sink, band_sq, run_idx, hot, run, sq_shift)
+#define NRT_VISIT_END()                                                          \
+    do {                                                                         \
+        nrt_square(sink, band_sq, idx, hot, run, sq_shift, band_acc);            \
+        run = 0;                                                                 \
+    } while (0)
 #else
 #define NRT_SCORE(i_, v_) nrt_deposit(sink, band_acc, (i_), hot, (v_), overflow)
 #define NRT_VISIT_END() ((void)0)
@@ -537,8 +554,7 @@ NRT_DEVICE int nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, fl
                                 int region_shift, nrt_u64 item, NRT_GLOBAL nrt_u64 *band_sq, int sq_shift)
 {
 #if NRT_PACKET_SQ
-    nrt_idx run_idx = NRT_NO_VOXEL; /* the voxel of the visit under way and its deposits so far */
-    nrt_u64 run = 0;
+    nrt_u64 run = 0; /* the packet's deposits during the visit of its voxel under way */
 #else
     (void)band_sq;
     (void)sq_shift;
@@ -679,6 +695,7 @@ NRT_DEVICE int nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, fl
         /* the voxel index on the stepped axis changes its region (shift 31: never) */
         int crossing = ((i_next ^ (ax == 0 ? ix : (ax == 1 ? iy : iz))) >> region_shift) != 0;
 #endif
+        NRT_VISIT_END();
         idx = jdx;
         nrt_cross_face(ax, i_next, p0, d_ax, inv_d, hx, hy, hz, &ix, &iy, &iz, &tx, &ty, &tz);
 #if NRT_REGIONS
@@ -691,7 +708,6 @@ NRT_DEVICE int nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, fl
             q.rng_block = (int)rng.block, q.rng_pos = rng.pos;
             q.item = item;
             *save = q;
-            NRT_VISIT_END(); /* the walk stops as it enters another voxel */
             return 1;
         }
 #endif

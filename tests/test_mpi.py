@@ -51,7 +51,8 @@ def _ranks(tmp_path, n, *extra):
 @pytest.mark.parametrize("case", [("track-length", "plain"), ("collision-filter", "plain"),
                                   ("track-length", "checked"), ("track-length", "checked+copied"),
                                   ("track-length", "biased+checked"), ("collision-filter", "biased+copied"),
-                                  ("track-length", "regions+checked")],
+                                  ("track-length", "regions+checked"), ("track-length", "packets+regions"),
+                                  ("collision-filter", "packets+copied")],
                          ids="-".join)
 def test_trace_is_the_same_bits_on_1_2_3_ranks(tmp_path, case):
     """Sums, centred squares, packet counts, peel-off image and batches per band: identical
@@ -60,13 +61,16 @@ def test_trace_is_the_same_bits_on_1_2_3_ranks(tmp_path, case):
     '+copied': the slots summed in a host copy, the path of GPUs, instead of in PoCL's mapped
     device memory; 'biased': weighted packets, whose 128-bit cells, images and tallies the
     ranks add limb by limb; 'regions': by regions of 4 voxels, each rank's share of a group
-    streamed through launches of about 300 packets and drained at the group's last)."""
+    streamed through launches of about 300 packets and drained at the group's last;
+    'packets': the error estimate by packets, the ranks' squares added as well)."""
     estimator, mode = case
     runs = {n: _ranks(tmp_path, n, estimator, mode, TEST_DEVICE) for n in (1, 2, 3)}
     one = runs[1]
     assert int(one["size"]) == 1 and int(runs[3]["size"]) == 3
     unit = 2**96 if "biased" in mode else 1  # weight units per packet
     assert [int(x) for x in one["counts"][:, 0]] == [9001 * unit, 9001 * unit]
+    if "packets" in mode:
+        assert one["band_batches"].tolist() == [9001, 9001]  # batches of one packet
     if "checked" in mode:
         assert one["band_batches"].min() > 7  # the overflow happened and batches were split
     for n in (2, 3):

@@ -54,7 +54,7 @@ PANEL = "\n".join([
         ("Dust", ["DensityArray", "Tau"]),
         ("Dust optics", ["BandPreset", "OverrideOptics", "Albedo", "G"]),
         ("Stars", ["StarsFromInput", "Stars"]),
-        ("Photon transport", ["Estimator", "Method", "FilterRadius", "MaxScatterings", "Seed"]),
+        ("Photon transport", ["Estimator", "Method", "ErrorEstimate", "FilterRadius", "MaxScatterings", "Seed"]),
         ("Quality", ["Quality", "TargetError", "Photons", "TimeLimit"]),
         ("Compute device", ["Backend", "Device", "BatchSize"]),
         ("Physical units", ["LuminosityUnit", "SpectralTypes", "BoxLength"]),

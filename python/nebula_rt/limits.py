@@ -166,7 +166,7 @@ def check_transport(
     estimator: str,
     track_scale: float,
     seed: int = 0,
-) -> None:
+) -> float:
     """Check, before the first launch, that what the transport forms on the device fits float32.
 
     Bounds (box units; V the voxel volume, h its diagonal, N the packets per band, M =
@@ -194,6 +194,11 @@ def check_transport(
     tau, photons, max_scatterings, estimator, track_scale, seed
         As :func:`nebula_rt.transport.trace` uses them (max_scatterings is an int32 and the
         seed a uint64 kernel argument).
+
+    Returns
+    -------
+    float
+        The density's maximum (the reduction made for the checks, for the caller's use).
 
     Raises
     ------
@@ -303,3 +308,4 @@ def check_transport(
                              f"(4 pi voxel volume x fixed-point scale)) underflows float32 ({fmt(FLOAT32_TINY)}): "
                              f"allowed total luminosity of the stars >= {fmt(total_lum * FLOAT32_TINY / j_lo)} "
                              f"for {photons} photons on this grid {tuple(shape)}")
+    return rho_max

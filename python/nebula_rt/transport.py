@@ -95,10 +95,23 @@ def scene_optical_depth(density, tau: float, stars) -> float:
     return float(np.median(depths)) if depths else 0.0
 
 
-#: ``transport.error_estimate = "auto"`` takes the estimate by packets from this many voxels on
-#: (where batch slots no longer all fit one launch, so that batches are traced one group after
-#: another, each ending in its own tail of passes and fold), within the memory target.
-AUTO_PACKETS_MIN_VOXELS = 256**3
+#: ``transport.error_estimate = "auto"`` takes the estimate by packets where a launch holds one
+#: batch slot (the grid's slot fills the memory budget: batches are traced one after another,
+#: each in passes of its own packets that end in a dwindling tail) and a batch holds fewer than
+#: this fraction of the packets the transport by regions keeps in flight, within the memory
+#: target. Measured (H200, neb medium, kernel packets/ms, batches -> packets): 512^3 1e7
+#: photons 55.4k -> 68.3k, 1024^3 1e7 15.4k -> 21.2k; 512^3 1e8 101k -> 69.6k, 1024^3 1e8
+#: 42.0k -> 23.3k (the squares' adds cost about 40 % of the kernel: without them 110.7k and
+#: 37.0k at 1e7); 256^3 1e7 (8 slots per launch) 160k -> 129k (benchmarks/results/).
+AUTO_PACKETS_BATCH_FRACTION = 0.5
+#: The estimate by packets squares each visit of a voxel apart: a packet that scatters back
+#: into a voxel it left adds the visits' covariance to the true variance but not to the
+#: estimate. Measured (PoCL, pure scatterer-absorber around a point source on 20^3, 16 runs x
+#: 3 sets; R = variance between runs / stated variance, batch means give 1.00 +- 0.02): R - 1
+#: = 0.04 / 0.08 / 0.37 at albedo x optical depth of one voxel edge 0.1 / 0.3 / 1, about
+#: 0.4 x that depth. "auto" takes packets only up to this depth (stated errors at most about
+#: 0.5 % low); a run that asks for packets beyond it is warned.
+AUTO_PACKETS_MAX_SCATTER_DEPTH = 0.025
 #: the estimate by packets keeps at least this many fixed-point bits per voxel crossing
 MIN_PACKET_TRACK_BITS = 12
 
@@ -135,8 +148,12 @@ def packet_scales(photons: int, max_scatterings: int, shape, estimator: str):
 
 
 def resolve_error_estimate(choice: str, *, biased: bool, peel, targeted: bool, time_limit: float,
-                           batch_size: int, launches: "LaunchPlan", scales, nvox: int) -> bool:
-    """Whether the run estimates its error by packets (``transport.error_estimate``)."""
+                           batch_size: int, launches: "LaunchPlan", scales, nvox: int, in_flight: int,
+                           scatter_depth: float = 0.0) -> bool:
+    """Whether the run estimates its error by packets (``transport.error_estimate``; "auto":
+    see AUTO_PACKETS_BATCH_FRACTION and AUTO_PACKETS_MAX_SCATTER_DEPTH; ``in_flight``: the
+    packets the transport by regions keeps in flight, 0 without regions; ``scatter_depth``:
+    the largest albedo x optical depth of a voxel edge over the bands and voxels)."""
     if choice not in ERROR_ESTIMATES:
         raise SceneError("transport.error_estimate", choice, " or ".join(f'"{m}"' for m in ERROR_ESTIMATES))
     if choice == "batches":
@@ -152,8 +169,17 @@ def resolve_error_estimate(choice: str, *, biased: bool, peel, targeted: bool, t
             raise SceneError("transport.error_estimate", choice,
                              f'"batches" or "auto" for a run with {why}: the estimate by packets is one batch '
                              "of analog packets without a stopping rule")
+        if scatter_depth > AUTO_PACKETS_MAX_SCATTER_DEPTH:
+            warnings.warn(
+                f"transport.error_estimate = \"packets\": the densest voxels scatter back a share of the "
+                f"packets that leave them (albedo x optical depth of a voxel edge {scatter_depth:.3g}), and "
+                f"the estimate by packets misses those returns: the stated errors there are about "
+                f"{20 * scatter_depth:.2g} % low (docs/physics.md); \"batches\" has no such bias",
+                NebulaWarning, stacklevel=3)
         return True
-    if why is not None or nvox < AUTO_PACKETS_MIN_VOXELS or launches.slots >= len(launches.batches):
+    if (why is not None or launches.slots > 1 or len(launches.batches) < 2
+            or launches.batches.base + 1 >= AUTO_PACKETS_BATCH_FRACTION * in_flight
+            or scatter_depth > AUTO_PACKETS_MAX_SCATTER_DEPTH):
         return False
     # within the memory target, 2 x (density + one 64-bit cell per band) + 1 GiB, also while
     # finishing (density, the two slots turned statistics, J)
@@ -481,7 +507,8 @@ class LaunchPlan:
 
 def plan_launches(photons: int, batch_size: int, targeted: bool, shape, n_bands: int, backend,
                   cell_bytes: int = 8, *, error_estimate: str = "batches", peel=None, time_limit: float = 0.0,
-                  max_scatterings: int = 1000, estimator: str = "track-length") -> LaunchPlan:
+                  max_scatterings: int = 1000, estimator: str = "track-length",
+                  scatter_depth: float = 0.0) -> LaunchPlan:
     """The :class:`LaunchPlan` of a run of ``photons`` packets per band on a grid of ``shape``
     (checks the batch count against the limits first); ``error_estimate`` and the arguments
     after it as :func:`resolve_error_estimate` takes them (``cell_bytes`` 16: weighted
@@ -493,9 +520,12 @@ def plan_launches(photons: int, batch_size: int, targeted: bool, shape, n_bands:
     per_launch, slots = backend.launch_plan(nvox, n_bands, plan.base + 1, len(plan), cell_bytes)
     launches = LaunchPlan(plan, size, per_launch, slots, int(n_bands))
     scales = packet_scales(photons, max_scatterings, shape, estimator)
+    from .backends.session import region_capacity
+
     if resolve_error_estimate(error_estimate, biased=cell_bytes == 16, peel=peel, targeted=targeted,
                               time_limit=time_limit, batch_size=batch_size, launches=launches, scales=scales,
-                              nvox=nvox):
+                              nvox=nvox, in_flight=region_capacity(backend, nvox, cell_bytes == 16),
+                              scatter_depth=scatter_depth):
         return LaunchPlan(BatchPlan(int(photons), 1), 0, int(n_bands), 1, int(n_bands), scales)
     return launches
 
@@ -929,16 +959,18 @@ def plan_transport(density, bands, stars, *, tau: float, photons: int, estimator
     biased = resolve_method(method, density, tau, stars, peel) == "biased"
     track_scale = float(2.0**FIXED_POINT_BITS * max(shape))
     # what the device forms from these inputs must fit float32/int32: checked before any work
-    limits.check_transport(density, bands, stars, slum, tau=tau, photons=photons, max_scatterings=max_scatterings,
+    rho_max = limits.check_transport(density, bands, stars, slum, tau=tau, photons=photons, max_scatterings=max_scatterings,
                            estimator=estimator, track_scale=track_scale, seed=seed)
     backend.check_grid_fits(shape, len(bands))
     cdf = np.cumsum(slum, axis=0) / band_lum[None, :]
     cdf[-1, :] = 1.0
     sigma_scale = np.array([tau * b.extinction for b in bands], dtype=np.float64)
     albedo = np.array([b.albedo for b in bands], dtype=np.float64)
+    # albedo x optical depth of the longest voxel edge at the densest voxel, the largest over the bands
+    scatter_depth = float(np.max(sigma_scale * albedo)) * rho_max / min(shape)
     launches = plan_launches(photons, batch_size, target_error > 0.0, shape, len(bands), backend,
                              16 if biased else 8, error_estimate=error_estimate, peel=peel, time_limit=time_limit,
-                             max_scatterings=max_scatterings, estimator=estimator)
+                             max_scatterings=max_scatterings, estimator=estimator, scatter_depth=scatter_depth)
     packets = launches.packet_scales is not None
     if packets:  # the fixed point the one batch's bound allows (packet_scales)
         track_scale = float(2.0**launches.packet_scales[0] * max(shape))

@@ -4,8 +4,9 @@
     mpiexec -n N python tests/mpi/trace_ranks.py OUT.npz ESTIMATOR MODE [DEVICE]
 
 MODE: ``plain``, ``checked`` (headroom lowered: batches overflow and are re-traced), ``biased``
-(weighted packets, 128-bit cells) or ``regions`` (the transport by regions, each group streamed
-through launches of about 300 packets), joined by ``+`` with ``copied``: the slots are summed in a
+(weighted packets, 128-bit cells), ``regions`` (the transport by regions, each group streamed
+through launches of about 300 packets) or ``packets`` (the error estimate by packets: one batch,
+its squares summed over the ranks too, no peel-off image), joined by ``+`` with ``copied``: the slots are summed in a
 host copy, as on a GPU, instead of in the mapped device memory of PoCL (``Backend.map_host``).
 """
 
@@ -42,6 +43,8 @@ def main() -> int:
         kw["_acc_limit_bits"] = 31 if biased else 36  # 128-bit cells: 2^95, 2^7 voxel crossings
     if biased:
         kw["method"] = "biased"
+    if "packets" in parts:  # one batch of every packet, no peel-off image (it needs batches)
+        kw.update(error_estimate="packets", batch_size=0, peel=None, tau=2.5)
     backend.launch_packets = 2 * 3 * 1500  # several launches, each of several batches
     if "regions" in parts:  # by regions of 4 voxels, each group in launches of about 300 packets
         import nebula_rt.transport as transport_mod
@@ -52,7 +55,8 @@ def main() -> int:
     if comm.rank == 0:
         # counts: exact integers (128-bit weight sums when biased) as decimal text
         counts = np.array([[str(int(x)) for x in row] for row in res.counts])
-        np.savez(out, raw_sum=res.raw_sum, raw_m2=res.raw_m2, counts=counts, peel=res.peel_image,
+        np.savez(out, raw_sum=res.raw_sum, raw_m2=res.raw_m2, counts=counts,
+                 peel=np.zeros(0) if res.peel_image is None else res.peel_image,
                  band_batches=res.band_batches, size=comm.size)
     return 0
 

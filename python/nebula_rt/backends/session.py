@@ -59,6 +59,15 @@ def region_state_bytes(nvox: int, tuning: dict | None = None) -> int:
     return max(1024, budget // per) * per
 
 
+def region_capacity(backend, nvox: int, biased: bool = False) -> int:
+    """Packets the transport by regions keeps in flight on a grid of ``nvox`` voxels (0: the
+    backend traces this grid without regions)."""
+    tuning = backend.transport_tuning
+    if not region_shift_for(backend, nvox, biased, tuning):
+        return 0
+    return region_state_bytes(nvox, tuning) // (kernel_params.dtype("nrt_packet").itemsize + REGION_KEY_BYTES)
+
+
 #: bytes of keys per packet in flight of the transport by regions: what a pass stopped, the
 #: next pass's packets sorted by bin, and the chunk's emission order
 REGION_KEY_BYTES = 24
@@ -166,7 +175,7 @@ class DeviceTransport(TransportSession):
         the free slots' bin last)."""
         be = self.backend
         state_bytes = kernel_params.dtype("nrt_packet").itemsize
-        self.region_capacity = region_state_bytes(self.nvox, tuning) // (state_bytes + REGION_KEY_BYTES)
+        self.region_capacity = region_state_bytes(self.nvox, tuning) // (state_bytes + REGION_KEY_BYTES)  # as region_capacity()
         self.region_tail = int(tuning.get("region_tail", getattr(be, "region_tail", 0)))
         shift = self.region_shift
         regions = int(np.prod([-(-n // (1 << shift)) for n in self.shape]))
