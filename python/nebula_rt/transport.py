@@ -182,9 +182,9 @@ def resolve_error_estimate(choice: str, *, biased: bool, peel, targeted: bool, t
             or scatter_depth > AUTO_PACKETS_MAX_SCATTER_DEPTH):
         return False
     # within the memory target, 2 x (density + one 64-bit cell per band) + 1 GiB, also while
-    # finishing (density, the two slots turned statistics, J)
+    # finishing (density, the two slots turned statistics, J; 1 MiB for the small buffers)
     nb = launches.n_bands
-    return (4 + 20 * nb) * nvox <= 2 * (4 + 8 * nb) * nvox + 2**30
+    return (4 + 20 * nb) * nvox + 2**20 <= 2 * (4 + 8 * nb) * nvox + 2**30
 
 
 def resolve_method(method: str, density, tau: float, stars, peel) -> str:
