@@ -70,10 +70,11 @@ class CUDABackend(Backend):
     """Kernels compiled with NVRTC (CuPy RawModule) for one CUDA device."""
 
     name = "cuda"
-    #: packets sorted by first direction from 512^3 on (H200, neb medium, 1e8 photons, kernel
+    #: packets sorted by first direction from 256^3 on (H200, neb medium, 1e8 photons, kernel
     #: photons/ms unsorted -> sorted: 128^3 493k -> 479k, 512^3 30.9k -> 32.7k, 1024^3
-    #: 17.9k -> 26.0k; benchmarks/results/h200-2026-12-01-sorted/)
-    sort_min_voxels = 512**3
+    #: 17.9k -> 26.0k, benchmarks/results/h200-2026-12-01-sorted/; by regions, 256^3 165k ->
+    #: 187k, benchmarks/results/h200-2026-12-02e/)
+    sort_min_voxels = 256**3
     #: transport by regions (kernels/transport.cl, NRT_REGIONS) from 256^3 on, regions of 64
     #: voxels a side, 128 from 1024^3 on (H200, neb medium, 1e8 photons, kernel packets/ms
     #: without -> 64 / 128: 256^3 144k -> 182k / 154k, 512^3 54.9k -> 73.4k / 74.2k, 1024^3
