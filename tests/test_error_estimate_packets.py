@@ -23,11 +23,10 @@ import pytest
 from conftest import centre_star, one_band
 from conftest import tuned_backend as _backend
 from test_estimators import honesty_lattice
+from test_regions import _bands, _stars, cloud  # noqa: F401  (cloud: the module fixture)
 
 from nebula_rt import sky
-from nebula_rt.bands import Band
 from nebula_rt.errors import NebulaWarning, SceneError
-from nebula_rt.scene import Star
 from nebula_rt.transport import (AUTO_PACKETS_MAX_SCATTER_DEPTH, FIXED_POINT_BITS, packet_scales, plan_launches,
                                  trace)
 
@@ -79,22 +78,6 @@ def test_returns_to_a_voxel_bias_the_packet_error_low_as_documented(backend):
         ratio, sd, _ = _honesty(backend, albedo=0.99, tau=20.0, photons=30_000, seeds=range(1, 9))
     assert ratio > 1.15, ratio
     assert 0.99 * 20.0 / SHAPE[0] > AUTO_PACKETS_MAX_SCATTER_DEPTH
-
-
-def _bands():
-    return [Band(name="B", wavelength=450.0, extinction=1.3, albedo=0.6, g=0.5),
-            Band(name="R", wavelength=650.0, extinction=0.8, albedo=0.9, g=-0.3)]
-
-
-def _stars():
-    return [Star(position=(0.5, 0.5, 0.5), luminosity=1.0, temperature=None, bump_radius=0.0),
-            Star(position=(0.25, 0.625, 0.4), luminosity=0.6, temperature=None, bump_radius=0.0)]
-
-
-@pytest.fixture(scope="module")
-def cloud():
-    rng = np.random.default_rng(17)
-    return (rng.random((21, 16, 13)) ** 3).astype(np.float32)
 
 
 def _run(cloud, tuning, estimator, launch=1 << 30, **kw):

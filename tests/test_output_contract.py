@@ -56,7 +56,7 @@ def test_the_run_writes_exactly_the_table(light):
     # optional: the device peak (measured here), the analog run's packet counts and the method
     # (present); the biased transport's biasing energy (absent)
     assert sorted(fd) == sorted(_expected_keys(
-        contract.LightFieldData, bands, lambda n: n in ("device_memory_peak_bytes", "packets", "transport_method")))
+        contract.LightFieldData, bands, lambda n: n in ("device_memory_peak_bytes", "packets", "transport_method", "error_estimate")))
     # band names: a list of str, one per band (a string array with one value per band in VTK)
     py = {"float64": float, "int64": int, "uint64": np.uint64, "str": str, "names": list}
     for spec in contract.field_specs(contract.LightFieldData).values():
@@ -195,7 +195,7 @@ def test_the_vtk_algorithms_write_the_same_contract():
     names = [b.name for b in bands]
     lf_fd = field_data_dict(lf.GetOutputDataObject(0))
     assert sorted(lf_fd) == sorted(_expected_keys(
-        contract.LightFieldData, names, lambda n: n in ("device_memory_peak_bytes", "packets", "transport_method")))
+        contract.LightFieldData, names, lambda n: n in ("device_memory_peak_bytes", "packets", "transport_method", "error_estimate")))
     c_out = c.GetOutputDataObject(0)
     c_fd = field_data_dict(c_out)
     assert sorted(c_fd) == sorted(lf_fd) and c_fd["exposure"] > 0 and lf_fd["exposure"] > 0

@@ -338,10 +338,13 @@ class LightFieldData(ContractData):
     photons_budget: Optional[int] = _field("int64", "packet budget per band (= photons unless error-targeted)")
     achieved_error: Optional[float] = _field("float64", "lit-region relative error reached (NaN: not measured)")
     seed: Optional[int] = _field("uint64", "transport.seed (the scene's [0, 2^53]; files may hold any uint64)")
-    batches: Optional[int] = _field("int64", "batches per band (the unit of the error estimate)")
+    batches: Optional[int] = _field("int64", "batches per band (the unit of the error estimate; the "
+                                             "packets per band when it was by packets)")
     transport_ranks: Optional[int] = _field("int64", "processes that traced together")
     estimator: Optional[str] = _field("str", "transport.estimator")
     transport_method: Optional[str] = _field("str", "transport.method", optional=True)
+    error_estimate: Optional[str] = _field("str", "how the error was estimated: batches or packets "
+                                                  "(transport.error_estimate)", optional=True)
     device: Optional[str] = _field("str", "the compute device")
     exposure: Optional[float] = _field("float64", "exposure of rgba (NaN: no colour stage ran)")
     opacity_scale: Optional[float] = _field(

@@ -92,6 +92,7 @@ class LightField:
             packets=tr.counts if tr.method == "analog" else None,
             biasing_energy=tr.energy[:, 4] if tr.method == "biased" else None,
             transport_method=tr.method,
+            error_estimate=tr.error_estimate,
             absorbed_fraction=_fractions(tr.counts, 1),
             escaped_fraction=_fractions(tr.counts, 2),
             # packets stopped at max_scatterings, and the bound on J's bias they leave

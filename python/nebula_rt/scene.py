@@ -279,8 +279,10 @@ class Transport:
             "of packets, each traced into its own slot; packets: from every packet's contribution to "
             "every voxel and its square (no batches: all packets in one stream, the memory of one "
             "64-bit slot per band more; analog packets without a target error, time limit or "
-            "peel-off image); auto: packets on grids of 256^3 voxels and more where it stays within "
-            "the memory target, else batches (docs/physics.md)")
+            "peel-off image; the errors are about 20 a % low where a = albedo x optical depth of a "
+            "voxel edge, as packets scatter back into voxels they left); auto: packets where a batch "
+            "slot fills the memory budget and a batch is small against the packets in flight, "
+            "a <= 0.025 and the memory target holds, else batches (docs/physics.md)")
     filter_radius: float = param(
         0.02, type="float", lo=0.0, lo_open=True, unit="box units", label="Filter Radius", group=G_TRANSPORT,
         doc="Radius of the collision filter (collision-filter only)")

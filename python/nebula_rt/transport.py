@@ -292,6 +292,8 @@ class TransportResult:
     ranks: int = 1  # processes that traced it together (nebula_rt.parallel)
     timings: dict = field(default_factory=dict)
     method: str = "analog"
+    #: how the error was estimated: "batches" (batch means) or "packets" (batches of one packet)
+    error_estimate: str = "batches"
     weight_unit: float = 1.0  # count units per packet (WEIGHT_UNIT for biased runs)
 
     @property
@@ -1224,6 +1226,7 @@ def estimate_light(plan: TransportPlan, tallies: Tallies, backend: Backend, *, o
         device=backend.device_name,
         timings={"setup_s": tallies.setup_s, "kernel_s": tallies.kernel_s, "reduce_s": tallies.reduce_s},
         method="biased" if plan.setup.biased else "analog",
+        error_estimate="packets" if plan.setup.packet_sq else "batches",
         weight_unit=WEIGHT_UNIT if plan.setup.biased else 1.0,
     )
 
