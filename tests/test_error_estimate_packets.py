@@ -154,21 +154,30 @@ def test_packet_fixed_point_keeps_every_cell_below_the_limit(photons, max_scatte
     assert kc == FIXED_POINT_BITS and photons * (ms**2 / 2.0**jc + ms) < 2.0**62
 
 
-def test_auto_takes_packets_where_batches_are_traced_one_by_one(backend):
-    """"auto": packets on a grid whose batch slot fills the memory budget (one batch per
-    launch) while a batch is small against the packets in flight, batches otherwise, and
-    never past the scattering depth of the returns' bias."""
-    def packets(n, photons, depth=0.0, **kw):
-        lp = plan_launches(int(photons), 0, False, (n, n, n), 1, backend, error_estimate="auto",
-                           scatter_depth=depth, **kw)
-        return lp.packet_scales is not None, lp.slots, len(lp.batches)
+def test_auto_takes_packets_where_batch_groups_leave_the_passes_poorly_filled(backend):
+    """"auto" on a GPU (the launch plan of the CUDA backend on an H200): packets where a
+    launch's group of batches holds fewer than half the packets the regions keep in flight,
+    batches where the groups fill the passes or there are no regions; on a CPU (PoCL) packets
+    whenever it traces by regions. Never past the scattering depth of the returns' bias, nor
+    for a run that needs batches."""
+    from test_memory_layout import _LargeGPU
 
-    assert packets(512, 1e7) == (True, 1, 1)
-    assert packets(512, 1e8)[0] is False  # batches as large as the packets in flight
-    assert packets(512, 1e7, depth=2 * AUTO_PACKETS_MAX_SCATTER_DEPTH)[0] is False
-    assert packets(512, 1e7, time_limit=5.0)[0] is False
-    assert packets(64, 1e7)[0] is False  # several slots per launch
-    assert packets(128, 1e6)[0] is False
+    def packets(be, n, photons, depth=0.0, **kw):
+        lp = plan_launches(int(photons), 0, False, (n, n, n), 1, be, error_estimate="auto",
+                           scatter_depth=depth, **kw)
+        return lp.packet_scales is not None
+
+    gpu = _LargeGPU()
+    assert packets(gpu, 512, 1e7) and packets(gpu, 1024, 1e7)  # one slot of 625k
+    assert not packets(gpu, 512, 1e8) and not packets(gpu, 1024, 1e8)  # batches of 6.25M
+    assert not packets(gpu, 256, 1e7)  # 4 slots of 625k
+    assert not packets(gpu, 128, 1e6)  # no regions below 256^3
+    cpu = math.isinf(backend.auto_packets_fraction)  # the test device (PoCL in make test)
+    n = 128 if cpu else 512
+    assert packets(backend, n, 1e5) and packets(backend, 256, 1e8) == cpu
+    assert not packets(backend, 64, 1e5)  # no regions below 128^3 anywhere
+    assert not packets(backend, n, 1e5, depth=2 * AUTO_PACKETS_MAX_SCATTER_DEPTH)
+    assert not packets(backend, n, 1e5, time_limit=5.0)
 
 
 @pytest.mark.parametrize("case, kw, what", [

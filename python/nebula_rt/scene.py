@@ -280,8 +280,8 @@ class Transport:
             "every voxel and its square (no batches: all packets in one stream, the memory of one "
             "64-bit slot per band more; analog packets without a target error, time limit or "
             "peel-off image; the errors are about 20 a % low where a = albedo x optical depth of a "
-            "voxel edge, as packets scatter back into voxels they left); auto: packets where a batch "
-            "slot fills the memory budget and a batch is small against the packets in flight, "
+            "voxel edge, as packets scatter back into voxels they left); auto: packets for the transport "
+            "by regions where batch slots would leave its passes poorly filled (on a CPU: always), "
             "a <= 0.025 and the memory target holds, else batches (docs/physics.md)")
     filter_radius: float = param(
         0.02, type="float", lo=0.0, lo_open=True, unit="box units", label="Filter Radius", group=G_TRANSPORT,

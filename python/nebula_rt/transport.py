@@ -95,14 +95,19 @@ def scene_optical_depth(density, tau: float, stars) -> float:
     return float(np.median(depths)) if depths else 0.0
 
 
-#: ``transport.error_estimate = "auto"`` takes the estimate by packets where a launch holds one
-#: batch slot (the grid's slot fills the memory budget: batches are traced one after another,
-#: each in passes of its own packets that end in a dwindling tail) and a batch holds fewer than
-#: this fraction of the packets the transport by regions keeps in flight, within the memory
-#: target. Measured (H200, neb medium, kernel packets/ms, batches -> packets): 512^3 1e7
-#: photons 55.4k -> 68.3k, 1024^3 1e7 15.4k -> 21.2k; 512^3 1e8 101k -> 69.6k, 1024^3 1e8
-#: 42.0k -> 23.3k (the squares' adds cost about 40 % of the kernel: without them 110.7k and
-#: 37.0k at 1e7); 256^3 1e7 (8 slots per launch) 160k -> 129k (benchmarks/results/).
+#: ``transport.error_estimate = "auto"`` takes the estimate by packets for the transport by
+#: regions where a group of batches (the batches one launch's slots hold) has fewer packets
+#: than a fraction of the packets in flight (``Backend.auto_packets_fraction``, by default
+#: this): such groups are traced one after another, each in poorly filled passes that end in a
+#: dwindling tail, where packets are one full stream into one slot.
+#: Measured, kernel packets/ms, batches -> packets: H200 (neb medium) 512^3 1e7 photons (one
+#: slot of 625k) 55.4k -> 68.3k, 1024^3 1e7 15.4k -> 21.2k; 512^3 1e8 (6.25M) 101k -> 69.6k,
+#: 1024^3 1e8 42.0k -> 23.3k; 256^3 1e7 (8 slots, 5M) 160k -> 129k; the squares' adds cost about
+#: 40 % of the kernel there (without them 110.7k and 37.0k at 1e7;
+#: benchmarks/results/h200-2026-12-02e/). PoCL (2 cores, same medium): 128^3 2e5 (16 slots,
+#: 200k) 298-331 -> 479-552, 256^3 4e5 (5 slots, 125k) 92-96 -> 119-157: on a CPU the squares
+#: cost little, and one slot instead of several keeps a region's cells in the cache, so the
+#: OpenCL backend on a CPU takes packets whenever it traces by regions (fraction infinite).
 AUTO_PACKETS_BATCH_FRACTION = 0.5
 #: The estimate by packets squares each visit of a voxel apart: a packet that scatters back
 #: into a voxel it left adds the visits' covariance to the true variance but not to the
@@ -149,7 +154,7 @@ def packet_scales(photons: int, max_scatterings: int, shape, estimator: str):
 
 def resolve_error_estimate(choice: str, *, biased: bool, peel, targeted: bool, time_limit: float,
                            batch_size: int, launches: "LaunchPlan", scales, nvox: int, in_flight: int,
-                           scatter_depth: float = 0.0) -> bool:
+                           scatter_depth: float = 0.0, fraction: float = AUTO_PACKETS_BATCH_FRACTION) -> bool:
     """Whether the run estimates its error by packets (``transport.error_estimate``; "auto":
     see AUTO_PACKETS_BATCH_FRACTION and AUTO_PACKETS_MAX_SCATTER_DEPTH; ``in_flight``: the
     packets the transport by regions keeps in flight, 0 without regions; ``scatter_depth``:
@@ -177,8 +182,8 @@ def resolve_error_estimate(choice: str, *, biased: bool, peel, targeted: bool, t
                 f"{20 * scatter_depth:.2g} % low (docs/physics.md); \"batches\" has no such bias",
                 NebulaWarning, stacklevel=3)
         return True
-    if (why is not None or launches.slots > 1 or len(launches.batches) < 2
-            or launches.batches.base + 1 >= AUTO_PACKETS_BATCH_FRACTION * in_flight
+    if (why is not None or not in_flight
+            or launches.slots * (launches.batches.base + 1) >= fraction * in_flight
             or scatter_depth > AUTO_PACKETS_MAX_SCATTER_DEPTH):
         return False
     # within the memory target, 2 x (density + one 64-bit cell per band) + 1 GiB, also while
@@ -527,7 +532,8 @@ def plan_launches(photons: int, batch_size: int, targeted: bool, shape, n_bands:
     if resolve_error_estimate(error_estimate, biased=cell_bytes == 16, peel=peel, targeted=targeted,
                               time_limit=time_limit, batch_size=batch_size, launches=launches, scales=scales,
                               nvox=nvox, in_flight=region_capacity(backend, nvox, cell_bytes == 16),
-                              scatter_depth=scatter_depth):
+                              scatter_depth=scatter_depth,
+                              fraction=getattr(backend, "auto_packets_fraction", AUTO_PACKETS_BATCH_FRACTION)):
         return LaunchPlan(BatchPlan(int(photons), 1), 0, int(n_bands), 1, int(n_bands), scales)
     return launches
 

@@ -320,6 +320,9 @@ class Backend(abc.ABC):
 
         check_grid(shape, self, n_bands)
 
+    #: transport.error_estimate "auto": packets where a launch's group of batches holds fewer
+    #: packets than this fraction of the packets in flight (transport.AUTO_PACKETS_BATCH_FRACTION)
+    auto_packets_fraction: float = 0.5
     #: transport by regions: ((least voxels, region shift), ...) ascending; none: never
     #: (backends/session.py, region_shift_of)
     region_shifts: tuple = ()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import math
 import sys
 
 import numpy as np
@@ -161,6 +162,8 @@ class OpenCLBackend(Backend):
             # benchmarks/results/pocl-2026-12-02b/regions-pocl.json)
             self.region_shifts = ((128**3, 5),)
             self.region_tail = 4096
+            # error_estimate "auto": packets whenever by regions (transport.AUTO_PACKETS_BATCH_FRACTION)
+            self.auto_packets_fraction = math.inf
 
     def _compile(self, name, defines):
         options = [f"-D{k}={v}" for k, v in sorted(defines.items())]
