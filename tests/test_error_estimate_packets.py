@@ -125,8 +125,8 @@ def test_packets_trace_the_packets_the_batches_do(cloud):
     assert abs(r - 1) < 0.1, r
 
 
-@pytest.mark.parametrize("photons", [10**3, 10**7, 10**9, 10**10])
-@pytest.mark.parametrize("max_scatterings", [0, 1000, 10**6])
+@pytest.mark.parametrize("photons", [1, 10**3, 10**7, 10**9, 10**10])
+@pytest.mark.parametrize("max_scatterings", [0, 1000, 10**6, 2**31 - 1])
 @pytest.mark.parametrize("shape", [(16, 16, 16), (512, 512, 512), (1024, 64, 8)])
 def test_packet_fixed_point_keeps_every_cell_below_the_limit(photons, max_scatterings, shape):
     """The one batch adds unchecked: N packets of at most max_scatterings + 1 deposits per
@@ -141,10 +141,11 @@ def test_packet_fixed_point_keeps_every_cell_below_the_limit(photons, max_scatte
         per = diag * 2.0**k + 1.0
         return photons * ms * per, ms * per
 
-    if scales is None:
-        assert worst(12)[0] >= 2.0**63
+    if scales is None:  # no fixed point of 12 bits or more fits, or the squares' shift would pass 63
+        assert worst(12)[0] >= 2.0**63 or photons * worst(FIXED_POINT_BITS)[1] ** 2 / 2.0**63 >= 2.0**62
         return
     k, j = scales
+    assert j < 64
     total, x_max = worst(k)
     assert total < 2.0**63 and k <= FIXED_POINT_BITS
     assert k == FIXED_POINT_BITS or worst(k + 1)[0] >= 2.0**63
@@ -199,3 +200,29 @@ def test_an_unknown_error_estimate_is_refused_by_name(backend):
         trace(np.ones((8, 8, 8), np.float32), one_band(), centre_star(), tau=1.0, photons=2000, backend=backend,
               error_estimate="jackknife")
     assert e.value.parameter == "transport.error_estimate" and "packets" in str(e.value)
+
+
+def test_a_scene_run_with_packets_says_so_in_its_vti(tmp_path):
+    """Through the scene key, the pipeline and a real .vti: the field data name the estimate
+    and count the packets as batches; the stated error is the one the packets give (the same
+    bits as trace()); the same scene with batches gives the same J and counts."""
+    from conftest import TEST_BACKEND, TEST_DEVICE
+
+    from nebula_rt.filters.vti import read_vti, write_vti
+    from nebula_rt.pipeline import Pipeline
+    from nebula_rt.scene import Scene
+
+    def run(estimate):
+        scene = Scene.load("examples/scenes/thesis-default.toml").with_overrides(
+            ["grid.shape=[12,10,8]", "transport.photons=4000", "dust.tau=0.5", f'transport.device="{TEST_DEVICE}"',
+             f'transport.backend="{TEST_BACKEND}"', f'transport.error_estimate="{estimate}"'])
+        return Pipeline().run(scene)
+
+    light = run("packets")
+    path = write_vti(tmp_path / "run.vti", light.point_arrays(), light.field_data(), light.spacing, light.origin)
+    _, fd, *_ = read_vti(path)
+    assert fd["error_estimate"] == "packets" and int(fd["batches"]) == 4000
+    batches = run("batches")
+    assert batches.field_data()["error_estimate"] == "batches" and int(batches.field_data()["batches"]) == 16
+    np.testing.assert_array_equal(light.transport.counts, batches.transport.counts)
+    np.testing.assert_allclose(light.J, batches.J, rtol=2e-7, atol=0)

@@ -184,6 +184,7 @@ def _render(args, cancel) -> int:
         "bands": [b.name for b in light.bands],
         "photons_per_band": tr.photons,
         "batches": tr.batches,
+        "error_estimate": tr.error_estimate,  # "packets": batches of one packet
         "achieved_error": None if tr.achieved_error != tr.achieved_error else round(tr.achieved_error, 5),
         "wall_s": round(elapsed, 3),
         "timings_s": {k: round(v, 3) for k, v in light.timings.items()},

@@ -149,7 +149,7 @@ def packet_scales(photons: int, max_scatterings: int, shape, estimator: str):
     j = 0
     while n * (x_max * x_max / 2.0**j + ms) >= 2.0**62:
         j += 1
-    return k, j
+    return (k, j) if j < 64 else None  # the kernel shifts a 128-bit square by at most 63
 
 
 def resolve_error_estimate(choice: str, *, biased: bool, peel, targeted: bool, time_limit: float,
