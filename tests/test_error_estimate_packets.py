@@ -157,21 +157,22 @@ def test_packet_fixed_point_keeps_every_cell_below_the_limit(photons, max_scatte
 
 def test_auto_takes_packets_where_batch_groups_leave_the_passes_poorly_filled(backend):
     """"auto" on a GPU (the launch plan of the CUDA backend on an H200): packets where a
-    launch's group of batches holds fewer than half the packets the regions keep in flight,
+    launch's group of batches holds fewer than a quarter of the packets the regions keep in flight,
     batches where the groups fill the passes or there are no regions; on a CPU (PoCL) packets
     whenever it traces by regions. Never past the scattering depth of the returns' bias, nor
     for a run that needs batches."""
     from test_memory_layout import _LargeGPU
 
-    def packets(be, n, photons, depth=0.0, **kw):
-        lp = plan_launches(int(photons), 0, False, (n, n, n), 1, be, error_estimate="auto",
+    def packets(be, n, photons, depth=0.0, bands=1, **kw):
+        lp = plan_launches(int(photons), 0, False, (n, n, n), bands, be, error_estimate="auto",
                            scatter_depth=depth, **kw)
         return lp.packet_scales is not None
 
     gpu = _LargeGPU()
     assert packets(gpu, 512, 1e7) and packets(gpu, 1024, 1e7)  # one slot of 625k
     assert not packets(gpu, 512, 1e8) and not packets(gpu, 1024, 1e8)  # batches of 6.25M
-    assert not packets(gpu, 256, 1e7)  # 4 slots of 625k
+    assert not packets(gpu, 256, 1e7)  # 5 slots of 625k
+    assert not packets(gpu, 256, 1e7, bands=3)  # one slot of 3 x 625k
     assert not packets(gpu, 128, 1e6)  # no regions below 256^3
     cpu = math.isinf(backend.auto_packets_fraction)  # the test device (PoCL in make test)
     n = 128 if cpu else 512

@@ -96,19 +96,20 @@ def scene_optical_depth(density, tau: float, stars) -> float:
 
 
 #: ``transport.error_estimate = "auto"`` takes the estimate by packets for the transport by
-#: regions where a group of batches (the batches one launch's slots hold) has fewer packets
-#: than a fraction of the packets in flight (``Backend.auto_packets_fraction``, by default
-#: this): such groups are traced one after another, each in poorly filled passes that end in a
-#: dwindling tail, where packets are one full stream into one slot.
-#: Measured, kernel packets/ms, batches -> packets: H200 (neb medium) 512^3 1e7 photons (one
-#: slot of 625k) 55.4k -> 68.3k, 1024^3 1e7 15.4k -> 21.2k; 512^3 1e8 (6.25M) 101k -> 69.6k,
-#: 1024^3 1e8 42.0k -> 23.3k; 256^3 1e7 (8 slots, 5M) 160k -> 129k; the squares' adds cost about
-#: 40 % of the kernel there (without them 110.7k and 37.0k at 1e7;
+#: regions where a group of batches (the batches and bands one launch's slots hold) has fewer
+#: packets than a fraction of the packets in flight (``Backend.auto_packets_fraction``, by
+#: default this): such groups are traced one after another, each in poorly filled passes that
+#: end in a dwindling tail, where packets are one full stream into one slot.
+#: Measured, kernel packets/ms, batches -> packets (group / packets in flight): H200 (neb
+#: medium) 512^3 1e7 photons (0.10) 55.4k -> 68.3k, 1024^3 1e7 (0.10) 15.4k -> 21.2k; 512^3 1e8
+#: (1.0) 101k -> 69.6k, 1024^3 1e8 (1.0) 42.0k -> 23.3k; 256^3 1e7 (5 slots, 0.68) 160k -> 129k;
+#: 256^3 1e7 three bands (0.41) packets 128k against 175k for one band by batches; the squares'
+#: adds cost about 40 % of the kernel there (without them 110.7k and 37.0k at 1e7;
 #: benchmarks/results/h200-2026-12-02e/). PoCL (2 cores, same medium): 128^3 2e5 (16 slots,
 #: 200k) 298-331 -> 479-552, 256^3 4e5 (5 slots, 125k) 92-96 -> 119-157: on a CPU the squares
 #: cost little, and one slot instead of several keeps a region's cells in the cache, so the
 #: OpenCL backend on a CPU takes packets whenever it traces by regions (fraction infinite).
-AUTO_PACKETS_BATCH_FRACTION = 0.5
+AUTO_PACKETS_BATCH_FRACTION = 0.25
 #: The estimate by packets squares each visit of a voxel apart: a packet that scatters back
 #: into a voxel it left adds the visits' covariance to the true variance but not to the
 #: estimate. Measured (PoCL, pure scatterer-absorber around a point source on 20^3, 16 runs x
@@ -183,7 +184,7 @@ def resolve_error_estimate(choice: str, *, biased: bool, peel, targeted: bool, t
                 NebulaWarning, stacklevel=3)
         return True
     if (why is not None or not in_flight
-            or launches.slots * (launches.batches.base + 1) >= fraction * in_flight
+            or launches.slots * launches.bands_per_launch * (launches.batches.base + 1) >= fraction * in_flight
             or scatter_depth > AUTO_PACKETS_MAX_SCATTER_DEPTH):
         return False
     # within the memory target, 2 x (density + one 64-bit cell per band) + 1 GiB, also while

@@ -322,7 +322,7 @@ class Backend(abc.ABC):
 
     #: transport.error_estimate "auto": packets where a launch's group of batches holds fewer
     #: packets than this fraction of the packets in flight (transport.AUTO_PACKETS_BATCH_FRACTION)
-    auto_packets_fraction: float = 0.5
+    auto_packets_fraction: float = 0.25
     #: transport by regions: ((least voxels, region shift), ...) ascending; none: never
     #: (backends/session.py, region_shift_of)
     region_shifts: tuple = ()
