@@ -134,19 +134,16 @@ def packet_scales(photons: int, max_scatterings: int, shape, estimator: str):
     squares per cell add up to at most the square of its total there, so the squares, in
     units of 2^j, stay below 2^63 too (with one unit of rounding per visit)."""
     n, ms = int(photons), int(max_scatterings) + 1
-    if estimator == "track-length":
-        crossings = max(shape) * math.sqrt(sum((1.0 / m) ** 2 for m in shape)) * 1.001  # per deposit
-        k = FIXED_POINT_BITS
-        while k >= MIN_PACKET_TRACK_BITS and n * ms * (crossings * 2.0**k + 1.0) >= 2.0**63:
-            k -= 1
-        if k < MIN_PACKET_TRACK_BITS:
-            return None
-        per_deposit = crossings * 2.0**k + 1.0
-    else:
-        k, per_deposit = FIXED_POINT_BITS, 1.0
-        if n * ms >= 2.0**63:
-            return None
-    x_max = ms * per_deposit
+
+    def per_deposit(bits):
+        return _max_deposit(estimator, float(2.0**bits * max(shape)), shape)
+
+    k = FIXED_POINT_BITS
+    while estimator == "track-length" and k >= MIN_PACKET_TRACK_BITS and n * ms * per_deposit(k) >= 2.0**63:
+        k -= 1
+    if k < MIN_PACKET_TRACK_BITS or n * ms * per_deposit(k) >= 2.0**63:
+        return None
+    x_max = ms * per_deposit(k)
     j = 0
     while n * (x_max * x_max / 2.0**j + ms) >= 2.0**62:
         j += 1
@@ -752,12 +749,17 @@ def _no_wrap(packets_per_batch: int, max_scatterings: int, estimator: str, track
     a packet makes at most max_scatterings + 1 deposits into one cell, each at most one voxel
     diagonal of track (or 1 collision).
     """
+    return packets_per_batch * (max_scatterings + 1) * _max_deposit(estimator, track_scale, shape) < 2.0**64
+
+
+def _max_deposit(estimator: str, track_scale: float, shape) -> float:
+    """Largest fixed-point deposit of one flight into one cell: a voxel diagonal of track at
+    ``track_scale`` units per box unit (float32 segment rounding and the rounding to an
+    integer included), or one collision."""
     if estimator == "track-length":
         diagonal = math.sqrt(sum((1.0 / n) ** 2 for n in shape))
-        per_deposit = track_scale * diagonal * 1.001 + 1.0  # float32 segment rounding
-    else:
-        per_deposit = 1.0
-    return packets_per_batch * (max_scatterings + 1) * per_deposit < 2.0**64
+        return track_scale * diagonal * 1.001 + 1.0
+    return 1.0
 
 
 def _j_scale(q, estimator: str, track_scale: float, nvox_inv: float, collision_scale: float = 1.0):
