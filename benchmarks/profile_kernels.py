@@ -7,7 +7,10 @@ optical depth 1 centre to face, albedo 0.6, g 0.6, a point source at the centre)
 
 Each device call of the backend (every kernel launch, the key sort, fills and copies) is timed
 with CUDA events around it and the stream synchronised after it, so the calls do not overlap
-(the totals slightly exceed a free-running trace). Per configuration: the time per kernel name
+(the totals slightly exceed a free-running trace). With ``--free-running`` nothing is
+synchronised: the events only mark each call's start and end on the stream, and the time the
+stream stood idle before a call (``idle_before_s``: the host had not yet issued it, e.g. while it
+waited for a copy and did the Python work of the next pass) is reported beside the device times. Per configuration: the time per kernel name
 and calls, launches of the transport kernel with their packets, and the packets per ms of the
 transport kernel alone. Each ``--tuning`` entry is one configuration (space-separated
 KEY=VALUE options of the transport kernel, "" for the backend's defaults), run with the
@@ -27,7 +30,8 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 
 
-def profile(n: int, photons: int, tuning: dict, program: str = "") -> dict:
+def profile(n: int, photons: int, tuning: dict, program: str = "", free_running: bool = False,
+            error_estimate: str = "batches") -> dict:
     import cupy as cp
     import numpy as np
 
@@ -44,8 +48,10 @@ def profile(n: int, photons: int, tuning: dict, program: str = "") -> dict:
     trace(np.ones((16, 16, 16), np.float32), bands, stars, tau=2.0, photons=10_000, backend=be)  # compile
 
     times: dict = collections.defaultdict(float)
+    idle: dict = collections.defaultdict(float)
     calls: dict = collections.Counter()
     trace_packets = []
+    marks = []  # free running: (name, start event, end event) in the order issued
 
     def timed(name_of, fn):
         def wrapper(*args, **kwargs):
@@ -53,10 +59,13 @@ def profile(n: int, photons: int, tuning: dict, program: str = "") -> dict:
             start.record()
             out = fn(*args, **kwargs)
             end.record()
-            end.synchronize()
             name = name_of(args)
-            times[name] += cp.cuda.get_elapsed_time(start, end) / 1e3
             calls[name] += 1
+            if free_running:
+                marks.append((name, start, end))
+            else:
+                end.synchronize()
+                times[name] += cp.cuda.get_elapsed_time(start, end) / 1e3
             return out
         return wrapper
 
@@ -68,18 +77,28 @@ def profile(n: int, photons: int, tuning: dict, program: str = "") -> dict:
         return orig_trace(*args, **kwargs)
 
     be.launch_trace = timed(lambda a: a[1], launch_trace)
-    be.sort_u64 = timed(lambda a: "sort_u64", be.sort_u64)
     be.fill_zero = timed(lambda a: "fill_zero", be.fill_zero)
     be.to_host = timed(lambda a: "to_host", be.to_host)
+    be.upload = timed(lambda a: "upload", be.upload)
     rho = np.ones((n, n, n), np.float32)
     t0 = time.perf_counter()
-    res = trace(rho, bands, stars, tau=2.0, photons=photons, backend=be)
+    res = trace(rho, bands, stars, tau=2.0, photons=photons, backend=be, error_estimate=error_estimate)
+    cp.cuda.Device().synchronize()
     wall = time.perf_counter() - t0
+    span = 0.0
+    for i, (name, start, end) in enumerate(marks):
+        times[name] += cp.cuda.get_elapsed_time(start, end) / 1e3
+        if i:
+            idle[name] += max(0.0, cp.cuda.get_elapsed_time(marks[i - 1][2], start) / 1e3)
+    if marks:
+        span = cp.cuda.get_elapsed_time(marks[0][1], marks[-1][2]) / 1e3
     t_trace = times.get("trace_photons", 0.0)
-    return {"grid": n, "photons": photons, "tuning": tuning, "program": be.transport_program, "wall_s": wall,
+    return {"grid": n, "photons": photons, "tuning": tuning, "error_estimate": error_estimate, "program": be.transport_program, "wall_s": wall,
             "kernel_s": float(res.timings["kernel_s"]), "batches": int(res.batches),
             "absorbed_fraction": float(res.counts[0, 1] / res.counts[0, 0]),
             "device_s": dict(sorted(times.items(), key=lambda kv: -kv[1])), "calls": dict(calls),
+            "free_running": free_running, "span_s": span,
+            "idle_before_s": dict(sorted(idle.items(), key=lambda kv: -kv[1])),
             "trace_launches": len(trace_packets), "trace_packets": trace_packets[:64],
             "trace_packets_per_ms": photons / (t_trace * 1e3) if t_trace else None}
 
@@ -90,6 +109,8 @@ def main(argv=None) -> int:
     ap.add_argument("--photons", type=float, default=1e8)
     ap.add_argument("--tuning", nargs="*", default=[""])
     ap.add_argument("--variant", nargs="*", default=[], help="other transport sources in kernels/")
+    ap.add_argument("--error-estimate", default="batches", choices=["auto", "batches", "packets"])
+    ap.add_argument("--free-running", action="store_true", help="no synchronisation: idle gaps between calls")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     records = []
@@ -97,12 +118,15 @@ def main(argv=None) -> int:
         tuning = {k: int(v) for k, v in (item.split("=", 1) for item in text.split())}
         for n in args.grids:
             for program in [""] + list(args.variant):
-                rec = profile(n, int(args.photons), tuning, program)
+                rec = profile(n, int(args.photons), tuning, program, args.free_running, args.error_estimate)
                 records.append(rec)
                 top = ", ".join(f"{k} {v:.3f} s/{rec['calls'][k]}" for k, v in list(rec["device_s"].items())[:5])
                 print(f"{n}^3 {rec['program']:<20} {text or 'defaults':<30} kernel {rec['kernel_s']:.3f} s  trace "
                       f"{rec['trace_packets_per_ms'] or 0:,.0f} pkt/ms  launches {rec['trace_launches']}  [{top}]",
                       flush=True)
+                if args.free_running:
+                    gaps = ", ".join(f"{k} {v:.3f} s" for k, v in list(rec["idle_before_s"].items())[:5])
+                    print(f"    span {rec['span_s']:.3f} s, idle before: {gaps}", flush=True)
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
         Path(args.out).write_text(json.dumps({"benchmark": "profile_kernels", "date": time.strftime("%Y-%m-%d %H:%M:%S"),

@@ -1328,11 +1328,11 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
 /*
  * Sort keys of a launch's packets (NRT_SORTED): high 32 bits the packet's cell (band offset and
  * batch slot, so a work group's packets share a home cell) and star (together modulo
- * 2^(32 - 2 NRT_SORT_BITS)), then its first direction: the first two uniforms of
+ * 2^(31 - 2 NRT_SORT_BITS)), then its first direction: the first two uniforms of
  * nrt_sample_isotropic (mu and phi, equal-area bins) in 2^NRT_SORT_BITS x 2^NRT_SORT_BITS bins,
  * interleaved bit by bit (Morton order: consecutive keys stay in a compact patch of the
  * sphere); low 32 bits the work item t (count * n_lbands < 2^32), so that sorting the keys
- * yields the order itself. The draws are those nrt_trace_packet makes, in the same order; the
+ * (a counting sort by the high half: region_sort_pass) yields the order itself. The draws are those nrt_trace_packet makes, in the same order; the
  * key only orders the work (any key gives the same bits).
  */
 NRT_DEVICE nrt_u32 nrt_spread_bits(nrt_u32 x) /* bit i -> bit 2i, for x < 2^16 */
@@ -1365,8 +1365,9 @@ NRT_KERNEL void emission_keys(const NRT_GLOBAL nrt_trace_params *prm,
         bm = bm >= bins ? bins - 1u : bm;
         bp = bp >= bins ? bins - 1u : bp;
         nrt_u32 dir = (nrt_spread_bits(bm) << 1) | nrt_spread_bits(bp);
+        /* (the high half stays below 2^31, so that no key is NRT_FREE_BIN's) */
         nrt_u64 group = (((nrt_u64)lband * (nrt_u64)n_slots + slot) * (nrt_u64)prm->n_stars + (nrt_u64)s)
-                        & ((1UL << (32 - 2 * NRT_SORT_BITS)) - 1UL);
+                        & ((1UL << (31 - 2 * NRT_SORT_BITS)) - 1UL);
         keys[t] = ((group << (2 * NRT_SORT_BITS) | (nrt_u64)dir) << 32) | t;
     }
 }
@@ -1387,12 +1388,14 @@ NRT_KERNEL void emission_keys(const NRT_GLOBAL nrt_trace_params *prm,
 #endif
 
 /*
- * One pass of the counting sort over keys[0 .. n). bins[b]: with scatter 0, the count of bin b
- * (added to); with scatter 1, the next free position of bin b in out (its first position
- * before the call), each key written there.
+ * One pass of the counting sort over keys[0 .. n), by bin (key >> 32) >> bin_shift.
+ * bins[b]: with scatter 0, the count of bin b (added to); with scatter 1, the next free
+ * position of bin b in out (its first position before the call), each key written there.
+ * The emission order (NRT_SORTED) is sorted the same way, by its keys' cell, star and the
+ * leading bits of their direction bins.
  */
 NRT_KERNEL void region_sort_pass(const NRT_GLOBAL nrt_u64 *keys, nrt_u64 n, NRT_GLOBAL nrt_u32 *bins, int n_bins,
-                                 int scatter, NRT_GLOBAL nrt_u64 *out)
+                                 int scatter, NRT_GLOBAL nrt_u64 *out, int bin_shift)
 {
     NRT_LOCAL_MEM nrt_u32 l_count[NRT_LOCAL_BINS];
     NRT_LOCAL_MEM nrt_u32 l_base[NRT_LOCAL_BINS];
@@ -1406,6 +1409,8 @@ NRT_KERNEL void region_sort_pass(const NRT_GLOBAL nrt_u64 *keys, nrt_u64 n, NRT_
     nrt_u32 bin = (nrt_u32)(key >> 32), rank = 0;
     if (bin == NRT_FREE_BIN)
         bin = (nrt_u32)n_bins - 1u; /* free slots: the last bin, after every stopped packet */
+    else
+        bin >>= bin_shift;
     if (key != NRT_NO_KEY) {
         if (local_bins) {
             rank = NRT_ATOMIC_ADD_U32_LOCAL(&l_count[bin], 1u);

@@ -188,6 +188,38 @@ def test_sorted_packet_order_gives_the_same_bits(cloud, estimator):
             np.testing.assert_array_equal(ordered.peel_image, plain.peel_image)
 
 
+@pytest.mark.parametrize("sort_bits", [8, 3])
+def test_sorted_emission_order_is_every_packet_once_by_cell_star_and_direction(cloud, monkeypatch, sort_bits):
+    """The emission order (NRT_SORTED, a counting sort on the device) of launches of two bands,
+    two stars and three batch slots (several launches): every work item exactly once, in ascending bins of cell,
+    star and leading direction bits (all 2 x NRT_SORT_BITS of them where the bins allow, as
+    with 3 bits), the directions spread over many bins."""
+    from nebula_rt.backends.session import EMISSION_MAX_BINS, DeviceTransport
+
+    orders = []
+    real = DeviceTransport._emission_order
+
+    def spy(self, keys, photon_start, count, first_batch, band0, n_lb, scratch=None):
+        out = real(self, keys, photon_start, count, first_batch, band0, n_lb, scratch)
+        orders.append((self.backend.to_host(out)[:count * n_lb].copy(), count * n_lb, self.emit_shift,
+                       self.n_emit_bins))
+        return out
+
+    monkeypatch.setattr(DeviceTransport, "_emission_order", spy)
+    be = _backend({"NRT_SORTED": 1, "NRT_SORT_BITS": sort_bits})
+    be.launch_packets = 3 * 2 * 1500
+    trace(cloud, _bands(), _stars(), tau=25.0, photons=9000, batch_size=1500, seed=8, backend=be)
+    assert orders
+    for keys, items, shift, n_bins in orders:
+        assert n_bins - 1 <= EMISSION_MAX_BINS
+        if sort_bits == 3:
+            assert shift == 0  # 2 bands x 3 slots x 2 stars x 64 direction bins fit
+        np.testing.assert_array_equal(np.sort(keys & np.uint64(0xFFFFFFFF)), np.arange(items, dtype=np.uint64))
+        bins = (keys >> np.uint64(32 + shift)).astype(np.int64)
+        assert np.all(np.diff(bins) >= 0) and bins.max() < n_bins - 1
+        assert np.unique(bins).size > min(n_bins - 1, items) // 8
+
+
 def test_register_cap_of_the_analog_transport_kernel_only():
     """The register cap (NVIDIA: CUDA's --maxrregcount, NVIDIA OpenCL's -cl-nv-maxrregcount) is
     the backend's per region mode, or the tuning's ``max_registers`` (0: none); the weighted

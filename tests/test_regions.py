@@ -156,33 +156,37 @@ def test_regions_overflow_retrace_gives_the_same_bits(cloud):
         np.testing.assert_array_equal(regions.raw_sum, normal.raw_sum)
 
 
-def test_region_sort_counts_and_orders_every_stopped_packet(backend):
+@pytest.mark.parametrize("shift", [0, 6])
+def test_region_sort_counts_and_orders_every_stopped_packet(backend, shift):
     """The counting sort on its own: keys of random bins (and ended packets' empty keys) come
     out grouped by bin, each key exactly once, with more bins than the work group holds in
-    local memory and with fewer."""
+    local memory and with fewer; with ``shift`` 6 the bin is the key's high half without its
+    6 lowest bits (as the emission order sorts by the leading bits of its direction bins)."""
     rng = np.random.default_rng(3)
     for n_bins in (7, 900, 5000):
         n = 20011
         bins = rng.integers(0, n_bins, n).astype(np.uint64)
-        keys = (bins << np.uint64(32)) | np.arange(n, dtype=np.uint64)
+        high = (bins << np.uint64(shift)) | rng.integers(0, 1 << shift, n).astype(np.uint64)
+        keys = (high << np.uint64(32)) | np.arange(n, dtype=np.uint64)
         keys[rng.random(n) < 0.3] = np.uint64(2**64 - 1)
         d_keys = backend.to_device(keys)
         d_counts = backend.device_zeros(n_bins, np.uint32)
         defines = {"NRT_TRACK_LENGTH": 1, "NRT_REGIONS": 1}
         d_out = backend.device_zeros(n, np.uint64)
         backend.launch_trace("transport.cl", "region_sort_pass", n, d_keys, np.uint64(n), d_counts,
-                             np.int32(n_bins), np.int32(0), d_out, defines=defines)
+                             np.int32(n_bins), np.int32(0), d_out, np.int32(shift), defines=defines)
         counts = backend.to_host(d_counts)
         live = keys[keys != np.uint64(2**64 - 1)]
-        np.testing.assert_array_equal(counts, np.bincount((live >> np.uint64(32)).astype(np.int64), minlength=n_bins))
+        live_bins = (live >> np.uint64(32 + shift)).astype(np.int64)
+        np.testing.assert_array_equal(counts, np.bincount(live_bins, minlength=n_bins))
         first = np.zeros(n_bins, np.uint32)
         first[1:] = np.cumsum(counts[:-1])
         d_cursor = backend.to_device(first)
         backend.launch_trace("transport.cl", "region_sort_pass", n, d_keys, np.uint64(n), d_cursor,
-                             np.int32(n_bins), np.int32(1), d_out, defines=defines)
+                             np.int32(n_bins), np.int32(1), d_out, np.int32(shift), defines=defines)
         out = backend.to_host(d_out)[:live.size]
         assert sorted(out.tolist()) == sorted(live.tolist())
-        assert np.all(np.diff((out >> np.uint64(32)).astype(np.int64)) >= 0)
+        assert np.all(np.diff((out >> np.uint64(32 + shift)).astype(np.int64)) >= 0)
 
 
 def test_a_group_traced_in_several_launches_streams_across_them(cloud, monkeypatch):

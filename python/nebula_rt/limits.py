@@ -166,6 +166,7 @@ def check_transport(
     estimator: str,
     track_scale: float,
     seed: int = 0,
+    extremes: tuple[float, float] | None = None,
 ) -> float:
     """Check, before the first launch, that what the transport forms on the device fits float32.
 
@@ -194,6 +195,9 @@ def check_transport(
     tau, photons, max_scatterings, estimator, track_scale, seed
         As :func:`nebula_rt.transport.trace` uses them (max_scatterings is an int32 and the
         seed a uint64 kernel argument).
+    extremes : (float, float), optional
+        The density's (min, max) where already reduced (on the device:
+        ``Backend.density_extremes``); else reduced here.
 
     Returns
     -------
@@ -213,8 +217,11 @@ def check_transport(
     rho = np.asarray(density)
     # reductions without temporaries where possible (NaN propagates through max and min): on a
     # GPU the kernel of a thesis-sized run takes milliseconds, and so must these checks
-    rho_max = float(rho.max()) if rho.size else 0.0
-    rho_low = float(rho.min()) if rho.size else 0.0
+    if extremes is not None:
+        rho_low, rho_max = (float(v) for v in extremes)
+    else:
+        rho_max = float(rho.max()) if rho.size else 0.0
+        rho_low = float(rho.min()) if rho.size else 0.0
     if not (math.isfinite(rho_max) and math.isfinite(rho_low)):
         raise SceneError("density", f"array of shape {tuple(rho.shape)}",
                          f"must be finite in float32 (magnitudes at most {fmt(FLOAT32_MAX)}; found NaN or infinity)")

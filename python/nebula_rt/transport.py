@@ -971,7 +971,8 @@ def plan_transport(density, bands, stars, *, tau: float, photons: int, estimator
     track_scale = float(2.0**FIXED_POINT_BITS * max(shape))
     # what the device forms from these inputs must fit float32/int32: checked before any work
     rho_max = limits.check_transport(density, bands, stars, slum, tau=tau, photons=photons, max_scatterings=max_scatterings,
-                           estimator=estimator, track_scale=track_scale, seed=seed)
+                                     estimator=estimator, track_scale=track_scale, seed=seed,
+                                     extremes=backend.density_extremes(density))
     backend.check_grid_fits(shape, len(bands))
     cdf = np.cumsum(slum, axis=0) / band_lum[None, :]
     cdf[-1, :] = 1.0

@@ -371,6 +371,22 @@ class Backend(abc.ABC):
             return entry[1]
         return None
 
+    def density_extremes(self, host: np.ndarray) -> tuple[float, float] | None:
+        """(min, max) of ``host`` reduced on the device where it has a resident copy there and
+        the backend reduces on the device (:meth:`device_extremes`), once per density: the
+        density stage's finiteness check and the transport's limits share it (on the host, the
+        two reductions took 0.54 s at 1024^3). None otherwise."""
+        dev = self.resident_density(host)
+        if dev is None:
+            return None
+        cached = getattr(self, "_density_extremes", None)
+        if cached is not None and cached[0] is dev:
+            return cached[1]
+        extremes = self.device_extremes(dev)
+        if extremes is not None:
+            self._density_extremes = (dev, extremes)
+        return extremes
+
     # --- device arrays, for the post-processing on the device -------------------------------
     # Device arrays are CuPy arrays (CUDA) or pyopencl.array.Array (OpenCL), always flat.
     @abc.abstractmethod
@@ -401,18 +417,10 @@ class Backend(abc.ABC):
     def wait_copy(self, handle) -> None:
         """Wait until the copy started by :meth:`to_host_async` has arrived."""
 
-    def all_finite(self, dev) -> bool | None:
-        """Whether every element of a float device array is finite, checked on the device, or
-        None where the host copy is as cheap to check (the default)."""
+    def device_extremes(self, dev) -> tuple[float, float] | None:
+        """(min, max) of a float device array, reduced on the device (NaN propagates), or None
+        where the host copy is as cheap to reduce (the default)."""
         return None
-
-    def sort_u64(self, dev, n: int):
-        """Sort the first ``n`` elements of a uint64 device array ascending; returns the array
-        holding the result (``dev`` itself, or a new one). Default: through the host (for
-        tests; the CUDA backend sorts on the device)."""
-        h = self.to_host(dev)
-        h[:n].sort()
-        return self.to_device(h)
 
     def map_host(self, dev, n: int):
         """A context manager giving a writeable host array over the first ``n`` elements of

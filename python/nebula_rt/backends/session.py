@@ -42,6 +42,11 @@ REGION_STATE_BYTES = 512 << 20
 REGION_STATE_PER_VOXEL = 24
 #: passes after which a launch's remaining packets are traced to the end in one
 MAX_REGION_PASSES = 256
+#: most bins of the emission order's counting sort (NRT_SORTED): the cells and stars of a
+#: launch times as many leading direction bins as fit. 2^16 bins are one read-back of 256 KiB
+#: per chunk; on an H200 the two passes over a chunk of 6.1M keys take well under the 1.4 ms
+#: of a radix sort of the full 64-bit keys
+EMISSION_MAX_BINS = 1 << 16
 
 
 def region_shift_of(backend, setup: TransportSetup, tuning: dict) -> int:
@@ -155,6 +160,8 @@ class DeviceTransport(TransportSession):
         self.defines = transport_defines(setup, tuning)
         self.sorted = bool(self.defines.get("NRT_SORTED"))
         self.d_keys = be.device_zeros(1, np.uint64)  # NRT_SORTED: the launch's sorted packets
+        if self.sorted:
+            self._setup_emission_sort()
         if self.region_shift:
             self._setup_regions(tuning)
         self._plan = (0, 0)
@@ -164,8 +171,22 @@ class DeviceTransport(TransportSession):
         # launch, they were counted as tracing (up to 1 s per option set on CUDA)
         names = (("trace_photons",) + (("packet_m2", "packet_sum1") if self.packet_sq else ("fold_batches",))
                  + (("emission_keys",) if self.sorted else ()))
-        for name in names + (("region_sort_pass",) if self.region_shift else ()):
+        for name in names + (("region_sort_pass",) if self.region_shift or self.sorted else ()):
             be.kernel(be.transport_program, name, self.defines)
+
+    def _setup_emission_sort(self):
+        """Bins of the emission order's counting sort: the key's cell and star (``groups`` of
+        them at most, kernels/transport.cl, emission_keys) and the leading ``2 bits`` of its
+        Morton-ordered direction bin, as many as keep the bins within EMISSION_MAX_BINS."""
+        sort_bits = int(self.defines.get("NRT_SORT_BITS", 8))
+        groups = min(self.slots * self.bands_per_launch * max(1, self.setup.stars.shape[0]),
+                     1 << (31 - 2 * sort_bits))
+        bits = sort_bits
+        while bits > 0 and groups << (2 * bits) > EMISSION_MAX_BINS:
+            bits -= 1
+        self.emit_shift = 2 * (sort_bits - bits)
+        self.n_emit_bins = (groups << (2 * bits)) + 1  # (and the free slots' bin, empty)
+        self.d_emit_bins = self.backend.device_zeros(self.n_emit_bins, np.uint32)
 
     def _setup_regions(self, tuning):
         """Buffers of the transport by regions: up to ``region_capacity`` packets in flight,
@@ -218,20 +239,40 @@ class DeviceTransport(TransportSession):
         overflow = be.to_host(self.d_overflow)
         return tallies[:n_slots, :n_lb].copy(), overflow[:n_slots].astype(bool)
 
-    def _emission_order(self, keys, photon_start, count, first_batch, band0, n_lb):
+    def _emission_order(self, keys, photon_start, count, first_batch, band0, n_lb, scratch=None):
         """NRT_SORTED: ``count`` packets (all bands) from ``photon_start`` sorted by cell, star
         and first direction, into ``keys`` (grown where too small; returned): the order the
-        trace starts them in."""
+        trace starts them in. The unsorted keys go to ``scratch`` (one of as many elements, or
+        a new buffer), and a counting sort puts them in order."""
         be = self.backend
         items = int(count) * n_lb
         if keys.size < items:
             keys = None
             keys = be.device_zeros(items, np.uint64)
+        if scratch is None or scratch.size < items:
+            scratch = be.device_zeros(items, np.uint64)
         be.launch(be.transport_program, "emission_keys", items, self.d_params, self.d_cdf,
                   np.uint64(photon_start), np.uint64(count), np.uint64(first_batch),
-                  np.int32(band0), np.int32(n_lb), np.int32(self.slots), keys,
+                  np.int32(band0), np.int32(n_lb), np.int32(self.slots), scratch,
                   defines=self.defines)
-        return be.sort_u64(keys, items)
+        self._counting_sort(scratch, items, keys, self.d_emit_bins, self.n_emit_bins, self.emit_shift)
+        return keys
+
+    def _counting_sort(self, keys, n, out, bins, n_bins, shift=0):
+        """Sort keys[0 .. n) into ``out`` by bin ((key >> 32) >> shift; NRT_FREE_BIN last:
+        kernels/transport.cl, region_sort_pass); returns the count of every bin."""
+        be = self.backend
+        be.fill_zero(bins)
+        args = (keys, np.uint64(n), bins, np.int32(n_bins))
+        be.launch_trace(be.transport_program, "region_sort_pass", n, *args, np.int32(0), out, np.int32(shift),
+                        defines=self.defines)
+        counts = be.to_host(bins).astype(np.int64)
+        first = np.zeros(n_bins, np.uint32)  # each bin's first position
+        first[1:] = np.cumsum(counts[:-1])
+        be.upload(bins, first)
+        be.launch_trace(be.transport_program, "region_sort_pass", n, *args, np.int32(1), out, np.int32(shift),
+                        defines=self.defines)
+        return counts
 
     def _launch_trace(self, photon_start, count, first_batch, band0, n_lb, n_resume=0, n_fresh=0, fresh0=0,
                       n_free=0, hwm=0, shift=NO_REGIONS):
@@ -283,8 +324,9 @@ class DeviceTransport(TransportSession):
             if c_pos == c_count * n_lb and next_photon < count and n_in < cap:
                 c_start, c_count, c_pos = photon_start + next_photon, min(chunk, count - next_photon), 0
                 next_photon += c_count
-                if self.sorted:
-                    self.d_emit = self._emission_order(self.d_emit, c_start, c_count, first_batch, band0, n_lb)
+                if self.sorted:  # (the stopped keys are sorted into d_keys: d_stopped is free)
+                    self.d_emit = self._emission_order(self.d_emit, c_start, c_count, first_batch, band0, n_lb,
+                                                       self.d_stopped)
             n_new = min(c_count * n_lb - c_pos, cap - n_in)
             more = c_pos + n_new < c_count * n_lb or next_photon < count or not drain
             t0 = time.perf_counter() if log is not None else 0.0
@@ -319,17 +361,7 @@ class DeviceTransport(TransportSession):
         place and direction in the region, radix-sorted so that a warp's packets enter side by
         side, flying alike, traced no faster on an H200: 71.1k against 70.5k packets/ms at
         512^3.)"""
-        be = self.backend
-        be.fill_zero(self.d_bins)
-        args = (self.d_stopped, np.uint64(n), self.d_bins, np.int32(self.n_bins))
-        be.launch_trace(be.transport_program, "region_sort_pass", n, *args, np.int32(0), self.d_keys,
-                        defines=self.defines)
-        counts = be.to_host(self.d_bins).astype(np.int64)
-        first = np.zeros(self.n_bins, np.uint32)  # each bin's first position
-        first[1:] = np.cumsum(counts[:-1])
-        be.upload(self.d_bins, first)
-        be.launch_trace(be.transport_program, "region_sort_pass", n, *args, np.int32(1), self.d_keys,
-                        defines=self.defines)
+        counts = self._counting_sort(self.d_stopped, n, self.d_keys, self.d_bins, self.n_bins)
         return int(counts[:-1].sum()), int(counts[-1])
 
     def empty_group(self, n_slots, bands=None):
@@ -510,7 +542,7 @@ class DeviceTransport(TransportSession):
         out = (self.d_sum1, self.d_m2, self.d_density)
         self.d_sum1 = self.d_m2 = self.d_density = None
         self.d_acc = self.d_sq = self.d_image = self.d_keys = None  # the slots' memory goes to the finishing
-        self.d_states = self.d_stopped = self.d_bins = self.d_emit = None
+        self.d_states = self.d_stopped = self.d_bins = self.d_emit = self.d_emit_bins = None
         self._h_stage = None
         return out
 
@@ -527,5 +559,5 @@ class DeviceTransport(TransportSession):
 
     def close(self):
         for name in ("d_acc", "d_sq", "d_sum1", "d_m2", "d_density", "d_image", "d_keys", "_h_stage", "d_states",
-                     "d_stopped", "d_bins", "d_emit"):
+                     "d_stopped", "d_bins", "d_emit", "d_emit_bins"):
             setattr(self, name, None)
