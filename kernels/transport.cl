@@ -1431,6 +1431,50 @@ NRT_KERNEL void region_sort_pass(const NRT_GLOBAL nrt_u64 *keys, nrt_u64 n, NRT_
         out[l_base[bin] + rank] = key;
 }
 
+/*
+ * The counts of a counting sort's bins[0 .. n_bins) turned into each bin's first position (an
+ * exclusive prefix sum, in place), and bins[n_bins] set to the keys of every bin but the last
+ * (the packets a region pass stopped; the last bin holds the free slots). Launched as one work
+ * group: each work item sums a contiguous run of bins, the first item scans the runs' totals,
+ * and each item writes its run's prefix sums. On the device, so that the sort's second pass
+ * follows its first without the host in between.
+ */
+#define NRT_SCAN_ITEMS 1024
+NRT_KERNEL void scan_bins(NRT_GLOBAL nrt_u32 *bins, int n_bins)
+{
+    NRT_LOCAL_MEM nrt_u32 l_run[NRT_SCAN_ITEMS];
+    nrt_u64 lid = NRT_LOCAL_ID(), items = NRT_LOCAL_SIZE();
+    items = items < NRT_SCAN_ITEMS ? items : NRT_SCAN_ITEMS;
+    nrt_u64 n = (nrt_u64)n_bins, per = (n + items - 1) / items;
+    nrt_u64 b0 = lid * per, b1 = b0 + per < n ? b0 + per : n;
+    nrt_u32 sum = 0;
+    if (lid < items) {
+        for (nrt_u64 b = b0; b < b1; ++b)
+            sum += bins[b];
+        l_run[lid] = sum;
+    }
+    NRT_BARRIER();
+    if (lid == 0) {
+        nrt_u32 run = 0;
+        for (nrt_u64 i = 0; i < items; ++i) {
+            nrt_u32 c = l_run[i];
+            l_run[i] = run;
+            run += c;
+        }
+    }
+    NRT_BARRIER();
+    if (lid < items) {
+        nrt_u32 run = l_run[lid];
+        for (nrt_u64 b = b0; b < b1; ++b) {
+            nrt_u32 c = bins[b];
+            bins[b] = run;
+            run += c;
+        }
+        if (b0 < b1 && b1 == n)
+            bins[n] = bins[n - 1]; /* the last bin's first position */
+    }
+}
+
 /* The centred sums of squares are stored in float32 times 2^-64, so that any sum of squared
    64-bit totals fits (2^128 is float32's limit) and the smallest non-zero one (about 1 unit^2)
    stays normal. */

@@ -189,6 +189,22 @@ def test_region_sort_counts_and_orders_every_stopped_packet(backend, shift):
         assert np.all(np.diff((out >> np.uint64(32 + shift)).astype(np.int64)) >= 0)
 
 
+def test_bin_counts_become_first_positions_on_the_device(backend):
+    """scan_bins (one work group): the exclusive prefix sum of the counts in place, for fewer
+    bins than work items, a few per item and many per item, and the count of every bin but the
+    last after them (the packets a region pass stopped, which the host reads)."""
+    rng = np.random.default_rng(5)
+    for n_bins in (1, 7, 513, 4097, 70001):
+        counts = rng.integers(0, 3000, n_bins).astype(np.uint32)
+        d = backend.to_device(np.concatenate([counts, np.array([12345], np.uint32)]))
+        backend.launch_trace("transport.cl", "scan_bins", 1, d, np.int32(n_bins),
+                             defines={"NRT_TRACK_LENGTH": 1, "NRT_REGIONS": 1})
+        got = backend.to_host(d)
+        first = np.concatenate([[0], np.cumsum(counts[:-1], dtype=np.uint64)]).astype(np.uint32)
+        np.testing.assert_array_equal(got[:n_bins], first)
+        assert int(got[n_bins]) == int(counts[:-1].sum(dtype=np.uint64))
+
+
 def test_a_group_traced_in_several_launches_streams_across_them(cloud, monkeypatch):
     """Launches of about 300 packets (a group of 3 batches of 1500 then takes about 30): the
     packets in flight at the end of one launch go on in the next launch of the group, so each
