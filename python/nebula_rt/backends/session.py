@@ -37,8 +37,10 @@ NO_REGIONS = 31
 #: REGION_STATE_PER_VOXEL per voxel (within the memory target of 2 x (density + one 64-bit
 #: cell per band) + 1 GiB at 256^3 and beyond): a launch of more packets starts new ones as
 #: the earlier ones end. On an H200 at 512^3, 128 MiB of state traced 60k packets/ms, 512 MiB
-#: 74k (then traced in parts, each ending in a few poorly filled passes)
-REGION_STATE_BYTES = 512 << 20
+#: 74k (then traced in parts, each ending in a few poorly filled passes); with 1e9 photons
+#: (batches of 62.5M that fill it) 512 MiB / 768 MiB / 1 GiB took 9.77 / 9.30 / 9.20 s of
+#: kernel time (peaks 3.50 / 3.75 / 4.00 GiB: 1 GiB reaches the 4 GiB memory target)
+REGION_STATE_BYTES = 768 << 20
 REGION_STATE_PER_VOXEL = 24
 #: passes after which a launch's remaining packets are traced to the end in one
 MAX_REGION_PASSES = 256
