@@ -169,8 +169,8 @@ def test_groups_split_into_short_launches_give_the_same_bits(cloud, monkeypatch)
 
 @pytest.mark.parametrize("estimator", ["track-length", "collision-filter"])
 def test_sorted_packet_order_gives_the_same_bits(cloud, estimator):
-    """NRT_SORTED (packets traced in the order of cell, star and first direction, sorted on
-    the device on CUDA) against the plain order: the same sums, squares, counts and image, with
+    """NRT_SORTED (packets traced in the order of cell, star and first direction, a counting
+    sort on the device) against the plain order: the same sums, squares, counts and image, with
     two stars, two bands and several batches per launch."""
     camera = sky.Camera(direction=(0.0, 0.0, -1.0), size=(12, 10))
     runs = []
