@@ -1384,7 +1384,7 @@ NRT_KERNEL void emission_keys(const NRT_GLOBAL nrt_trace_params *prm,
  * the result (integer deposits).
  */
 #ifndef NRT_LOCAL_BINS
-#define NRT_LOCAL_BINS 4096
+#define NRT_LOCAL_BINS 8192 /* 32 KiB of local memory (CUDA's static limit per block is 48) */
 #endif
 
 /*
@@ -1397,8 +1397,8 @@ NRT_KERNEL void emission_keys(const NRT_GLOBAL nrt_trace_params *prm,
 NRT_KERNEL void region_sort_pass(const NRT_GLOBAL nrt_u64 *keys, nrt_u64 n, NRT_GLOBAL nrt_u32 *bins, int n_bins,
                                  int scatter, NRT_GLOBAL nrt_u64 *out, int bin_shift)
 {
+    /* the group's count of each bin, then (scatter) the first position of its range */
     NRT_LOCAL_MEM nrt_u32 l_count[NRT_LOCAL_BINS];
-    NRT_LOCAL_MEM nrt_u32 l_base[NRT_LOCAL_BINS];
     const int local_bins = n_bins <= NRT_LOCAL_BINS;
     nrt_u64 lid = NRT_LOCAL_ID(), it = NRT_GLOBAL_ID();
     if (local_bins)
@@ -1425,10 +1425,10 @@ NRT_KERNEL void region_sort_pass(const NRT_GLOBAL nrt_u64 *keys, nrt_u64 n, NRT_
     if (local_bins)
         for (nrt_u64 b = lid; b < (nrt_u64)n_bins; b += NRT_LOCAL_SIZE())
             if (l_count[b] != 0)
-                l_base[b] = NRT_ATOMIC_ADD_U32(&bins[b], l_count[b]);
+                l_count[b] = NRT_ATOMIC_ADD_U32(&bins[b], l_count[b]);
     NRT_BARRIER();
     if (scatter && local_bins && key != NRT_NO_KEY)
-        out[l_base[bin] + rank] = key;
+        out[l_count[bin] + rank] = key;
 }
 
 /*

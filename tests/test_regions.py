@@ -163,7 +163,7 @@ def test_region_sort_counts_and_orders_every_stopped_packet(backend, shift):
     local memory and with fewer; with ``shift`` 6 the bin is the key's high half without its
     6 lowest bits (as the emission order sorts by the leading bits of its direction bins)."""
     rng = np.random.default_rng(3)
-    for n_bins in (7, 900, 5000):
+    for n_bins in (7, 900, 5000, 9000):  # (NRT_LOCAL_BINS is 8192)
         n = 20011
         bins = rng.integers(0, n_bins, n).astype(np.uint64)
         high = (bins << np.uint64(shift)) | rng.integers(0, 1 << shift, n).astype(np.uint64)
