@@ -189,6 +189,37 @@ def test_region_sort_counts_and_orders_every_stopped_packet(backend, shift):
         assert np.all(np.diff((out >> np.uint64(32 + shift)).astype(np.int64)) >= 0)
 
 
+def test_regions_grow_where_their_bins_would_pass_the_local_ones(cloud):
+    """The sort counts its bins in local memory up to LOCAL_SORT_BINS (the kernel's
+    NRT_LOCAL_BINS): a session whose cells and regions would need more bins takes regions twice
+    as large until they fit (unless the tuning sets the size), and traces the same bits."""
+    import re
+    from pathlib import Path
+
+    from nebula_rt.backends import session as session_mod
+
+    source = (Path(__file__).resolve().parents[1] / "kernels" / "transport.cl").read_text()
+    assert int(re.search(r"#define NRT_LOCAL_BINS (\d+)", source).group(1)) == session_mod.LOCAL_SORT_BINS
+    shifts = []
+    real = DeviceTransport._setup_regions
+
+    def spy(self, tuning):
+        shifts.append((self.region_shift, self._region_bins(self.region_shift), self._region_bins(self.region_shift - 1)))
+        return real(self, tuning)
+
+    kw = dict(tau=25.0, photons=8000, batch_size=1000, seed=4, peel=None)  # 8 slots of 2 bands
+    plain = trace(cloud, _bands(), _stars(), backend=_backend({"NRT_REGIONS": 0}), **kw)
+    be = _backend({})
+    be.region_shifts = ((1, 1),)  # regions of 2 voxels on any grid: far more bins than fit
+    try:
+        DeviceTransport._setup_regions = spy
+        grown = trace(cloud, _bands(), _stars(), backend=be, **kw)
+    finally:
+        DeviceTransport._setup_regions = real
+    assert shifts and all(s > 1 and bins <= session_mod.LOCAL_SORT_BINS < finer for s, bins, finer in shifts)
+    _same(grown, plain)
+
+
 def test_bin_counts_become_first_positions_on_the_device(backend):
     """scan_bins (one work group): the exclusive prefix sum of the counts in place, for fewer
     bins than work items, a few per item and many per item, and the count of every bin but the

@@ -76,10 +76,13 @@ class CUDABackend(Backend):
     #: 187k, benchmarks/results/h200-2026-12-02e/)
     sort_min_voxels = 256**3
     #: transport by regions (kernels/transport.cl, NRT_REGIONS) from 256^3 on, regions of 64
-    #: voxels a side, 128 from 1024^3 on (H200, neb medium, 1e8 photons, kernel packets/ms
-    #: without -> 64 / 128: 256^3 144k -> 182k / 154k, 512^3 54.9k -> 73.4k / 74.2k, 1024^3
-    #: 27.2k -> 32.3k / 33.7k; benchmarks/results/h200-2026-12-02c/)
-    region_shifts = ((256**3, 6), (1024**3, 7))
+    #: voxels a side (H200, neb medium, 1e8 photons, kernel packets/ms without -> 64 / 128:
+    #: 256^3 144k -> 182k / 154k, 512^3 54.9k -> 73.4k / 74.2k, 1024^3 27.2k -> 32.3k / 33.7k,
+    #: benchmarks/results/h200-2026-12-02c/; 1024^3 has 4096 regions, whose sorts counted per
+    #: work group only once the local bins held 8192: 64 / 128 then gave 41.3k / 40.8k at 1e8
+    #: and, with the error estimate by packets, whose squares' slot shares the L2, 27.8k /
+    #: 25.0k at 1e7, benchmarks/results/h200-2026-12-02f/)
+    region_shifts = ((256**3, 6),)
     #: the analog transport kernel's register cap (NVRTC --maxrregcount; a --maxrregcount among
     #: ``compile_options`` wins)
     trace_registers = NVIDIA_TRACE_REGISTERS

@@ -44,12 +44,17 @@ REGION_STATE_BYTES = 768 << 20
 REGION_STATE_PER_VOXEL = 24
 #: passes after which a launch's remaining packets are traced to the end in one
 MAX_REGION_PASSES = 256
+#: the counting sort's bins counted in a work group's local memory (kernels/transport.cl,
+#: NRT_LOCAL_BINS); more bins count key by key in global memory, which at 1024^3 by regions
+#: of 64 voxels (4097 bins, then past 4096 local ones) lost 23.2k -> 19.0k packets/ms
+LOCAL_SORT_BINS = 8192
 #: most bins of the emission order's counting sort (NRT_SORTED; tuning key "emission_bins"):
-#: the cells and stars of a launch times as many leading direction bins as fit. Within the
-#: sort's local-memory bins (NRT_LOCAL_BINS) each work group adds one count per bin, and the
-#: prefix sum (scan_bins, one work group) stays short. A radix sort of the full 64-bit keys
-#: took 1.4 ms per chunk of 6.1M packets on an H200 (0.045 s of 512^3 with 1e8 photons)
-EMISSION_MAX_BINS = 4096
+#: the cells and stars of a launch times as many leading direction bins as fit (all 16 bits
+#: of one cell and star). On an H200, 2^16 bins against 4096 (12 bits): 512^3 1e8 102.5k /
+#: 101.2k, 1024^3 1e7 (packets) 28.7k / 27.8k packets/ms, although more bins than the local
+#: ones (NRT_LOCAL_BINS) count one key at a time. A radix sort of the full 64-bit keys took
+#: 1.4 ms per chunk of 6.1M packets (0.045 s of 512^3 with 1e8 photons)
+EMISSION_MAX_BINS = 1 << 16
 
 
 def region_shift_of(backend, setup: TransportSetup, tuning: dict) -> int:
@@ -159,6 +164,12 @@ class DeviceTransport(TransportSession):
         if "NRT_SORTED" not in tuning and self.nvox >= getattr(be, "sort_min_voxels", 0) > 0:
             tuning["NRT_SORTED"] = 1  # large grids: a warp's first flights side by side
         self.region_shift = region_shift_of(be, setup, tuning)
+        if self.region_shift and "NRT_REGIONS" not in tuning:
+            # larger regions where the bins of every cell and region would pass the sort's
+            # local bins (e.g. three bands at 1024^3), whose counts would go key by key
+            while (self._region_bins(self.region_shift) > LOCAL_SORT_BINS
+                   and (1 << self.region_shift) < max(self.shape)):
+                self.region_shift += 1
         tuning["NRT_REGIONS"] = 1 if self.region_shift else 0
         self.defines = transport_defines(setup, tuning)
         self.sorted = bool(self.defines.get("NRT_SORTED"))
@@ -176,6 +187,12 @@ class DeviceTransport(TransportSession):
                  + (("emission_keys",) if self.sorted else ()))
         for name in names + (("region_sort_pass", "scan_bins") if self.region_shift or self.sorted else ()):
             be.kernel(be.transport_program, name, self.defines)
+
+    def _region_bins(self, shift: int) -> int:
+        """Bins of the region sort: one per cell (slot and band) and region of 2^shift voxels
+        a side, and the free slots' bin."""
+        regions = int(np.prod([-(-n // (1 << shift)) for n in self.shape]))
+        return self.slots * self.bands_per_launch * regions + 1
 
     def _setup_emission_sort(self):
         """Bins of the emission order's counting sort: the key's cell and star (``groups`` of
@@ -202,9 +219,7 @@ class DeviceTransport(TransportSession):
         state_bytes = kernel_params.dtype("nrt_packet").itemsize
         self.region_capacity = region_state_bytes(self.nvox, tuning) // (state_bytes + REGION_KEY_BYTES)  # as region_capacity()
         self.region_tail = int(tuning.get("region_tail", getattr(be, "region_tail", 0)))
-        shift = self.region_shift
-        regions = int(np.prod([-(-n // (1 << shift)) for n in self.shape]))
-        self.n_bins = self.slots * self.bands_per_launch * regions + 1
+        self.n_bins = self._region_bins(self.region_shift)
         if self.n_bins >= 0xFFFFFFFE:
             raise ValueError(f"{self.n_bins} region bins do not fit a 32-bit key")
         self.d_states = be.device_zeros(self.region_capacity * state_bytes // 8, np.uint64)
