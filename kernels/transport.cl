@@ -1332,8 +1332,9 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
  * nrt_sample_isotropic (mu and phi, equal-area bins) in 2^NRT_SORT_BITS x 2^NRT_SORT_BITS bins,
  * interleaved bit by bit (Morton order: consecutive keys stay in a compact patch of the
  * sphere); low 32 bits the work item t (count * n_lbands < 2^32), so that sorting the keys
- * (a counting sort by the high half: region_sort_pass) yields the order itself. The draws are those nrt_trace_packet makes, in the same order; the
- * key only orders the work (any key gives the same bits).
+ * (a counting sort by the high half: counting_sort_pass) yields the order itself. The draws
+ * are those nrt_trace_packet makes, in the same order; the key only orders the work (any key
+ * gives the same bits).
  */
 NRT_DEVICE nrt_u32 nrt_spread_bits(nrt_u32 x) /* bit i -> bit 2i, for x < 2^16 */
 {
@@ -1375,9 +1376,9 @@ NRT_KERNEL void emission_keys(const NRT_GLOBAL nrt_trace_params *prm,
 /*
  * Counting sort of the packets a pass stopped (NRT_REGIONS): keys (bin << 32 | state slot),
  * NRT_FREE_BIN for the slots of the packets that ended (counted in the last bin, n_bins - 1,
- * so they follow every stopped packet), NRT_NO_KEY for none. A first pass counts the keys of every bin, the host
- * turns the counts into each bin's first position, and a second pass writes each key to its
- * bin's range. Each work group counts its keys in local memory first and adds
+ * so they follow every stopped packet), NRT_NO_KEY for none; and of the emission order
+ * (NRT_SORTED). A first pass counts the keys of every bin, scan_bins turns the counts into
+ * each bin's first position, and a second pass writes each key to its bin's range. Each work group counts its keys in local memory first and adds
  * one total per bin to global memory (without, every packet leaving the star's region hit
  * the same few counters); with more bins than NRT_LOCAL_BINS the keys go to global memory
  * one by one. The order within a bin depends on the thread order, which changes no bit of
@@ -1394,7 +1395,7 @@ NRT_KERNEL void emission_keys(const NRT_GLOBAL nrt_trace_params *prm,
  * The emission order (NRT_SORTED) is sorted the same way, by its keys' cell, star and the
  * leading bits of their direction bins.
  */
-NRT_KERNEL void region_sort_pass(const NRT_GLOBAL nrt_u64 *keys, nrt_u64 n, NRT_GLOBAL nrt_u32 *bins, int n_bins,
+NRT_KERNEL void counting_sort_pass(const NRT_GLOBAL nrt_u64 *keys, nrt_u64 n, NRT_GLOBAL nrt_u32 *bins, int n_bins,
                                  int scatter, NRT_GLOBAL nrt_u64 *out, int bin_shift)
 {
     /* the group's count of each bin, then (scatter) the first position of its range */

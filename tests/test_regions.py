@@ -173,7 +173,7 @@ def test_region_sort_counts_and_orders_every_stopped_packet(backend, shift):
         d_counts = backend.device_zeros(n_bins, np.uint32)
         defines = {"NRT_TRACK_LENGTH": 1, "NRT_REGIONS": 1}
         d_out = backend.device_zeros(n, np.uint64)
-        backend.launch_trace("transport.cl", "region_sort_pass", n, d_keys, np.uint64(n), d_counts,
+        backend.launch_trace("transport.cl", "counting_sort_pass", n, d_keys, np.uint64(n), d_counts,
                              np.int32(n_bins), np.int32(0), d_out, np.int32(shift), defines=defines)
         counts = backend.to_host(d_counts)
         live = keys[keys != np.uint64(2**64 - 1)]
@@ -182,7 +182,7 @@ def test_region_sort_counts_and_orders_every_stopped_packet(backend, shift):
         first = np.zeros(n_bins, np.uint32)
         first[1:] = np.cumsum(counts[:-1])
         d_cursor = backend.to_device(first)
-        backend.launch_trace("transport.cl", "region_sort_pass", n, d_keys, np.uint64(n), d_cursor,
+        backend.launch_trace("transport.cl", "counting_sort_pass", n, d_keys, np.uint64(n), d_cursor,
                              np.int32(n_bins), np.int32(1), d_out, np.int32(shift), defines=defines)
         out = backend.to_host(d_out)[:live.size]
         assert sorted(out.tolist()) == sorted(live.tolist())

@@ -185,7 +185,7 @@ class DeviceTransport(TransportSession):
         # launch, they were counted as tracing (up to 1 s per option set on CUDA)
         names = (("trace_photons",) + (("packet_m2", "packet_sum1") if self.packet_sq else ("fold_batches",))
                  + (("emission_keys",) if self.sorted else ()))
-        for name in names + (("region_sort_pass", "scan_bins") if self.region_shift or self.sorted else ()):
+        for name in names + (("counting_sort_pass", "scan_bins") if self.region_shift or self.sorted else ()):
             be.kernel(be.transport_program, name, self.defines)
 
     def _region_bins(self, shift: int) -> int:
@@ -279,7 +279,7 @@ class DeviceTransport(TransportSession):
 
     def _counting_sort(self, keys, n, out, bins, n_bins, shift=0, read=True):
         """Sort keys[0 .. n) into ``out`` by bin ((key >> 32) >> shift; NRT_FREE_BIN last:
-        kernels/transport.cl, region_sort_pass, scan_bins), ``bins`` holding n_bins + 1
+        kernels/transport.cl, counting_sort_pass, scan_bins), ``bins`` holding n_bins + 1
         counters. Returns the keys before the last bin (``read``; the stream then waits for
         the sort), else None. The counts become first positions on the device: a pass waited
         for the host's prefix sum and upload in between, 34 us a pass on an H200 (0.09 s of
@@ -287,10 +287,10 @@ class DeviceTransport(TransportSession):
         be = self.backend
         be.fill_zero(bins)
         args = (keys, np.uint64(n), bins, np.int32(n_bins))
-        be.launch_trace(be.transport_program, "region_sort_pass", n, *args, np.int32(0), out, np.int32(shift),
+        be.launch_trace(be.transport_program, "counting_sort_pass", n, *args, np.int32(0), out, np.int32(shift),
                         defines=self.defines)
         be.launch_trace(be.transport_program, "scan_bins", 1, bins, np.int32(n_bins), defines=self.defines)
-        be.launch_trace(be.transport_program, "region_sort_pass", n, *args, np.int32(1), out, np.int32(shift),
+        be.launch_trace(be.transport_program, "counting_sort_pass", n, *args, np.int32(1), out, np.int32(shift),
                         defines=self.defines)
         return int(be.to_host(bins[n_bins:n_bins + 1])[0]) if read else None
 
