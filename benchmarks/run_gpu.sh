@@ -159,7 +159,7 @@ if [[ " $steps " == *" fit "* ]]; then
 fi
 if [[ " $steps " == *" e2e1e9 "* ]]; then
     echo "== 512^3, 1e9 photons, end to end (target: 10 s)"
-    python3 benchmarks/bench_large_grids.py --grids 512 --photons 1e9 --bands 1 --repeats 1 --skip micro mcx \
+    python3 benchmarks/bench_large_grids.py --grids 512 --photons 1e9 --bands 1 --repeats 2 --repeat-below-s 100 --skip micro mcx \
         --out "$out/e2e-512-1e9.json" 2>&1 | tail -n 4
 fi
 if [[ " $steps " == *" compare "* ]]; then
