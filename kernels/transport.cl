@@ -1378,10 +1378,10 @@ NRT_KERNEL void emission_keys(const NRT_GLOBAL nrt_trace_params *prm,
  * NRT_FREE_BIN for the slots of the packets that ended (counted in the last bin, n_bins - 1,
  * so they follow every stopped packet), NRT_NO_KEY for none; and of the emission order
  * (NRT_SORTED). A first pass counts the keys of every bin, scan_bins turns the counts into
- * each bin's first position, and a second pass writes each key to its bin's range. Each work group counts its keys in local memory first and adds
- * one total per bin to global memory (without, every packet leaving the star's region hit
- * the same few counters); with more bins than NRT_LOCAL_BINS the keys go to global memory
- * one by one. The order within a bin depends on the thread order, which changes no bit of
+ * each bin's first position, and a second pass writes each key to its bin's range. Each work
+ * group counts its keys in local memory first and adds one total per bin to global memory
+ * (without, every packet leaving the star's region hit the same few counters); with more bins
+ * than NRT_LOCAL_BINS the keys go to global memory one by one. The order within a bin depends on the thread order, which changes no bit of
  * the result (integer deposits).
  */
 #ifndef NRT_LOCAL_BINS
@@ -1396,7 +1396,7 @@ NRT_KERNEL void emission_keys(const NRT_GLOBAL nrt_trace_params *prm,
  * leading bits of their direction bins.
  */
 NRT_KERNEL void counting_sort_pass(const NRT_GLOBAL nrt_u64 *keys, nrt_u64 n, NRT_GLOBAL nrt_u32 *bins, int n_bins,
-                                 int scatter, NRT_GLOBAL nrt_u64 *out, int bin_shift)
+                                   int scatter, NRT_GLOBAL nrt_u64 *out, int bin_shift)
 {
     /* the group's count of each bin, then (scatter) the first position of its range */
     NRT_LOCAL_MEM nrt_u32 l_count[NRT_LOCAL_BINS];
