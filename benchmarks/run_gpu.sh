@@ -7,7 +7,7 @@
 # WHEELDIR holds wheels for what the machine lacks (pyopencl and its pure-Python needs,
 # colour-science, tomli-w; pmcx for the MCX comparison), fetched elsewhere with
 # `pip download --only-binary=:all: --python-version 3.12 ...`.
-# STEPS (default "tests bench neb128 compare profile"; also "tests-cuda", "scaling", "large", "regions", "regcaps", "profile-regions", "layout", "sorted", "probe", "ranks", "e2e1e9", "biasing", "fit", "tune",
+# STEPS (default "tests bench neb128 compare profile"; also "tests-cuda", "scaling", "large", "regions", "regcaps", "profile-regions", "layout", "sorted", "probe", "ranks", "ranks-thesis", "ranks-weak", "tests-mpi", "e2e1e9", "biasing", "fit", "tune",
 # "stages", "trade", "presets", "empty", "fft") selects what runs. Everything printed
 # goes to OUTDIR/log.txt as well; JSON and .npz results beside it.
 set -uo pipefail
@@ -32,6 +32,12 @@ physics="tests/test_rng.py tests/test_hg.py tests/test_density_kernel.py tests/t
 if [[ " $steps " == *" tests "* ]]; then
     echo "== physics tests, CUDA"; NEBULA_RT_TEST_BACKEND=cuda python3 -m pytest -q -p no:cacheprovider $physics tests/test_cuda_sources.py 2>&1 | tail -n 8
     echo "== physics tests, NVIDIA OpenCL"; NEBULA_RT_TEST_DEVICE=NVIDIA python3 -m pytest -q -p no:cacheprovider $physics 2>&1 | tail -n 3
+fi
+if [[ " $steps " == *" tests-mpi "* ]]; then
+    # CUDA ranks under mpiexec: the same bits on 1, 2 and 3 ranks, sums of GPU arrays (NCCL where
+    # each rank has a GPU of its own, else through the host)
+    echo "== MPI tests, CUDA ranks"; NCCL_NVLS_ENABLE=0 NEBULA_RT_TEST_BACKEND=cuda python3 -m pytest -q -p no:cacheprovider \
+        tests/test_mpi.py -k "same_bits and (plain or packets or biased) or device_arrays or nccl_loads or allreduce" 2>&1 | tail -n 8
 fi
 if [[ " $steps " == *" tests-cuda "* ]]; then
     echo "== physics tests, CUDA"; NEBULA_RT_TEST_BACKEND=cuda python3 -m pytest -q -p no:cacheprovider $physics tests/test_cuda_sources.py 2>&1 | tail -n 8
@@ -136,14 +142,36 @@ if [[ " $steps " == *" probe "* ]]; then
         i=$((i + 1))
     done
 fi
-if [[ " $steps " == *" ranks "* ]]; then
-    # several ranks on the GPUs there are (on one GPU: the code path, not scaling)
-    if command -v mpiexec >/dev/null; then
-        echo "== ranks on $(nvidia-smi -L | wc -l) GPU(s), CUDA"
-        python3 benchmarks/bench_ranks.py --ranks 1 2 --backend cuda --grid 128 512 --photons 1e8 \
-            --out "$out/ranks-cuda.json" 2>&1 | tail -n 12
-    else
+if [[ " $steps " == *" ranks "* ]] || [[ " $steps " == *" ranks-thesis "* ]] || [[ " $steps " == *" ranks-weak "* ]]; then
+    # several ranks, a GPU each (NCCL sums the slots on the GPUs); on fewer GPUs than ranks the
+    # ranks share them: the code path (sums through the host), not scaling. NVLink multicast off.
+    export NCCL_NVLS_ENABLE=0 TORCH_SYMM_MEM_DISABLE_MULTICAST=1 NVSHMEM_DISABLE_NVLS=1
+    gpus=$(nvidia-smi -L | wc -l)
+    ranks="1"; for r in 2 4 8; do [[ $r -le $gpus ]] && ranks="$ranks $r"; done
+    [[ $gpus -lt 2 ]] && ranks="1 2"
+    if ! command -v mpiexec >/dev/null; then
         echo "== ranks: no mpiexec on this machine"
+    elif [[ " $steps " == *" ranks "* ]]; then
+        # bit-identity and strong scaling, neb medium at 512^3 (about 5 min on 8 GPUs); then
+        # the all-reduce through the host on all GPUs, for comparison
+        big="1e9 1e10"; [[ $gpus -lt 2 ]] && big="1e8"
+        echo "== ranks $ranks on $gpus GPU(s), CUDA, neb medium 512^3, photons $big"
+        python3 benchmarks/bench_ranks.py --ranks $ranks --backend cuda --grid 512 --photons $big \
+            --out "$out/ranks-neb512-strong.json" 2>&1 | tail -n 12
+        echo "== ranks ${ranks##* }, all-reduce through the host"
+        python3 benchmarks/bench_ranks.py --ranks ${ranks##* } --backend cuda --grid 512 --photons 1e9 --allreduce host \
+            --out "$out/ranks-neb512-host.json" 2>&1 | tail -n 3
+    fi
+    if [[ " $steps " == *" ranks-thesis "* ]] && command -v mpiexec >/dev/null; then
+        # the thesis scene at 512^3, 3 bands, end to end: bits of every output array, strong scaling
+        echo "== ranks $ranks, thesis scene 512^3, 3 bands, 1e9 photons per band"
+        python3 benchmarks/bench_ranks.py --ranks $ranks --backend cuda --scene thesis --grid 512 --photons 1e9 \
+            --out "$out/ranks-thesis512-strong.json" 2>&1 | tail -n 6
+    fi
+    if [[ " $steps " == *" ranks-weak "* ]] && command -v mpiexec >/dev/null; then
+        echo "== ranks $ranks, weak scaling: 1e9 photons per rank, neb medium 512^3"
+        python3 benchmarks/bench_ranks.py --ranks $ranks --backend cuda --grid 512 --photons 1e9 --weak \
+            --out "$out/ranks-neb512-weak.json" 2>&1 | tail -n 6
     fi
 fi
 if [[ " $steps " == *" biasing "* ]]; then

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import TEST_DEVICE
+from conftest import TEST_BACKEND, TEST_DEVICE
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "tests" / "mpi" / "trace_ranks.py"
@@ -76,6 +76,28 @@ def test_trace_is_the_same_bits_on_1_2_3_ranks(tmp_path, case):
     for n in (2, 3):
         for key in ("raw_sum", "raw_m2", "counts", "peel", "band_batches"):
             assert runs[n][key].tobytes() == one[key].tobytes(), (n, key)
+        # how the slots were added: on a GPU where they are (NCCL, or ranks sharing one GPU
+        # through a host buffer), on PoCL in the mapped device memory unless told to copy
+        path = str(runs[n]["reduce_path"])
+        if TEST_BACKEND == "cuda":
+            assert path in ("nccl", "host"), path
+        else:
+            assert path == ("copied" if "copied" in mode else "mapped"), path
+    assert str(one["reduce_path"]) == ""
+
+
+def test_allreduce_choice_is_checked_before_tracing(tmp_path):
+    """A wrong NEBULA_RT_ALLREDUCE ends every rank of a distributed run with an error naming
+    the variable, the value and the choices, and nothing is saved."""
+    out = tmp_path / "r2.npz"
+    env = dict(os.environ, NEBULA_RT_ALLREDUCE="gpu")
+    env.pop("POCL_CPU_MAX_CU_COUNT", None)
+    r = subprocess.run([shutil.which("mpiexec"), "--allow-run-as-root", "--oversubscribe", "-n", "2", sys.executable,
+                        str(SCRIPT), str(out), "track-length", "plain", TEST_DEVICE],
+                       capture_output=True, text=True, timeout=120, env=env)
+    assert r.returncode != 0
+    assert "NEBULA_RT_ALLREDUCE = 'gpu': expected one of auto, nccl, host" in r.stderr, r.stderr[-2000:]
+    assert not out.exists()
 
 
 def load_sum_script():
@@ -120,6 +142,43 @@ def test_rank_sums_are_exact_and_flag_the_headroom_limit(tmp_path, n):
     res = np.load(out)
     assert str(res["kind"]) == ("Serial" if n == 1 else "MPIComm")
     check_rank_sums(res, n)
+
+
+@pytest.mark.skipif(TEST_BACKEND != "cuda", reason="sums of GPU arrays: run with NEBULA_RT_TEST_BACKEND=cuda on a GPU machine")
+@pytest.mark.parametrize("n", [1, 2, 3])
+def test_rank_sums_of_device_arrays_are_exact_and_flag_the_headroom_limit(tmp_path, n):
+    """The same numbers as CuPy arrays, summed where they are (``device_reducer``): NCCL
+    where every rank has a GPU of its own, else through a host buffer (ranks sharing a GPU,
+    which NCCL refuses); exact modulo 2^64, and the 32-bit halves of ``sum_checked`` on the
+    device where three ranks' cells pass 2^64 together."""
+    import cupy
+
+    out = tmp_path / f"dsums{n}.npz"
+    mpiexec(n, sys.executable, str(ROOT / "tests" / "mpi" / "sum_ranks.py"), str(out), "cuda", timeout=180)
+    res = np.load(out)
+    check_rank_sums(res, n)
+    gpus = cupy.cuda.runtime.getDeviceCount()
+    assert str(res["reducer"]) == ("nccl" if 1 < n <= gpus else "host"), (n, gpus, str(res["reducer"]))
+
+
+@pytest.mark.skipif(TEST_BACKEND != "cuda", reason="NCCL: run with NEBULA_RT_TEST_BACKEND=cuda on a GPU machine")
+def test_nccl_loads_and_sums_in_place():
+    """NCCL loads with CuPy on a GPU machine, and the reducer's in-place all-reduce of a
+    uint64 array (here over a one-rank communicator: every value kept, past 2^63 too) runs
+    on the current stream after the kernel that wrote the array."""
+    import cupy
+
+    from nebula_rt import parallel
+
+    nccl = parallel._nccl()
+    assert nccl is not None, "cupy.cuda.nccl does not load"
+    reducer = parallel.NcclReducer(nccl, nccl.NcclCommunicator(1, nccl.get_unique_id(), 0), cupy)
+    a = cupy.arange(3_000_001, dtype=cupy.uint64) * cupy.uint64(0x9E3779B97F4A7C15)
+    want = a.get()
+    assert reducer.sum_u64(a) is a
+    assert a.get().tobytes() == want.tobytes()
+    with pytest.raises(TypeError):
+        reducer.sum_u64(cupy.zeros(4, cupy.uint32))
 
 
 def test_cli_render_under_mpiexec_writes_the_one_rank_file(tmp_path):

@@ -293,6 +293,7 @@ class TransportResult:
     peel_bin_batches: Optional[np.ndarray] = None
     device: str = ""
     ranks: int = 1  # processes that traced it together (nebula_rt.parallel)
+    reduce_path: str = ""  # how the ranks' slots were added (Tallies.reduce_path)
     timings: dict = field(default_factory=dict)
     method: str = "analog"
     #: how the error was estimated: "batches" (batch means) or "packets" (batches of one packet)
@@ -947,6 +948,9 @@ class Tallies:
     setup_s: float = 0.0
     kernel_s: float = 0.0
     reduce_s: float = 0.0  # several ranks: time spent adding the ranks' slots and tallies
+    #: several ranks: how the slots were added ("nccl", "host" through a host buffer, "mapped"
+    #: in the device memory a CPU shares, "copied"); "" for one rank
+    reduce_path: str = ""
 
     @property
     def photons(self) -> int:
@@ -1026,7 +1030,7 @@ def run_transport(plan: TransportPlan, backend: Backend, *, progress=None, cance
     every group's packets, the ranks' slots and tallies are added before each fold, and the
     decisions to stop (time limit, cancel: any rank's) are made together between groups, so
     every rank folds the one-rank run's sums."""
-    from .parallel import Serial, share
+    from .parallel import Serial, device_reducer, share
 
     comm = comm if comm is not None else Serial()
     distributed = comm.size > 1
@@ -1048,6 +1052,11 @@ def run_transport(plan: TransportPlan, backend: Backend, *, progress=None, cance
                   band_done=np.zeros(nb, np.int64), peel_sums=peel_sums, device_bytes=session.device_bytes(),
                   setup_s=time.perf_counter() - t0)
     folded, band_done = out.folded, out.band_done
+    # several ranks on GPUs: the slots are added on the device (collective: every rank)
+    reducer = device_reducer(comm, backend) if distributed else None
+    if distributed:
+        mapped = reducer is None and backend.map_host(session.d_acc, 1) is not None
+        out.reduce_path = reducer.kind if reducer is not None else ("mapped" if mapped else "copied")
     deadline = t0 + plan.time_limit if plan.time_limit > 0 else math.inf
     done = 0  # packets per band traced (all bands)
     # several ranks: no rank stops on its own within a group (the others would wait for it)
@@ -1063,7 +1072,7 @@ def run_transport(plan: TransportPlan, backend: Backend, *, progress=None, cance
         tallies, overflow = launcher.run_together(comm, lo, mine, b_, e_, first_batch, n, group, cancel,
                                                   on_progress)
         tr = time.perf_counter()
-        tallies, overflow = session.reduce_group(comm, n, group, tallies, overflow)
+        tallies, overflow = session.reduce_group(comm, n, group, tallies, overflow, reducer)
         out.reduce_s += time.perf_counter() - tr
         return tallies, overflow, count
 
@@ -1235,6 +1244,7 @@ def estimate_light(plan: TransportPlan, tallies: Tallies, backend: Backend, *, o
         peel_bin_batches=peel_groups,
         device=backend.device_name,
         timings={"setup_s": tallies.setup_s, "kernel_s": tallies.kernel_s, "reduce_s": tallies.reduce_s},
+        reduce_path=tallies.reduce_path,
         method="biased" if plan.setup.biased else "analog",
         error_estimate="packets" if plan.setup.packet_sq else "batches",
         weight_unit=WEIGHT_UNIT if plan.setup.biased else 1.0,

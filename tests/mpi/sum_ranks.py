@@ -3,7 +3,12 @@ the ranks sum uint64 counts with ``sum_u64`` and ``sum_checked`` of :mod:`nebula
 rank 0 saves the sums and the flags (.npz) for the test to hold against Python's integers.
 
     mpiexec -n N python tests/mpi/sum_ranks.py OUT.npz mpi4py
+    mpiexec -n N python tests/mpi/sum_ranks.py OUT.npz cuda
     mpiexec -n N pvbatch --mpi --symmetric tests/mpi/sum_ranks.py OUT.npz vtk
+
+``cuda``: the numbers live on the GPUs (CuPy arrays, a GPU per local rank where there are
+enough) and are summed where they are (:func:`nebula_rt.parallel.device_reducer`: NCCL where
+every rank has its own GPU, else through a host buffer); ``reducer`` in the .npz says which.
 
 ``inputs(rank, size)`` gives each rank's numbers (the test calls it too). The in-place sums run
 in chunks of ``CHUNK`` elements, so that the arrays cross several chunk boundaries.
@@ -46,7 +51,7 @@ def main() -> None:
     out, kind = sys.argv[1], sys.argv[2]
     from nebula_rt import parallel
 
-    if kind == "mpi4py":
+    if kind in ("mpi4py", "cuda"):
         comm = parallel.world()
     else:
         from nebula_rt.filters.controller import vtk_world
@@ -54,12 +59,28 @@ def main() -> None:
         comm = vtk_world()
     parallel.SUM_CHUNK = CHUNK
     wrapping, checked = inputs(comm.rank, comm.size)
-    comm.sum_u64(wrapping)
-    copied = comm.allreduce_u64(checked)  # a new array, the input left as it was
-    flags = parallel.sum_checked(comm, [(checked, [(0, ROWS * COLS)])], ROWS, LIMIT_BITS)
+    reducer = ""
+    if kind == "cuda":
+        import cupy
+
+        from nebula_rt.backends import get_backend
+
+        backend = get_backend("cuda", str(comm.local_rank % cupy.cuda.runtime.getDeviceCount()))
+        red = parallel.device_reducer(comm, backend) or parallel.StagedReducer(comm, backend)  # one rank: None
+        reducer = red.kind
+        sums = parallel.DeviceSums(comm, red)
+        d_wrapping, d_checked = backend.to_device(wrapping), backend.to_device(checked)
+        sums.sum_u64(d_wrapping)
+        copied = comm.allreduce_u64(checked)
+        flags = parallel.sum_checked(sums, [(d_checked, [(0, ROWS * COLS)])], ROWS, LIMIT_BITS)
+        wrapping, checked = d_wrapping.get(), d_checked.get()
+    else:
+        comm.sum_u64(wrapping)
+        copied = comm.allreduce_u64(checked)  # a new array, the input left as it was
+        flags = parallel.sum_checked(comm, [(checked, [(0, ROWS * COLS)])], ROWS, LIMIT_BITS)
     if comm.rank == 0:
         np.savez(out, size=comm.size, kind=type(comm).__name__, wrapping=wrapping, checked=checked,
-                 flags=flags, copied=copied)
+                 flags=flags, copied=copied, reducer=reducer)
     comm.barrier()
 
 

@@ -8,7 +8,12 @@ MODE: ``plain``, ``checked`` (headroom lowered: batches overflow and are re-trac
 through launches of about 300 packets) or ``packets`` (the error estimate by packets: one batch,
 its squares summed over the ranks too, no peel-off image), joined by ``+`` with ``copied``: the slots are summed in a
 host copy, as on a GPU, instead of in the mapped device memory of PoCL (``Backend.map_host``).
+With ``NEBULA_RT_TEST_BACKEND=cuda`` the ranks trace on CUDA (a GPU per local rank where there
+are enough) and add their slots on the device (``nebula_rt.parallel.device_reducer``); the
+.npz's ``reduce_path`` says how.
 """
+
+import os
 
 import sys
 
@@ -28,7 +33,13 @@ def main() -> int:
     parts = mode.split("+")
     checked, biased = "checked" in parts, "biased" in parts
     comm = world()
-    backend = get_backend("opencl", sys.argv[4] if len(sys.argv) > 4 else "")
+    device = sys.argv[4] if len(sys.argv) > 4 else ""
+    if os.environ.get("NEBULA_RT_TEST_BACKEND", "opencl") == "cuda":
+        import cupy
+
+        backend = get_backend("cuda", device or str(comm.local_rank % cupy.cuda.runtime.getDeviceCount()))
+    else:
+        backend = get_backend("opencl", device)
     if "+copied" in mode:
         backend.map_host = lambda dev, n: None
     rng = np.random.default_rng(11)
@@ -57,7 +68,7 @@ def main() -> int:
         counts = np.array([[str(int(x)) for x in row] for row in res.counts])
         np.savez(out, raw_sum=res.raw_sum, raw_m2=res.raw_m2, counts=counts,
                  peel=np.zeros(0) if res.peel_image is None else res.peel_image,
-                 band_batches=res.band_batches, size=comm.size)
+                 band_batches=res.band_batches, size=comm.size, reduce_path=res.reduce_path)
     return 0
 
 

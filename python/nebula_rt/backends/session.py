@@ -25,6 +25,7 @@ import time
 import numpy as np
 
 from .. import kernel_params
+from ..array_api import to_numpy
 from .base import TransportSession, TransportSetup, transport_defines
 
 #: centred sums of squares are stored as float32 x 2^-64 (kernels/transport.cl)
@@ -408,7 +409,7 @@ class DeviceTransport(TransportSession):
         v[..., 4] = np.where(v[..., 4] >= 1 << 127, v[..., 4] - (1 << 128), v[..., 4])
         return v
 
-    def reduce_group(self, comm, n_slots, bands, tallies, overflow):
+    def reduce_group(self, comm, n_slots, bands, tallies, overflow, reducer=None):
         """Add the ranks' slots, images, tallies and flags of a group and put the sums back on
         the device, so every rank folds the one-rank run's batch totals.
 
@@ -420,10 +421,21 @@ class DeviceTransport(TransportSession):
         always) are summed so that none can wrap, and a slot with a summed cell at or past the
         headroom limit is flagged, as one rank's checked adds would have flagged it. With
         unchecked adds the batch cannot wrap at all (the bound covers all its packets) and the
-        fold checks the limit. Returns (tallies, overflow)."""
+        fold checks the limit. Returns (tallies, overflow).
+
+        ``reducer`` (:func:`nebula_rt.parallel.device_reducer`; CUDA): the slots and squares
+        are summed where they are, on the device (NCCL, or through the reducer's host buffer),
+        and only the images, tallies and flags travel through the host buffer."""
+        from ..parallel import DeviceSums
+
         be = self.backend
         n_lb = bands[1]
         cells = n_slots * n_lb * self.nvox * self.words
+        if reducer is not None:
+            sums = DeviceSums(comm, reducer)
+            if self.packet_sq:
+                reducer.sum_u64(self.d_sq)
+            return self._reduce(sums, n_slots, n_lb, tallies, overflow, self.d_acc[:cells])
         if self.packet_sq:
             self._reduce_squares(comm)
         mapped = be.map_host(self.d_acc, cells)
@@ -447,7 +459,8 @@ class DeviceTransport(TransportSession):
         be.upload(self.d_sq, sq)
 
     def _reduce(self, comm, n_slots, n_lb, tallies, overflow, acc):
-        """:meth:`reduce_group` with the group's slots mapped as ``acc`` (or None: copied)."""
+        """:meth:`reduce_group` with the group's slots mapped as ``acc`` (or None: copied; or
+        the device's own slots, with ``comm`` a :class:`~nebula_rt.parallel.DeviceSums`)."""
         from ..parallel import sum_checked, sum_wide
 
         be = self.backend
@@ -474,7 +487,8 @@ class DeviceTransport(TransportSession):
                 if part.size:
                     top = sum_wide(comm, part)
                     if checked:
-                        past |= (top.reshape(n_slots, -1) >= np.uint64(1 << int(self.setup.acc_limit_bits))).any(1)
+                        past |= to_numpy((top.reshape(n_slots, -1)
+                                          >= np.uint64(1 << int(self.setup.acc_limit_bits))).any(1))
             comm.sum_u64(buf[cells + pix + nt:])
         else:
             slots_checked = [] if self.setup.unchecked_adds else [(0, acc.size)]
