@@ -113,7 +113,9 @@ def main(argv=None) -> int:
     ap.add_argument("--device", default="", help="device selector (default: PoCL on opencl, by local rank on cuda)")
     ap.add_argument("--scene", default="neb", choices=("neb", "thesis"))
     ap.add_argument("--weak", action="store_true", help="--photons per rank (weak scaling)")
-    ap.add_argument("--allreduce", default="", choices=("", "auto", "nccl", "host"),
+    from nebula_rt.parallel import ALLREDUCE_CHOICES
+
+    ap.add_argument("--allreduce", default="", choices=("",) + ALLREDUCE_CHOICES,
                     help="how the ranks add their device slots (NEBULA_RT_ALLREDUCE; default: auto)")
     ap.add_argument("--out", default=None)
     ap.add_argument("--child", nargs=2, type=float, help=argparse.SUPPRESS)

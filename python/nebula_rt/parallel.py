@@ -152,8 +152,8 @@ def sum_checked(comm, parts, rows: int, limit_bits: int) -> np.ndarray:
     comm : communicator
     parts : list of (buf, checked)
         ``buf``: this rank's counts (a contiguous uint64 array, NumPy or, where ``comm`` sums
-        device arrays (:class:`DeviceSums`), CuPy), replaced by the sums over the ranks. ``checked``: the ranges (start, stop) of ``buf`` that hold headroom-checked
-        cells, each ``rows`` rows of equal length (row g: batch slot g). In a row no rank
+        device arrays (:class:`DeviceSums`), CuPy), replaced by the sums over the ranks.
+        ``checked``: the ranges (start, stop) of ``buf`` that hold headroom-checked cells, each ``rows`` rows of equal length (row g: batch slot g). In a row no rank
         flagged, every rank's checked cells are below ``2**limit_bits`` (a checked add flags
         the cell that reaches it); the other counts must be known not to pass 2^64 in the sum
         (counts whose bound covers all the ranks' packets).
@@ -268,9 +268,6 @@ class StagedReducer:
         self.backend.upload(dev, host)
         return dev
 
-    def close(self) -> None:
-        self._buf = None
-
 
 class NcclReducer:
     """Sums of CuPy uint64 arrays in place on the GPUs with NCCL (``ncclAllReduce``, sum,
@@ -289,9 +286,6 @@ class NcclReducer:
         self._comm.allReduce(ptr, ptr, int(dev.size), self._nccl.NCCL_UINT64, self._nccl.NCCL_SUM,
                              self._cp.cuda.get_current_stream().ptr)
         return dev
-
-    def close(self) -> None:  # the communicator is kept by the rank's communicator (reused)
-        pass
 
 
 class DeviceSums:

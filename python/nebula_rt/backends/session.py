@@ -448,15 +448,15 @@ class DeviceTransport(TransportSession):
         """The error estimate by packets: add the ranks' squares (exact: integers, and the
         shift keeps every cell of the sum below 2^63), in place where the device's memory is
         the host's, else through a host copy."""
+        from ..parallel import StagedReducer
+
         be, n = self.backend, int(self.d_sq.size)
         mapped = be.map_host(self.d_sq, n)
         if mapped is not None:
             with mapped as sq:
                 comm.sum_u64(sq)
             return
-        sq = be.to_host(self.d_sq)
-        comm.sum_u64(sq)
-        be.upload(self.d_sq, sq)
+        StagedReducer(comm, be).sum_u64(self.d_sq)
 
     def _reduce(self, comm, n_slots, n_lb, tallies, overflow, acc):
         """:meth:`reduce_group` with the group's slots mapped as ``acc`` (or None: copied; or
