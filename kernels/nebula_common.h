@@ -140,7 +140,9 @@ NRT_DEVICE nrt_u64x4 nrt_philox4x64_10(nrt_u64x4 ctr, nrt_u64 k0, nrt_u64 k1)
 }
 
 /*
- * One random stream per photon packet: key = (seed, band), counter = (photon, block, 0, 0).
+ * One random stream per photon packet: key = (seed, band), counter = (photon, block, 0, stream).
+ * stream is 0 for every packet; the weighted packets' split copies take streams 1, 2, ... of
+ * their packet (kernels/transport.cl), so each copy has random numbers of its own.
  * Each Philox call yields 4 x 64 bits, used as 8 x 32 bits (low word first, as numpy's
  * next_uint32 does). Nothing depends on which thread traces the packet, so results are
  * independent of scheduling.
@@ -149,6 +151,7 @@ typedef struct {
     nrt_u64 key0, key1;
     nrt_u64 photon;
     nrt_u64 block;
+    nrt_u64 stream;
     nrt_u64 b0, b1, b2, b3; /* the current block's 4 outputs, kept as scalars so that the
                                state stays in registers (an indexed array goes to local memory) */
     int pos;                 /* next 32-bit word, 0..8 */
@@ -160,6 +163,7 @@ NRT_DEVICE void nrt_rng_init(nrt_rng *r, nrt_u64 seed, nrt_u64 band, nrt_u64 pho
     r->key1 = band;
     r->photon = photon;
     r->block = 0;
+    r->stream = 0;
     r->b0 = r->b1 = r->b2 = r->b3 = 0;
     r->pos = 8;
 }
@@ -171,7 +175,7 @@ NRT_DEVICE nrt_u32 nrt_rng_u32(nrt_rng *r)
         c.v[0] = r->photon;
         c.v[1] = r->block;
         c.v[2] = 0;
-        c.v[3] = 0;
+        c.v[3] = r->stream;
         nrt_u64x4 o = nrt_philox4x64_10(c, r->key0, r->key1);
         r->b0 = o.v[0];
         r->b1 = o.v[1];

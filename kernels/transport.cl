@@ -276,12 +276,13 @@ NRT_DEVICE float nrt_tau_to_edge(const NRT_GLOBAL float *density, float sig_b, c
  * faint the weight. Rounding to nearest dropped every weight below half a unit, 2^-25 of the
  * forward phase-function peak (with g 0.9: beyond tau about 8.5 towards the observer); the
  * sums stay exact integers. The uniform comes from a Philox block of its own, counter
- * (photon, event, 1, 0) under the packet's key (seed, band): the packet's stream uses
- * counters (photon, block, 0, 0), so its random numbers, and everything else it tallies,
- * are untouched, and the image is the same bits on any device and thread order.
+ * (photon, event, 1, branch) under the packet's key (seed, band): the packet's streams use
+ * counters (photon, block, 0, stream), so its random numbers, and everything else it tallies,
+ * are untouched, and the image is the same bits on any device and thread order (branch: the
+ * split copy of a weighted packet, 0 for every analog one).
  */
 NRT_DEVICE nrt_u64 nrt_fixed_stochastic(float wgt, float scale, nrt_u64 seed, nrt_u64 band,
-                                        nrt_u64 photon, nrt_u64 event)
+                                        nrt_u64 photon, nrt_u64 event, nrt_u64 branch)
 {
     float x = NRT_FMAF(wgt, scale, 0.0f);
     float whole = floor(x);
@@ -292,7 +293,7 @@ NRT_DEVICE nrt_u64 nrt_fixed_stochastic(float wgt, float scale, nrt_u64 seed, nr
         c.v[0] = photon;
         c.v[1] = event;
         c.v[2] = 1;
-        c.v[3] = 0;
+        c.v[3] = branch;
         nrt_u64x4 r = nrt_philox4x64_10(c, seed, band);
         /* P(r < T) = T 2^-64 with T = floor(frac 2^64): frac 2^64 < 2^64 is a float whose
            conversion truncates only below 2^24, i.e. loses less than 2^-40 of frac */
@@ -332,7 +333,7 @@ NRT_DEVICE void nrt_peel(const NRT_GLOBAL float *density, float sig_b, float g_b
     if (!(wgt >= 0.0f))
         return;
     nrt_acc_add_checked(&band_image[pixel],
-                        nrt_fixed_stochastic(wgt, peel_scale, seed, (nrt_u64)band, photon, (nrt_u64)event),
+                        nrt_fixed_stochastic(wgt, peel_scale, seed, (nrt_u64)band, photon, (nrt_u64)event, 0),
                         overflow);
 }
 #endif
@@ -725,8 +726,8 @@ NRT_DEVICE int nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, fl
  *
  * A packet carries a weight W, an unsigned 128-bit integer in units of 2^-96 of its emitted
  * energy (NRT_W0 = 2^96), and every change of W is an integer operation whose pieces add back
- * exactly. Its first NRT_FORCED_FLIGHTS flights are biased; with tau_p the optical depth from
- * the packet to the box's edge along its direction:
+ * exactly. Every flight is biased; with tau_p the optical depth from the packet to the box's
+ * edge along its direction:
  *   - forced scattering: the part W e^-tau_p that would escape is tallied as escaped, the rest
  *     interacts inside the grid (Cashwell & Everett 1959);
  *   - composite biasing (Baes et al. 2016, A&A 590, A55; SKIRT 9's path-length stretching):
@@ -735,18 +736,29 @@ NRT_DEVICE int nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, fl
  *     adds or removes goes to the signed "biasing" tally;
  *   - implicit capture: the interaction absorbs W (1 - albedo) (tallied as absorbed) and
  *     scatters the rest;
- *   - Russian roulette below NRT_ROULETTE of the packet's reference weight (W0 times the
- *     product of its p / q factors, so that a packet the biasing sent deep is not killed for
- *     the low weight that gave it): it survives with probability W / T at weight T, else ends;
- *     the weight created or removed goes to the biasing tally.
- * Later flights are analog with the weight the packet has (exponential path, absorbed or
- * scattered with probability albedo): the forced flights are the ones that carry light deep
- * into the cloud and out of it, while each costs a walk to the box's edge, and stretching
- * every flight of a packet that scatters hundreds of times (high albedo, thick dust) would
- * multiply the weight's variance by up to 1 / xi per flight (E[(p / q)^2] <= 1 / xi). At most
- * 2^4 growth keeps every weight far below the 2^103 cap, so the cap never clips one.
+ *   - weight windows (importance splitting and Russian roulette; MCNP's weight windows, Booth
+ *     1982; Cooper & Larsen 2001): after each scattering the packet's weight is held against
+ *     the window of its voxel, W_c = W0 e^-(rate x depth): depth (window[], per voxel) is the
+ *     least optical depth of the reference band from a star (nebula_rt.importance), rate
+ *     (optics[4 b + 3]) the band's diffusion decay rate times its extinction factor, so W_c
+ *     falls as the light field does in thick dust. Above NRT_WINDOW_HIGH W_c the packet is
+ *     split into n = W / W_c copies (at most NRT_SPLIT_MAX) that share W exactly; below
+ *     NRT_WINDOW_LOW W_c it survives with probability W / W_c at weight W_c, else ends (the
+ *     weight created or removed goes to the biasing tally). So as many packets reach optical
+ *     depth 60 as leave the star, each carrying e^-60 of its light, where analog packets
+ *     arrive with probability e^-60 and path-length stretching alone samples the many-times
+ *     scattered light as a rare event.
+ * A copy is traced after its packet, depth first: the copies still to run wait on a stack of
+ * NRT_SPLIT_DEPTH levels (a level: one split's state and how many copies are left); a packet
+ * on a full stack, or one whose packet has made NRT_SPLIT_BUDGET copies, is not split (its
+ * weight stays; unbiased, only less efficient). Copy j of a
+ * packet (j = 1, 2, ... in the order the copies are made) draws its random numbers from
+ * stream j of the packet's Philox counter (nebula_common.h), so a packet's whole tree is the
+ * same bits on every device, thread order and number of ranks.
  * So emitted = absorbed + escaped + terminated + biasing holds bit for bit per packet, and the
- * biasing tally's expectation is zero.
+ * biasing tally's expectation is zero. NRT_FORCED_FLIGHTS (a test option) limits the forced
+ * and stretched flights to a packet's first few, the later ones analog (exponential path,
+ * absorbed or scattered with probability albedo).
  *
  * Estimators: on a forced flight the track-length one deposits the flight's expected track
  * length, W e^-tau(s) integrated over every voxel of the ray to the edge (exact per voxel:
@@ -759,15 +771,37 @@ NRT_DEVICE int nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, fl
 #ifndef NRT_BIAS_XI
 #define NRT_BIAS_XI 0.5f
 #endif
-#ifndef NRT_ROULETTE
-#define NRT_ROULETTE 0.1f
-#endif
 #ifndef NRT_FORCED_FLIGHTS
-#define NRT_FORCED_FLIGHTS 4
+#define NRT_FORCED_FLIGHTS 0x7FFFFFFF
 #endif
-/* a walk stops once the transmission e^-tau is below one weight unit of any packet
-   (W < 2^104: 2^104 e^-90 < 1e-20), so what it leaves out rounds to zero anyway */
-#define NRT_TAU_CUT 90.0f
+#ifndef NRT_STRETCH_MAX
+#define NRT_STRETCH_MAX 0.9f
+#endif
+#ifndef NRT_WINDOW_HIGH
+#define NRT_WINDOW_HIGH 3.0f
+#endif
+#ifndef NRT_WINDOW_LOW
+#define NRT_WINDOW_LOW 0.25f
+#endif
+#ifndef NRT_SPLIT_MAX
+#define NRT_SPLIT_MAX 64
+#endif
+#ifndef NRT_SPLIT_DEPTH
+#define NRT_SPLIT_DEPTH 48
+#endif
+#ifndef NRT_SPLIT_BUDGET
+#define NRT_SPLIT_BUDGET 1024 /* copies per packet at most: a safety valve, see above */
+#endif
+/* the windows stop falling at 2^-76 of a packet: a weight of 2^20 units keeps 6 digits
+   through its integer products (their rounding is a floor) */
+#define NRT_WINDOW_FLOOR 1.3234889800848443e-23f
+/* A forced flight reaches at most this optical depth: its walk stops there, and the part
+   W e^-NRT_TAU_CUT of the weight that would fly farther goes to the biasing tally (removed:
+   e^-30 = 9e-14 of the weight per flight, below float32's resolution of every factor the
+   weight takes). In thick dust the walk to the box's edge is the forced flight's cost. */
+#ifndef NRT_TAU_CUT
+#define NRT_TAU_CUT 30.0f
+#endif
 #define NRT_W0_HI 4294967296UL         /* W0 = 2^96: high word 2^32 */
 #define NRT_W_CAP_HI 549755813888UL    /* weights are kept below 2^103 (high word 2^39) */
 #define NRT_TWO64_F 18446744073709551616.0f
@@ -823,6 +857,20 @@ NRT_DEVICE nrt_u128 nrt_u128_shr(nrt_u128 a, int s)
     if (s >= 64)
         return nrt_u128_of(a.hi >> (s - 64), 0);
     return nrt_u128_of((a.lo >> s) | (a.hi << (64 - s)), a.hi >> s);
+}
+
+/* floor(a / n) for 1 <= n < 2^32, by 32-bit limbs (each step divides a number below 2^64) */
+NRT_DEVICE nrt_u128 nrt_u128_div_small(nrt_u128 a, nrt_u32 n)
+{
+    nrt_u64 d = (nrt_u64)n;
+    nrt_u64 cur = a.hi >> 32, q3 = cur / d;
+    cur = ((cur % d) << 32) | (a.hi & 0xFFFFFFFFUL);
+    nrt_u64 q2 = cur / d;
+    cur = ((cur % d) << 32) | (a.lo >> 32);
+    nrt_u64 q1 = cur / d;
+    cur = ((cur % d) << 32) | (a.lo & 0xFFFFFFFFUL);
+    nrt_u64 q0 = cur / d;
+    return nrt_u128_of((q1 << 32) | q0, (q3 << 32) | q2);
 }
 
 /* The weight relative to W0, as a float (rounded). */
@@ -952,13 +1000,14 @@ NRT_DEVICE int nrt_ray_advance(nrt_ray *r, int nx, int ny, int nz)
 }
 
 /*
- * The forced flight's first walk, to the box's edge: returns tau_p (stopped past NRT_TAU_CUT)
+ * The forced flight's first walk, to the box's edge: returns tau_p (stopped past NRT_TAU_CUT,
+ * *edge 0; *edge 1 where the walk reached the edge)
  * and, with the track-length estimator, deposits the flight's expected track length
  * w e^-tau(s) over every voxel it crosses (w: the relative weight; scale: units per box unit).
  */
 NRT_DEVICE float nrt_forced_walk(const NRT_GLOBAL float *density, float sig_b, const float *p, const float *d,
                                  int ix, int iy, int iz, int nx, int ny, int nz, float w, float scale,
-                                 NRT_GLOBAL nrt_u64 *band_acc, NRT_GLOBAL nrt_u32 *overflow)
+                                 NRT_GLOBAL nrt_u64 *band_acc, NRT_GLOBAL nrt_u32 *overflow, int *edge)
 {
     nrt_ray r;
     nrt_ray_start(&r, p, d, ix, iy, iz, nx, ny, nz);
@@ -975,8 +1024,14 @@ NRT_DEVICE float nrt_forced_walk(const NRT_GLOBAL float *density, float sig_b, c
 #endif
         att = att + att * em;
         tau += ts;
-        if (tau > NRT_TAU_CUT || !nrt_ray_advance(&r, nx, ny, nz))
+        if (tau > NRT_TAU_CUT) {
+            *edge = 0;
             return tau;
+        }
+        if (!nrt_ray_advance(&r, nx, ny, nz)) {
+            *edge = 1;
+            return tau;
+        }
     }
 }
 
@@ -1017,12 +1072,13 @@ NRT_DEVICE int nrt_walk_to(const NRT_GLOBAL float *density, float sig_b, float *
 }
 
 #if NRT_PEEL
-/* Weighted peel-off (w: relative weight after the absorption) into a 128-bit image. */
+/* Weighted peel-off (w: relative weight after the absorption; branch: the packet's copy) into a
+   128-bit image. */
 NRT_DEVICE void nrt_peel_wide(const NRT_GLOBAL float *density, float sig_b, float g_b,
                               const NRT_GLOBAL float *peel, float peel_scale, const float *x,
                               const float *d, int ix, int iy, int iz, int nx, int ny, int nz,
                               NRT_GLOBAL nrt_u64 *band_image, NRT_GLOBAL nrt_u32 *overflow,
-                              nrt_u64 seed, int band, nrt_u64 photon, int event, float w)
+                              nrt_u64 seed, int band, nrt_u64 photon, int event, nrt_u64 branch, float w)
 {
     nrt_u64 pixel;
     float wgt = nrt_peel_weight(density, sig_b, g_b, peel, x, d, ix, iy, iz, nx, ny, nz, &pixel);
@@ -1030,16 +1086,72 @@ NRT_DEVICE void nrt_peel_wide(const NRT_GLOBAL float *density, float sig_b, floa
         return; /* outside the image */
     float xw = NRT_FMAF(wgt * w, peel_scale, 0.0f);
     nrt_u128 v = xw < 16777216.0f
-        ? nrt_u128_of(nrt_fixed_stochastic(wgt * w, peel_scale, seed, (nrt_u64)band, photon, (nrt_u64)event), 0)
+        ? nrt_u128_of(nrt_fixed_stochastic(wgt * w, peel_scale, seed, (nrt_u64)band, photon, (nrt_u64)event, branch), 0)
         : nrt_u128_floor(xw);
     if (!nrt_u128_is_zero(v))
         nrt_add_wide(band_image + 2 * pixel, v, overflow, 1);
 }
 #endif
 
-/* Trace one weighted packet (see above); tally: this cell's 5 128-bit tallies. */
+/* A split packet's copies still to run: where they start, the weight of each, how many are
+   left and the stream of the first of them (the next copy to run takes first + left - 1). */
+typedef struct {
+    float p[3], d[3];
+    int ix, iy, iz, scatterings;
+    nrt_u128 w;
+    nrt_u64 first;
+    nrt_u32 left;
+} nrt_pending;
+
+/* The weight windows' depth at x and its gradient (per box unit): the depth map (cells wn[0] x
+   wn[1] x wn[2] over the box, x fastest) interpolated linearly between the cell centres
+   (constant beyond the outermost ones), so that the window falls smoothly inside a voxel of
+   large optical depth instead of in one step at its face. */
+NRT_DEVICE float nrt_window_depth(const NRT_GLOBAL float *window, const NRT_GLOBAL int *wn, const float *x,
+                                  float *grad)
+{
+    int i0[3], i1[3];
+    float f[3], inside[3];
+    for (int k = 0; k < 3; ++k) {
+        float u0 = x[k] * (float)wn[k] - 0.5f;
+        float u = fmin(fmax(u0, 0.0f), (float)(wn[k] - 1));
+        int i = (int)u;
+        i0[k] = i;
+        i1[k] = i + 1 < wn[k] ? i + 1 : i;
+        f[k] = u - (float)i;
+        inside[k] = (u == u0 && i1[k] > i) ? (float)wn[k] : 0.0f; /* d u / d x, 0 where clamped */
+    }
+    nrt_u64 sy = (nrt_u64)wn[0], sz = (nrt_u64)wn[0] * (nrt_u64)wn[1];
+    float c00 = window[i0[0] + i0[1] * sy + i0[2] * sz], c10 = window[i1[0] + i0[1] * sy + i0[2] * sz];
+    float c01 = window[i0[0] + i1[1] * sy + i0[2] * sz], c11 = window[i1[0] + i1[1] * sy + i0[2] * sz];
+    float d00 = window[i0[0] + i0[1] * sy + i1[2] * sz], d10 = window[i1[0] + i0[1] * sy + i1[2] * sz];
+    float d01 = window[i0[0] + i1[1] * sy + i1[2] * sz], d11 = window[i1[0] + i1[1] * sy + i1[2] * sz];
+    float c0 = c00 + f[0] * (c10 - c00), c1 = c01 + f[0] * (c11 - c01);
+    float d0 = d00 + f[0] * (d10 - d00), d1 = d01 + f[0] * (d11 - d01);
+    float c = c0 + f[1] * (c1 - c0), e = d0 + f[1] * (d1 - d0);
+    /* the interpolant's partial derivatives */
+    float cx = (c10 - c00) + f[1] * ((c11 - c01) - (c10 - c00));
+    float ex = (d10 - d00) + f[1] * ((d11 - d01) - (d10 - d00));
+    grad[0] = inside[0] * (cx + f[2] * (ex - cx));
+    grad[1] = inside[1] * ((c1 - c0) + f[2] * ((d1 - d0) - (c1 - c0)));
+    grad[2] = inside[2] * (e - c);
+    return c + f[2] * (e - c);
+}
+
+/* The weight window's centre at a depth, relative to W0 (see above), for a packet that left
+   its star at depth d0 (the map's depth there: the interpolation between cell centres does not
+   give 0 at the star itself) */
+NRT_DEVICE float nrt_window_of(float rate, float depth, float d0)
+{
+    return fmax(exp(-rate * fmax(depth - d0, 0.0f)), NRT_WINDOW_FLOOR);
+}
+
+/* Trace one weighted packet and its split copies (see above); tally: this cell's 5 128-bit
+   tallies; window: the windows' depth per voxel; rate: the band's windows' decay rate. */
 NRT_DEVICE void nrt_trace_packet_biased(const NRT_GLOBAL float *density, float sig_b, float alb_b,
-                                        float g_b, const NRT_GLOBAL float *stars,
+                                        float g_b, float rate, const NRT_GLOBAL float *window,
+                                        const NRT_GLOBAL int *window_shape,
+                                        const NRT_GLOBAL float *stars,
                                         const NRT_GLOBAL float *cdf, int nx, int ny, int nz,
                                         int n_stars, nrt_u64 seed, int band, nrt_u64 photon,
                                         int max_scatterings, float track_scale, float collision_scale,
@@ -1060,39 +1172,60 @@ NRT_DEVICE void nrt_trace_packet_biased(const NRT_GLOBAL float *density, float s
     nrt_u128 w = nrt_u128_of(0, NRT_W0_HI);
     nrt_count_wide(tally, 0, w);
     nrt_u128 bias = nrt_u128_of(0, 0); /* weight created (wraps negative) or removed by biasing */
-    float ref = 1.0f;                  /* product of the p / q factors: the roulette's reference */
+    float grad[3];
+    const float d0 = nrt_window_depth(window, window_shape, p, grad); /* the windows' depth at the star */
     int scatterings = 0;
+    nrt_u64 branch = 0, streams = 0; /* this copy's stream; the streams handed out so far */
+    nrt_pending stack[NRT_SPLIT_DEPTH];
+    int top = 0;
     for (;;) {
         /* the first NRT_FORCED_FLIGHTS flights forced and stretched, the later ones analog */
         int forced = scatterings < NRT_FORCED_FLIGHTS;
         float wr = nrt_weight_rel(w);
+        int alive = 1;
         if (forced) {
+            int edge;
             float tau_p = nrt_forced_walk(density, sig_b, p, d, ix, iy, iz, nx, ny, nz, wr, track_scale,
-                                          band_acc, overflow);
-            /* forced scattering: the part that would leave, exactly */
+                                          band_acc, overflow, &edge);
+            /* forced scattering: the part that would leave, exactly (or fly past NRT_TAU_CUT) */
             nrt_u128 out = (tau_p > 1.0e-30f) ? nrt_u128_times(w, exp(-tau_p)) : w;
-            nrt_count_wide(tally, 2, out);
+            if (edge)
+                nrt_count_wide(tally, 2, out);
+            else
+                bias = nrt_u128_add(bias, out);
             w = nrt_u128_sub(w, out);
-            if (nrt_u128_is_zero(w))
-                break;
-            /* composite biasing of the interaction depth on [0, tau_p] */
-            float tau_c = fmin(tau_p, NRT_TAU_CUT);
-            float reach = -expm1(-tau_c); /* 1 - e^-tau_p */
-            float u1 = nrt_rng_uniform(&rng), u2 = nrt_rng_uniform(&rng);
-            float tau_i = (u1 < NRT_BIAS_XI) ? -log1p(-u2 * reach) : u2 * tau_c;
-            float pdf = exp(-tau_i) / reach;
-            float f = pdf / (NRT_BIAS_XI * pdf + (1.0f - NRT_BIAS_XI) / tau_c);
-            nrt_u128 wf = nrt_u128_times(w, f);
-            if (wf.hi >= NRT_W_CAP_HI) /* a guard only: weights stay below 2^NRT_FORCED_FLIGHTS W0 */
-                wf = nrt_u128_of(0, NRT_W_CAP_HI - 1UL);
-            bias = nrt_u128_add(bias, nrt_u128_sub(w, wf));
-            w = wf;
-            ref = fmin(ref * f, 128.0f);
-            if (nrt_u128_is_zero(w))
-                break;
-            if (!nrt_walk_to(density, sig_b, p, d, &ix, &iy, &iz, nx, ny, nz, tau_i, 0.0f, band_acc, overflow)) {
-                nrt_count_wide(tally, 2, w); /* rounding put the point past the edge */
-                break;
+            if (nrt_u128_is_zero(w)) {
+                alive = 0;
+            } else {
+                /* composite biasing of the interaction depth on [0, tau_p]: the exponential of
+                   the dust, p, mixed with the exponential transform q_l = l e^-l tau that
+                   follows the windows, l = 1 - s with s the windows' log-slope along the
+                   flight per unit optical depth (clamped to +-NRT_STRETCH_MAX) */
+                nrt_window_depth(window, window_shape, p, grad);
+                float sig_here = sig_b * density[nrt_voxel_index(ix, iy, iz, nx, ny)];
+                float slope = sig_here > 0.0f
+                    ? rate * (grad[0] * d[0] + grad[1] * d[1] + grad[2] * d[2]) / sig_here : 0.0f;
+                float lam = 1.0f - fmin(fmax(slope, -NRT_STRETCH_MAX), NRT_STRETCH_MAX);
+                float tau_c = fmin(tau_p, NRT_TAU_CUT);
+                float reach = -expm1(-tau_c);           /* 1 - e^-tau_p */
+                float reach_l = -expm1(-lam * tau_c);   /* 1 - e^-l tau_p */
+                float u1 = nrt_rng_uniform(&rng), u2 = nrt_rng_uniform(&rng);
+                float tau_i = (u1 < NRT_BIAS_XI) ? -log1p(-u2 * reach) : -log1p(-u2 * reach_l) / lam;
+                tau_i = fmin(tau_i, tau_c);
+                /* p / q = 1 / (xi + (1 - xi) q_l / p), q_l / p = l e^((1 - l) tau) reach / reach_l */
+                float f = 1.0f / (NRT_BIAS_XI + (1.0f - NRT_BIAS_XI) * lam * exp((1.0f - lam) * tau_i) * reach / reach_l);
+                nrt_u128 wf = nrt_u128_times(w, f);
+                if (wf.hi >= NRT_W_CAP_HI) /* a guard only: the windows keep weights near W0 or below */
+                    wf = nrt_u128_of(0, NRT_W_CAP_HI - 1UL);
+                bias = nrt_u128_add(bias, nrt_u128_sub(w, wf));
+                w = wf;
+                if (nrt_u128_is_zero(w)) {
+                    alive = 0;
+                } else if (!nrt_walk_to(density, sig_b, p, d, &ix, &iy, &iz, nx, ny, nz, tau_i, 0.0f, band_acc,
+                                        overflow)) {
+                    nrt_count_wide(tally, 2, w); /* rounding put the point past the edge */
+                    alive = 0;
+                }
             }
         } else {
             /* an analog flight of weight w: the track-length deposits along the path */
@@ -1100,53 +1233,90 @@ NRT_DEVICE void nrt_trace_packet_biased(const NRT_GLOBAL float *density, float s
             if (!nrt_walk_to(density, sig_b, p, d, &ix, &iy, &iz, nx, ny, nz, tau_i,
                              NRT_TRACK_LENGTH ? wr * track_scale : 0.0f, band_acc, overflow)) {
                 nrt_count_wide(tally, 2, w);
-                break;
+                alive = 0;
             }
         }
+        if (alive) {
 #if NRT_COLLISION
-        nrt_deposit_wide(band_acc, nrt_voxel_index(ix, iy, iz, nx, ny), nrt_weight_rel(w) * collision_scale,
-                         overflow);
+            nrt_deposit_wide(band_acc, nrt_voxel_index(ix, iy, iz, nx, ny), nrt_weight_rel(w) * collision_scale,
+                             overflow);
 #endif
-        if (forced) {
-            /* implicit capture: the absorbed part of the weight, exactly */
-            nrt_u128 absorbed = nrt_u128_times(w, 1.0f - alb_b);
-            nrt_count_wide(tally, 1, absorbed);
-            w = nrt_u128_sub(w, absorbed);
-            if (nrt_u128_is_zero(w))
-                break;
-        } else if (nrt_rng_uniform(&rng) >= alb_b) {
-            nrt_count_wide(tally, 1, w);
-            w = nrt_u128_of(0, 0);
-            break;
+            if (forced) {
+                /* implicit capture: the absorbed part of the weight, exactly */
+                nrt_u128 absorbed = nrt_u128_times(w, 1.0f - alb_b);
+                nrt_count_wide(tally, 1, absorbed);
+                w = nrt_u128_sub(w, absorbed);
+                alive = !nrt_u128_is_zero(w);
+            } else if (nrt_rng_uniform(&rng) >= alb_b) {
+                nrt_count_wide(tally, 1, w);
+                alive = 0;
+            }
         }
-        if (scatterings >= max_scatterings) {
+        if (alive && scatterings >= max_scatterings) {
             nrt_count_wide(tally, 3, w);
-            w = nrt_u128_of(0, 0);
-            break;
+            alive = 0;
         }
-        ++scatterings;
+        if (alive) {
+            ++scatterings;
 #if NRT_PEEL
-        nrt_peel_wide(density, sig_b, g_b, peel, peel_scale, p, d, ix, iy, iz, nx, ny, nz, band_image,
-                      overflow, seed, band, photon, scatterings, nrt_weight_rel(w));
+            nrt_peel_wide(density, sig_b, g_b, peel, peel_scale, p, d, ix, iy, iz, nx, ny, nz, band_image, overflow,
+                          seed, band, photon, scatterings, branch, nrt_weight_rel(w));
 #endif
-        float mu, sin_theta;
-        nrt_sample_hg(g_b, nrt_rng_uniform(&rng), &mu, &sin_theta);
-        nrt_rotate(d, mu, sin_theta, 2.0f * NRT_PI_F * nrt_rng_uniform(&rng));
-        if (forced) {
-            /* Russian roulette below NRT_ROULETTE of the reference weight */
-            nrt_u128 t = nrt_weight_units(NRT_ROULETTE * ref);
-            if (nrt_u128_less(w, t)) {
-                float u = nrt_rng_uniform(&rng);
-                if (u * nrt_weight_rel(t) < nrt_weight_rel(w)) {
+            float mu, sin_theta;
+            nrt_sample_hg(g_b, nrt_rng_uniform(&rng), &mu, &sin_theta);
+            nrt_rotate(d, mu, sin_theta, 2.0f * NRT_PI_F * nrt_rng_uniform(&rng));
+            /* the weight window of the voxel: split above it, Russian roulette below */
+            float wc = nrt_window_of(rate, nrt_window_depth(window, window_shape, p, grad), d0);
+            float ratio = nrt_weight_rel(w) / wc;
+            if (ratio > NRT_WINDOW_HIGH && top < NRT_SPLIT_DEPTH && streams < NRT_SPLIT_BUDGET) {
+                nrt_u32 n = (nrt_u32)fmin(fmin(ratio, (float)NRT_SPLIT_MAX), (float)(NRT_SPLIT_BUDGET - streams + 1));
+                nrt_u128 each = nrt_u128_div_small(w, n);
+                nrt_pending *q = &stack[top++];
+                for (int k = 0; k < 3; ++k) {
+                    q->p[k] = p[k];
+                    q->d[k] = d[k];
+                }
+                q->ix = ix;
+                q->iy = iy;
+                q->iz = iz;
+                q->scatterings = scatterings;
+                q->w = each;
+                q->first = streams + 1;
+                q->left = n - 1;
+                streams += n - 1;
+                /* this copy goes on with its share and the remainder of the division */
+                w = nrt_u128_sub(w, nrt_u128_times(each, (float)(n - 1)));
+            } else if (ratio < NRT_WINDOW_LOW) {
+                nrt_u128 t = nrt_weight_units(wc);
+                if (nrt_rng_uniform(&rng) < ratio) {
                     bias = nrt_u128_add(bias, nrt_u128_sub(w, t));
                     w = t;
                 } else {
                     bias = nrt_u128_add(bias, w);
-                    w = nrt_u128_of(0, 0);
-                    break;
+                    alive = 0;
                 }
             }
+            if (alive)
+                continue;
         }
+        /* this copy has ended: the next one waiting, if any */
+        if (top == 0)
+            break;
+        nrt_pending *q = &stack[top - 1];
+        branch = q->first + (nrt_u64)(q->left - 1u);
+        for (int k = 0; k < 3; ++k) {
+            p[k] = q->p[k];
+            d[k] = q->d[k];
+        }
+        ix = q->ix;
+        iy = q->iy;
+        iz = q->iz;
+        scatterings = q->scatterings;
+        w = q->w;
+        if (--q->left == 0u)
+            --top;
+        nrt_rng_init(&rng, seed, (nrt_u64)band, photon);
+        rng.stream = branch;
     }
     nrt_count_wide(tally, 4, bias);
 }
@@ -1190,6 +1360,8 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
                               const NRT_GLOBAL nrt_u64 *emit,  /* NRT_REGIONS, NRT_SORTED: the chunk's
                                                                   emission order */
                               NRT_GLOBAL nrt_packet *states,   /* NRT_REGIONS: per state slot */
+                              const NRT_GLOBAL float *window,  /* NRT_BIASED: the weight windows' depth
+                                                                  per voxel */
                               NRT_GLOBAL nrt_u64 *keys_out,    /* NRT_REGIONS: per item it */
                               nrt_u64 n_resume, nrt_u64 n_fresh, nrt_u64 fresh0, nrt_u64 n_free,
                               nrt_u64 hwm, int region_shift)
@@ -1264,7 +1436,8 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
         nrt_u64 slot = nrt_batch_of(photon, batch_base, batch_extra) - first_batch;
         nrt_u64 cell = slot * (nrt_u64)n_lbands + (nrt_u64)lband;
 #if NRT_BIASED
-        nrt_trace_packet_biased(density, optics[4 * band], optics[4 * band + 1], optics[4 * band + 2], stars,
+        nrt_trace_packet_biased(density, optics[4 * band], optics[4 * band + 1], optics[4 * band + 2],
+                                optics[4 * band + 3], window, prm->window_shape, stars,
                                 star_cdf + band * n_stars, nx, ny, nz, n_stars, seed, band, photon,
                                 max_scatterings, track_scale, prm->collision_scale, acc + 2 * cell * nvox,
                                 tallies + NRT_TALLY_WORDS * cell, overflow + slot, peel, peel_scale,

@@ -186,7 +186,9 @@ def test_sphere_escape_at_radial_depth_8(backend):
         # slack: the ray march's own error (2e-3 relative, 4000 directions) for P0; for P1 the
         # voxelisation error, entering before and after the scattering
         assert abs(np.mean(esc) - want) < 5 * se + slack, (max_scatterings, np.mean(esc), want, se)
-        assert se / want < 0.01
+        # the windows steer the packets by the light field's depth, which the escape after
+        # one scattering only partly shares (measured: 0.2 % for P0, 2 % for P0 + P1)
+        assert se / want < 0.03
 
 
 def test_biased_error_is_honest_across_seeds(backend):
@@ -209,14 +211,16 @@ def test_peel_off_through_a_thick_block(backend):
     """The offset dust block of test_peel_off_physics seen from its far side, at extinction
     30 per box unit (optical depth 14-19 across the block): the single-scattering peel-off
     image (max_scatterings 1) of weighted packets against the same quadrature, total and in
-    blocks of pixels (4 seeds; 5 sigma plus the quadrature's own error). The light comes
+    blocks of pixels (8 seeds: the 5-sigma bound of a mean over 4 has Student's t with 3
+    degrees of freedom, 1.5 % of false alarms per block; 5 sigma plus the quadrature's own
+    error). The light comes
     through e^-7 and more of dust on the way in and out."""
     import test_peel_off_physics as ref
 
-    kappa, runs = 30.0, 4
+    kappa, runs = 30.0, 8
     rho = ref.dust_block()
     imgs = np.array([
-        trace(rho, one_band(albedo=ref.OMEGA, g=ref.G), centre_star(ref.L, ref.STAR), tau=kappa, photons=60_000,
+        trace(rho, one_band(albedo=ref.OMEGA, g=ref.G), centre_star(ref.L, ref.STAR), tau=kappa, photons=30_000,
               seed=seed, backend=backend, peel=ref.CAMERA, max_scatterings=1, method="biased").peel_image[0]
         for seed in range(1, runs + 1)])
     fine = ref.single_scattering_image(8, 48, kappa=kappa)
@@ -270,7 +274,7 @@ def test_diffusion_decay_at_albedo_0_99(backend):
     rm = shell_means(r, r, edges)
     rates = []
     for seed in range(1, runs + 1):
-        J = trace(rho, one_band(0.99, 0.0), centre_star(), tau=kappa, photons=20_000, seed=seed, backend=backend,
+        J = trace(rho, one_band(0.99, 0.0), centre_star(), tau=kappa, photons=2_000, seed=seed, backend=backend,
                   method="biased", max_scatterings=100_000).J[0]
         slope = np.polyfit(rm, np.log(rm * shell_means(J, r, edges)), 1)[0]
         rates.append(-slope / kappa)

@@ -30,6 +30,7 @@ TRACE_PARAMS = (
     ("n_bands", "i32", 1, "bands of the run"),
     ("n_stars", "i32", 1, "stars"),
     ("max_scatterings", "i32", 1, "a packet is terminated past this many scatterings"),
+    ("window_shape", "i32", 3, "NRT_BIASED: cells of the weight windows' depth map along x, y, z"),
     ("sq_shift", "i32", 1, "NRT_PACKET_SQ: squares are added in units of 2^sq_shift (square) track units"),
     ("track_scale", "f32", 1, "fixed-point track units per box unit of path"),
     ("peel_scale", "f32", 1, "fixed-point peel-off units per 1/sr"),

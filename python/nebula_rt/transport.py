@@ -48,6 +48,7 @@ from .scene import ERROR_ESTIMATES
 from .scene import METHODS as _scene_methods
 from .errors import AccumulatorOverflowError, CancelledError, NebulaWarning, SceneError, TimeLimitError
 from .postprocess import DeviceSums
+from .importance import depth_map, window_rates
 
 #: Default largest batch (packets per band): larger batches fold less often; launches last at
 #: most LAUNCH_SECONDS whatever the batch. 16 batches at least, for the error estimate. On
@@ -1010,6 +1011,10 @@ def plan_transport(density, bands, stars, *, tau: float, photons: int, estimator
         packet_sq=packets,
         sq_shift=launches.packet_scales[1] if packets else 0,
     )
+    if biased:
+        setup = dataclasses.replace(
+            setup, window=depth_map(tau * density, setup.stars),
+            window_rate=window_rates(albedo, setup.g, [b.extinction for b in bands]))
     if peel is not None:
         setup = dataclasses.replace(setup, peel=_peel_camera(peel),
                                     peel_scale=_peel_scale([b.g for b in bands]) * (WIDE_SCALE if biased else 1.0))

@@ -50,6 +50,10 @@ class TransportSetup:
         2^-96 of a packet.
     collision_scale : float
         Fixed-point units per collision of a packet of weight 1 (1 for analog packets).
+    window, window_rate : ndarray float32 or None
+        ``biased``: the weight windows' depth map (optical depth at cell centres of a grid
+        over the box, at most the density's) and decay rate per band
+        (:mod:`nebula_rt.importance`).
     """
 
     density: np.ndarray
@@ -72,6 +76,8 @@ class TransportSetup:
     unchecked_adds: bool = False
     biased: bool = False
     collision_scale: float = 1.0
+    window: object = None
+    window_rate: object = None
     #: the error estimate by packets (``transport.error_estimate``): the kernel also adds the
     #: square of each packet's deposits per voxel visit, in units of 2^sq_shift square track
     #: units, to a second slot; one batch, all bands in one launch

@@ -131,7 +131,12 @@ class DeviceTransport(TransportSession):
                           be.to_device(np.ravel(np.asarray(setup.density, np.float32), order="F")))
         optics = np.zeros((nb, 4), np.float32)
         optics[:, 0], optics[:, 1], optics[:, 2] = setup.sigma_scale, setup.albedo, setup.g
+        if setup.window_rate is not None:
+            optics[:, 3] = setup.window_rate
         self.d_optics = be.to_device(optics)
+        # weighted packets read the windows' depth map (none given: depth 0, windows at W0)
+        self.d_window = be.to_device(np.zeros(1, np.float32) if setup.window is None else
+                                     np.ravel(np.asarray(setup.window, np.float32), order="F"))
         stars4 = np.zeros((max(1, setup.stars.shape[0]), 4), np.float32)
         stars4[:setup.stars.shape[0], :3] = setup.stars
         self.d_stars = be.to_device(stars4)
@@ -140,6 +145,7 @@ class DeviceTransport(TransportSession):
         self.params = kernel_params.pack(
             seed=setup.seed, batch_base=0, batch_extra=0, nx=nx, ny=ny, nz=nz, n_bands=nb,
             n_stars=setup.stars.shape[0], max_scatterings=setup.max_scatterings, sq_shift=setup.sq_shift,
+            window_shape=(1, 1, 1) if setup.window is None else np.shape(setup.window),
             track_scale=setup.track_scale, peel_scale=setup.peel_scale, collision_scale=setup.collision_scale,
             peel=np.zeros(15, np.float32) if setup.peel is None else np.asarray(setup.peel, np.float32))
         self.d_params = be.to_device(self.params.view(np.uint8))
@@ -317,7 +323,7 @@ class DeviceTransport(TransportSession):
             np.uint64(photon_start), np.uint64(count), np.uint64(first_batch),
             np.int32(band0), np.int32(n_lb),
             self.d_acc, self.d_sq, self.d_tallies, self.d_overflow, self.d_image, self.d_keys,
-            self.d_emit if regions else self.d_keys, self.d_states if regions else self.d_keys,
+            self.d_emit if regions else self.d_keys, self.d_states if regions else self.d_keys, self.d_window,
             self.d_stopped if regions else self.d_keys, np.uint64(n_resume), np.uint64(n_fresh),
             np.uint64(fresh0), np.uint64(n_free), np.uint64(hwm), np.int32(shift), defines=self.defines)
         return items
