@@ -774,6 +774,13 @@ NRT_DEVICE int nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, fl
 #ifndef NRT_FORCED_FLIGHTS
 #define NRT_FORCED_FLIGHTS 0x7FFFFFFF
 #endif
+/* the uniform component's share per unit of absorption: a packet makes about 1 / (1 - albedo)
+   flights, and each multiplies its weight's variance by about 1 + share (1 - albedo), so the
+   product stays bounded (about e^share) at every albedo; the uniform spreads the interactions
+   evenly in optical depth, which a peel-off from a thick layer wants */
+#ifndef NRT_UNIFORM_SHARE
+#define NRT_UNIFORM_SHARE 0.5f
+#endif
 #ifndef NRT_STRETCH_MAX
 #define NRT_STRETCH_MAX 0.9f
 #endif
@@ -792,13 +799,15 @@ NRT_DEVICE int nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, fl
 #ifndef NRT_SPLIT_BUDGET
 #define NRT_SPLIT_BUDGET 1024 /* copies per packet at most: a safety valve, see above */
 #endif
-/* the windows stop falling at 2^-76 of a packet: a weight of 2^20 units keeps 6 digits
-   through its integer products (their rounding is a floor) */
-#define NRT_WINDOW_FLOOR 1.3234889800848443e-23f
-/* A forced flight reaches at most this optical depth: its walk stops there, and the part
-   W e^-NRT_TAU_CUT of the weight that would fly farther goes to the biasing tally (removed:
-   e^-30 = 9e-14 of the weight per flight, below float32's resolution of every factor the
-   weight takes). In thick dust the walk to the box's edge is the forced flight's cost. */
+/* the windows stop falling at 2^-88 of a packet (e^-61): weights there are a few hundred
+   units, whose integer products are rounded stochastically (nrt_u128_times_dither), so they
+   stay unbiased */
+#define NRT_WINDOW_FLOOR 3.2311742677852644e-27f
+/* A forced flight's walk goes on past this optical depth only while its remaining weight is
+   within e^-NRT_TAU_CUT of the windows on its way (nrt_forced_walk); the part of the weight
+   that would fly farther goes to the biasing tally (removed: at most e^-30 = 9e-14 of what
+   the windows expect there, below float32's resolution of every factor a weight takes). In
+   thick dust the walk to the box's edge is the forced flight's cost. */
 #ifndef NRT_TAU_CUT
 #define NRT_TAU_CUT 30.0f
 #endif
@@ -896,6 +905,35 @@ NRT_DEVICE nrt_u128 nrt_u128_times(nrt_u128 w, float x)
     return nrt_u128_shr(p, 24 - e);
 }
 
+/*
+ * w x rounded stochastically (as nrt_u128_times, the result one unit up with probability the
+ * discarded fraction, to 2^-32 of a unit; r: 32 random bits), so that products of weights of a
+ * few hundred units, those the deepest windows leave, are unbiased instead of rounded down.
+ */
+NRT_DEVICE nrt_u128 nrt_u128_times_dither(nrt_u128 w, float x, nrt_u32 r)
+{
+    if (!(x > 0.0f))
+        return nrt_u128_of(0, 0);
+    int e;
+    float f = NRT_FREXPF(x, &e);
+    nrt_u64 m = (nrt_u64)(f * 16777216.0f);
+    nrt_u128 p;
+    p.lo = w.lo * m;
+    p.hi = w.hi * m + NRT_MULHI64(w.lo, m);
+    int s = 24 - e;
+    nrt_u128 q = nrt_u128_shr(p, s);
+    if (s <= 0 || s > 128 + 32)
+        return q;
+    /* the top 32 bits of the s discarded bits */
+    nrt_u64 frac;
+    if (s >= 32) {
+        frac = nrt_u128_shr(p, s - 32).lo & 0xFFFFFFFFUL;
+    } else {
+        frac = (p.lo << (32 - s)) & 0xFFFFFFFFUL;
+    }
+    return (frac > (nrt_u64)r) ? nrt_u128_add(q, nrt_u128_of(1, 0)) : q;
+}
+
 /* floor(x) of a float 0 <= x < 2^128 as a 128-bit integer, exactly (NaN gives 0). */
 NRT_DEVICE nrt_u128 nrt_u128_floor(float x)
 {
@@ -950,6 +988,49 @@ NRT_DEVICE void nrt_count_wide(NRT_GLOBAL nrt_u64 *tally, int t, nrt_u128 w)
         nrt_add_wide(tally + 2 * t, w, 0, 0);
 }
 
+/* The weight windows' depth at x and its gradient (per box unit): the depth map (cells wn[0] x
+   wn[1] x wn[2] over the box, x fastest) interpolated linearly between the cell centres
+   (constant beyond the outermost ones), so that the window falls smoothly inside a voxel of
+   large optical depth instead of in one step at its face. */
+NRT_DEVICE float nrt_window_depth(const NRT_GLOBAL float *window, const NRT_GLOBAL int *wn, const float *x,
+                                  float *grad)
+{
+    int i0[3], i1[3];
+    float f[3], inside[3];
+    for (int k = 0; k < 3; ++k) {
+        float u0 = x[k] * (float)wn[k] - 0.5f;
+        float u = fmin(fmax(u0, 0.0f), (float)(wn[k] - 1));
+        int i = (int)u;
+        i0[k] = i;
+        i1[k] = i + 1 < wn[k] ? i + 1 : i;
+        f[k] = u - (float)i;
+        inside[k] = (u == u0 && i1[k] > i) ? (float)wn[k] : 0.0f; /* d u / d x, 0 where clamped */
+    }
+    nrt_u64 sy = (nrt_u64)wn[0], sz = (nrt_u64)wn[0] * (nrt_u64)wn[1];
+    float c00 = window[i0[0] + i0[1] * sy + i0[2] * sz], c10 = window[i1[0] + i0[1] * sy + i0[2] * sz];
+    float c01 = window[i0[0] + i1[1] * sy + i0[2] * sz], c11 = window[i1[0] + i1[1] * sy + i0[2] * sz];
+    float d00 = window[i0[0] + i0[1] * sy + i1[2] * sz], d10 = window[i1[0] + i0[1] * sy + i1[2] * sz];
+    float d01 = window[i0[0] + i1[1] * sy + i1[2] * sz], d11 = window[i1[0] + i1[1] * sy + i1[2] * sz];
+    float c0 = c00 + f[0] * (c10 - c00), c1 = c01 + f[0] * (c11 - c01);
+    float d0 = d00 + f[0] * (d10 - d00), d1 = d01 + f[0] * (d11 - d01);
+    float c = c0 + f[1] * (c1 - c0), e = d0 + f[1] * (d1 - d0);
+    /* the interpolant's partial derivatives */
+    float cx = (c10 - c00) + f[1] * ((c11 - c01) - (c10 - c00));
+    float ex = (d10 - d00) + f[1] * ((d11 - d01) - (d10 - d00));
+    grad[0] = inside[0] * (cx + f[2] * (ex - cx));
+    grad[1] = inside[1] * ((c1 - c0) + f[2] * ((d1 - d0) - (c1 - c0)));
+    grad[2] = inside[2] * (e - c);
+    return c + f[2] * (e - c);
+}
+
+/* The weight window's centre at a depth, relative to W0 (see above), for a packet that left
+   its star at depth d0 (the map's depth there: the interpolation between cell centres does not
+   give 0 at the star itself) */
+NRT_DEVICE float nrt_window_of(float rate, float depth, float d0)
+{
+    return fmax(exp(-rate * fmax(depth - d0, 0.0f)), NRT_WINDOW_FLOOR);
+}
+
 /* A straight ray through the grid, voxel by voxel (the DDA of nrt_trace_packet). */
 typedef struct {
     float p[3], d[3], inv_d[3];
@@ -1000,18 +1081,24 @@ NRT_DEVICE int nrt_ray_advance(nrt_ray *r, int nx, int ny, int nz)
 }
 
 /*
- * The forced flight's first walk, to the box's edge: returns tau_p (stopped past NRT_TAU_CUT,
- * *edge 0; *edge 1 where the walk reached the edge)
+ * The forced flight's first walk, to the box's edge: returns tau_p, *edge 1 where the walk
+ * reached the edge. Past NRT_TAU_CUT it stops (*edge 0) where the flight's remaining weight
+ * w e^-tau falls e^-NRT_TAU_CUT below the window there (the light the windows expect there):
+ * what it leaves out is that far below what other packets bring (window: the windows' depth
+ * map, its cells wn, the band's rate and the packet's depth at its star, d0)
  * and, with the track-length estimator, deposits the flight's expected track length
  * w e^-tau(s) over every voxel it crosses (w: the relative weight; scale: units per box unit).
  */
 NRT_DEVICE float nrt_forced_walk(const NRT_GLOBAL float *density, float sig_b, const float *p, const float *d,
                                  int ix, int iy, int iz, int nx, int ny, int nz, float w, float scale,
-                                 NRT_GLOBAL nrt_u64 *band_acc, NRT_GLOBAL nrt_u32 *overflow, int *edge)
+                                 NRT_GLOBAL nrt_u64 *band_acc, NRT_GLOBAL nrt_u32 *overflow,
+                                 const NRT_GLOBAL float *window, const NRT_GLOBAL int *wn, float rate, float d0,
+                                 int *edge)
 {
     nrt_ray r;
     nrt_ray_start(&r, p, d, ix, iy, iz, nx, ny, nz);
     float tau = 0.0f, att = w * scale;
+    const float log_w = log(w);
     for (;;) {
         float seg = nrt_ray_segment(&r);
         float sigma = sig_b * density[r.idx];
@@ -1025,8 +1112,14 @@ NRT_DEVICE float nrt_forced_walk(const NRT_GLOBAL float *density, float sig_b, c
         att = att + att * em;
         tau += ts;
         if (tau > NRT_TAU_CUT) {
-            *edge = 0;
-            return tau;
+            float t = r.t_cur + seg, x[3], grad[3];
+            for (int k = 0; k < 3; ++k)
+                x[k] = p[k] + d[k] * t;
+            float depth = nrt_window_depth(window, wn, x, grad);
+            if (tau > NRT_TAU_CUT + log_w + rate * fmax(depth - d0, 0.0f)) {
+                *edge = 0;
+                return tau;
+            }
         }
         if (!nrt_ray_advance(&r, nx, ny, nz)) {
             *edge = 1;
@@ -1103,49 +1196,6 @@ typedef struct {
     nrt_u32 left;
 } nrt_pending;
 
-/* The weight windows' depth at x and its gradient (per box unit): the depth map (cells wn[0] x
-   wn[1] x wn[2] over the box, x fastest) interpolated linearly between the cell centres
-   (constant beyond the outermost ones), so that the window falls smoothly inside a voxel of
-   large optical depth instead of in one step at its face. */
-NRT_DEVICE float nrt_window_depth(const NRT_GLOBAL float *window, const NRT_GLOBAL int *wn, const float *x,
-                                  float *grad)
-{
-    int i0[3], i1[3];
-    float f[3], inside[3];
-    for (int k = 0; k < 3; ++k) {
-        float u0 = x[k] * (float)wn[k] - 0.5f;
-        float u = fmin(fmax(u0, 0.0f), (float)(wn[k] - 1));
-        int i = (int)u;
-        i0[k] = i;
-        i1[k] = i + 1 < wn[k] ? i + 1 : i;
-        f[k] = u - (float)i;
-        inside[k] = (u == u0 && i1[k] > i) ? (float)wn[k] : 0.0f; /* d u / d x, 0 where clamped */
-    }
-    nrt_u64 sy = (nrt_u64)wn[0], sz = (nrt_u64)wn[0] * (nrt_u64)wn[1];
-    float c00 = window[i0[0] + i0[1] * sy + i0[2] * sz], c10 = window[i1[0] + i0[1] * sy + i0[2] * sz];
-    float c01 = window[i0[0] + i1[1] * sy + i0[2] * sz], c11 = window[i1[0] + i1[1] * sy + i0[2] * sz];
-    float d00 = window[i0[0] + i0[1] * sy + i1[2] * sz], d10 = window[i1[0] + i0[1] * sy + i1[2] * sz];
-    float d01 = window[i0[0] + i1[1] * sy + i1[2] * sz], d11 = window[i1[0] + i1[1] * sy + i1[2] * sz];
-    float c0 = c00 + f[0] * (c10 - c00), c1 = c01 + f[0] * (c11 - c01);
-    float d0 = d00 + f[0] * (d10 - d00), d1 = d01 + f[0] * (d11 - d01);
-    float c = c0 + f[1] * (c1 - c0), e = d0 + f[1] * (d1 - d0);
-    /* the interpolant's partial derivatives */
-    float cx = (c10 - c00) + f[1] * ((c11 - c01) - (c10 - c00));
-    float ex = (d10 - d00) + f[1] * ((d11 - d01) - (d10 - d00));
-    grad[0] = inside[0] * (cx + f[2] * (ex - cx));
-    grad[1] = inside[1] * ((c1 - c0) + f[2] * ((d1 - d0) - (c1 - c0)));
-    grad[2] = inside[2] * (e - c);
-    return c + f[2] * (e - c);
-}
-
-/* The weight window's centre at a depth, relative to W0 (see above), for a packet that left
-   its star at depth d0 (the map's depth there: the interpolation between cell centres does not
-   give 0 at the star itself) */
-NRT_DEVICE float nrt_window_of(float rate, float depth, float d0)
-{
-    return fmax(exp(-rate * fmax(depth - d0, 0.0f)), NRT_WINDOW_FLOOR);
-}
-
 /* Trace one weighted packet and its split copies (see above); tally: this cell's 5 128-bit
    tallies; window: the windows' depth per voxel; rate: the band's windows' decay rate. */
 NRT_DEVICE void nrt_trace_packet_biased(const NRT_GLOBAL float *density, float sig_b, float alb_b,
@@ -1179,94 +1229,18 @@ NRT_DEVICE void nrt_trace_packet_biased(const NRT_GLOBAL float *density, float s
     nrt_pending stack[NRT_SPLIT_DEPTH];
     int top = 0;
     for (;;) {
-        /* the first NRT_FORCED_FLIGHTS flights forced and stretched, the later ones analog */
-        int forced = scatterings < NRT_FORCED_FLIGHTS;
-        float wr = nrt_weight_rel(w);
         int alive = 1;
-        if (forced) {
-            int edge;
-            float tau_p = nrt_forced_walk(density, sig_b, p, d, ix, iy, iz, nx, ny, nz, wr, track_scale,
-                                          band_acc, overflow, &edge);
-            /* forced scattering: the part that would leave, exactly (or fly past NRT_TAU_CUT) */
-            nrt_u128 out = (tau_p > 1.0e-30f) ? nrt_u128_times(w, exp(-tau_p)) : w;
-            if (edge)
-                nrt_count_wide(tally, 2, out);
-            else
-                bias = nrt_u128_add(bias, out);
-            w = nrt_u128_sub(w, out);
-            if (nrt_u128_is_zero(w)) {
-                alive = 0;
-            } else {
-                /* composite biasing of the interaction depth on [0, tau_p]: the exponential of
-                   the dust, p, mixed with the exponential transform q_l = l e^-l tau that
-                   follows the windows, l = 1 - s with s the windows' log-slope along the
-                   flight per unit optical depth (clamped to +-NRT_STRETCH_MAX) */
-                nrt_window_depth(window, window_shape, p, grad);
-                float sig_here = sig_b * density[nrt_voxel_index(ix, iy, iz, nx, ny)];
-                float slope = sig_here > 0.0f
-                    ? rate * (grad[0] * d[0] + grad[1] * d[1] + grad[2] * d[2]) / sig_here : 0.0f;
-                float lam = 1.0f - fmin(fmax(slope, -NRT_STRETCH_MAX), NRT_STRETCH_MAX);
-                float tau_c = fmin(tau_p, NRT_TAU_CUT);
-                float reach = -expm1(-tau_c);           /* 1 - e^-tau_p */
-                float reach_l = -expm1(-lam * tau_c);   /* 1 - e^-l tau_p */
-                float u1 = nrt_rng_uniform(&rng), u2 = nrt_rng_uniform(&rng);
-                float tau_i = (u1 < NRT_BIAS_XI) ? -log1p(-u2 * reach) : -log1p(-u2 * reach_l) / lam;
-                tau_i = fmin(tau_i, tau_c);
-                /* p / q = 1 / (xi + (1 - xi) q_l / p), q_l / p = l e^((1 - l) tau) reach / reach_l */
-                float f = 1.0f / (NRT_BIAS_XI + (1.0f - NRT_BIAS_XI) * lam * exp((1.0f - lam) * tau_i) * reach / reach_l);
-                nrt_u128 wf = nrt_u128_times(w, f);
-                if (wf.hi >= NRT_W_CAP_HI) /* a guard only: the windows keep weights near W0 or below */
-                    wf = nrt_u128_of(0, NRT_W_CAP_HI - 1UL);
-                bias = nrt_u128_add(bias, nrt_u128_sub(w, wf));
-                w = wf;
-                if (nrt_u128_is_zero(w)) {
-                    alive = 0;
-                } else if (!nrt_walk_to(density, sig_b, p, d, &ix, &iy, &iz, nx, ny, nz, tau_i, 0.0f, band_acc,
-                                        overflow)) {
-                    nrt_count_wide(tally, 2, w); /* rounding put the point past the edge */
-                    alive = 0;
-                }
-            }
-        } else {
-            /* an analog flight of weight w: the track-length deposits along the path */
-            float tau_i = nrt_sample_tau(&rng);
-            if (!nrt_walk_to(density, sig_b, p, d, &ix, &iy, &iz, nx, ny, nz, tau_i,
-                             NRT_TRACK_LENGTH ? wr * track_scale : 0.0f, band_acc, overflow)) {
-                nrt_count_wide(tally, 2, w);
-                alive = 0;
-            }
-        }
-        if (alive) {
-#if NRT_COLLISION
-            nrt_deposit_wide(band_acc, nrt_voxel_index(ix, iy, iz, nx, ny), nrt_weight_rel(w) * collision_scale,
-                             overflow);
-#endif
-            if (forced) {
-                /* implicit capture: the absorbed part of the weight, exactly */
-                nrt_u128 absorbed = nrt_u128_times(w, 1.0f - alb_b);
-                nrt_count_wide(tally, 1, absorbed);
-                w = nrt_u128_sub(w, absorbed);
-                alive = !nrt_u128_is_zero(w);
-            } else if (nrt_rng_uniform(&rng) >= alb_b) {
-                nrt_count_wide(tally, 1, w);
-                alive = 0;
-            }
-        }
-        if (alive && scatterings >= max_scatterings) {
-            nrt_count_wide(tally, 3, w);
-            alive = 0;
-        }
-        if (alive) {
-            ++scatterings;
-#if NRT_PEEL
-            nrt_peel_wide(density, sig_b, g_b, peel, peel_scale, p, d, ix, iy, iz, nx, ny, nz, band_image, overflow,
-                          seed, band, photon, scatterings, branch, nrt_weight_rel(w));
-#endif
-            float mu, sin_theta;
-            nrt_sample_hg(g_b, nrt_rng_uniform(&rng), &mu, &sin_theta);
-            nrt_rotate(d, mu, sin_theta, 2.0f * NRT_PI_F * nrt_rng_uniform(&rng));
-            /* the weight window of the voxel: split above it, Russian roulette below */
-            float wc = nrt_window_of(rate, nrt_window_depth(window, window_shape, p, grad), d0);
+        /* the windows' log-slope s along the direction per unit optical depth, clamped to
+           +-NRT_STRETCH_MAX, and l = 1 - s: the window's angular factor and the flight's
+           stretch (below) */
+        float depth = nrt_window_depth(window, window_shape, p, grad);
+        float sig_here = sig_b * density[nrt_voxel_index(ix, iy, iz, nx, ny)];
+        float slope = sig_here > 0.0f ? rate * (grad[0] * d[0] + grad[1] * d[1] + grad[2] * d[2]) / sig_here : 0.0f;
+        float lam = 1.0f - fmin(fmax(slope, -NRT_STRETCH_MAX), NRT_STRETCH_MAX);
+        {
+            /* the weight window at the packet's place and direction: split above it, Russian
+               roulette below */
+            float wc = nrt_window_of(rate, depth, d0) * lam;
             float ratio = nrt_weight_rel(w) / wc;
             if (ratio > NRT_WINDOW_HIGH && top < NRT_SPLIT_DEPTH && streams < NRT_SPLIT_BUDGET) {
                 nrt_u32 n = (nrt_u32)fmin(fmin(ratio, (float)NRT_SPLIT_MAX), (float)(NRT_SPLIT_BUDGET - streams + 1));
@@ -1296,8 +1270,92 @@ NRT_DEVICE void nrt_trace_packet_biased(const NRT_GLOBAL float *density, float s
                     alive = 0;
                 }
             }
-            if (alive)
-                continue;
+        }
+        /* the first NRT_FORCED_FLIGHTS flights forced and stretched, the later ones analog */
+        int forced = scatterings < NRT_FORCED_FLIGHTS;
+        float wr = nrt_weight_rel(w);
+        if (alive && forced) {
+            int edge;
+            float tau_p = nrt_forced_walk(density, sig_b, p, d, ix, iy, iz, nx, ny, nz, wr, track_scale,
+                                          band_acc, overflow, window, window_shape, rate, d0, &edge);
+            /* forced scattering: the part that would leave, exactly (or fly past the cut) */
+            nrt_u128 out = (tau_p > 1.0e-30f) ? nrt_u128_times_dither(w, exp(-tau_p), nrt_rng_u32(&rng)) : w;
+            if (edge)
+                nrt_count_wide(tally, 2, out);
+            else
+                bias = nrt_u128_add(bias, out);
+            w = nrt_u128_sub(w, out);
+            if (nrt_u128_is_zero(w)) {
+                alive = 0;
+            } else {
+                /* composite biasing of the interaction depth on [0, tau_p]: the exponential of
+                   the dust p (share NRT_BIAS_XI) mixed with the exponential transform
+                   q_l = l e^-l tau that follows the windows and the uniform u = 1 / tau_p
+                   (share NRT_UNIFORM_SHARE x (1 - albedo)), all truncated to [0, tau_p] */
+                float xi_u = NRT_UNIFORM_SHARE * (1.0f - alb_b);
+                float tau_c = tau_p;
+                float reach = -expm1(-tau_c);           /* 1 - e^-tau_p */
+                float reach_l = -expm1(-lam * tau_c);   /* 1 - e^-l tau_p */
+                float u1 = nrt_rng_uniform(&rng), u2 = nrt_rng_uniform(&rng);
+                float tau_i = (u1 < NRT_BIAS_XI) ? -log1p(-u2 * reach)
+                            : (u1 < NRT_BIAS_XI + xi_u) ? u2 * tau_c : -log1p(-u2 * reach_l) / lam;
+                tau_i = fmin(tau_i, tau_c);
+                /* p / q = 1 / (xi + xi_u u / p + xi_l q_l / p), with u / p = reach e^tau / tau_p and
+                   q_l / p = l e^((1 - l) tau) reach / reach_l */
+                float f = 1.0f / (NRT_BIAS_XI + xi_u * reach * exp(tau_i) / tau_c
+                                  + (1.0f - NRT_BIAS_XI - xi_u) * lam * exp((1.0f - lam) * tau_i) * reach / reach_l);
+                nrt_u128 wf = nrt_u128_times_dither(w, f, nrt_rng_u32(&rng));
+                if (wf.hi >= NRT_W_CAP_HI) /* a guard only: the windows keep weights near W0 or below */
+                    wf = nrt_u128_of(0, NRT_W_CAP_HI - 1UL);
+                bias = nrt_u128_add(bias, nrt_u128_sub(w, wf));
+                w = wf;
+                if (nrt_u128_is_zero(w)) {
+                    alive = 0;
+                } else if (!nrt_walk_to(density, sig_b, p, d, &ix, &iy, &iz, nx, ny, nz, tau_i, 0.0f, band_acc,
+                                        overflow)) {
+                    nrt_count_wide(tally, 2, w); /* rounding put the point past the edge */
+                    alive = 0;
+                }
+            }
+        } else if (alive) {
+            /* an analog flight of weight w: the track-length deposits along the path */
+            float tau_i = nrt_sample_tau(&rng);
+            if (!nrt_walk_to(density, sig_b, p, d, &ix, &iy, &iz, nx, ny, nz, tau_i,
+                             NRT_TRACK_LENGTH ? wr * track_scale : 0.0f, band_acc, overflow)) {
+                nrt_count_wide(tally, 2, w);
+                alive = 0;
+            }
+        }
+        if (alive) {
+#if NRT_COLLISION
+            nrt_deposit_wide(band_acc, nrt_voxel_index(ix, iy, iz, nx, ny), nrt_weight_rel(w) * collision_scale,
+                             overflow);
+#endif
+            if (forced) {
+                /* implicit capture: the absorbed part of the weight, exactly */
+                nrt_u128 absorbed = nrt_u128_times_dither(w, 1.0f - alb_b, nrt_rng_u32(&rng));
+                nrt_count_wide(tally, 1, absorbed);
+                w = nrt_u128_sub(w, absorbed);
+                alive = !nrt_u128_is_zero(w);
+            } else if (nrt_rng_uniform(&rng) >= alb_b) {
+                nrt_count_wide(tally, 1, w);
+                alive = 0;
+            }
+        }
+        if (alive && scatterings >= max_scatterings) {
+            nrt_count_wide(tally, 3, w);
+            alive = 0;
+        }
+        if (alive) {
+            ++scatterings;
+#if NRT_PEEL
+            nrt_peel_wide(density, sig_b, g_b, peel, peel_scale, p, d, ix, iy, iz, nx, ny, nz, band_image, overflow,
+                          seed, band, photon, scatterings, branch, nrt_weight_rel(w));
+#endif
+            float mu, sin_theta;
+            nrt_sample_hg(g_b, nrt_rng_uniform(&rng), &mu, &sin_theta);
+            nrt_rotate(d, mu, sin_theta, 2.0f * NRT_PI_F * nrt_rng_uniform(&rng));
+            continue;
         }
         /* this copy has ended: the next one waiting, if any */
         if (top == 0)
