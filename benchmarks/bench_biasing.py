@@ -89,7 +89,7 @@ def plot(rows, path):
     for ax, key, title in ((axes[0], "fom_lit", "lit region of J"), (axes[1], "fom_image", "peel-off image total")):
         for kind, ls in [(k, l) for k, l in (("slab", "-"), ("sphere", "--")) if any(r["scene"] == k for r in rows)]:
             ffs = sorted({r["forced_flights"] for r in rows if r["method"] == "biased"})
-            ff = 4 if 4 in ffs else ffs[0]  # the library's default, else the first measured
+            ff = 0 if 0 in ffs else ffs[0]  # the library's default, else the first measured
             for method, colour in (("analog", "tab:blue"), ("biased", "tab:red")):
                 pts = [(r["tau"], r[key]) for r in rows if r["scene"] == kind and r["method"] == method
                        and (method == "analog" or r["forced_flights"] == ff)]
@@ -118,8 +118,9 @@ def main(argv=None) -> int:
     ap.add_argument("--scenes", nargs="+", default=["slab", "sphere"])
     ap.add_argument("--albedo", type=float, default=0.6)
     ap.add_argument("--g", type=float, default=0.6)
-    ap.add_argument("--forced-flights", type=int, nargs="+", default=[4],
-                    help="biased: forced flights per packet (kernel option NRT_FORCED_FLIGHTS), one row each")
+    ap.add_argument("--forced-flights", type=int, nargs="+", default=[0],
+                    help="biased: forced flights per packet (kernel option NRT_FORCED_FLIGHTS; 0: the "
+                         "kernel's default, every flight), one row each")
     ap.add_argument("--program", default=None,
                     help="a variant of kernels/transport.cl to time instead (e.g. transport_x.cl)")
     ap.add_argument("--out", default=None)

@@ -7,7 +7,7 @@
 # WHEELDIR holds wheels for what the machine lacks (pyopencl and its pure-Python needs,
 # colour-science, tomli-w; pmcx for the MCX comparison), fetched elsewhere with
 # `pip download --only-binary=:all: --python-version 3.12 ...`.
-# STEPS (default "tests bench neb128 compare profile"; also "tests-cuda", "scaling", "large", "regions", "regcaps", "profile-regions", "layout", "sorted", "probe", "ranks", "ranks-thesis", "ranks-weak", "tests-mpi", "e2e1e9", "biasing", "fit", "tune",
+# STEPS (default "tests bench neb128 compare profile"; also "tests-cuda", "thick", "scaling", "large", "regions", "regcaps", "profile-regions", "layout", "sorted", "probe", "ranks", "ranks-thesis", "ranks-weak", "tests-mpi", "e2e1e9", "biasing", "fit", "tune",
 # "stages", "trade", "presets", "empty", "fft") selects what runs. Everything printed
 # goes to OUTDIR/log.txt as well; JSON and .npz results beside it.
 set -uo pipefail
@@ -38,6 +38,20 @@ if [[ " $steps " == *" tests-mpi "* ]]; then
     # each rank has a GPU of its own, else through the host)
     echo "== MPI tests, CUDA ranks"; NCCL_NVLS_ENABLE=0 NEBULA_RT_TEST_BACKEND=cuda python3 -m pytest -q -p no:cacheprovider \
         tests/test_mpi.py -k "same_bits and (plain or packets or biased) or device_arrays or nccl_loads or allreduce" 2>&1 | tail -n 8
+fi
+if [[ " $steps " == *" thick "* ]]; then
+    # light through thick slabs against the exact answer (tests/oracles), CUDA and NVIDIA OpenCL;
+    # the former weighted packets too where a copy of that commit's python/ (with its kernels
+    # as nebula_rt/kernels) lies in .former/
+    echo "== thick slab tests, CUDA"; NEBULA_RT_TEST_BACKEND=cuda python3 -m pytest -q -p no:cacheprovider \
+        tests/test_thick_slab.py tests/test_biased_transport.py tests/test_cuda_sources.py 2>&1 | tail -n 4
+    kw="--albedos 0.6 --gs 0.6 --taus 10 20 30 60 --photons ${THICK_PHOTONS:-1e6} --seeds 16"
+    echo "== thick slab, CUDA"; python3 benchmarks/bench_thick_slab.py --backend cuda $kw --methods biased analog --out "$out/thick-slab-cuda.json"
+    echo "== thick slab, NVIDIA OpenCL"; python3 benchmarks/bench_thick_slab.py --backend opencl --device NVIDIA $kw --methods biased analog --out "$out/thick-slab-nvidia-opencl.json"
+    if [[ -d .former/python ]]; then
+        echo "== thick slab, former weighted packets, CUDA"
+        PYTHONPATH=.former/python${PYTHONPATH:+:$PYTHONPATH} python3 benchmarks/bench_thick_slab.py --backend cuda $kw --methods biased --label former --out "$out/thick-slab-former-cuda.json"
+    fi
 fi
 if [[ " $steps " == *" tests-cuda "* ]]; then
     echo "== physics tests, CUDA"; NEBULA_RT_TEST_BACKEND=cuda python3 -m pytest -q -p no:cacheprovider $physics tests/test_cuda_sources.py 2>&1 | tail -n 8
