@@ -239,7 +239,7 @@ def test_peel_off_through_a_thick_block(backend):
 
 def test_auto_takes_the_method_measured_best(backend):
     """transport.method = "auto": analog for a light field alone at any depth; for a run with a
-    peel-off image, biased below optical depth 1 or above 40 from the stars to the box's edge
+    peel-off image, biased below optical depth 0.2 or above 10 from the stars to the box's edge
     (the median over the stars and the six axis directions), analog between."""
     from nebula_rt.sky import Camera
     from nebula_rt.transport import AUTO_THICK, AUTO_THIN, resolve_method, scene_optical_depth
@@ -249,12 +249,14 @@ def test_auto_takes_the_method_measured_best(backend):
     cam = Camera(direction=(0.0, 0.0, -1.0), size=(8, 8))
     # the centre of a uniform cube: tau / 2 along every axis
     assert scene_optical_depth(rho, 3.0, star) == pytest.approx(1.5, rel=1e-6)
-    for tau, with_peel in ((0.5, "biased"), (4.0, "analog"), (100.0, "biased")):
+    assert (AUTO_THIN, AUTO_THICK) == (0.2, 10.0)
+    for tau, with_peel in ((0.3, "biased"), (0.5, "analog"), (4.0, "analog"), (19.0, "analog"), (21.0, "biased"),
+                           (100.0, "biased")):
         assert resolve_method("auto", rho, tau, star, None) == "analog"
         assert resolve_method("auto", rho, tau, star, cam) == with_peel
         assert resolve_method("analog", rho, tau, star, cam) == "analog"
     assert AUTO_THIN < AUTO_THICK
-    res = trace(rho, one_band(), star, tau=0.5, photons=2000, backend=backend, method="auto", peel=cam)
+    res = trace(rho, one_band(), star, tau=0.3, photons=2000, backend=backend, method="auto", peel=cam)
     assert res.method == "biased" and res.counts.shape == (1, 5)
     with pytest.raises(Exception, match="transport.method"):
         resolve_method("weighted", rho, 1.0, star, cam)

@@ -68,6 +68,15 @@ DUST_MODELS = ("turbulence", "uniform", "file")
 ESTIMATORS = ("track-length", "collision-filter")
 #: transport.method: chosen per run from the measurement (auto), analog packets, or weighted ones
 METHODS = ("auto", "analog", "biased")
+#: ``transport.method = "auto"``: the scene optical depths (nebula_rt.transport.
+#: scene_optical_depth) between which a run with a peel-off image stays analog. Measured on
+#: an H200 (benchmarks/bench_biasing.py, 64^3, 1e7 packets, slab and sphere, albedo 0.6, g 0.6;
+#: benchmarks/results/h200-2026-12-03/; docs/physics.md): the image's figure of merit of the
+#: weighted packets is 1.4-1.6 times the analog one at depth 0.1, 0.3-0.6 times at 0.3-3, equal
+#: at 10, and 50-900 times at 20-30, where the analog image is also wrong (14 % low at 20, 92 %
+#: at 30, empty at 60: benchmarks/bench_thick_slab.py); the light field is analog at every
+#: depth (its figure of merit 3-60 times the weighted packets' over the lit region).
+AUTO_THIN, AUTO_THICK = 0.2, 10.0
 #: transport.error_estimate: how the error of J is estimated (nebula_rt.transport)
 ERROR_ESTIMATES = ("auto", "batches", "packets")
 BACKENDS = ("auto", "opencl", "cuda")
@@ -269,10 +278,10 @@ class Transport:
         "auto", type="str", choices=METHODS, label="Transport Method", group=G_TRANSPORT,
         doc="How packets are traced. analog: every packet is one unit of energy, absorbed or "
             "scattered with probability albedo; biased: weighted packets with forced scattering, "
-            "composite path-length biasing and Russian roulette, which sample light behind "
-            "optically thick dust; auto: what was measured best for the run (docs/physics.md): "
+            "composite path-length biasing and weight windows (splitting and Russian roulette), "
+            "which sample light behind optically thick dust; auto: what was measured best for the run (docs/physics.md): "
             "analog for the light field, biased for a peel-off image when the optical depth from "
-            "the stars to the box's edge is below 1 or above 40")
+            f"the stars to the box's edge is below {AUTO_THIN:g} or above {AUTO_THICK:g}")
     error_estimate: str = param(
         "auto", type="str", choices=ERROR_ESTIMATES, label="Error Estimate", group=G_TRANSPORT, advanced=True,
         doc="How the error of J is estimated. batches: the spread of the totals of at least 16 batches "

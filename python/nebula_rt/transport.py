@@ -46,6 +46,7 @@ from .array_api import array_module
 from .backends import Backend, TransportSetup
 from .scene import ERROR_ESTIMATES
 from .scene import METHODS as _scene_methods
+from .scene import AUTO_THICK, AUTO_THIN  # noqa: F401  (auto's thresholds, declared with the method)
 from .errors import AccumulatorOverflowError, CancelledError, NebulaWarning, SceneError, TimeLimitError
 from .postprocess import DeviceSums
 from .importance import depth_map, window_rates
@@ -75,13 +76,6 @@ BIASED_TALLY_NAMES = TALLY_NAMES + ("biasing",)
 #: packet one unit, absorbed or scattered with probability albedo), biased (weighted packets,
 #: kernels/transport.cl), or auto (:func:`resolve_method`).
 METHODS = _scene_methods
-#: ``auto``: the optical depths between which a peel-off run stays analog. Measured
-#: (benchmarks/bench_biasing.py, H200, slab and sphere; docs/physics.md): the biased method's
-#: figure of merit for the peel-off image is 2-10 times the analog one below depth 1 (forced
-#: scattering: every packet scatters and peels off), within a factor of 2 either way from 1 to
-#: 30, and the analog image is empty at 60; for the light field the analog one is better at
-#: every depth from 0.1 to 60.
-AUTO_THIN, AUTO_THICK = 1.0, 40.0
 
 
 def scene_optical_depth(density, tau: float, stars) -> float:
