@@ -889,26 +889,12 @@ NRT_DEVICE float nrt_weight_rel(nrt_u128 w)
 }
 
 /*
- * floor(w x) for 0 <= x < 2^24 and w < 2^104, exactly: x = m 2^(e - 24) with m a 24-bit
- * integer (frexp), so w x = (w m) >> (24 - e) with w m < 2^128. NaN and x <= 0 give 0.
- */
-NRT_DEVICE nrt_u128 nrt_u128_times(nrt_u128 w, float x)
-{
-    if (!(x > 0.0f))
-        return nrt_u128_of(0, 0);
-    int e;
-    float f = NRT_FREXPF(x, &e);
-    nrt_u64 m = (nrt_u64)(f * 16777216.0f); /* exact: f in [0.5, 1) */
-    nrt_u128 p;
-    p.lo = w.lo * m;
-    p.hi = w.hi * m + NRT_MULHI64(w.lo, m);
-    return nrt_u128_shr(p, 24 - e);
-}
-
-/*
- * w x rounded stochastically (as nrt_u128_times, the result one unit up with probability the
- * discarded fraction, to 2^-32 of a unit; r: 32 random bits), so that products of weights of a
- * few hundred units, those the deepest windows leave, are unbiased instead of rounded down.
+ * w x for 0 <= x < 2^24 and w < 2^104: x = m 2^(e - 24) with m a 24-bit integer (frexp), so
+ * w x = (w m) >> (24 - e) with w m < 2^128, exactly; the result is rounded down, and then one
+ * unit up where the top 32 of the discarded bits exceed r. With r 32 random bits that is
+ * stochastic rounding (to 2^-32 of a unit), so that products of weights of a few hundred
+ * units, those the deepest windows leave, are unbiased; r = 2^32 - 1 gives floor(w x). NaN
+ * and x <= 0 give 0.
  */
 NRT_DEVICE nrt_u128 nrt_u128_times_dither(nrt_u128 w, float x, nrt_u32 r)
 {
@@ -932,6 +918,12 @@ NRT_DEVICE nrt_u128 nrt_u128_times_dither(nrt_u128 w, float x, nrt_u32 r)
         frac = (p.lo << (32 - s)) & 0xFFFFFFFFUL;
     }
     return (frac > (nrt_u64)r) ? nrt_u128_add(q, nrt_u128_of(1, 0)) : q;
+}
+
+/* floor(w x) exactly (see nrt_u128_times_dither) */
+NRT_DEVICE nrt_u128 nrt_u128_times(nrt_u128 w, float x)
+{
+    return nrt_u128_times_dither(w, x, 0xFFFFFFFFu);
 }
 
 /* floor(x) of a float 0 <= x < 2^128 as a 128-bit integer, exactly (NaN gives 0). */
