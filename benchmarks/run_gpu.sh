@@ -7,7 +7,7 @@
 # WHEELDIR holds wheels for what the machine lacks (pyopencl and its pure-Python needs,
 # colour-science, tomli-w; pmcx for the MCX comparison), fetched elsewhere with
 # `pip download --only-binary=:all: --python-version 3.12 ...`.
-# STEPS (default "tests bench neb128 compare profile"; also "tests-cuda", "thick", "scaling", "large", "regions", "regcaps", "profile-regions", "layout", "sorted", "probe", "ranks", "ranks-thesis", "ranks-weak", "tests-mpi", "e2e1e9", "biasing", "fit", "tune",
+# STEPS (default "tests bench neb128 compare profile"; also "tests-cuda", "thick", "trust", "scaling", "large", "regions", "regcaps", "profile-regions", "layout", "sorted", "probe", "ranks", "ranks-thesis", "ranks-weak", "tests-mpi", "e2e1e9", "biasing", "fit", "tune",
 # "stages", "trade", "presets", "empty", "fft") selects what runs. Everything printed
 # goes to OUTDIR/log.txt as well; JSON and .npz results beside it.
 set -uo pipefail
@@ -28,7 +28,7 @@ nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader
 python3 -m nebula_rt.cli devices
 git rev-parse --short HEAD 2>/dev/null || true
 
-physics="tests/test_rng.py tests/test_hg.py tests/test_density_kernel.py tests/test_transport_physics.py tests/test_estimators.py tests/test_postprocess.py tests/test_target_error.py tests/test_sky_physics.py tests/test_kernel_options.py tests/test_filter_boundary.py tests/test_terminated.py tests/test_peel_off_physics.py tests/test_band_independence.py tests/test_resources.py tests/test_extremes.py tests/test_memory_layout.py tests/test_biased_transport.py tests/test_regions.py"
+physics="tests/test_rng.py tests/test_hg.py tests/test_density_kernel.py tests/test_transport_physics.py tests/test_estimators.py tests/test_postprocess.py tests/test_target_error.py tests/test_sky_physics.py tests/test_kernel_options.py tests/test_filter_boundary.py tests/test_terminated.py tests/test_peel_off_physics.py tests/test_band_independence.py tests/test_resources.py tests/test_extremes.py tests/test_memory_layout.py tests/test_biased_transport.py tests/test_regions.py tests/test_tail_diagnostic.py tests/test_trust_slab.py"
 if [[ " $steps " == *" tests "* ]]; then
     echo "== physics tests, CUDA"; NEBULA_RT_TEST_BACKEND=cuda python3 -m pytest -q -p no:cacheprovider $physics tests/test_cuda_sources.py 2>&1 | tail -n 8
     echo "== physics tests, NVIDIA OpenCL"; NEBULA_RT_TEST_DEVICE=NVIDIA python3 -m pytest -q -p no:cacheprovider $physics 2>&1 | tail -n 3
@@ -52,6 +52,15 @@ if [[ " $steps " == *" thick "* ]]; then
         echo "== thick slab, former weighted packets, CUDA"
         PYTHONPATH=.former/python${PYTHONPATH:+:$PYTHONPATH} python3 benchmarks/bench_thick_slab.py --backend cuda $kw --methods biased --label former --out "$out/thick-slab-former-cuda.json"
     fi
+fi
+if [[ " $steps " == *" trust "* ]]; then
+    # the TRUST I slab against the independent oracle (its answers reused from TRUST_ORACLE, a JSON
+    # file bench_trust_slab.py wrote on a CPU, where given)
+    for be in "cuda" "opencl --device NVIDIA"; do
+        tag=${be%% *}; [[ $tag == opencl ]] && tag=nvidia-opencl
+        echo "== TRUST I slab, $be"; python3 benchmarks/bench_trust_slab.py --backend $be --photons ${TRUST_PHOTONS:-2e6} \
+            ${TRUST_ORACLE:+--oracle $TRUST_ORACLE} --out "$out/trust-slab-$tag.json" 2>&1 | tail -n 3
+    done
 fi
 if [[ " $steps " == *" tests-cuda "* ]]; then
     echo "== physics tests, CUDA"; NEBULA_RT_TEST_BACKEND=cuda python3 -m pytest -q -p no:cacheprovider $physics tests/test_cuda_sources.py 2>&1 | tail -n 8

@@ -50,6 +50,8 @@ typedef long nrt_i64;
 typedef uchar nrt_u8;
 #define NRT_FLOAT_AS_UINT(x) as_uint(x)
 #define NRT_FREXPF(x, e) frexp((float)(x), (e))
+/* leading zero bits of a nonzero 64-bit integer */
+#define NRT_CLZ64(x) ((int)clz((ulong)(x)))
 /* double-precision sqrt, correctly rounded in both languages */
 #define NRT_DSQRT(x) sqrt((double)(x))
 #elif defined(__CUDACC__) || defined(__CUDACC_RTC__)
@@ -78,6 +80,7 @@ typedef long long nrt_i64;
 typedef unsigned char nrt_u8;
 #define NRT_FLOAT_AS_UINT(x) __float_as_uint(x)
 #define NRT_FREXPF(x, e) frexpf((x), (e))
+#define NRT_CLZ64(x) __clzll((long long)(x))
 /* (sqrt is mapped to sqrtf below, for the float code) */
 #define NRT_DSQRT(x) __dsqrt_rn((double)(x))
 /* single-precision functions under the OpenCL names, for the float code; double-precision
@@ -101,7 +104,8 @@ typedef unsigned char nrt_u8;
 #define NRT_PI_F 3.14159265358979323846f
 
 /* ------------------------------------------------------------------------------------------ */
-/* Parameter structs (declared once, in nebula_rt/kernel_params.py; pasted in here)           */
+/* Shared constants and parameter structs (declared once, in nebula_rt/kernel_params.py;      */
+/* pasted in here)                                                                             */
 /* ------------------------------------------------------------------------------------------ */
 /* NRT_PARAM_STRUCTS */
 

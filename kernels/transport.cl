@@ -95,9 +95,30 @@
 #if NRT_BIASED && (NRT_GROUP_TALLY || NRT_ACC_RED)
 #error "NRT_BIASED takes checked 128-bit adds: no NRT_GROUP_TALLY or NRT_ACC_RED"
 #endif
-/* 64-bit words per accumulator cell and per tally block (5 tallies of 128 bits when biased) */
+#ifndef NRT_PEEL
+#define NRT_PEEL 0
+#endif
+/*
+ * Heavy-tail diagnostic (nebula_rt.tails, docs/physics.md): per packet -- one history: a
+ * weighted packet with all its split copies -- the sum of what it adds to the peel-off image
+ * (NRT_PEEL) and, weighted packets with the track-length estimator, of what it deposits into
+ * the voxels of each of NRT_TAIL_CLASSES classes of optical depth from the stars. As the packet
+ * ends, each nonzero sum adds 1 to its bin of a histogram of NRT_TAIL_BINS half-octave bins
+ * (nrt_tail_add) in the cell's tally block, after the energy tallies: image first, then the
+ * depth classes. Integer counts of integer sums: the same bits in any order, on any device
+ * and number of ranks. The host reads the distribution of the packets' contributions from it
+ * (the variance of the variance, the largest packet's share, the tail's slope), which batch
+ * means cannot: they see a tail only where a batch happened to sample it.
+ */
+#ifndef NRT_TAIL_CLASSES
+#define NRT_TAIL_CLASSES 0
+#endif
+#define NRT_TAIL_HISTS (NRT_PEEL + NRT_TAIL_CLASSES)
+/* 64-bit words per accumulator cell and per tally block (4 counts, or 5 tallies of 128 bits
+   when biased; then the heavy-tail histograms) */
 #define NRT_CELL_WORDS (NRT_BIASED ? 2 : 1)
-#define NRT_TALLY_WORDS (NRT_BIASED ? 10 : 4)
+#define NRT_TALLY_BASE (NRT_BIASED ? NRT_TALLY_WEIGHTED : NRT_TALLY_ANALOG)
+#define NRT_TALLY_WORDS (NRT_TALLY_BASE + NRT_TAIL_HISTS * NRT_TAIL_BINS)
 /* direction bins of the sort key: 2^NRT_SORT_BITS along mu and along phi, in Morton order */
 #ifndef NRT_SORT_BITS
 #define NRT_SORT_BITS 8
@@ -170,6 +191,17 @@ NRT_DEVICE nrt_u64 nrt_fixed(float x, float scale)
     return (nrt_u64)NRT_FMAF(x, scale, 0.5f);
 }
 
+/* Count a packet's nonzero score (hi:lo, 128 bits) in its half-octave bin of hist: bin 2 m for
+   [2^m, 1.5 2^m), 2 m + 1 for [1.5 2^m, 2^(m + 1)) (m the leading bit). */
+NRT_DEVICE void nrt_tail_add(NRT_GLOBAL nrt_u64 *hist, nrt_u64 lo, nrt_u64 hi)
+{
+    if ((lo | hi) == 0)
+        return;
+    int m = hi != 0 ? 127 - NRT_CLZ64(hi) : 63 - NRT_CLZ64(lo);
+    int next = m == 0 ? 0 : (int)((m - 1 >= 64 ? hi >> (m - 65) : lo >> (m - 1)) & 1UL);
+    NRT_ATOMIC_ADD_U64(&hist[2 * m + next], 1UL);
+}
+
 /* Flat index (x fastest) of voxel (ix, iy, iz). */
 NRT_DEVICE nrt_idx nrt_voxel_index(int ix, int iy, int iz, int nx, int ny)
 {
@@ -213,10 +245,6 @@ NRT_DEVICE void nrt_cross_face(int ax, int i_next, const float *p, float d_ax, c
     *ty = ax == 1 ? t_ax : *ty;
     *tz = ax == 2 ? t_ax : *tz;
 }
-
-#ifndef NRT_PEEL
-#define NRT_PEEL 0
-#endif
 
 #if NRT_PEEL
 /*
@@ -322,19 +350,20 @@ NRT_DEVICE float nrt_peel_weight(const NRT_GLOBAL float *density, float sig_b, f
     return nrt_hg_phase(g_b, mu) * exp(-nrt_tau_to_edge(density, sig_b, x, o, ix, iy, iz, nx, ny, nz));
 }
 
-NRT_DEVICE void nrt_peel(const NRT_GLOBAL float *density, float sig_b, float g_b,
-                         const NRT_GLOBAL float *peel, float peel_scale, const float *x,
-                         const float *d, int ix, int iy, int iz, int nx, int ny, int nz,
-                         NRT_GLOBAL nrt_u64 *band_image, NRT_GLOBAL nrt_u32 *overflow,
-                         nrt_u64 seed, int band, nrt_u64 photon, int event)
+/* Peel-off of an analog packet; returns the units added (the packet's score, nrt_tail_add). */
+NRT_DEVICE nrt_u64 nrt_peel(const NRT_GLOBAL float *density, float sig_b, float g_b,
+                            const NRT_GLOBAL float *peel, float peel_scale, const float *x,
+                            const float *d, int ix, int iy, int iz, int nx, int ny, int nz,
+                            NRT_GLOBAL nrt_u64 *band_image, NRT_GLOBAL nrt_u32 *overflow,
+                            nrt_u64 seed, int band, nrt_u64 photon, int event)
 {
     nrt_u64 pixel;
     float wgt = nrt_peel_weight(density, sig_b, g_b, peel, x, d, ix, iy, iz, nx, ny, nz, &pixel);
     if (!(wgt >= 0.0f))
-        return;
-    nrt_acc_add_checked(&band_image[pixel],
-                        nrt_fixed_stochastic(wgt, peel_scale, seed, (nrt_u64)band, photon, (nrt_u64)event, 0),
-                        overflow);
+        return 0;
+    nrt_u64 v = nrt_fixed_stochastic(wgt, peel_scale, seed, (nrt_u64)band, photon, (nrt_u64)event, 0);
+    nrt_acc_add_checked(&band_image[pixel], v, overflow);
+    return v;
 }
 #endif
 
@@ -451,6 +480,12 @@ NRT_DEVICE void nrt_square(const nrt_sink *k, NRT_GLOBAL nrt_u64 *band_sq, nrt_i
 #define NRT_SCORE(i_, v_) nrt_deposit(sink, band_acc, (i_), hot, (v_), overflow)
 #define NRT_VISIT_END() ((void)0)
 #endif
+/* an analog packet ends: its peel-off score into the image's heavy-tail histogram */
+#if NRT_PEEL
+#define NRT_TAIL_END() nrt_tail_add(sink->tally + NRT_TALLY_BASE, peel_score, 0UL)
+#else
+#define NRT_TAIL_END() ((void)peel_score)
+#endif
 
 /*
  * Transport by regions (NRT_REGIONS; large grids): the grid is cut into cubes of 2^shift
@@ -554,6 +589,7 @@ NRT_DEVICE int nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, fl
                                 const NRT_GLOBAL nrt_packet *resume, NRT_GLOBAL nrt_packet *save,
                                 int region_shift, nrt_u64 item, NRT_GLOBAL nrt_u64 *band_sq, int sq_shift)
 {
+    nrt_u64 peel_score = 0; /* NRT_PEEL: the packet's peel-off units (heavy-tail diagnostic) */
 #if NRT_PACKET_SQ
     nrt_u64 run = 0; /* the packet's deposits during the visit of its voxel under way */
 #else
@@ -574,6 +610,7 @@ NRT_DEVICE int nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, fl
         d[0] = q.d[0], d[1] = q.d[1], d[2] = q.d[2];
         t_cur = q.t_cur, tau = q.tau;
         ix = q.ix, iy = q.iy, iz = q.iz, scatterings = q.scatterings;
+        peel_score = q.peel_score;
         /* 1 / d and the voxel's face distances by the expressions the walk formed them with
            (the same bits; 24 bytes less state per stopped packet) */
         inv_d[0] = 1.0f / d[0], inv_d[1] = 1.0f / d[1], inv_d[2] = 1.0f / d[2];
@@ -656,17 +693,19 @@ NRT_DEVICE int nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, fl
             if (nrt_rng_uniform(&rng) >= alb_b) {
                 NRT_VISIT_END();
                 nrt_count(sink, 1);
+                NRT_TAIL_END();
                 return 0;
             }
             if (scatterings >= max_scatterings) {
                 NRT_VISIT_END();
                 nrt_count(sink, 3);
+                NRT_TAIL_END();
                 return 0;
             }
             ++scatterings;
 #if NRT_PEEL
-            nrt_peel(density, sig_b, g_b, peel, peel_scale, p0, d, ix, iy, iz, nx, ny, nz, band_image,
-                     overflow, seed, band, photon, scatterings);
+            peel_score += nrt_peel(density, sig_b, g_b, peel, peel_scale, p0, d, ix, iy, iz, nx, ny, nz,
+                                   band_image, overflow, seed, band, photon, scatterings);
 #endif
             float mu, sin_theta;
             nrt_sample_hg(g_b, nrt_rng_uniform(&rng), &mu, &sin_theta);
@@ -690,6 +729,7 @@ NRT_DEVICE int nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, fl
         if (leaving) {
             NRT_VISIT_END();
             nrt_count(sink, 2);
+            NRT_TAIL_END();
             return 0;
         }
 #if NRT_REGIONS
@@ -708,6 +748,7 @@ NRT_DEVICE int nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, fl
             q.ix = ix, q.iy = iy, q.iz = iz, q.scatterings = scatterings;
             q.rng_block = (int)rng.block, q.rng_pos = rng.pos;
             q.item = item;
+            q.peel_score = peel_score;
             *save = q;
             return 1;
         }
@@ -965,12 +1006,45 @@ NRT_DEVICE void nrt_add_wide(NRT_GLOBAL nrt_u64 *cell, nrt_u128 v, NRT_GLOBAL nr
     }
 }
 
-/* A deposit of x >= 0 units into a 128-bit voxel cell, rounded to nearest. */
-NRT_DEVICE void nrt_deposit_wide(NRT_GLOBAL nrt_u64 *band_acc, nrt_idx idx, float x, NRT_GLOBAL nrt_u32 *overflow)
+/* A deposit of x >= 0 units into a 128-bit voxel cell, rounded to nearest; returns the units. */
+NRT_DEVICE nrt_u128 nrt_deposit_wide(NRT_GLOBAL nrt_u64 *band_acc, nrt_idx idx, float x, NRT_GLOBAL nrt_u32 *overflow)
 {
     nrt_u128 v = nrt_u128_floor(x + 0.5f);
     if (!nrt_u128_is_zero(v))
         nrt_add_wide(band_acc + 2 * (nrt_u64)idx, v, overflow, 1);
+    return v;
+}
+
+/* A weighted packet's J scores per class of depth from the stars (heavy-tail diagnostic): the
+   depth map (window, cells wn[0] x wn[1] x wn[2]) and the band's NRT_TAIL_CLASSES - 1 class
+   edges in its units (edges, after the map), and the packet's sums so far. */
+typedef struct {
+    const NRT_GLOBAL float *window;
+    const NRT_GLOBAL int *wn;
+    const NRT_GLOBAL float *edges;
+    nrt_u128 j[NRT_TAIL_CLASSES > 0 ? NRT_TAIL_CLASSES : 1];
+} nrt_jtail;
+
+/* Add a deposit v into voxel (ix, iy, iz) to the score of the voxel's class: the class of the
+   map's cell that holds the voxel's centre (integer arithmetic: the same cell on every
+   device). */
+NRT_DEVICE void nrt_jtail_add(nrt_jtail *t, int ix, int iy, int iz, int nx, int ny, int nz, nrt_u128 v)
+{
+#if NRT_TAIL_CLASSES
+    if (nrt_u128_is_zero(v))
+        return;
+    nrt_u64 w0 = (nrt_u64)t->wn[0], w1 = (nrt_u64)t->wn[1], w2 = (nrt_u64)t->wn[2];
+    nrt_u64 cx = ((2UL * (nrt_u64)ix + 1UL) * w0) / (2UL * (nrt_u64)nx);
+    nrt_u64 cy = ((2UL * (nrt_u64)iy + 1UL) * w1) / (2UL * (nrt_u64)ny);
+    nrt_u64 cz = ((2UL * (nrt_u64)iz + 1UL) * w2) / (2UL * (nrt_u64)nz);
+    float depth = t->window[cx + w0 * (cy + w1 * cz)];
+    int k = 0;
+    while (k < NRT_TAIL_CLASSES - 1 && depth >= t->edges[k])
+        ++k;
+    t->j[k] = nrt_u128_add(t->j[k], v);
+#else
+    (void)t, (void)ix, (void)iy, (void)iz, (void)nx, (void)ny, (void)nz, (void)v;
+#endif
 }
 
 /* tally t of a 128-bit tally block (5 tallies: emitted, absorbed, escaped, terminated, biasing) */
@@ -1085,7 +1159,7 @@ NRT_DEVICE float nrt_forced_walk(const NRT_GLOBAL float *density, float sig_b, c
                                  int ix, int iy, int iz, int nx, int ny, int nz, float w, float scale,
                                  NRT_GLOBAL nrt_u64 *band_acc, NRT_GLOBAL nrt_u32 *overflow,
                                  const NRT_GLOBAL float *window, const NRT_GLOBAL int *wn, float rate, float d0,
-                                 int *edge)
+                                 int *edge, nrt_jtail *jt)
 {
     nrt_ray r;
     nrt_ray_start(&r, p, d, ix, iy, iz, nx, ny, nz);
@@ -1099,7 +1173,9 @@ NRT_DEVICE float nrt_forced_walk(const NRT_GLOBAL float *density, float sig_b, c
 #if NRT_TRACK_LENGTH
         /* integral of e^-tau over the segment: (1 - e^-ts) / sigma, or the length if empty */
         float len = sigma > 0.0f ? -em / sigma : seg;
-        nrt_deposit_wide(band_acc, r.idx, att * len, overflow);
+        nrt_jtail_add(jt, r.ix, r.iy, r.iz, nx, ny, nz, nrt_deposit_wide(band_acc, r.idx, att * len, overflow));
+#else
+        (void)jt;
 #endif
         att = att + att * em;
         tau += ts;
@@ -1127,7 +1203,7 @@ NRT_DEVICE float nrt_forced_walk(const NRT_GLOBAL float *density, float sig_b, c
  */
 NRT_DEVICE int nrt_walk_to(const NRT_GLOBAL float *density, float sig_b, float *p, const float *d,
                            int *ix, int *iy, int *iz, int nx, int ny, int nz, float tau_i, float scale,
-                           NRT_GLOBAL nrt_u64 *band_acc, NRT_GLOBAL nrt_u32 *overflow)
+                           NRT_GLOBAL nrt_u64 *band_acc, NRT_GLOBAL nrt_u32 *overflow, nrt_jtail *jt)
 {
     nrt_ray r;
     nrt_ray_start(&r, p, d, *ix, *iy, *iz, nx, ny, nz);
@@ -1138,7 +1214,7 @@ NRT_DEVICE int nrt_walk_to(const NRT_GLOBAL float *density, float sig_b, float *
         if (sigma > 0.0f && ts >= tau_i) {
             float t_in = tau_i / sigma;
             if (scale > 0.0f)
-                nrt_deposit_wide(band_acc, r.idx, scale * t_in, overflow);
+                nrt_jtail_add(jt, r.ix, r.iy, r.iz, nx, ny, nz, nrt_deposit_wide(band_acc, r.idx, scale * t_in, overflow));
             float t = r.t_cur + t_in;
             p[0] = p[0] + d[0] * t;
             p[1] = p[1] + d[1] * t;
@@ -1149,7 +1225,7 @@ NRT_DEVICE int nrt_walk_to(const NRT_GLOBAL float *density, float sig_b, float *
             return 1;
         }
         if (scale > 0.0f)
-            nrt_deposit_wide(band_acc, r.idx, scale * seg, overflow);
+            nrt_jtail_add(jt, r.ix, r.iy, r.iz, nx, ny, nz, nrt_deposit_wide(band_acc, r.idx, scale * seg, overflow));
         tau_i -= ts;
         if (!nrt_ray_advance(&r, nx, ny, nz))
             return 0;
@@ -1158,8 +1234,8 @@ NRT_DEVICE int nrt_walk_to(const NRT_GLOBAL float *density, float sig_b, float *
 
 #if NRT_PEEL
 /* Weighted peel-off (w: relative weight after the absorption; branch: the packet's copy) into a
-   128-bit image. */
-NRT_DEVICE void nrt_peel_wide(const NRT_GLOBAL float *density, float sig_b, float g_b,
+   128-bit image; returns the units added. */
+NRT_DEVICE nrt_u128 nrt_peel_wide(const NRT_GLOBAL float *density, float sig_b, float g_b,
                               const NRT_GLOBAL float *peel, float peel_scale, const float *x,
                               const float *d, int ix, int iy, int iz, int nx, int ny, int nz,
                               NRT_GLOBAL nrt_u64 *band_image, NRT_GLOBAL nrt_u32 *overflow,
@@ -1168,13 +1244,14 @@ NRT_DEVICE void nrt_peel_wide(const NRT_GLOBAL float *density, float sig_b, floa
     nrt_u64 pixel;
     float wgt = nrt_peel_weight(density, sig_b, g_b, peel, x, d, ix, iy, iz, nx, ny, nz, &pixel);
     if (!(wgt >= 0.0f))
-        return; /* outside the image */
+        return nrt_u128_of(0, 0); /* outside the image */
     float xw = NRT_FMAF(wgt * w, peel_scale, 0.0f);
     nrt_u128 v = xw < 16777216.0f
         ? nrt_u128_of(nrt_fixed_stochastic(wgt * w, peel_scale, seed, (nrt_u64)band, photon, (nrt_u64)event, branch), 0)
         : nrt_u128_floor(xw);
     if (!nrt_u128_is_zero(v))
         nrt_add_wide(band_image + 2 * pixel, v, overflow, 1);
+    return v;
 }
 #endif
 
@@ -1220,6 +1297,15 @@ NRT_DEVICE void nrt_trace_packet_biased(const NRT_GLOBAL float *density, float s
     nrt_u64 branch = 0, streams = 0; /* this copy's stream; the streams handed out so far */
     nrt_pending stack[NRT_SPLIT_DEPTH];
     int top = 0;
+    /* the packet's scores (all its copies): peel-off units, J units per depth class */
+    nrt_u128 img_score = nrt_u128_of(0, 0);
+    nrt_jtail jt;
+    jt.window = window;
+    jt.wn = window_shape;
+    jt.edges = window + (nrt_u64)window_shape[0] * (nrt_u64)window_shape[1] * (nrt_u64)window_shape[2]
+               + (nrt_u64)band * (NRT_TAIL_CLASSES > 1 ? NRT_TAIL_CLASSES - 1 : 0);
+    for (int k = 0; k < (NRT_TAIL_CLASSES > 0 ? NRT_TAIL_CLASSES : 1); ++k)
+        jt.j[k] = nrt_u128_of(0, 0);
     for (;;) {
         int alive = 1;
         /* the windows' log-slope s along the direction per unit optical depth, clamped to
@@ -1269,7 +1355,7 @@ NRT_DEVICE void nrt_trace_packet_biased(const NRT_GLOBAL float *density, float s
         if (alive && forced) {
             int edge;
             float tau_p = nrt_forced_walk(density, sig_b, p, d, ix, iy, iz, nx, ny, nz, wr, track_scale,
-                                          band_acc, overflow, window, window_shape, rate, d0, &edge);
+                                          band_acc, overflow, window, window_shape, rate, d0, &edge, &jt);
             /* forced scattering: the part that would leave, exactly (or fly past the cut) */
             nrt_u128 out = (tau_p > 1.0e-30f) ? nrt_u128_times_dither(w, exp(-tau_p), nrt_rng_u32(&rng)) : w;
             if (edge)
@@ -1304,7 +1390,7 @@ NRT_DEVICE void nrt_trace_packet_biased(const NRT_GLOBAL float *density, float s
                 if (nrt_u128_is_zero(w)) {
                     alive = 0;
                 } else if (!nrt_walk_to(density, sig_b, p, d, &ix, &iy, &iz, nx, ny, nz, tau_i, 0.0f, band_acc,
-                                        overflow)) {
+                                        overflow, &jt)) {
                     nrt_count_wide(tally, 2, w); /* rounding put the point past the edge */
                     alive = 0;
                 }
@@ -1313,7 +1399,7 @@ NRT_DEVICE void nrt_trace_packet_biased(const NRT_GLOBAL float *density, float s
             /* an analog flight of weight w: the track-length deposits along the path */
             float tau_i = nrt_sample_tau(&rng);
             if (!nrt_walk_to(density, sig_b, p, d, &ix, &iy, &iz, nx, ny, nz, tau_i,
-                             NRT_TRACK_LENGTH ? wr * track_scale : 0.0f, band_acc, overflow)) {
+                             NRT_TRACK_LENGTH ? wr * track_scale : 0.0f, band_acc, overflow, &jt)) {
                 nrt_count_wide(tally, 2, w);
                 alive = 0;
             }
@@ -1341,8 +1427,9 @@ NRT_DEVICE void nrt_trace_packet_biased(const NRT_GLOBAL float *density, float s
         if (alive) {
             ++scatterings;
 #if NRT_PEEL
-            nrt_peel_wide(density, sig_b, g_b, peel, peel_scale, p, d, ix, iy, iz, nx, ny, nz, band_image, overflow,
-                          seed, band, photon, scatterings, branch, nrt_weight_rel(w));
+            img_score = nrt_u128_add(img_score, nrt_peel_wide(density, sig_b, g_b, peel, peel_scale, p, d, ix, iy, iz,
+                                                              nx, ny, nz, band_image, overflow, seed, band, photon,
+                                                              scatterings, branch, nrt_weight_rel(w)));
 #endif
             float mu, sin_theta;
             nrt_sample_hg(g_b, nrt_rng_uniform(&rng), &mu, &sin_theta);
@@ -1369,6 +1456,13 @@ NRT_DEVICE void nrt_trace_packet_biased(const NRT_GLOBAL float *density, float s
         rng.stream = branch;
     }
     nrt_count_wide(tally, 4, bias);
+#if NRT_PEEL
+    nrt_tail_add(tally + NRT_TALLY_BASE, img_score.lo, img_score.hi);
+#else
+    (void)img_score;
+#endif
+    for (int k = 0; k < NRT_TAIL_CLASSES; ++k)
+        nrt_tail_add(tally + NRT_TALLY_BASE + (NRT_PEEL + k) * NRT_TAIL_BINS, jt.j[k].lo, jt.j[k].hi);
 }
 #endif /* NRT_BIASED */
 
@@ -1493,7 +1587,7 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
                                 tallies + NRT_TALLY_WORDS * cell, overflow + slot, peel, peel_scale,
                                 image + 2 * cell * pixels);
 #else
-        sink.tally = tallies + 4 * cell;
+        sink.tally = tallies + NRT_TALLY_WORDS * cell;
         sink.home = NRT_GROUP_TALLY && cell == home_cell;
 #if NRT_GROUP_TALLY
         sink.l_hot = l_hot;
@@ -1531,7 +1625,7 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
     NRT_BARRIER();
     for (nrt_u64 i = lid; i < 4; i += NRT_LOCAL_SIZE())
         if (l_tally[i] != 0)
-            NRT_ATOMIC_ADD_U64(&tallies[4 * home_cell + i], l_tally[i]);
+            NRT_ATOMIC_ADD_U64(&tallies[NRT_TALLY_WORDS * home_cell + i], l_tally[i]);
     for (nrt_u64 i = lid; i < NRT_HOT_STARS && (int)i < n_stars; i += NRT_LOCAL_SIZE()) {
         if (l_hot[i] == 0)
             continue;

@@ -74,7 +74,7 @@ def test_trace_is_the_same_bits_on_1_2_3_ranks(tmp_path, case):
     if "checked" in mode:
         assert one["band_batches"].min() > 7  # the overflow happened and batches were split
     for n in (2, 3):
-        for key in ("raw_sum", "raw_m2", "counts", "peel", "band_batches"):
+        for key in ("raw_sum", "raw_m2", "counts", "peel", "band_batches", "tail_hist"):
             assert runs[n][key].tobytes() == one[key].tobytes(), (n, key)
         # how the slots were added: on a GPU where they are (NCCL, or ranks sharing one GPU
         # through a host buffer), on PoCL in the mapped device memory unless told to copy
@@ -84,6 +84,16 @@ def test_trace_is_the_same_bits_on_1_2_3_ranks(tmp_path, case):
         else:
             assert path == ("copied" if "copied" in mode else "mapped"), path
     assert str(one["reduce_path"]) == ""
+
+
+def test_tail_histograms_do_not_depend_on_the_path(tmp_path):
+    """A packet's contribution does not depend on how it was traced: the heavy-tail histograms
+    (nebula_rt.tails) of one rank plain, with batches re-traced after overflows, and by regions
+    (the packets' image scores saved and resumed across passes) are the same bits."""
+    runs = [_ranks(tmp_path, 1, "track-length", mode, TEST_DEVICE) for mode in ("plain", "checked", "regions+checked")]
+    assert runs[0]["tail_hist"].sum() > 0
+    for r in runs[1:]:
+        assert r["tail_hist"].tobytes() == runs[0]["tail_hist"].tobytes()
 
 
 def test_allreduce_choice_is_checked_before_tracing(tmp_path):

@@ -455,6 +455,7 @@ def peel_off_sky(scene, camera, backend=None, progress=None, cancel=None, pixel_
     calibrated image (:mod:`nebula_rt.image_compare`); otherwise each batch's image sum."""
     from .backends import get_backend
     from .density import generate_density
+    from .tails import fits_cards
     from .transport import trace
 
     check_scene(scene)
@@ -471,8 +472,9 @@ def peel_off_sky(scene, camera, backend=None, progress=None, cancel=None, pixel_
                 cancel=cancel, peel=camera,
                 peel_bins=bins)
     tau = star_tau(scene, bands, rho, camera)
-    cal = calibrate(scene, camera, res.peel_image, res.star_band_luminosity, tau, "peel-off",
-                    {"NPHOTON": (int(res.photons), "packets per band"), "SEED": str(t.seed)})
+    meta = {"NPHOTON": (int(res.photons), "packets per band"), "SEED": str(t.seed)}
+    meta.update(fits_cards(res.tail_image, [b.name for b in bands]))  # the heavy-tail checks
+    cal = calibrate(scene, camera, res.peel_image, res.star_band_luminosity, tau, "peel-off", meta)
     return cal, res
 
 

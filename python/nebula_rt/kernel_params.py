@@ -55,9 +55,21 @@ PACKET_STATE = (
     ("rng_block", "i32", 1, "Philox blocks drawn so far"),
     ("rng_pos", "i32", 1, "next 32-bit word of the current block (8: none left)"),
     ("item", "u64", 1, "the packet: its photon number | its band of the launch << 56"),
+    ("peel_score", "u64", 1, "NRT_PEEL: the packet's peel-off units so far (the heavy-tail diagnostic)"),
 )
 
 STRUCTS = {"nrt_trace_params": TRACE_PARAMS, "nrt_packet": PACKET_STATE}
+
+#: Constants the kernels and the host share, pasted into the kernel sources as #defines.
+CONSTANTS = (
+    ("NRT_TAIL_BINS", 256, "bins of a heavy-tail histogram: half-octaves of a 128-bit score "
+                           "(nebula_rt.tails)"),
+    ("NRT_TALLY_ANALOG", 4, "64-bit words of an analog tally block's counts (emitted, absorbed, "
+                            "escaped, terminated)"),
+    ("NRT_TALLY_WEIGHTED", 10, "64-bit words of a weighted tally block's five 128-bit weight sums "
+                               "(and the biasing)"),
+)
+CONSTANT = {name: value for name, value, _ in CONSTANTS}
 
 
 @functools.lru_cache(maxsize=None)
@@ -96,8 +108,9 @@ def layout_kernel(name: str) -> str:
 
 
 def all_structs() -> str:
-    """The C text of every struct, for the kernel sources."""
-    return "\n\n".join(c_struct(n) for n in STRUCTS)
+    """The C text of every shared constant and struct, for the kernel sources."""
+    consts = "\n".join(f"#define {name} {value} /* {meaning} */" for name, value, meaning in CONSTANTS)
+    return consts + "\n\n" + "\n\n".join(c_struct(n) for n in STRUCTS)
 
 
 def pack(name: str = "nrt_trace_params", **values) -> np.ndarray:

@@ -333,6 +333,22 @@ class LightFieldData(ContractData):
         "float64", "fraction of packets stopped at transport.max_scatterings", key="terminated_fraction_{band}")
     terminated_bias: Optional[np.ndarray] = _field(
         "float64", "bound on the relative bias of J those packets leave, f / (A + f)", key="terminated_bias_{band}")
+    # -- the heavy-tail diagnostic of J (weighted packets with the track-length estimator;
+    #    nebula_rt.tails): per band, per class of optical depth from the stars, band-major
+    j_tail_classes: Optional[str] = _field("str", "J's depth classes of the j_tail_ arrays, comma-separated",
+                                           optional=True)
+    j_tail_vov: Optional[np.ndarray] = _field(
+        "float64", "variance of the variance of J per band and depth class (n_bands x classes, band-major; "
+        "NaN: the class has no cells)", array=True, optional=True)
+    j_tail_largest_share: Optional[np.ndarray] = _field(
+        "float64", "the largest packet's share of J per band and depth class (as j_tail_vov)", array=True,
+        optional=True)
+    j_tail_index: Optional[np.ndarray] = _field(
+        "float64", "Hill index of the largest packets' contributions to J (as j_tail_vov)", array=True,
+        optional=True)
+    j_tail_reliable: Optional[np.ndarray] = _field(
+        "float64", "1 where J's error passed the heavy-tail checks, 0 where it did not (as j_tail_vov)",
+        array=True, optional=True)
     # -- the run
     photons: Optional[int] = _field("int64", "packets traced per band")
     photons_budget: Optional[int] = _field("int64", "packet budget per band (= photons unless error-targeted)")

@@ -26,6 +26,7 @@ from .bands import Band, reference_band_index
 from .density import file_digest, generate_density
 from .limits import FLOAT32_MAX
 from .transport import TransportResult, batch_standard_error, light_from_sums, trace
+from .tails import DEPTH_CLASS_NAMES, figures
 
 
 @dataclass
@@ -110,6 +111,7 @@ class LightField:
             opacity_scale=self.opacity_scale,
             colour_temperature=t if t is not None else 0.0,
             device_memory_peak_bytes=int(self.memory.get("device_peak_bytes", 0)) if self.memory else None,
+            **_j_tail_fields(tr),
             scene=_reproducible_scene(self.scene).to_toml(),
             dust_file_sha256=self.dust_file_sha256 or None,
         )
@@ -117,6 +119,16 @@ class LightField:
     def field_data(self) -> dict[str, object]:
         """Field data of the output contract, flat ``{name: value}`` (:meth:`record`)."""
         return self.record().to_field_data()
+
+
+def _j_tail_fields(tr) -> dict:
+    """The light field record's heavy-tail fields of J (none unless the run has them)."""
+    if tr.tail_j is None:
+        return {}
+    f = figures(tr.tail_j)
+    return {"j_tail_classes": ",".join(DEPTH_CLASS_NAMES), "j_tail_vov": f["vov"],
+            "j_tail_largest_share": f["largest_share"], "j_tail_index": f["tail_index"],
+            "j_tail_reliable": f["reliable"]}
 
 
 def _fractions(counts, tally: int) -> list:

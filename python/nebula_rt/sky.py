@@ -153,6 +153,13 @@ class Camera:
         """
         d = np.asarray(self.direction, float)
         d = d / np.linalg.norm(d)
+        # Components below 1e-6 are the rounding of a view along a box face (sin(pi) = 1.2e-16):
+        # they are made exactly 0. Else a scattering that float32 puts exactly on that face
+        # (at a slab's edge) leaves through it at once in the peel-off, unattenuated, where the
+        # light really crosses the whole slab along the face: one such packet in 75,000 gave
+        # 57 % of the light behind a slab of optical depth 25 (tests/test_trust_slab.py).
+        d = np.where(np.abs(d) < 1.0e-6, 0.0, d)
+        d = d / np.linalg.norm(d)
         up = np.asarray(self.up, float)
         up = up / np.linalg.norm(up)
         # 1e-6 in sin(angle): beyond that the projected "up" is dominated by rounding of d.

@@ -50,6 +50,8 @@ from .scene import AUTO_THICK, AUTO_THIN  # noqa: F401  (auto's thresholds, decl
 from .errors import AccumulatorOverflowError, CancelledError, NebulaWarning, SceneError, TimeLimitError
 from .postprocess import DeviceSums
 from .importance import depth_map, window_rates
+from .tails import (DEPTH_CLASS_NAMES, IMAGE_ERROR_LIMIT, J_ERROR_LIMIT, TAIL_BINS, check_histograms, class_cells,
+                    class_edges, failures)
 
 #: Default largest batch (packets per band): larger batches fold less often; launches last at
 #: most LAUNCH_SECONDS whatever the batch. 16 batches at least, for the error estimate. On
@@ -294,6 +296,14 @@ class TransportResult:
     #: how the error was estimated: "batches" (batch means) or "packets" (batches of one packet)
     error_estimate: str = "batches"
     weight_unit: float = 1.0  # count units per packet (WEIGHT_UNIT for biased runs)
+    #: the heavy-tail diagnostic (nebula_rt.tails): per band, the peel-off image's TailCheck
+    #: (None without an image) and J's per depth class (DEPTH_CLASS_NAMES; None unless weighted
+    #: packets with the track-length estimator: an analog packet's deposits into a voxel are
+    #: bounded by its path there, so J's batch errors are counting statistics)
+    tail_image: Optional[list] = None
+    tail_j: Optional[list] = None
+    #: the histograms behind them, uint64 (n_bands, histograms, TAIL_BINS)
+    tail_hist: Optional[np.ndarray] = None
 
     @property
     def energy(self) -> np.ndarray:
@@ -346,6 +356,20 @@ def terminated_bias(counts) -> np.ndarray:
 #: (1 %), so that below it the bias changes no targeted error by more than 0.5 %
 #: (sqrt(0.01^2 + 0.001^2) = 1.005 %).
 TERMINATED_WARN_BIAS = 1.0e-3
+
+
+def warn_if_heavy_tailed(result: "TransportResult", band_names, image: str = "the peel-off image") -> None:
+    """Warn (:class:`~nebula_rt.errors.NebulaWarning`) naming every band and tally (``image``, or
+    J at a depth from the stars) whose heavy-tail check failed (:mod:`nebula_rt.tails`): its
+    stated error is not to be trusted."""
+    lines = failures(None if result.tail_image is None else [[c] for c in result.tail_image], band_names, [image])
+    lines += failures(result.tail_j, band_names, [f"J at optical {n} from the stars" for n in DEPTH_CLASS_NAMES])
+    if lines:
+        warnings.warn(NebulaWarning(
+            "the stated error is not reliable (a few packets carry much of the light, or none reached; "
+            "nebula_rt.tails): " + "; ".join(lines) + ". Trace more packets"
+            + ("" if result.method == "biased" else ', or use transport.method = "biased" (weighted packets) '
+               "where the dust is optically thick")), stacklevel=3)
 
 
 def warn_if_terminated(counts, band_names, max_scatterings: int) -> None:
@@ -946,6 +970,9 @@ class Tallies:
     #: several ranks: how the slots were added ("nccl", "host" through a host buffer, "mapped"
     #: in the device memory a CPU shares, "copied"); "" for one rank
     reduce_path: str = ""
+    #: the heavy-tail histograms' counts summed over the folded batches, uint64 (n_bands,
+    #: histograms, TAIL_BINS): the image's, then J's depth classes (nebula_rt.tails)
+    tail_hist: Optional[np.ndarray] = None
 
     @property
     def photons(self) -> int:
@@ -1006,9 +1033,12 @@ def plan_transport(density, bands, stars, *, tau: float, photons: int, estimator
         sq_shift=launches.packet_scales[1] if packets else 0,
     )
     if biased:
+        extinction = [b.extinction for b in bands]
         setup = dataclasses.replace(
             setup, window=depth_map(tau * density, setup.stars),
-            window_rate=window_rates(albedo, setup.g, [b.extinction for b in bands]))
+            window_rate=window_rates(albedo, setup.g, extinction))
+        if estimator == "track-length":  # J's heavy-tail histograms by depth from the stars
+            setup = dataclasses.replace(setup, tail_classes=len(DEPTH_CLASS_NAMES), tail_edges=class_edges(extinction))
     if peel is not None:
         setup = dataclasses.replace(setup, peel=_peel_camera(peel),
                                     peel_scale=_peel_scale([b.g for b in bands]) * (WIDE_SCALE if biased else 1.0))
@@ -1049,7 +1079,8 @@ def run_transport(plan: TransportPlan, backend: Backend, *, progress=None, cance
     session = backend.transport_session(setup, slots, launches.bands_per_launch)
     out = Tallies(session=session, counts=np.zeros((nb, 4), np.int64), folded=np.zeros(nb, np.int64),
                   band_done=np.zeros(nb, np.int64), peel_sums=peel_sums, device_bytes=session.device_bytes(),
-                  setup_s=time.perf_counter() - t0)
+                  setup_s=time.perf_counter() - t0,
+                  tail_hist=np.zeros((nb, setup.tail_hists, TAIL_BINS), np.uint64))
     folded, band_done = out.folded, out.band_done
     # several ranks on GPUs: the slots are added on the device (collective: every rank)
     reducer = device_reducer(comm, backend) if distributed else None
@@ -1098,6 +1129,7 @@ def run_transport(plan: TransportPlan, backend: Backend, *, progress=None, cance
                 peel_sums.add(images[k], b0)
             folded[b0:b0 + nlb] += 1
             counts[b0:b0 + nlb] += session.counts_of(tallies[k])
+            out.tail_hist[b0:b0 + nlb] += tallies[k][:, setup.tally_base:].reshape(nlb, -1, TAIL_BINS)
             band_done[b0:b0 + nlb] += b_count
 
     def fold_group(group, n, tallies, overflow, ranges):
@@ -1211,6 +1243,15 @@ def estimate_light(plan: TransportPlan, tallies: Tallies, backend: Backend, *, o
         # the stopping rule uses the statistical error alone (more packets do not shrink the
         # bias); the error reported adds the terminated packets' bias bound
         achieved = math.hypot(achieved, float(np.max(terminated_bias(tallies.counts))))
+    has_image = plan.setup.peel is not None
+    present = np.ones((nb, plan.setup.tail_hists), bool)
+    if plan.setup.tail_classes:  # a depth class the grid does not reach has nothing to check
+        present[:, int(has_image):] = class_cells(plan.setup.window, plan.setup.tail_edges) > 0
+    limits = [IMAGE_ERROR_LIMIT] * int(has_image) + [J_ERROR_LIMIT] * plan.setup.tail_classes
+    checks = check_histograms(tallies.tail_hist, band_done, limits, present) if tallies.tail_hist is not None else None
+    tail_image = [row[0] for row in checks] if checks is not None and has_image else None
+    tail_j = ([row[int(has_image):] for row in checks] if checks is not None and plan.setup.tail_classes
+              else None)
     if on_device:
         s1, s2, d_rho = session.release_sums()
         device_sums = DeviceSums(backend, shape, nb, s1, s2, d_rho)
@@ -1247,6 +1288,9 @@ def estimate_light(plan: TransportPlan, tallies: Tallies, backend: Backend, *, o
         method="biased" if plan.setup.biased else "analog",
         error_estimate="packets" if plan.setup.packet_sq else "batches",
         weight_unit=WEIGHT_UNIT if plan.setup.biased else 1.0,
+        tail_image=tail_image,
+        tail_j=tail_j,
+        tail_hist=tallies.tail_hist,
     )
 
 
@@ -1354,6 +1398,7 @@ def trace(
     finally:
         tallies.session.close()
     warn_if_terminated(result.counts, list(plan.band_names), plan.setup.max_scatterings)
+    warn_if_heavy_tailed(result, list(plan.band_names))
     result.ranks = 1 if comm is None else int(comm.size)
     result.timings["total_s"] = time.perf_counter() - t0
     return result

@@ -1,5 +1,5 @@
 """Run by tests/test_mpi.py under mpiexec: every rank traces the same run through
-``trace(comm=world())``; rank 0 saves the sums, squares, counts and peel-off image (.npz).
+``trace(comm=world())``; rank 0 saves the sums, squares, counts, peel-off image and heavy-tail histograms (.npz).
 
     mpiexec -n N python tests/mpi/trace_ranks.py OUT.npz ESTIMATOR MODE [DEVICE]
 
@@ -68,7 +68,8 @@ def main() -> int:
         counts = np.array([[str(int(x)) for x in row] for row in res.counts])
         np.savez(out, raw_sum=res.raw_sum, raw_m2=res.raw_m2, counts=counts,
                  peel=np.zeros(0) if res.peel_image is None else res.peel_image,
-                 band_batches=res.band_batches, size=comm.size, reduce_path=res.reduce_path)
+                 band_batches=res.band_batches, size=comm.size, reduce_path=res.reduce_path,
+                 tail_hist=res.tail_hist)
     return 0
 
 

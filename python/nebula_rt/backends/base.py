@@ -13,6 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..kernel_params import CONSTANT
+
 MODEL_TURBULENCE = 0
 MODEL_UNIFORM = 1
 
@@ -83,6 +85,11 @@ class TransportSetup:
     #: units, to a second slot; one batch, all bands in one launch
     packet_sq: bool = False
     sq_shift: int = 0
+    #: ``biased`` with the track-length estimator: J's heavy-tail histograms per class of depth
+    #: from the stars (nebula_rt.tails), and the classes' edges per band in the depth map's
+    #: units (float32, (n_bands, tail_classes - 1)), uploaded after the map
+    tail_classes: int = 0
+    tail_edges: object = None
 
     @property
     def cell_words(self) -> int:
@@ -96,9 +103,20 @@ class TransportSetup:
         return 2.0**-32 if self.biased else 1.0
 
     @property
+    def tally_base(self) -> int:
+        """64-bit words of a tally block's energy tallies: 4 counts, or 5 128-bit weight sums."""
+        return CONSTANT["NRT_TALLY_WEIGHTED" if self.biased else "NRT_TALLY_ANALOG"]
+
+    @property
+    def tail_hists(self) -> int:
+        """Heavy-tail histograms per band (nebula_rt.tails): the image's, then J's depth classes."""
+        return (self.peel is not None) + self.tail_classes
+
+    @property
     def tally_words(self) -> int:
-        """64-bit words of one (batch, band) tally block: 4 counts, or 5 128-bit weight sums."""
-        return 10 if self.biased else 4
+        """64-bit words of one (batch, band) tally block: the energy tallies, then the heavy-tail
+        histograms' counts."""
+        return self.tally_base + self.tail_hists * CONSTANT["NRT_TAIL_BINS"]
 
     @property
     def peel_pixels(self) -> int:
@@ -143,6 +161,8 @@ def transport_defines(setup: TransportSetup, tuning: dict | None = None) -> dict
         opts["NRT_ACC_RED"] = opts["NRT_GROUP_TALLY"] = 0
     if setup.packet_sq:
         defines["NRT_PACKET_SQ"] = 1
+    if setup.tail_classes:
+        defines["NRT_TAIL_CLASSES"] = int(setup.tail_classes)
     if int(np.prod(setup.density.shape)) < 2**32:
         opts.setdefault("NRT_IDX32", 1)
     defines.update({k: int(v) for k, v in opts.items() if v and k.startswith("NRT_")})

@@ -135,8 +135,10 @@ class DeviceTransport(TransportSession):
             optics[:, 3] = setup.window_rate
         self.d_optics = be.to_device(optics)
         # weighted packets read the windows' depth map (none given: depth 0, windows at W0)
-        self.d_window = be.to_device(np.zeros(1, np.float32) if setup.window is None else
-                                     np.ravel(np.asarray(setup.window, np.float32), order="F"))
+        # (and, J's heavy-tail classes, each band's class edges after it)
+        self.d_window = be.to_device(np.zeros(1, np.float32) if setup.window is None else np.concatenate(
+            [np.ravel(np.asarray(setup.window, np.float32), order="F"),
+             np.ravel(np.zeros(0, np.float32) if setup.tail_edges is None else np.asarray(setup.tail_edges, np.float32))]))
         stars4 = np.zeros((max(1, setup.stars.shape[0]), 4), np.float32)
         stars4[:setup.stars.shape[0], :3] = setup.stars
         self.d_stars = be.to_device(stars4)
@@ -407,8 +409,8 @@ class DeviceTransport(TransportSession):
     def counts_of(self, tallies) -> np.ndarray:
         """The counts of raw tally words (..., tally_words) as exact Python integers (object
         array (..., 4), or (..., 5) 128-bit weight sums with the signed biasing last)."""
-        t = np.asarray(tallies, np.uint64)
-        if self.tally_words == 4:
+        t = np.asarray(tallies, np.uint64)[..., :self.setup.tally_base]
+        if not self.setup.biased:
             return t.astype(object)
         lo, hi = t[..., 0::2].astype(object), t[..., 1::2].astype(object)
         v = lo + (hi << 64)
@@ -488,13 +490,22 @@ class DeviceTransport(TransportSession):
         buf[cells + pix + nt:] = overflow
         if self.words == 2:  # 128-bit cells, images and tallies; the flags as 64-bit counts
             past = np.zeros(n_slots, bool)
-            for part, checked in ((acc, True), (buf[cells:cells + pix], True),
-                                  (buf[cells + pix:cells + pix + nt], False)):
+            for part, checked in ((acc, True), (buf[cells:cells + pix], True)):
                 if part.size:
                     top = sum_wide(comm, part)
                     if checked:
                         past |= to_numpy((top.reshape(n_slots, -1)
                                           >= np.uint64(1 << int(self.setup.acc_limit_bits))).any(1))
+            # the tally blocks: 128-bit weight sums, then the heavy-tail histograms' 64-bit counts
+            blocks = buf[cells + pix:cells + pix + nt].reshape(-1, self.tally_words)
+            base = self.setup.tally_base
+            wide = np.ascontiguousarray(blocks[:, :base])
+            sum_wide(comm, wide)
+            blocks[:, :base] = wide
+            if self.tally_words > base:
+                counts = np.ascontiguousarray(blocks[:, base:])
+                comm.sum_u64(counts)
+                blocks[:, base:] = counts
             comm.sum_u64(buf[cells + pix + nt:])
         else:
             slots_checked = [] if self.setup.unchecked_adds else [(0, acc.size)]
