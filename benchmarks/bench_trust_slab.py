@@ -41,11 +41,13 @@ TARGET = 0.10
 
 
 def oracle(wls, photons: int, path) -> dict:
-    """{wavelength: (values, errors) per angle}, read from ``path`` or computed and written."""
+    """(packets, {wavelength: (values, errors) per angle}), read from ``path`` (any file of at
+    least ``photons`` packets) or computed and written."""
     if path and Path(path).exists():
         data = json.loads(Path(path).read_text())
         if data["photons"] >= photons and all(str(w) in data["values"] for w in wls):
-            return {w: (np.array(data["values"][str(w)]), np.array(data["errors"][str(w)])) for w in wls}
+            return data["photons"], {w: (np.array(data["values"][str(w)]), np.array(data["errors"][str(w)]))
+                                     for w in wls}
     dirs = [ts.observer(a) for a in ts.ANGLES]
     t0 = time.perf_counter()
     out = {w: scattered(ts.oracle_slab(w), dirs, photons, seed=20261203) for w in wls}
@@ -54,7 +56,7 @@ def oracle(wls, photons: int, path) -> dict:
         Path(path).write_text(json.dumps({"photons": photons, "angles": list(ts.ANGLES),
                                           "values": {str(w): out[w][0].tolist() for w in wls},
                                           "errors": {str(w): out[w][1].tolist() for w in wls}}, indent=1))
-    return out
+    return photons, out
 
 
 def main() -> int:
@@ -70,7 +72,7 @@ def main() -> int:
     a = ap.parse_args()
     backend = get_backend(a.backend, a.device)
     wls = ts.wavelengths()
-    ref = oracle(wls, int(a.oracle_photons), a.oracle)
+    oracle_photons, ref = oracle(wls, int(a.oracle_photons), a.oracle)
     rho, bands, stars, tau = ts.scene(wls)
     rows = []
     for j, angle in enumerate(ts.ANGLES):
@@ -101,7 +103,7 @@ def main() -> int:
     print(f"within 10 %: {inside} of {len(rows)}; worst {worst['angle']:.0f} deg {worst['wavelength_nm']:g} nm: "
           f"ratio {worst['ratio']:.3f} +- {worst['ratio_error']:.3f}")
     result = {"benchmark": "trust_slab", "backend": a.backend, "device": backend.device_name,
-              "host": platform.node(), "photons": int(a.photons), "oracle_photons": int(a.oracle_photons),
+              "host": platform.node(), "photons": int(a.photons), "oracle_photons": int(oracle_photons),
               "target": TARGET, "within_target": inside, "cases": len(rows),
               "command": " ".join(sys.argv), **provenance(), "rows": rows}
     if a.out:

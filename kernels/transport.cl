@@ -105,8 +105,10 @@
  * the voxels of each of NRT_TAIL_CLASSES classes of optical depth from the stars. As the packet
  * ends, each nonzero sum adds 1 to its bin of a histogram of NRT_TAIL_BINS half-octave bins
  * (nrt_tail_add) in the cell's tally block, after the energy tallies: image first, then the
- * depth classes. Integer counts of integer sums: the same bits in any order, on any device
- * and number of ranks. The host reads the distribution of the packets' contributions from it
+ * depth classes (counted in the work group's local memory for its home cell, added once).
+ * Integer counts of sums the same on every device (the image's: integers; J's: float32 sums
+ * of the same floats in the same order): the same bits in any order, on any device and
+ * number of ranks. The host reads the distribution of the packets' contributions from it
  * (the variance of the variance, the largest packet's share, the tail's slope), which batch
  * means cannot: they see a tail only where a batch happened to sample it.
  */
@@ -193,13 +195,33 @@ NRT_DEVICE nrt_u64 nrt_fixed(float x, float scale)
 
 /* Count a packet's nonzero score (hi:lo, 128 bits) in its half-octave bin of hist: bin 2 m for
    [2^m, 1.5 2^m), 2 m + 1 for [1.5 2^m, 2^(m + 1)) (m the leading bit). */
-NRT_DEVICE void nrt_tail_add(NRT_GLOBAL nrt_u64 *hist, nrt_u64 lo, nrt_u64 hi)
+/* the group's local histograms (l_tail; a null pointer without histograms). A packet of the
+   group's home cell counts there (home), others in global memory. The pointer is always the
+   local array, never selected against another: so the compiler knows its address space (CUDA
+   otherwise makes generic atomics of them, which cost more than the global ones saved). */
+#if NRT_TAIL_HISTS
+#define NRT_TAIL_BUF l_tail
+#else
+#define NRT_TAIL_BUF ((NRT_LOCAL nrt_u32 *)0)
+#endif
+
+/* Count 1 in bin b of a histogram: the group's local copy where there is one (lhist, the
+   packet's home cell), else the global one. */
+NRT_DEVICE void nrt_tail_count(NRT_GLOBAL nrt_u64 *hist, NRT_LOCAL nrt_u32 *lhist, int home, int b)
+{
+    if (home)
+        NRT_ATOMIC_ADD_U32_LOCAL(&lhist[b], 1u);
+    else
+        NRT_ATOMIC_ADD_U64(&hist[b], 1UL);
+}
+
+NRT_DEVICE void nrt_tail_add(NRT_GLOBAL nrt_u64 *hist, NRT_LOCAL nrt_u32 *lhist, int home, nrt_u64 lo, nrt_u64 hi)
 {
     if ((lo | hi) == 0)
         return;
     int m = hi != 0 ? 127 - NRT_CLZ64(hi) : 63 - NRT_CLZ64(lo);
     int next = m == 0 ? 0 : (int)((m - 1 >= 64 ? hi >> (m - 65) : lo >> (m - 1)) & 1UL);
-    NRT_ATOMIC_ADD_U64(&hist[2 * m + next], 1UL);
+    nrt_tail_count(hist, lhist, home, 2 * m + next);
 }
 
 /* Flat index (x fastest) of voxel (ix, iy, iz). */
@@ -389,6 +411,8 @@ typedef struct {
     NRT_LOCAL nrt_u64 *l_tally; /* the group's 4 local tallies (home cell) */
     NRT_LOCAL nrt_u64 *l_hot;   /* the group's sum for this packet's star voxel (home cell) */
     NRT_LOCAL nrt_u64 *l_hot_sq; /* NRT_PACKET_SQ: the same for the squares */
+    NRT_LOCAL nrt_u32 *l_tail;  /* the group's heavy-tail histograms */
+    int tail_home;              /* the packet counts in them (its cell is the group's home) */
     int home;                   /* the packet belongs to the group's home cell */
 } nrt_sink;
 
@@ -482,7 +506,7 @@ NRT_DEVICE void nrt_square(const nrt_sink *k, NRT_GLOBAL nrt_u64 *band_sq, nrt_i
 #endif
 /* an analog packet ends: its peel-off score into the image's heavy-tail histogram */
 #if NRT_PEEL
-#define NRT_TAIL_END() nrt_tail_add(sink->tally + NRT_TALLY_BASE, peel_score, 0UL)
+#define NRT_TAIL_END() nrt_tail_add(sink->tally + NRT_TALLY_BASE, sink->l_tail, sink->tail_home, peel_score, 0UL)
 #else
 #define NRT_TAIL_END() ((void)peel_score)
 #endif
@@ -1015,36 +1039,51 @@ NRT_DEVICE nrt_u128 nrt_deposit_wide(NRT_GLOBAL nrt_u64 *band_acc, nrt_idx idx, 
     return v;
 }
 
-/* A weighted packet's J scores per class of depth from the stars (heavy-tail diagnostic): the
-   depth map (window, cells wn[0] x wn[1] x wn[2]) and the band's NRT_TAIL_CLASSES - 1 class
-   edges in its units (edges, after the map), and the packet's sums so far. */
+/* A weighted packet's J scores per class of depth from the stars (heavy-tail diagnostic). The
+   window buffer holds, after the depth map: per axis the map's cell of each voxel layer
+   (premultiplied by the map's strides: cell = cx[ix] + cy[iy] + cz[iz], no division in the
+   walk), then each band's NRT_TAIL_CLASSES - 1 class edges in the map's units. The sums are
+   float32 sums of the float deposits (the same floats, added in the same order, on every
+   device: IEEE addition rounds alike) in four scalars: 128-bit sums in an array indexed at
+   run time cost 40 % of the weighted packets' time on an H200 (registers, and slow memory). */
+#if NRT_TAIL_CLASSES && NRT_TAIL_CLASSES != 4
+#error "NRT_TAIL_CLASSES: 4 depth classes (nebula_rt.tails.DEPTH_CLASS_EDGES)"
+#endif
 typedef struct {
-    const NRT_GLOBAL float *window;
-    const NRT_GLOBAL int *wn;
-    const NRT_GLOBAL float *edges;
-    nrt_u128 j[NRT_TAIL_CLASSES > 0 ? NRT_TAIL_CLASSES : 1];
+    const NRT_GLOBAL float *window, *cx; /* the map; its cells per x layer (y and z follow) */
+    float e0, e1, e2;
+    float j0, j1, j2, j3;
 } nrt_jtail;
 
-/* Add a deposit v into voxel (ix, iy, iz) to the score of the voxel's class: the class of the
-   map's cell that holds the voxel's centre (integer arithmetic: the same cell on every
-   device). */
-NRT_DEVICE void nrt_jtail_add(nrt_jtail *t, int ix, int iy, int iz, int nx, int ny, int nz, nrt_u128 v)
+/* Add a deposit of x units into voxel (ix, iy, iz) to the score of the class of the map's cell
+   that holds the voxel's centre. */
+NRT_DEVICE void nrt_jtail_add(nrt_jtail *t, int ix, int iy, int iz, int nx, int ny, float x)
 {
 #if NRT_TAIL_CLASSES
-    if (nrt_u128_is_zero(v))
-        return;
-    nrt_u64 w0 = (nrt_u64)t->wn[0], w1 = (nrt_u64)t->wn[1], w2 = (nrt_u64)t->wn[2];
-    nrt_u64 cx = ((2UL * (nrt_u64)ix + 1UL) * w0) / (2UL * (nrt_u64)nx);
-    nrt_u64 cy = ((2UL * (nrt_u64)iy + 1UL) * w1) / (2UL * (nrt_u64)ny);
-    nrt_u64 cz = ((2UL * (nrt_u64)iz + 1UL) * w2) / (2UL * (nrt_u64)nz);
-    float depth = t->window[cx + w0 * (cy + w1 * cz)];
-    int k = 0;
-    while (k < NRT_TAIL_CLASSES - 1 && depth >= t->edges[k])
-        ++k;
-    t->j[k] = nrt_u128_add(t->j[k], v);
+    const NRT_GLOBAL float *cy = t->cx + nx;
+    float depth = t->window[(nrt_u32)t->cx[ix] + (nrt_u32)cy[iy] + (nrt_u32)cy[ny + iz]];
+    if (depth < t->e0)
+        t->j0 += x;
+    else if (depth < t->e1)
+        t->j1 += x;
+    else if (depth < t->e2)
+        t->j2 += x;
+    else
+        t->j3 += x;
 #else
-    (void)t, (void)ix, (void)iy, (void)iz, (void)nx, (void)ny, (void)nz, (void)v;
+    (void)t, (void)ix, (void)iy, (void)iz, (void)nx, (void)ny, (void)x;
 #endif
+}
+
+/* A score as float32 into its half-octave bin (as nrt_tail_add: the exponent and the next
+   bit; scores below 1 unit: none; infinity: the last bin) */
+NRT_DEVICE void nrt_tail_add_float(NRT_GLOBAL nrt_u64 *hist, NRT_LOCAL nrt_u32 *lhist, int home, float x)
+{
+    if (!(x >= 1.0f))
+        return;
+    nrt_u32 b = NRT_FLOAT_AS_UINT(x);
+    int bin = 2 * ((int)((b >> 23) & 0xFFu) - 127) + (int)((b >> 22) & 1u);
+    nrt_tail_count(hist, lhist, home, bin < NRT_TAIL_BINS ? bin : NRT_TAIL_BINS - 1);
 }
 
 /* tally t of a 128-bit tally block (5 tallies: emitted, absorbed, escaped, terminated, biasing) */
@@ -1173,7 +1212,11 @@ NRT_DEVICE float nrt_forced_walk(const NRT_GLOBAL float *density, float sig_b, c
 #if NRT_TRACK_LENGTH
         /* integral of e^-tau over the segment: (1 - e^-ts) / sigma, or the length if empty */
         float len = sigma > 0.0f ? -em / sigma : seg;
-        nrt_jtail_add(jt, r.ix, r.iy, r.iz, nx, ny, nz, nrt_deposit_wide(band_acc, r.idx, att * len, overflow));
+        {
+            float x = att * len;
+            nrt_deposit_wide(band_acc, r.idx, x, overflow);
+            nrt_jtail_add(jt, r.ix, r.iy, r.iz, nx, ny, x);
+        }
 #else
         (void)jt;
 #endif
@@ -1214,7 +1257,10 @@ NRT_DEVICE int nrt_walk_to(const NRT_GLOBAL float *density, float sig_b, float *
         if (sigma > 0.0f && ts >= tau_i) {
             float t_in = tau_i / sigma;
             if (scale > 0.0f)
-                nrt_jtail_add(jt, r.ix, r.iy, r.iz, nx, ny, nz, nrt_deposit_wide(band_acc, r.idx, scale * t_in, overflow));
+            {
+                nrt_deposit_wide(band_acc, r.idx, scale * t_in, overflow);
+                nrt_jtail_add(jt, r.ix, r.iy, r.iz, nx, ny, scale * t_in);
+            }
             float t = r.t_cur + t_in;
             p[0] = p[0] + d[0] * t;
             p[1] = p[1] + d[1] * t;
@@ -1225,7 +1271,10 @@ NRT_DEVICE int nrt_walk_to(const NRT_GLOBAL float *density, float sig_b, float *
             return 1;
         }
         if (scale > 0.0f)
-            nrt_jtail_add(jt, r.ix, r.iy, r.iz, nx, ny, nz, nrt_deposit_wide(band_acc, r.idx, scale * seg, overflow));
+        {
+            nrt_deposit_wide(band_acc, r.idx, scale * seg, overflow);
+            nrt_jtail_add(jt, r.ix, r.iy, r.iz, nx, ny, scale * seg);
+        }
         tau_i -= ts;
         if (!nrt_ray_advance(&r, nx, ny, nz))
             return 0;
@@ -1276,7 +1325,8 @@ NRT_DEVICE void nrt_trace_packet_biased(const NRT_GLOBAL float *density, float s
                                         int max_scatterings, float track_scale, float collision_scale,
                                         NRT_GLOBAL nrt_u64 *band_acc, NRT_GLOBAL nrt_u64 *tally,
                                         NRT_GLOBAL nrt_u32 *overflow, const NRT_GLOBAL float *peel,
-                                        float peel_scale, NRT_GLOBAL nrt_u64 *band_image)
+                                        float peel_scale, NRT_GLOBAL nrt_u64 *band_image,
+                                        NRT_LOCAL nrt_u32 *l_tail, int tail_home)
 {
     nrt_rng rng;
     nrt_rng_init(&rng, seed, (nrt_u64)band, photon);
@@ -1301,11 +1351,17 @@ NRT_DEVICE void nrt_trace_packet_biased(const NRT_GLOBAL float *density, float s
     nrt_u128 img_score = nrt_u128_of(0, 0);
     nrt_jtail jt;
     jt.window = window;
-    jt.wn = window_shape;
-    jt.edges = window + (nrt_u64)window_shape[0] * (nrt_u64)window_shape[1] * (nrt_u64)window_shape[2]
-               + (nrt_u64)band * (NRT_TAIL_CLASSES > 1 ? NRT_TAIL_CLASSES - 1 : 0);
-    for (int k = 0; k < (NRT_TAIL_CLASSES > 0 ? NRT_TAIL_CLASSES : 1); ++k)
-        jt.j[k] = nrt_u128_of(0, 0);
+    jt.j0 = jt.j1 = jt.j2 = jt.j3 = 0.0f;
+#if NRT_TAIL_CLASSES
+    jt.cx = window + (nrt_u64)window_shape[0] * (nrt_u64)window_shape[1] * (nrt_u64)window_shape[2];
+    {
+        const NRT_GLOBAL float *edges = jt.cx + nx + ny + nz + (nrt_u64)band * (NRT_TAIL_CLASSES - 1);
+        jt.e0 = edges[0], jt.e1 = edges[1], jt.e2 = edges[2];
+    }
+#else
+    jt.cx = window;
+    jt.e0 = jt.e1 = jt.e2 = 0.0f;
+#endif
     for (;;) {
         int alive = 1;
         /* the windows' log-slope s along the direction per unit optical depth, clamped to
@@ -1457,12 +1513,20 @@ NRT_DEVICE void nrt_trace_packet_biased(const NRT_GLOBAL float *density, float s
     }
     nrt_count_wide(tally, 4, bias);
 #if NRT_PEEL
-    nrt_tail_add(tally + NRT_TALLY_BASE, img_score.lo, img_score.hi);
+    nrt_tail_add(tally + NRT_TALLY_BASE, l_tail, tail_home, img_score.lo, img_score.hi);
 #else
     (void)img_score;
 #endif
-    for (int k = 0; k < NRT_TAIL_CLASSES; ++k)
-        nrt_tail_add(tally + NRT_TALLY_BASE + (NRT_PEEL + k) * NRT_TAIL_BINS, jt.j[k].lo, jt.j[k].hi);
+#if NRT_TAIL_CLASSES
+    {
+        NRT_GLOBAL nrt_u64 *h = tally + NRT_TALLY_BASE + NRT_PEEL * NRT_TAIL_BINS;
+        NRT_LOCAL nrt_u32 *l = l_tail + NRT_PEEL * NRT_TAIL_BINS;
+        nrt_tail_add_float(h, l, tail_home, jt.j0);
+        nrt_tail_add_float(h + NRT_TAIL_BINS, l + NRT_TAIL_BINS, tail_home, jt.j1);
+        nrt_tail_add_float(h + 2 * NRT_TAIL_BINS, l + 2 * NRT_TAIL_BINS, tail_home, jt.j2);
+        nrt_tail_add_float(h + 3 * NRT_TAIL_BINS, l + 3 * NRT_TAIL_BINS, tail_home, jt.j3);
+    }
+#endif
 }
 #endif /* NRT_BIASED */
 
@@ -1528,17 +1592,29 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
     /* the home cell (batch slot and band) of the group: that of its first packet */
     nrt_u64 home_cell = 0, home_slot = 0;
     nrt_sink sink;
+#if NRT_GROUP_TALLY || NRT_TAIL_HISTS
+    nrt_u64 lid = NRT_LOCAL_ID();
+#endif
+#if NRT_TAIL_HISTS
+    /* the heavy-tail histograms of the group's home cell, counted in local memory and added to
+       global memory once: every packet ends with an increment of a few bins, which from global
+       memory cost 17-19 % of the weighted packets' kernel on an H200 (all lanes on one address) */
+    NRT_LOCAL_MEM nrt_u32 l_tail[NRT_TAIL_HISTS * NRT_TAIL_BINS];
+    for (nrt_u64 i = lid; i < NRT_TAIL_HISTS * NRT_TAIL_BINS; i += NRT_LOCAL_SIZE())
+        l_tail[i] = 0;
+#endif
 #if NRT_GROUP_TALLY
     NRT_LOCAL_MEM nrt_u64 l_tally[4];
     NRT_LOCAL_MEM nrt_u64 l_hot[NRT_HOT_STARS];
     NRT_LOCAL_MEM nrt_u64 l_hot_sq[NRT_HOT_STARS];
-    nrt_u64 lid = NRT_LOCAL_ID();
     /* strided: a runtime may choose groups of fewer than 4 (or NRT_HOT_STARS) work items,
        e.g. OpenCL's own choice of local size for a global size with no small factor */
     for (nrt_u64 i = lid; i < 4; i += NRT_LOCAL_SIZE())
         l_tally[i] = 0;
     for (nrt_u64 i = lid; i < NRT_HOT_STARS; i += NRT_LOCAL_SIZE())
         l_hot[i] = l_hot_sq[i] = 0;
+#endif
+#if NRT_GROUP_TALLY || NRT_TAIL_HISTS
     {
         nrt_u64 it0 = NRT_GROUP_FIRST_ID(), photon0 = photon_start;
         int lband0 = 0;
@@ -1556,8 +1632,10 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
         home_slot = nrt_batch_of(photon0, batch_base, batch_extra) - first_batch;
         home_cell = home_slot * (nrt_u64)n_lbands + (nrt_u64)lband0;
     }
-    sink.l_tally = l_tally;
     NRT_BARRIER();
+#endif
+#if NRT_GROUP_TALLY
+    sink.l_tally = l_tally;
 #else
     sink.l_tally = 0;
 #endif
@@ -1585,10 +1663,12 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
                                 star_cdf + band * n_stars, nx, ny, nz, n_stars, seed, band, photon,
                                 max_scatterings, track_scale, prm->collision_scale, acc + 2 * cell * nvox,
                                 tallies + NRT_TALLY_WORDS * cell, overflow + slot, peel, peel_scale,
-                                image + 2 * cell * pixels);
+                                image + 2 * cell * pixels, NRT_TAIL_BUF, NRT_TAIL_HISTS && cell == home_cell);
 #else
         sink.tally = tallies + NRT_TALLY_WORDS * cell;
         sink.home = NRT_GROUP_TALLY && cell == home_cell;
+        sink.l_tail = NRT_TAIL_BUF;
+        sink.tail_home = NRT_TAIL_HISTS && cell == home_cell;
 #if NRT_GROUP_TALLY
         sink.l_hot = l_hot;
         sink.l_hot_sq = l_hot_sq;
@@ -1620,6 +1700,12 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
 #endif
 #endif
     }
+#if NRT_TAIL_HISTS
+    NRT_BARRIER();
+    for (nrt_u64 i = lid; i < NRT_TAIL_HISTS * NRT_TAIL_BINS; i += NRT_LOCAL_SIZE())
+        if (l_tail[i] != 0)
+            NRT_ATOMIC_ADD_U64(&tallies[NRT_TALLY_WORDS * home_cell + NRT_TALLY_BASE + i], (nrt_u64)l_tail[i]);
+#endif
 #if NRT_GROUP_TALLY
     /* the group's local sums go to global memory once */
     NRT_BARRIER();

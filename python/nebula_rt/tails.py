@@ -13,8 +13,8 @@ statistical checks; Pederson, Forster & Booth 1997, the variance of the variance
 The kernel (kernels/transport.cl) keeps, per band, a histogram of every packet's total
 contribution -- one emitted packet with all its split copies, to the peel-off image and, with
 weighted packets, to J in each class of optical depth from the stars -- in half-octave bins
-of its integer fixed-point score (an integer count per bin: the same bits on every device and
-number of ranks). From it :func:`tail_check` takes, for the mean contribution x̄ of N packets:
+of its fixed-point score (an integer count per bin: the same bits on every device and number
+of ranks). From it :func:`tail_check` takes, for the mean contribution x̄ of N packets:
 
 - ``vov``: the variance of the variance, sum (x - x̄)^4 / (sum (x - x̄)^2)^2 - 1 / N. It is
   the squared relative error of the stated variance; MCNP asks for less than 0.1.
@@ -196,6 +196,21 @@ def check_histograms(hist: np.ndarray, packets: Sequence[int], limits: Sequence[
     class the grid does not reach)."""
     return [[tail_check(hist[b, t], int(packets[b]), limits[t]) if present is None or present[b][t] else None
              for t in range(hist.shape[1])] for b in range(hist.shape[0])]
+
+
+def kernel_tables(window_shape, grid_shape, edges) -> np.ndarray:
+    """What the kernel reads after the depth map to class J's deposits (kernels/transport.cl,
+    nrt_jtail): per axis the map cell of each voxel layer, the one holding the layer's centre,
+    premultiplied by the map's strides (x fastest), then each band's class edges (float32; the
+    cells are integers below 2^24)."""
+    w = [int(n) for n in window_shape]
+    strides = (1, w[0], w[0] * w[1])
+    parts = []
+    for n, m, stride in zip(grid_shape, w, strides):
+        i = np.arange(int(n), dtype=np.int64)
+        parts.append(((2 * i + 1) * m // (2 * int(n))) * stride)
+    parts.append(np.asarray(edges, np.float64).ravel())
+    return np.concatenate(parts).astype(np.float32)
 
 
 def class_cells(depth: np.ndarray, edges: np.ndarray, density=None) -> np.ndarray:

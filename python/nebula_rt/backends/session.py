@@ -26,6 +26,7 @@ import numpy as np
 
 from .. import kernel_params
 from ..array_api import to_numpy
+from ..tails import kernel_tables
 from .base import TransportSession, TransportSetup, transport_defines
 
 #: centred sums of squares are stored as float32 x 2^-64 (kernels/transport.cl)
@@ -135,10 +136,11 @@ class DeviceTransport(TransportSession):
             optics[:, 3] = setup.window_rate
         self.d_optics = be.to_device(optics)
         # weighted packets read the windows' depth map (none given: depth 0, windows at W0)
-        # (and, J's heavy-tail classes, each band's class edges after it)
+        # (and, J's heavy-tail classes, the kernel's tables of them after it: nebula_rt.tails)
         self.d_window = be.to_device(np.zeros(1, np.float32) if setup.window is None else np.concatenate(
             [np.ravel(np.asarray(setup.window, np.float32), order="F"),
-             np.ravel(np.zeros(0, np.float32) if setup.tail_edges is None else np.asarray(setup.tail_edges, np.float32))]))
+             np.zeros(0, np.float32) if not setup.tail_classes else
+             kernel_tables(np.shape(setup.window), self.shape, setup.tail_edges)]))
         stars4 = np.zeros((max(1, setup.stars.shape[0]), 4), np.float32)
         stars4[:setup.stars.shape[0], :3] = setup.stars
         self.d_stars = be.to_device(stars4)
