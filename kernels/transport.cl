@@ -105,7 +105,7 @@
  * the voxels of each of NRT_TAIL_CLASSES classes of optical depth from the stars. As the packet
  * ends, each nonzero sum adds 1 to its bin of a histogram of NRT_TAIL_BINS half-octave bins
  * (nrt_tail_add) in the cell's tally block, after the energy tallies: image first, then the
- * depth classes (counted in the work group's local memory for its home cell, added once).
+ * depth classes, in NRT_TAIL_SPREAD copies (NRT_TAIL_OF) the host adds.
  * Integer counts of sums the same on every device (the image's: integers; J's: float32 sums
  * of the same floats in the same order): the same bits in any order, on any device and
  * number of ranks. The host reads the distribution of the packets' contributions from it
@@ -120,7 +120,7 @@
    when biased; then the heavy-tail histograms) */
 #define NRT_CELL_WORDS (NRT_BIASED ? 2 : 1)
 #define NRT_TALLY_BASE (NRT_BIASED ? NRT_TALLY_WEIGHTED : NRT_TALLY_ANALOG)
-#define NRT_TALLY_WORDS (NRT_TALLY_BASE + NRT_TAIL_HISTS * NRT_TAIL_BINS)
+#define NRT_TALLY_WORDS (NRT_TALLY_BASE + NRT_TAIL_SPREAD * NRT_TAIL_HISTS * NRT_TAIL_BINS)
 /* direction bins of the sort key: 2^NRT_SORT_BITS along mu and along phi, in Morton order */
 #ifndef NRT_SORT_BITS
 #define NRT_SORT_BITS 8
@@ -195,33 +195,22 @@ NRT_DEVICE nrt_u64 nrt_fixed(float x, float scale)
 
 /* Count a packet's nonzero score (hi:lo, 128 bits) in its half-octave bin of hist: bin 2 m for
    [2^m, 1.5 2^m), 2 m + 1 for [1.5 2^m, 2^(m + 1)) (m the leading bit). */
-/* the group's local histograms (l_tail; a null pointer without histograms). A packet of the
-   group's home cell counts there (home), others in global memory. The pointer is always the
-   local array, never selected against another: so the compiler knows its address space (CUDA
-   otherwise makes generic atomics of them, which cost more than the global ones saved). */
-#if NRT_TAIL_HISTS
-#define NRT_TAIL_BUF l_tail
-#else
-#define NRT_TAIL_BUF ((NRT_LOCAL nrt_u32 *)0)
-#endif
+/* The histograms a packet counts in: copy (photon mod NRT_TAIL_SPREAD) of its cell's (the
+   host adds the copies). Every packet ends with an increment of a few bins, all the lanes of
+   a warp on the same few addresses: on an H200 that cost 17-23 % of the weighted packets'
+   kernel with one copy (benchmarks/results/h200-2026-12-03b/). Counting in the work group's
+   local memory cost more (a barrier at the end holds every block until its longest packet
+   ends); several copies would put fewer lanes on one address, not yet measured. */
+#define NRT_TAIL_OF(tally, photon) \
+    ((tally) + NRT_TALLY_BASE + ((photon) % NRT_TAIL_SPREAD) * (nrt_u64)(NRT_TAIL_HISTS * NRT_TAIL_BINS))
 
-/* Count 1 in bin b of a histogram: the group's local copy where there is one (lhist, the
-   packet's home cell), else the global one. */
-NRT_DEVICE void nrt_tail_count(NRT_GLOBAL nrt_u64 *hist, NRT_LOCAL nrt_u32 *lhist, int home, int b)
-{
-    if (home)
-        NRT_ATOMIC_ADD_U32_LOCAL(&lhist[b], 1u);
-    else
-        NRT_ATOMIC_ADD_U64(&hist[b], 1UL);
-}
-
-NRT_DEVICE void nrt_tail_add(NRT_GLOBAL nrt_u64 *hist, NRT_LOCAL nrt_u32 *lhist, int home, nrt_u64 lo, nrt_u64 hi)
+NRT_DEVICE void nrt_tail_add(NRT_GLOBAL nrt_u64 *hist, nrt_u64 lo, nrt_u64 hi)
 {
     if ((lo | hi) == 0)
         return;
     int m = hi != 0 ? 127 - NRT_CLZ64(hi) : 63 - NRT_CLZ64(lo);
     int next = m == 0 ? 0 : (int)((m - 1 >= 64 ? hi >> (m - 65) : lo >> (m - 1)) & 1UL);
-    nrt_tail_count(hist, lhist, home, 2 * m + next);
+    NRT_ATOMIC_ADD_U64(&hist[2 * m + next], 1UL);
 }
 
 /* Flat index (x fastest) of voxel (ix, iy, iz). */
@@ -411,8 +400,6 @@ typedef struct {
     NRT_LOCAL nrt_u64 *l_tally; /* the group's 4 local tallies (home cell) */
     NRT_LOCAL nrt_u64 *l_hot;   /* the group's sum for this packet's star voxel (home cell) */
     NRT_LOCAL nrt_u64 *l_hot_sq; /* NRT_PACKET_SQ: the same for the squares */
-    NRT_LOCAL nrt_u32 *l_tail;  /* the group's heavy-tail histograms */
-    int tail_home;              /* the packet counts in them (its cell is the group's home) */
     int home;                   /* the packet belongs to the group's home cell */
 } nrt_sink;
 
@@ -506,7 +493,7 @@ NRT_DEVICE void nrt_square(const nrt_sink *k, NRT_GLOBAL nrt_u64 *band_sq, nrt_i
 #endif
 /* an analog packet ends: its peel-off score into the image's heavy-tail histogram */
 #if NRT_PEEL
-#define NRT_TAIL_END() nrt_tail_add(sink->tally + NRT_TALLY_BASE, sink->l_tail, sink->tail_home, peel_score, 0UL)
+#define NRT_TAIL_END() nrt_tail_add(NRT_TAIL_OF(sink->tally, photon), peel_score, 0UL)
 #else
 #define NRT_TAIL_END() ((void)peel_score)
 #endif
@@ -1077,13 +1064,13 @@ NRT_DEVICE void nrt_jtail_add(nrt_jtail *t, int ix, int iy, int iz, int nx, int 
 
 /* A score as float32 into its half-octave bin (as nrt_tail_add: the exponent and the next
    bit; scores below 1 unit: none; infinity: the last bin) */
-NRT_DEVICE void nrt_tail_add_float(NRT_GLOBAL nrt_u64 *hist, NRT_LOCAL nrt_u32 *lhist, int home, float x)
+NRT_DEVICE void nrt_tail_add_float(NRT_GLOBAL nrt_u64 *hist, float x)
 {
     if (!(x >= 1.0f))
         return;
     nrt_u32 b = NRT_FLOAT_AS_UINT(x);
     int bin = 2 * ((int)((b >> 23) & 0xFFu) - 127) + (int)((b >> 22) & 1u);
-    nrt_tail_count(hist, lhist, home, bin < NRT_TAIL_BINS ? bin : NRT_TAIL_BINS - 1);
+    NRT_ATOMIC_ADD_U64(&hist[bin < NRT_TAIL_BINS ? bin : NRT_TAIL_BINS - 1], 1UL);
 }
 
 /* tally t of a 128-bit tally block (5 tallies: emitted, absorbed, escaped, terminated, biasing) */
@@ -1325,8 +1312,7 @@ NRT_DEVICE void nrt_trace_packet_biased(const NRT_GLOBAL float *density, float s
                                         int max_scatterings, float track_scale, float collision_scale,
                                         NRT_GLOBAL nrt_u64 *band_acc, NRT_GLOBAL nrt_u64 *tally,
                                         NRT_GLOBAL nrt_u32 *overflow, const NRT_GLOBAL float *peel,
-                                        float peel_scale, NRT_GLOBAL nrt_u64 *band_image,
-                                        NRT_LOCAL nrt_u32 *l_tail, int tail_home)
+                                        float peel_scale, NRT_GLOBAL nrt_u64 *band_image)
 {
     nrt_rng rng;
     nrt_rng_init(&rng, seed, (nrt_u64)band, photon);
@@ -1513,18 +1499,17 @@ NRT_DEVICE void nrt_trace_packet_biased(const NRT_GLOBAL float *density, float s
     }
     nrt_count_wide(tally, 4, bias);
 #if NRT_PEEL
-    nrt_tail_add(tally + NRT_TALLY_BASE, l_tail, tail_home, img_score.lo, img_score.hi);
+    nrt_tail_add(NRT_TAIL_OF(tally, photon), img_score.lo, img_score.hi);
 #else
     (void)img_score;
 #endif
 #if NRT_TAIL_CLASSES
     {
-        NRT_GLOBAL nrt_u64 *h = tally + NRT_TALLY_BASE + NRT_PEEL * NRT_TAIL_BINS;
-        NRT_LOCAL nrt_u32 *l = l_tail + NRT_PEEL * NRT_TAIL_BINS;
-        nrt_tail_add_float(h, l, tail_home, jt.j0);
-        nrt_tail_add_float(h + NRT_TAIL_BINS, l + NRT_TAIL_BINS, tail_home, jt.j1);
-        nrt_tail_add_float(h + 2 * NRT_TAIL_BINS, l + 2 * NRT_TAIL_BINS, tail_home, jt.j2);
-        nrt_tail_add_float(h + 3 * NRT_TAIL_BINS, l + 3 * NRT_TAIL_BINS, tail_home, jt.j3);
+        NRT_GLOBAL nrt_u64 *h = NRT_TAIL_OF(tally, photon) + NRT_PEEL * NRT_TAIL_BINS;
+        nrt_tail_add_float(h, jt.j0);
+        nrt_tail_add_float(h + NRT_TAIL_BINS, jt.j1);
+        nrt_tail_add_float(h + 2 * NRT_TAIL_BINS, jt.j2);
+        nrt_tail_add_float(h + 3 * NRT_TAIL_BINS, jt.j3);
     }
 #endif
 }
@@ -1592,18 +1577,8 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
     /* the home cell (batch slot and band) of the group: that of its first packet */
     nrt_u64 home_cell = 0, home_slot = 0;
     nrt_sink sink;
-#if NRT_GROUP_TALLY || NRT_TAIL_HISTS
-    nrt_u64 lid = NRT_LOCAL_ID();
-#endif
-#if NRT_TAIL_HISTS
-    /* the heavy-tail histograms of the group's home cell, counted in local memory and added to
-       global memory once: every packet ends with an increment of a few bins, which from global
-       memory cost 17-19 % of the weighted packets' kernel on an H200 (all lanes on one address) */
-    NRT_LOCAL_MEM nrt_u32 l_tail[NRT_TAIL_HISTS * NRT_TAIL_BINS];
-    for (nrt_u64 i = lid; i < NRT_TAIL_HISTS * NRT_TAIL_BINS; i += NRT_LOCAL_SIZE())
-        l_tail[i] = 0;
-#endif
 #if NRT_GROUP_TALLY
+    nrt_u64 lid = NRT_LOCAL_ID();
     NRT_LOCAL_MEM nrt_u64 l_tally[4];
     NRT_LOCAL_MEM nrt_u64 l_hot[NRT_HOT_STARS];
     NRT_LOCAL_MEM nrt_u64 l_hot_sq[NRT_HOT_STARS];
@@ -1613,8 +1588,6 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
         l_tally[i] = 0;
     for (nrt_u64 i = lid; i < NRT_HOT_STARS; i += NRT_LOCAL_SIZE())
         l_hot[i] = l_hot_sq[i] = 0;
-#endif
-#if NRT_GROUP_TALLY || NRT_TAIL_HISTS
     {
         nrt_u64 it0 = NRT_GROUP_FIRST_ID(), photon0 = photon_start;
         int lband0 = 0;
@@ -1632,10 +1605,8 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
         home_slot = nrt_batch_of(photon0, batch_base, batch_extra) - first_batch;
         home_cell = home_slot * (nrt_u64)n_lbands + (nrt_u64)lband0;
     }
-    NRT_BARRIER();
-#endif
-#if NRT_GROUP_TALLY
     sink.l_tally = l_tally;
+    NRT_BARRIER();
 #else
     sink.l_tally = 0;
 #endif
@@ -1663,12 +1634,10 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
                                 star_cdf + band * n_stars, nx, ny, nz, n_stars, seed, band, photon,
                                 max_scatterings, track_scale, prm->collision_scale, acc + 2 * cell * nvox,
                                 tallies + NRT_TALLY_WORDS * cell, overflow + slot, peel, peel_scale,
-                                image + 2 * cell * pixels, NRT_TAIL_BUF, NRT_TAIL_HISTS && cell == home_cell);
+                                image + 2 * cell * pixels);
 #else
         sink.tally = tallies + NRT_TALLY_WORDS * cell;
         sink.home = NRT_GROUP_TALLY && cell == home_cell;
-        sink.l_tail = NRT_TAIL_BUF;
-        sink.tail_home = NRT_TAIL_HISTS && cell == home_cell;
 #if NRT_GROUP_TALLY
         sink.l_hot = l_hot;
         sink.l_hot_sq = l_hot_sq;
@@ -1700,12 +1669,6 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
 #endif
 #endif
     }
-#if NRT_TAIL_HISTS
-    NRT_BARRIER();
-    for (nrt_u64 i = lid; i < NRT_TAIL_HISTS * NRT_TAIL_BINS; i += NRT_LOCAL_SIZE())
-        if (l_tail[i] != 0)
-            NRT_ATOMIC_ADD_U64(&tallies[NRT_TALLY_WORDS * home_cell + NRT_TALLY_BASE + i], (nrt_u64)l_tail[i]);
-#endif
 #if NRT_GROUP_TALLY
     /* the group's local sums go to global memory once */
     NRT_BARRIER();
