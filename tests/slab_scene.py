@@ -13,12 +13,16 @@ Laterally the grid is coarse: the slab is uniform there, and voxel crossings cos
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 
 from nebula_rt.bands import Band
+from nebula_rt.errors import NebulaWarning
 from nebula_rt.scene import Star
 from nebula_rt.sky import Camera
+from nebula_rt.transport import trace
+from oracles.plane_parallel import PointSourceSlab, Slab
 
 #: the slab's top face and the star's height above it (box units): light below mu0 = 2e-4
 #: (0.02 % of the downward light) misses the 1-wide slab, and is left out of the oracle's
@@ -56,3 +60,20 @@ def image_power(result, camera) -> tuple[float, float]:
 
 def peel_bins(camera):
     return np.zeros(camera.size, np.int64)
+
+
+def seeded_runs(backend, tau: float, albedo: float, g: float, *, seeds: int, photons: int, method: str = "auto",
+                side: str = "below"):
+    """Runs of the slab with seeds 1..``seeds`` (NebulaWarnings silenced: the callers judge the
+    results against the exact answer): yields (result, image power, its standard error, the
+    exact value, the oracle)."""
+    rho, bands, stars, kappa, cam = slab(tau, albedo=albedo, g=g, side=side)
+    oracle = PointSourceSlab(Slab(tau, albedo, g))
+    exact = oracle.transmitted(1.0) if side == "below" else oracle.reflected(1.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", NebulaWarning)
+        for seed in range(1, seeds + 1):
+            r = trace(rho, bands, stars, tau=kappa, photons=photons, seed=seed, backend=backend, method=method,
+                      peel=cam, peel_bins=peel_bins(cam))
+            v, se = image_power(r, cam)
+            yield r, v, se, exact, oracle

@@ -25,8 +25,7 @@ from conftest import tuned_backend
 from nebula_rt import tails
 from nebula_rt.errors import NebulaWarning
 from nebula_rt.transport import plan_transport, trace
-from oracles.plane_parallel import PointSourceSlab, Slab
-from slab_scene import image_power, peel_bins, slab
+from slab_scene import peel_bins, seeded_runs, slab
 
 
 def _binned(x: np.ndarray) -> np.ndarray:
@@ -133,17 +132,9 @@ PHOTONS = 20_000
 
 
 def _pulls(backend, tau, albedo, method="auto"):
-    rho, bands, stars, kappa, cam = slab(tau, albedo=albedo, g=0.6)
-    exact = PointSourceSlab(Slab(tau, albedo, 0.6)).transmitted(1.0)
-    out = []
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", NebulaWarning)
-        for seed in range(1, SEEDS + 1):
-            r = trace(rho, bands, stars, tau=kappa, photons=PHOTONS, seed=seed, backend=backend, method=method,
-                      peel=cam, peel_bins=peel_bins(cam))
-            v, se = image_power(r, cam)
-            out.append(((v - exact) / se if se > 0 else math.inf, r.tail_image[0]))
-    return out
+    return [((v - exact) / se if se > 0 else math.inf, r.tail_image[0])
+            for r, v, se, exact, _ in seeded_runs(backend, tau, albedo, 0.6, seeds=SEEDS, photons=PHOTONS,
+                                                  method=method)]
 
 
 @pytest.mark.parametrize("albedo,tau", [(0.3, 20.0), (0.6, 20.0), (0.6, 30.0), (0.9, 30.0)])

@@ -26,16 +26,12 @@ What is asserted, with tolerances from the runs' own stated errors:
 from __future__ import annotations
 
 import math
-import warnings
 
 import numpy as np
 import pytest
 
 from conftest import tuned_backend
-from nebula_rt.errors import NebulaWarning
-from nebula_rt.transport import trace
-from oracles.plane_parallel import PointSourceSlab, Slab
-from slab_scene import image_power, peel_bins, slab
+from slab_scene import seeded_runs
 
 ALBEDOS = (0.3, 0.6, 0.9)
 GS = (0.0, 0.6)
@@ -46,19 +42,12 @@ PHOTONS = 20_000
 
 def _runs(backend, tau, albedo, g, side="below", seeds=SEEDS, photons=PHOTONS, method="auto"):
     """(values / exact, stated errors / exact, absorbed fractions / exact) over the seeds."""
-    rho, bands, stars, kappa, cam = slab(tau, albedo=albedo, g=g, side=side)
-    oracle = PointSourceSlab(Slab(tau, albedo, g))
-    exact = oracle.transmitted(1.0) if side == "below" else oracle.reflected(1.0)
     vals, errs, absorbed = [], [], []
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", NebulaWarning)
-        for seed in range(1, seeds + 1):
-            r = trace(rho, bands, stars, tau=kappa, photons=photons, seed=seed, backend=backend, method=method,
-                      peel=cam, peel_bins=peel_bins(cam))
-            v, se = image_power(r, cam)
-            vals.append(v / exact)
-            errs.append(se / exact)
-            absorbed.append(r.energy[0][1] / r.energy[0][0] / oracle.absorbed)
+    for r, v, se, exact, oracle in seeded_runs(backend, tau, albedo, g, seeds=seeds, photons=photons, method=method,
+                                               side=side):
+        vals.append(v / exact)
+        errs.append(se / exact)
+        absorbed.append(r.energy[0][1] / r.energy[0][0] / oracle.absorbed)
     return np.array(vals), np.array(errs), np.array(absorbed)
 
 
