@@ -105,7 +105,7 @@
  * the voxels of each of NRT_TAIL_CLASSES classes of optical depth from the stars. As the packet
  * ends, each nonzero sum adds 1 to its bin of a histogram of NRT_TAIL_BINS half-octave bins
  * (nrt_tail_add) in the cell's tally block, after the energy tallies: image first, then the
- * depth classes, in NRT_TAIL_SPREAD copies (NRT_TAIL_OF) the host adds.
+ * depth classes.
  * Integer counts of sums the same on every device (the image's: integers; J's: float32 sums
  * of the same floats in the same order): the same bits in any order, on any device and
  * number of ranks. The host reads the distribution of the packets' contributions from it
@@ -120,7 +120,7 @@
    when biased; then the heavy-tail histograms) */
 #define NRT_CELL_WORDS (NRT_BIASED ? 2 : 1)
 #define NRT_TALLY_BASE (NRT_BIASED ? NRT_TALLY_WEIGHTED : NRT_TALLY_ANALOG)
-#define NRT_TALLY_WORDS (NRT_TALLY_BASE + NRT_TAIL_SPREAD * NRT_TAIL_HISTS * NRT_TAIL_BINS)
+#define NRT_TALLY_WORDS (NRT_TALLY_BASE + NRT_TAIL_HISTS * NRT_TAIL_BINS)
 /* direction bins of the sort key: 2^NRT_SORT_BITS along mu and along phi, in Morton order */
 #ifndef NRT_SORT_BITS
 #define NRT_SORT_BITS 8
@@ -195,14 +195,12 @@ NRT_DEVICE nrt_u64 nrt_fixed(float x, float scale)
 
 /* Count a packet's nonzero score (hi:lo, 128 bits) in its half-octave bin of hist: bin 2 m for
    [2^m, 1.5 2^m), 2 m + 1 for [1.5 2^m, 2^(m + 1)) (m the leading bit). */
-/* The histograms a packet counts in: copy (photon mod NRT_TAIL_SPREAD) of its cell's (the
-   host adds the copies). Every packet ends with an increment of a few bins, all the lanes of
-   a warp on the same few addresses: on an H200 that cost 17-23 % of the weighted packets'
-   kernel with one copy (benchmarks/results/h200-2026-12-03b/). Counting in the work group's
-   local memory cost more (a barrier at the end holds every block until its longest packet
-   ends); several copies would put fewer lanes on one address, not yet measured. */
-#define NRT_TAIL_OF(tally, photon) \
-    ((tally) + NRT_TALLY_BASE + ((photon) % NRT_TAIL_SPREAD) * (nrt_u64)(NRT_TAIL_HISTS * NRT_TAIL_BINS))
+/* The histograms of a cell's tally block. Every packet ends with an increment of a few bins,
+   all the lanes of a warp on the same few addresses: on an H200 that costs 17-23 % of the
+   weighted packets' kernel (benchmarks/results/h200-2026-12-03b/). Counting in the work
+   group's local memory cost more (a barrier at the end holds every block until its longest
+   packet ends). */
+#define NRT_TAIL_OF(tally) ((tally) + NRT_TALLY_BASE)
 
 NRT_DEVICE void nrt_tail_add(NRT_GLOBAL nrt_u64 *hist, nrt_u64 lo, nrt_u64 hi)
 {
@@ -493,7 +491,7 @@ NRT_DEVICE void nrt_square(const nrt_sink *k, NRT_GLOBAL nrt_u64 *band_sq, nrt_i
 #endif
 /* an analog packet ends: its peel-off score into the image's heavy-tail histogram */
 #if NRT_PEEL
-#define NRT_TAIL_END() nrt_tail_add(NRT_TAIL_OF(sink->tally, photon), peel_score, 0UL)
+#define NRT_TAIL_END() nrt_tail_add(NRT_TAIL_OF(sink->tally), peel_score, 0UL)
 #else
 #define NRT_TAIL_END() ((void)peel_score)
 #endif
@@ -1017,13 +1015,12 @@ NRT_DEVICE void nrt_add_wide(NRT_GLOBAL nrt_u64 *cell, nrt_u128 v, NRT_GLOBAL nr
     }
 }
 
-/* A deposit of x >= 0 units into a 128-bit voxel cell, rounded to nearest; returns the units. */
-NRT_DEVICE nrt_u128 nrt_deposit_wide(NRT_GLOBAL nrt_u64 *band_acc, nrt_idx idx, float x, NRT_GLOBAL nrt_u32 *overflow)
+/* A deposit of x >= 0 units into a 128-bit voxel cell, rounded to nearest. */
+NRT_DEVICE void nrt_deposit_wide(NRT_GLOBAL nrt_u64 *band_acc, nrt_idx idx, float x, NRT_GLOBAL nrt_u32 *overflow)
 {
     nrt_u128 v = nrt_u128_floor(x + 0.5f);
     if (!nrt_u128_is_zero(v))
         nrt_add_wide(band_acc + 2 * (nrt_u64)idx, v, overflow, 1);
-    return v;
 }
 
 /* A weighted packet's J scores per class of depth from the stars (heavy-tail diagnostic). The
@@ -1499,13 +1496,13 @@ NRT_DEVICE void nrt_trace_packet_biased(const NRT_GLOBAL float *density, float s
     }
     nrt_count_wide(tally, 4, bias);
 #if NRT_PEEL
-    nrt_tail_add(NRT_TAIL_OF(tally, photon), img_score.lo, img_score.hi);
+    nrt_tail_add(NRT_TAIL_OF(tally), img_score.lo, img_score.hi);
 #else
     (void)img_score;
 #endif
 #if NRT_TAIL_CLASSES
     {
-        NRT_GLOBAL nrt_u64 *h = NRT_TAIL_OF(tally, photon) + NRT_PEEL * NRT_TAIL_BINS;
+        NRT_GLOBAL nrt_u64 *h = NRT_TAIL_OF(tally) + NRT_PEEL * NRT_TAIL_BINS;
         nrt_tail_add_float(h, jt.j0);
         nrt_tail_add_float(h + NRT_TAIL_BINS, jt.j1);
         nrt_tail_add_float(h + 2 * NRT_TAIL_BINS, jt.j2);

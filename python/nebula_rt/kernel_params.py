@@ -64,8 +64,6 @@ STRUCTS = {"nrt_trace_params": TRACE_PARAMS, "nrt_packet": PACKET_STATE}
 CONSTANTS = (
     ("NRT_TAIL_BINS", 256, "bins of a heavy-tail histogram: half-octaves of a 128-bit score "
                            "(nebula_rt.tails)"),
-    ("NRT_TAIL_SPREAD", 1, "copies of a cell's heavy-tail histograms, a packet counting in copy (packet "
-                           "number mod copies): fewer lanes of a warp on one address (1: what was measured)"),
     ("NRT_TALLY_ANALOG", 4, "64-bit words of an analog tally block's counts (emitted, absorbed, "
                             "escaped, terminated)"),
     ("NRT_TALLY_WEIGHTED", 10, "64-bit words of a weighted tally block's five 128-bit weight sums "

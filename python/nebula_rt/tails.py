@@ -20,7 +20,7 @@ of ranks). From it :func:`tail_check` takes, for the mean contribution x̄ of N 
   the squared relative error of the stated variance; MCNP asks for less than 0.1.
 - ``largest_share``: the largest single packet's share of the total.
 - ``tail_index``: the Hill estimate alpha of the tail P(X > x) ~ x^-alpha, from the largest
-  packets (at most :data:`TAIL_PACKETS`); reported, not checked (:data:`TAIL_INDEX_NOTE`).
+  packets (at most :data:`TAIL_PACKETS`); reported, not checked (see the limits below).
 - ``relative_error``: the error of the mean from the packets themselves.
 
 Within a half-octave bin a contribution is taken at the bin's geometric centre: the moments
@@ -64,11 +64,10 @@ IMAGE_ERROR_LIMIT = 0.05
 J_ERROR_LIMIT = 0.1
 VOV_LIMIT = 0.1
 LARGEST_SHARE_LIMIT = 0.1
-#: Not a check, a figure: the Hill index below 2 is a tail of infinite variance for an unbounded
-#: distribution, but weight windows bound a packet's contributions, and on their truncated tail
-#: the largest 200 packets read 0.2-1.2 at depth 30-60 where the results are right (the same
-#: runs above).
-TAIL_INDEX_NOTE = 2.0
+# The tail index is not a check, a figure: below 2 it is a tail of infinite variance for an
+# unbounded distribution, but weight windows bound a packet's contributions, and on their
+# truncated tail the largest 200 packets read 0.2-1.2 at depth 30-60 where the results are
+# right (the same runs above).
 
 
 def bin_edges() -> tuple[np.ndarray, np.ndarray]:
@@ -213,13 +212,11 @@ def kernel_tables(window_shape, grid_shape, edges) -> np.ndarray:
     return np.concatenate(parts).astype(np.float32)
 
 
-def class_cells(depth: np.ndarray, edges: np.ndarray, density=None) -> np.ndarray:
-    """Cells of the depth map with dust in each depth class, per band (int64, (n_bands,
-    classes)); ``edges`` as :func:`class_edges` gives them; ``density`` (the map's own grid or
-    None) leaves out the empty cells (J there is no tally of interest)."""
+def class_cells(depth: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """Cells of the depth map in each depth class, per band (int64, (n_bands, classes));
+    ``edges`` as :func:`class_edges` gives them."""
     d = np.asarray(depth, np.float64).ravel()
-    keep = np.ones(d.size, bool) if density is None else np.asarray(density).ravel() > 0
-    cls = np.stack([np.searchsorted(np.asarray(e, np.float64), d[keep], side="right") for e in edges])
+    cls = np.stack([np.searchsorted(np.asarray(e, np.float64), d, side="right") for e in edges])
     return np.stack([np.bincount(c, minlength=len(DEPTH_CLASS_NAMES)) for c in cls])
 
 

@@ -1129,9 +1129,8 @@ def run_transport(plan: TransportPlan, backend: Backend, *, progress=None, cance
                 peel_sums.add(images[k], b0)
             folded[b0:b0 + nlb] += 1
             counts[b0:b0 + nlb] += session.counts_of(tallies[k])
-            if setup.tail_hists:  # (the kernel's copies of the histograms added)
-                out.tail_hist[b0:b0 + nlb] += tallies[k][:, setup.tally_base:].reshape(
-                    nlb, -1, setup.tail_hists, TAIL_BINS).sum(axis=1, dtype=np.uint64)
+            if setup.tail_hists:
+                out.tail_hist[b0:b0 + nlb] += tallies[k][:, setup.tally_base:].reshape(nlb, setup.tail_hists, TAIL_BINS)
             band_done[b0:b0 + nlb] += b_count
 
     def fold_group(group, n, tallies, overflow, ranges):

@@ -115,8 +115,8 @@ class TransportSetup:
     @property
     def tally_words(self) -> int:
         """64-bit words of one (batch, band) tally block: the energy tallies, then the heavy-tail
-        histograms' counts (NRT_TAIL_SPREAD copies)."""
-        return self.tally_base + CONSTANT["NRT_TAIL_SPREAD"] * self.tail_hists * CONSTANT["NRT_TAIL_BINS"]
+        histograms' counts."""
+        return self.tally_base + self.tail_hists * CONSTANT["NRT_TAIL_BINS"]
 
     @property
     def peel_pixels(self) -> int:
