@@ -7,7 +7,7 @@
 # WHEELDIR holds wheels for what the machine lacks (pyopencl and its pure-Python needs,
 # colour-science, tomli-w; pmcx for the MCX comparison), fetched elsewhere with
 # `pip download --only-binary=:all: --python-version 3.12 ...`.
-# STEPS (default "tests bench neb128 compare profile"; also "tests-cuda", "thick", "trust", "scaling", "large", "regions", "regcaps", "profile-regions", "layout", "sorted", "probe", "ranks", "ranks-thesis", "ranks-weak", "tests-mpi", "e2e1e9", "biasing", "fit", "tune",
+# STEPS (default "tests bench neb128 compare profile"; also "tests-cuda", "thick", "thick-grid", "trust", "scaling", "large", "regions", "regcaps", "profile-regions", "layout", "sorted", "probe", "ranks", "ranks-thesis", "ranks-weak", "tests-mpi", "e2e1e9", "biasing", "fit", "tune",
 # "stages", "trade", "presets", "empty", "fft") selects what runs. Everything printed
 # goes to OUTDIR/log.txt as well; JSON and .npz results beside it.
 set -uo pipefail
@@ -28,7 +28,7 @@ nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader
 python3 -m nebula_rt.cli devices
 git rev-parse --short HEAD 2>/dev/null || true
 
-physics="tests/test_rng.py tests/test_hg.py tests/test_density_kernel.py tests/test_transport_physics.py tests/test_estimators.py tests/test_postprocess.py tests/test_target_error.py tests/test_sky_physics.py tests/test_kernel_options.py tests/test_filter_boundary.py tests/test_terminated.py tests/test_peel_off_physics.py tests/test_band_independence.py tests/test_resources.py tests/test_extremes.py tests/test_memory_layout.py tests/test_biased_transport.py tests/test_regions.py tests/test_tail_diagnostic.py tests/test_trust_slab.py"
+physics="tests/test_importance.py tests/test_rng.py tests/test_hg.py tests/test_density_kernel.py tests/test_transport_physics.py tests/test_estimators.py tests/test_postprocess.py tests/test_target_error.py tests/test_sky_physics.py tests/test_kernel_options.py tests/test_filter_boundary.py tests/test_terminated.py tests/test_peel_off_physics.py tests/test_band_independence.py tests/test_resources.py tests/test_extremes.py tests/test_memory_layout.py tests/test_biased_transport.py tests/test_regions.py tests/test_tail_diagnostic.py tests/test_trust_slab.py"
 if [[ " $steps " == *" tests "* ]]; then
     echo "== physics tests, CUDA"; NEBULA_RT_TEST_BACKEND=cuda python3 -m pytest -q -p no:cacheprovider $physics tests/test_cuda_sources.py 2>&1 | tail -n 8
     echo "== physics tests, NVIDIA OpenCL"; NEBULA_RT_TEST_DEVICE=NVIDIA python3 -m pytest -q -p no:cacheprovider $physics 2>&1 | tail -n 3
@@ -52,6 +52,17 @@ if [[ " $steps " == *" thick "* ]]; then
         echo "== thick slab, former weighted packets, CUDA"
         PYTHONPATH=.former/python${PYTHONPATH:+:$PYTHONPATH} python3 benchmarks/bench_thick_slab.py --backend cuda $kw --methods biased --label former --out "$out/thick-slab-former-cuda.json"
     fi
+fi
+if [[ " $steps " == *" thick-grid "* ]]; then
+    # every target case of the thick slab with the method a user gets, THICK_SEEDS seeds each for the
+    # coverage of the stated errors pooled per depth; the reflected light with the stars' and the
+    # observer's windows beside analog packets
+    kw="--photons ${THICK_PHOTONS:-1e6} --seeds ${THICK_SEEDS:-64}"
+    echo "== thick slab, every case, CUDA"; python3 benchmarks/bench_thick_slab.py --backend cuda $kw --methods auto --out "$out/thick-slab-grid-cuda.json"
+    echo "== reflected by thick slabs, CUDA"; python3 benchmarks/bench_thick_slab.py --backend cuda --photons ${THICK_PHOTONS:-1e6} --seeds 16 \
+        --sides above --albedos 0.3 0.6 0.9 --gs 0.6 --taus 10 30 --methods biased analog --importance stars observer --out "$out/thick-slab-reflected-cuda.json"
+    echo "== reflected by thick slabs, NVIDIA OpenCL"; python3 benchmarks/bench_thick_slab.py --backend opencl --device NVIDIA --photons ${THICK_PHOTONS:-1e6} --seeds 16 \
+        --sides above --albedos 0.6 --gs 0.6 --taus 10 30 --methods biased --importance stars observer --out "$out/thick-slab-reflected-nvidia-opencl.json"
 fi
 if [[ " $steps " == *" trust "* ]]; then
     # the TRUST I slab against the independent oracle (its answers reused from TRUST_ORACLE, a JSON

@@ -16,6 +16,10 @@ conservative scattering; Case & Zweifel 1967). So:
   window falls smoothly through a voxel of large optical depth.
 - ``rate_b = k(albedo_b, g_b) x k_b`` (k_b the band's extinction relative to the reference).
 
+That map serves the light field J. A run that makes a peel-off image wants the image's
+importance instead, the adjoint: how much of a packet's light will reach the observer
+(:func:`observer_depth_map`; :func:`resolve_importance` chooses by the run's product).
+
 A window only steers where the packets go, never what they carry: any window gives the same
 expectation (every split and roulette keeps the weight in expectation, the bookkeeping keeps it
 exactly). A window that falls too slowly lets the packets thin out with depth, one that falls
@@ -29,6 +33,8 @@ import itertools
 
 import numpy as np
 from numpy.polynomial.legendre import leggauss
+
+from .errors import SceneError
 
 #: the depth map's grid at most this many cells a side (Dijkstra on 64^3 takes about 1 s)
 MAX_CELLS = 64
@@ -90,6 +96,35 @@ def _block_mean(sigma: np.ndarray, factor: tuple) -> np.ndarray:
     return out
 
 
+def _coarse(sigma: np.ndarray):
+    """(the grid of the depth maps: sigma averaged in blocks of at most ``MAX_CELLS`` cells a
+    side, its cells' edges in box units)."""
+    shape = tuple(int(n) for n in sigma.shape)
+    factor = tuple(max(1, -(-n // MAX_CELLS)) for n in shape)
+    coarse = _block_mean(np.asarray(sigma, np.float64), factor)
+    return coarse, np.array([f / n for f, n in zip(factor, shape)])
+
+
+def _voxel_graph(coarse: np.ndarray, h: np.ndarray, extra_nodes: int = 0):
+    """(rows, cols, weights) of the 26-neighbour graph of the cells, each undirected edge once,
+    its weight the mean extinction of its two cells times its length; node numbers leave
+    ``extra_nodes`` free after the cells."""
+    cshape = coarse.shape
+    idx = np.arange(coarse.size).reshape(cshape)
+    rows, cols, weights = [], [], []
+    for step in itertools.product((-1, 0, 1), repeat=3):
+        if step <= (0, 0, 0):
+            continue  # each undirected edge once
+        a = tuple(slice(max(0, -k), n - max(0, k)) for k, n in zip(step, cshape))
+        b = tuple(slice(max(0, k), n - max(0, -k)) for k, n in zip(step, cshape))
+        length = float(np.sqrt(np.sum((np.array(step) * h) ** 2)))
+        rows.append(idx[a].ravel())
+        cols.append(idx[b].ravel())
+        # an edge of zero weight would vanish from the sparse graph: vacuum costs 1e-30
+        weights.append(0.5 * length * (coarse[a] + coarse[b]).ravel() + 1e-30)
+    return rows, cols, weights
+
+
 def depth_map(sigma: np.ndarray, star_positions) -> np.ndarray:
     """Least optical depth from any star to the centre of every cell of a grid over the box
     (float32): the density's grid, or blocks of it at most ``MAX_CELLS`` a side (the kernel
@@ -104,28 +139,98 @@ def depth_map(sigma: np.ndarray, star_positions) -> np.ndarray:
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import dijkstra
 
-    shape = tuple(int(n) for n in sigma.shape)
-    factor = tuple(max(1, -(-n // MAX_CELLS)) for n in shape)
-    coarse = _block_mean(np.asarray(sigma, np.float64), factor)
+    coarse, h = _coarse(sigma)
     cshape = coarse.shape
-    h = np.array([f / n for f, n in zip(factor, shape)])  # the coarse cells' edges (box units)
-    idx = np.arange(coarse.size).reshape(cshape)
-    rows, cols, weights = [], [], []
-    for step in itertools.product((-1, 0, 1), repeat=3):
-        if step <= (0, 0, 0):
-            continue  # each undirected edge once
-        a = tuple(slice(max(0, -k), n - max(0, k)) for k, n in zip(step, cshape))
-        b = tuple(slice(max(0, k), n - max(0, -k)) for k, n in zip(step, cshape))
-        length = float(np.sqrt(np.sum((np.array(step) * h) ** 2)))
-        rows.append(idx[a].ravel())
-        cols.append(idx[b].ravel())
-        # an edge of zero weight would vanish from the sparse graph: vacuum costs 1e-30
-        weights.append(0.5 * length * (coarse[a] + coarse[b]).ravel() + 1e-30)
+    rows, cols, weights = _voxel_graph(coarse, h)
     graph = coo_matrix((np.concatenate(weights), (np.concatenate(rows), np.concatenate(cols))),
                        shape=(coarse.size, coarse.size)).tocsr()
+    idx = np.arange(coarse.size).reshape(cshape)
     sources = []
     for pos in np.asarray(star_positions, np.float64).reshape(-1, 3):
         cell = [min(int(pos[k] * cshape[k]), cshape[k] - 1) for k in range(3)]
         sources.append(int(idx[tuple(cell)]))
     dist = dijkstra(graph, directed=False, indices=sorted(set(sources)), min_only=True)
     return np.asarray(dist.reshape(cshape), np.float32)
+
+
+def line_of_sight_depth(coarse: np.ndarray, h: np.ndarray, toward) -> np.ndarray:
+    """Optical depth from every cell centre to the box's edge along the unit vector ``toward``
+    (midpoint rule in steps of half the smallest cell edge: each step the extinction of the
+    cell at its middle, counted while the middle is inside the box; float64, the coarse grid's
+    shape). Exact along an axis; otherwise within half a step's extinction."""
+    u = np.asarray(toward, np.float64)
+    u = u / np.linalg.norm(u)
+    cshape = np.array(coarse.shape)
+    step = 0.5 * float(h.min())
+    axes = [(np.arange(n) + 0.5) * hk for n, hk in zip(cshape, h)]
+    mid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3) + 0.5 * step * u
+    depth = np.zeros(len(mid))
+    live = np.arange(len(mid))
+    while True:
+        p = mid[live]
+        inside = np.all((p >= 0.0) & (p < 1.0), axis=1)
+        live, p = live[inside], p[inside]
+        if not live.size:
+            break
+        cell = np.minimum((p / h).astype(np.int64), cshape - 1)
+        depth[live] += coarse[cell[:, 0], cell[:, 1], cell[:, 2]] * step
+        mid[live] += step * u
+    return depth.reshape(coarse.shape)
+
+
+def observer_depth_map(sigma: np.ndarray, toward) -> np.ndarray:
+    """The weight windows' map for a peel-off image: per cell, the optical depth *to the
+    observer* turned round, D = max - tau_obs (float32, the grid of :func:`depth_map`).
+
+    tau_obs is the least optical depth of a path from the cell through the grid to some cell
+    and from there straight out of the box along ``toward`` (the unit vector to the observer):
+    light scattered deep in a cloud reaches the observer by diffusing to where the way out is
+    clear (Dijkstra from a node joined to every cell by its line-of-sight depth,
+    :func:`line_of_sight_depth`). The image's importance of a cell falls as e^-(k tau_obs), so
+    the window W_c(x) = e^-(k (D(x) - D(star))) is the adjoint's (Booth 1982): packets are split
+    as they approach the observer, and where they move away from it the kernel keeps the window
+    at the packet's start (it never raises a window above W0), which leaves them to the
+    absorption and the path stretching towards the observer. For a slab seen from the side
+    opposite its star the map is the stars' :func:`depth_map` up to a constant (the same
+    windows); for the side of the star it stops the splitting that drove packets deep into
+    dust whose light never comes out towards the observer.
+
+    sigma : ndarray (nx, ny, nz)
+        Extinction per box unit of the reference band.
+    toward : 3 floats
+        Direction to the observer (any length).
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import dijkstra
+
+    coarse, h = _coarse(sigma)
+    n = coarse.size
+    rows, cols, weights = _voxel_graph(coarse, h)
+    rows, cols = rows + cols, cols + rows  # both directions: the graph is directed (the node below)
+    weights = weights + weights
+    # node n: the observer, joined to every cell by the way straight out
+    rows.append(np.full(n, n))
+    cols.append(np.arange(n))
+    weights.append(line_of_sight_depth(coarse, h, toward).ravel() + 1e-30)
+    graph = coo_matrix((np.concatenate(weights), (np.concatenate(rows), np.concatenate(cols))),
+                       shape=(n + 1, n + 1)).tocsr()
+    tau_obs = dijkstra(graph, directed=True, indices=n)[:n]
+    return np.asarray((tau_obs.max() - tau_obs).reshape(coarse.shape), np.float32)
+
+
+#: which map steers the weight windows (``trace(importance=...)``)
+IMPORTANCES = ("auto", "stars", "observer")
+
+
+def resolve_importance(importance: str, peel) -> str:
+    """The windows a weighted run takes: ``importance`` itself unless it is ``"auto"``, which
+    follows the run's product: the observer's when the run makes a peel-off image (the J of
+    such a run is not its product), the stars' (the light field) otherwise."""
+    if importance not in IMPORTANCES:
+        raise SceneError("importance", importance, " or ".join(f'"{m}"' for m in IMPORTANCES))
+    if importance == "observer" and peel is None:
+        raise SceneError("importance", importance, '"stars" or "auto" (a run without a peel-off image '
+                         'has no observer)')
+    if importance != "auto":
+        return importance
+    return "stars" if peel is None else "observer"

@@ -49,7 +49,7 @@ from .scene import METHODS as _scene_methods
 from .scene import AUTO_THICK, AUTO_THIN  # noqa: F401  (auto's thresholds, declared with the method)
 from .errors import AccumulatorOverflowError, CancelledError, NebulaWarning, SceneError, TimeLimitError
 from .postprocess import DeviceSums
-from .importance import depth_map, window_rates
+from .importance import depth_map, observer_depth_map, resolve_importance, window_rates
 from .tails import (DEPTH_CLASS_NAMES, IMAGE_ERROR_LIMIT, J_ERROR_LIMIT, TAIL_BINS, check_histograms, class_cells,
                     class_edges, failures)
 
@@ -293,6 +293,8 @@ class TransportResult:
     reduce_path: str = ""  # how the ranks' slots were added (Tallies.reduce_path)
     timings: dict = field(default_factory=dict)
     method: str = "analog"
+    #: the weighted packets' windows: "stars" or "observer" (nebula_rt.importance); "" for analog
+    importance: str = ""
     #: how the error was estimated: "batches" (batch means) or "packets" (batches of one packet)
     error_estimate: str = "batches"
     weight_unit: float = 1.0  # count units per packet (WEIGHT_UNIT for biased runs)
@@ -984,7 +986,7 @@ def plan_transport(density, bands, stars, *, tau: float, photons: int, estimator
                    max_scatterings: int = 1000, seed: int = 1, batch_size: int = 0, backend: Backend,
                    target_error: float = 0.0, time_limit: float = 0.0, peel=None, peel_bins=None,
                    checked_adds: bool = False, _acc_limit_bits: int = 63, method: str = "analog",
-                   error_estimate: str = "batches") -> TransportPlan:
+                   error_estimate: str = "batches", importance: str = "auto") -> TransportPlan:
     """The first stage: check every input against what the device can represent, then resolve
     the run (see :func:`trace` for the parameters; ``checked_adds`` checks every deposit for
     the headroom as it is added)."""
@@ -994,6 +996,7 @@ def plan_transport(density, bands, stars, *, tau: float, photons: int, estimator
     slum = star_band_luminosities(stars, wl)
     band_lum = slum.sum(axis=0)
     biased = resolve_method(method, density, tau, stars, peel) == "biased"
+    importance = resolve_importance(importance, peel)
     track_scale = float(2.0**FIXED_POINT_BITS * max(shape))
     # what the device forms from these inputs must fit float32/int32: checked before any work
     rho_max = limits.check_transport(density, bands, stars, slum, tau=tau, photons=photons, max_scatterings=max_scatterings,
@@ -1034,10 +1037,13 @@ def plan_transport(density, bands, stars, *, tau: float, photons: int, estimator
     )
     if biased:
         extinction = [b.extinction for b in bands]
-        setup = dataclasses.replace(
-            setup, window=depth_map(tau * density, setup.stars),
-            window_rate=window_rates(albedo, setup.g, extinction))
-        if estimator == "track-length":  # J's heavy-tail histograms by depth from the stars
+        if importance == "observer":  # the image's windows; J is not this run's product
+            window = observer_depth_map(tau * density, -np.asarray(peel.basis()[0], np.float64))
+        else:
+            window = depth_map(tau * density, setup.stars)
+        setup = dataclasses.replace(setup, window=window, window_rate=window_rates(albedo, setup.g, extinction),
+                                    importance=importance)
+        if estimator == "track-length" and importance == "stars":  # J's heavy-tail histograms by depth
             setup = dataclasses.replace(setup, tail_classes=len(DEPTH_CLASS_NAMES), tail_edges=class_edges(extinction))
     if peel is not None:
         setup = dataclasses.replace(setup, peel=_peel_camera(peel),
@@ -1287,6 +1293,7 @@ def estimate_light(plan: TransportPlan, tallies: Tallies, backend: Backend, *, o
         timings={"setup_s": tallies.setup_s, "kernel_s": tallies.kernel_s, "reduce_s": tallies.reduce_s},
         reduce_path=tallies.reduce_path,
         method="biased" if plan.setup.biased else "analog",
+        importance=plan.setup.importance if plan.setup.biased else "",
         error_estimate="packets" if plan.setup.packet_sq else "batches",
         weight_unit=WEIGHT_UNIT if plan.setup.biased else 1.0,
         tail_image=tail_image,
@@ -1319,6 +1326,7 @@ def trace(
     _checked_adds: bool = False,
     method: str = "analog",
     error_estimate: str = "batches",
+    importance: str = "auto",
 ) -> TransportResult:
     """Trace ``photons`` packets per band through ``density`` and estimate J.
 
@@ -1380,12 +1388,18 @@ def trace(
         How the error of J is estimated (:func:`resolve_error_estimate`): the spread of batch
         totals, or every packet's contribution per voxel and its square (then
         ``result.batches`` is the packet count: batches of one packet).
+    importance : {"auto", "stars", "observer"}
+        What steers the weighted packets' windows (:mod:`nebula_rt.importance`): the light
+        field from the stars, or the peel-off image's observer (``peel`` needed); ``"auto"``
+        takes the observer's when there is a peel-off image, the stars' otherwise.
+        ``result.importance`` says which ran ("" for analog packets). J's heavy-tail classes
+        (``result.tail_j``) are checked under the stars' windows only.
     """
     t0 = time.perf_counter()
     kw = dict(tau=tau, photons=photons, estimator=estimator, max_scatterings=max_scatterings, seed=seed,
               batch_size=batch_size, backend=backend, target_error=target_error, time_limit=time_limit,
               peel=peel, peel_bins=peel_bins, _acc_limit_bits=_acc_limit_bits, method=method,
-              error_estimate=error_estimate)
+              error_estimate=error_estimate, importance=importance)
     plan = plan_transport(density, bands, stars, checked_adds=_checked_adds, **kw)
     tallies = run_transport(plan, backend, progress=progress, cancel=cancel, started=t0, comm=comm)
     try:

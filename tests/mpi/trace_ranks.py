@@ -52,8 +52,8 @@ def main() -> int:
               peel=Camera(direction=(0.0, 0.0, -1.0), size=(12, 10)))
     if checked:  # headroom lowered: batches overflow and are re-traced in halves
         kw["_acc_limit_bits"] = 31 if biased else 36  # 128-bit cells: 2^95, 2^7 voxel crossings
-    if biased:
-        kw["method"] = "biased"
+    if biased:  # the stars' windows: J's depth-class histograms are added over the ranks too
+        kw.update(method="biased", importance="stars")
     if "packets" in parts:  # one batch of every packet, no peel-off image (it needs batches)
         kw.update(error_estimate="packets", batch_size=0, peel=None, tau=2.5)
     backend.launch_packets = 2 * 3 * 1500  # several launches, each of several batches

@@ -80,6 +80,8 @@ class TransportSetup:
     collision_scale: float = 1.0
     window: object = None
     window_rate: object = None
+    #: ``biased``: what the windows follow, "stars" or "observer" (nebula_rt.importance)
+    importance: str = "stars"
     #: the error estimate by packets (``transport.error_estimate``): the kernel also adds the
     #: square of each packet's deposits per voxel visit, in units of 2^sq_shift square track
     #: units, to a second slot; one batch, all bands in one launch
