@@ -63,7 +63,7 @@ class NebulaLightField(NebulaAlgorithm):
     ``rel_error_<band>``, ``rgba`` (the colour of the scene's defaults: auto exposure, D65,
     auto opacity, as the command line's file has it; Nebula Colour downstream changes it
     without re-tracing), and the run's field data (energies, photons, seed, scene TOML): the
-    output contract of DESIGN.md. Port 1 (``Stars``): a vtkPolyData with one vertex per star
+    output contract of docs/design.md. Port 1 (``Stars``): a vtkPolyData with one vertex per star
     at its place in port 0's world coordinates, ``star_rgb`` and ``luminosity``
     (:mod:`nebula_rt.filters.stars`).
     """

@@ -1,4 +1,4 @@
-"""The layers of DESIGN.md: the library (python/nebula_rt) imports no VTK, pyvista or ParaView;
+"""The layers of docs/design.md: the library (python/nebula_rt) imports no VTK, pyvista or ParaView;
 the VTK layer is nebula_rt.filters, and its part that ParaView runs needs no pyvista."""
 
 from __future__ import annotations

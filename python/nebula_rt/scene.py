@@ -1,7 +1,7 @@
 """The scene model: plain dataclasses mirroring the TOML scene file.
 
 Every TOML table has a dataclass and every key a field of the same name (the
-keys are public API, see DESIGN.md "Scene file contract")::
+keys are public API, see docs/design.md "Scene file contract")::
 
     [grid]          -> Grid
     [dust]          -> Dust
