@@ -49,7 +49,7 @@ class NebulaColour(NebulaAlgorithm):
         return 1
 
     def _execute(self, request, inInfo, outInfo):
-        from nebula_rt.scene import Colour, Scene  # validation of the colour table
+        from nebula_rt.scene import Scene  # validation of the colour table
 
         Scene.from_dict(scene_values(self._values))  # the colour table's rules
         exposure = self._values["colour.exposure"]

@@ -9,7 +9,7 @@ array asked for is read; the grid comes out through :mod:`nebula_rt.filters.imag
 
 The reader's own errors are observed (VTK then does not print them) and go into the exception
 raised. With pyvista present, the messages of the XML parser and of any other helper are caught
-as well (:class:`nebula_rt.filters.vti.VtkMessages`); in ParaView they go where ParaView puts
+as well (:class:`nebula_rt.filters.vtk_messages.VtkMessages`); in ParaView they go where ParaView puts
 VTK's messages (Output Messages), and the exception still says what failed.
 """
 
@@ -57,7 +57,7 @@ def _messages():
     """pyvista's catcher of every VTK message where pyvista is installed, else nothing more
     than the reader's own observer."""
     try:
-        from .vti import VtkMessages
+        from .vtk_messages import VtkMessages
     except ImportError:  # ParaView's Python: no pyvista
         return contextlib.nullcontext(None)
     return VtkMessages()

@@ -21,11 +21,9 @@ runs at a time.
 
 from __future__ import annotations
 
-import contextlib
 import errno
 import math
 import os
-import threading
 from pathlib import Path
 
 import numpy as np
@@ -36,36 +34,9 @@ from nebula_rt.outputs import Publication
 
 from .density_file import ArrayNotFoundError, read_density_array  # noqa: F401 - this module's API too
 from .image_data import check_numeric_dtype, field_data_dict, image_geometry, point_array, to_image_data
+from .vtk_messages import VtkMessages
 
 __all__ = ["ArrayNotFoundError", "read_density_array", "read_vti", "write_vti"]
-
-
-_VTK_MESSAGES = threading.Lock()
-
-
-class VtkMessages:
-    """Within this block VTK's messages are caught instead of printed; ``errors`` afterwards
-    holds the error messages (their text, without VTK's source location)."""
-
-    def __enter__(self) -> "VtkMessages":
-        _VTK_MESSAGES.acquire()
-        self._stack = contextlib.ExitStack()
-        try:
-            self._stack.enter_context(pv.vtk_verbosity("off"))  # the logger's copy on stderr
-            self._catcher = self._stack.enter_context(pv.VtkErrorCatcher(send_to_logging=False))
-        except BaseException:
-            self._stack.close()
-            _VTK_MESSAGES.release()
-            raise
-        self.errors: list[str] = []
-        return self
-
-    def __exit__(self, *exc) -> None:
-        try:
-            self._stack.__exit__(*exc)
-        finally:
-            _VTK_MESSAGES.release()
-        self.errors = [str(e.alert).strip() for e in self._catcher.error_events]
 
 
 # --------------------------------------------------------------------------- writing

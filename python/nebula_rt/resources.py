@@ -26,6 +26,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+from .backends.capacity import _gib, check_grid, host_available_bytes, region_bytes  # noqa: F401  (public here too)
 from .errors import ResourceError
 
 #: bytes per FFT point of the collision filter's convolutions (20 complex128 half-spectra)
@@ -49,23 +50,8 @@ class Estimate:
         return int(sum(self.host.values()))
 
 
-def _gib(n: float) -> str:
-    return f"{n / 2**30:.2f} GiB" if n >= 2**28 else f"{n / 2**20:.1f} MiB"
-
-
 def _parts(d: dict) -> str:
     return ", ".join(f"{k} {_gib(v)}" for k, v in sorted(d.items(), key=lambda kv: -kv[1]) if v)
-
-
-def region_bytes(backend, nvox: int, biased: bool) -> int:
-    """Device bytes of the transport by regions on ``backend`` for a grid of ``nvox`` voxels
-    (0 where the backend traces it without regions)."""
-    from .backends.session import region_shift_for, region_state_bytes
-
-    tuning = getattr(backend, "transport_tuning", {}) or {}
-    if not hasattr(backend, "transport_tuning") or not region_shift_for(backend, nvox, biased, tuning):
-        return 0
-    return region_state_bytes(nvox, tuning)
 
 
 def filter_fft_points(shape, radius: float) -> int:
@@ -161,24 +147,6 @@ def _driver(est: Estimate, peel_option: str, peel_value, scene):
     return "grid.shape", list(scene.grid.shape)
 
 
-def host_available_bytes() -> int:
-    """Memory the host can give a new allocation now: MemAvailable (Linux), else the physical
-    memory."""
-    try:
-        with open("/proc/meminfo") as fh:
-            for line in fh:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    import os
-
-    try:
-        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
-    except (ValueError, OSError, AttributeError):  # pragma: no cover - not POSIX
-        return 1 << 62
-
-
 def check(scene, backend, peel_pixels: int = 0, peel_option: str = "--size", peel_value=None) -> Estimate:
     """Estimate the run's memory and refuse it if the device or the host cannot hold it.
 
@@ -205,23 +173,3 @@ def check(scene, backend, peel_pixels: int = 0, peel_option: str = "--size", pee
     return est
 
 
-def check_grid(shape, backend, n_bands: int = 0) -> None:
-    """Refuse a grid the device cannot hold: the density alone (``n_bands`` 0: 4 B per voxel,
-    one buffer), or a transport of ``n_bands`` bands (one batch slot and the two running sums,
-    8 B per cell each, and the density), and a density the host cannot hold (twice, while it is
-    generated and copied)."""
-    shape = [int(n) for n in shape]
-    nvox = math.prod(shape)
-    ncell = int(n_bands) * nvox
-    biggest, need = (8 * ncell, 24 * ncell + 4 * nvox) if n_bands else (4 * nvox, 4 * nvox)
-    total, max_alloc = backend.memory_limits()
-    what = f"a transport of {n_bands} band(s)" if n_bands else "the density"
-    if biggest > max_alloc or need > total:
-        raise ResourceError("grid.shape", shape,
-                            f"needs {_gib(need)} of device memory for {what} (largest buffer "
-                            f"{_gib(biggest)}); the device ({backend.device_name}) has {_gib(total)}, "
-                            f"at most {_gib(max_alloc)} per buffer")
-    avail = host_available_bytes()
-    if 8 * nvox > avail:
-        raise ResourceError("grid.shape", shape, f"the density needs about {_gib(8 * nvox)} of host "
-                                                 f"memory; {_gib(avail)} is available")

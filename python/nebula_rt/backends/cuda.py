@@ -12,7 +12,8 @@ import numpy as np
 
 from ..errors import BackendUnavailableError
 from ..kernel_source import kernel_source
-from .base import NVIDIA_TRACE_REGISTERS, Backend
+from .base import Backend
+from .transport_setup import NVIDIA_TRACE_REGISTERS
 
 BLOCK = 256
 #: threads per block of the transport kernel: smaller blocks retire sooner after their slowest

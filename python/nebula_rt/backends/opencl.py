@@ -10,7 +10,8 @@ import numpy as np
 
 from ..errors import BackendUnavailableError
 from ..kernel_source import kernel_source
-from .base import NVIDIA_TRACE_REGISTERS, Backend
+from .base import Backend
+from .transport_setup import NVIDIA_TRACE_REGISTERS
 
 try:  # pyopencl is a hard dependency, but give a clear message if the ICD loader is broken
     import pyopencl as cl

@@ -27,7 +27,7 @@ import numpy as np
 from .. import kernel_params
 from ..array_api import to_numpy
 from ..tails import kernel_tables
-from .base import TransportSession, TransportSetup, transport_defines
+from .transport_setup import TransportSession, TransportSetup, transport_defines
 
 #: centred sums of squares are stored as float32 x 2^-64 (kernels/transport.cl)
 M2_SCALE = 2.0**64
