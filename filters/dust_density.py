@@ -7,7 +7,7 @@ from vtkmodules.vtkCommonDataModel import vtkImageData
 from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm, vtkStreamingDemandDrivenPipeline
 
 from nebula_rt import output_contract as contract
-from nebula_rt.backends import get_backend
+from nebula_rt.transport_request import scene_backend
 from nebula_rt.density import generate_density
 from nebula_rt.limits import INT32_MAX
 from nebula_rt.scene import Scene
@@ -72,7 +72,7 @@ class NebulaDustDensity(NebulaAlgorithm):
     def _execute(self, request, inInfo, outInfo):
         scene = self.scene()
         self._report(0.0, "NebulaRT: generating dust density")
-        rho = generate_density(scene, get_backend(scene.transport.backend, scene.transport.device))
+        rho = generate_density(scene, scene_backend(scene))
         out = vtkImageData.GetData(outInfo)
         nx, ny, nz = rho.shape
         out.SetDimensions(nx, ny, nz)

@@ -7,7 +7,7 @@ from vtkmodules.vtkCommonDataModel import vtkDataObject, vtkImageData
 from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm, vtkStreamingDemandDrivenPipeline
 
 from nebula_rt import output_contract as contract
-from nebula_rt.backends import get_backend
+from nebula_rt.transport_request import scene_backend
 from nebula_rt.errors import SceneError
 from nebula_rt.limits import check_float32_array
 from nebula_rt.pipeline import compute_light, finish_light_field
@@ -225,7 +225,7 @@ class NebulaLightField(NebulaAlgorithm):
         fd = field_data_dict(inp)
         self._input_stars = contract.DensityData.from_field_data(fd).stars if "stars" in fd else None
         scene = self.scene(rho.shape)
-        backend = get_backend(scene.transport.backend, scene.transport.device)
+        backend = scene_backend(scene)
         self._report(0.0, "NebulaRT: tracing")
         # in ParaView's parallel engine every rank has the whole density (RequestUpdateExtent),
         # traces a share of the packets, and holds the one-rank result after the reductions

@@ -272,3 +272,29 @@ def test_old_io_vti_name_forwards_to_the_vtk_layer():
     proc = _run(_block(VTK_PACKAGES) + "import nebula_rt.io_vti as m\n"
                 "try:\n    m.write_vti\nexcept ImportError as e:\n    print('needs', e.name.split('.')[0])\n")
     assert proc.returncode == 0 and proc.stdout.strip() == "needs vtkmodules", proc.stdout + proc.stderr
+
+
+def test_one_place_turns_a_scene_into_a_run():
+    """Only nebula_rt.transport_request calls the transport's trace() and reads the scene's
+    device (transport.backend, transport.device): every observable, filter and command gets
+    its run and its device from there, so a [transport] key reaches every run alike."""
+    import nebula_rt.filters
+
+    mods = library_modules()
+    mods.update(_modules_under(Path(nebula_rt.filters.__file__).resolve().parent, "nebula_rt.filters"))
+    home = "nebula_rt.transport_request"
+    tracing, device = [], []
+    for module, path in mods.items():
+        if module in (home, "nebula_rt.transport"):
+            continue
+        tree = ast.parse(path.read_text(), str(path))
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and any(a.name == "trace" for a in node.names):
+                base = node.module or ""
+                if base.endswith("transport") and not base.endswith("transport_request"):
+                    tracing.append(f"{module}:{node.lineno}")
+            if (isinstance(node, ast.Attribute) and node.attr in ("backend", "device")
+                    and isinstance(node.value, ast.Attribute) and node.value.attr == "transport"):
+                device.append(f"{module}:{node.lineno} .transport.{node.attr}")
+    assert not tracing, tracing
+    assert not device, device

@@ -453,26 +453,20 @@ def peel_off_sky(scene, camera, backend=None, progress=None, cancel=None, pixel_
     ``pixel_batches``: keep every batch's image (``result.peel_bin_batches``, (batches,
     n_bands, W * H), pixel p * H + q), for the Monte Carlo error of any linear function of the
     calibrated image (:mod:`nebula_rt.image_compare`); otherwise each batch's image sum."""
-    from .backends import get_backend
     from .density import generate_density
     from .tails import fits_cards
-    from .transport import trace
+    from .transport_request import TransportRequest, scene_backend
 
     check_scene(scene)
-    backend = backend or get_backend(scene.transport.backend, scene.transport.device)
+    backend = backend or scene_backend(scene)
     bands = scene.bands.resolve()
-    t = scene.transport
-    photons, target = t.effective()
     rho = generate_density(scene, backend)
     bins = (np.arange(camera.size[0] * camera.size[1], dtype=np.int64).reshape(camera.size) if pixel_batches
             else np.zeros(camera.size, np.int64))
-    res = trace(rho, bands, scene.stars, tau=scene.dust.tau, photons=photons, estimator=t.estimator,
-                method=t.method, max_scatterings=t.max_scatterings, seed=t.seed, batch_size=t.batch_size,
-                backend=backend, target_error=target, time_limit=t.time_limit, progress=progress,
-                cancel=cancel, peel=camera,
-                peel_bins=bins)
+    request = TransportRequest.from_scene(scene, peel=camera, peel_bins=bins)
+    res = request.trace(rho, backend, progress=progress, cancel=cancel)
     tau = star_tau(scene, bands, rho, camera)
-    meta = {"NPHOTON": (int(res.photons), "packets per band"), "SEED": str(t.seed)}
+    meta = {"NPHOTON": (int(res.photons), "packets per band"), "SEED": str(request.seed)}
     meta.update(fits_cards(res.tail_image, [b.name for b in bands]))  # the heavy-tail checks
     cal = calibrate(scene, camera, res.peel_image, res.star_band_luminosity, tau, "peel-off", meta)
     return cal, res

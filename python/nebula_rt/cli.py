@@ -80,19 +80,11 @@ def _inputs(args, scene) -> list[tuple[str, Path]]:
 
 
 def _backend_for(scene, comm=None):
-    """The scene's backend; with several ranks and no ``transport.device``, CUDA ranks take the
-    GPUs of their node by local rank."""
-    from .backends import get_backend
+    """The scene's backend (:func:`nebula_rt.transport_request.scene_backend`), its kernels
+    built (an unusable device is reported before any work)."""
+    from .transport_request import scene_backend
 
-    device = scene.transport.device
-    if comm is not None and comm.size > 1 and not device and scene.transport.backend in ("auto", "cuda"):
-        from .backends.cuda import cuda_available
-
-        if cuda_available():
-            import cupy
-
-            device = str(comm.local_rank % cupy.cuda.runtime.getDeviceCount())
-    backend = get_backend(scene.transport.backend, device)
+    backend = scene_backend(scene, comm)
     check = getattr(backend, "check_build", None)
     if check is not None:
         check()

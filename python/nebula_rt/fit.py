@@ -613,8 +613,8 @@ def fit_observations(scene, tables: Sequence[ObservedTable], free: Sequence, *, 
     -------
     FitResult
     """
-    from .backends import get_backend
     from .observe import _check_reference
+    from .transport_request import scene_backend
 
     t0 = time.perf_counter()
     _check_reference(reference)
@@ -641,7 +641,7 @@ def fit_observations(scene, tables: Sequence[ObservedTable], free: Sequence, *, 
     z_start = np.array([p.to_unit(v) for p, v in zip(params, start)])
     grid = (3 if k <= 3 else 0) if grid is None else int(grid)
     maxfev = 20 + 15 * k if maxfev is None else int(maxfev)
-    backend = backend or get_backend(scene.transport.backend, scene.transport.device)
+    backend = backend or scene_backend(scene)
     if uncertainty == "mcmc":
         try:
             import emcee  # noqa: F401

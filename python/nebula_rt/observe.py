@@ -274,13 +274,12 @@ def observe_scene(scene, direction=(0.0, 0.0, -1.0), size: int = 128, edges=None
     every scattering towards the observer: forward and backward scattering as they are) and
     measure it as :func:`profiles` does, against ``reference``, with batch-means errors.
     Returns (profiles, transport result)."""
-    from .backends import get_backend
     from .density import generate_density
     from .pipeline import _dominant_source
-    from .transport import trace
+    from .transport_request import TransportRequest, scene_backend
 
     _check_reference(reference)
-    backend = backend or get_backend(scene.transport.backend, scene.transport.device)
+    backend = backend or scene_backend(scene)
     bands = scene.bands.resolve()
     wl = np.array([b.wavelength for b in bands])
     star = max(scene.stars, key=lambda s: s.luminosity)
@@ -288,13 +287,9 @@ def observe_scene(scene, direction=(0.0, 0.0, -1.0), size: int = 128, edges=None
     d, u, v = cam.basis()
     e = _edges(edges)
     labels = _labels(_offsets(cam.origin(), cam.pixel_size, u, v, cam.size, star.position, direction), e)
-    t = scene.transport
-    photons, target = t.effective()
     rho = generate_density(scene, backend)
-    res = trace(rho, bands, scene.stars, tau=scene.dust.tau, photons=photons,
-                estimator=t.estimator, method=t.method, max_scatterings=t.max_scatterings, seed=t.seed,
-                batch_size=t.batch_size, backend=backend, target_error=target, time_limit=t.time_limit,
-                progress=progress, cancel=cancel, peel=cam, peel_bins=labels)
+    res = TransportRequest.from_scene(scene, peel=cam, peel_bins=labels).trace(rho, backend, progress=progress,
+                                                                              cancel=cancel)
     sigma = np.array([scene.dust.tau * b.extinction for b in bands])[:, None, None, None] * \
         np.asarray(rho, np.float64)[None]
     tau_star = line_of_sight_tau(sigma, star.position, -np.asarray(direction, float))

@@ -21,11 +21,12 @@ import numpy as np
 from . import colour_convert, filtering, postprocess
 from . import output_contract as contract
 from .array_api import array_module, to_numpy
-from .backends import Backend, get_backend
+from .backends import Backend
 from .bands import Band, reference_band_index
 from .density import file_digest, generate_density
 from .limits import FLOAT32_MAX
-from .transport import TransportResult, batch_standard_error, light_from_sums, trace
+from .transport import TransportResult, batch_standard_error, light_from_sums
+from .transport_request import TransportRequest, scene_backend
 from .tails import DEPTH_CLASS_NAMES, figures
 
 
@@ -224,7 +225,7 @@ class Pipeline:
     def backend_for(self, scene) -> Backend:
         if self._backend is not None:
             return self._backend
-        return get_backend(scene.transport.backend, scene.transport.device)
+        return scene_backend(scene)
 
     # --- keys: what each stage depends on ------------------------------------------------
     @staticmethod
@@ -333,27 +334,8 @@ def compute_light(scene, density: np.ndarray, backend: Backend, progress=None, c
 
     t = scene.transport
     resources.check(scene, backend)
-    photons, target_error = t.effective()
-    res = trace(
-        density,
-        scene.bands.resolve(),
-        scene.stars,
-        tau=scene.dust.tau,
-        photons=photons,
-        target_error=target_error,
-        time_limit=t.time_limit,
-        estimator=t.estimator,
-        method=t.method,
-        error_estimate=t.error_estimate,
-        max_scatterings=t.max_scatterings,
-        seed=t.seed,
-        batch_size=t.batch_size,
-        backend=backend,
-        progress=progress,
-        cancel=cancel,
-        on_device=on_device,
-        comm=comm,
-    )
+    res = TransportRequest.from_scene(scene).trace(density, backend, progress=progress, cancel=cancel,
+                                                  on_device=on_device, comm=comm)
     if t.estimator == "collision-filter":
         if res.device_sums is not None and _opencl_fft(backend):
             bands = scene.bands.resolve()
