@@ -36,7 +36,6 @@ if _HERE not in sys.path:
     sys.path.append(_HERE)
 
 paraview_plugin_name = "NebulaRT"
-paraview_plugin_version = "0.1.0"
 
 
 def _ensure_nebula_rt():
@@ -70,6 +69,8 @@ def _ensure_nebula_rt():
 
 
 _ensure_nebula_rt()
+
+from nebula_rt import __version__ as paraview_plugin_version  # noqa: E402  (declared in pyproject.toml)
 
 # import the proxies (the plugin loader exports every decorated class found in this module,
 # and NebulaSkyView's view definition: every object with a _pvsm_proxy_xml)

@@ -57,3 +57,15 @@ def test_every_imported_package_is_declared():
         if not any(_normal(d) in want for d in dists):
             missing.append(f"{name} ({', '.join(dists)})")
     assert not missing, f"imported but not declared in pyproject.toml: {missing}"
+
+
+def test_the_version_is_declared_once():
+    """pyproject.toml holds the version; the package and the ParaView plugin read it from the
+    installed metadata, and no source file repeats it."""
+    import nebula_rt
+
+    version = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["version"]
+    assert nebula_rt.__version__ == version
+    repeated = [str(p.relative_to(ROOT)) for root in SOURCES for p in (ROOT / root).rglob("*.py")
+                if f'"{version}"' in p.read_text() or f"'{version}'" in p.read_text()]
+    assert not repeated, repeated

@@ -6,6 +6,9 @@ rendering (``nebula_rt.filters.render``). The names and types of the outputs' ar
 data are declared in ``nebula_rt.output_contract``.
 """
 
+from importlib.metadata import PackageNotFoundError
+from importlib.metadata import version as _distribution_version
+
 from .errors import (
     AccumulatorOverflowError,
     BackendUnavailableError,
@@ -15,7 +18,10 @@ from .errors import (
     SceneError,
 )
 
-__version__ = "0.1.0"
+try:  # declared once, in pyproject.toml
+    __version__ = _distribution_version("nebula-rt")
+except PackageNotFoundError:  # the sources on sys.path without an install
+    __version__ = "0+unknown"
 
 __all__ = [
     "AccumulatorOverflowError",
