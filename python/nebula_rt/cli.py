@@ -380,28 +380,52 @@ def _choices(key: str) -> list:
     return [c for c in _scene.declaration(key).choices if c]
 
 
+def _run_options() -> argparse.ArgumentParser:
+    """The options of every command that traces (an argparse parent): scene overrides, the
+    packets and the device."""
+    p = argparse.ArgumentParser(add_help=False)
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a scene key, e.g. transport.photons=1e6 (repeatable)")
+    p.add_argument("--photons", default=None, help="shorthand for --set transport.photons=N")
+    p.add_argument("--target-error", default=None,
+                   help="trace until the lit region's relative error is at most this (photons = budget)")
+    p.add_argument("--quality", default=None, choices=_choices("transport.quality"),
+                   help="quality preset: a target error with a photon budget (overrides --photons)")
+    p.add_argument("--backend", default=None, choices=_choices("transport.backend"),
+                   help=_scene.declaration("transport.backend").doc)
+    p.add_argument("--device", default=None, help="device selector (name substring or P:D)")
+    return p
+
+
+def _view_options() -> argparse.ArgumentParser:
+    """The options of the commands that look at the scene from a direction (an argparse parent)."""
+    p = argparse.ArgumentParser(add_help=False)
+    p.add_argument("--direction", default="0,0,-1", help="viewing direction x,y,z (default 0,0,-1)")
+    return p
+
+
+def _reference_options() -> argparse.ArgumentParser:
+    """The star colour the comparisons measure against (an argparse parent)."""
+    p = argparse.ArgumentParser(add_help=False)
+    p.add_argument("--reference", default="observed", choices=["observed", "intrinsic"],
+                   help="star colour to measure against: as seen through its dust (default) or intrinsic")
+    return p
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="nebula-rt", description="Radiative transfer in reflection nebulae")
     sub = ap.add_subparsers(dest="command", required=True)
-    r = sub.add_parser("render", help="trace a scene and write a .vti (and optionally a PNG)")
+    run, view, reference = _run_options(), _view_options(), _reference_options()
+    r = sub.add_parser("render", parents=[run], help="trace a scene and write a .vti (and optionally a PNG)")
     r.add_argument("scene", help="scene file (TOML)")
     r.add_argument("-o", "--output", default="nebula.vti", help="output .vti file (default nebula.vti)")
     r.add_argument("--png", default=None, help="also write a volume rendering of rgba to this PNG")
-    r.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="override a scene key, e.g. transport.photons=1e6 (repeatable)")
-    r.add_argument("--photons", default=None, help="shorthand for --set transport.photons=N")
-    r.add_argument("--target-error", default=None,
-                   help="trace until the lit region's relative error is at most this (photons = budget)")
-    r.add_argument("--quality", default=None, choices=_choices("transport.quality"),
-                   help="quality preset: a target error with a photon budget (overrides --photons)")
-    r.add_argument("--backend", default=None, choices=_choices("transport.backend"),
-                   help=_scene.declaration("transport.backend").doc)
-    r.add_argument("--device", default=None, help="device selector (name substring or P:D)")
     r.add_argument("--stretch", default=None, choices=_choices("colour.stretch"),
                    help="shorthand for --set colour.stretch=S: " + _scene.declaration("colour.stretch").doc)
     r.add_argument("-q", "--quiet", action="store_true", help="no progress bar or summary")
     r.set_defaults(func=_render)
-    k = sub.add_parser("sky", help="a calibrated sky image: FITS (MJy/sr, mag/arcsec^2, celestial WCS) and PNG")
+    k = sub.add_parser("sky", parents=[run, view],
+                       help="a calibrated sky image: FITS (MJy/sr, mag/arcsec^2, celestial WCS) and PNG")
     k.add_argument("scene", help="scene file (TOML) with [observer] distance and stars in L_sun or M_V")
     k.add_argument("--fits", required=True, help="output FITS file")
     k.add_argument("--png", default=None, help="also write the true-colour picture to this PNG")
@@ -409,34 +433,19 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("--method", default="peel-off", choices=["peel-off", "ray-march"],
                    help="peel-off during the transport (the phase function; default) or the ray march of the "
                         "light field's emissivity (isotropic per voxel)")
-    k.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a scene key")
-    k.add_argument("--photons", default=None, help="shorthand for --set transport.photons=N")
-    k.add_argument("--target-error", default=None, help="trace until this lit-region error")
-    k.add_argument("--quality", default=None, choices=_choices("transport.quality"))
-    k.add_argument("--backend", default=None, choices=_choices("transport.backend"))
-    k.add_argument("--device", default=None, help="device selector (name substring or P:D)")
-    k.add_argument("--direction", default="0,0,-1", help="viewing direction x,y,z (default 0,0,-1)")
     k.add_argument("--size", type=int, default=256, help=f"pixels per side ({MIN_SKY_SIZE}-{MAX_SKY_SIZE})")
     k.add_argument("--stretch", default=None, choices=_choices("colour.stretch"),
                    help="the picture's tone curve (shorthand for --set colour.stretch=S)")
     k.add_argument("-q", "--quiet", action="store_true", help="no summary")
     k.set_defaults(func=_sky)
-    c = sub.add_parser("compare", help="a scene's colours (Delta(B-V), nebula/star ratio) against observed nebulae, "
-                                       "the user's tables (--table) or FITS image (--image)")
+    c = sub.add_parser("compare", parents=[run, view, reference],
+                       help="a scene's colours (Delta(B-V), nebula/star ratio) against observed nebulae, "
+                            "the user's tables (--table) or FITS image (--image)")
     c.add_argument("scene", help="scene file (TOML)")
     c.add_argument("--png", default="compare.png", help="plot (default compare.png)")
     c.add_argument("--json", default=None, help="also write the measured profiles as JSON")
-    c.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a scene key")
-    c.add_argument("--photons", default=None, help="shorthand for --set transport.photons=N")
-    c.add_argument("--target-error", default=None, help="trace until this lit-region error")
-    c.add_argument("--quality", default=None, choices=_choices("transport.quality"))
-    c.add_argument("--backend", default=None, choices=_choices("transport.backend"))
-    c.add_argument("--device", default=None, help="device selector (name substring or P:D)")
-    c.add_argument("--direction", default="0,0,-1", help="viewing direction x,y,z (default 0,0,-1)")
     c.add_argument("--size", type=int, default=128,
                    help=f"sky image pixels per side ({MIN_SKY_SIZE}-{MAX_SKY_SIZE})")
-    c.add_argument("--reference", default="observed", choices=["observed", "intrinsic"],
-                   help="star colour to measure against: as seen through its dust (default) or intrinsic")
     from .cli_fit import add_fit_parser, add_table_options
 
     add_table_options(c)
@@ -444,7 +453,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_image_options(c)
     c.set_defaults(func=_compare)
-    add_fit_parser(sub, _choices, _fit, (MIN_SKY_SIZE, MAX_SKY_SIZE))
+    add_fit_parser(sub, _fit, (MIN_SKY_SIZE, MAX_SKY_SIZE), parents=[run, view, reference])
     d = sub.add_parser("devices", help="list compute devices")
     d.set_defaults(func=_devices)
     return ap

@@ -164,10 +164,14 @@ def fit_command(args, cancel, scene, direction, backend_of, inputs, print_summar
     return 0
 
 
-def add_fit_parser(sub, choices, func, sizes) -> None:
+def add_fit_parser(sub, func, sizes, parents=()) -> None:
     """The ``fit`` subcommand's options; ``func(args, cancel)`` runs it, ``sizes`` = (min, max)
-    pixels per side of the image."""
-    f = sub.add_parser("fit", help="fit the dust (albedo, g, tau, the star's depth, any scene key) to observations")
+    pixels per side of the image; ``parents``: the options it shares with the other commands
+    (scene overrides, packets, device, direction, reference; ``--photons`` counts the packets of
+    every trial, and a target error or quality preset is refused: a fit's trials trace a fixed
+    number of packets)."""
+    f = sub.add_parser("fit", parents=list(parents),
+                       help="fit the dust (albedo, g, tau, the star's depth, any scene key) to observations")
     f.add_argument("scene", help="scene file (TOML): the model, and the start")
     add_table_options(f)
     f.add_argument("--free", action="append", default=[], metavar="NAME[=LO:HI[:log]]",
@@ -180,25 +184,10 @@ def add_fit_parser(sub, choices, func, sizes) -> None:
     f.add_argument("--png", default="fit.png", help="plot of the best fit against the tables (default fit.png)")
     f.add_argument("--json", default=None, help="also write the result as JSON")
     f.add_argument("--scene-out", default=None, help="write the best-fit scene (TOML)")
-    f.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a scene key")
-    f.add_argument("--photons", default=None, help="shorthand for --set transport.photons=N (packets per trial)")
-    f.add_argument("--target-error", default=None, help=argparse_suppress())
-    f.add_argument("--quality", default=None, help=argparse_suppress())
-    f.add_argument("--backend", default=None, choices=choices("transport.backend"))
-    f.add_argument("--device", default=None, help="device selector (name substring or P:D)")
-    f.add_argument("--direction", default="0,0,-1", help="viewing direction x,y,z (default 0,0,-1)")
     f.add_argument("--size", type=int, default=comparison_size(),
                    help=f"peel-off image pixels per side ({sizes[0]}-{sizes[1]})")
-    f.add_argument("--reference", default="observed", choices=["observed", "intrinsic"],
-                   help="star colour to measure against: as seen through its dust (default) or intrinsic")
     f.add_argument("-q", "--quiet", action="store_true", help="no progress bar or summary on stderr")
     f.set_defaults(func=func)
-
-
-def argparse_suppress():
-    import argparse
-
-    return argparse.SUPPRESS
 
 
 def comparison_size() -> int:
