@@ -45,11 +45,11 @@ from typing import Optional
 
 import numpy as np
 
+from . import units
 from .errors import SceneError
 
-#: Passbands of the magnitude images: name -> speclite filter
-PASSBANDS = {"B": "bessell-B", "V": "bessell-V", "R": "bessell-R", "g": "sdss2010-g", "r": "sdss2010-r",
-             "i": "sdss2010-i"}
+#: Passbands of the magnitude images: name -> speclite filter (declared with the loader)
+PASSBANDS = units.PASSBANDS
 #: FITS extension of each passband's magnitude image (extension names are case-blind: R and r differ by system)
 PASSBAND_EXTENSIONS = {"B": "MAG_BESSELL_B", "V": "MAG_BESSELL_V", "R": "MAG_BESSELL_R", "g": "MAG_SDSS_G",
                        "r": "MAG_SDSS_R", "i": "MAG_SDSS_I"}
@@ -73,8 +73,6 @@ MAX_BOX_OVER_DISTANCE = 0.1
 def check_scene(scene) -> None:
     """What a calibrated image needs of a scene, checked before any work: a distance, every
     star's luminosity in physical units, and a box small against the distance."""
-    from . import units
-
     if scene.observer.distance is None:
         raise SceneError("observer.distance", None, "must be given for a calibrated sky image: a distance "
                          "such as '140 pc' (or a number in pc)")
@@ -107,8 +105,6 @@ def band_frequency_widths(wavelengths_nm) -> tuple[np.ndarray, np.ndarray]:
 
 def star_spectra(scene, wavelength_nm) -> np.ndarray:
     """L_lambda of every star (n_stars, n_wl), L_sun per m: bolometric L x pi B_lambda / (sigma T^4)."""
-    from . import units
-
     wl = np.asarray(wavelength_nm, np.float64) * 1e-9
     bands = scene.bands.resolve()
     out = []
@@ -121,9 +117,7 @@ def star_spectra(scene, wavelength_nm) -> np.ndarray:
 
 def passband_grid(name: str) -> tuple[np.ndarray, np.ndarray]:
     """(wavelength nm on a 0.25 nm grid over the passband, its response there)."""
-    from .units import passband
-
-    wl_x, resp = passband(PASSBANDS[name])
+    wl_x, resp = units.passband(PASSBANDS[name])
     wl = np.arange(math.floor(wl_x[0]), math.ceil(wl_x[-1]) + 0.25, 0.25)
     return wl, np.interp(wl, wl_x, resp, left=0.0, right=0.0)
 
@@ -182,8 +176,6 @@ def celestial_wcs(scene, camera):
     """The TAN WCS of an image of ``camera`` (module docstring): FITS pixel (p + 1, q + 1) is
     image pixel [p, q]."""
     from astropy.wcs import WCS
-
-    from . import units
 
     _, u, v = camera.basis()
     rel = np.array([0.5, 0.5, 0.5]) - camera.origin()
@@ -286,8 +278,6 @@ def calibrate(scene, camera, scattered, star_band_luminosity, tau_star, method: 
     method : str
         How ``scattered`` was made (one of :data:`METHODS`), for the header.
     """
-    from . import units
-
     check_scene(scene)
     bands = scene.bands.resolve()
     names = [b.name for b in bands]

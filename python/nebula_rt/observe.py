@@ -44,26 +44,27 @@ import numpy as np
 
 from .colour_convert import hat_basis, star_spectrum
 from .line_of_sight import line_of_sight_tau
+from . import units
 
 try:
     import tomllib
 except ModuleNotFoundError:  # Python < 3.11
     import tomli as tomllib
 
-PASSBANDS = {"B": "bessell-B", "V": "bessell-V"}
+#: the passbands of the colours (Delta(B-V)); the table is nebula_rt.units.PASSBANDS
+COLOUR_PASSBANDS = ("B", "V")
 #: What Delta(B-V) and the nebula/star ratio are measured against: the star as seen through
 #: the dust in front of it (default) or its intrinsic light.
 REFERENCES = ("observed", "intrinsic")
 REFERENCE_LABELS = {"observed": "star as seen", "intrinsic": "star's intrinsic colour"}
 
 
-@functools.lru_cache(maxsize=None)
 def passband(name: str) -> tuple[np.ndarray, np.ndarray]:
-    """(wavelength nm, response) of a Bessell passband ("B" or "V"), from speclite."""
-    import speclite.filters
-
-    f = speclite.filters.load_filter(PASSBANDS[name])
-    return np.asarray(f.wavelength, np.float64) / 10.0, np.asarray(f.response, np.float64)
+    """(wavelength nm, response) of a Bessell passband of the colours ("B" or "V"):
+    :func:`nebula_rt.units.passband`."""
+    if name not in COLOUR_PASSBANDS:
+        raise KeyError(name)
+    return units.passband(units.PASSBANDS[name])
 
 
 def passband_weights(band_wavelengths_nm, source, name: str) -> np.ndarray:

@@ -296,6 +296,12 @@ def inside_fraction(temperature: float, lo_nm: float, hi_nm: float) -> float:
     return float((at[1] - at[0]) * 1e-9 * math.pi / (stefan_boltzmann() * float(temperature) ** 4))
 
 
+#: The passbands NebulaRT measures in, by short name: speclite's curves (Bessell 1990, PASP 102,
+#: 1181; SDSS 2010). The calibrated sky images use all of them, the colours (Delta(B-V)) B and V.
+PASSBANDS = {"B": "bessell-B", "V": "bessell-V", "R": "bessell-R", "g": "sdss2010-g", "r": "sdss2010-r",
+             "i": "sdss2010-i"}
+
+
 @functools.lru_cache(maxsize=None)
 def passband(name: str) -> Tuple[np.ndarray, np.ndarray]:
     """(wavelength nm, response) of a ``speclite`` passband ("bessell-V", "sdss2010-r")."""
