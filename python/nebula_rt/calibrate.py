@@ -45,8 +45,15 @@ from typing import Optional
 
 import numpy as np
 
-from . import units
+from . import colour_convert, units
+from .colour_convert import band_edges, hat_basis
+from .density import generate_density
 from .errors import SceneError
+from .line_of_sight import line_of_sight_tau
+from .pipeline import _dominant_source
+from .sky import Camera, sky_image
+from .tails import fits_cards
+from .transport_request import TransportRequest, scene_backend
 
 #: Passbands of the magnitude images: name -> speclite filter (declared with the loader)
 PASSBANDS = units.PASSBANDS
@@ -92,7 +99,6 @@ def check_scene(scene) -> None:
 
 def band_frequency_widths(wavelengths_nm) -> tuple[np.ndarray, np.ndarray]:
     """(edges (n, 2) nm, frequency width (n,) Hz) of each band, in the bands' order."""
-    from .colour_convert import band_edges
 
     wl = np.asarray(wavelengths_nm, np.float64)
     e = band_edges(wl)
@@ -127,7 +133,6 @@ def passband_weights(band_wavelengths_nm, wl, response, spectra) -> np.ndarray:
     ``response``) of the spectrum ``sum_b r_b h_b(lambda) spectra[k](lambda)`` is
     ``sum_b w[k, b] r_b``; h_b the hat functions of the bands. ``spectra`` per unit wavelength
     (per m) on ``wl``; w in their units x m per Hz."""
-    from .colour_convert import hat_basis
 
     lam = wl * 1e-9
     h = hat_basis(band_wavelengths_nm, wl)
@@ -401,8 +406,6 @@ def picture(cal: CalibratedSky, scene, exposure="auto", percentile: float = 99.0
     the ratio to the stars' light, the band -> XYZ matrix of the dominant star, linear sRGB,
     gamut mapping, the exposure (auto: ``percentile`` of the scattered light's largest
     component maps to full scale; stars saturate) and the scene's ``colour.stretch``."""
-    from . import colour_convert
-    from .pipeline import _dominant_source
 
     m = colour_convert.band_to_xyz_matrix(cal.band_wavelength_nm, _dominant_source(scene.stars))
     lum = cal.band_luminosity[:, None, None]
@@ -430,7 +433,6 @@ def write_png(path, rgb8) -> None:
 
 def camera_for(scene, direction=(0.0, 0.0, -1.0), size: int = 256, up=(0.0, 1.0, 0.0), extent: float = 0.0):
     """The camera of a calibrated image: centred on the box centre (the WCS reference point)."""
-    from .sky import Camera
 
     return Camera(direction=tuple(direction), up=tuple(up), size=(size, size), extent=extent, center=(0.5, 0.5, 0.5))
 
@@ -443,9 +445,6 @@ def peel_off_sky(scene, camera, backend=None, progress=None, cancel=None, pixel_
     ``pixel_batches``: keep every batch's image (``result.peel_bin_batches``, (batches,
     n_bands, W * H), pixel p * H + q), for the Monte Carlo error of any linear function of the
     calibrated image (:mod:`nebula_rt.image_compare`); otherwise each batch's image sum."""
-    from .density import generate_density
-    from .tails import fits_cards
-    from .transport_request import TransportRequest, scene_backend
 
     check_scene(scene)
     backend = backend or scene_backend(scene)
@@ -465,7 +464,6 @@ def peel_off_sky(scene, camera, backend=None, progress=None, cancel=None, pixel_
 def star_tau(scene, bands, rho, camera) -> np.ndarray:
     """(n_stars, n_bands) optical depth from each star to the observer of ``camera`` (the exact
     march of :func:`nebula_rt.line_of_sight.line_of_sight_tau` through ``rho``)."""
-    from .line_of_sight import line_of_sight_tau
 
     sigma = np.array([scene.dust.tau * b.extinction for b in bands])[:, None, None, None] * \
         np.asarray(rho, np.float64)[None]
@@ -476,7 +474,6 @@ def star_tau(scene, bands, rho, camera) -> np.ndarray:
 def ray_march_sky(light, camera) -> CalibratedSky:
     """Calibrate the ray-marched sky image of a light field (:class:`nebula_rt.pipeline.LightField`;
     the emissivity scatters isotropically per voxel, :mod:`nebula_rt.sky`)."""
-    from .sky import sky_image
 
     scene = light.scene
     check_scene(scene)

@@ -27,9 +27,17 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from .observe import REFERENCE_LABELS, _check_reference, _offsets, line_of_sight_tau, passband_weights, \
-    star_reddening
+from .colour_convert import hat_basis
+from .density import generate_density
+from .errors import SceneError
+from .observe import (
+    REFERENCE_LABELS, _check_reference, _labels, _offsets, line_of_sight_tau, passband_weights, star_reddening)
 from .observed_tables import ObservedTable, finite_or_none
+from .outputs import Publication
+from .pipeline import _dominant_source
+from .sky import Camera
+from .transport import batch_standard_error
+from .transport_request import TransportRequest, scene_backend
 
 #: Sky image pixels per side of the comparison's peel-off image (over 2 x the largest offset).
 DEFAULT_SIZE = 96
@@ -79,7 +87,6 @@ def ring_edges(tables: Sequence[ObservedTable]) -> np.ndarray:
 
 
 def _camera(star_position, direction, size, edges):
-    from .sky import Camera
 
     extent = 2.0 * float(edges[-1]) * 1.02  # the outermost ring whole inside the image
     return Camera(direction=tuple(direction), size=(size, size), extent=extent, center=tuple(star_position))
@@ -94,10 +101,6 @@ def trace_rings(scene, edges, *, direction=(0.0, 0.0, -1.0), size: int = DEFAULT
     changes). The scene's error target and time limit apply (a fit refuses both: its trials
     trace a fixed number of packets with one seed).
     """
-    from .density import generate_density
-    from .observe import _labels
-    from .pipeline import _dominant_source
-    from .transport_request import TransportRequest, scene_backend
 
     backend = backend or scene_backend(scene)
     bands = scene.bands.resolve()
@@ -132,7 +135,6 @@ def _rings_of(edges, lo, hi) -> np.ndarray:
 
 def _batch_error(y) -> np.ndarray:
     """Batch-means standard error of the total of per-batch values y (M, ...)."""
-    from .transport import batch_standard_error
 
     m = y.shape[0]
     mean = y.mean(axis=0)
@@ -167,7 +169,6 @@ def model_values(rings: RingSums, table: ObservedTable, reference: str = "observ
         y = np.einsum("bn,mbn->mn", np.nan_to_num(c), X)
         err = np.where(np.isfinite(model), _batch_error(y), np.nan)
         return model, err
-    from .colour_convert import hat_basis
 
     seen = np.exp(-rings.star_tau) if reference == "observed" else np.ones(len(wl))
     h = hat_basis(wl, table.x)  # (n_bands, n)
@@ -316,7 +317,6 @@ def compare(scene, tables: Sequence[ObservedTable], *, direction=(0.0, 0.0, -1.0
 def check_tables_against_scene(scene, tables: Sequence[ObservedTable]) -> None:
     """What the scene must have for the tables: bands that cover each ratio table's wavelengths
     (no extrapolation) and, for colours, the B and V passbands; at least one table."""
-    from .errors import SceneError
 
     if not tables:
         raise SceneError("tables", [], "give at least one table of observations")
@@ -376,7 +376,6 @@ def plot(comp: Comparison, path, title: str = "") -> None:
         a2.grid(alpha=0.3)
     fig.suptitle(title or f"chi2 = {comp.chi2:.2f} for {comp.dof} degrees of freedom", fontsize=10)
     fig.tight_layout()
-    from .outputs import Publication
 
     try:
         with Publication() as pub:

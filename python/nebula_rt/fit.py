@@ -63,10 +63,13 @@ from typing import Callable, Optional, Sequence
 
 import numpy as np
 
-from .comparison import Comparison, check_tables_against_scene, compare_tables, ring_edges, trace_rings, \
-    DEFAULT_SIZE
-from .errors import CancelledError, SceneError
-from .observed_tables import ObservedTable, finite_or_none
+from .comparison import Comparison, DEFAULT_SIZE, check_tables_against_scene, compare_tables, ring_edges, trace_rings
+from .density import generate_density
+from .errors import CancelledError, NebulaWarning, SceneError
+from .observe import _check_reference
+from .observed_tables import ObservedTable, _annuli_from_offsets, finite_or_none
+from .scene import Scene
+from .transport_request import scene_backend
 
 UNCERTAINTIES = ("profile", "mcmc", "none")
 SPECIAL = ("albedo", "g", "albedo_slope", "g_slope", "tau", "depth")
@@ -230,7 +233,6 @@ def make_parameter(name: str, scene, lo=None, hi=None, log: bool = False, direct
 
 def scene_with(base, params: Sequence[FreeParameter], values: Sequence[float], direction=(0.0, 0.0, -1.0)):
     """``base`` with the parameters set to ``values`` (a new, validated scene)."""
-    from .scene import Scene
 
     vals = {p.name: float(v) for p, v in zip(params, values)}
     d = base.to_dict()
@@ -351,7 +353,6 @@ class _Objective:
         return np.array([p.from_unit(zi) for p, zi in zip(self.params, z)])
 
     def _density(self, scene):
-        from .density import generate_density
 
         d = scene.to_dict()
         key = json.dumps([d["grid"], {k: v for k, v in d["dust"].items() if k != "tau"},
@@ -613,8 +614,6 @@ def fit_observations(scene, tables: Sequence[ObservedTable], free: Sequence, *, 
     -------
     FitResult
     """
-    from .observe import _check_reference
-    from .transport_request import scene_backend
 
     t0 = time.perf_counter()
     _check_reference(reference)
@@ -745,7 +744,6 @@ def fit_observations(scene, tables: Sequence[ObservedTable], free: Sequence, *, 
     if ratio > MAX_MODEL_ERROR:
         import warnings
 
-        from .errors import NebulaWarning
 
         warnings.warn(NebulaWarning(
             f"the model's Monte Carlo error is up to {ratio:.2f} of the data's at the best fit: one seed's noise "
@@ -769,7 +767,6 @@ def synthetic_tables(scene, *, offsets, wavelengths, annulus=(0.05, 0.45), colou
     ``annulus``, each the model's value plus Gaussian noise of the stated error (the tables'
     errors: ``colour_err`` mag; ``ratio_rel_err`` times the value). The model's own Monte Carlo
     error adds to the scatter: trace it with many more packets than the fit uses."""
-    from .observed_tables import ObservedTable, _annuli_from_offsets
 
     offsets = np.asarray(offsets, np.float64)
     wavelengths = np.asarray(wavelengths, np.float64)

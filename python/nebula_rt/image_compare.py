@@ -67,8 +67,11 @@ from typing import Optional
 
 import numpy as np
 
+from . import calibrate
+from .calibrate import PASSBANDS
 from .errors import SceneError
 from .observed_images import ObservedImage, read_image  # noqa: F401 (read_image: also the API here)
+from .transport import batch_count, planned_batch_size
 
 #: How the observation is resampled onto the model image's grid
 REPROJECT_MODES = ("exact", "interp")
@@ -101,7 +104,6 @@ def resolve_band(scene, spec=None, header_band=None) -> tuple:
     """("band", index, name) for a scene band or ("passband", key, speclite name) for a passband
     of :data:`nebula_rt.calibrate.PASSBANDS`, from ``spec`` or else the image header's BAND or
     FILTER keyword."""
-    from .calibrate import PASSBANDS
 
     names = [b.name for b in scene.bands.resolve()]
     pb = {v: k for k, v in PASSBANDS.items()}
@@ -292,7 +294,6 @@ def check_pixel_batches(scene, size: int) -> None:
     """The per-pixel batch images of the model's trace must fit :data:`MAX_PIXEL_BATCH_BYTES`."""
     import math as _m
 
-    from .transport import batch_count, planned_batch_size
 
     photons, target = scene.transport.effective()
     nvox = _m.prod(scene.grid.shape)
@@ -310,7 +311,6 @@ def model_image(scene, kind: tuple, camera, backend=None, progress=None, cancel=
     (:func:`resolve_band`) with its Monte Carlo error: the batch-means standard error of the
     calibrated pixel, from the calibration (affine in the scattered light: L(x) + c, the stars c)
     of each batch's deviation from the mean, L(d_k) = cal(d_k) - cal(0)."""
-    from . import calibrate
 
     cal, res = calibrate.peel_off_sky(scene, camera, backend, progress=progress, cancel=cancel, pixel_batches=True)
     w, h = camera.size
@@ -451,7 +451,6 @@ def compare_observed_image(scene, obs: ObservedImage, *, band=None, direction=(0
     cancel : callable or CancelToken, optional
         As for :func:`nebula_rt.transport.trace`.
     """
-    from . import calibrate
 
     calibrate.check_scene(scene)
     kind = resolve_band(scene, band, obs.header_band)

@@ -42,9 +42,16 @@ from importlib import resources
 
 import numpy as np
 
-from .colour_convert import hat_basis, star_spectrum
-from .line_of_sight import line_of_sight_tau
 from . import units
+from .colour_convert import hat_basis, star_spectrum
+from .density import generate_density
+from .errors import SceneError
+from .line_of_sight import line_of_sight_tau
+from .outputs import Publication
+from .pipeline import _dominant_source
+from .sky import Camera, sky_image
+from .transport import batch_standard_error
+from .transport_request import TransportRequest, scene_backend
 
 try:
     import tomllib
@@ -98,7 +105,6 @@ def star_reddening(tau_b, band_wavelengths_nm, source) -> float:
 
 def _check_reference(reference: str) -> str:
     if reference not in REFERENCES:
-        from .errors import SceneError
 
         raise SceneError("reference", reference, f"must be one of {', '.join(REFERENCES)}")
     return reference
@@ -185,7 +191,6 @@ def _labels(offset, edges) -> np.ndarray:
 
 def _batch_error(y) -> np.ndarray:
     """Batch-means standard error of the total of per-batch values y (batches, ...)."""
-    from .transport import batch_standard_error
 
     return batch_standard_error(y.sum(axis=0), (y * y).sum(axis=0), y.shape[0])
 
@@ -233,7 +238,6 @@ def _annuli(scattered, labels, edges, band_lum, wl, source, star_tau, reference,
 
 
 def _camera(star, direction, size):
-    from .sky import Camera
 
     return Camera(direction=tuple(direction), size=(size, size), extent=1.0, center=tuple(star.position))
 
@@ -250,8 +254,6 @@ def profiles(light, direction=(0.0, 0.0, -1.0), size: int = 128, edges=None,
     dust in front of it; "intrinsic"). The sky image has no error estimate: the profiles'
     errors are NaN (:func:`observe_scene` has them).
     """
-    from .pipeline import _dominant_source
-    from .sky import sky_image
 
     _check_reference(reference)
     bands = light.bands
@@ -275,9 +277,6 @@ def observe_scene(scene, direction=(0.0, 0.0, -1.0), size: int = 128, edges=None
     every scattering towards the observer: forward and backward scattering as they are) and
     measure it as :func:`profiles` does, against ``reference``, with batch-means errors.
     Returns (profiles, transport result)."""
-    from .density import generate_density
-    from .pipeline import _dominant_source
-    from .transport_request import TransportRequest, scene_backend
 
     _check_reference(reference)
     backend = backend or scene_backend(scene)
@@ -348,7 +347,6 @@ def plot(prof: Profiles, path, title: str = "") -> None:
     if title:
         fig.suptitle(title, fontsize=10)
     fig.tight_layout()
-    from .outputs import Publication
 
     try:  # a temporary file unique to this call, renamed onto the target once complete
         with Publication() as pub:

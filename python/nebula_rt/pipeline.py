@@ -18,16 +18,17 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from . import colour_convert, filtering, postprocess
-from . import output_contract as contract
+from . import colour_convert, filtering, output_contract as contract, postprocess, resources
 from .array_api import array_module, to_numpy
 from .backends import Backend
 from .bands import Band, reference_band_index
 from .density import file_digest, generate_density
+from .errors import SceneError
 from .limits import FLOAT32_MAX
+from .scene import Scene
+from .tails import DEPTH_CLASS_NAMES, figures
 from .transport import TransportResult, batch_standard_error, light_from_sums
 from .transport_request import TransportRequest, scene_backend
-from .tails import DEPTH_CLASS_NAMES, figures
 
 
 @dataclass
@@ -280,7 +281,6 @@ class Pipeline:
         stage runs only when the transport or the colour settings changed (or ``colour`` is
         False: no rgba).
         """
-        from . import resources
 
         t0 = time.perf_counter()
         resources.check(scene, self.backend_for(scene))  # before the density is allocated
@@ -330,7 +330,6 @@ def compute_light(scene, density: np.ndarray, backend: Backend, progress=None, c
     smoothed J and error are CuPy arrays on CUDA, flat device arrays on OpenCL with pyvkfft
     (VkFFT), else NumPy arrays filtered on the host.
     """
-    from . import resources
 
     t = scene.transport
     resources.check(scene, backend)
@@ -504,7 +503,6 @@ def colour_source_from_field_data(fd):
     if not isinstance(fd, contract.LightFieldData):
         fd = contract.LightFieldData.from_field_data(fd)
     if fd.scene is not None:
-        from .scene import Scene
 
         return _dominant_source(Scene.loads(fd.scene).stars)
     t = fd.colour_temperature or 0.0
@@ -555,7 +553,6 @@ def colour_matrix(wavelengths_nm, band_luminosity, temperature: Optional[float],
     lum = np.asarray(band_luminosity, np.float64)
     if not (lum.size and np.all(np.isfinite(lum)) and np.all(lum > 0)):
         # colours are nebula/star ratios per band: a band without starlight has none
-        from .errors import SceneError
 
         raise SceneError("band_luminosity", [float(x) for x in np.atleast_1d(lum)],
                          "must be finite and > 0 in every band: a band without starlight has no "

@@ -19,6 +19,9 @@ from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
+from . import filtering
+from .array_api import array_module
+from .backends.session import M2_SCALE
 
 #: Bins of one radix-select pass (16 bits of the float32 key) plus one for exact zeros.
 _HI_BINS = 1 << 16
@@ -56,7 +59,6 @@ class DeviceSums:
     def host_sums(self):
         """(sum, centred sum of squares) as float64 (n_bands, nx, ny, nz) arrays of the
         backend's array module (CuPy on CUDA, NumPy copies otherwise)."""
-        from .backends.session import M2_SCALE
 
         if self.sum1 is None:
             raise RuntimeError("the device sums were released by postprocess.finish(release=True)")
@@ -154,7 +156,6 @@ def finish(ds: DeviceSums, band_params: np.ndarray, *, batches, collision: bool,
         if getattr(light[0], "ndim", 0) == 1:  # already in device layout
             j64, r64 = light[0], light[1]
         else:
-            from .array_api import array_module
 
             xp = array_module(light[0])
             j64 = _device_layout(xp, xp.asarray(light[0], dtype=xp.float64))
@@ -212,7 +213,6 @@ def filter_collisions_opencl(ds: DeviceSums, band_params: np.ndarray, batches, r
     against 1320 ms (benchmarks/bench_fft.py), before the local linear fit at the faces
     quadrupled the transforms.
     """
-    from . import filtering
     from .filtering_opencl import normalised_convolution_cl
 
     be = ds.backend

@@ -28,6 +28,8 @@ from dataclasses import dataclass, field
 
 from .backends.capacity import _gib, check_grid, host_available_bytes, region_bytes  # noqa: F401  (public here too)
 from .errors import ResourceError
+from .filtering import kernel_half_widths
+from .transport import plan_launches
 
 #: bytes per FFT point of the collision filter's convolutions (20 complex128 half-spectra)
 FFT_BYTES_PER_POINT = 20 * 8
@@ -56,7 +58,6 @@ def _parts(d: dict) -> str:
 
 def filter_fft_points(shape, radius: float) -> int:
     """Points of the padded FFT of the collision filter's convolution on ``shape``."""
-    from .filtering import kernel_half_widths
 
     half = kernel_half_widths(shape, radius)
     return int(math.prod(n + 2 * h for n, h in zip(shape, half)))
@@ -70,7 +71,6 @@ def estimate(scene, backend, peel_pixels: int = 0) -> Estimate:
     peel_pixels : int
         Pixels of a peel-off image traced with it (0: none).
     """
-    from .transport import plan_launches
 
     t = scene.transport
     shape = tuple(int(n) for n in scene.grid.shape)

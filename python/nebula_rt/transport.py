@@ -44,14 +44,16 @@ import numpy as np
 from . import colour_convert, limits
 from .array_api import array_module
 from .backends import Backend, TransportSetup
-from .scene import ERROR_ESTIMATES
-from .scene import METHODS as _scene_methods
-from .scene import AUTO_THICK, AUTO_THIN  # noqa: F401  (auto's thresholds, declared with the method)
+from .backends.session import region_capacity
 from .errors import AccumulatorOverflowError, CancelledError, NebulaWarning, SceneError, TimeLimitError
-from .postprocess import DeviceSums
 from .importance import depth_map, observer_depth_map, resolve_importance, window_rates
-from .tails import (DEPTH_CLASS_NAMES, IMAGE_ERROR_LIMIT, J_ERROR_LIMIT, TAIL_BINS, check_histograms, class_cells,
-                    class_edges, failures)
+from .line_of_sight import line_of_sight_tau
+from .parallel import Serial, device_reducer, share
+from .postprocess import DeviceSums, lit_region_error_on_device
+from .scene import (  # noqa: F401  (auto's thresholds, declared with the method)
+    AUTO_THICK, AUTO_THIN, ERROR_ESTIMATES, METHODS as _scene_methods)
+from .tails import (
+    DEPTH_CLASS_NAMES, IMAGE_ERROR_LIMIT, J_ERROR_LIMIT, TAIL_BINS, check_histograms, class_cells, class_edges, failures)
 
 #: Default largest batch (packets per band): larger batches fold less often; launches last at
 #: most LAUNCH_SECONDS whatever the batch. 16 batches at least, for the error estimate. On
@@ -84,7 +86,6 @@ def scene_optical_depth(density, tau: float, stars) -> float:
     """The scene's optical depth in the reference band: the median, over the stars and the six
     axis directions, of the optical depth from the star to the box's edge (an exact voxel
     march, :func:`nebula_rt.line_of_sight.line_of_sight_tau`)."""
-    from .line_of_sight import line_of_sight_tau
 
     sigma = float(tau) * np.asarray(density, np.float64)
     depths = [float(line_of_sight_tau(sigma, s.position, d)[0]) for s in stars
@@ -547,7 +548,6 @@ def plan_launches(photons: int, batch_size: int, targeted: bool, shape, n_bands:
     per_launch, slots = backend.launch_plan(nvox, n_bands, plan.base + 1, len(plan), cell_bytes)
     launches = LaunchPlan(plan, size, per_launch, slots, int(n_bands))
     scales = packet_scales(photons, max_scatterings, shape, estimator)
-    from .backends.session import region_capacity
 
     if resolve_error_estimate(error_estimate, biased=cell_bytes == 16, peel=peel, targeted=targeted,
                               time_limit=time_limit, batch_size=batch_size, launches=launches, scales=scales,
@@ -753,7 +753,6 @@ def _current_error(backend, sums, shape, folded, estimator, band_lum, photons, t
     """The lit-region error of the batches folded so far, on the device
     (:func:`nebula_rt.postprocess.lit_region_error_on_device`): ``sums`` the (sum, centred
     squares, density) device arrays of the session or of the DeviceSums."""
-    from .postprocess import lit_region_error_on_device
 
     q = np.array([exact_packet_energy(L, photons) for L in band_lum])
     params = np.stack([_j_scale(q, estimator, track_scale, nvox_inv, collision_scale), sigma_scale, albedo], axis=1)
@@ -1065,7 +1064,6 @@ def run_transport(plan: TransportPlan, backend: Backend, *, progress=None, cance
     every group's packets, the ranks' slots and tallies are added before each fold, and the
     decisions to stop (time limit, cancel: any rank's) are made together between groups, so
     every rank folds the one-rank run's sums."""
-    from .parallel import Serial, device_reducer, share
 
     comm = comm if comm is not None else Serial()
     distributed = comm.size > 1
