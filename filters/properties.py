@@ -49,6 +49,9 @@ class Property:
     only : tuple of str
         The choices this algorithm offers, where it offers fewer than the scene (the Dust
         Density source makes no density from a file).
+    group : str
+        The panel group, where this algorithm shows the key elsewhere than its declaration's
+        (``Param.group``): the sky image shows the colour's tone curve with its picture.
     """
 
     name: str
@@ -58,6 +61,12 @@ class Property:
     enabled_by: Tuple = ()
     shown_by: Tuple = ()
     only: Tuple[str, ...] = ()
+    group: str = ""
+
+    @property
+    def panel_group(self) -> str:
+        """The panel group the property sits in: ``group``, else its key's declared group."""
+        return self.group or self.param.group
 
     @property
     def choices(self) -> Tuple[str, ...]:

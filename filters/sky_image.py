@@ -13,6 +13,7 @@ from nebula_rt import colour_convert
 from nebula_rt import output_contract as contract
 from nebula_rt.errors import SceneError
 from nebula_rt.limits import check_float32_array
+from nebula_rt.sky_schema import G_PICTURE
 from nebula_rt.pipeline import colour_source_from_field_data
 from nebula_rt.scene import Scene
 from nebula_rt.sky import Camera, sky_image
@@ -36,8 +37,8 @@ SKY_IMAGE_PROPERTIES = (
     Property("Extent", "sky.extent"),
     Property("IncludeStars", "sky.include_stars", widget="bool"),
     Property("Exposure", "sky.exposure", widget="auto", flag="AutoExposure"),
-    Property("Stretch", "colour.stretch", widget="enum"),
-    Property("AsinhQ", "colour.asinh_q", enabled_by=("Stretch", 1)),
+    Property("Stretch", "colour.stretch", widget="enum", group=G_PICTURE),
+    Property("AsinhQ", "colour.asinh_q", enabled_by=("Stretch", 1), group=G_PICTURE),
     Property("Distance", "observer.distance", enabled_by=("Units", 1)),
     Property("RA", "observer.ra", enabled_by=("Units", 1)),
     Property("Dec", "observer.dec", enabled_by=("Units", 1)),

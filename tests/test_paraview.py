@@ -230,6 +230,13 @@ def test_paraview_proxy_is_the_schema_and_gives_the_same_bits(pv_env, xdisplay, 
         < order.index("Estimator") < order.index("Quality") < order.index("Backend")
     assert list(r["groups"]) == ["Dust", "Dust optics", "Stars", "Photon transport", "Quality", "Compute device",
                                  "Physical units"]
+    # the groups are the declarations' (the key's Param.group, or the algorithm's Property.group)
+    from nebula_rt.filters.light_field import LIGHT_FIELD_PROPERTIES
+    from nebula_rt.filters.sky_image import SKY_IMAGE_PROPERTIES
+
+    for props, groups in ((LIGHT_FIELD_PROPERTIES, r["groups"]), (SKY_IMAGE_PROPERTIES, r["sky_groups"])):
+        for prop in props:
+            assert prop.name in groups[prop.panel_group], (prop.name, prop.panel_group, groups)
     # every panel property but the input sits in a group (one left out shows below the groups)
     grouped = [p for names in r["groups"].values() for p in names]
     assert sorted(set(order) - set(grouped)) == ["Input"] and len(grouped) == len(set(grouped)), (order, r["groups"])

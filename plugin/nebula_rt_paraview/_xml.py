@@ -4,6 +4,7 @@ Only decorators of ParaView 5.11's ``paraview.util.vtkAlgorithm`` are used (``sm
 ``smhint.xml``, ``smproperty.xml``): they exist unchanged up to 6.x.
 """
 
+import re
 from xml.sax.saxutils import escape, quoteattr
 
 from paraview.util.vtkAlgorithm import smdomain, smhint, smproperty
@@ -83,6 +84,28 @@ def property_groups(*groups):
         props = "".join("<Property name=%s/>" % quoteattr(n) for n in names)
         out.append("<PropertyGroup label=%s>%s</PropertyGroup>" % (quoteattr(label), props))
     return "\n".join(out)
+
+
+_PROPERTY_NAME = re.compile(r'<\w+VectorProperty\s+name="([^"]+)"')
+
+
+def panel(props, defaults=None, extra=None, head=(), own_groups=None):
+    """A proxy's panel: its schema-bound properties' XML (as :func:`bound_properties`, with
+    ``head``, XML of the filter's own properties, first) and its property groups, read from
+    the declarations: a bound property sits in its ``Property.panel_group`` (its scene key's
+    ``Param.group`` unless the algorithm says otherwise), its "auto" check box beside it, and a
+    property of the filter's own in ``own_groups[name]``. Groups in the order of their first
+    property; every property is in one (a ValueError names one that is not)."""
+    body = "\n".join(list(head) + [bound_properties(props, defaults, extra)])
+    group_of = {p.name: p.panel_group for p in props}
+    group_of.update({p.flag: p.panel_group for p in props if p.flag})
+    group_of.update(own_groups or {})
+    groups = {}
+    for name in _PROPERTY_NAME.findall(body):
+        if not group_of.get(name):
+            raise ValueError(f"panel property {name} has no group: declare one")
+        groups.setdefault(group_of[name], []).append(name)
+    return body + "\n" + property_groups(*groups.items())
 
 
 def star_columns():

@@ -9,18 +9,12 @@ from paraview.util.vtkAlgorithm import smhint, smproperty, smproxy
 
 from nebula_rt.filters import dust_density as _base
 from nebula_rt.filters.base import default_star_row
+from nebula_rt.scene import G_STARS
 
 from . import _xml
 
-PANEL = "\n".join([
-    _xml.bound_properties(_base.DUST_DENSITY_PROPERTIES,
-                          extra={"<Backend": _xml.stars_property(default_star_row())}),
-    _xml.property_groups(
-        ("Dust", ["GridShape", "Model", "Scale", "Offset", "UniformDensity", "Floor"]),
-        ("Stars", ["Stars"]),
-        ("Compute device", ["Backend", "Device"]),
-    ),
-])
+PANEL = _xml.panel(_base.DUST_DENSITY_PROPERTIES, extra={"<Backend": _xml.stars_property(default_star_row())},
+                   own_groups={"Stars": G_STARS})
 
 
 @smproxy.source(name="NebulaDustDensity", label="Nebula Dust Density", support_reload=False)

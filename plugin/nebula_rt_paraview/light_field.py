@@ -10,6 +10,7 @@ from paraview.util.vtkAlgorithm import smdomain, smhint, smproperty, smproxy
 
 from nebula_rt.filters import light_field as _base
 from nebula_rt.filters.base import default_reference_band, default_star_row
+from nebula_rt.scene import G_DUST, G_OPTICS, G_STARS, G_UNITS
 
 from . import _xml
 
@@ -42,24 +43,16 @@ SPECTRAL_TYPES = """
     calibration of de Jager and Nieuwenhuijzen 1987).</Documentation>
 </StringVectorProperty>"""
 
-PANEL = "\n".join([
-    _xml.DENSITY_ARRAY,
-    _xml.bound_properties(
-        _base.LIGHT_FIELD_PROPERTIES,
-        defaults={"bands.albedo": _REF.albedo, "bands.g": _REF.g},
-        extra={"<Albedo": OVERRIDE_OPTICS,
-               "<Estimator": _xml.STARS_FROM_INPUT + _xml.stars_property(default_star_row(), ("StarsFromInput", 0)),
-               "<BoxLength": LUMINOSITY_UNIT + SPECTRAL_TYPES}),
-    _xml.property_groups(
-        ("Dust", ["DensityArray", "Tau"]),
-        ("Dust optics", ["BandPreset", "OverrideOptics", "Albedo", "G"]),
-        ("Stars", ["StarsFromInput", "Stars"]),
-        ("Photon transport", ["Estimator", "Method", "ErrorEstimate", "FilterRadius", "MaxScatterings", "Seed"]),
-        ("Quality", ["Quality", "TargetError", "Photons", "TimeLimit"]),
-        ("Compute device", ["Backend", "Device", "BatchSize"]),
-        ("Physical units", ["LuminosityUnit", "SpectralTypes", "BoxLength"]),
-    ),
-])
+PANEL = _xml.panel(
+    _base.LIGHT_FIELD_PROPERTIES,
+    defaults={"bands.albedo": _REF.albedo, "bands.g": _REF.g},
+    head=[_xml.DENSITY_ARRAY],
+    extra={"<Albedo": OVERRIDE_OPTICS,
+           "<Estimator": _xml.STARS_FROM_INPUT + _xml.stars_property(default_star_row(), ("StarsFromInput", 0)),
+           "<BoxLength": LUMINOSITY_UNIT + SPECTRAL_TYPES},
+    # the filter's own properties: the density array, the optics switch, the stars and their units
+    own_groups={"DensityArray": G_DUST, "OverrideOptics": G_OPTICS, "StarsFromInput": G_STARS, "Stars": G_STARS,
+                "LuminosityUnit": G_UNITS, "SpectralTypes": G_UNITS})
 
 
 @smproxy.filter(name="NebulaLightField", label="Nebula Light Field", support_reload=False)

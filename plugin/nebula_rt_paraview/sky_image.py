@@ -12,6 +12,7 @@ from xml.sax.saxutils import quoteattr
 from paraview.util.vtkAlgorithm import smdomain, smhint, smproperty, smproxy
 
 from nebula_rt.filters import sky_image as _base
+from nebula_rt.scene import G_OBSERVER
 
 from . import _xml
 
@@ -24,14 +25,8 @@ UNITS = """
     Distance (or the scene's [observer] table).</Documentation>
 </IntVectorProperty>""" % "".join('<Entry value="%d" text=%s/>' % (i, quoteattr(u)) for i, u in enumerate(_base.SKY_UNITS))
 
-PANEL = "\n".join([
-    _xml.bound_properties(_base.SKY_IMAGE_PROPERTIES, defaults=_base.SKY_PANEL_DEFAULTS, extra={"<Distance": UNITS}),
-    _xml.property_groups(
-        ("Camera", ["ViewDirection", "ViewUp", "ImageSize", "Extent"]),
-        ("Picture", ["IncludeStars", "AutoExposure", "Exposure", "Stretch", "AsinhQ"]),
-        ("Observer", ["Units", "Distance", "RA", "Dec", "PositionAngle", "PSFFWHM", "MagnitudeSystem"]),
-    ),
-])
+PANEL = _xml.panel(_base.SKY_IMAGE_PROPERTIES, defaults=_base.SKY_PANEL_DEFAULTS, extra={"<Distance": UNITS},
+                   own_groups={"Units": G_OBSERVER})
 
 
 @smproxy.filter(name="NebulaSkyImage", label="Nebula Sky Image", support_reload=False)

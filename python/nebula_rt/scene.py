@@ -166,7 +166,7 @@ class Dust:
         1e-4, type="float", lo=0.0, group=G_DUST, advanced=True,
         doc="Minimum density everywhere (the thesis's clamp; keeps the medium from being empty)")
     tau: float = param(
-        1.0, type="float", lo=0.0, label="Tau", group=G_OPTICS,
+        1.0, type="float", lo=0.0, label="Tau", group=G_DUST,
         doc="Optical depth across one box edge at density 1 in the reference band: the extinction "
             "per box edge is tau x extinction_b x density (the thesis's 128^3 nebula: 128, i.e. "
             "extinction = density per voxel). Set by hydrogen_density, mass_density or "
