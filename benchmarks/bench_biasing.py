@@ -31,11 +31,12 @@ import warnings
 import numpy as np
 
 from nebula_rt.backends import get_backend
-from nebula_rt.bands import Band
+from nebula_rt.optics.bands import Band
 from nebula_rt.errors import NebulaWarning
 from nebula_rt.scene import Star
-from nebula_rt.sky import Camera
-from nebula_rt.transport import lit_region_error, trace
+from nebula_rt.observe.sky import Camera
+from nebula_rt.transport.estimate import lit_region_error
+from nebula_rt.transport import trace
 
 
 def scene(kind: str, n: int, tau: float):

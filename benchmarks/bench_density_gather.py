@@ -206,7 +206,7 @@ def write_density(workdir: Path, n: int) -> dict:
     """The thesis default nebula on n^3 as .vti files (zlib and raw); returns the paths."""
     from nebula_rt.backends import get_backend
     from nebula_rt.density import generate_density
-    from nebula_rt.io_vti import write_vti
+    from nebula_rt.pipeline.io_vti import write_vti
     from nebula_rt.scene import Scene
 
     scene = Scene.from_dict({"grid": {"shape": [n, n, n]}})

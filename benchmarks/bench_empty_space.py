@@ -49,9 +49,10 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     from nebula_rt.backends import get_backend
-    from nebula_rt.bands import Band
+    from nebula_rt.optics.bands import Band
     from nebula_rt.scene import Star
-    from nebula_rt.transport import FIXED_POINT_BITS, trace
+    from nebula_rt.transport.plan import FIXED_POINT_BITS
+    from nebula_rt.transport import trace
 
     backend = get_backend(args.backend, args.device)
     band = [Band(name="V", wavelength=550.0, extinction=1.0, albedo=0.6, g=0.6)]

@@ -57,7 +57,7 @@ def host_path(queue, fields, variances, kernel, split=None):
     """(a): device->host, SciPy on the host per band, host->device. Returns device arrays."""
     import pyopencl.array as cla
 
-    from nebula_rt.filtering import normalised_convolution
+    from nebula_rt.transport.filtering import normalised_convolution
 
     outs = []
     for f, v in zip(fields, variances):
@@ -79,7 +79,7 @@ def host_path(queue, fields, variances, kernel, split=None):
 
 def device_path(queue, fields, variances, kernel):
     """(b): normalised_convolution_cl per band. Returns device arrays."""
-    from nebula_rt.filtering_opencl import normalised_convolution_cl
+    from nebula_rt.transport.filtering_opencl import normalised_convolution_cl
 
     return [normalised_convolution_cl(queue, f, kernel, v) for f, v in zip(fields, variances)]
 
@@ -96,7 +96,7 @@ def _max_rel(pairs_a, pairs_b):
 def bench_grid(queue, n, bands, radius, with_device, seed=0):
     import pyopencl.array as cla
 
-    from nebula_rt.filtering import cubic_kernel
+    from nebula_rt.transport.filtering import cubic_kernel
 
     shape = (n, n, n)
     kernel = cubic_kernel(shape, radius)
@@ -114,7 +114,7 @@ def bench_grid(queue, n, bands, radius, with_device, seed=0):
     row["host_split_ms"] = split  # one extra run, for where the host path spends its time
 
     if with_device:
-        from nebula_rt.filtering_opencl import padded_shape
+        from nebula_rt.transport.filtering_opencl import padded_shape
 
         row["padded_shape"] = list(padded_shape(shape, kernel.shape))
         t0 = time.perf_counter()
@@ -141,7 +141,7 @@ def main(argv=None) -> int:
     import pyopencl as cl
 
     from nebula_rt.backends.opencl import select_device
-    from nebula_rt.filtering_opencl import available
+    from nebula_rt.transport.filtering_opencl import available
 
     device, device_name = select_device(args.device)
     queue = cl.CommandQueue(cl.Context([device]))

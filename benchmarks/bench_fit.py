@@ -41,8 +41,8 @@ FREE = ["albedo=0.02:0.98", "g=0:0.95", "tau=32:512:log"]
 
 
 def tables(scene, args, backend):
-    from nebula_rt import comparison
-    from nebula_rt.observed_tables import ObservedTable, _annuli_from_offsets
+    from nebula_rt.observe import comparison
+    from nebula_rt.observe.observed_tables import ObservedTable, _annuli_from_offsets
 
     truth = scene.with_overrides([f"bands.albedo={TRUTH['albedo']}", f"bands.g={TRUTH['g']}",
                                   f"dust.tau={TRUTH['tau']}", f"transport.photons={int(args.truth_photons)}",
@@ -66,7 +66,7 @@ def tables(scene, args, backend):
 
 
 def run(method, scene, obs, args, backend):
-    from nebula_rt import fit
+    from nebula_rt.observe import fit
 
     t0 = time.perf_counter()
     res = fit.fit_observations(scene, obs, FREE, size=args.size, uncertainty=method, backend=backend,

@@ -38,7 +38,7 @@ Per configuration (grid n, photons P per band, bands B):
   limit     deposits per packet ~ voxel visits per packet = 1.5 x (track length in voxel
             edges) + flights; the track length from the device sums (sum of the fixed-point
             track units / (2^FIXED_POINT_BITS n), as bench_empty_space.py and
-            tests/test_extremes.py convert raw_sum; cross-checked with J 4 pi V / q of band 0),
+            tests/transport/test_extremes.py convert raw_sum; cross-checked with J 4 pi V / q of band 0),
             the flights 1 + scatterings, the scatterings albedo x sigma x track (their expected
             number); limit packets per ms = (atomic walk adds per second on n^3, below) / (visits
             per packet), and NebulaRT's fraction of it. The kernel's deposits into the star's
@@ -162,9 +162,9 @@ def _build_kernels(backend, n: int, photons: int, n_bands: int) -> None:
     the measured run (up to 1 s per option set) would be counted in its end-to-end time."""
     import numpy as np
 
-    from nebula_rt.bands import Band
+    from nebula_rt.optics.bands import Band
     from nebula_rt.scene import Star
-    from nebula_rt.transport import plan_transport
+    from nebula_rt.transport.plan import plan_transport
 
     bands = [Band(name=f"b{i}", wavelength=450.0 + 100.0 * i, extinction=1.0, albedo=ALBEDO, g=G)
              for i in range(n_bands)]
@@ -222,7 +222,7 @@ def child_nebula(n: int, photons: int, n_bands: int, repeats: int, repeat_below_
     from nebula_rt.backends import get_backend
     from nebula_rt.pipeline import Pipeline
     from nebula_rt.scene import Scene
-    from nebula_rt.transport import FIXED_POINT_BITS
+    from nebula_rt.transport.plan import FIXED_POINT_BITS
 
     tuning = _tuning_from_env()
     if tuning:

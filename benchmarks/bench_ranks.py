@@ -48,7 +48,7 @@ def child(backend_name: str, device: str, n: int, photons: int, scene_name: str 
     import numpy as np
 
     from nebula_rt.backends import get_backend
-    from nebula_rt.parallel import world
+    from nebula_rt.backends.parallel import world
 
     comm = world()
     if backend_name == "cuda" and not device:
@@ -77,7 +77,7 @@ def child(backend_name: str, device: str, n: int, photons: int, scene_name: str 
         digest, bands = h.hexdigest(), len(light.bands)
         del light
     else:
-        from nebula_rt.bands import Band
+        from nebula_rt.optics.bands import Band
         from nebula_rt.scene import Star
         from nebula_rt.transport import trace
 
@@ -113,7 +113,7 @@ def main(argv=None) -> int:
     ap.add_argument("--device", default="", help="device selector (default: PoCL on opencl, by local rank on cuda)")
     ap.add_argument("--scene", default="neb", choices=("neb", "thesis"))
     ap.add_argument("--weak", action="store_true", help="--photons per rank (weak scaling)")
-    from nebula_rt.parallel import ALLREDUCE_CHOICES
+    from nebula_rt.backends.parallel import ALLREDUCE_CHOICES
 
     ap.add_argument("--allreduce", default="", choices=("",) + ALLREDUCE_CHOICES,
                     help="how the ranks add their device slots (NEBULA_RT_ALLREDUCE; default: auto)")
@@ -123,7 +123,7 @@ def main(argv=None) -> int:
     device = args.device or ("Portable Computing Language" if args.backend == "opencl" else "")
     if args.child:
         rec = child(args.backend, device, int(args.child[0]), int(args.child[1]), args.scene)
-        from nebula_rt.parallel import world
+        from nebula_rt.backends.parallel import world
 
         if world().rank == 0:
             print("RESULT " + json.dumps(rec), flush=True)

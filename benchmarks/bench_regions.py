@@ -28,9 +28,9 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent / "python"))
 from provenance import provenance  # noqa: E402  (benchmarks/provenance.py)
 
-from nebula_rt.bands import Band  # noqa: E402
-from nebula_rt.scene import Star  # noqa: E402
-from nebula_rt.transport import trace  # noqa: E402
+from nebula_rt.optics.bands import Band  # noqa: E402
+from nebula_rt.scene.sections import Star  # noqa: E402
+from nebula_rt.transport.run import trace  # noqa: E402
 
 
 def make_backend(kind: str, device: str, tuning: dict):

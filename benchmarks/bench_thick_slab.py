@@ -1,6 +1,6 @@
 """Light through thick dust: accuracy against the exact answer beside precision and speed.
 
-The scene of tests/test_thick_slab.py (tests/slab_scene.py): a slab of 4 voxel layers of
+The scene of tests/transport/test_thick_slab.py (tests/slab_scene.py): a slab of 4 voxel layers of
 vertical optical depth tau, lit by a star just above it, seen from below; the transmitted
 T(mu = 1) of every run is held against the adding-doubling solution of the infinite slab
 (tests/oracles/plane_parallel.py); with ``--sides above`` the camera is on the star's side and
@@ -49,7 +49,7 @@ import nebula_rt  # noqa: E402
 from provenance import provenance  # noqa: E402  (benchmarks/provenance.py)
 from nebula_rt.backends import get_backend  # noqa: E402
 from nebula_rt.errors import NebulaWarning  # noqa: E402
-from nebula_rt.transport import trace  # noqa: E402
+from nebula_rt.transport.run import trace  # noqa: E402
 
 
 def measure(backend, albedo, g, tau, method, photons, seeds, side="below", importance="auto"):
@@ -70,7 +70,7 @@ def measure(backend, albedo, g, tau, method, photons, seeds, side="below", impor
             v, se = image_power(r, cam)
             vals.append(v / exact)
             errs.append(se / exact)
-            flagged.append(not r.tail_image[0].reliable)  # the heavy-tail checks (nebula_rt.tails)
+            flagged.append(not r.tail_image[0].reliable)  # the heavy-tail checks (nebula_rt.transport.tails)
     vals, errs = np.array(vals), np.array(errs)
     rel = np.where(vals > 0, errs / np.where(vals > 0, vals, 1.0), np.inf)
     pulls = np.where(errs > 0, (vals - 1.0) / np.where(errs > 0, errs, 1.0), np.inf)

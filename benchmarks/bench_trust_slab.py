@@ -1,13 +1,13 @@
 """The TRUST I slab benchmark: NebulaRT's scattered light against an independent solution.
 
-The scene of tests/test_trust_slab.py (tests/trust_scene.py: a star 6 pc above a 10 x 10 x 3 pc
+The scene of tests/transport/test_trust_slab.py (tests/trust_scene.py: a star 6 pc above a 10 x 10 x 3 pc
 uniform slab, vertical optical depth 10 at 550 nm, Milky Way dust at 13 wavelengths from 150 nm
 to 2.2 um, those with vertical depth up to 35), seen from the benchmark's 7 polar angles. The
 reference is tests/oracles/slab_mc.py (NumPy, its own variance reduction, checked against the
-exact plane-parallel answer by tests/test_slab_oracle_mc.py). For each angle and wavelength:
+exact plane-parallel answer by tests/transport/test_slab_oracle_mc.py). For each angle and wavelength:
 NebulaRT's scattered power per steradian (over the band's luminosity), the oracle's, both
 stated errors, their ratio, the pull, whether the ratio is within the 10 % target, and the
-heavy-tail check of NebulaRT's image (nebula_rt.tails).
+heavy-tail check of NebulaRT's image (nebula_rt.transport.tails).
 
 The oracle's answers are kept in ``--oracle FILE`` (computed and written there when the file
 does not exist), so a GPU run reuses those computed on a CPU.
@@ -35,7 +35,7 @@ from oracles.slab_mc import scattered  # noqa: E402
 from provenance import provenance  # noqa: E402  (benchmarks/provenance.py)
 from nebula_rt.backends import get_backend  # noqa: E402
 from nebula_rt.errors import NebulaWarning  # noqa: E402
-from nebula_rt.transport import trace  # noqa: E402
+from nebula_rt.transport.run import trace  # noqa: E402
 
 TARGET = 0.10
 

@@ -26,9 +26,10 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def measure(scene_path: Path, grid: int, photons: int, backend) -> dict:
-    from nebula_rt.pipeline import generate_density
+    from nebula_rt.density import generate_density
     from nebula_rt.scene import Scene
-    from nebula_rt.transport import FIXED_POINT_BITS, trace
+    from nebula_rt.transport.plan import FIXED_POINT_BITS
+    from nebula_rt.transport import trace
 
     scene = Scene.load(scene_path).with_overrides([f"grid.shape=[{grid},{grid},{grid}]", f"transport.photons={photons}"])
     rho = generate_density(scene, backend)

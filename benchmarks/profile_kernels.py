@@ -36,7 +36,7 @@ def profile(n: int, photons: int, tuning: dict, program: str = "", free_running:
     import numpy as np
 
     from nebula_rt.backends.cuda import CUDABackend
-    from nebula_rt.bands import Band
+    from nebula_rt.optics.bands import Band
     from nebula_rt.scene import Star
     from nebula_rt.transport import trace
 

@@ -72,7 +72,7 @@ def main() -> None:
         print(f"-- {name}: functions by own time")
         pstats.Stats(prof).sort_stats("tottime").print_stats(14)
     # finer: the pieces of the finishing step
-    from nebula_rt import postprocess as pp
+    from nebula_rt.transport import finish as pp
 
     ds = res.device_sums
     bands = light.bands

@@ -28,9 +28,9 @@ nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader
 python3 -m nebula_rt.cli devices
 git rev-parse --short HEAD 2>/dev/null || true
 
-physics="tests/test_importance.py tests/test_rng.py tests/test_hg.py tests/test_density_kernel.py tests/test_transport_physics.py tests/test_estimators.py tests/test_postprocess.py tests/test_target_error.py tests/test_sky_physics.py tests/test_kernel_options.py tests/test_filter_boundary.py tests/test_terminated.py tests/test_peel_off_physics.py tests/test_band_independence.py tests/test_resources.py tests/test_extremes.py tests/test_memory_layout.py tests/test_biased_transport.py tests/test_regions.py tests/test_tail_diagnostic.py tests/test_trust_slab.py"
+physics="tests/transport/test_importance.py tests/backends/test_rng.py tests/backends/test_hg.py tests/density/test_density_kernel.py tests/transport/test_transport_physics.py tests/transport/test_estimators.py tests/transport/test_postprocess.py tests/transport/test_target_error.py tests/observe/test_sky_physics.py tests/backends/test_kernel_options.py tests/transport/test_filter_boundary.py tests/transport/test_terminated.py tests/observe/test_peel_off_physics.py tests/transport/test_band_independence.py tests/transport/test_resources.py tests/transport/test_extremes.py tests/backends/test_memory_layout.py tests/transport/test_biased_transport.py tests/backends/test_regions.py tests/transport/test_tail_diagnostic.py tests/transport/test_trust_slab.py"
 if [[ " $steps " == *" tests "* ]]; then
-    echo "== physics tests, CUDA"; NEBULA_RT_TEST_BACKEND=cuda python3 -m pytest -q -p no:cacheprovider $physics tests/test_cuda_sources.py 2>&1 | tail -n 8
+    echo "== physics tests, CUDA"; NEBULA_RT_TEST_BACKEND=cuda python3 -m pytest -q -p no:cacheprovider $physics tests/backends/test_cuda_sources.py 2>&1 | tail -n 8
     echo "== physics tests, NVIDIA OpenCL"; NEBULA_RT_TEST_DEVICE=NVIDIA python3 -m pytest -q -p no:cacheprovider $physics 2>&1 | tail -n 3
 fi
 if [[ " $steps " == *" tests-mpi "* ]]; then
@@ -44,7 +44,7 @@ if [[ " $steps " == *" thick "* ]]; then
     # the former weighted packets too where a copy of that commit's python/ (with its kernels
     # as nebula_rt/kernels) lies in .former/
     echo "== thick slab tests, CUDA"; NEBULA_RT_TEST_BACKEND=cuda python3 -m pytest -q -p no:cacheprovider \
-        tests/test_thick_slab.py tests/test_biased_transport.py tests/test_cuda_sources.py 2>&1 | tail -n 4
+        tests/transport/test_thick_slab.py tests/transport/test_biased_transport.py tests/backends/test_cuda_sources.py 2>&1 | tail -n 4
     kw="--albedos 0.6 --gs 0.6 --taus 10 20 30 60 --photons ${THICK_PHOTONS:-1e6} --seeds 16"
     echo "== thick slab, CUDA"; python3 benchmarks/bench_thick_slab.py --backend cuda $kw --methods biased analog --out "$out/thick-slab-cuda.json"
     echo "== thick slab, NVIDIA OpenCL"; python3 benchmarks/bench_thick_slab.py --backend opencl --device NVIDIA $kw --methods biased analog --out "$out/thick-slab-nvidia-opencl.json"
@@ -74,7 +74,7 @@ if [[ " $steps " == *" trust "* ]]; then
     done
 fi
 if [[ " $steps " == *" tests-cuda "* ]]; then
-    echo "== physics tests, CUDA"; NEBULA_RT_TEST_BACKEND=cuda python3 -m pytest -q -p no:cacheprovider $physics tests/test_cuda_sources.py 2>&1 | tail -n 8
+    echo "== physics tests, CUDA"; NEBULA_RT_TEST_BACKEND=cuda python3 -m pytest -q -p no:cacheprovider $physics tests/backends/test_cuda_sources.py 2>&1 | tail -n 8
 fi
 if [[ " $steps " == *" bench "* ]]; then
     echo "== thesis scene, CUDA"; python3 benchmarks/bench_transport.py --backend cuda --out "$out/transport-cuda.json"
@@ -148,8 +148,8 @@ if [[ " $steps " == *" profile-regions "* ]] && command -v ncu >/dev/null; then
 fi
 if [[ " $steps " == *" layout "* ]]; then
     echo "== memory layout, sorted packet order and transport physics, CUDA"
-    NEBULA_RT_TEST_BACKEND=cuda python3 -m pytest -q -p no:cacheprovider tests/test_memory_layout.py \
-        tests/test_transport_physics.py tests/test_kernel_options.py -k "not every_option" 2>&1 | tail -n 4
+    NEBULA_RT_TEST_BACKEND=cuda python3 -m pytest -q -p no:cacheprovider tests/backends/test_memory_layout.py \
+        tests/transport/test_transport_physics.py tests/backends/test_kernel_options.py -k "not every_option" 2>&1 | tail -n 4
 fi
 if [[ " $steps " == *" sorted "* ]]; then
     # packet order: plain, sorted by first direction in 256^2 bins, in 1024^2 bins (Morton order);

@@ -9,7 +9,7 @@
 Scenes with known answers:
   absorber  uniform dust, tau 3 across the box, albedo 0, one band, star at the centre: the
             analytic J = L exp(-kappa r) / (16 pi^2 r^2), averaged over each voxel by
-            Gauss-Legendre quadrature (nebula_rt.analytic);
+            Gauss-Legendre quadrature (nebula_rt.transport.analytic);
   thesis    the thesis nebula (turbulence, 3 bands, albedo = g = 0.6, tau 128) against a
             reference run with 10x the largest photon count and another seed, regenerated
             here (its own variance is subtracted from the measured squared error).
@@ -67,7 +67,7 @@ def thesis_scene(n, photons, backend, device):
 def run(scene, backend, estimator, radius, seed, repeats, method="analog"):
     """(J, reported error, sigma, median wall s, median kernel s) of one configuration."""
     from nebula_rt.pipeline import compute_light
-    from nebula_rt.transport import lit_region_error
+    from nebula_rt.transport.estimate import lit_region_error
 
     from nebula_rt.pipeline import Pipeline
 
@@ -102,9 +102,9 @@ def rms_error(J, truth, sigma, mask, ref_rel=None):
 
 
 def study(args) -> dict:
-    from nebula_rt.analytic import voxel_average_point_source, voxel_centres
+    from nebula_rt.transport.analytic import voxel_average_point_source, voxel_centres
     from nebula_rt.backends import get_backend
-    from nebula_rt.transport import lit_region
+    from nebula_rt.transport.estimate import lit_region
 
     backend = get_backend(args.backend, args.device)
     photon_list = [int(10**k) for k in range(4, int(round(np.log10(args.max_photons))) + 1)]
@@ -156,7 +156,7 @@ def presets(args) -> dict:
     from nebula_rt.backends import get_backend
     from nebula_rt.pipeline import Pipeline, compute_light
     from nebula_rt.scene import QUALITY_PRESETS
-    from nebula_rt.transport import lit_region
+    from nebula_rt.transport.estimate import lit_region
 
     backend = get_backend(args.backend, args.device)
     rows = []

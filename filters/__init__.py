@@ -24,7 +24,7 @@ The rest of NebulaRT's VTK layer (the library, ``nebula_rt``, imports no VTK) li
 - :mod:`nebula_rt.filters.controller`  the communicator of ParaView's parallel engine
 
 The names and types of the outputs' arrays and field data are declared in
-:mod:`nebula_rt.output_contract`.
+:mod:`nebula_rt.pipeline.output_contract`.
 """
 
 from .colour import NebulaColour

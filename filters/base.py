@@ -10,9 +10,9 @@ import warnings
 from vtkmodules.util.vtkAlgorithm import VTKPythonAlgorithmBase
 from vtkmodules.vtkCommonCore import vtkOutputWindow
 
-from nebula_rt import schema
+from nebula_rt.scene import schema
 from nebula_rt import scene as _scene
-from nebula_rt.bands import reference_band_index
+from nebula_rt.optics.bands import reference_band_index
 from nebula_rt.errors import CancelledError, NebulaError, NebulaWarning, SceneError
 
 #: Star records in the flat ``Stars`` property: x, y, z (box units), luminosity,

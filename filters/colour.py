@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 from vtkmodules.vtkCommonDataModel import vtkImageData
 
-from nebula_rt import output_contract as contract
-from nebula_rt.pipeline import colour_source_from_field_data, mean_optical_depth, opacity_factor, rgba_from_emissivity
+from nebula_rt.pipeline import output_contract as contract
+from nebula_rt.pipeline.rgba import (
+    colour_source_from_field_data, mean_optical_depth, opacity_factor, rgba_from_emissivity)
 
 from .base import NebulaAlgorithm, shallow_copy_image
 from .image_data import add_field_data, add_point_arrays, field_data_dict, point_array
@@ -49,7 +50,7 @@ class NebulaColour(NebulaAlgorithm):
         return 1
 
     def _execute(self, request, inInfo, outInfo):
-        from nebula_rt.scene import Scene  # validation of the colour table
+        from nebula_rt.scene.model import Scene  # validation of the colour table
 
         Scene.from_dict(scene_values(self._values))  # the colour table's rules
         exposure = self._values["colour.exposure"]

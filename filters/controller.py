@@ -1,6 +1,6 @@
 """The communicator of a VTK pipeline: ParaView's parallel engine (pvbatch, pvserver) runs the
 light-field filter on every rank, which trace together through the global
-``vtkMultiProcessController`` with the reductions of :mod:`nebula_rt.parallel`."""
+``vtkMultiProcessController`` with the reductions of :mod:`nebula_rt.backends.parallel`."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ import os
 import numpy as np
 from vtkmodules.vtkCommonCore import vtkDoubleArray, vtkTypeUInt64Array
 
-from nebula_rt import parallel
-from nebula_rt.parallel import Serial, _flat_u64
+from nebula_rt.backends import parallel
+from nebula_rt.backends.parallel import Serial, _flat_u64
 
 try:
     from vtkmodules.vtkParallelCore import vtkCommunicator, vtkMultiProcessController
@@ -20,7 +20,7 @@ except ImportError:  # a VTK built without its parallel module: always one proce
 
 class VTKControllerComm:
     """A VTK multi-process controller (ParaView's parallel engine: pvbatch, pvserver), with
-    the same reductions as :class:`nebula_rt.parallel.MPIComm` through ``vtkMultiProcessController.AllReduce``
+    the same reductions as :class:`nebula_rt.backends.parallel.MPIComm` through ``vtkMultiProcessController.AllReduce``
     and ``Broadcast`` (numbers only)."""
 
     def __init__(self, controller):
@@ -32,7 +32,7 @@ class VTKControllerComm:
         self.local_size = int(os.environ.get("OMPI_COMM_WORLD_LOCAL_SIZE", self.size))
 
     def sum_u64(self, buf: np.ndarray) -> np.ndarray:
-        """In place, in chunks of :data:`nebula_rt.parallel.SUM_CHUNK` elements: each chunk is copied into a
+        """In place, in chunks of :data:`nebula_rt.backends.parallel.SUM_CHUNK` elements: each chunk is copied into a
         send array and reduced straight into ``buf``'s memory (both ``vtkTypeUInt64Array``
         views of numpy memory, so nothing is converted; MPI forbids the same buffer for both)."""
         flat = _flat_u64(buf)

@@ -6,8 +6,8 @@ import numpy as np
 from vtkmodules.vtkCommonDataModel import vtkImageData
 from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm, vtkStreamingDemandDrivenPipeline
 
-from nebula_rt import output_contract as contract
-from nebula_rt.transport_request import scene_backend
+from nebula_rt.pipeline import output_contract as contract
+from nebula_rt.transport import scene_backend
 from nebula_rt.density import generate_density
 from nebula_rt.limits import INT32_MAX
 from nebula_rt.scene import Scene

@@ -1,7 +1,7 @@
 """Reading the result of ``nebula-rt fit --json`` as VTK tables.
 
 ``nebula-rt fit SCENE --table ... --free ... --json fit.json`` (and ``FitResult.to_dict`` of
-:mod:`nebula_rt.fit`) writes the best-fit parameters with their 1-sigma errors, chi^2 and the
+:mod:`nebula_rt.observe.fit`) writes the best-fit parameters with their 1-sigma errors, chi^2 and the
 best fit held against every observed table. :class:`NebulaFitResultReader` is a plain VTK
 algorithm (no inputs, two ``vtkTable`` outputs) that makes them reachable where VTK is: in
 ParaView (File > Open, "NebulaRT fit result"; the plugin's thin wrapper), pvpython and

@@ -19,7 +19,7 @@ Field data values (:func:`add_field_data`, :func:`field_data_dict`):
   a one-element array stays an array on reading (its component is named
   :data:`ARRAY_MARKER`).
 
-The light field's own entries and their types are declared in :mod:`nebula_rt.output_contract`.
+The light field's own entries and their types are declared in :mod:`nebula_rt.pipeline.output_contract`.
 """
 
 from __future__ import annotations

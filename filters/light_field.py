@@ -6,11 +6,11 @@ import numpy as np
 from vtkmodules.vtkCommonDataModel import vtkDataObject, vtkImageData
 from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm, vtkStreamingDemandDrivenPipeline
 
-from nebula_rt import output_contract as contract
-from nebula_rt.transport_request import scene_backend
+from nebula_rt.pipeline import output_contract as contract
+from nebula_rt.transport import scene_backend
 from nebula_rt.errors import SceneError
 from nebula_rt.limits import check_float32_array
-from nebula_rt.pipeline import compute_light, finish_light_field
+from nebula_rt.pipeline.stages import compute_light, finish_light_field
 from nebula_rt.scene import Scene
 
 from .base import NebulaAlgorithm, default_reference_band, default_star_row, shallow_copy_image, stars_from_flat

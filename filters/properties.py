@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from typing import Any, Dict, Optional, Sequence, Tuple
 
 from nebula_rt import scene as _scene
-from nebula_rt.schema import Param
+from nebula_rt.scene.schema import Param
 
 __all__ = ["Property", "bind", "scene_values"]
 
@@ -94,9 +94,9 @@ class Property:
 
 def _schema_of(key: str):
     """The module declaring ``key``: the scene's (:mod:`nebula_rt.scene`), or for ``sky.*`` the
-    sky image's (:mod:`nebula_rt.sky_schema`), which a scene file does not hold."""
+    sky image's (:mod:`nebula_rt.scene.sky_schema`), which a scene file does not hold."""
     if key.startswith("sky."):
-        from nebula_rt import sky_schema
+        from nebula_rt.scene import sky_schema
 
         return sky_schema
     return _scene

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import pyvista as pv
 
-from nebula_rt.outputs import Publication
+from nebula_rt.pipeline.outputs import Publication
 
 from .image_data import to_vtk_order
 from .vti import ArrayNotFoundError, read_vti

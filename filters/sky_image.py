@@ -9,24 +9,24 @@ from vtkmodules.util.vtkAlgorithm import VTKPythonAlgorithmBase
 from vtkmodules.vtkCommonDataModel import vtkImageData
 from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
 
-from nebula_rt import colour_convert
-from nebula_rt import output_contract as contract
+from nebula_rt.optics import colour_convert
+from nebula_rt.pipeline import output_contract as contract
 from nebula_rt.errors import SceneError
 from nebula_rt.limits import check_float32_array
-from nebula_rt.sky_schema import G_PICTURE
-from nebula_rt.pipeline import colour_source_from_field_data
+from nebula_rt.scene.sky_schema import G_PICTURE
+from nebula_rt.pipeline.rgba import colour_source_from_field_data
 from nebula_rt.scene import Scene
-from nebula_rt.sky import Camera, sky_image
-from nebula_rt.transport import star_band_luminosities
+from nebula_rt.observe.sky import Camera, sky_image
+from nebula_rt.transport.plan import star_band_luminosities
 
-from nebula_rt.sky_schema import validate_exposure
+from nebula_rt.scene.sky_schema import validate_exposure
 
 from .base import NebulaAlgorithm
 from .image_data import add_field_data, add_point_arrays, field_data_dict, point_array
 from .properties import Property, bind, init_values, scene_values
 
 #: The sky image's properties, in the panel's order: the camera and the picture's stars and
-#: exposure, bound to the sky image's own declarations (nebula_rt.sky_schema, keys ``sky.*``);
+#: exposure, bound to the sky image's own declarations (nebula_rt.scene.sky_schema, keys ``sky.*``);
 #: the picture's tone curve, bound to the scene's colour keys (as the Colour filter's); and where
 #: the scene is on the sky, bound to the [observer] keys, used by a calibrated image (enabled by
 #: Units, the filter's own property, which the panel shows right before them)
@@ -51,7 +51,7 @@ SKY_OBSERVER_PROPERTIES = tuple(p for p in SKY_IMAGE_PROPERTIES if p.key.startsw
 #: What the filter and the panel hold where the declared default is None: Distance empty (the
 #: light field's scene's own [observer] table is used)
 SKY_PANEL_DEFAULTS = {"observer.distance": ""}
-#: The Units property: box units only, or also the calibrated arrays (nebula_rt.calibrate)
+#: The Units property: box units only, or also the calibrated arrays (nebula_rt.observe.calibrate)
 SKY_UNITS = ("box units", "MJy/sr")
 
 #: Auto exposure of the sky image: this percentile of the scattered light's max colour
@@ -75,10 +75,10 @@ class NebulaSkyImage(NebulaAlgorithm):
 
     The setters (:data:`SKY_IMAGE_PROPERTIES`: ``SetViewDirection``, ``SetImageSize``, ...,
     ``SetAutoExposure`` / ``SetExposure``, ``SetStretch``, ``SetDistance``, ...) start at the
-    declared defaults (:mod:`nebula_rt.sky_schema` for the camera and the exposure, the scene's
+    declared defaults (:mod:`nebula_rt.scene.sky_schema` for the camera and the exposure, the scene's
     ``[colour]`` and ``[observer]`` tables for the tone curve and the sky).
 
-    With ``SetUnits(1)`` ("MJy/sr") the image is also calibrated (:mod:`nebula_rt.calibrate`,
+    With ``SetUnits(1)`` ("MJy/sr") the image is also calibrated (:mod:`nebula_rt.observe.calibrate`,
     the ray march): ``sb_<band>`` (MJy/sr, scattered light and the stars through a Gaussian PSF)
     and ``mag_<passband>`` (AB mag/arcsec^2 in B, V, R, g, r, i), with the celestial WCS as
     FITS header text in the field data (``wcs_header``; :func:`write_fits` writes the FITS). It
@@ -199,7 +199,7 @@ class NebulaSkyImage(NebulaAlgorithm):
         arrays[contract.SKY_RGB.name()] = rgb8[:, :, None, :]
         calibrated = {}
         if self._units == "MJy/sr":
-            from nebula_rt import calibrate
+            from nebula_rt.observe import calibrate
 
             sky_scene = self._observer(scene)
             calibrate.check_scene(sky_scene)
@@ -224,7 +224,7 @@ class NebulaSkyImage(NebulaAlgorithm):
 def write_fits(image, path) -> None:
     """Write a calibrated sky image (Nebula Sky Image's output with Units "MJy/sr") as FITS:
     one image HDU per band (``SB_<band>``, MJy/sr) and per passband (``MAG_BESSELL_B`` ...,
-    mag/arcsec^2 in the image's magnitude system), each with the celestial WCS, as :func:`nebula_rt.calibrate.write_fits`
+    mag/arcsec^2 in the image's magnitude system), each with the celestial WCS, as :func:`nebula_rt.observe.calibrate.write_fits`
     names them (without its table of stars).
 
     Raises
@@ -234,7 +234,7 @@ def write_fits(image, path) -> None:
     """
     from astropy.io import fits
 
-    from nebula_rt.calibrate import MAGSYS_COMMENT, PASSBAND_EXTENSIONS, passband_header
+    from nebula_rt.observe.calibrate import MAGSYS_COMMENT, PASSBAND_EXTENSIONS, passband_header
 
     fd = contract.SkyImageData.from_field_data(field_data_dict(image), need=("band_names",))
     if fd.sky_units != "MJy/sr" or not fd.wcs_header:

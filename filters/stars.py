@@ -13,11 +13,11 @@ from vtkmodules.util.numpy_support import numpy_to_vtk
 from vtkmodules.vtkCommonCore import vtkPoints
 from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
 
-from nebula_rt import colour_convert
-from nebula_rt import output_contract as contract
+from nebula_rt.optics import colour_convert
+from nebula_rt.pipeline import output_contract as contract
 from nebula_rt.errors import SceneError
-from nebula_rt.pipeline import colour_matrix
-from nebula_rt.transport import star_band_luminosities
+from nebula_rt.pipeline.rgba import colour_matrix
+from nebula_rt.transport.plan import star_band_luminosities
 
 
 def star_colours(stars, wavelengths_nm, band_luminosity, source, white_point: str = "D65") -> np.ndarray:
@@ -46,7 +46,7 @@ def box_to_world(positions, dims, spacing, origin) -> np.ndarray:
 def star_points(light, dims, spacing, origin) -> vtkPolyData:
     """The stars of ``light`` (a :class:`nebula_rt.pipeline.LightField`) as a vtkPolyData of
     vertices in the world coordinates of an image of ``dims``, ``spacing``, ``origin``."""
-    from nebula_rt.pipeline import _dominant_source
+    from nebula_rt.pipeline.rgba import _dominant_source
 
     stars = light.scene.stars
     xyz = box_to_world([s.position for s in stars], dims, spacing, origin)

@@ -7,7 +7,7 @@ VTK algorithms' outputs hold.
 
 - Writing (:func:`write_vti`): ``vtkXMLImageDataWriter``, appended raw binary, ZLib, 64-bit
   headers (arrays above 4 GiB), into a temporary file of its own in the target's folder that
-  is renamed onto the target once complete (:class:`nebula_rt.outputs.Publication`): readers
+  is renamed onto the target once complete (:class:`nebula_rt.pipeline.outputs.Publication`): readers
   never see a half-written file and concurrent writers never share one.
 - Reading (:func:`read_vti`): pyvista's XML image reader; :func:`read_density_array` (one
   array, with the reader's array selection) is :mod:`nebula_rt.filters.density_file`'s, which
@@ -30,7 +30,7 @@ import numpy as np
 import pyvista as pv
 from vtkmodules.vtkIOXML import vtkXMLImageDataWriter
 
-from nebula_rt.outputs import Publication
+from nebula_rt.pipeline.outputs import Publication
 
 from .density_file import ArrayNotFoundError, read_density_array  # noqa: F401 - this module's API too
 from .image_data import check_numeric_dtype, field_data_dict, image_geometry, point_array, to_image_data

@@ -104,7 +104,7 @@ typedef unsigned char nrt_u8;
 #define NRT_PI_F 3.14159265358979323846f
 
 /* ------------------------------------------------------------------------------------------ */
-/* Shared constants and parameter structs (declared once, in nebula_rt/kernel_params.py;      */
+/* Shared constants and parameter structs (declared once, in nebula_rt/backends/kernel_params.py;      */
 /* pasted in here)                                                                             */
 /* ------------------------------------------------------------------------------------------ */
 /* NRT_PARAM_STRUCTS */

@@ -99,7 +99,7 @@
 #define NRT_PEEL 0
 #endif
 /*
- * Heavy-tail diagnostic (nebula_rt.tails, docs/physics.md): per packet -- one history: a
+ * Heavy-tail diagnostic (nebula_rt.transport.tails, docs/physics.md): per packet -- one history: a
  * weighted packet with all its split copies -- the sum of what it adds to the peel-off image
  * (NRT_PEEL) and, weighted packets with the track-length estimator, of what it deposits into
  * the voxels of each of NRT_TAIL_CLASSES classes of optical depth from the stars. As the packet
@@ -789,7 +789,7 @@ NRT_DEVICE int nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, fl
  *   - weight windows (importance splitting and Russian roulette; MCNP's weight windows, Booth
  *     1982; Cooper & Larsen 2001): after each scattering the packet's weight is held against
  *     the window of its voxel, W_c = W0 e^-(rate x depth): depth (window[], per voxel) is the
- *     least optical depth of the reference band from a star (nebula_rt.importance), rate
+ *     least optical depth of the reference band from a star (nebula_rt.transport.importance), rate
  *     (optics[4 b + 3]) the band's diffusion decay rate times its extinction factor, so W_c
  *     falls as the light field does in thick dust. Above NRT_WINDOW_HIGH W_c the packet is
  *     split into n = W / W_c copies (at most NRT_SPLIT_MAX) that share W exactly; below
@@ -1031,7 +1031,7 @@ NRT_DEVICE void nrt_deposit_wide(NRT_GLOBAL nrt_u64 *band_acc, nrt_idx idx, floa
    device: IEEE addition rounds alike) in four scalars: 128-bit sums in an array indexed at
    run time cost 40 % of the weighted packets' time on an H200 (registers, and slow memory). */
 #if NRT_TAIL_CLASSES && NRT_TAIL_CLASSES != 4
-#error "NRT_TAIL_CLASSES: 4 depth classes (nebula_rt.tails.DEPTH_CLASS_EDGES)"
+#error "NRT_TAIL_CLASSES: 4 depth classes (nebula_rt.transport.tails.DEPTH_CLASS_EDGES)"
 #endif
 typedef struct {
     const NRT_GLOBAL float *window, *cx; /* the map; its cells per x layer (y and z follow) */

@@ -205,7 +205,7 @@ else
     else
         printf '%s\n' "$want" >"$PYVKFFT_FAILED"
         log "WARNING: pyvkfft did not build (needs ${FFT_PKGS[*]}; log: $VENV/.nebula-pyvkfft-pip.log):" \
-            "the collision filter runs on the host and tests/test_filtering_opencl.py is skipped"
+            "the collision filter runs on the host and tests/transport/test_filtering_opencl.py is skipped"
     fi
 fi
 

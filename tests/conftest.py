@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from nebula_rt.backends import get_backend
-from nebula_rt.bands import Band
+from nebula_rt.optics.bands import Band
 from nebula_rt.scene import Star
 
 TEST_BACKEND = os.environ.get("NEBULA_RT_TEST_BACKEND", "opencl")
@@ -81,7 +81,7 @@ def small_fs(tmp_path):
             subprocess.run(["umount", "-l", str(path)], capture_output=True)
 
 
-# -- ParaView (tests/test_paraview.py, tests/test_paraview_gui.py) ----------------------------
+# -- ParaView (tests/paraview/test_paraview.py, tests/paraview/test_paraview_gui.py) ----------------------------
 REPO = Path(__file__).resolve().parents[1]
 PV_ENV = REPO / "scripts" / "pv-env.sh"
 #: variables of the test process that must not leak into ParaView's Python

@@ -17,10 +17,10 @@ import warnings
 
 import numpy as np
 
-from nebula_rt.bands import Band
+from nebula_rt.optics.bands import Band
 from nebula_rt.errors import NebulaWarning
 from nebula_rt.scene import Star
-from nebula_rt.sky import Camera
+from nebula_rt.observe.sky import Camera
 from nebula_rt.transport import trace
 from oracles.plane_parallel import PointSourceSlab, Slab
 

@@ -19,14 +19,17 @@ VTK_PACKAGES = ("vtk", "vtkmodules", "pyvista", "paraview")
 #: the library's modules that reach into the VTK layer, each inside a function (at run time,
 #: for an output or input that needs VTK): the CLI writes the .vti and the PNG, the density
 #: stage reads a .vti density, and the old name io_vti forwards to nebula_rt.filters.vti
-BOUNDARY = {"nebula_rt.cli", "nebula_rt.density", "nebula_rt.io_vti"}
+BOUNDARY = {"nebula_rt.cli.commands", "nebula_rt.density.generate", "nebula_rt.pipeline.io_vti"}
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def library_modules() -> dict[str, Path]:
-    """Every module of python/nebula_rt (the files themselves, not a list kept by hand)."""
+    """Every module of python/nebula_rt (the files themselves, not a list kept by hand; the
+    ``python -m`` entry scripts, which run a command when imported, aside)."""
     out = {}
     for p in sorted(LIBRARY.rglob("*.py")):
+        if p.name == "__main__.py":
+            continue
         parts = p.relative_to(LIBRARY.parent).with_suffix("").parts
         out[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = p
     return out
@@ -45,7 +48,7 @@ def test_every_library_module_imports_without_vtk():
     """With vtk, vtkmodules, pyvista and paraview unimportable, every module of python/nebula_rt
     imports, and none of them (nor the VTK layer, nebula_rt.filters) is loaded."""
     modules = sorted(library_modules())
-    assert "nebula_rt.output_contract" in modules and "nebula_rt.cli" in modules
+    assert "nebula_rt.pipeline.output_contract" in modules and "nebula_rt.cli.commands" in modules
     code = (_block(VTK_PACKAGES) + "import importlib\n"
             f"for m in {modules!r}:\n    importlib.import_module(m)\n"
             "bad = sorted(m for m in sys.modules if m.split('.')[0] in "
@@ -200,10 +203,33 @@ def test_no_import_circles():
 def test_the_backends_sit_below_the_transport():
     """The backends never reach up into the transport, its memory estimates or the pipeline."""
     graph = import_graph(all_modules())
-    above = {"nebula_rt.transport", "nebula_rt.resources", "nebula_rt.postprocess", "nebula_rt.pipeline"}
     for module, imported in graph.items():
         if module.startswith("nebula_rt.backends"):
-            assert not imported & above, (module, imported & above)
+            above = {m for m in imported if m.split(".")[:2] in (["nebula_rt", "transport"], ["nebula_rt", "pipeline"])}
+            assert not above, (module, above)
+
+
+#: The library's domains (its subpackages; docs/design.md, "Where things live"), bottom up: a
+#: module imports only from its own domain and the ones below it. "core" is the package's own
+#: modules (errors, limits, interrupts, array_api).
+DOMAINS = ("core", "optics", "scene", "backends", "density", "transport", "pipeline", "observe", "cli")
+
+
+def domain(module: str) -> str:
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 and parts[1] in DOMAINS else "core"
+
+
+def test_the_domains_are_layers():
+    """Every import of a library module (inside functions too) goes to its own domain or one
+    below it, so a domain can be read, tested and changed with only those below in mind; every
+    subpackage is in the list, so a new one must be placed."""
+    mods = library_modules()
+    packages = {m.split(".")[1] for m, p in mods.items() if p.name == "__init__.py" and m.count(".") == 1}
+    assert packages == set(DOMAINS) - {"core"}
+    upward = [f"{m} -> {d}" for m, ds in import_graph(mods).items() for d in ds
+              if DOMAINS.index(domain(d)) > DOMAINS.index(domain(m))]
+    assert not upward, upward
 
 
 def test_the_vtk_layer_that_paraview_runs_needs_no_pyvista():
@@ -223,7 +249,7 @@ def test_a_vti_density_reads_without_pyvista(tmp_path):
     """dust.model = "file" with a .vti where pyvista is absent (ParaView's Python): VTK's own
     reader (nebula_rt.filters.density_file) gives the array bit for bit, a cell array too, and
     a file that is not VTK, or lacks the array, is refused naming dust.file and the file.
-    (tests/test_paraview.py runs the same in pvpython.)"""
+    (tests/paraview/test_paraview.py runs the same in pvpython.)"""
     code = _block(["pyvista"]) + f"""
 import numpy as np
 from pathlib import Path
@@ -275,26 +301,82 @@ def test_old_io_vti_name_forwards_to_the_vtk_layer():
 
 
 def test_one_place_turns_a_scene_into_a_run():
-    """Only nebula_rt.transport_request calls the transport's trace() and reads the scene's
+    """Only nebula_rt.transport.request calls the transport's trace() and reads the scene's
     device (transport.backend, transport.device): every observable, filter and command gets
     its run and its device from there, so a [transport] key reaches every run alike."""
     import nebula_rt.filters
 
     mods = library_modules()
     mods.update(_modules_under(Path(nebula_rt.filters.__file__).resolve().parent, "nebula_rt.filters"))
-    home = "nebula_rt.transport_request"
+    home = "nebula_rt.transport.request"
     tracing, device = [], []
     for module, path in mods.items():
-        if module in (home, "nebula_rt.transport"):
+        if module == home or module.startswith("nebula_rt.transport"):
             continue
         tree = ast.parse(path.read_text(), str(path))
         for node in ast.walk(tree):
             if isinstance(node, ast.ImportFrom) and any(a.name == "trace" for a in node.names):
                 base = node.module or ""
-                if base.endswith("transport") and not base.endswith("transport_request"):
+                if base.split(".")[-1] in ("transport", "run") and "transport" in base:
                     tracing.append(f"{module}:{node.lineno}")
             if (isinstance(node, ast.Attribute) and node.attr in ("backend", "device")
                     and isinstance(node.value, ast.Attribute) and node.value.attr == "transport"):
                 device.append(f"{module}:{node.lineno} .transport.{node.attr}")
     assert not tracing, tracing
     assert not device, device
+
+
+def test_the_modules_earlier_names_are_the_modules_at_their_homes():
+    """Every earlier flat name of nebula_rt.MOVED imports (in a fresh interpreter, by the import
+    statement users wrote) as the very module at its home, which exists as a file; no file is
+    left at an old name, so there is one module per name."""
+    moved = nebula_rt.MOVED
+    assert {"bands", "calibrate", "fit", "transport_request", "tails", "sky", "comparison"} <= set(moved)
+    mods = library_modules()
+    for old, home in moved.items():
+        assert f"nebula_rt.{home}" in mods, home
+        assert f"nebula_rt.{old}" not in mods, old
+    code = "import importlib, sys\n" + "".join(
+        f"import nebula_rt.{old} as a\nassert a is sys.modules['nebula_rt.{home}'] is importlib.import_module("
+        f"'nebula_rt.{home}'), {old!r}\n" for old, home in moved.items()) + "print('ok')\n"
+    proc = _run(code)
+    assert proc.returncode == 0 and proc.stdout.strip() == "ok", proc.stdout + proc.stderr
+
+
+def test_the_plugins_entry_file_only_imports():
+    """plugin/NebulaRT.py, as ParaView's Examples/Plugins/ComplexPythonArchitecture: its folder
+    on sys.path, the plugin's name, and imports; no functions, no work of its own (making
+    NebulaRT importable and installing the displays happen in the package it imports)."""
+    tree = ast.parse((ROOT / "plugin" / "NebulaRT.py").read_text())
+    kinds = []
+    for node in tree.body:
+        if isinstance(node, (ast.Import, ast.ImportFrom)):
+            kinds.append("import")
+        elif isinstance(node, ast.Expr) and isinstance(node.value, ast.Constant):
+            kinds.append("docstring")
+        elif isinstance(node, ast.Assign):
+            names = [t.id for t in node.targets if isinstance(t, ast.Name)]
+            assert names in (["_HERE"], ["paraview_plugin_name"]), ast.dump(node)
+            kinds.append("assign")
+        elif isinstance(node, ast.If):  # `if _HERE not in sys.path: sys.path.append(_HERE)`
+            calls = [n for n in ast.walk(node) if isinstance(n, ast.Call)]
+            assert len(calls) == 1 and ast.unparse(calls[0].func) == "sys.path.append", ast.unparse(node)
+            kinds.append("path")
+        else:
+            raise AssertionError(f"line {node.lineno}: {ast.unparse(node)[:80]}")
+    assert kinds.count("import") >= 3 and "path" in kinds
+
+
+def test_the_tests_mirror_the_domains():
+    """A change's tests sit beside it: every domain of the library has its folder of tests
+    (tests/scene/ for nebula_rt.scene...), on pytest's path in pyproject.toml; only the tests
+    of the whole (layers, dependencies, the public API, MPI runs) stay in tests/ itself."""
+    import tomllib
+
+    tests = ROOT / "tests"
+    folders = {d.name for d in tests.iterdir() if d.is_dir() and any(d.glob("test_*.py"))}
+    assert set(DOMAINS) - {"core"} <= folders, set(DOMAINS) - folders
+    path = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["pytest"]["ini_options"]["pythonpath"]
+    assert {f"tests/{d}" for d in folders} <= set(path)
+    assert sorted(p.name for p in tests.glob("test_*.py")) == [
+        "test_dependencies.py", "test_layering.py", "test_mpi.py", "test_public_api.py"]

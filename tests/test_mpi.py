@@ -88,7 +88,7 @@ def test_trace_is_the_same_bits_on_1_2_3_ranks(tmp_path, case):
 
 def test_tail_histograms_do_not_depend_on_the_path(tmp_path):
     """A packet's contribution does not depend on how it was traced: the heavy-tail histograms
-    (nebula_rt.tails) of one rank plain, with batches re-traced after overflows, and by regions
+    (nebula_rt.transport.tails) of one rank plain, with batches re-traced after overflows, and by regions
     (the packets' image scores saved and resumed across passes) are the same bits."""
     runs = [_ranks(tmp_path, 1, "track-length", mode, TEST_DEVICE) for mode in ("plain", "checked", "regions+checked")]
     assert runs[0]["tail_hist"].sum() > 0
@@ -178,7 +178,7 @@ def test_nccl_loads_and_sums_in_place():
     on the current stream after the kernel that wrote the array."""
     import cupy
 
-    from nebula_rt import parallel
+    from nebula_rt.backends import parallel
 
     nccl = parallel._nccl()
     assert nccl is not None, "cupy.cuda.nccl does not load"

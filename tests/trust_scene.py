@@ -19,10 +19,10 @@ import math
 
 import numpy as np
 
-from nebula_rt.bands import Band
-from nebula_rt.dust_tables import draine_table
+from nebula_rt.optics.bands import Band
+from nebula_rt.optics.dust_tables import draine_table
 from nebula_rt.scene import Star
-from nebula_rt.sky import Camera
+from nebula_rt.observe.sky import Camera
 from oracles.slab_mc import BoxSlab
 
 #: slab top (box units: 3 pc of 10), star height, vertical optical depth at 550 nm

@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from nebula_rt import comparison
-from nebula_rt.observed_tables import ObservedTable, _annuli_from_offsets, write_table
+from nebula_rt.observe import comparison
+from nebula_rt.observe.observed_tables import ObservedTable, _annuli_from_offsets, write_table
 from nebula_rt.scene import Scene
 
 HERE = Path(__file__).resolve().parent

@@ -6,7 +6,7 @@
 Makes Nebula Dust Density -> Nebula Light Field -> Nebula Colour, shows the colour (the
 plugin's default display: the rgba volume with the light field's stars) with the camera of
 `nebula-rt render`, and selects the light field so its properties are in the panel. The same
-pipeline made from the menus with Apply shows the same (tests/test_paraview_gui.py; the
+pipeline made from the menus with Apply shows the same (tests/paraview/test_paraview_gui.py; the
 screenshot docs/images/paraview-gui.png is that test's).
 """
 

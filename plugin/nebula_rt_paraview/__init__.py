@@ -10,9 +10,13 @@ and property names are API: state files (.pvsm) store them.
 
 ``nebula_rt_paraview.view`` holds pvpython helpers (showing ``rgba`` as a volume, loading
 state files safely); it imports ``paraview.simple`` and is not imported here.
-``nebula_rt_paraview.display`` sets up the default displays (installed by the plugin's entry
-file); ``nebula_rt_paraview.views`` defines the view ``NebulaSkyView``.
+``nebula_rt_paraview.display`` sets up the default displays (installed on import of
+``nebula_rt_paraview.defaults``, which the plugin's entry file imports);
+``nebula_rt_paraview.views`` defines the view ``NebulaSkyView``.
 """
+
+# NebulaRT itself importable first (or an ImportError saying what to do)
+from . import _environment  # noqa: F401  (isort: skip)
 
 # Import ParaView proxies from the Python files; keep helpers internal.
 from .colour import NebulaColour

@@ -113,7 +113,7 @@ def star_columns():
     (nebula_rt.filters.base.STAR_FIELDS): x, y, z, then the star's own scene fields' labels."""
     from nebula_rt import scene
     from nebula_rt.filters.base import STAR_FIELDS
-    from nebula_rt.schema import label
+    from nebula_rt.scene.schema import label
 
     out = []
     for name in STAR_FIELDS:
@@ -129,7 +129,7 @@ def stars_doc():
     """The Stars table's tooltip: its columns with the star's declarations (scene keys
     ``stars.position``, ``stars.luminosity``, ``stars.temperature``, ``stars.bump_radius``)."""
     from nebula_rt import scene
-    from nebula_rt.schema import range_text
+    from nebula_rt.scene.schema import range_text
 
     parts = []
     for cols, key in (("X, Y, Z", "stars.position"), ("Luminosity", "stars.luminosity"),
@@ -216,7 +216,7 @@ def _key_text(key):
 
 
 def _tooltip(prop, p):
-    from nebula_rt.schema import range_text
+    from nebula_rt.scene.schema import range_text
 
     extra = [x for x in (p.unit, range_text(p), _key_text(prop.key)) if x]
     return escape(" ".join(f"{p.doc} ({'; '.join(extra)}).".split()))
@@ -227,7 +227,7 @@ def bound_property(prop, default=None):
     element type, domain, label, tooltip, visibility and the decorator that enables it, all
     from the scene schema. ``default`` replaces a schema default of None (a panel needs a
     value: e.g. Albedo before it overrides anything)."""
-    from nebula_rt.schema import label
+    from nebula_rt.scene.schema import label
 
     p = prop.param
     d = prop.default if default is None else default
@@ -287,7 +287,7 @@ def _auto_flag(prop, p, on):
     name), shown with the same visibility as the number."""
     import re
 
-    from nebula_rt.schema import label
+    from nebula_rt.scene.schema import label
 
     text = re.sub(r"(?<!^)(?=[A-Z])", " ", prop.flag)
     tip = escape(" ".join((f"On: {label(prop.key, p)} is chosen from the data ({_key_text(prop.key)} = "

@@ -1,7 +1,7 @@
 """Proxy ``NebulaSkyImage`` (Filters > NebulaRT > Nebula Sky Image).
 
 Its properties are made from the VTK filter's properties (:data:`nebula_rt.filters.sky_image.SKY_IMAGE_PROPERTIES`),
-bound to the sky image's declarations (:mod:`nebula_rt.sky_schema`: the camera and the exposure)
+bound to the sky image's declarations (:mod:`nebula_rt.scene.sky_schema`: the camera and the exposure)
 and to the scene's (the tone curve, the observer), with Units, the filter's own, before the
 observer it enables: one class-level property XML in the panel's order; the setters are the
 VTK filter's own, inherited.

@@ -4,7 +4,7 @@ The kernels compute in float32 (density, extinction, albedo, g, positions, path 
 store J and the emissivity as float32; counts, indices and the seed are 32- or 64-bit integers.
 A value beyond what these formats hold does not fail on the device: it turns into infinity,
 zero, a denormal or a wrapped integer and is traced as nonsense. This module holds those
-limits in one place; the scene validation (:mod:`nebula_rt.scene`, :mod:`nebula_rt.bands`), the
+limits in one place; the scene validation (:mod:`nebula_rt.scene`, :mod:`nebula_rt.optics.bands`), the
 density loader (:mod:`nebula_rt.density`), the transport (:func:`check_transport`, called by
 :func:`nebula_rt.transport.trace` before the first launch) and the VTK filters use it, and every
 check raises :class:`~nebula_rt.errors.SceneError` naming the parameter, the value and the

@@ -34,13 +34,14 @@ def main() -> int:
         for _ in range(repeat):
             os.kill(os.getpid(), sig)
 
-    from nebula_rt import cli, pipeline, scene
+    from nebula_rt.cli import commands as cli
+    from nebula_rt import pipeline, scene
     from nebula_rt.filters import render, vti
     from nebula_rt.backends import session
 
     if point == "rank1-fails":
         from nebula_rt.errors import NebulaError
-        from nebula_rt.parallel import world
+        from nebula_rt.backends.parallel import world
 
         run_group = session.DeviceTransport.run_group
         calls = {"n": 0}

@@ -1,5 +1,5 @@
-"""Run by tests/test_mpi.py (mpiexec python) and tests/test_paraview.py (mpiexec pvbatch --mpi):
-the ranks sum uint64 counts with ``sum_u64`` and ``sum_checked`` of :mod:`nebula_rt.parallel`;
+"""Run by tests/test_mpi.py (mpiexec python) and tests/paraview/test_paraview.py (mpiexec pvbatch --mpi):
+the ranks sum uint64 counts with ``sum_u64`` and ``sum_checked`` of :mod:`nebula_rt.backends.parallel`;
 rank 0 saves the sums and the flags (.npz) for the test to hold against Python's integers.
 
     mpiexec -n N python tests/mpi/sum_ranks.py OUT.npz mpi4py
@@ -7,7 +7,7 @@ rank 0 saves the sums and the flags (.npz) for the test to hold against Python's
     mpiexec -n N pvbatch --mpi --symmetric tests/mpi/sum_ranks.py OUT.npz vtk
 
 ``cuda``: the numbers live on the GPUs (CuPy arrays, a GPU per local rank where there are
-enough) and are summed where they are (:func:`nebula_rt.parallel.device_reducer`: NCCL where
+enough) and are summed where they are (:func:`nebula_rt.backends.parallel.device_reducer`: NCCL where
 every rank has its own GPU, else through a host buffer); ``reducer`` in the .npz says which.
 
 ``inputs(rank, size)`` gives each rank's numbers (the test calls it too). The in-place sums run
@@ -49,7 +49,7 @@ def inputs(rank: int, size: int):
 
 def main() -> None:
     out, kind = sys.argv[1], sys.argv[2]
-    from nebula_rt import parallel
+    from nebula_rt.backends import parallel
 
     if kind in ("mpi4py", "cuda"):
         comm = parallel.world()

@@ -9,7 +9,7 @@ through launches of about 300 packets) or ``packets`` (the error estimate by pac
 its squares summed over the ranks too, no peel-off image), joined by ``+`` with ``copied``: the slots are summed in a
 host copy, as on a GPU, instead of in the mapped device memory of PoCL (``Backend.map_host``).
 With ``NEBULA_RT_TEST_BACKEND=cuda`` the ranks trace on CUDA (a GPU per local rank where there
-are enough) and add their slots on the device (``nebula_rt.parallel.device_reducer``); the
+are enough) and add their slots on the device (``nebula_rt.backends.parallel.device_reducer``); the
 .npz's ``reduce_path`` says how.
 """
 
@@ -20,10 +20,10 @@ import sys
 import numpy as np
 
 from nebula_rt.backends import get_backend
-from nebula_rt.bands import Band
-from nebula_rt.parallel import world
+from nebula_rt.optics.bands import Band
+from nebula_rt.backends.parallel import world
 from nebula_rt.scene import Star
-from nebula_rt.sky import Camera
+from nebula_rt.observe.sky import Camera
 from nebula_rt.transport import trace
 
 
@@ -58,7 +58,7 @@ def main() -> int:
         kw.update(error_estimate="packets", batch_size=0, peel=None, tau=2.5)
     backend.launch_packets = 2 * 3 * 1500  # several launches, each of several batches
     if "regions" in parts:  # by regions of 4 voxels, each group in launches of about 300 packets
-        import nebula_rt.transport as transport_mod
+        import nebula_rt.transport.run as transport_mod
 
         backend.transport_tuning.update({"NRT_REGIONS": 2, "region_tail": 50})
         transport_mod._Launcher._budget = lambda self, nb: 600  # packets (all bands) per launch

@@ -19,7 +19,7 @@ doubling subtracts nothing, so transmissions down to 1e-30 keep their relative p
 
 The azimuth-averaged HG phase function is in closed form with a complete elliptic integral
 (:func:`hg_azimuth_average`), checked against its Legendre series in the oracle's own tests
-(``tests/test_plane_parallel_oracle.py``), as are Chandrasekhar's H-function reflection of a
+(``tests/transport/test_plane_parallel_oracle.py``), as are Chandrasekhar's H-function reflection of a
 semi-infinite isotropic atmosphere, R + T = 1 at albedo 1, the single-scattering limit, the
 discrete-ordinates decay rate of thick slabs and the convergence in the quadrature.
 

@@ -14,7 +14,7 @@ composite (mixture) biasing, no depth map, no voxels.
 It answers the TRUST I slab benchmark's question (Gordon et al. 2017, A&A 603, A114: a star
 above a 10 x 10 x 3 pc slab, seen from 7 angles) for the light the slab scatters, and is
 itself checked against the exact plane-parallel answer on a slab made laterally infinite
-(tests/test_slab_oracle_mc.py).
+(tests/transport/test_slab_oracle_mc.py).
 """
 
 from __future__ import annotations

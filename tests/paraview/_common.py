@@ -1,4 +1,4 @@
-"""Shared bits of the pvpython/pvbatch scripts of tests/test_paraview.py.
+"""Shared bits of the pvpython/pvbatch scripts of tests/paraview/test_paraview.py.
 
 The scripts run in ParaView's Python with the environment of scripts/pv-env.sh; each prints
 one line ``RESULT <json>`` that the test parses (exceptions inside a VTK algorithm's

@@ -1,4 +1,4 @@
-"""What the ParaView GUI shows, recorded from inside it (tests/test_paraview_gui.py).
+"""What the ParaView GUI shows, recorded from inside it (tests/paraview/test_paraview_gui.py).
 
 The GUI test plays recorded events (menus, Apply) and, between them, runs this file in the
 GUI's own Python shell with ``STEP = "<name>"; exec(open(<this file>).read())`` (the shell

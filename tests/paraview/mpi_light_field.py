@@ -1,4 +1,4 @@
-"""Run under ``mpiexec -n N pvbatch --mpi --symmetric`` by tests/test_paraview.py: Nebula Light
+"""Run under ``mpiexec -n N pvbatch --mpi --symmetric`` by tests/paraview/test_paraview.py: Nebula Light
 Field in ParaView's parallel engine, fed by a piece-aware reader or by the Dust Density source,
 saved with SaveData as a .pvti (each rank writes its own piece).
 

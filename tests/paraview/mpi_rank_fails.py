@@ -1,4 +1,4 @@
-"""Run under ``mpiexec -n 2 pvbatch --mpi --symmetric`` by tests/test_paraview.py: rank 1's
+"""Run under ``mpiexec -n 2 pvbatch --mpi --symmetric`` by tests/paraview/test_paraview.py: rank 1's
 second transport launch raises a device error (the real launch wrapped); the job must end with
 the rank and the cause on stderr instead of rank 0 waiting forever in its next reduction.
 

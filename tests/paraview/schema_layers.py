@@ -101,8 +101,8 @@ lf.Update()
 hashes["vtk"] = j_hashes(lf.GetOutputDataObject(0))
 # a scene file's values through the pipeline
 from nebula_rt.backends import get_backend  # noqa: E402
-from nebula_rt.pipeline import Pipeline  # noqa: E402
-from nebula_rt.scene import Scene  # noqa: E402
+from nebula_rt.pipeline.stages import Pipeline  # noqa: E402
+from nebula_rt.scene.model import Scene  # noqa: E402
 
 rho = np.load(npy)
 scene = Scene.from_dict({"grid": {"shape": list(rho.shape)}, "dust": {"model": "file", "file": npy},

@@ -113,7 +113,7 @@ class Backend(abc.ABC):
 
     def memory_limits(self) -> tuple[int, int]:
         """(device memory, largest single allocation) in bytes, for the estimates of
-        :mod:`nebula_rt.resources`."""
+        :mod:`nebula_rt.transport.resources`."""
         return 1 << 62, 1 << 62
 
     def check_grid_fits(self, shape, n_bands: int = 0) -> None:

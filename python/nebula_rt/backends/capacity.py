@@ -1,7 +1,7 @@
 """What a device and the host can hold: the checks every backend makes before its first
 allocation (:func:`check_grid`), the device memory of the transport by regions
 (:func:`region_bytes`) and the host's free memory. The estimates of a whole run, which plan
-its launches, are :mod:`nebula_rt.resources` (above the transport; this module is below it).
+its launches, are :mod:`nebula_rt.transport.resources` (above the transport; this module is below it).
 """
 
 from __future__ import annotations

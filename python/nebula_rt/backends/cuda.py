@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import BackendUnavailableError
-from ..kernel_source import kernel_source
+from .kernel_source import kernel_source
 from .base import Backend
 from .transport_setup import NVIDIA_TRACE_REGISTERS
 

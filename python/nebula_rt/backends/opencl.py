@@ -9,7 +9,7 @@ import sys
 import numpy as np
 
 from ..errors import BackendUnavailableError
-from ..kernel_source import kernel_source
+from .kernel_source import kernel_source
 from .base import Backend
 from .transport_setup import NVIDIA_TRACE_REGISTERS
 

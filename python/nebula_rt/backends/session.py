@@ -2,7 +2,7 @@
 
 A :class:`DeviceTransport` holds one run's arrays on the device: the density, the band and
 star tables, the run's constants as one ``nrt_trace_params`` struct
-(:mod:`nebula_rt.kernel_params`), the batch slots the kernel accumulates into, and the
+(:mod:`nebula_rt.backends.kernel_params`), the batch slots the kernel accumulates into, and the
 per-cell statistics of the batch totals the slots are folded into. It talks to the device
 only through the backend's primitives (``to_device``, ``device_zeros``, ``fill_zero``,
 ``to_host``, ``launch``, ``launch_trace``), so the OpenCL and CUDA paths share every line of
@@ -24,9 +24,8 @@ import time
 
 import numpy as np
 
-from .. import kernel_params
+from . import kernel_params
 from ..array_api import to_numpy
-from ..tails import kernel_tables
 from .transport_setup import TransportSession, TransportSetup, transport_defines
 
 #: centred sums of squares are stored as float32 x 2^-64 (kernels/transport.cl)
@@ -101,6 +100,22 @@ def region_shift_for(backend, nvox: int, biased: bool, tuning: dict | None = Non
     return shift
 
 
+
+def tail_tables(window_shape, grid_shape, edges) -> np.ndarray:
+    """What the kernel reads after the depth map to class J's deposits (kernels/transport.cl,
+    nrt_jtail; part of the device's layout, so it lives beside the session): per axis the map cell of each voxel layer, the one holding the layer's centre,
+    premultiplied by the map's strides (x fastest), then each band's class edges (float32; the
+    cells are integers below 2^24)."""
+    w = [int(n) for n in window_shape]
+    strides = (1, w[0], w[0] * w[1])
+    parts = []
+    for n, m, stride in zip(grid_shape, w, strides):
+        i = np.arange(int(n), dtype=np.int64)
+        parts.append(((2 * i + 1) * m // (2 * int(n))) * stride)
+    parts.append(np.asarray(edges, np.float64).ravel())
+    return np.concatenate(parts).astype(np.float32)
+
+
 class DeviceTransport(TransportSession):
     """Device state of one transport run (see the module docstring).
 
@@ -136,11 +151,11 @@ class DeviceTransport(TransportSession):
             optics[:, 3] = setup.window_rate
         self.d_optics = be.to_device(optics)
         # weighted packets read the windows' depth map (none given: depth 0, windows at W0)
-        # (and, J's heavy-tail classes, the kernel's tables of them after it: nebula_rt.tails)
+        # (and, J's heavy-tail classes, the kernel's tables of them after it: nebula_rt.transport.tails)
         self.d_window = be.to_device(np.zeros(1, np.float32) if setup.window is None else np.concatenate(
             [np.ravel(np.asarray(setup.window, np.float32), order="F"),
              np.zeros(0, np.float32) if not setup.tail_classes else
-             kernel_tables(np.shape(setup.window), self.shape, setup.tail_edges)]))
+             tail_tables(np.shape(setup.window), self.shape, setup.tail_edges)]))
         stars4 = np.zeros((max(1, setup.stars.shape[0]), 4), np.float32)
         stars4[:setup.stars.shape[0], :3] = setup.stars
         self.d_stars = be.to_device(stars4)
@@ -423,7 +438,7 @@ class DeviceTransport(TransportSession):
         """Add the ranks' slots, images, tallies and flags of a group and put the sums back on
         the device, so every rank folds the one-rank run's batch totals.
 
-        The sums are taken in place (:func:`nebula_rt.parallel.sum_checked`): in the slots'
+        The sums are taken in place (:func:`nebula_rt.backends.parallel.sum_checked`): in the slots'
         own memory where the device's memory is the host's (OpenCL on a CPU,
         ``Backend.map_host``: no copy at all), else in one host buffer kept for the run (no
         allocation, and no page faults, per group) that holds everything; the image, tallies
@@ -433,10 +448,10 @@ class DeviceTransport(TransportSession):
         unchecked adds the batch cannot wrap at all (the bound covers all its packets) and the
         fold checks the limit. Returns (tallies, overflow).
 
-        ``reducer`` (:func:`nebula_rt.parallel.device_reducer`; CUDA): the slots and squares
+        ``reducer`` (:func:`nebula_rt.backends.parallel.device_reducer`; CUDA): the slots and squares
         are summed where they are, on the device (NCCL, or through the reducer's host buffer),
         and only the images, tallies and flags travel through the host buffer."""
-        from ..parallel import DeviceSums
+        from .parallel import DeviceSums
 
         be = self.backend
         n_lb = bands[1]
@@ -458,7 +473,7 @@ class DeviceTransport(TransportSession):
         """The error estimate by packets: add the ranks' squares (exact: integers, and the
         shift keeps every cell of the sum below 2^63), in place where the device's memory is
         the host's, else through a host copy."""
-        from ..parallel import StagedReducer
+        from .parallel import StagedReducer
 
         be, n = self.backend, int(self.d_sq.size)
         mapped = be.map_host(self.d_sq, n)
@@ -470,8 +485,8 @@ class DeviceTransport(TransportSession):
 
     def _reduce(self, comm, n_slots, n_lb, tallies, overflow, acc):
         """:meth:`reduce_group` with the group's slots mapped as ``acc`` (or None: copied; or
-        the device's own slots, with ``comm`` a :class:`~nebula_rt.parallel.DeviceSums`)."""
-        from ..parallel import sum_checked, sum_wide
+        the device's own slots, with ``comm`` a :class:`~nebula_rt.backends.parallel.DeviceSums`)."""
+        from .parallel import sum_checked, sum_wide
 
         be = self.backend
         cells = 0 if acc is not None else n_slots * n_lb * self.nvox * self.words

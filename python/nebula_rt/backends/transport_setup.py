@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..kernel_params import CONSTANT
+from .kernel_params import CONSTANT
 
 @dataclass(frozen=True)
 class TransportSetup:
@@ -52,7 +52,7 @@ class TransportSetup:
     window, window_rate : ndarray float32 or None
         ``biased``: the weight windows' depth map (optical depth at cell centres of a grid
         over the box, at most the density's) and decay rate per band
-        (:mod:`nebula_rt.importance`).
+        (:mod:`nebula_rt.transport.importance`).
     """
 
     density: np.ndarray
@@ -77,7 +77,7 @@ class TransportSetup:
     collision_scale: float = 1.0
     window: object = None
     window_rate: object = None
-    #: ``biased``: what the windows follow, "stars" or "observer" (nebula_rt.importance)
+    #: ``biased``: what the windows follow, "stars" or "observer" (nebula_rt.transport.importance)
     importance: str = "stars"
     #: the error estimate by packets (``transport.error_estimate``): the kernel also adds the
     #: square of each packet's deposits per voxel visit, in units of 2^sq_shift square track
@@ -85,7 +85,7 @@ class TransportSetup:
     packet_sq: bool = False
     sq_shift: int = 0
     #: ``biased`` with the track-length estimator: J's heavy-tail histograms per class of depth
-    #: from the stars (nebula_rt.tails), and the classes' edges per band in the depth map's
+    #: from the stars (nebula_rt.transport.tails), and the classes' edges per band in the depth map's
     #: units (float32, (n_bands, tail_classes - 1)), uploaded after the map
     tail_classes: int = 0
     tail_edges: object = None
@@ -108,7 +108,7 @@ class TransportSetup:
 
     @property
     def tail_hists(self) -> int:
-        """Heavy-tail histograms per band (nebula_rt.tails): the image's, then J's depth classes."""
+        """Heavy-tail histograms per band (nebula_rt.transport.tails): the image's, then J's depth classes."""
         return (self.peel is not None) + self.tail_classes
 
     @property

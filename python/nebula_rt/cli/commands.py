@@ -1,0 +1,568 @@
+"""Command line: ``nebula-rt render SCENE.toml -o out.vti --png out.png``.
+
+Every scene key can be overridden with ``--set dotted.key=value`` (repeatable), e.g.
+``--set grid.shape=[128,128,128] --set transport.photons=2.1e6``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+from ..errors import (
+    BackendUnavailableError, CancelledError, NebulaError, OutputError, ResourceError, SceneError)
+from .. import scene as _scene
+from ..interrupts import SignalCancel
+
+#: pixels per side of the sky image of ``nebula-rt compare``
+MIN_SKY_SIZE, MAX_SKY_SIZE = 8, 4096
+
+
+def _scene_from_args(args):
+    """The scene file with the command line's overrides applied."""
+    from ..scene.model import Scene
+
+    scene = Scene.load(args.scene)
+    args.scene_used = scene  # a later error on a converted value names the physical key (units.attribute)
+    if args.set:
+        scene = scene.with_overrides(args.set)
+    if args.backend:
+        scene = scene.with_overrides([f"transport.backend={args.backend}"])
+    if args.device is not None:
+        scene = scene.with_overrides([f'transport.device="{args.device}"'])
+    if args.photons is not None:
+        scene = scene.with_overrides([f"transport.photons={args.photons}"])
+    if args.target_error is not None:
+        scene = scene.with_overrides([f"transport.target_error={args.target_error}"])
+    if args.quality is not None:
+        scene = scene.with_overrides([f'transport.quality="{args.quality}"'])
+    if getattr(args, "stretch", None) is not None:
+        scene = scene.with_overrides([f'colour.stretch="{args.stretch}"'])
+    args.scene_used = scene
+    return scene
+
+
+#: upper bound of a PNG volume rendering (800 x 800 RGBA plus headers), for the free-space check
+PNG_BYTES = 800 * 800 * 4 + 65536
+
+
+def _vti_bytes(scene) -> int:
+    """Upper bound of the ``.vti`` a scene writes (uncompressed arrays plus headers)."""
+    import math
+
+    nvox = math.prod(scene.grid.shape)
+    nb = len(scene.bands.resolve())
+    return nvox * (4 + 12 * nb + (4 if nb > 1 else 0)) + (64 << 10)
+
+
+def _require_io(option: str, path, png: bool = False) -> None:
+    """The VTK layer's writers (the ``io`` extra: VTK, pyvista) must import before a trace
+    whose output needs them."""
+    import importlib
+
+    try:
+        importlib.import_module("nebula_rt.filters.render" if png else "nebula_rt.filters.vti")
+    except ImportError as exc:
+        missing = (exc.name or "vtk").split(".")[0]
+        raise OutputError(option, path, f"writing it needs {missing}: pip install 'nebula-rt[io]'") from None
+
+
+def _inputs(args, scene) -> list[tuple[str, Path]]:
+    """The files a run reads, which no output may replace."""
+    inputs = [("scene", Path(args.scene))]
+    if scene.dust.model == "file":
+        inputs.append(("dust.file", scene.dust_file_path()))
+    return inputs
+
+
+def _backend_for(scene, comm=None):
+    """The scene's backend (:func:`nebula_rt.transport.request.scene_backend`), its kernels
+    built (an unusable device is reported before any work)."""
+    from ..transport.request import scene_backend
+
+    backend = scene_backend(scene, comm)
+    check = getattr(backend, "check_build", None)
+    if check is not None:
+        check()
+    return backend
+
+
+def _print_summary(summary: dict) -> None:
+    """Print the run's summary; a closed or broken stdout loses only the summary (the outputs
+    are already published)."""
+    if sys.stdout is None:
+        return
+    try:
+        print(json.dumps(summary, indent=2), flush=True)
+    except (OSError, ValueError):
+        try:  # keep the interpreter's own flush at exit quiet too
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        except (OSError, ValueError):
+            pass
+
+
+def _render(args, cancel) -> int:
+    from ..pipeline.outputs import Output, Publication, check_outputs
+    from ..pipeline.stages import Pipeline
+
+    scene = _scene_from_args(args)
+    out = Path(args.output)
+    outputs = [Output("--output", out, ".vti", _vti_bytes(scene))]
+    _require_io("--output", out)
+    if args.png:
+        outputs.append(Output("--png", Path(args.png), ".png", PNG_BYTES))
+        _require_io("--png", args.png, png=True)
+    from ..transport import resources
+    from ..backends.parallel import world
+
+    # under mpiexec: every rank traces a share and holds the whole result; rank 0 writes it
+    comm = world()
+    lead = comm.rank == 0
+    backend = _backend_for(scene, comm)
+    resources.check(scene, backend)  # memory first: an impossible run is refused as such
+    check_outputs(outputs, _inputs(args, scene))
+    pipe = Pipeline(backend, comm=comm)
+    cancel.check("start-up")
+
+    bar = None
+    t0 = time.perf_counter()
+    with Publication() as pub:
+        try:
+            from tqdm import tqdm
+
+            bar = tqdm(total=scene.transport.effective()[0], unit="pkt", unit_scale=True, desc="tracing",
+                       disable=args.quiet or not lead, file=sys.stderr)
+
+            def progress(done, total):
+                bar.n = done
+                bar.refresh()
+
+            light = pipe.run(scene, progress=progress, cancel=cancel)
+        finally:
+            if bar is not None:
+                bar.close()
+        cancel.check("run")  # a cancel after the last launch publishes nothing either
+        if not lead:
+            return 0
+
+        from ..filters.vti import write_vti
+
+        write_vti(pub.stage(out), light.point_arrays(), light.field_data(), light.spacing, light.origin)
+        cancel.check("run")
+        if args.png:
+            import numpy as np
+
+            from ..pipeline.rgba import colour_rgba
+            from ..filters.render import render_rgba_png
+
+            rgba = light.rgba
+            if rgba is None:  # one band: no colour stage ran; the PNG asks for one (star's colour)
+                rho = light.density.astype(np.float64)
+                rgba, _ = colour_rgba(scene, light.bands, rho, light.emissivity.astype(np.float64), light.transport)
+            render_rgba_png(pub.stage(args.png), rgba, light.spacing, light.origin)
+            cancel.check("run")
+        pub.publish()  # both outputs or neither
+    elapsed = time.perf_counter() - t0
+    tr = light.transport
+    summary = {
+        "output": str(out),
+        "png": args.png,
+        "device": tr.device,
+        "grid": list(light.density.shape),
+        "bands": [b.name for b in light.bands],
+        "photons_per_band": tr.photons,
+        "batches": tr.batches,
+        "error_estimate": tr.error_estimate,  # "packets": batches of one packet
+        "achieved_error": None if tr.achieved_error != tr.achieved_error else round(tr.achieved_error, 5),
+        "wall_s": round(elapsed, 3),
+        "timings_s": {k: round(v, 3) for k, v in light.timings.items()},
+        "peak_device_mib": round(light.memory.get("device_peak_bytes", 0) / 2**20, 1),
+        "peak_host_rss_mib": round(light.memory.get("host_peak_rss_bytes", 0) / 2**20, 1),
+        "escaped_fraction": {b.name: float(tr.counts[i, 2] / tr.counts[i, 0]) for i, b in enumerate(light.bands)},
+        # packets stopped at transport.max_scatterings: their light is missing from J
+        "terminated_fraction": {b.name: float(f) for b, f in zip(light.bands, tr.terminated_fraction)},
+    }
+    if not args.quiet:
+        _print_summary(summary)
+    return 0
+
+
+def parse_direction(text: str) -> tuple:
+    """``--direction x,y,z`` -> a tuple of 3 finite floats, not all 0 (SceneError otherwise)."""
+    import math
+
+    try:
+        direction = tuple(float(x) for x in text.split(","))
+        assert len(direction) == 3 and any(direction) and all(math.isfinite(x) for x in direction)
+    except (ValueError, AssertionError):
+        raise SceneError("--direction", text, "must be three finite numbers x,y,z, not all 0") from None
+    return direction
+
+
+def check_size(size: int) -> None:
+    """``--size``: pixels per side of a sky image."""
+    if not MIN_SKY_SIZE <= size <= MAX_SKY_SIZE:
+        raise SceneError("--size", size, f"must be an integer in [{MIN_SKY_SIZE}, {MAX_SKY_SIZE}] (pixels per side)")
+
+
+def _compare(args, cancel) -> int:
+    """Trace a scene and measure its colours as an observer would, beside observed values."""
+
+    import numpy as np
+
+    from ..observe import colours as observe
+    from ..transport import resources
+    from ..pipeline.outputs import Output, Publication, check_outputs
+
+    scene = _scene_from_args(args)
+    direction = parse_direction(args.direction)
+    check_size(args.size)
+    from .image import check_image_options, compare_image_command
+
+    check_image_options(args)
+    if args.image:  # the user's observed image (nebula_rt.cli.image)
+        return compare_image_command(args, cancel, scene, direction, lambda: _backend_for(scene),
+                                     _inputs(args, scene), _print_summary)
+    if args.table:  # the user's own observations (nebula_rt.cli.fit)
+        from .fit import compare_tables_command
+
+        return compare_tables_command(args, cancel, scene, direction, lambda: _backend_for(scene),
+                                      _inputs(args, scene), _print_summary)
+    wl = sorted(b.wavelength for b in scene.bands.resolve())
+    if len(wl) < 2 or wl[0] > 480.0 or wl[-1] < 520.0:
+        raise SceneError("bands", [round(w, 1) for w in wl],
+                         "nebula-rt compare measures B-V: it needs at least 2 bands, one at or "
+                         "below 480 nm and one at or above 520 nm (e.g. bands.preset = 'spectral-8')")
+    png = Path(args.png)
+    outputs = [Output("--png", png, ".png", 4 << 20)]
+    if args.json:
+        outputs.append(Output("--json", Path(args.json), ".json", 1 << 20))
+    backend = _backend_for(scene)
+    resources.check(scene, backend, peel_pixels=args.size * args.size, peel_option="--size", peel_value=args.size)
+    check_outputs(outputs, _inputs(args, scene))
+    cancel.check("start-up")
+    prof, res = observe.observe_scene(scene, direction=direction, size=args.size, backend=backend,
+                                      reference=args.reference, cancel=cancel)
+    cancel.check("run")
+
+    def mags(values):
+        return [None if not np.isfinite(x) else round(float(x), 4) for x in values]
+
+    summary = {
+        "scene": str(args.scene), "png": str(png),
+        "reference": prof.reference,
+        "star_tau": [round(float(x), 4) for x in prof.star_tau],
+        "star_ebv_mag": round(float(prof.star_ebv), 4),
+        "offset": [round(float(x), 4) for x in prof.offset],
+        "delta_bv_mag": mags(prof.delta_bv),
+        "delta_bv_err_mag": mags(prof.delta_bv_err),
+        "delta_bv_intrinsic_mag": mags(prof.delta_bv_intrinsic),
+        "batches": prof.batches,
+        "wavelength_nm": [float(x) for x in prof.wavelength_nm],
+        "ratio_rel_550nm": [mags(row) for row in prof.ratio],
+        "ratio_err": [mags(row) for row in prof.ratio_err],
+        "observed_mean_delta_bv_mag": observe.observations()["mean_delta_bv"]["value"],
+        "single_scattering_delta_bv_mag": observe.observations()["single_scattering_delta_bv"]["range"],
+    }
+    with Publication() as pub:  # the plot and the JSON, both or neither
+        observe.plot(prof, pub.stage(png), title=f"{Path(args.scene).stem}: {len(res.band_luminosity)} bands, "
+                                                 f"{res.photons:,} packets per band, peel-off image, "
+                                                 f"against the {observe.REFERENCE_LABELS[prof.reference]}")
+        if args.json:
+            pub.stage(args.json).write_text(json.dumps(summary, indent=2) + "\n")
+        cancel.check("run")
+        pub.publish()
+    _print_summary(summary)
+    return 0
+
+
+def _fit(args, cancel) -> int:
+    """Fit the scene's dust to the user's tables (nebula_rt.cli.fit)."""
+    from .fit import fit_command
+
+    scene = _scene_from_args(args)
+    direction = parse_direction(args.direction)
+    check_size(args.size)
+    return fit_command(args, cancel, scene, direction, lambda: _backend_for(scene), _inputs(args, scene),
+                       _print_summary)
+
+
+def _devices(args, cancel) -> int:
+    from ..backends.opencl import list_devices, probe_device
+
+    found = list_devices()
+    if not found:
+        print("no OpenCL devices found")
+        return 1
+    for p, d, name, gpu in found:
+        problem = probe_device(f"{p}:{d}")
+        state = "usable" if problem is None else f"NOT usable: {problem}"
+        print(f"opencl {p}:{d}  {name}  ({'GPU' if gpu else 'CPU/other'}; {state})", flush=True)
+    return 0
+
+
+def _sky(args, cancel) -> int:
+    """A calibrated sky image of a scene (nebula_rt.observe.calibrate): FITS in MJy/sr and mag/arcsec^2
+    with a celestial WCS, and a true-colour PNG."""
+    import numpy as np
+
+    from ..observe import calibrate
+    from ..transport import resources
+    from ..pipeline.outputs import Output, Publication, check_outputs
+
+    scene = _scene_from_args(args)
+    direction = parse_direction(args.direction)
+    check_size(args.size)
+    calibrate.check_scene(scene)
+    npix = args.size * args.size
+    nb = len(scene.bands.resolve())
+    outputs = [Output("--fits", Path(args.fits), ".fits", (nb + len(calibrate.PASSBANDS)) * npix * 4 + (256 << 10))]
+    if args.png:
+        outputs.append(Output("--png", Path(args.png), ".png", npix * 4 + 65536))
+    if args.json:
+        outputs.append(Output("--json", Path(args.json), ".json", 1 << 20))
+    backend = _backend_for(scene)
+    resources.check(scene, backend, peel_pixels=npix if args.method == "peel-off" else 0, peel_option="--size",
+                    peel_value=args.size)
+    check_outputs(outputs, _inputs(args, scene))
+    cancel.check("start-up")
+    cam = calibrate.camera_for(scene, direction, args.size)
+    from tqdm import tqdm
+
+    bar = tqdm(total=scene.transport.effective()[0], unit="pkt", unit_scale=True, desc="tracing",
+               disable=args.quiet, file=sys.stderr)
+
+    def progress(done, total):
+        bar.n = done
+        bar.refresh()
+
+    try:
+        if args.method == "peel-off":
+            cal, res = calibrate.peel_off_sky(scene, cam, backend, progress=progress, cancel=cancel)
+        else:
+            from ..pipeline.stages import Pipeline
+
+            light = Pipeline(backend).run(scene, progress=progress, cancel=cancel, colour=False)
+            res = light.transport
+            cal = calibrate.ray_march_sky(light, cam)
+    finally:
+        bar.close()
+    cancel.check("run")
+    summary = {
+        "scene": str(args.scene), "fits": str(args.fits), "png": args.png, "method": cal.method,
+        "photons_per_band": int(res.photons), "pixel_scale_arcsec": round(cal.pixel_scale_arcsec, 6),
+        "psf_fwhm_arcsec": cal.psf_fwhm_arcsec, "bands": cal.band_names,
+        "total_flux_jy": {n: float(f) for n, f in zip(cal.band_names, cal.total_flux_jy())},
+        "star_flux_jy": [{n: float(f) for n, f in zip(cal.band_names, row)} for row in cal.star_flux_jy],
+        "star_mag_ab": [{n: round(float(m), 4) for n, m in zip(cal.passbands, row)} for row in cal.star_mag],
+        "faintest_lit_mag_arcsec2": {n: None if not (cal.mag[x] == cal.mag[x]).any() else
+                                     round(float(np.nanmax(cal.mag[x])), 3) for x, n in enumerate(cal.passbands)},
+    }
+    with Publication() as pub:  # the FITS, the PNG and the JSON: all or none
+        calibrate.write_fits(pub.stage(args.fits), cal, scene)
+        if args.png:
+            rgb8, exposure = calibrate.picture(cal, scene, scene.colour.exposure)
+            calibrate.write_png(pub.stage(args.png), rgb8)
+            summary["exposure"] = exposure
+        if args.json:
+            pub.stage(args.json).write_text(json.dumps(summary, indent=2) + "\n")
+        cancel.check("run")
+        pub.publish()
+    if not args.quiet:
+        _print_summary(summary)
+    return 0
+
+
+def _choices(key: str) -> list:
+    """The non-empty choices of a scene key, from the scene schema (its flags take those)."""
+    return [c for c in _scene.declaration(key).choices if c]
+
+
+def _run_options() -> argparse.ArgumentParser:
+    """The options of every command that traces (an argparse parent): scene overrides, the
+    packets and the device."""
+    p = argparse.ArgumentParser(add_help=False)
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a scene key, e.g. transport.photons=1e6 (repeatable)")
+    p.add_argument("--photons", default=None, help="shorthand for --set transport.photons=N")
+    p.add_argument("--target-error", default=None,
+                   help="trace until the lit region's relative error is at most this (photons = budget)")
+    p.add_argument("--quality", default=None, choices=_choices("transport.quality"),
+                   help="quality preset: a target error with a photon budget (overrides --photons)")
+    p.add_argument("--backend", default=None, choices=_choices("transport.backend"),
+                   help=_scene.declaration("transport.backend").doc)
+    p.add_argument("--device", default=None, help="device selector (name substring or P:D)")
+    return p
+
+
+def _view_options() -> argparse.ArgumentParser:
+    """The options of the commands that look at the scene from a direction (an argparse parent)."""
+    p = argparse.ArgumentParser(add_help=False)
+    p.add_argument("--direction", default="0,0,-1", help="viewing direction x,y,z (default 0,0,-1)")
+    return p
+
+
+def _reference_options() -> argparse.ArgumentParser:
+    """The star colour the comparisons measure against (an argparse parent)."""
+    p = argparse.ArgumentParser(add_help=False)
+    p.add_argument("--reference", default="observed", choices=["observed", "intrinsic"],
+                   help="star colour to measure against: as seen through its dust (default) or intrinsic")
+    return p
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="nebula-rt", description="Radiative transfer in reflection nebulae")
+    sub = ap.add_subparsers(dest="command", required=True)
+    run, view, reference = _run_options(), _view_options(), _reference_options()
+    r = sub.add_parser("render", parents=[run], help="trace a scene and write a .vti (and optionally a PNG)")
+    r.add_argument("scene", help="scene file (TOML)")
+    r.add_argument("-o", "--output", default="nebula.vti", help="output .vti file (default nebula.vti)")
+    r.add_argument("--png", default=None, help="also write a volume rendering of rgba to this PNG")
+    r.add_argument("--stretch", default=None, choices=_choices("colour.stretch"),
+                   help="shorthand for --set colour.stretch=S: " + _scene.declaration("colour.stretch").doc)
+    r.add_argument("-q", "--quiet", action="store_true", help="no progress bar or summary")
+    r.set_defaults(func=_render)
+    k = sub.add_parser("sky", parents=[run, view],
+                       help="a calibrated sky image: FITS (MJy/sr, mag/arcsec^2, celestial WCS) and PNG")
+    k.add_argument("scene", help="scene file (TOML) with [observer] distance and stars in L_sun or M_V")
+    k.add_argument("--fits", required=True, help="output FITS file")
+    k.add_argument("--png", default=None, help="also write the true-colour picture to this PNG")
+    k.add_argument("--json", default=None, help="also write the summary (fluxes, magnitudes) as JSON")
+    k.add_argument("--method", default="peel-off", choices=["peel-off", "ray-march"],
+                   help="peel-off during the transport (the phase function; default) or the ray march of the "
+                        "light field's emissivity (isotropic per voxel)")
+    k.add_argument("--size", type=int, default=256, help=f"pixels per side ({MIN_SKY_SIZE}-{MAX_SKY_SIZE})")
+    k.add_argument("--stretch", default=None, choices=_choices("colour.stretch"),
+                   help="the picture's tone curve (shorthand for --set colour.stretch=S)")
+    k.add_argument("-q", "--quiet", action="store_true", help="no summary")
+    k.set_defaults(func=_sky)
+    c = sub.add_parser("compare", parents=[run, view, reference],
+                       help="a scene's colours (Delta(B-V), nebula/star ratio) against observed nebulae, "
+                            "the user's tables (--table) or FITS image (--image)")
+    c.add_argument("scene", help="scene file (TOML)")
+    c.add_argument("--png", default="compare.png", help="plot (default compare.png)")
+    c.add_argument("--json", default=None, help="also write the measured profiles as JSON")
+    c.add_argument("--size", type=int, default=128,
+                   help=f"sky image pixels per side ({MIN_SKY_SIZE}-{MAX_SKY_SIZE})")
+    from .fit import add_fit_parser, add_table_options
+
+    add_table_options(c)
+    from .image import add_image_options
+
+    add_image_options(c)
+    c.set_defaults(func=_compare)
+    add_fit_parser(sub, _fit, (MIN_SKY_SIZE, MAX_SKY_SIZE), parents=[run, view, reference])
+    d = sub.add_parser("devices", help="list compute devices")
+    d.set_defaults(func=_devices)
+    return ap
+
+
+def main(argv=None) -> int:
+    """Run the command line; returns the exit status.
+
+    0 done; 1 a run that failed (an output that could not be written, an internal error); 2
+    bad input (a scene value, an option, an output path, more memory than there is: nothing
+    was written); 3 the backend or device cannot be used; 130 / 143 cancelled by SIGINT /
+    SIGTERM (nothing was written).
+    """
+    import warnings
+
+    from ..errors import NebulaWarning
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        # NebulaRT's warnings are for the user: one line, no source location
+        if issubclass(category, NebulaWarning):
+            _error(f"warning: {message}")
+        else:
+            _show_default(message, category, filename, lineno, file, line)
+
+    _show_default = warnings.showwarning
+    warnings.showwarning = show
+    try:
+        return _main(argv)
+    finally:
+        warnings.showwarning = _show_default
+
+
+def _main(argv) -> int:
+    cancel = SignalCancel()
+    with cancel:
+        status = None
+        args = None
+        try:
+            args = build_parser().parse_args(argv)
+            cancel.quiet = bool(getattr(args, "quiet", False))
+            return args.func(args, cancel)
+        except SceneError as exc:
+            from ..scene.units import attribute
+
+            exc = attribute(exc, getattr(args, "scene_used", None))
+            _error(f"invalid scene: {exc}; nothing written")
+            status = 2
+        except (OutputError, ResourceError) as exc:
+            _error(f"{exc}; nothing written")
+            status = 2
+        except BackendUnavailableError as exc:
+            _error(str(exc))
+            status = 3
+        except CancelledError as exc:
+            # every rank of a distributed run raises this together: no need to abort the others
+            _error(f"{exc}; nothing written")
+            return cancel.exit_status
+        except KeyboardInterrupt:
+            _error("aborted; nothing written")
+            status = 130
+        except OSError as exc:
+            from ..pipeline.outputs import describe_os_error
+
+            where = f"{exc.filename}: " if exc.filename else ""
+            _error(f"{where}{describe_os_error(exc)}; nothing written")
+            status = 1
+        except NebulaError as exc:
+            _error(str(exc))
+            status = 1
+        except Exception as exc:  # a defect: one line, not a traceback (NEBULA_RT_DEBUG=1 shows it)
+            if os.environ.get("NEBULA_RT_DEBUG"):
+                raise
+            _error(f"internal error: {type(exc).__name__}: {exc} (set NEBULA_RT_DEBUG=1 for the "
+                   "traceback; nothing written)")
+            status = 1
+        _abort_the_other_ranks(status)
+        return status
+
+
+def _distributed():
+    """The communicator when this process is one of several ranks, else None."""
+    from ..backends.parallel import _launched_by_mpi, world
+
+    if not _launched_by_mpi():
+        return None
+    comm = world()
+    return comm if comm.size > 1 else None
+
+
+def _abort_the_other_ranks(status: int) -> None:
+    """One rank of a distributed run failed on its own: the others would wait for it in their
+    next reduction forever, so the whole job is ended (MPI_Abort) with this rank's status,
+    after its message (which names the rank) is out."""
+    comm = _distributed()
+    if comm is not None:
+        sys.stderr.flush()
+        comm.comm.Abort(int(status))
+
+
+def _error(message: str) -> None:
+    comm = _distributed()
+    who = "nebula-rt" if comm is None else f"nebula-rt (rank {comm.rank} of {comm.size})"
+    try:
+        print(f"{who}: {message}", file=sys.stderr, flush=True)
+    except (OSError, ValueError):
+        pass
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

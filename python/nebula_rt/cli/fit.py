@@ -1,0 +1,198 @@
+"""Command line of the user's observations: ``nebula-rt compare --table`` and ``nebula-rt fit``.
+
+``nebula-rt compare SCENE --table obs.ecsv [--table more.csv]`` traces the scene once and
+writes the residuals and chi^2 of every table (JSON on stdout, ``--json``) and the plot of
+model, data and residuals side by side (``--png``). ``nebula-rt fit SCENE --table ... --free
+albedo --free g --free tau=0.3:10:log`` finds the parameters that match best, with their
+uncertainties, and writes the best-fit scene (``--scene-out``), the comparison plot and JSON.
+Progress, cancel and exit statuses as for ``nebula-rt render``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from pathlib import Path
+
+from ..errors import SceneError
+
+
+def add_table_options(p) -> None:
+    """The options that say how to read the tables (shared by compare and fit)."""
+    p.add_argument("--table", action="append", default=[], metavar="PATH",
+                   help="the user's observations: a .csv or .ecsv table of Delta(B-V) versus offset (columns offset, "
+                        "delta_bv, delta_bv_err) or of the nebula/star ratio versus wavelength (wavelength, ratio, "
+                        "ratio_err); repeatable (docs/observations.md)")
+    p.add_argument("--distance", default=None, help="distance to the nebula, e.g. '430 pc' (for offsets in arcsec)")
+    p.add_argument("--box-length", default=None,
+                   help="physical length of one box edge, e.g. '0.5 pc' (default grid.length grid.unit)")
+    p.add_argument("--normalisation", default="free", choices=["free", "absolute"],
+                   help="ratio tables: 'free' (relative ratios: the model is scaled to them per annulus) or "
+                        "'absolute' (nebula flux in the annulus / star flux)")
+    p.add_argument("--annulus", default="0,0.5",
+                   help="ratio tables without offset columns: the annulus lo,hi (box units, default 0,0.5)")
+
+
+def _quantity(option: str, text):
+    import astropy.units as u
+
+    if text is None:
+        return None
+    try:
+        q = u.Quantity(text)
+    except (TypeError, ValueError):
+        raise SceneError(option, text, "must be a length with its unit, e.g. '430 pc' or '0.5 pc'") from None
+    if not q.unit.is_equivalent(u.m) or not (math.isfinite(q.value) and q.value > 0):
+        raise SceneError(option, text, "must be a positive length with its unit, e.g. '430 pc' or '0.5 pc'")
+    return q
+
+
+def _box_length(args, scene):
+    import astropy.units as u
+
+    if args.box_length is not None:
+        return _quantity("--box-length", args.box_length)
+    try:  # the scene's label of its box edge
+        return scene.grid.length * u.Unit(scene.grid.unit)
+    except (ValueError, TypeError, AttributeError):
+        return None
+
+
+def read_tables(args, scene) -> list:
+    """The ``--table`` files, validated (SceneError before any tracing)."""
+    from ..observe.observed_tables import OffsetScale, read_table
+
+    try:
+        annulus = tuple(float(x) for x in args.annulus.split(","))
+        assert len(annulus) == 2 and all(math.isfinite(a) for a in annulus) and 0 <= annulus[0] < annulus[1]
+    except (ValueError, AssertionError):
+        raise SceneError("--annulus", args.annulus, "must be lo,hi with 0 <= lo < hi (box units)") from None
+    scale = OffsetScale(box_length=_box_length(args, scene), distance=_quantity("--distance", args.distance))
+    return [read_table(p, scale=scale, normalisation=args.normalisation, annulus=annulus) for p in args.table]
+
+
+def _outputs(args, scene, inputs):
+    from ..pipeline.outputs import Output, check_outputs
+
+    outs = [Output("--png", Path(args.png), ".png", 4 << 20)]
+    if getattr(args, "json", None):
+        outs.append(Output("--json", Path(args.json), ".json", 1 << 20))
+    if getattr(args, "scene_out", None):
+        outs.append(Output("--scene-out", Path(args.scene_out), ".toml", 1 << 20))
+    check_outputs(outs, inputs + [("--table", Path(t)) for t in args.table])
+
+
+def compare_tables_command(args, cancel, scene, direction, backend_of, inputs, print_summary) -> int:
+    """``nebula-rt compare --table``: one trace, residuals and chi^2 of every table, the plot.
+    ``backend_of()`` makes the backend (after the tables are checked); ``inputs`` are the files
+    no output may replace; ``print_summary`` prints the JSON summary (nebula_rt.cli's)."""
+    from ..observe import comparison
+    from ..transport import resources
+    from ..pipeline.outputs import Publication
+
+    tables = read_tables(args, scene)
+    comparison.check_tables_against_scene(scene, tables)
+    backend = backend_of()
+    resources.check(scene, backend, peel_pixels=args.size * args.size, peel_option="--size", peel_value=args.size)
+    _outputs(args, scene, inputs)
+    cancel.check("start-up")
+    comp = comparison.compare(scene, tables, direction=direction, size=args.size, reference=args.reference,
+                              backend=backend, cancel=cancel)
+    cancel.check("run")
+    summary = {"scene": str(args.scene), "png": str(args.png), "photons_per_band": comp.rings.photons,
+               **comp.to_dict()}
+    with Publication() as pub:
+        comparison.plot(comp, pub.stage(args.png),
+                        title=f"{Path(args.scene).stem} against {len(tables)} table(s): chi2 = {comp.chi2:.2f} for "
+                              f"{comp.dof} dof ({comp.rings.photons:,} packets per band)")
+        if args.json:
+            pub.stage(args.json).write_text(json.dumps(summary, indent=2) + "\n")
+        cancel.check("run")
+        pub.publish()
+    print_summary(summary)
+    return 0
+
+
+def fit_command(args, cancel, scene, direction, backend_of, inputs, print_summary) -> int:
+    """``nebula-rt fit`` (arguments as :func:`compare_tables_command`'s)."""
+    from ..observe import comparison, fit
+    from ..transport import resources
+    from ..pipeline.outputs import Publication
+
+    tables = read_tables(args, scene)
+    free = [fit.parse_free(s, scene, direction) for s in args.free]
+    if not free:
+        raise SceneError("--free", [], "name at least one parameter to fit, e.g. --free albedo --free tau")
+    comparison.check_tables_against_scene(scene, tables)
+    backend = backend_of()
+    resources.check(scene, backend, peel_pixels=args.size * args.size, peel_option="--size", peel_value=args.size)
+    _outputs(args, scene, inputs)
+    cancel.check("start-up")
+    bar = None
+    try:
+        from tqdm import tqdm
+
+        bar = tqdm(total=1, unit="trace", desc="fitting", disable=args.quiet, file=sys.stderr)
+
+        def progress(done, total, best):
+            bar.total = total
+            bar.n = done
+            bar.set_postfix_str(f"best chi2 {best:.2f}", refresh=False)
+            bar.refresh()
+
+        res = fit.fit_observations(scene, tables, free, direction=direction, size=args.size, reference=args.reference,
+                                   uncertainty=args.uncertainty, grid=args.grid, starts=args.starts, backend=backend,
+                                   progress=progress, cancel=cancel)
+    finally:
+        if bar is not None:
+            bar.close()
+    cancel.check("run")
+    summary = {"scene": str(args.scene), "png": str(args.png), **res.to_dict()}
+    with Publication() as pub:
+        comparison.plot(res.comparison, pub.stage(args.png),
+                        title=f"best fit of {Path(args.scene).stem}: " + ", ".join(
+                            f"{p.name} = {v:.4g}" for p, v in zip(res.parameters, res.best)) +
+                              f"; chi2 = {res.chi2:.2f} for {res.dof} dof")
+        if args.json:
+            pub.stage(args.json).write_text(json.dumps(summary, indent=2) + "\n")
+        if args.scene_out:
+            pub.stage(args.scene_out).write_text(res.scene.to_toml())
+        cancel.check("run")
+        pub.publish()
+    if not args.quiet:
+        print(res.summary(), file=sys.stderr, flush=True)
+    print_summary(summary)
+    return 0
+
+
+def add_fit_parser(sub, func, sizes, parents=()) -> None:
+    """The ``fit`` subcommand's options; ``func(args, cancel)`` runs it, ``sizes`` = (min, max)
+    pixels per side of the image; ``parents``: the options it shares with the other commands
+    (scene overrides, packets, device, direction, reference; ``--photons`` counts the packets of
+    every trial, and a target error or quality preset is refused: a fit's trials trace a fixed
+    number of packets)."""
+    f = sub.add_parser("fit", parents=list(parents),
+                       help="fit the dust (albedo, g, tau, the star's depth, any scene key) to observations")
+    f.add_argument("scene", help="scene file (TOML): the model, and the start")
+    add_table_options(f)
+    f.add_argument("--free", action="append", default=[], metavar="NAME[=LO:HI[:log]]",
+                   help="a parameter to fit: albedo, g, albedo_slope, g_slope, albedo.BAND, g.BAND, tau, depth or a "
+                        "scene key (with bounds); repeatable")
+    f.add_argument("--uncertainty", default="profile", choices=["profile", "mcmc", "none"],
+                   help="profile likelihood (default), MCMC (emcee), or none")
+    f.add_argument("--grid", type=int, default=None, help="starting grid points per parameter (default 3 for <= 3)")
+    f.add_argument("--starts", type=int, default=2, help="Nelder-Mead runs from the grid's best points (default 2)")
+    f.add_argument("--png", default="fit.png", help="plot of the best fit against the tables (default fit.png)")
+    f.add_argument("--json", default=None, help="also write the result as JSON")
+    f.add_argument("--scene-out", default=None, help="write the best-fit scene (TOML)")
+    f.add_argument("--size", type=int, default=comparison_size(),
+                   help=f"peel-off image pixels per side ({sizes[0]}-{sizes[1]})")
+    f.add_argument("-q", "--quiet", action="store_true", help="no progress bar or summary on stderr")
+    f.set_defaults(func=func)
+
+
+def comparison_size() -> int:
+    from ..observe.comparison import DEFAULT_SIZE
+
+    return DEFAULT_SIZE

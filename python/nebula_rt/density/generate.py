@@ -1,0 +1,142 @@
+"""Dust density stage: turbulence, uniform or user-supplied density on the voxel grid.
+
+All models share one formula (thesis Eq. 3.2 and 3.3, generalised):
+
+    rho = max(floor, base + sum over stars of the voxel-averaged cubic bump)
+
+with base = scale * max(0, turbulence(v + offset)) ("turbulence"), a constant ("uniform"),
+or the array read from ``dust.file`` ("file"). The generated models run on the compute
+device; an independent NumPy implementation, ``tests/oracles/reference_density.py``, is the
+test oracle.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import math
+
+import numpy as np
+
+from .. import limits
+from ..backends import Backend
+from ..backends.base import MODEL_TURBULENCE, MODEL_UNIFORM
+from ..errors import SceneError
+
+#: Midpoint samples per axis used to average a star's bump over a voxel.
+BUMP_SUBSAMPLES = 8
+
+
+def _stars_array(stars) -> np.ndarray:
+    return np.array([[*s.position, s.bump_radius] for s in stars], dtype=np.float32).reshape(-1, 4)
+
+
+def file_digest(path: Path) -> str:
+    """SHA-256 (hex) of a file's bytes: identifies a density file by its content (a file
+    rewritten with its modification time kept is still recognised as changed)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 22), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def load_density_file(path: Path, array: str, shape: tuple[int, int, int]) -> np.ndarray:
+    """Read a density array from ``.npy`` (x, y, z order) or ``.vti`` and check it.
+
+    Raises
+    ------
+    SceneError
+        ``dust.file`` unreadable, of another shape than ``grid.shape``, or holding negative,
+        NaN or infinite values, or values float32 cannot hold (above 3.4e38, or non-zero below
+        1.2e-38: the transport's density is float32).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise SceneError("dust.file", str(path), "must name an existing .npy or .vti file")
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".npy":
+            data = np.load(path, allow_pickle=False)
+        elif suffix == ".vti":
+            try:  # the VTK layer: VTK's own reader (the io extra, or ParaView's VTK; no pyvista needed)
+                from ..filters.density_file import read_density_array
+            except ImportError as exc:
+                raise SceneError("dust.file", str(path), f"a .vti density needs {(exc.name or 'vtk').split('.')[0]}: "
+                                                         "pip install 'nebula-rt[io]', or give a .npy file") from None
+            data = read_density_array(path, array)
+        else:
+            raise SceneError("dust.file", str(path), "must be a .npy or .vti file")
+    except SceneError:
+        raise
+    except Exception as exc:  # unreadable file: say which and why
+        raise SceneError("dust.file", str(path), f"could not be read as density data ({exc})") from exc
+    data = np.asarray(data)
+    if data.dtype.kind not in "fiu":
+        raise SceneError("dust.file", str(path), f"must hold a numeric array (found dtype {data.dtype})")
+    if tuple(data.shape) != tuple(shape):
+        raise SceneError(
+            "dust.file", str(path), f"array shape {tuple(data.shape)} must equal grid.shape {tuple(shape)}"
+        )
+    data = data.astype(np.float64)
+    if not np.all(np.isfinite(data)):
+        raise SceneError("dust.file", str(path), "density must be finite (found NaN or infinity)")
+    if np.any(data < 0):
+        raise SceneError("dust.file", str(path), f"density must be >= 0 (minimum found {data.min()!r})")
+    limits.check_float32_array("dust.file", str(path), data, "density values")
+    return data
+
+
+#: Largest value of the turbulence sum: sum over the octaves of max|noise| / f, |noise| <= 1,
+#: f = 2^e for e in {0.05, 2, 4, 6, 12, 8, 0} (kernels/nebula_common.h).
+TURBULENCE_MAX = sum(2.0 ** -e for e in (0.05, 2, 4, 6, 12, 8, 0))
+
+
+def _check_generated(scene, rho: np.ndarray, backend: Backend) -> np.ndarray:
+    """The device density must be finite: scale x turbulence (or density) plus the stars' bumps
+    may pass float32's range although each parameter is within it."""
+    extremes = backend.density_extremes(rho)
+    if extremes is None:  # on the host: two reductions, no temporaries (NaN propagates through max)
+        extremes = (float(rho.min()), float(rho.max())) if rho.size else (0.0, 0.0)
+    finite = math.isfinite(extremes[0]) and math.isfinite(extremes[1])
+    if finite:
+        return rho
+    dust = scene.dust
+    n = len(scene.stars)
+    if dust.model == "turbulence":
+        raise SceneError("dust.scale", dust.scale, f"scale x turbulence (up to {TURBULENCE_MAX:.4f}) plus the "
+                                                   f"stars' bumps overflows float32: allowed scale <= "
+                                                   f"{limits.fmt((limits.FLOAT32_MAX - n) / TURBULENCE_MAX)}")
+    raise SceneError("dust.density", dust.density, f"density plus the stars' bumps (up to {n}) overflows float32: "
+                                                   f"allowed density <= {limits.fmt(limits.FLOAT32_MAX - n)}")
+
+
+def generate_density(scene, backend: Backend) -> np.ndarray:
+    """Density of ``scene`` on its grid, float32 (nx, ny, nz) (index [i, j, k] = x, y, z)."""
+    dust = scene.dust
+    shape = tuple(scene.grid.shape)
+    stars = _stars_array(scene.stars)
+    if dust.model == "file":
+        data = load_density_file(scene.dust_file_path(), dust.array, shape)
+        if np.any(stars[:, 3] > 0):
+            backend.check_grid_fits(shape)
+            data = data + backend.generate_density(
+                shape, MODEL_UNIFORM, (0.0, 0.0, 0.0), 0.0, 0.0, 0.0, stars, BUMP_SUBSAMPLES
+            )
+        data = np.maximum(data, dust.floor)
+        if not data.max() <= limits.FLOAT32_MAX:
+            raise SceneError("dust.file", str(scene.dust_file_path()),
+                             f"density values plus the stars' bumps must stay within float32 (at most "
+                             f"{limits.fmt(limits.FLOAT32_MAX)}; found {limits.fmt(float(data.max()))})")
+        return data.astype(np.float32)
+    backend.check_grid_fits(shape)
+    if dust.model == "turbulence":
+        return _check_generated(scene, backend.generate_density(
+            shape, MODEL_TURBULENCE, dust.offset, dust.scale, 0.0, dust.floor, stars, BUMP_SUBSAMPLES
+        ), backend)
+    if dust.model == "uniform":
+        return _check_generated(scene, backend.generate_density(
+            shape, MODEL_UNIFORM, (0.0, 0.0, 0.0), 0.0, dust.density, dust.floor, stars, BUMP_SUBSAMPLES
+        ), backend)
+    raise SceneError("dust.model", dust.model, "one of: 'turbulence', 'uniform', 'file'")

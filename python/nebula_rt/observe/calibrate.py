@@ -1,0 +1,488 @@
+"""Calibrated sky images: surface brightness in MJy/sr and mag/arcsec^2, a Gaussian PSF, a
+celestial WCS, FITS.
+
+A sky image in box units (:mod:`nebula_rt.observe.sky`'s ray march or the transport's peel-off) holds,
+per band b, the scattered intensity I_b in traced luminosity per box-unit area per steradian.
+With the stars' luminosities in L_sun (``stars.luminosity_lsun`` or ``absolute_magnitude``,
+:mod:`nebula_rt.scene.units`), the box edge L (``grid.length``) and the distance D
+(``observer.distance``):
+
+- surface brightness, band-averaged per unit frequency:
+  ``S_nu,b = I_b L_sun / L^2 / dnu_b`` (W m^-2 Hz^-1 sr^-1; x 1e20 for MJy/sr), dnu_b the band's
+  frequency width (its edges: :func:`nebula_rt.optics.colour_convert.band_edges`, over which the band
+  carries the star's light). Surface brightness does not depend on the distance;
+- each star as a point source of flux density ``F_nu,b = L_b exp(-tau_b) L_sun / (4 pi D^2) /
+  dnu_b``, tau_b its optical depth to the observer (:func:`nebula_rt.transport.line_of_sight.line_of_sight_tau`),
+  at its projected position;
+- the image (scattered light and stars) convolved with a Gaussian PSF of FWHM
+  ``observer.psf_fwhm`` (arcsec), integrated over each pixel (so the flux is kept exactly
+  except what the PSF carries out of the field);
+- pixels of side ``theta = pixel_size L / D`` radians on the tangent plane (an exact gnomonic
+  projection of the plane through the box centre perpendicular to the line of sight), the
+  WCS a TAN projection with its reference point the box centre at (``observer.ra``,
+  ``observer.dec``) and the image's up axis at ``observer.position_angle`` east of north;
+  east is to the left at position angle 0 (the sky as seen from inside);
+- in passbands X (Bessell B, V, R and SDSS g, r, i, ``speclite``), the AB surface brightness
+  ``mu_X = -2.5 log10(S_nu,X arcsec^2 / 3631 Jy)`` mag/arcsec^2 (with
+  ``observer.magnitude_system = "Vega"``: minus the passband's m_AB - m_Vega of Blanton &
+  Roweis 2007, AJ 133, 734, Table 1, :data:`AB_MINUS_VEGA`), with S_nu,X the photon-counting
+  mean ``int S_lambda R lambda dl / int (c / lambda^2) R lambda dl``. S_lambda is the
+  per-band nebula/star ratio interpolated across wavelength (the hat functions of the colour
+  conversion) times the stars' full blackbody spectrum, so the parts of a passband beyond the
+  bands' range (R and i reach 900 / 840 nm) take the outermost band's ratio.
+
+FITS (:func:`write_fits`): an empty primary HDU with the run's description, then one image HDU
+per band (``SB_<band>``, MJy/sr) and per passband (``MAG_BESSELL_B``, ``_V``, ``_R``,
+``MAG_SDSS_G``, ``_R``, ``_I``: mag/arcsec^2, AB), each with the celestial WCS, and a table
+``STARS`` (FITS pixel, RA, Dec, flux densities in Jy, AB magnitudes).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+
+from ..optics import colour_convert
+from ..scene import units
+from ..optics.colour_convert import band_edges, hat_basis
+from ..density.generate import generate_density
+from ..errors import SceneError
+from ..transport.line_of_sight import line_of_sight_tau
+from ..pipeline.rgba import _dominant_source
+from .sky import Camera, sky_image
+from ..transport.tails import fits_cards
+from ..transport.request import TransportRequest, scene_backend
+
+#: Passbands of the magnitude images: name -> speclite filter (declared with the loader)
+PASSBANDS = units.PASSBANDS
+#: FITS extension of each passband's magnitude image (extension names are case-blind: R and r differ by system)
+PASSBAND_EXTENSIONS = {"B": "MAG_BESSELL_B", "V": "MAG_BESSELL_V", "R": "MAG_BESSELL_R", "g": "MAG_SDSS_G",
+                       "r": "MAG_SDSS_R", "i": "MAG_SDSS_I"}
+#: m_AB - m_Vega of each passband (Blanton & Roweis 2007, AJ 133, 734, Table 1): a Vega
+#: magnitude is the AB magnitude minus this (observer.magnitude_system = "Vega")
+AB_MINUS_VEGA = {"B": -0.09, "V": 0.02, "R": 0.21, "g": -0.08, "r": 0.16, "i": 0.37}
+MAGSYS_COMMENT = {"AB": "magnitudes: AB (3631 Jy)",
+                  "Vega": "magnitudes: Vega (AB - offset, Blanton+ 2007)"}
+ARCSEC_RAD = math.pi / (180.0 * 3600.0)
+C_LIGHT = 299_792_458.0
+#: W m^-2 Hz^-1 in MJy
+W_M2_HZ_PER_MJY = 1e-20
+#: Sky image methods: the transport's peel-off (the phase function's angle dependence) or the
+#: ray march of the emissivity (isotropic scattering per voxel; no new trace of a light field)
+METHODS = ("peel-off", "ray-march")
+#: The box edge may be at most this fraction of the distance: the image is a distant
+#: observer's parallel projection, whose error in angle is of order (L / D)^2
+MAX_BOX_OVER_DISTANCE = 0.1
+
+
+def check_scene(scene) -> None:
+    """What a calibrated image needs of a scene, checked before any work: a distance, every
+    star's luminosity in physical units, and a box small against the distance."""
+    if scene.observer.distance is None:
+        raise SceneError("observer.distance", None, "must be given for a calibrated sky image: a distance "
+                         "such as '140 pc' (or a number in pc)")
+    for i, s in enumerate(scene.stars):
+        if not units.physical_star(s):
+            raise SceneError(f"stars[{i}].luminosity", s.luminosity,
+                             "is in scene units: a calibrated sky image needs the luminosity in physical "
+                             f"units, stars[{i}].luminosity_lsun (L_sun) or stars[{i}].absolute_magnitude, "
+                             "with the star's temperature")
+    box = units.box_length_cm(scene.grid) / 100.0
+    dist = units.distance_metres(scene.observer)
+    if not box <= MAX_BOX_OVER_DISTANCE * dist:
+        raise SceneError("observer.distance", scene.observer.distance,
+                         f"must be at least {1 / MAX_BOX_OVER_DISTANCE:g} box edges (grid.length = "
+                         f"{scene.grid.length!r}): the sky image is a distant observer's")
+
+
+def band_frequency_widths(wavelengths_nm) -> tuple[np.ndarray, np.ndarray]:
+    """(edges (n, 2) nm, frequency width (n,) Hz) of each band, in the bands' order."""
+
+    wl = np.asarray(wavelengths_nm, np.float64)
+    e = band_edges(wl)
+    order = np.argsort(wl)
+    edges = np.empty((wl.size, 2))
+    edges[order, 0], edges[order, 1] = e[:-1], e[1:]
+    dnu = C_LIGHT / (edges[:, 0] * 1e-9) - C_LIGHT / (edges[:, 1] * 1e-9)
+    return edges, dnu
+
+
+def star_spectra(scene, wavelength_nm) -> np.ndarray:
+    """L_lambda of every star (n_stars, n_wl), L_sun per m: bolometric L x pi B_lambda / (sigma T^4)."""
+    wl = np.asarray(wavelength_nm, np.float64) * 1e-9
+    bands = scene.bands.resolve()
+    out = []
+    for i, s in enumerate(scene.stars):
+        _, lbol = units.star_luminosity(s, i, bands)
+        out.append(lbol * math.pi * units.planck_lambda(wl, s.temperature)
+                   / (units.stefan_boltzmann() * s.temperature ** 4))
+    return np.array(out)
+
+
+def passband_grid(name: str) -> tuple[np.ndarray, np.ndarray]:
+    """(wavelength nm on a 0.25 nm grid over the passband, its response there)."""
+    wl_x, resp = units.passband(PASSBANDS[name])
+    wl = np.arange(math.floor(wl_x[0]), math.ceil(wl_x[-1]) + 0.25, 0.25)
+    return wl, np.interp(wl, wl_x, resp, left=0.0, right=0.0)
+
+
+def passband_weights(band_wavelengths_nm, wl, response, spectra) -> np.ndarray:
+    """w (n_spectra, n_bands): the photon-counting mean f_nu through a passband (``wl`` nm,
+    ``response``) of the spectrum ``sum_b r_b h_b(lambda) spectra[k](lambda)`` is
+    ``sum_b w[k, b] r_b``; h_b the hat functions of the bands. ``spectra`` per unit wavelength
+    (per m) on ``wl``; w in their units x m per Hz."""
+
+    lam = wl * 1e-9
+    h = hat_basis(band_wavelengths_nm, wl)
+    norm = np.trapezoid(C_LIGHT / lam**2 * response * lam, lam)
+    sp = np.atleast_2d(spectra)
+    return np.trapezoid(h[None, :, :] * (sp * response * lam)[:, None, :], lam, axis=2) / norm
+
+
+def _ndtr(x):
+    from scipy.special import ndtr
+
+    return ndtr(x)
+
+
+def psf_weights(n: int, centre: float, sigma: float) -> np.ndarray:
+    """The 1D Gaussian of ``sigma`` (pixels) centred at ``centre`` (pixel coordinates, pixel k
+    spans [k - 1/2, k + 1/2)) integrated over each of n pixels; sigma 0: 1 in the pixel
+    holding the centre."""
+    k = np.arange(n, dtype=np.float64)
+    if sigma == 0.0:
+        w = np.zeros(n)
+        j = int(math.floor(centre + 0.5))
+        if 0 <= j < n:
+            w[j] = 1.0
+        return w
+    return _ndtr((k + 0.5 - centre) / sigma) - _ndtr((k - 0.5 - centre) / sigma)
+
+
+def convolve_psf(image, sigma: float) -> np.ndarray:
+    """``image`` (..., W, H) convolved with the pixel-integrated Gaussian of ``sigma`` pixels;
+    light carried beyond the image is lost (the kernel reaches 8 sigma, where the Gaussian's
+    tail is 1e-15, and is not renormalised)."""
+    from scipy.ndimage import convolve1d
+
+    img = np.asarray(image, np.float64)
+    if sigma == 0.0:
+        return img.copy()
+    w, h = img.shape[-2:]
+    radius = int(min(math.ceil(8.0 * sigma) + 1, max(w, h)))
+    kernel = psf_weights(2 * radius + 1, float(radius), sigma)
+    out = convolve1d(img, kernel, axis=-2, mode="constant", cval=0.0)
+    return convolve1d(out, kernel, axis=-1, mode="constant", cval=0.0)
+
+
+def celestial_wcs(scene, camera):
+    """The TAN WCS of an image of ``camera`` (module docstring): FITS pixel (p + 1, q + 1) is
+    image pixel [p, q]."""
+    from astropy.wcs import WCS
+
+    _, u, v = camera.basis()
+    rel = np.array([0.5, 0.5, 0.5]) - camera.origin()
+    ps = camera.pixel_size
+    scale_deg = math.degrees(ps * units.box_length_cm(scene.grid) / 100.0 / units.distance_metres(scene.observer))
+    pa = math.radians(scene.observer.position_angle)
+    w = WCS(naxis=2)
+    w.wcs.ctype = ["RA---TAN", "DEC--TAN"]
+    w.wcs.cunit = ["deg", "deg"]
+    w.wcs.radesys = "ICRS"
+    w.wcs.crval = [scene.observer.ra, scene.observer.dec]
+    w.wcs.crpix = [float(rel @ u / ps) + 1.0, float(rel @ v / ps) + 1.0]
+    # (east, north) of one pixel along p (the image's u) and q (v): u points west at PA 0
+    w.wcs.cd = scale_deg * np.array([[-math.cos(pa), math.sin(pa)], [math.sin(pa), math.cos(pa)]])
+    w.wcs.set()
+    return w
+
+
+@dataclass
+class CalibratedSky:
+    """A calibrated sky image; images are indexed [band, p, q] with shape (n, W, H) as
+    :class:`nebula_rt.observe.sky.SkyImage` (``q = 0`` the bottom row).
+
+    Attributes
+    ----------
+    band_names, band_wavelength_nm : list, ndarray (nb,)
+    band_edges_nm : ndarray (nb, 2)
+    surface_brightness : ndarray (nb, W, H)
+        Scattered light plus the stars, PSF-convolved, MJy/sr (band-averaged per unit frequency).
+    scattered : ndarray (nb, W, H)
+        The scattered light alone, PSF-convolved, MJy/sr.
+    passbands : list of str
+        Names of the passband images ("B", "V", "R", "g", "r", "i").
+    passband_sb : ndarray (np, W, H)
+        Photon-counting mean surface brightness through each passband, MJy/sr.
+    mag : ndarray (np, W, H)
+        Surface brightness, mag/arcsec^2 in ``mag_system`` (NaN where there is no light).
+    star_pixel : ndarray (n_stars, 2)
+        Image pixel coordinates (p, q) of each star (pixel centres at integers).
+    star_flux_jy : ndarray (n_stars, nb)
+        Each star's flux density as seen (through its dust), Jy.
+    star_mag : ndarray (n_stars, np)
+        Each star's magnitude (``mag_system``) as seen through each passband.
+    intensity_box, scattered_box : ndarray (nb, W, H)
+        The PSF-convolved image and its scattered light in box units (traced luminosity per
+        box-unit area per sr), for the true-colour picture.
+    band_luminosity : ndarray (nb,)
+        The stars' traced luminosity per band, L_sun.
+    wcs : astropy.wcs.WCS
+    pixel_scale_arcsec, pixel_solid_angle_sr, psf_fwhm_arcsec : float
+    method : str
+    meta : dict
+        FITS header cards of the primary HDU.
+    mag_system : str
+        "AB" or "Vega" (``observer.magnitude_system``).
+    """
+
+    band_names: list
+    band_wavelength_nm: np.ndarray
+    band_edges_nm: np.ndarray
+    surface_brightness: np.ndarray
+    scattered: np.ndarray
+    passbands: list
+    passband_sb: np.ndarray
+    mag: np.ndarray
+    star_pixel: np.ndarray
+    star_flux_jy: np.ndarray
+    star_mag: np.ndarray
+    intensity_box: np.ndarray
+    scattered_box: np.ndarray
+    band_luminosity: np.ndarray
+    wcs: object
+    pixel_scale_arcsec: float
+    pixel_solid_angle_sr: float
+    psf_fwhm_arcsec: float
+    method: str
+    meta: dict = field(default_factory=dict)
+    mag_system: str = "AB"
+
+    def total_flux_jy(self) -> np.ndarray:
+        """(nb,) the image's flux density, Jy: the sum of the pixels times their solid angle."""
+        return self.surface_brightness.sum(axis=(1, 2)) * self.pixel_solid_angle_sr * 1e6
+
+
+def calibrate(scene, camera, scattered, star_band_luminosity, tau_star, method: str = "peel-off",
+              meta: Optional[dict] = None) -> CalibratedSky:
+    """Calibrate a box-unit sky image of ``scene`` seen by ``camera`` (module docstring).
+
+    Parameters
+    ----------
+    scene : nebula_rt.scene.Scene
+        Validated; :func:`check_scene` must pass.
+    camera : nebula_rt.observe.sky.Camera
+    scattered : ndarray (nb, W, H)
+        Scattered intensity, traced luminosity (L_sun) per box-unit area per steradian.
+    star_band_luminosity : ndarray (n_stars, nb)
+        Each star's traced luminosity per band, L_sun.
+    tau_star : ndarray (n_stars, nb)
+        Optical depth from each star to the observer.
+    method : str
+        How ``scattered`` was made (one of :data:`METHODS`), for the header.
+    """
+    check_scene(scene)
+    bands = scene.bands.resolve()
+    names = [b.name for b in bands]
+    wl = np.array([b.wavelength for b in bands])
+    scat = np.asarray(scattered, np.float64)
+    nb, w, h = scat.shape
+    slum = np.asarray(star_band_luminosity, np.float64).reshape(len(scene.stars), nb)
+    tau = np.asarray(tau_star, np.float64).reshape(len(scene.stars), nb)
+    edges, dnu = band_frequency_widths(wl)
+    box_m = units.box_length_cm(scene.grid) / 100.0
+    dist_m = units.distance_metres(scene.observer)
+    ps = camera.pixel_size
+    theta = ps * box_m / dist_m  # pixel side, rad
+    omega = theta * theta
+    scale_arcsec = theta / ARCSEC_RAD
+    sigma_pix = scene.observer.psf_fwhm / (2.0 * math.sqrt(2.0 * math.log(2.0))) / scale_arcsec
+
+    # stars: flux through their dust, as box-unit intensity spread by the PSF over the pixels
+    _, u, v = camera.basis()
+    rel = np.array([s.position for s in scene.stars], np.float64) - camera.origin()[None, :]
+    star_pixel = np.stack([rel @ u / ps, rel @ v / ps], axis=1)
+    seen = slum * np.exp(-tau)  # L_sun per band, as seen
+    direct = np.zeros((nb, w, h))
+    for k in range(len(scene.stars)):
+        spot = np.outer(psf_weights(w, star_pixel[k, 0], sigma_pix), psf_weights(h, star_pixel[k, 1], sigma_pix))
+        direct += (seen[k] / (4.0 * math.pi) / ps**2)[:, None, None] * spot[None]
+    scat_psf = convolve_psf(scat, sigma_pix)
+    box_total = scat_psf + direct
+    to_mjy = (units.L_SUN_W / box_m**2 / dnu / W_M2_HZ_PER_MJY)[:, None, None]
+    sb = box_total * to_mjy
+    star_flux = seen * units.L_SUN_W / (4.0 * math.pi * dist_m**2) / dnu[None, :] * 1e26
+
+    # passbands: ratio to the stars' light per band x their full spectrum
+    band_lum = slum.sum(axis=0)
+    ratio = box_total / band_lum[:, None, None]  # per box-unit area per sr
+    pb = list(PASSBANDS)
+    psb = np.empty((len(pb), w, h))
+    star_mag = np.empty((len(scene.stars), len(pb)))
+    for x, name in enumerate(pb):
+        grid, resp = passband_grid(name)
+        spectra = star_spectra(scene, grid)  # L_sun per m
+        wts = passband_weights(wl, grid, resp, np.vstack([spectra.sum(axis=0), spectra]))  # L_sun per Hz
+        psb[x] = np.tensordot(wts[0], ratio, axes=(0, 0)) * units.L_SUN_W / box_m**2 / W_M2_HZ_PER_MJY
+        for k in range(len(scene.stars)):
+            f = float(wts[1 + k] @ np.exp(-tau[k])) * units.L_SUN_W / (4.0 * math.pi * dist_m**2) * 1e26  # Jy
+            star_mag[k, x] = -2.5 * math.log10(f / units.AB_ZERO_JY) if f > 0 else math.nan
+    with np.errstate(divide="ignore", invalid="ignore"):
+        mag = np.where(psb > 0, -2.5 * np.log10(psb * 1e6 * ARCSEC_RAD**2 / units.AB_ZERO_JY), np.nan)
+    system = scene.observer.magnitude_system
+    if system == "Vega":
+        offset = np.array([AB_MINUS_VEGA[name] for name in pb])
+        mag = mag - offset[:, None, None]
+        star_mag = star_mag - offset[None, :]
+    info = {"METHOD": method, "DISTANCE": (dist_m / units._pc_metres(), "distance to the box centre, pc"),
+            "BOXEDGE": (box_m / units._pc_metres(), "box edge, pc"),
+            "PIXSCALE": (scale_arcsec, "pixel side, arcsec"), "PSFFWHM": (scene.observer.psf_fwhm, "arcsec"),
+            "MAGSYS": (system, MAGSYS_COMMENT[system])}
+    info.update(meta or {})
+    return CalibratedSky(
+        band_names=names, band_wavelength_nm=wl, band_edges_nm=edges, surface_brightness=sb,
+        scattered=scat_psf * to_mjy, passbands=pb, passband_sb=psb, mag=mag, star_pixel=star_pixel,
+        star_flux_jy=star_flux, star_mag=star_mag, intensity_box=box_total, scattered_box=scat_psf, band_luminosity=band_lum,
+        wcs=celestial_wcs(scene, camera), pixel_scale_arcsec=scale_arcsec, pixel_solid_angle_sr=omega,
+        psf_fwhm_arcsec=float(scene.observer.psf_fwhm), method=method, meta=info, mag_system=system)
+
+
+def passband_header(hh, name: str, system: str) -> None:
+    """The cards of a passband's magnitude image: unit, filter, magnitude system and, for Vega,
+    the AB - Vega offset applied."""
+    hh["BUNIT"] = "mag/arcsec2"
+    hh["FILTER"] = (PASSBANDS[name], "speclite passband")
+    hh["MAGSYS"] = (system, MAGSYS_COMMENT[system])
+    if system == "Vega":
+        hh["ABVEGA"] = (AB_MINUS_VEGA[name], "m_AB - m_Vega subtracted (Blanton+ 2007)")
+
+
+def write_fits(path, cal: CalibratedSky, scene=None) -> None:
+    """Write ``cal`` as FITS (module docstring); ``scene`` adds its TOML to the primary header's
+    comments."""
+    from astropy.io import fits
+    from astropy.table import Table
+
+    hdr = fits.Header()
+    hdr["ORIGIN"] = "NebulaRT"
+    hdr["BUNIT"] = ""
+    for k, val in cal.meta.items():
+        hdr[k] = val
+    if scene is not None:
+        for line in scene.to_toml().splitlines():
+            hdr.add_comment(line[:72])
+    hdus = [fits.PrimaryHDU(header=hdr)]
+    wcs_hdr = cal.wcs.to_header()
+    for b, name in enumerate(cal.band_names):
+        hh = wcs_hdr.copy()
+        hh["BUNIT"] = "MJy/sr"
+        hh["BAND"] = name
+        hh["WAVELEN"] = (float(cal.band_wavelength_nm[b]), "band centre, nm")
+        hh["BANDLO"], hh["BANDHI"] = (float(cal.band_edges_nm[b, 0]), "nm"), (float(cal.band_edges_nm[b, 1]), "nm")
+        hdus.append(fits.ImageHDU(cal.surface_brightness[b].T.astype(np.float32), header=hh, name=f"SB_{name}"))
+    for x, name in enumerate(cal.passbands):
+        hh = wcs_hdr.copy()
+        passband_header(hh, name, cal.mag_system)
+        hdus.append(fits.ImageHDU(cal.mag[x].T.astype(np.float32), header=hh, name=PASSBAND_EXTENSIONS[name]))
+    world = cal.wcs.pixel_to_world_values(cal.star_pixel[:, 0], cal.star_pixel[:, 1])
+    stars = Table({"x_pixel": cal.star_pixel[:, 0] + 1.0, "y_pixel": cal.star_pixel[:, 1] + 1.0,
+                   "ra": np.atleast_1d(world[0]), "dec": np.atleast_1d(world[1])})
+    for b, name in enumerate(cal.band_names):
+        stars[f"flux_{name}"] = cal.star_flux_jy[:, b]
+        stars[f"flux_{name}"].unit = "Jy"
+    for x, name in enumerate(cal.passbands):
+        stars[f"mag_{name}"] = cal.star_mag[:, x]
+    stars["ra"].unit = stars["dec"].unit = "deg"
+    thdu = fits.table_to_hdu(stars)
+    thdu.name = "STARS"
+    hdus.append(thdu)
+    fits.HDUList(hdus).writeto(path, overwrite=True)
+
+
+def picture(cal: CalibratedSky, scene, exposure="auto", percentile: float = 99.0):
+    """(uint8 (W, H, 3) sRGB, exposure used) of the calibrated image in true colour: per band
+    the ratio to the stars' light, the band -> XYZ matrix of the dominant star, linear sRGB,
+    gamut mapping, the exposure (auto: ``percentile`` of the scattered light's largest
+    component maps to full scale; stars saturate) and the scene's ``colour.stretch``."""
+
+    m = colour_convert.band_to_xyz_matrix(cal.band_wavelength_nm, _dominant_source(scene.stars))
+    lum = cal.band_luminosity[:, None, None]
+
+    def rgb_of(img):
+        return colour_convert.gamut_map(colour_convert.xyz_to_linear_srgb(
+            np.tensordot(img / lum, m, axes=([0], [1]))))
+
+    rgb = rgb_of(cal.intensity_box)
+    if exposure == "auto":
+        exposure = colour_convert.auto_exposure(rgb_of(cal.scattered_box), percentile=percentile)
+    exposure = float(exposure)
+    return colour_convert.encode_picture(rgb, exposure, scene.colour.stretch, scene.colour.asinh_q), exposure
+
+
+def write_png(path, rgb8) -> None:
+    """An 8-bit (W, H, 3) picture as PNG, north-up as displayed (row 0 at the top)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.image
+
+    matplotlib.image.imsave(str(path), np.ascontiguousarray(np.transpose(rgb8, (1, 0, 2))[::-1]), format="png")
+
+
+def camera_for(scene, direction=(0.0, 0.0, -1.0), size: int = 256, up=(0.0, 1.0, 0.0), extent: float = 0.0):
+    """The camera of a calibrated image: centred on the box centre (the WCS reference point)."""
+
+    return Camera(direction=tuple(direction), up=tuple(up), size=(size, size), extent=extent, center=(0.5, 0.5, 0.5))
+
+
+def peel_off_sky(scene, camera, backend=None, progress=None, cancel=None, pixel_batches: bool = False):
+    """Trace ``scene`` with a peel-off image for ``camera`` and calibrate it; returns
+    (CalibratedSky, transport result). The stars' optical depths to the observer are the
+    exact march of :func:`nebula_rt.transport.line_of_sight.line_of_sight_tau`.
+
+    ``pixel_batches``: keep every batch's image (``result.peel_bin_batches``, (batches,
+    n_bands, W * H), pixel p * H + q), for the Monte Carlo error of any linear function of the
+    calibrated image (:mod:`nebula_rt.observe.image_compare`); otherwise each batch's image sum."""
+
+    check_scene(scene)
+    backend = backend or scene_backend(scene)
+    bands = scene.bands.resolve()
+    rho = generate_density(scene, backend)
+    bins = (np.arange(camera.size[0] * camera.size[1], dtype=np.int64).reshape(camera.size) if pixel_batches
+            else np.zeros(camera.size, np.int64))
+    request = TransportRequest.from_scene(scene, peel=camera, peel_bins=bins)
+    res = request.trace(rho, backend, progress=progress, cancel=cancel)
+    tau = star_tau(scene, bands, rho, camera)
+    meta = {"NPHOTON": (int(res.photons), "packets per band"), "SEED": str(request.seed)}
+    meta.update(fits_cards(res.tail_image, [b.name for b in bands]))  # the heavy-tail checks
+    cal = calibrate(scene, camera, res.peel_image, res.star_band_luminosity, tau, "peel-off", meta)
+    return cal, res
+
+
+def star_tau(scene, bands, rho, camera) -> np.ndarray:
+    """(n_stars, n_bands) optical depth from each star to the observer of ``camera`` (the exact
+    march of :func:`nebula_rt.transport.line_of_sight.line_of_sight_tau` through ``rho``)."""
+
+    sigma = np.array([scene.dust.tau * b.extinction for b in bands])[:, None, None, None] * \
+        np.asarray(rho, np.float64)[None]
+    d = camera.basis()[0]
+    return np.array([line_of_sight_tau(sigma, s.position, -d) for s in scene.stars])
+
+
+def ray_march_sky(light, camera) -> CalibratedSky:
+    """Calibrate the ray-marched sky image of a light field (:class:`nebula_rt.pipeline.LightField`;
+    the emissivity scatters isotropically per voxel, :mod:`nebula_rt.observe.sky`)."""
+
+    scene = light.scene
+    check_scene(scene)
+    bands = light.bands
+    rho = light.density.astype(np.float64)
+    sigma = np.array([scene.dust.tau * b.extinction for b in bands])[:, None, None, None] * rho[None]
+    img = sky_image(light.emissivity.astype(np.float64), sigma, camera)
+    tau = star_tau(scene, bands, rho, camera)
+    return calibrate(scene, camera, img.scattered, light.transport.star_band_luminosity, tau, "ray-march",
+                     {"NPHOTON": (int(light.transport.photons), "packets per band"),
+                      "SEED": str(scene.transport.seed)})

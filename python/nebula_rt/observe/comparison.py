@@ -1,0 +1,385 @@
+"""A run held against the user's observations: residuals and chi^2 with both errors.
+
+:func:`trace_rings` traces a scene with a peel-off image centred on its most luminous star and
+sums the scattered light, per band and per batch, over rings of projected offset: the union of
+every annulus edge of the tables, so that each table's annulus is a sum of whole rings and all
+tables share one trace. :func:`model_values` turns the ring sums into each table's statistic
+(Delta(B-V) of an annulus; the nebula/star ratio at a wavelength, interpolated between band
+centres with the hat functions of the colour conversion) and its Monte Carlo error: each
+statistic is linearised in the ring sums and the batch-means standard error taken of that
+linear combination's batch values (as :mod:`nebula_rt.observe` does).
+
+chi^2 = sum_i (d_i - m_i)^2 / (sigma_d,i^2 + sigma_m,i^2). The observation's noise and the
+run's Monte Carlo noise are independent of each other (the photons of the telescope know
+nothing of the packets' random numbers), so the variance of d - m is the sum of the two
+variances: the errors add in quadrature. Without the run's own error a short run would be held
+to the data's errors alone, and its noise read as a misfit. The model errors of different rows
+are correlated (one packet peels off into many rings and every band); chi^2 uses the diagonal,
+the usual approximation, which is exact when the model error is small beside the data's, as it
+should be in a fit (:func:`nebula_rt.observe.fit.fit_observations` reports the ratio).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Optional, Sequence
+
+import numpy as np
+
+from ..optics.colour_convert import hat_basis
+from ..density.generate import generate_density
+from ..errors import SceneError
+from .colours import (
+    REFERENCE_LABELS, _check_reference, _labels, _offsets, line_of_sight_tau, passband_weights, star_reddening)
+from .observed_tables import ObservedTable, finite_or_none
+from ..pipeline.outputs import Publication
+from ..pipeline.rgba import _dominant_source
+from .sky import Camera
+from ..transport.estimate import batch_standard_error
+from ..transport.request import TransportRequest, scene_backend
+
+#: Sky image pixels per side of the comparison's peel-off image (over 2 x the largest offset).
+DEFAULT_SIZE = 96
+
+
+@dataclass
+class RingSums:
+    """Scattered light in rings of projected offset about the star, per band and batch.
+
+    Attributes
+    ----------
+    edges : ndarray (n_rings + 1,)
+        Ring edges, box units.
+    sums : ndarray (n_bands, n_rings)
+        Summed peel-off intensity of the pixels of each ring (luminosity per box-unit area per sr).
+    batches : ndarray (M, n_bands, n_rings)
+        The same per batch (they add up to ``sums``).
+    band_luminosity : ndarray (n_bands,)
+        Stars' luminosity per band.
+    wavelength_nm : ndarray (n_bands,)
+    pixel_area : float
+        Area of one pixel, box units^2.
+    star_tau : ndarray (n_bands,)
+        Optical depth from the star to the box's edge towards the observer.
+    source : object
+        The star's spectrum (temperature, pairs or None) for the passband weights.
+    photons : int
+        Packets per band.
+    """
+
+    edges: np.ndarray
+    sums: np.ndarray
+    batches: np.ndarray
+    band_luminosity: np.ndarray
+    wavelength_nm: np.ndarray
+    pixel_area: float
+    star_tau: np.ndarray
+    source: object
+    photons: int = 0
+
+
+def ring_edges(tables: Sequence[ObservedTable]) -> np.ndarray:
+    """Sorted distinct annulus edges of all tables (box units), rounded to 1e-12 so that one edge
+    computed two ways (0.1 and (0.05 + 0.15) / 2) is one edge, not a ring of no width."""
+    e = np.concatenate([np.concatenate([t.lo, t.hi]) for t in tables])
+    return np.unique(np.round(e, 12))
+
+
+def _camera(star_position, direction, size, edges):
+
+    extent = 2.0 * float(edges[-1]) * 1.02  # the outermost ring whole inside the image
+    return Camera(direction=tuple(direction), size=(size, size), extent=extent, center=tuple(star_position))
+
+
+def trace_rings(scene, edges, *, direction=(0.0, 0.0, -1.0), size: int = DEFAULT_SIZE, backend=None,
+                progress=None, cancel=None, density=None) -> RingSums:
+    """Trace ``scene`` with a peel-off image along ``direction`` centred on its most luminous
+    star and sum it over the rings between consecutive ``edges`` (box units).
+
+    ``density`` (nx, ny, nz) skips making the density (a fit reuses it while no dust key
+    changes). The scene's error target and time limit apply (a fit refuses both: its trials
+    trace a fixed number of packets with one seed).
+    """
+
+    backend = backend or scene_backend(scene)
+    bands = scene.bands.resolve()
+    wl = np.array([b.wavelength for b in bands])
+    star = max(scene.stars, key=lambda s: s.luminosity)
+    e = np.asarray(edges, np.float64)
+    cam = _camera(star.position, direction, size, e)
+    _, u, v = cam.basis()
+    labels = _labels(_offsets(cam.origin(), cam.pixel_size, u, v, cam.size, star.position, direction), e)
+    rho = generate_density(scene, backend) if density is None else density
+    res = TransportRequest.from_scene(scene, peel=cam, peel_bins=labels).trace(rho, backend, progress=progress,
+                                                                              cancel=cancel)
+    sigma = np.array([scene.dust.tau * b.extinction for b in bands])[:, None, None, None] * \
+        np.asarray(rho, np.float64)[None]
+    tau_star = line_of_sight_tau(sigma, star.position, -np.asarray(direction, float))
+    xb = np.asarray(res.peel_bin_batches, np.float64)
+    if xb.shape[2] < len(e) - 1:  # the outermost rings hold no pixel centre (finer than a pixel)
+        xb = np.concatenate([xb, np.zeros(xb.shape[:2] + (len(e) - 1 - xb.shape[2],))], axis=2)
+    return RingSums(edges=e, sums=xb.sum(axis=0), batches=xb, band_luminosity=np.asarray(res.band_luminosity,
+                    np.float64), wavelength_nm=wl, pixel_area=cam.pixel_size ** 2, star_tau=tau_star,
+                    source=_dominant_source(scene.stars), photons=int(res.photons))
+
+
+def _rings_of(edges, lo, hi) -> np.ndarray:
+    """(n_rings,) 0/1 weights of the rings that make up the annulus [lo, hi)."""
+    i0 = int(np.searchsorted(edges, round(float(lo), 12)))
+    i1 = int(np.searchsorted(edges, round(float(hi), 12)))
+    w = np.zeros(len(edges) - 1)
+    w[i0:i1] = 1.0
+    return w
+
+
+def _batch_error(y) -> np.ndarray:
+    """Batch-means standard error of the total of per-batch values y (M, ...)."""
+
+    m = y.shape[0]
+    mean = y.mean(axis=0)
+    return batch_standard_error(y.sum(axis=0), ((y - mean) ** 2).sum(axis=0), m)
+
+
+def model_values(rings: RingSums, table: ObservedTable, reference: str = "observed"):
+    """The model's value of every row of ``table`` and its Monte Carlo error (1 sigma).
+
+    Colour rows: Delta(B-V) of the annulus against ``reference`` (the star as seen through the
+    dust in front of it, or its intrinsic light). Ratio rows: nebula flux in the annulus over
+    the star's flux (as seen, or intrinsic), at the row's wavelength: sum over the annulus of
+    the intensity times the pixel area (luminosity per sr towards the observer) over the
+    star's L_b exp(-tau_b) / (4 pi), linear between band centres. Returns (model, error).
+    """
+    _check_reference(reference)
+    wl = rings.wavelength_nm
+    L = rings.band_luminosity
+    W = np.stack([_rings_of(rings.edges, lo, hi) for lo, hi in zip(table.lo, table.hi)])  # (n, n_rings)
+    S = rings.sums @ W.T  # (n_bands, n)
+    X = np.einsum("mbr,nr->mbn", rings.batches, W)  # (M, n_bands, n)
+    if table.kind == "colour":
+        wb = passband_weights(wl, rings.source, "B")
+        wv = passband_weights(wl, rings.source, "V")
+        r = S / L[:, None]
+        fb, fv = wb @ r, wv @ r
+        ebv = star_reddening(rings.star_tau, wl, rings.source) if reference == "observed" else 0.0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            model = np.where((fb > 0) & (fv > 0), -2.5 * np.log10(fb / fv), np.nan) - ebv
+            # d Delta = -2.5 / ln 10 (sum_b wB_b dS_b / (L_b FB) - sum_b wV_b dS_b / (L_b FV))
+            c = -2.5 / math.log(10.0) * (wb[:, None] / fb[None] - wv[:, None] / fv[None]) / L[:, None]
+        y = np.einsum("bn,mbn->mn", np.nan_to_num(c), X)
+        err = np.where(np.isfinite(model), _batch_error(y), np.nan)
+        return model, err
+
+    seen = np.exp(-rings.star_tau) if reference == "observed" else np.ones(len(wl))
+    h = hat_basis(wl, table.x)  # (n_bands, n)
+    c = 4.0 * math.pi * rings.pixel_area * h / (L * seen)[:, None]
+    model = (c * S).sum(axis=0)
+    y = np.einsum("bn,mbn->mn", c, X)
+    return model, _batch_error(y)
+
+
+@dataclass
+class TableResult:
+    """One table against the model.
+
+    ``raw_model_err`` is the Monte Carlo error before any free scale (what ``model_errors`` of
+    :func:`compare_tables` takes).
+
+    Attributes
+    ----------
+    table : ObservedTable
+    model, model_err : ndarray (n,)
+        The model's value per row (scaled by ``scale`` for a free-normalised ratio table) and its
+        Monte Carlo error.
+    residual : ndarray (n,)
+        data - model.
+    pull : ndarray (n,)
+        residual / sqrt(error^2 + model_err^2).
+    chi2 : float
+    dof : int
+        Rows less the fitted scale factors (one per annulus of a free-normalised ratio table).
+    scale : ndarray or None
+        The fitted factor per annulus (free normalisation).
+    """
+
+    table: ObservedTable
+    model: np.ndarray
+    model_err: np.ndarray
+    residual: np.ndarray
+    pull: np.ndarray
+    chi2: float
+    dof: int
+    scale: Optional[np.ndarray] = None
+    raw_model_err: Optional[np.ndarray] = None
+
+    def to_dict(self) -> dict:
+        t = self.table
+
+        def lst(a):
+            return [finite_or_none(x) for x in a]
+
+        d = {"table": t.path, "kind": t.kind, "x": lst(t.x), "x_unit": "box units" if t.kind == "colour" else "nm",
+             "offset_lo": lst(t.lo), "offset_hi": lst(t.hi), "data": lst(t.value), "data_err": lst(t.error),
+             "model": lst(self.model), "model_err": lst(self.model_err), "residual": lst(self.residual),
+             "pull": lst(self.pull), "chi2": finite_or_none(self.chi2), "dof": self.dof}
+        if t.kind == "ratio":
+            d["normalisation"] = t.normalisation
+        if self.scale is not None:
+            d["scale"] = lst(self.scale)
+        return d
+
+
+@dataclass
+class Comparison:
+    """A run against one or more tables."""
+
+    results: list = field(default_factory=list)
+    reference: str = "observed"
+    rings: Optional[RingSums] = None
+
+    @property
+    def chi2(self) -> float:
+        return float(sum(r.chi2 for r in self.results))
+
+    @property
+    def dof(self) -> int:
+        return int(sum(r.dof for r in self.results))
+
+    @property
+    def n(self) -> int:
+        return int(sum(len(r.table) for r in self.results))
+
+    def model_error_ratio(self) -> float:
+        """Largest model/data error ratio over all rows: the diagonal chi^2 (and a fit) wants it small."""
+        return float(max(np.nanmax(r.model_err / r.table.error) for r in self.results))
+
+    def to_dict(self) -> dict:
+        from scipy.stats import chi2 as chi2_dist
+
+        p = finite_or_none(chi2_dist.sf(self.chi2, self.dof)) if self.dof > 0 else None
+        return {"reference": self.reference, "chi2": finite_or_none(self.chi2), "dof": self.dof,
+                "reduced_chi2": finite_or_none(self.chi2 / self.dof) if self.dof > 0 else None, "p_value": p,
+                "max_model_to_data_error": finite_or_none(self.model_error_ratio()),
+                "tables": [r.to_dict() for r in self.results]}
+
+
+def compare_tables(rings: RingSums, tables: Sequence[ObservedTable], reference: str = "observed",
+                   model_errors: Optional[Sequence[np.ndarray]] = None) -> Comparison:
+    """Residuals and chi^2 of ``tables`` against the ring sums of one run (see the module doc).
+
+    ``model_errors`` (one array per table, before any free scale) replaces the run's own Monte
+    Carlo errors: a fit holds them fixed while it moves the parameters (see
+    :mod:`nebula_rt.observe.fit`).
+
+    A free-normalised ratio table's model is scaled per annulus by s = sum(d m / v) / sum(m^2 / v)
+    with v = sigma_d^2 + (s sigma_m)^2 (the weighted least-squares factor, iterated twice from
+    v = sigma_d^2), and its degrees of freedom are the rows less one per annulus.
+    """
+    out = Comparison(reference=reference, rings=rings)
+    for j, t in enumerate(tables):
+        model, merr = model_values(rings, t, reference)
+        if model_errors is not None:
+            merr = np.asarray(model_errors[j], np.float64)
+        scale = None
+        raw_err = merr
+        dof = len(t)
+        if t.kind == "ratio" and t.normalisation == "free":
+            idx = t.annulus_index()
+            scale = np.ones(idx.max() + 1)
+            for k in range(len(scale)):
+                rows = idx == k
+                s = 1.0
+                for it in range(3):
+                    v = t.error[rows] ** 2 + (s * merr[rows]) ** 2 * (it > 0)
+                    den = np.sum(model[rows] ** 2 / v)
+                    s = float(np.sum(t.value[rows] * model[rows] / v) / den) if den > 0 else np.nan
+                scale[k] = s
+            model, merr = model * scale[idx], merr * np.abs(scale[idx])
+            dof -= len(scale)
+        res = t.value - model
+        pull = res / np.sqrt(t.error ** 2 + merr ** 2)
+        chi2 = float(np.sum(pull ** 2)) if np.all(np.isfinite(pull)) else math.inf
+        out.results.append(TableResult(table=t, model=model, model_err=merr, residual=res, pull=pull, chi2=chi2,
+                                       dof=dof, scale=scale, raw_model_err=raw_err))
+    return out
+
+
+def compare(scene, tables: Sequence[ObservedTable], *, direction=(0.0, 0.0, -1.0), size: int = DEFAULT_SIZE,
+            reference: str = "observed", backend=None, progress=None, cancel=None) -> Comparison:
+    """Trace ``scene`` once and hold it against ``tables`` (:func:`compare_tables`)."""
+    _check_reference(reference)
+    check_tables_against_scene(scene, tables)
+    rings = trace_rings(scene, ring_edges(tables), direction=direction, size=size, backend=backend,
+                        progress=progress, cancel=cancel)
+    return compare_tables(rings, tables, reference)
+
+
+def check_tables_against_scene(scene, tables: Sequence[ObservedTable]) -> None:
+    """What the scene must have for the tables: bands that cover each ratio table's wavelengths
+    (no extrapolation) and, for colours, the B and V passbands; at least one table."""
+
+    if not tables:
+        raise SceneError("tables", [], "give at least one table of observations")
+    wl = sorted(b.wavelength for b in scene.bands.resolve())
+    for t in tables:
+        where = f"table {t.path!r}"
+        if t.kind == "ratio":
+            out = (t.x < wl[0] - 1e-9) | (t.x > wl[-1] + 1e-9)
+            if out.any():
+                i = int(np.flatnonzero(out)[0])
+                raise SceneError(f"{where}, column 'wavelength', row {i + 1}", float(t.x[i]),
+                                 f"must lie within the scene's bands, {wl[0]:g} to {wl[-1]:g} nm (the model is "
+                                 "interpolated between band centres, not extrapolated); choose other bands "
+                                 "(e.g. bands.preset = 'spectral-8')")
+        elif len(wl) < 2 or wl[0] > 480.0 or wl[-1] < 520.0:
+            raise SceneError("bands", [round(w, 1) for w in wl],
+                             f"{where} holds Delta(B-V): the scene needs at least 2 bands, one at or below 480 nm "
+                             "and one at or above 520 nm (e.g. bands.preset = 'spectral-8')")
+
+
+def plot(comp: Comparison, path, title: str = "") -> None:
+    """Model, data and residuals side by side, one row per table: left the data (1-sigma
+    errors) with the model (its Monte Carlo error as a band), right the residuals in units of
+    the combined error. Written as a PNG through a temporary file."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = len(comp.results)
+    fig, axes = plt.subplots(n, 2, figsize=(11, 3.6 * n), squeeze=False)
+    ref = REFERENCE_LABELS[comp.reference]
+    for (a1, a2), r in zip(axes, comp.results):
+        t = r.table
+        order = np.argsort(t.x)
+        x = t.x[order]
+        if t.kind == "colour":
+            xlabel, ylabel = "projected offset from the star (box units)", f"Delta(B-V) nebula - {ref} (mag)"
+        else:
+            xlabel = "wavelength (nm)"
+            ylabel = "nebula / star flux" + (" (model scaled per annulus)" if t.normalisation == "free" else "")
+        a1.errorbar(x, t.value[order], yerr=t.error[order], fmt="o", color="C3", capsize=3, label="data (1 sigma)")
+        m, me = r.model[order], r.model_err[order]
+        a1.plot(x, m, "-", color="C0", label="model")
+        a1.fill_between(x, m - me, m + me, color="C0", alpha=0.25, label="model Monte Carlo error")
+        a1.set_xlabel(xlabel)
+        a1.set_ylabel(ylabel)
+        a1.set_title(f"{t.path}: chi2 = {r.chi2:.2f} for {r.dof} dof", fontsize=9)
+        a1.legend(fontsize=7)
+        a1.grid(alpha=0.3)
+        a2.axhline(0.0, color="k", lw=0.8)
+        a2.axhspan(-1, 1, color="C2", alpha=0.15, label="+-1 combined sigma")
+        a2.plot(x, r.pull[order], "o-", color="C3", label="(data - model) / sqrt(sigma_d^2 + sigma_m^2)")
+        a2.set_xlabel(xlabel)
+        a2.set_ylabel("residual / combined error")
+        a2.legend(fontsize=7)
+        a2.grid(alpha=0.3)
+    fig.suptitle(title or f"chi2 = {comp.chi2:.2f} for {comp.dof} degrees of freedom", fontsize=10)
+    fig.tight_layout()
+
+    try:
+        with Publication() as pub:
+            fig.savefig(pub.stage(path), dpi=100)
+            pub.publish()
+    finally:
+        plt.close(fig)

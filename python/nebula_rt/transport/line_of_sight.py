@@ -1,0 +1,60 @@
+"""The optical depth along a straight line through the voxel grid, exactly.
+
+Pure NumPy, below every other module: the transport (``transport.method = "auto"`` measures
+the scene's optical depth with it), the observation comparisons (:mod:`nebula_rt.observe`, the
+star seen through the dust) and the calibrated sky images (:mod:`nebula_rt.observe.calibrate`) use it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["line_of_sight_tau"]
+
+
+def line_of_sight_tau(sigma, start, toward) -> np.ndarray:
+    """Optical depth per band from ``start`` along ``toward`` to the edge of the box.
+
+    Exact for the piecewise-constant medium: the ray's crossings of every voxel face are
+    computed, and each piece between two consecutive crossings lies in one voxel (the one
+    holding its midpoint) and adds sigma times its length.
+
+    Parameters
+    ----------
+    sigma : array_like (n_bands, nx, ny, nz)
+        Extinction per box unit of each voxel (voxel [i, j, k] spans [i/nx, (i+1)/nx) x ...).
+    start : (3,) box units
+        Where the ray starts (inside or outside the box).
+    toward : (3,)
+        Direction of the ray (any length); towards the observer is ``-camera direction``.
+
+    Returns
+    -------
+    ndarray (n_bands,)
+    """
+    sig = np.asarray(sigma, np.float64)
+    if sig.ndim == 3:
+        sig = sig[None]
+    shape = np.array(sig.shape[1:])
+    p = np.asarray(start, np.float64)
+    o = np.asarray(toward, np.float64)
+    o = o / np.linalg.norm(o)
+    t_lo, t_hi = 0.0, np.inf
+    for a in range(3):
+        if o[a] == 0.0:
+            if not 0.0 <= p[a] <= 1.0:
+                return np.zeros(sig.shape[0])
+            continue
+        t0, t1 = -p[a] / o[a], (1.0 - p[a]) / o[a]
+        t_lo, t_hi = max(t_lo, min(t0, t1)), min(t_hi, max(t0, t1))
+    if not t_hi > t_lo:
+        return np.zeros(sig.shape[0])
+    ts = [np.array([t_lo, t_hi])]
+    for a in range(3):
+        if o[a] != 0.0:
+            t = (np.arange(shape[a] + 1) / shape[a] - p[a]) / o[a]
+            ts.append(t[(t > t_lo) & (t < t_hi)])
+    ts = np.unique(np.concatenate(ts))
+    mid = p[None, :] + (0.5 * (ts[1:] + ts[:-1]))[:, None] * o[None, :]
+    idx = np.clip(np.floor(mid * shape[None, :]).astype(np.int64), 0, shape - 1)
+    return sig[:, idx[:, 0], idx[:, 1], idx[:, 2]] @ np.diff(ts)

@@ -1,0 +1,509 @@
+"""Photon transport stage: batches of packets on a backend -> mean intensity per band.
+
+Normalisation
+-------------
+Each band b of total luminosity L_b is traced with N packets of equal energy q_b ~= L_b / N
+(analog transport: a packet is scattered with probability albedo, else absorbed, so every
+packet keeps its energy). The track-length estimator of the mean intensity of voxel v is
+
+    J_v = q_b * (sum of path lengths in v) / (4 pi V_v)
+
+(box units: J is luminosity per box-unit area per steradian), so a point source in vacuum
+gives J = L / (16 pi^2 r^2). The collision estimator replaces the path length by
+(number of interactions in v) / sigma_v, sigma_v the extinction per box unit.
+
+Exact energy bookkeeping
+------------------------
+Packet counts are exact integers. q_b is L_b / N rounded to 53 - bit_length(N) significant
+bits, so every energy count * q_b and every sum of them is exact in float64:
+emitted = absorbed + escaped + terminated holds bit for bit. The rounding changes q_b by
+less than 2^-(52 - bit_length(N)) relative (2^-31 for 2.1M packets).
+
+Error estimate
+--------------
+Packets are traced in M batches of (nearly) equal size; for each cell (voxel and band) the
+device keeps the sum of the batch totals X_k (float64) and their centred sum of squares
+Q = sum (X_k - mean)^2 (Welford's update as each batch is folded, float32), and the standard
+error of the total is sqrt(M / (M - 1) * Q) (batch means). ``rel_error`` = SE / total, and
+1.0 where nothing was tallied. The batch slots are folded as soon as a launch is done, so the
+memory is the sums and at most a launch's slots, never one slot per batch."""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Callable, Optional
+
+import numpy as np
+
+from ..backends import Backend
+from ..errors import AccumulatorOverflowError, CancelledError, TimeLimitError
+from ..backends.parallel import Serial, device_reducer, share
+from .finish import DeviceSums
+from .tails import (
+    IMAGE_ERROR_LIMIT, J_ERROR_LIMIT, TAIL_BINS, check_histograms, class_cells)
+
+from .plan import BIASED_TALLY_NAMES, MIN_BATCHES, Tallies, TransportPlan, WEIGHT_UNIT, plan_transport
+from .result import TransportResult, exact_packet_energy, terminated_bias, warn_if_heavy_tailed, warn_if_terminated
+from .estimate import _PeelSums, _current_error, _j_scale, light_from_sums
+
+
+#: A launch lasts at most about this long (sized by the speed measured on the run's earlier
+#: launches), so that a cancel (Ctrl-C) or a time limit is honoured within it; a group of
+#: batches is then traced in several launches, which gives the same bits (absolute packet
+#: indices, integer deposits).
+LAUNCH_SECONDS = 0.25
+
+
+class _Launcher:
+    """Traces a group of batches in launches of at most about ``LAUNCH_SECONDS``, polling the
+    cancel callback before each and the deadline between them."""
+
+    def __init__(self, session, backend, cancel, deadline: float, progress_of=None):
+        self.session, self.cancel, self.deadline = session, cancel, deadline
+        self.progress_of = progress_of  # () -> (packets per band done, total), for messages
+        self.first = max(1, int(getattr(backend, "first_launch_packets", 1 << 21)))
+        self.rate = None  # packets (all bands) per second of the latest launch
+        self.kernel_s = 0.0
+
+    def poll(self) -> None:
+        if self.cancel is not None and self.cancel():
+            if self.progress_of is None:
+                raise CancelledError("transport cancelled")
+            done, total = self.progress_of()
+            raise CancelledError(f"transport cancelled after {done:,} of {total:,} packets per band")
+
+    def run(self, start: int, count: int, base: int, extra: int, first_batch: int, n_slots: int,
+            bands: tuple[int, int], on_progress=None):
+        """Trace packets [start, start + count) of ``bands`` (first band, number) into slots
+        0..n_slots-1; ``on_progress(traced)`` after each launch but the last (a group traced in
+        several launches reports as it goes).
+
+        Returns (tallies, overflow, traced): the group's tallies and overflow flags so far and
+        the packets per band traced from ``start`` (less than ``count`` only when the deadline
+        passed between two launches).
+        """
+        nb = bands[1]
+        traced = 0
+        tallies = overflow = None
+        while traced < count:
+            self.poll()
+            if traced and time.perf_counter() >= self.deadline:
+                # finish the packets still in flight (transport by regions), adding none
+                tallies, overflow = self._launch(start + traced, 0, base, extra, first_batch, n_slots,
+                                                 False, bands)
+                break
+            chunk = max(1, min(count - traced, self._budget(nb) // nb))
+            tallies, overflow = self._launch(start + traced, chunk, base, extra, first_batch, n_slots,
+                                             traced == 0, bands, drain=traced + chunk >= count)
+            traced += chunk
+            if on_progress is not None and traced < count:
+                on_progress(traced)
+        self.poll()  # a cancel that came during the last launch
+        return tallies, overflow, traced
+
+    def _budget(self, nb: int) -> int:
+        """Packets (all bands) of the next launch: the first launch's, then what the measured
+        speed traces in ``LAUNCH_SECONDS``."""
+        return self.first if self.rate is None else max(nb, int(self.rate * LAUNCH_SECONDS))
+
+    def _launch(self, start, chunk, base, extra, first_batch, n_slots, fresh, bands, drain=True):
+        """One launch, timed (its speed sizes the next); ``drain`` False: not the group's last
+        (:meth:`TransportSession.run_group`)."""
+        tk = time.perf_counter()
+        out = self.session.run_group(start, chunk, base, extra, first_batch, n_slots, fresh=fresh, bands=bands,
+                                     drain=drain)
+        dt = time.perf_counter() - tk
+        self.kernel_s += dt
+        if chunk:
+            self.rate = chunk * bands[1] / max(dt, 1e-6)
+        return out
+
+    def run_together(self, comm, start: int, count: int, base: int, extra: int, first_batch: int,
+                     n_slots: int, bands: tuple[int, int], cancel, on_progress=None):
+        """With several ranks: trace this rank's ``count`` packets of a group in as many
+        launches as rank 0 needs for its share (each about ``LAUNCH_SECONDS``), every rank the
+        same number, and check after each launch whether any rank was cancelled (then all
+        raise :class:`CancelledError`). Returns (tallies, overflow): ``count`` may be 0."""
+        nb = bands[1]
+        launches = max(1, -(-count * nb // max(self._budget(nb), 1))) if comm.rank == 0 else None
+        launches = int(comm.bcast(launches))
+        tallies = overflow = None
+        traced = 0
+        for i in range(launches):
+            chunk = count * (i + 1) // launches - count * i // launches
+            if chunk:
+                tallies, overflow = self._launch(start + traced, chunk, base, extra, first_batch, n_slots,
+                                                 traced == 0, bands, drain=i + 1 == launches)
+                traced += chunk
+                if on_progress is not None and i + 1 < launches:
+                    on_progress(traced * comm.size)
+            if comm.allreduce_max(1.0 if cancel is not None and cancel() else 0.0) > 0:
+                raise CancelledError("transport cancelled")
+        if tallies is None:
+            tallies, overflow = self.session.empty_group(n_slots, bands)
+        return tallies, overflow
+
+
+
+def run_transport(plan: TransportPlan, backend: Backend, *, progress=None, cancel=None,
+                  started: Optional[float] = None, comm=None) -> Tallies:
+    """The tracing stage: trace the plan's batches, folding each launch's slots into the
+    device sums, until every batch is in, the error target is met or the time limit
+    (counted from ``started``) comes. Returns the :class:`Tallies`; its session stays open.
+
+    ``comm`` (:mod:`nebula_rt.backends.parallel`) with several ranks: each rank traces its share of
+    every group's packets, the ranks' slots and tallies are added before each fold, and the
+    decisions to stop (time limit, cancel: any rank's) are made together between groups, so
+    every rank folds the one-rank run's sums."""
+
+    comm = comm if comm is not None else Serial()
+    distributed = comm.size > 1
+    if comm.rank != 0:
+        progress = None
+    t0 = time.perf_counter() if started is None else started
+    setup, launches = plan.setup, plan.launches
+    shape, nb, photons = plan.shape, plan.n_bands, plan.photons
+    batches = launches.batches
+    base, extra = batches.base, batches.extra
+    slots, groups = launches.slots, launches.band_groups  # groups: bands traced together
+    targeted = plan.target_error > 0.0
+    track_scale = setup.track_scale
+    peel_sums = None if plan.peel is None else _PeelSums(nb, plan.peel.size, plan.peel_bins)
+    # python ints: exact whatever the photon count (and 128-bit weight sums)
+    counts = np.zeros((nb, len(BIASED_TALLY_NAMES) if setup.biased else 4), dtype=object)
+    session = backend.transport_session(setup, slots, launches.bands_per_launch)
+    out = Tallies(session=session, counts=np.zeros((nb, 4), np.int64), folded=np.zeros(nb, np.int64),
+                  band_done=np.zeros(nb, np.int64), peel_sums=peel_sums, device_bytes=session.device_bytes(),
+                  setup_s=time.perf_counter() - t0,
+                  tail_hist=np.zeros((nb, setup.tail_hists, TAIL_BINS), np.uint64))
+    folded, band_done = out.folded, out.band_done
+    # several ranks on GPUs: the slots are added on the device (collective: every rank)
+    reducer = device_reducer(comm, backend) if distributed else None
+    if distributed:
+        mapped = reducer is None and backend.map_host(session.d_acc, 1) is not None
+        out.reduce_path = reducer.kind if reducer is not None else ("mapped" if mapped else "copied")
+    deadline = t0 + plan.time_limit if plan.time_limit > 0 else math.inf
+    done = 0  # packets per band traced (all bands)
+    # several ranks: no rank stops on its own within a group (the others would wait for it)
+    launcher = _Launcher(session, backend, None if distributed else cancel,
+                         math.inf if distributed else deadline, lambda: (done, photons))
+
+    def trace_group(start, count, first_batch, n, group, on_progress=None, base_=None, extra_=None):
+        """Trace a group (this rank's share of it) and, with several ranks, add the ranks'."""
+        b_, e_ = (base, extra) if base_ is None else (base_, extra_)
+        if not distributed:
+            return launcher.run(start, count, b_, e_, first_batch, n, group, on_progress)
+        lo, mine = share(start, count, comm)
+        tallies, overflow = launcher.run_together(comm, lo, mine, b_, e_, first_batch, n, group, cancel,
+                                                  on_progress)
+        tr = time.perf_counter()
+        tallies, overflow = session.reduce_group(comm, n, group, tallies, overflow, reducer)
+        out.reduce_s += time.perf_counter() - tr
+        return tallies, overflow, count
+
+    def stop_together() -> bool:
+        """With several ranks: whether any rank was cancelled (all raise) or rank 0's clock
+        passed the time limit (all stop), decided between groups."""
+        if not distributed:
+            return time.perf_counter() >= deadline
+        if comm.allreduce_max(1.0 if cancel is not None and cancel() else 0.0) > 0:
+            raise CancelledError(f"transport cancelled after {done:,} of {photons:,} packets per band")
+        return bool(comm.bcast(time.perf_counter() >= deadline))
+    next_check = 0  # packets per band after which the error is checked next (targeted runs)
+    redo: list[tuple[int, int, tuple[int, int]]] = []
+
+    def take(tallies, overflow, images, ranges, group):
+        """Fold the finished batches ``ranges`` [(start, count)] of a launch's slots (bands
+        ``group``) into the counts."""
+        b0, nlb = group
+        for k, (b_start, b_count) in enumerate(ranges):
+            if overflow[k]:
+                redo.append((b_start, b_count, group))
+                continue
+            if images is not None:
+                peel_sums.add(images[k], b0)
+            folded[b0:b0 + nlb] += 1
+            counts[b0:b0 + nlb] += session.counts_of(tallies[k])
+            if setup.tail_hists:
+                out.tail_hist[b0:b0 + nlb] += tallies[k][:, setup.tally_base:].reshape(nlb, setup.tail_hists, TAIL_BINS)
+            band_done[b0:b0 + nlb] += b_count
+
+    def fold_group(group, n, tallies, overflow, ranges):
+        """Fold a group's first ``n`` slots on the device and its tallies on the host."""
+        session.fold(n, group, int(folded[group[0]]), packets=sum(c for _, c in ranges))
+        images = session.take_images(n, group)[:len(ranges)] if plan.peel is not None else None
+        take(tallies, overflow, images, ranges, group)
+
+    try:
+        # batches in groups of consecutive ones, each group's bands traced in one or more
+        # launches and folded before the next group's
+        first = 0
+        while first < len(batches):
+            n = min(slots, len(batches) - first)
+            start = batches.start(first)
+            count = batches.start(first + n) - start
+            cut = None  # packets of the group every band finished, when the time limit came
+            for gi, group in enumerate(groups):
+                tallies, overflow, traced = trace_group(
+                    start, count, first, n, group,
+                    None if progress is None else (lambda k, gi=gi: progress(done + (gi * count + k) // len(groups), photons)))
+                if traced < count:  # the time limit came: keep the batches every band finished
+                    # earlier band groups traced all n; they must end where this one does
+                    finished = batches.batches_within(first, start + traced) if gi == 0 else 0
+                    fold_group(group, finished, tallies, overflow, batches[first:first + finished])
+                    cut = batches.start(first + finished) - start
+                    break
+                fold_group(group, n, tallies, overflow, batches[first:first + n])
+            if cut is not None:
+                if cut == 0 and len(groups) > 1:
+                    raise TimeLimitError(
+                        f"transport.time_limit = {plan.time_limit!r}: the bands are traced one group after "
+                        "another on this grid, and the time limit came before every band had finished a "
+                        "batch; raise it or lower transport.batch_size")
+                redo.clear()  # no time left to re-trace
+                break
+            done += count
+            if progress is not None:
+                progress(done, photons)
+            first += n
+            if first >= len(batches) or stop_together():
+                break
+            if targeted and int(folded.min()) >= MIN_BATCHES and done >= next_check:
+                out.achieved_error = _current_error(backend, session.device_arrays(), shape, folded,
+                                                    plan.estimator, plan.band_luminosity, done,
+                                                    track_scale * setup.fold_scale, plan.nvox_inv,
+                                                    plan.sigma_scale, plan.albedo,
+                                                    setup.collision_scale * setup.fold_scale)
+                if out.achieved_error <= plan.target_error:
+                    break
+                # the error falls as 1/sqrt(N): check again near where it should reach the
+                # target (never before 10 % more packets), so the checks cost O(log N)
+                predicted = done * (out.achieved_error / plan.target_error) ** 2
+                next_check = max(int(done * 1.1), int(0.9 * predicted))
+        # A batch whose fixed-point cell would have passed 2^63 was not folded. Same packets,
+        # same random numbers: tracing it in two halves gives the same integer deposits with
+        # more headroom each (each half then counts as a batch of the error estimate).
+        if redo and setup.packet_sq:  # packet_scales keeps every cell below the limit
+            raise AccumulatorOverflowError("a voxel tally of the error estimate by packets reached 2^63; "
+                                           'set transport.error_estimate = "batches"')
+        while redo:
+            b_start, b_count, group = redo.pop()
+            if b_count == 1:
+                raise AccumulatorOverflowError(
+                    "a single packet overflowed a 64-bit fixed-point voxel tally; "
+                    "reduce dust.tau or transport.max_scatterings"
+                )
+            half = b_count // 2
+            for h_start, h_count in ((b_start, half), (b_start + half, b_count - half)):
+                # one batch covering the whole range: base 2^62 puts every packet in batch 0
+                tallies, overflow, traced = trace_group(h_start, h_count, 0, 1, group, None, 1 << 62, 0)
+                if traced < h_count:  # the time limit came: what is folded is the result
+                    redo.clear()
+                    break
+                fold_group(group, 1, tallies, overflow, [(h_start, h_count)])
+        if out.photons == 0:
+            raise TimeLimitError(
+                f"transport.time_limit = {plan.time_limit!r}: no batch of {base} packets per band "
+                "finished within the time limit; raise it or lower transport.batch_size"
+            )
+    except BaseException:
+        session.close()
+        raise
+    out.counts = counts if setup.biased else np.array(counts.tolist(), dtype=np.int64)
+    out.kernel_s = launcher.kernel_s
+    return out
+
+
+def estimate_light(plan: TransportPlan, tallies: Tallies, backend: Backend, *, on_device: bool = False) -> TransportResult:
+    """The estimate stage: J and its error (or the device sums, ``on_device``), the packet
+    energies from the packets folded, the peel-off image and the error reached, from a
+    plan's tallies (whose session must still be open)."""
+    session, folded, band_done = tallies.session, tallies.folded, tallies.band_done
+    shape, nb, estimator = plan.shape, plan.n_bands, plan.estimator
+    photons = tallies.photons
+    # per band: a band whose overflowed batch the time limit left unfinished has fewer
+    q = np.array([exact_packet_energy(L, int(n)) for L, n in zip(plan.band_luminosity, band_done)])
+    fs = plan.setup.fold_scale  # statistics units per cell unit
+    if plan.setup.packet_sq:  # the error estimate by packets: batches of one packet
+        folded = band_done.copy()
+    j_scale = _j_scale(q, estimator, plan.setup.track_scale * fs, plan.nvox_inv, plan.setup.collision_scale * fs)
+    peel_image = peel_error = peel_groups = None
+    if plan.peel is not None:  # packet energy x (phase x attenuation) per pixel area
+        peel_image, peel_error, peel_groups = tallies.peel_sums.finish(
+            q / (plan.setup.peel_scale * plan.peel.pixel_size**2))
+    achieved = float("nan")
+    if plan.target_error > 0.0:
+        achieved = _current_error(backend, session.device_arrays(), shape, folded, estimator, plan.band_luminosity,
+                                  photons, plan.setup.track_scale * fs, plan.nvox_inv, plan.sigma_scale,
+                                  plan.albedo, plan.setup.collision_scale * fs)
+        # the stopping rule uses the statistical error alone (more packets do not shrink the
+        # bias); the error reported adds the terminated packets' bias bound
+        achieved = math.hypot(achieved, float(np.max(terminated_bias(tallies.counts))))
+    has_image = plan.setup.peel is not None
+    present = np.ones((nb, plan.setup.tail_hists), bool)
+    if plan.setup.tail_classes:  # a depth class the grid does not reach has nothing to check
+        present[:, int(has_image):] = class_cells(plan.setup.window, plan.setup.tail_edges) > 0
+    limits = [IMAGE_ERROR_LIMIT] * int(has_image) + [J_ERROR_LIMIT] * plan.setup.tail_classes
+    checks = check_histograms(tallies.tail_hist, band_done, limits, present) if tallies.tail_hist is not None else None
+    tail_image = [row[0] for row in checks] if checks is not None and has_image else None
+    tail_j = ([row[int(has_image):] for row in checks] if checks is not None and plan.setup.tail_classes
+              else None)
+    if on_device:
+        s1, s2, d_rho = session.release_sums()
+        device_sums = DeviceSums(backend, shape, nb, s1, s2, d_rho)
+        J = rel = None
+    else:
+        device_sums = None
+        s1, s2 = session.sums()
+        J, rel = light_from_sums(s1, s2, folded, estimator, j_scale, plan.sigma_scale, plan.setup.density)
+    return TransportResult(
+        J=J,
+        rel_error=rel,
+        counts=tallies.counts,
+        packet_energy=q,
+        band_luminosity=plan.band_luminosity,
+        star_band_luminosity=plan.star_band_luminosity,
+        photons=photons,
+        batches=int(folded.min()),
+        band_batches=folded,
+        estimator=estimator,
+        raw_sum=None if on_device else s1,
+        raw_m2=None if on_device else s2,
+        j_scale=j_scale,
+        sigma_scale=plan.sigma_scale,
+        device_sums=device_sums,
+        achieved_error=achieved,
+        photons_budget=plan.photons,
+        device_bytes=tallies.device_bytes,
+        peel_image=peel_image,
+        peel_error=peel_error,
+        peel_bin_batches=peel_groups,
+        device=backend.device_name,
+        timings={"setup_s": tallies.setup_s, "kernel_s": tallies.kernel_s, "reduce_s": tallies.reduce_s},
+        reduce_path=tallies.reduce_path,
+        method="biased" if plan.setup.biased else "analog",
+        importance=plan.setup.importance if plan.setup.biased else "",
+        error_estimate="packets" if plan.setup.packet_sq else "batches",
+        weight_unit=WEIGHT_UNIT if plan.setup.biased else 1.0,
+        tail_image=tail_image,
+        tail_j=tail_j,
+        tail_hist=tallies.tail_hist,
+    )
+
+
+def trace(
+    density: np.ndarray,
+    bands,
+    stars,
+    *,
+    tau: float,
+    photons: int,
+    estimator: str = "track-length",
+    max_scatterings: int = 1000,
+    seed: int = 1,
+    batch_size: int = 0,
+    backend: Backend,
+    progress: Optional[Callable[[int, int], None]] = None,
+    cancel: Optional[Callable[[], bool]] = None,
+    _acc_limit_bits: int = 63,
+    on_device: bool = False,
+    target_error: float = 0.0,
+    time_limit: float = 0.0,
+    peel=None,
+    peel_bins=None,
+    comm=None,
+    _checked_adds: bool = False,
+    method: str = "analog",
+    error_estimate: str = "batches",
+    importance: str = "auto",
+) -> TransportResult:
+    """Trace ``photons`` packets per band through ``density`` and estimate J.
+
+    Parameters
+    ----------
+    density : ndarray (nx, ny, nz)
+        Dust density per voxel (>= 0).
+    bands : sequence of nebula_rt.optics.bands.Band
+        Band optical properties (extinction relative to the reference band, albedo, g).
+    stars : sequence of nebula_rt.scene.Star
+        Positions (box units), luminosities, optional temperatures.
+    tau : float
+        Optical depth across one box edge at density 1 in the reference band.
+    photons : int
+        Packets per band.
+    estimator : {"track-length", "collision-filter"}
+        Which tally the kernel accumulates (the collision estimate is unfiltered here).
+    progress : callable(done, total), optional
+        Called after every group of batches (and after each launch of a group traced in
+        several) with the packets per band done so far.
+    cancel : callable() -> bool, optional
+        Polled before every launch (launches last at most ``LAUNCH_SECONDS``) and after the
+        last; True raises :class:`~nebula_rt.errors.CancelledError`.
+    target_error : float
+        0: trace ``photons`` packets. In (0, 1): trace batch after batch (the plan is made for
+        ``photons``, now a budget) until :func:`lit_region_error` is at most this, checked once
+        ``MIN_BATCHES`` batches are in and then where the 1/sqrt(N) fall of the error predicts
+        the target (O(log N) checks); ``result.photons`` is what was used
+        and ``result.achieved_error`` the error reached, sqrt(statistical^2 + bias^2) with the
+        bias bound of terminated packets (:func:`terminated_bias`), which more packets do not
+        shrink and so does not enter the stopping rule.
+    time_limit : float
+        Seconds; > 0 stops any run within one launch of this long, keeping the finished
+        batches (the photon count then depends on the machine's speed).
+    peel : nebula_rt.observe.sky.Camera, optional
+        Also make a peel-off image of the scattered light seen by this camera (the phase
+        function at every scattering towards the observer, attenuated to the box's edge):
+        ``result.peel_image``, luminosity per box-unit area per steradian, (n_bands, W, H),
+        the layout of :class:`nebula_rt.observe.sky.SkyImage`; ``result.peel_error`` its batch-means
+        standard error per pixel.
+    peel_bins : int ndarray (W, H), optional
+        With ``peel``: a pixel group per pixel (-1: none); ``result.peel_bin_batches`` then
+        holds every batch's image summed over each group, for the errors of statistics of
+        several pixels (an annulus's sum: the pixels of a batch are correlated, one packet
+        peeling off into many of them).
+    on_device : bool
+        Leave the sums on the device (``result.device_sums``, for
+        :func:`nebula_rt.transport.finish.finish`) instead of computing J and rel_error on the host.
+    comm : communicator, optional
+        Trace with several processes (:func:`nebula_rt.backends.parallel.world` under ``mpiexec``):
+        every rank calls ``trace`` with the same arguments, traces a share of the packets, and
+        gets the one-rank result, bit for bit.
+    method : {"analog", "biased", "auto"}
+        Analog packets, or weighted ones for optically thick dust (forced scattering,
+        composite path-length biasing, Russian roulette; kernels/transport.cl, docs/physics.md),
+        or the one measured best for this run (:func:`resolve_method`); ``result.method`` says
+        which ran.
+    error_estimate : {"batches", "packets", "auto"}
+        How the error of J is estimated (:func:`resolve_error_estimate`): the spread of batch
+        totals, or every packet's contribution per voxel and its square (then
+        ``result.batches`` is the packet count: batches of one packet).
+    importance : {"auto", "stars", "observer"}
+        What steers the weighted packets' windows (:mod:`nebula_rt.transport.importance`): the light
+        field from the stars, or the peel-off image's observer (``peel`` needed); ``"auto"``
+        takes the observer's when there is a peel-off image, the stars' otherwise.
+        ``result.importance`` says which ran ("" for analog packets). J's heavy-tail classes
+        (``result.tail_j``) are checked under the stars' windows only.
+    """
+    t0 = time.perf_counter()
+    kw = dict(tau=tau, photons=photons, estimator=estimator, max_scatterings=max_scatterings, seed=seed,
+              batch_size=batch_size, backend=backend, target_error=target_error, time_limit=time_limit,
+              peel=peel, peel_bins=peel_bins, _acc_limit_bits=_acc_limit_bits, method=method,
+              error_estimate=error_estimate, importance=importance)
+    plan = plan_transport(density, bands, stars, checked_adds=_checked_adds, **kw)
+    tallies = run_transport(plan, backend, progress=progress, cancel=cancel, started=t0, comm=comm)
+    try:
+        if plan.setup.unchecked_adds and tallies.session.overflow_seen():
+            # a cell reached the headroom limit unnoticed during a launch: trace again with
+            # every add checked (same packets, same bits as a checked run)
+            tallies.session.close()
+            plan = plan_transport(density, bands, stars, checked_adds=True, **kw)
+            tallies = run_transport(plan, backend, progress=progress, cancel=cancel, started=t0, comm=comm)
+        result = estimate_light(plan, tallies, backend, on_device=on_device)
+    finally:
+        tallies.session.close()
+    warn_if_terminated(result.counts, list(plan.band_names), plan.setup.max_scatterings)
+    warn_if_heavy_tailed(result, list(plan.band_names))
+    result.ranks = 1 if comm is None else int(comm.size)
+    result.timings["total_s"] = time.perf_counter() - t0
+    return result

@@ -1,0 +1,309 @@
+"""One declaration per parameter: every layer shows the scene schema's defaults, ranges and
+choices, and the same values give the same bits in ParaView, plain VTK and a scene file.
+
+The schema is the scene dataclasses' field declarations (nebula_rt.scene.parameters); the
+layers are the VTK filter's bound setters (nebula_rt.filters.light_field), the ParaView proxy
+that ParaView builds from them (tests/paraview/schema_layers.py, under pvpython), the CLI's
+choices, and the scene classes' docstrings. The bit comparisons are exact: the same scene,
+seed and device give the same integer tallies, so any difference is a defect.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+
+import numpy as np
+import pytest
+
+from nebula_rt import scene as sc
+from nebula_rt.filters.colour import COLOUR_PROPERTIES, NebulaColour
+from nebula_rt.filters.dust_density import DUST_DENSITY_PROPERTIES, NebulaDustDensity
+from nebula_rt.filters.light_field import LIGHT_FIELD_PROPERTIES, NebulaLightField
+from nebula_rt.scene.schema import label
+
+from conftest import TEST_DEVICE
+
+
+def test_every_scene_field_is_declared_with_a_doc():
+    import dataclasses
+
+    from nebula_rt.scene import sky_schema
+
+    for section, cls in sc.SECTIONS + sky_schema.SECTIONS:
+        for f in dataclasses.fields(cls):
+            p = f.metadata.get("param")
+            assert p is not None, f"{section}.{f.name} has no declaration"
+            assert p.doc.strip(), f"{section}.{f.name}"
+            assert f.name in cls.__doc__ and p.doc.split()[0] in cls.__doc__, f"{section}.{f.name} not documented"
+
+
+def test_the_schema_defaults_are_the_scene_defaults():
+    d = sc.Scene.default()
+    for key, _, default in sc.parameters():
+        table, name = key.split(".")
+        obj = d.stars[0] if table == "stars" else getattr(d, table)
+        assert getattr(obj, name) == default, key
+
+
+def test_choices_of_the_schema_are_what_the_scene_accepts():
+    for key, p, default in sc.parameters():
+        if not p.choices:
+            continue
+        table, name = key.split(".")
+        assert default in p.choices, key
+        for choice in p.choices:
+            try:  # accepted (a choice may need other keys: dust.model = "file" needs dust.file)
+                sc.Scene.from_dict({table: {name: choice}})
+            except sc.SceneError as exc:
+                assert exc.parameter != key, exc
+        with pytest.raises(sc.SceneError):
+            sc.Scene.from_dict({table: {name: "no-such-choice"}})
+
+
+def test_numeric_bounds_of_the_schema_are_what_the_scene_accepts():
+    """At each declared bound the scene accepts the value; just past it, it refuses it (where
+    the bound is closed and the next representable value is past it)."""
+    cases = {"transport.photons": (1, 2**53), "transport.max_scatterings": (0, 2**31 - 1),
+             "transport.seed": (0, 2**53)}
+    for key, (lo, hi) in cases.items():
+        p = sc.declaration(key)
+        assert (p.lo, p.hi) == (lo, hi), key
+        table, name = key.split(".")
+        sc.Scene.from_dict({table: {name: lo}})
+        sc.Scene.from_dict({table: {name: hi}})
+        for bad in (lo - 1, hi + 1):
+            with pytest.raises(sc.SceneError):
+                sc.Scene.from_dict({table: {name: bad}})
+
+
+def test_vtk_filter_defaults_are_the_schema_defaults():
+    lf = NebulaLightField()
+    for prop in LIGHT_FIELD_PROPERTIES:
+        want = sc.default(prop.key)
+        if want is None:  # Albedo and G: the default preset's own values, applied only on request
+            continue
+        assert getattr(lf, "Get" + prop.name)() == want, prop.name
+    # an untouched filter traces the scene file's defaults (its density from the input)
+    s = lf.scene((8, 8, 8))
+    d = sc.Scene.default()
+    assert s.transport == d.transport and s.bands == d.bands and s.stars == d.stars
+    assert s.dust.tau == d.dust.tau
+
+
+def test_density_source_defaults_are_the_schema_defaults():
+    d = NebulaDustDensity()
+    for prop in DUST_DENSITY_PROPERTIES:
+        assert getattr(d, "Get" + prop.name)() == sc.default(prop.key), prop.name
+        assert set(prop.choices) <= set(prop.param.choices)
+    s = d.scene()
+    default = sc.Scene.default()
+    assert s.grid == default.grid and s.dust == default.dust and s.stars == default.stars
+
+
+def test_colour_defaults_are_the_schema_defaults():
+    """The colour's properties start at the schema's defaults (an "auto or number" key as its
+    check box on and the declared number), so an untouched Nebula Colour colours as a scene
+    file with no [colour] table; the check box and the number make the key's value."""
+    from nebula_rt.filters.properties import scene_values
+
+    c = NebulaColour()
+    for prop in COLOUR_PROPERTIES:
+        want = sc.default(prop.key)
+        if prop.widget == "auto":
+            assert getattr(c, "Get" + prop.flag)() == int(want == "auto"), prop.flag
+            assert getattr(c, "Get" + prop.name)() == prop.param.number, prop.name
+        else:
+            assert getattr(c, "Get" + prop.name)() == want, prop.name
+    assert sc.Scene.from_dict(scene_values(c._values)).colour == sc.Scene.default().colour
+    c.SetWhitePoint(2)
+    assert c.GetWhitePoint() == sc.WHITE_POINTS[2]
+    c.SetAutoOpacity(0)  # off: the number the panel shows
+    assert c._values["colour.opacity_scale"] == 1.0
+    c.SetOpacityScale(4.0)
+    assert c._values["colour.opacity_scale"] == 4.0
+    c.SetAutoOpacity(1)  # on again: "auto", the number kept for later
+    assert c._values["colour.opacity_scale"] == "auto" and c.GetOpacityScale() == 4.0
+
+
+def test_sky_image_defaults_are_the_declared_defaults():
+    """Nebula Sky Image's properties are bound to declarations: the camera and the picture's
+    stars and exposure to the sky image's own (nebula_rt.scene.sky_schema: one property per
+    declaration), the tone curve and the observer to the scene's ([colour], [observer]); each
+    starts at its declared default (Auto Exposure on, Exposure the declared number; Distance,
+    declared None, empty: the light field's scene's own [observer]), so the untouched filter's
+    tone curve and observer are a scene file's defaults. Units is the filter's own (box units).
+    The camera they make is the library's default Camera, whose defaults and size range are the
+    same declarations."""
+    import dataclasses
+
+    from nebula_rt.scene import sky_schema
+    from nebula_rt.filters.properties import scene_values
+    from nebula_rt.filters.sky_image import SKY_IMAGE_PROPERTIES, SKY_PANEL_DEFAULTS, SKY_UNITS, NebulaSkyImage
+    from nebula_rt.observe.sky import Camera
+
+    s = NebulaSkyImage()
+    assert s.BOUND_PROPERTIES == SKY_IMAGE_PROPERTIES
+    for prop in SKY_IMAGE_PROPERTIES:
+        schema = sky_schema if prop.key.startswith("sky.") else sc
+        want = schema.default(prop.key)
+        assert prop.default == want and prop.param is schema.declaration(prop.key), prop.name
+        if prop.widget == "auto":
+            assert getattr(s, "Get" + prop.flag)() == int(want == "auto"), prop.flag
+            assert getattr(s, "Get" + prop.name)() == prop.param.number, prop.name
+        else:
+            assert getattr(s, "Get" + prop.name)() == SKY_PANEL_DEFAULTS.get(prop.key, want), prop.name
+    keys = [p.key for p in SKY_IMAGE_PROPERTIES]
+    assert len(set(keys)) == len(keys)
+    assert {k for k in keys if k.startswith("sky.")} == {k for k, _, _ in sky_schema.parameters()}
+    assert {k for k in keys if not k.startswith("sky.")} == {"colour.stretch", "colour.asinh_q"} | {
+        k for k, _, _ in sc.parameters() if k.startswith("observer.")}
+    # the panel's empty Distance is the scene's None: the rest is a scene file's defaults
+    scene_keys = {k: v for k, v in s._values.items() if not k.startswith("sky.") and v != ""}
+    d, default = sc.Scene.from_dict(scene_values(scene_keys)), sc.Scene.default()
+    assert d.colour == default.colour and d.observer == default.observer
+    assert s.GetUnits() == SKY_UNITS[0]
+    assert s._camera() == Camera()
+    for f in dataclasses.fields(Camera):
+        if f"sky.{f.name}" in keys:
+            assert f.default == sky_schema.default(f"sky.{f.name}"), f.name
+    size = sky_schema.declaration("sky.size")
+    Camera(size=(size.lo, size.hi))  # the declared bounds are accepted, and just past them refused
+    for bad in ((size.lo - 1, 4), (4, size.hi + 1)):
+        with pytest.raises(ValueError, match="Camera.size"):
+            Camera(size=bad)
+
+
+def test_sky_image_messages_name_the_panel_label_and_the_key():
+    """A bad value of any of Nebula Sky Image's bound properties, whichever declares it (the
+    sky image's own camera and exposure, the scene's tone curve and observer), ends the run
+    with an empty output and ``<Label> (<key>) = <value>: <allowed>``; Units, the filter's own,
+    is named as it is. The checks come before the ray march, so a bare 2^3 image serves as
+    the input."""
+    from vtkmodules.vtkCommonExecutionModel import vtkTrivialProducer
+
+    from nebula_rt.filters.image_data import to_image_data
+    from nebula_rt.filters.sky_image import NebulaSkyImage
+
+    cases = [
+        (("SetImageSize", 0, 4), "Image Size (sky.size) = (0, 4): "),
+        (("SetExtent", -1.0), "Extent (sky.extent) = -1.0: "),
+        (("SetAutoExposure", 0), ("SetExposure", -2.0), "Exposure (sky.exposure) = -2.0: "),
+        (("SetStretch", "log"), "Stretch (colour.stretch) = 'log': "),
+        (("SetStretch", 1), ("SetAsinhQ", 0.0), "Asinh Q (colour.asinh_q) = 0.0: "),
+        (("SetDistance", "3 s"), "Distance (observer.distance) = '3 s': "),
+        (("SetDec", 90.5), "Dec (observer.dec) = 90.5: "),
+        (("SetPSFFWHM", -1.0), "PSF FWHM (observer.psf_fwhm) = -1.0: "),
+        (("SetUnits", "Jy"), "Units = 'Jy': must be one of 'box units', 'MJy/sr'"),
+    ]
+    producer = vtkTrivialProducer()
+    producer.SetOutput(to_image_data({"density": np.ones((2, 2, 2), np.float32)}, None, (1, 1, 1)))
+    for *calls, message in cases:
+        s = NebulaSkyImage()
+        s.SetInputConnection(producer.GetOutputPort())
+        for name, *args in calls:
+            getattr(s, name)(*args)
+        s.Update()
+        assert s.GetOutputDataObject(0).GetNumberOfPoints() == 0, message
+        assert s.last_error is not None and s.last_error.startswith("NebulaSkyImage: " + message), s.last_error
+
+
+def test_vtk_setters_take_enumeration_indices_and_whole_floats():
+    lf = NebulaLightField()
+    lf.SetEstimator(1)
+    lf.SetQuality(2)
+    lf.SetPhotons(1e5)
+    s = lf.scene((8, 8, 8))
+    assert s.transport.estimator == sc.ESTIMATORS[1] and s.transport.quality == sc.QUALITIES[2]
+    assert s.transport.photons == 100_000 and isinstance(s.transport.photons, int)
+    lf.SetQuality("custom")  # the panel's text of ""
+    assert lf.scene((8, 8, 8)).transport.quality == ""
+
+
+def test_cli_choices_are_the_schema_choices():
+    from nebula_rt.cli import build_parser
+
+    parser = build_parser()
+    render = next(a for a in parser._subparsers._group_actions[0].choices.values() if a.prog.endswith("render"))
+    opts = {a.dest: a for a in render._actions}
+    assert tuple(opts["backend"].choices) == sc.BACKENDS
+    assert tuple(opts["quality"].choices) == sc.QUALITIES[1:]
+
+
+def make_density_files(d):
+    """A random density (above the floor everywhere) as .npy and as .vti with the same values."""
+    from nebula_rt.filters.vti import write_vti
+
+    rng = np.random.default_rng(11)
+    rho = (0.2 + rng.random((12, 10, 9))).astype(np.float32)
+    np.save(d / "rho.npy", rho)
+    write_vti(d / "rho.vti", {"density": rho}, None, (1.0, 1.0, 1.0))
+    return d / "rho.npy", d / "rho.vti", rho
+
+
+@pytest.fixture(scope="module")
+def density_file(tmp_path_factory):
+    return make_density_files(tmp_path_factory.mktemp("density"))
+
+
+PHOTONS = 4000
+
+
+def _hashes(arrays: dict) -> dict:
+    return {k: hashlib.sha256(np.ascontiguousarray(v, np.float32).tobytes()).hexdigest() for k, v in arrays.items()}
+
+
+def _vtk_run(vti):
+    from vtkmodules.vtkIOXML import vtkXMLImageDataReader
+
+    from nebula_rt.filters.image_data import point_array
+
+    reader = vtkXMLImageDataReader()
+    reader.SetFileName(str(vti))
+    lf = NebulaLightField()
+    lf.SetInputConnection(reader.GetOutputPort())
+    lf.SetPhotons(PHOTONS)
+    lf.SetDevice(TEST_DEVICE)
+    lf.Update()
+    assert lf.last_error is None, lf.last_error
+    out = lf.GetOutputDataObject(0)
+    names = [out.GetPointData().GetArrayName(i) for i in range(out.GetPointData().GetNumberOfArrays())]
+    return {n: point_array(out, n) for n in names if n.startswith("J_")}
+
+
+def _scene_file_run(npy, rho):
+    from nebula_rt.backends import get_backend
+    from nebula_rt.pipeline import Pipeline
+
+    scene = sc.Scene.from_dict({"grid": {"shape": list(rho.shape)}, "dust": {"model": "file", "file": str(npy)},
+                                "transport": {"photons": PHOTONS, "device": TEST_DEVICE}})
+    light = Pipeline(get_backend(scene.transport.backend, TEST_DEVICE)).run(scene, colour=False)
+    return {f"J_{b.name}": light.J[i] for i, b in enumerate(light.bands)}
+
+
+def test_plain_vtk_and_scene_file_give_the_same_bits(density_file):
+    npy, vti, rho = density_file
+    assert _hashes(_vtk_run(vti)) == _hashes(_scene_file_run(npy, rho))
+
+
+def test_schema_ranges_are_closed_numbers_or_none():
+    for key, p, _ in sc.parameters():
+        for b in (p.lo, p.hi):
+            assert b is None or (isinstance(b, (int, float)) and math.isfinite(b)), key
+
+
+def test_integer_ranges_are_what_a_panel_holds_exactly():
+    """An integer past int32 travels as a double (ParaView's panel, pvpython, JSON), exact up to
+    2^53: every integer parameter's declared range stays within it, so no layer rounds a value
+    the scene accepts (the seed's 2^64 - 1 became 2^64 in a panel). The last integer of the
+    range survives the trip through a double and the next one does not."""
+    for key, p, _ in sc.parameters():
+        if p.type.startswith("int") or p.type.endswith("int"):
+            assert p.lo is not None and p.hi is not None, key
+            assert -2**53 <= p.lo and p.hi <= 2**53, key
+            assert int(float(p.hi)) == p.hi
+    seed = sc.declaration("transport.seed")
+    assert int(float(seed.hi + 1)) != seed.hi + 1  # 2^53 + 1: what a double cannot hold
+    lf = NebulaLightField()
+    lf.SetSeed(float(seed.hi))  # as the panel hands it over
+    assert lf.scene((4, 4, 4)).transport.seed == 2**53
