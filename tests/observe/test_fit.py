@@ -26,7 +26,7 @@ import pytest
 from scipy.stats import chi2 as chi2_dist
 
 from conftest import TEST_BACKEND, TEST_DEVICE
-from nebula_rt.observe import comparison, fit, colours as observe
+from nebula_rt.observe import comparison, fit, fit_parameters, colours as observe
 from nebula_rt.optics.bands import PRESETS
 from nebula_rt.errors import CancelledError, SceneError
 from nebula_rt.observe.observed_tables import ObservedTable, OffsetScale, _annuli_from_offsets, read_table
@@ -212,10 +212,10 @@ def test_parameters_map_onto_the_scene():
     along the line of sight (its projection stays put) and a scene key."""
     base = cube(star=(0.3, 0.6, 0.4))
     d = np.array([1.0, 0.0, -1.0]) / math.sqrt(2.0)
-    params = [fit.make_parameter(n, base, direction=d) for n in ("albedo", "albedo_slope", "g", "tau", "depth")]
-    params.append(fit.make_parameter("g.655nm", base))
-    params.append(fit.make_parameter("stars.0.luminosity", base, 0.5, 2.0))
-    s = fit.scene_with(base, params, [0.5, 0.1, 0.4, 2.5, 0.2, 0.7, 1.5], direction=d)
+    params = [fit_parameters.make_parameter(n, base, direction=d) for n in ("albedo", "albedo_slope", "g", "tau", "depth")]
+    params.append(fit_parameters.make_parameter("g.655nm", base))
+    params.append(fit_parameters.make_parameter("stars.0.luminosity", base, 0.5, 2.0))
+    s = fit_parameters.scene_with(base, params, [0.5, 0.1, 0.4, 2.5, 0.2, 0.7, 1.5], direction=d)
     bands = s.bands.resolve()
     for b in bands:
         assert b.albedo == pytest.approx(0.5 + 0.1 * (b.wavelength - 550.0) / 100.0)
@@ -224,10 +224,10 @@ def test_parameters_map_onto_the_scene():
     p0, p1 = np.array(base.stars[0].position), np.array(s.stars[0].position)
     assert p1 @ d == pytest.approx(0.2)
     np.testing.assert_allclose(p1 - (p1 @ d) * d, p0 - (p0 @ d) * d, atol=1e-12)  # same projection
-    lo, hi = fit.depth_range(base, d)
+    lo, hi = fit_parameters.depth_range(base, d)
     assert params[4].lo == pytest.approx(lo) and params[4].hi == pytest.approx(hi)
     with pytest.raises(SceneError, match="stay inside the box"):
-        fit.make_parameter("depth", base, lo - 0.1, hi, direction=d)
+        fit_parameters.make_parameter("depth", base, lo - 0.1, hi, direction=d)
 
 
 def test_fit_inputs_are_checked_before_tracing(backend):
@@ -246,6 +246,14 @@ def test_fit_inputs_are_checked_before_tracing(backend):
         fit.fit_observations(base, [col], ["albedo", "albedo"], backend=backend)
     with pytest.raises(SceneError, match="at least one table"):
         fit.fit_observations(base, [], ["albedo"], backend=backend)
+    # a FitRequest is checked the same way, by FitRequest.parameters() before any trace; it is
+    # given alone (with its options inside), not beside the scene's keywords
+    request = fit.FitRequest(base, [col], ["albedo"], uncertainty="bootstrap")
+    with pytest.raises(SceneError) as e:
+        fit.fit_observations(request, backend=backend)
+    assert e.value.parameter == "uncertainty" and "profile" in e.value.allowed
+    with pytest.raises(TypeError, match="FitRequest alone"):
+        fit.fit_observations(request, [col], backend=backend)
 
 
 def _synthetic(backend):

@@ -248,8 +248,8 @@ def test_bad_value_raises(table, key, value, parameter):
     [
         ("transport.photons", 0, "must be an integer"),
         ("transport.estimator", "x", "one of: 'track-length', 'collision-filter'"),
-        ("bands.g", 2.0, "must be in [-1, 1]"),
-        ("bands.albedo", 2.0, "must be in [0, 1]"),
+        ("bands.g", 2.0, "must be a number in [-1, 1]"),
+        ("bands.albedo", 2.0, "must be a number in [0, 1]"),
         ("transport.backend", "x", "one of: 'auto', 'opencl', 'cuda'"),
         ("dust.model", "x", "one of: 'turbulence', 'uniform', 'file'"),
     ],

@@ -61,20 +61,48 @@ def test_choices_of_the_schema_are_what_the_scene_accepts():
             sc.Scene.from_dict({table: {name: "no-such-choice"}})
 
 
+def _scene_with(key: str, value):
+    table, name = key.split(".")
+    if table == "stars":
+        return sc.Scene.from_dict({"stars": [{"position": [0.5, 0.5, 0.5], name: value}]})
+    return sc.Scene.from_dict({table: {name: value}})
+
+
+#: bounds a scene refuses for a reason of another key: 2**53 packets per batch exceed the
+#: default 2.1M photons (transport.batch_size must be below transport.photons)
+OTHER_KEYS = {("transport.batch_size", "hi")}
+
+
 def test_numeric_bounds_of_the_schema_are_what_the_scene_accepts():
-    """At each declared bound the scene accepts the value; just past it, it refuses it (where
-    the bound is closed and the next representable value is past it)."""
-    cases = {"transport.photons": (1, 2**53), "transport.max_scatterings": (0, 2**31 - 1),
-             "transport.seed": (0, 2**53)}
-    for key, (lo, hi) in cases.items():
-        p = sc.declaration(key)
-        assert (p.lo, p.hi) == (lo, hi), key
-        table, name = key.split(".")
-        sc.Scene.from_dict({table: {name: lo}})
-        sc.Scene.from_dict({table: {name: hi}})
-        for bad in (lo - 1, hi + 1):
-            with pytest.raises(sc.SceneError):
-                sc.Scene.from_dict({table: {name: bad}})
+    """The declaration is the validation: for every declared numeric range, the scene accepts a
+    closed bound and refuses an open one, and refuses the value just past either bound (the
+    next integer, or a relative step of 1e-9), whatever the key (the ranges are written once,
+    in the Params, and nothing else checks them)."""
+    seen = []
+    for key, p, _ in sc.parameters():
+        if p.choices or (p.lo is None and p.hi is None):
+            continue
+        integer = p.type in ("int", "tuple of 3 int")
+        vector = p.type.startswith("tuple of 3")
+        for side, bound, is_open in (("lo", p.lo, p.lo_open), ("hi", p.hi, p.hi_open)):
+            if bound is None or (key, side) in OTHER_KEYS:
+                continue
+            step = 1 if integer else max(abs(bound) * 1e-9, 1e-9)
+            past = bound - step if side == "lo" else bound + step
+            wrap = (lambda v: [v, v, v]) if vector else (lambda v: v)
+            at_ok = not is_open or (p.off and bound == 0)
+            if at_ok:
+                _scene_with(key, wrap(bound))
+            else:
+                with pytest.raises(sc.SceneError):
+                    _scene_with(key, wrap(bound))
+            with pytest.raises(sc.SceneError) as e:
+                _scene_with(key, wrap(past))
+            assert key.split(".")[1] in e.value.parameter, (key, e.value.parameter)
+            seen.append((key, side))
+    assert {("transport.photons", "hi"), ("transport.seed", "hi"), ("observer.ra", "hi"),
+            ("transport.target_error", "hi"), ("stars.bump_radius", "hi"), ("grid.shape", "lo")} <= set(seen)
+    assert len(seen) >= 35, len(seen)
 
 
 def test_vtk_filter_defaults_are_the_schema_defaults():
@@ -172,6 +200,15 @@ def test_sky_image_defaults_are_the_declared_defaults():
     for bad in ((size.lo - 1, 4), (4, size.hi + 1)):
         with pytest.raises(ValueError, match="Camera.size"):
             Camera(size=bad)
+    # and nebula-rt's --size (sky, compare, fit) has the same range: one range in every layer
+    from nebula_rt.cli.commands import check_size
+
+    for ok in (size.lo, size.hi):
+        check_size(ok)
+    for bad in (size.lo - 1, size.hi + 1):
+        with pytest.raises(sc.SceneError, match=rf"\[{size.lo}, {size.hi}\]") as e:
+            check_size(bad)
+        assert e.value.parameter == "--size"
 
 
 def test_sky_image_messages_name_the_panel_label_and_the_key():

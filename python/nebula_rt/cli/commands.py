@@ -16,10 +16,10 @@ from pathlib import Path
 from ..errors import (
     BackendUnavailableError, CancelledError, NebulaError, OutputError, ResourceError, SceneError)
 from .. import scene as _scene
+from ..scene import sky_schema
 from ..interrupts import SignalCancel
 
 #: pixels per side of the sky image of ``nebula-rt compare``
-MIN_SKY_SIZE, MAX_SKY_SIZE = 8, 4096
 
 
 def _scene_from_args(args):
@@ -203,10 +203,17 @@ def parse_direction(text: str) -> tuple:
     return direction
 
 
+def _size_range() -> tuple:
+    """``--size``'s range: the declared ``sky.size`` (the filter's and the panel's too)."""
+    p = sky_schema.declaration("sky.size")
+    return int(p.lo), int(p.hi)
+
+
 def check_size(size: int) -> None:
     """``--size``: pixels per side of a sky image."""
-    if not MIN_SKY_SIZE <= size <= MAX_SKY_SIZE:
-        raise SceneError("--size", size, f"must be an integer in [{MIN_SKY_SIZE}, {MAX_SKY_SIZE}] (pixels per side)")
+    lo, hi = _size_range()
+    if not lo <= size <= hi:
+        raise SceneError("--size", size, f"must be an integer in [{lo}, {hi}] (pixels per side)")
 
 
 def _compare(args, cancel) -> int:
@@ -435,7 +442,8 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("--method", default="peel-off", choices=["peel-off", "ray-march"],
                    help="peel-off during the transport (the phase function; default) or the ray march of the "
                         "light field's emissivity (isotropic per voxel)")
-    k.add_argument("--size", type=int, default=256, help=f"pixels per side ({MIN_SKY_SIZE}-{MAX_SKY_SIZE})")
+    k.add_argument("--size", type=int, default=sky_schema.default("sky.size")[0],
+                   help="pixels per side ({}-{})".format(*_size_range()))
     k.add_argument("--stretch", default=None, choices=_choices("colour.stretch"),
                    help="the picture's tone curve (shorthand for --set colour.stretch=S)")
     k.add_argument("-q", "--quiet", action="store_true", help="no summary")
@@ -447,7 +455,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--png", default="compare.png", help="plot (default compare.png)")
     c.add_argument("--json", default=None, help="also write the measured profiles as JSON")
     c.add_argument("--size", type=int, default=128,
-                   help=f"sky image pixels per side ({MIN_SKY_SIZE}-{MAX_SKY_SIZE})")
+                   help="sky image pixels per side ({}-{})".format(*_size_range()))
     from .fit import add_fit_parser, add_table_options
 
     add_table_options(c)
@@ -455,7 +463,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_image_options(c)
     c.set_defaults(func=_compare)
-    add_fit_parser(sub, _fit, (MIN_SKY_SIZE, MAX_SKY_SIZE), parents=[run, view, reference])
+    add_fit_parser(sub, _fit, _size_range(), parents=[run, view, reference])
     d = sub.add_parser("devices", help="list compute devices")
     d.set_defaults(func=_devices)
     return ap

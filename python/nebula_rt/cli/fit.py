@@ -116,12 +116,12 @@ def compare_tables_command(args, cancel, scene, direction, backend_of, inputs, p
 
 def fit_command(args, cancel, scene, direction, backend_of, inputs, print_summary) -> int:
     """``nebula-rt fit`` (arguments as :func:`compare_tables_command`'s)."""
-    from ..observe import comparison, fit
+    from ..observe import comparison, fit, fit_parameters
     from ..transport import resources
     from ..pipeline.outputs import Publication
 
     tables = read_tables(args, scene)
-    free = [fit.parse_free(s, scene, direction) for s in args.free]
+    free = [fit_parameters.parse_free(s, scene, direction) for s in args.free]
     if not free:
         raise SceneError("--free", [], "name at least one parameter to fit, e.g. --free albedo --free tau")
     comparison.check_tables_against_scene(scene, tables)
@@ -141,9 +141,9 @@ def fit_command(args, cancel, scene, direction, backend_of, inputs, print_summar
             bar.set_postfix_str(f"best chi2 {best:.2f}", refresh=False)
             bar.refresh()
 
-        res = fit.fit_observations(scene, tables, free, direction=direction, size=args.size, reference=args.reference,
-                                   uncertainty=args.uncertainty, grid=args.grid, starts=args.starts, backend=backend,
-                                   progress=progress, cancel=cancel)
+        request = fit.FitRequest(scene, tables, free, direction=direction, size=args.size, reference=args.reference,
+                                 uncertainty=args.uncertainty, grid=args.grid, starts=args.starts)
+        res = request.run(backend=backend, progress=progress, cancel=cancel)
     finally:
         if bar is not None:
             bar.close()

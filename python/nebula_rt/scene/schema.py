@@ -29,9 +29,9 @@ from __future__ import annotations
 import dataclasses
 import textwrap
 from dataclasses import dataclass
-from typing import Any, Iterator, Optional, Tuple
+from typing import Any, Callable, Iterator, Optional, Tuple
 
-__all__ = ["Param", "param", "parameters", "label", "range_text", "document"]
+__all__ = ["Param", "param", "parameters", "label", "interval", "range_text", "document"]
 
 
 @dataclass(frozen=True)
@@ -66,6 +66,28 @@ class Param:
     number : float or None
         With ``auto``: the number a panel holds until one is chosen (and the scene's value once
         the check box is cleared).
+    hi_open : bool
+        The range excludes ``hi`` (< hi rather than <= hi).
+    float32 : bool
+        The value reaches the device as float32: besides the range (``lo`` 0 meaning "0, or at
+        least the smallest normal float32"), its magnitude must lie in the normal float32 range.
+    off : bool
+        0 is allowed below the range, meaning "off" (``transport.target_error``).
+    what : str
+        How a refusal names the value ("a right ascension in degrees"; "" = by its type).
+    note : str
+        The refusal's reason or unit, in parentheses ("int32 on the device").
+    allowed : str
+        The refusal's whole text, for a value whose form a range cannot say (a length with
+        units, a spectrum); "" = made from the range and choices.
+    convert : callable or None
+        Text or number -> the value, raising TypeError or ValueError, for a type whose
+        conversion :data:`nebula_rt.scene.values.CONVERT` does not hold.
+    check : callable or None
+        A check of the converted value beyond the range and choices (a known length unit).
+
+    The range, choices and these fields are the validation too (:func:`nebula_rt.scene.rules.rule`):
+    nothing else states a parameter's range.
     """
 
     doc: str
@@ -81,6 +103,14 @@ class Param:
     advanced: bool = False
     auto: bool = False
     number: Optional[float] = None
+    hi_open: bool = False
+    float32: bool = False
+    off: bool = False
+    what: str = ""
+    note: str = ""
+    allowed: str = ""
+    convert: Optional[Callable[[Any], Any]] = None
+    check: Optional[Callable[[Any], bool]] = None
 
 
 def param(default: Any = dataclasses.MISSING, *, default_factory: Any = dataclasses.MISSING, **kw) -> Any:
@@ -131,28 +161,34 @@ def label(key: str, p: Param) -> str:
 
 
 def _num(x) -> str:
-    """A bound as people write it: 2**53 and 2**31 - 1 rather than their digits."""
+    """A bound as people write it: 2**53 rather than its digits (int32's largest, 2147483647,
+    stays in digits: the number VTK and C print)."""
     if isinstance(x, int) and abs(x) >= 2**20:
         for k in range(20, 130):
             if x == 2**k:
                 return f"2**{k}"
-            if x == 2**k - 1:
-                return f"2**{k} - 1"
+        return str(x)
     return f"{x:g}"
+
+
+def interval(p: Param) -> str:
+    """The range of a declaration in words: "in [0, 360)", "> 0", ">= 0" ("" for none)."""
+    if p.lo is not None and p.hi is not None:
+        return f"in {'(' if p.lo_open else '['}{_num(p.lo)}, {_num(p.hi)}{')' if p.hi_open else ']'}"
+    if p.lo is not None:
+        return f"{'>' if p.lo_open else '>='} {_num(p.lo)}"
+    if p.hi is not None:
+        return f"{'<' if p.hi_open else '<='} {_num(p.hi)}"
+    return ""
 
 
 def range_text(p: Param) -> str:
     """The allowed values of a declaration in words ("" when any value of its type is)."""
     if p.choices:
         return "one of " + ", ".join(repr(c) for c in p.choices)
-    lo_op = ">" if p.lo_open else ">="
-    text = ""
-    if p.lo is not None and p.hi is not None:
-        text = f"in {'(' if p.lo_open else '['}{_num(p.lo)}, {_num(p.hi)}]"
-    elif p.lo is not None:
-        text = f"{lo_op} {_num(p.lo)}"
-    elif p.hi is not None:
-        text = f"<= {_num(p.hi)}"
+    text = interval(p)
+    if p.off:
+        text = "0 (off) or " + text
     if p.auto:
         return "'auto' or a number " + text if text else "'auto' or a number"
     return text

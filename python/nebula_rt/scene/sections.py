@@ -7,19 +7,12 @@ box units (the box is [0, 1]^3), physical quantities convert to them when the sc
 
 from __future__ import annotations
 
-import sys
 from dataclasses import dataclass
 from typing import Any, Dict, List, Optional, Tuple, Union
 
-if sys.version_info >= (3, 11):
-    pass
-else:  # pragma: no cover
-    pass
-
+from ..limits import INT32_MAX, MAX_OFFSET, TEMPERATURE_RANGE
 from ..optics.bands import PRESETS, Band, resolve_bands
-from ..limits import (
-    INT32_MAX, MAX_OFFSET, TEMPERATURE_RANGE)
-from . import schema
+from . import schema, units, values
 from .schema import document, param
 
 
@@ -72,6 +65,10 @@ QUALITY_PRESETS = {
 QUALITIES = ("",) + tuple(QUALITY_PRESETS)
 
 
+def _known_spectral_type(v: str) -> bool:
+    return units.parse_spectral_type(v) is not None
+
+
 # Panel groups, in the order of the workflow (density source, dust optics, stars, transport,
 # quality, device)
 G_GRID, G_DUST, G_OPTICS, G_STARS = "Dust", "Dust", "Dust optics", "Stars"
@@ -86,16 +83,19 @@ class Grid:
 
     shape: Tuple[int, int, int] = param(
         (64, 64, 64), type="tuple of 3 int", lo=2, hi=INT32_MAX, label="Grid Shape", group=G_GRID,
+        note="int32 on the device",
         doc="Voxels along x, y, z (non-cubic allowed). The grid spans the box [0, 1]^3 whatever its "
             "shape, so voxels need not be cubes; memory and trace time grow with the number of voxels "
             "(the thesis used 128^3)")
     length: Union[float, str] = param(
         1.0, type="float or str", lo=0.0, lo_open=True, label="Box Length", group=G_UNITS, advanced=True,
+        convert=values.to_length, check=units.valid_length, allowed=units.length_allowed("a finite length > 0"),
         doc="Physical length of one box edge: a number in `unit`, or a quantity with its own unit "
             "(\"3 pc\", \"2e5 AU\"; astropy.units). The transport works in box units; the length "
             "converts the physical dust keys to dust.tau and scales calibrated sky images")
     unit: str = param("pc", type="str", group=G_UNITS, advanced=True,
-                      doc="Length unit of a numeric `length` (pc, AU, ly, km, ...; astropy.units)")
+                      check=units.is_length_unit, allowed=f"must be a length unit: {units.LENGTH_UNITS_TEXT}",
+        doc="Length unit of a numeric `length` (pc, AU, ly, km, ...; astropy.units)")
 
 
 @document
@@ -109,6 +109,7 @@ class Dust:
             "or read from `file`; each star's dust bump and the floor are added")
     density: float = param(
         1.0, type="float", lo=0.0, label="Uniform Density", group=G_DUST,
+        float32=True,
         doc="\"uniform\": the density everywhere (dimensionless; `tau` is the optical depth across the "
             "box at density 1)")
     file: str = param(
@@ -119,30 +120,37 @@ class Dust:
                        doc="\"file\" with .vti: the name of the point-data array to read")
     scale: float = param(
         0.15, type="float", lo=0.0, group=G_DUST,
+        float32=True,
         doc="\"turbulence\": amplitude of the noise (the thesis's densityScale, 0.15)")
     offset: Vec3 = param(
         (0.5, 0.5, 0.5), type="tuple of 3 float", lo=-MAX_OFFSET, hi=MAX_OFFSET, unit="box units", group=G_DUST,
+        note="box units; beyond, the float32 turbulence loses its structure: docs/physics.md",
         doc="\"turbulence\": offset into the noise; a different offset gives a different nebula")
     floor: float = param(
         1e-4, type="float", lo=0.0, group=G_DUST, advanced=True,
+        float32=True,
         doc="Minimum density everywhere (the thesis's clamp; keeps the medium from being empty)")
     tau: float = param(
         1.0, type="float", lo=0.0, label="Tau", group=G_DUST,
+        float32=True,
         doc="Optical depth across one box edge at density 1 in the reference band: the extinction "
             "per box edge is tau x extinction_b x density (the thesis's 128^3 nebula: 128, i.e. "
             "extinction = density per voxel). Set by hydrogen_density, mass_density or "
             "visual_extinction where one of them is given")
     hydrogen_density: Optional[float] = param(
         None, type="float or None", lo=0.0, unit="cm^-3", label="Hydrogen Density", group=G_UNITS, advanced=True,
+        what="a number of H nuclei per cm^3", note="finite",
         doc="H nuclei per cm^3 at density 1: sets tau = n_H x C_ext per H in the reference band "
             "(Draine 2003 dust of the band preset) x the box edge (grid.length) in cm")
     mass_density: Optional[float] = param(
         None, type="float or None", lo=0.0, unit="g cm^-3", label="Dust Mass Density", group=G_UNITS,
         advanced=True,
+        what="a dust mass density in g cm^-3", note="finite",
         doc="Grams of dust per cm^3 at density 1: sets tau through the dust model's dust mass per "
             "H nucleon (1.870e-26 g for R_V = 3.1, Draine's table) as hydrogen_density does")
     visual_extinction: Optional[float] = param(
         None, type="float or None", lo=0.0, unit="mag", label="Visual Extinction", group=G_UNITS, advanced=True,
+        what="an A_V in mag", note="finite",
         doc="A_V across one box edge at density 1: sets tau = A_V / 1.0857 x C_ext(reference band) "
             "/ C_ext(V) of the dust model")
 
@@ -154,33 +162,43 @@ class Star:
 
     position: Vec3 = param(
         (0.5, 0.5, 0.5), type="tuple of 3 float", lo=0.0, hi=1.0, unit="box units", group=G_STARS,
+        what="a list of 3 finite numbers", note="box units",
         doc="Where the star is, inside [0, 1]^3")
     luminosity: float = param(
         1.0, type="float", lo=0.0, lo_open=True, unit="scene units", group=G_STARS,
+        float32=True,
         doc="Total luminosity over all bands; set (in L_sun inside the bands' range) by "
             "luminosity_lsun or absolute_magnitude where one is given")
     temperature: Optional[float] = param(
         None, type="float or None", lo=TEMPERATURE_RANGE[0], hi=TEMPERATURE_RANGE[1], unit="K", group=G_STARS,
+        note="K",
         doc="Effective temperature: a blackbody spectrum then splits the luminosity over the bands "
             "and colours the star; None (omitted, 0 in a Stars table) gives every band an equal share")
     bump_radius: float = param(
         0.0, type="float", lo=0.0, hi=1.0, unit="box units", group=G_STARS,
+        hi_open=True, float32=True, note="box units; float32",
         doc="Half-size of the thesis's cubic dust bump around the star (0 = none; the thesis used "
             "0.01); used where the density is made, not by the light field of a given density")
     spectrum: Optional[Tuple[Tuple[float, float], ...]] = param(
         None, type="tuple of (wavelength nm, relative power) pairs, or None", group=G_STARS,
+        convert=values.to_spectrum, check=values.valid_spectrum,
+        allowed="must be a list of at least 2 [wavelength nm, relative power] pairs, wavelengths "
+                "increasing in (0, 1e5], powers finite, >= 0 and not all 0 (or omitted)",
         doc="A measured spectrum (at least 2 pairs, wavelengths increasing): it replaces the "
             "blackbody of `temperature` for the split over the bands and for the colour")
     luminosity_lsun: Optional[float] = param(
         None, type="float or None", lo=0.0, lo_open=True, unit="L_sun", group=G_STARS,
+        what="a bolometric luminosity in L_sun",
         doc="Bolometric luminosity in nominal solar luminosities (3.828e26 W): sets `luminosity` "
             "to the part of the blackbody of `temperature` inside the bands' range, in L_sun")
     absolute_magnitude: Optional[float] = param(
         None, type="float or None", unit="mag", group=G_STARS,
+        what="an absolute magnitude M_V in mag", note="AB, Bessell V; finite",
         doc="Absolute magnitude M_V (AB, Bessell V): sets `luminosity` as luminosity_lsun does, "
             "from the blackbody of `temperature` with that magnitude at 10 pc")
     spectral_type: Optional[str] = param(
         None, type="str or None", group=G_STARS,
+        check=_known_spectral_type, allowed="must be " + units.SPECTRAL_TYPE_FORM + " (or omitted)",
         doc="MK spectral type and luminosity class (\"B2V\", \"B2.5 IV\", \"K0III\"; O1-M10): sets "
             "`temperature` from the calibration of de Jager & Nieuwenhuijzen (1987, A&A 177, 217), "
             "accurate to a few per cent")
@@ -255,12 +273,15 @@ class Transport:
             "a <= 0.025 and the memory target holds, else batches (docs/physics.md)")
     filter_radius: float = param(
         0.02, type="float", lo=0.0, lo_open=True, unit="box units", label="Filter Radius", group=G_TRANSPORT,
+        note="box units",
         doc="Radius of the collision filter (collision-filter only)")
     max_scatterings: int = param(
         1000, type="int", lo=0, hi=INT32_MAX, label="Max Scatterings", group=G_TRANSPORT, advanced=True,
+        note="int32 on the device",
         doc="A packet is terminated (and tallied as such) after this many scatterings")
     seed: int = param(
         1, type="int", lo=0, hi=MAX_SEED, group=G_TRANSPORT, advanced=True,
+        note="exact as a double: ParaView's panel, pvpython",
         doc="Random seed: the same seed, scene and device give the same bits")
     backend: str = param(
         "auto", type="str", choices=BACKENDS, group=G_DEVICE, advanced=True,
@@ -272,14 +293,17 @@ class Transport:
     batch_size: int = param(
         0, type="int", lo=0, hi=MAX_PHOTONS, unit="packets per band", label="Batch Size", group=G_DEVICE,
         advanced=True,
+        note="0 = automatic",
         doc="Packets per band in one batch, the unit of the Monte Carlo error estimate (0 = automatic: "
             "at least 16 batches); progress and cancelling happen between kernel launches")
     target_error: float = param(
         0.0, type="float", lo=0.0, hi=1.0, label="Target Error", group=G_QUALITY,
+        lo_open=True, hi_open=True, off=True,
         doc="0: trace `photons` packets. In (0, 1): trace until the relative error in the lit region "
             "(RMS over the lit voxels, 1 sigma) is at most this, `photons` being the budget")
     time_limit: float = param(
         0.0, type="float", lo=0.0, unit="s", label="Time Limit", group=G_QUALITY, advanced=True,
+        note="seconds; 0 = none",
         doc="0: none. Above 0: end the run after this long (within one launch), keeping the batches "
             "finished by then; `photons` is then a budget")
     quality: str = param(
@@ -305,6 +329,7 @@ class Colour:
 
     exposure: Union[float, str] = param(
         "auto", type="\"auto\" or float", lo=0.0, lo_open=True, auto=True, number=1.0, group=G_COLOUR,
+        float32=True, note="the colours are float32",
         doc="Factor applied to the linear colour before the sRGB transfer; \"auto\": the one that maps "
             "the 95th percentile of the visible voxels' brightest colour component to full scale")
     white_point: str = param(
@@ -324,6 +349,7 @@ class Colour:
             "the exposure's level still maps to full scale)")
     asinh_q: float = param(
         8.0, type="float", lo=0.0, lo_open=True, hi=1e10, label="Asinh Q", group=G_COLOUR,
+        note="the asinh softening Q",
         doc="The asinh stretch's softening Q: how far the faint light is lifted (about Q / asinh(Q) "
             "times the linear exposure)")
 
@@ -335,18 +361,24 @@ class Observer:
 
     distance: Optional[Union[float, str]] = param(
         None, type="float or str or None", lo=0.0, lo_open=True, unit="pc", group=G_OBSERVER,
+        convert=values.to_opt_length, check=units.valid_length,
+        allowed=units.length_allowed("a distance > 0", "pc") + " (or omitted)",
         doc="Distance from the observer to the box centre: a quantity (\"140 pc\") or a number in "
             "pc; sets the image's angular scale and the stars' flux")
-    ra: float = param(0.0, type="float", lo=0.0, hi=360.0, unit="deg", label="RA", group=G_OBSERVER,
+    ra: float = param(0.0, type="float", lo=0.0, hi=360.0, hi_open=True, unit="deg", label="RA", group=G_OBSERVER,
+                      what="a right ascension in degrees",
                       doc="Right ascension (ICRS) of the box centre, the sky image's reference point")
     dec: float = param(0.0, type="float", lo=-90.0, hi=90.0, unit="deg", label="Dec", group=G_OBSERVER,
+                       what="a declination in degrees",
                        doc="Declination (ICRS) of the box centre")
     position_angle: float = param(
         0.0, type="float", lo=-360.0, hi=360.0, unit="deg", label="Position Angle", group=G_OBSERVER,
+        what="an angle in degrees", note="east of north",
         doc="Position angle of the image's up axis, from north through east (0: up is north and "
             "east is left)")
     psf_fwhm: float = param(
         0.0, type="float", lo=0.0, unit="arcsec", label="PSF FWHM", group=G_OBSERVER,
+        what="a FWHM in arcsec", note="finite; 0 = no PSF",
         doc="FWHM of the Gaussian point-spread function the calibrated image is convolved with "
             "(0: none; a star then fills the pixel it falls in)")
     magnitude_system: str = param(

@@ -16,12 +16,14 @@ from dataclasses import dataclass
 from typing import Tuple, Union
 
 from . import schema
-from ..limits import INT32_MAX
 from .schema import document, param
 
 __all__ = ["SkyImageParameters", "SECTIONS", "parameters", "declaration", "default", "validate_exposure"]
 
 G_CAMERA, G_PICTURE = "Camera", "Picture"
+#: The largest side of a sky image (pixels): a 16384^2 image of 3 bands is 6 GiB of float64
+#: sums on the device, about what one GPU gives a peel-off image beside its grid
+MAX_SKY_SIZE = 16384
 
 
 @document
@@ -37,8 +39,9 @@ class SkyImageParameters:
         doc="Up direction of the image (its part perpendicular to the view direction; a box axis if "
             "it is parallel to it)")
     size: Tuple[int, int] = param(
-        (256, 256), type="tuple of 2 int", lo=1, hi=INT32_MAX, unit="pixels", label="Image Size", group=G_CAMERA,
-        doc="Width and height of the image (an image's extent is int32 in VTK)")
+        (256, 256), type="tuple of 2 int", lo=1, hi=MAX_SKY_SIZE, unit="pixels", label="Image Size", group=G_CAMERA,
+        doc="Width and height of the image, the same range for the filter, ParaView's panel and "
+            "nebula-rt's --size")
     extent: float = param(
         0.0, type="float", lo=0.0, unit="box units", group=G_CAMERA,
         doc="Width of the field of view; 0 fits the whole box whatever the direction (sqrt(3))")

@@ -43,6 +43,7 @@ from .finish import DeviceSums
 from .tails import (
     IMAGE_ERROR_LIMIT, J_ERROR_LIMIT, TAIL_BINS, check_histograms, class_cells)
 
+from ..scene.sections import default as _declared
 from .plan import BIASED_TALLY_NAMES, MIN_BATCHES, Tallies, TransportPlan, WEIGHT_UNIT, plan_transport
 from .result import TransportResult, exact_packet_energy, terminated_bias, warn_if_heavy_tailed, warn_if_terminated
 from .estimate import _PeelSums, _current_error, _j_scale, light_from_sums
@@ -399,26 +400,30 @@ def trace(
     *,
     tau: float,
     photons: int,
-    estimator: str = "track-length",
-    max_scatterings: int = 1000,
-    seed: int = 1,
-    batch_size: int = 0,
+    estimator: str = _declared("transport.estimator"),
+    max_scatterings: int = _declared("transport.max_scatterings"),
+    seed: int = _declared("transport.seed"),
+    batch_size: int = _declared("transport.batch_size"),
     backend: Backend,
     progress: Optional[Callable[[int, int], None]] = None,
     cancel: Optional[Callable[[], bool]] = None,
     _acc_limit_bits: int = 63,
     on_device: bool = False,
-    target_error: float = 0.0,
-    time_limit: float = 0.0,
+    target_error: float = _declared("transport.target_error"),
+    time_limit: float = _declared("transport.time_limit"),
     peel=None,
     peel_bins=None,
     comm=None,
     _checked_adds: bool = False,
-    method: str = "analog",
-    error_estimate: str = "batches",
+    method: str = _declared("transport.method"),
+    error_estimate: str = _declared("transport.error_estimate"),
     importance: str = "auto",
 ) -> TransportResult:
     """Trace ``photons`` packets per band through ``density`` and estimate J.
+
+    The defaults of the keywords that are scene keys are the scene's (the declarations of
+    :mod:`nebula_rt.scene.sections`), so a call and a scene file that leave a key out trace
+    alike.
 
     Parameters
     ----------
@@ -469,12 +474,12 @@ def trace(
         Trace with several processes (:func:`nebula_rt.backends.parallel.world` under ``mpiexec``):
         every rank calls ``trace`` with the same arguments, traces a share of the packets, and
         gets the one-rank result, bit for bit.
-    method : {"analog", "biased", "auto"}
+    method : {"auto", "analog", "biased"}
         Analog packets, or weighted ones for optically thick dust (forced scattering,
         composite path-length biasing, Russian roulette; kernels/transport.cl, docs/physics.md),
         or the one measured best for this run (:func:`resolve_method`); ``result.method`` says
         which ran.
-    error_estimate : {"batches", "packets", "auto"}
+    error_estimate : {"auto", "batches", "packets"}
         How the error of J is estimated (:func:`resolve_error_estimate`): the spread of batch
         totals, or every packet's contribution per voxel and its square (then
         ``result.batches`` is the packet count: batches of one packet).
