@@ -26,7 +26,8 @@ def main() -> None:
     args = ap.parse_args()
     import cupy as cp
 
-    from nebula_rt import pipeline as pl
+    from nebula_rt.density import generate_density
+    from nebula_rt.pipeline import stages as pl
     from nebula_rt.backends import get_backend
     from nebula_rt.scene import Scene
 
@@ -48,7 +49,7 @@ def main() -> None:
 
         light = None  # free the previous run's host buffers (pinned memory goes back to the pool)
         t0 = time.perf_counter()
-        rho = step("density", lambda: pl.generate_density(scene, backend))
+        rho = step("density", lambda: generate_density(scene, backend))
         res, J, rel = step("transport", lambda: pl.compute_light(scene, rho, backend, on_device=True))
         light = step("finish on the device (+ arrays to the host)",
                      lambda: pl.finish_light_field(scene, rho, res, J, rel, colour=True))
@@ -74,6 +75,8 @@ def main() -> None:
     # finer: the pieces of the finishing step
     from nebula_rt.transport import finish as pp
 
+    # a fresh run: finishing hands its device sums back (the memory of only what is needed)
+    res, J, rel = pl.compute_light(scene, rho, backend, on_device=True)
     ds = res.device_sums
     bands = light.bands
     params = np.stack([res.j_scale, res.sigma_scale, [b.albedo for b in bands]], axis=1)

@@ -226,8 +226,6 @@ def check_transport(
         raise SceneError("density", f"array of shape {tuple(rho.shape)}",
                          f"must be finite in float32 (magnitudes at most {fmt(FLOAT32_MAX)}; found NaN or infinity)")
     shape = rho.shape
-    volume, diag = _voxel_geometry(shape)
-    four_pi_v = 4.0 * math.pi * volume
     if rho_low >= FLOAT32_TINY:
         rho_min = rho_low
     else:  # vacuum or denormal voxels: the least normal density
@@ -236,34 +234,50 @@ def check_transport(
     alb = np.array([b.albedo for b in bands], np.float64)
     slum = np.asarray(star_band_luminosity, np.float64).reshape(len(stars), len(bands))
     band_lum = slum.sum(axis=0)
-    flights = float(max_scatterings) + 1.0
     track = estimator == "track-length"
     dusty = tau > 0 and rho_max > 0
 
-    # --- extinction ---------------------------------------------------------------------
     if tau > 0:
-        lo, why_lo = FLOAT32_TINY / float(k.min()), "tau x extinction (float32)"
-        hi, why_hi = FLOAT32_MAX / float(k.max()), "tau x extinction (float32)"
-        if rho_max > 0:
-            if FLOAT32_MAX / (k.max() * rho_max) < hi:
-                hi, why_hi = FLOAT32_MAX / (k.max() * rho_max), "tau x extinction x density (float32)"
-            resolved = track_scale / (MIN_TRACK_UNITS_PER_FREE_PATH * k.max() * rho_max)
-            if track and resolved < hi:
-                hi = resolved
-                why_hi = ("the mean free path in the densest voxel, which the track-length estimator must "
-                          f"resolve in {MIN_TRACK_UNITS_PER_FREE_PATH:g} fixed-point units of 1/{fmt(track_scale)} "
-                          "box units (or use the collision-filter estimator)")
-            if rho_min > 0 and FLOAT32_TINY / (k.min() * rho_min) > lo:
-                lo, why_lo = FLOAT32_TINY / (k.min() * rho_min), "tau x extinction x density (float32)"
-        if not lo <= tau <= hi:
-            raise SceneError("dust.tau", tau, f"must be 0 or in [{fmt(lo)}, {fmt(hi)}] for this density "
-                                              f"(max {fmt(rho_max)}, smallest non-zero {fmt(rho_min)}) and these "
-                                              f"bands (extinction {fmt(k.min())} to {fmt(k.max())}): limited by "
-                                              f"{why_lo if tau < lo else why_hi}")
+        _check_extinction(tau, k, rho_max, rho_min, track_scale, track)
     sigma_max = tau * k * rho_max  # per band
     sigma_min = tau * k * rho_min
+    _check_tallies(bands, stars, slum, band_lum, photons, max_scatterings, tau, sigma_max, sigma_min, alb,
+                   track, dusty, track_scale, shape)
+    return rho_max
 
-    # --- J and emissivity -----------------------------------------------------------------
+
+def _check_extinction(tau: float, k, rho_max: float, rho_min: float, track_scale: float, track: bool) -> None:
+    """dust.tau against float32 (tau k_b and tau k_b rho) and, for the track-length estimator,
+    against the fixed-point resolution of the densest voxel's mean free path."""
+    lo, why_lo = FLOAT32_TINY / float(k.min()), "tau x extinction (float32)"
+    hi, why_hi = FLOAT32_MAX / float(k.max()), "tau x extinction (float32)"
+    if rho_max > 0:
+        if FLOAT32_MAX / (k.max() * rho_max) < hi:
+            hi, why_hi = FLOAT32_MAX / (k.max() * rho_max), "tau x extinction x density (float32)"
+        resolved = track_scale / (MIN_TRACK_UNITS_PER_FREE_PATH * k.max() * rho_max)
+        if track and resolved < hi:
+            hi = resolved
+            why_hi = ("the mean free path in the densest voxel, which the track-length estimator must "
+                      f"resolve in {MIN_TRACK_UNITS_PER_FREE_PATH:g} fixed-point units of 1/{fmt(track_scale)} "
+                      "box units (or use the collision-filter estimator)")
+        if rho_min > 0 and FLOAT32_TINY / (k.min() * rho_min) > lo:
+            lo, why_lo = FLOAT32_TINY / (k.min() * rho_min), "tau x extinction x density (float32)"
+    if not lo <= tau <= hi:
+        raise SceneError("dust.tau", tau, f"must be 0 or in [{fmt(lo)}, {fmt(hi)}] for this density "
+                                          f"(max {fmt(rho_max)}, smallest non-zero {fmt(rho_min)}) and these "
+                                          f"bands (extinction {fmt(k.min())} to {fmt(k.max())}): limited by "
+                                          f"{why_lo if tau < lo else why_hi}")
+
+
+def _check_tallies(bands, stars, slum, band_lum, photons: int, max_scatterings: int, tau: float, sigma_max, sigma_min,
+                   alb, track: bool, dusty: bool, track_scale: float, shape) -> None:
+    """Each band's J and emissivity against float32: the largest a voxel can reach below
+    FLOAT32_MAX, the smallest tally above FLOAT32_TINY (the bounds of :func:`check_transport`)."""
+    import numpy as np
+
+    volume, diag = _voxel_geometry(shape)
+    four_pi_v = 4.0 * math.pi * volume
+    flights = float(max_scatterings) + 1.0
     brightest = int(np.argmax([s.luminosity for s in stars]))
     total_lum = float(sum(s.luminosity for s in stars))
     q = band_lum / float(photons)
@@ -315,4 +329,3 @@ def check_transport(
                              f"(4 pi voxel volume x fixed-point scale)) underflows float32 ({fmt(FLOAT32_TINY)}): "
                              f"allowed total luminosity of the stars >= {fmt(total_lum * FLOAT32_TINY / j_lo)} "
                              f"for {photons} photons on this grid {tuple(shape)}")
-    return rho_max

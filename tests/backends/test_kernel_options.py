@@ -196,7 +196,8 @@ def test_sorted_emission_order_is_every_packet_once_by_cell_star_and_direction(c
     two stars and three batch slots (several launches): every work item exactly once, in ascending bins of cell,
     star and leading direction bits (all 2 x NRT_SORT_BITS of them where the bins allow, as
     with 3 bits), the directions spread over many bins."""
-    from nebula_rt.backends.session import EMISSION_MAX_BINS, DeviceTransport
+    from nebula_rt.backends.regions import EMISSION_MAX_BINS
+    from nebula_rt.backends.session import DeviceTransport
 
     orders = []
     real = DeviceTransport._emission_order

@@ -82,7 +82,7 @@ def test_passes_stop_and_resume_packets(cloud, monkeypatch):
     ended, pass by pass, so that every pass is full while new packets are left; the bits
     stay."""
     from nebula_rt.backends import kernel_params
-    from nebula_rt.backends.session import REGION_KEY_BYTES
+    from nebula_rt.backends.regions import REGION_KEY_BYTES
 
     plain = _run(cloud, {"NRT_REGIONS": 0}, peel=False)
     seen = {}
@@ -123,7 +123,7 @@ def test_backend_default_uses_regions_from_its_grid_size(monkeypatch):
     """Without a tuning, the backend's own rule decides (PoCL: regions of 32 voxels from 128^3
     on; GPUs: 64 from 256^3, 128 from 1024^3): a 128^3 cloud on the test device is traced as
     its rule says, with the one-go trace's bits, and a 64^3 one on PoCL without regions."""
-    from nebula_rt.backends.session import region_shift_for
+    from nebula_rt.backends.regions import region_shift_for
 
     be = _backend({})
     rule = dict(be.region_shifts)

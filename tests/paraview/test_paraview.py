@@ -557,7 +557,7 @@ def test_bad_input_reports_error_and_pvpython_carries_on(pv_env, xdisplay):
     # the errors reached ParaView's output window (stderr), naming the parameter and the rule
     err = proc.stderr
     assert re.search(r"NebulaRT error: NebulaLightField: Photons \(transport\.photons\) = 0: must be", err), err[-3000:]
-    assert re.search(r"NebulaRT error: NebulaLightField: G \(bands\.g\) = 1\.5: must be in \[-1, 1\]", err), err[-3000:]
+    assert re.search(r"NebulaRT error: NebulaLightField: G \(bands\.g\) = 1\.5: must be a number in \[-1, 1\]", err), err[-3000:]
     # once per change of the properties, however many consumers update the failed filter
     for label in ("photons-0", "g-1.5"):
         block = err.split(f"--- step {label}\n", 1)[1].split("--- step", 1)[0]

@@ -10,7 +10,7 @@ import math
 import os
 
 from ..errors import ResourceError
-from .session import region_shift_for, region_state_bytes
+from .regions import region_shift_for, region_state_bytes
 
 
 def _gib(n: float) -> str:

@@ -105,6 +105,9 @@ def _print_summary(summary: dict) -> None:
             pass
 
 
+# One function though long (about 80 lines): the render command's steps in the order they
+# happen (inputs, outputs checked, memory, trace, write, picture, publish), each followed by
+# its cancel point, which a reader should see together.
 def _render(args, cancel) -> int:
     from ..pipeline.outputs import Output, Publication, check_outputs
     from ..pipeline.stages import Pipeline

@@ -265,6 +265,8 @@ def _check_annuli(lo, hi, where: str, shared: bool) -> None:
                              "annuli must not overlap")
 
 
+# One function though long (about 110 lines): a table's columns are recognised, converted
+# and checked one after another against the same header, and every refusal names its column.
 def read_table(source: Union[str, Path, "object"], *, scale: Optional[OffsetScale] = None,
                normalisation: str = "free", annulus=DEFAULT_ANNULUS, name: str = "") -> ObservedTable:
     """Read and validate a table of observations.

@@ -14,7 +14,7 @@ import numpy as np
 from ..optics import colour_convert
 from .. import limits
 from ..backends import Backend, TransportSetup
-from ..backends.session import region_capacity
+from ..backends.regions import region_capacity
 from ..errors import NebulaWarning, SceneError
 from .importance import depth_map, observer_depth_map, resolve_importance, window_rates
 from .line_of_sight import line_of_sight_tau

@@ -147,6 +147,10 @@ class _Launcher:
 
 
 
+# One function though long (about 160 lines): the launch loop's state (the launches left, the
+# tallies, the folds, the error target's next check, the time limit, cancelling between
+# launches, the ranks' sums) is read and changed by every step, in this order; cut into
+# pieces, each would take and return that same state.
 def run_transport(plan: TransportPlan, backend: Backend, *, progress=None, cancel=None,
                   started: Optional[float] = None, comm=None) -> Tallies:
     """The tracing stage: trace the plan's batches, folding each launch's slots into the
