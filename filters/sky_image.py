@@ -172,14 +172,9 @@ class NebulaSkyImage(NebulaAlgorithm):
         img = sky_image(emissivity, sigma, cam, stars=stars, star_band_luminosity=slum)
         band_lum = star_band_luminosities(scene.stars, wl).sum(axis=0)
         m = colour_convert.band_to_xyz_matrix(wl, colour_source_from_field_data(fd))
-        ratio = img.intensity / band_lum[:, None, None]
-        rgb = colour_convert.gamut_map(colour_convert.xyz_to_linear_srgb(np.tensordot(ratio, m, axes=([0], [1]))))
-        if exposure == "auto":
-            scat = colour_convert.xyz_to_linear_srgb(
-                np.tensordot(img.scattered / band_lum[:, None, None], m, axes=([0], [1])))
-            exposure = colour_convert.auto_exposure(scat, percentile=SKY_EXPOSURE_PERCENTILE)
-        rgb8 = colour_convert.encode_picture(rgb, exposure, self._values["colour.stretch"],
-                                             self._values["colour.asinh_q"])  # (W, H, 3)
+        rgb8, exposure = colour_convert.sky_picture(  # (W, H, 3)
+            img.intensity, img.scattered, band_lum, m, exposure, SKY_EXPOSURE_PERCENTILE,
+            self._values["colour.stretch"], self._values["colour.asinh_q"])
 
         out = vtkImageData.GetData(outInfo)
         w, h = cam.size
@@ -234,32 +229,17 @@ def write_fits(image, path) -> None:
     """
     from astropy.io import fits
 
-    from nebula_rt.observe.calibrate import MAGSYS_COMMENT, PASSBAND_EXTENSIONS, passband_header
+    from nebula_rt.observe.calibrate import MAGSYS_COMMENT, sky_hdus
 
     fd = contract.SkyImageData.from_field_data(field_data_dict(image), need=("band_names",))
     if fd.sky_units != "MJy/sr" or not fd.wcs_header:
         raise SceneError("Units", "box units", "a FITS sky image needs the calibrated image: set Units to MJy/sr")
-    wcs = fits.Header.fromstring(fd.wcs_header)
-    hdr = fits.Header()
-    hdr["ORIGIN"] = "NebulaRT"
-    hdr["METHOD"] = "ray-march"
-    hdr["PIXSCALE"] = (fd.pixel_scale_arcsec, "pixel side, arcsec")
-    hdr["PSFFWHM"] = (fd.psf_fwhm_arcsec, "arcsec")
     system = fd.mag_system or "AB"
-    hdr["MAGSYS"] = (system, MAGSYS_COMMENT[system])
-    hdus = [fits.PrimaryHDU(header=hdr)]
-    for n in fd.band_names:
-        hh = wcs.copy()
-        hh["BUNIT"] = "MJy/sr"
-        hh["BAND"] = n
-        data = point_array(image, contract.SKY_SURFACE_BRIGHTNESS.name(n))[:, :, 0].T
-        hdus.append(fits.ImageHDU(np.ascontiguousarray(data, np.float32), header=hh, name=f"SB_{n}"))
-    for n in fd.passband_names.split(","):
-        hh = wcs.copy()
-        passband_header(hh, n, system)
-        data = point_array(image, contract.SKY_MAG.name(n))[:, :, 0].T
-        hdus.append(fits.ImageHDU(np.ascontiguousarray(data, np.float32), header=hh, name=PASSBAND_EXTENSIONS[n]))
-    fits.HDUList(hdus).writeto(path, overwrite=True)
+    primary = {"METHOD": "ray-march", "PIXSCALE": (fd.pixel_scale_arcsec, "pixel side, arcsec"),
+               "PSFFWHM": (fd.psf_fwhm_arcsec, "arcsec"), "MAGSYS": (system, MAGSYS_COMMENT[system])}
+    bands = [(n, point_array(image, contract.SKY_SURFACE_BRIGHTNESS.name(n))[:, :, 0], {}) for n in fd.band_names]
+    passbands = [(n, point_array(image, contract.SKY_MAG.name(n))[:, :, 0]) for n in fd.passband_names.split(",")]
+    sky_hdus(primary, fits.Header.fromstring(fd.wcs_header), bands, passbands, system).writeto(path, overwrite=True)
 
 
 class NebulaSkyFitsWriter(VTKPythonAlgorithmBase):

@@ -246,3 +246,27 @@ def test_bands_to_srgb8_volume_and_auto():
         bands_to_srgb8(vals[:3], EIGHT_BANDS, star, temperature)
     with pytest.raises(ValueError):
         bands_to_srgb8(vals, EIGHT_BANDS, star, temperature, exposure="bright")
+
+
+def test_sky_picture_is_the_one_composition_of_sky_pictures():
+    """colour_convert.sky_picture makes every sky picture (nebula-rt sky's and Nebula Sky
+    Image's): its auto exposure brings the given percentile of the scattered light's largest
+    displayed component to full scale (1.0 before the transfer curve), a star brighter than
+    that saturates, a given exposure is used as it is, and the tone curve is the scene's."""
+    from nebula_rt.optics.colour_convert import band_to_xyz_matrix, gamut_map, sky_picture, xyz_to_linear_srgb
+
+    rng = np.random.default_rng(7)
+    wl = np.array([450.0, 550.0, 650.0])
+    lum = np.array([1.2, 1.0, 0.8])
+    scattered = rng.uniform(0.0, 1e-3, (3, 16, 12))
+    intensity = scattered.copy()
+    intensity[:, 5, 7] += 1.0  # a star, far brighter than the nebula
+    m = band_to_xyz_matrix(wl, 20000.0)
+    rgb8, exposure = sky_picture(intensity, scattered, lum, m, "auto", 90.0)
+    displayed = gamut_map(xyz_to_linear_srgb(np.tensordot(scattered / lum[:, None, None], m, axes=([0], [1]))))
+    assert np.percentile(displayed.max(axis=-1), 90.0) * exposure == pytest.approx(1.0, rel=1e-12)
+    assert rgb8.shape == (16, 12, 3) and rgb8.dtype == np.uint8 and rgb8[5, 7].max() == 255
+    fixed, used = sky_picture(intensity, scattered, lum, m, 2.5)
+    assert used == 2.5 and not np.array_equal(fixed, rgb8)
+    asinh, used_asinh = sky_picture(intensity, scattered, lum, m, "auto", 90.0, "asinh", 8.0)
+    assert used_asinh == exposure and not np.array_equal(asinh, rgb8)

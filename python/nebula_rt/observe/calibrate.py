@@ -360,33 +360,61 @@ def passband_header(hh, name: str, system: str) -> None:
         hh["ABVEGA"] = (AB_MINUS_VEGA[name], "m_AB - m_Vega subtracted (Blanton+ 2007)")
 
 
-def write_fits(path, cal: CalibratedSky, scene=None) -> None:
-    """Write ``cal`` as FITS (module docstring); ``scene`` adds its TOML to the primary header's
-    comments."""
+def sky_hdus(primary: dict, wcs_header, band_images, passband_images, mag_system: str, comments=(), stars=None):
+    """The calibrated sky image as FITS (the layout of the module docstring), for every writer
+    of it (:func:`write_fits`; Nebula Sky FITS Writer, ``nebula_rt.filters.sky_image``).
+
+    Parameters
+    ----------
+    primary : dict
+        The primary header's cards after ``ORIGIN`` (value, or (value, comment)).
+    wcs_header : astropy.io.fits.Header
+        The celestial WCS every image carries.
+    band_images : sequence of (name, ndarray (W, H), dict)
+        Each band's surface brightness (MJy/sr) with its extra cards; HDU ``SB_<name>``.
+    passband_images : sequence of (name, ndarray (W, H))
+        Each passband's magnitudes per arcsec^2 in ``mag_system``; HDU ``MAG_BESSELL_B`` ...
+    comments : sequence of str
+        Comment lines of the primary header (the scene's TOML).
+    stars : astropy.io.fits.BinTableHDU, optional
+        The stars' table (``STARS``), last.
+    """
     from astropy.io import fits
-    from astropy.table import Table
 
     hdr = fits.Header()
     hdr["ORIGIN"] = "NebulaRT"
-    hdr["BUNIT"] = ""
-    for k, val in cal.meta.items():
+    for k, val in primary.items():
         hdr[k] = val
-    if scene is not None:
-        for line in scene.to_toml().splitlines():
-            hdr.add_comment(line[:72])
+    for line in comments:
+        hdr.add_comment(line[:72])
     hdus = [fits.PrimaryHDU(header=hdr)]
-    wcs_hdr = cal.wcs.to_header()
-    for b, name in enumerate(cal.band_names):
-        hh = wcs_hdr.copy()
+    for name, image, cards in band_images:
+        hh = wcs_header.copy()
         hh["BUNIT"] = "MJy/sr"
         hh["BAND"] = name
-        hh["WAVELEN"] = (float(cal.band_wavelength_nm[b]), "band centre, nm")
-        hh["BANDLO"], hh["BANDHI"] = (float(cal.band_edges_nm[b, 0]), "nm"), (float(cal.band_edges_nm[b, 1]), "nm")
-        hdus.append(fits.ImageHDU(cal.surface_brightness[b].T.astype(np.float32), header=hh, name=f"SB_{name}"))
-    for x, name in enumerate(cal.passbands):
-        hh = wcs_hdr.copy()
-        passband_header(hh, name, cal.mag_system)
-        hdus.append(fits.ImageHDU(cal.mag[x].T.astype(np.float32), header=hh, name=PASSBAND_EXTENSIONS[name]))
+        for k, val in cards.items():
+            hh[k] = val
+        hdus.append(fits.ImageHDU(np.ascontiguousarray(np.asarray(image).T, np.float32), header=hh, name=f"SB_{name}"))
+    for name, image in passband_images:
+        hh = wcs_header.copy()
+        passband_header(hh, name, mag_system)
+        hdus.append(fits.ImageHDU(np.ascontiguousarray(np.asarray(image).T, np.float32), header=hh,
+                                  name=PASSBAND_EXTENSIONS[name]))
+    if stars is not None:
+        hdus.append(stars)
+    return fits.HDUList(hdus)
+
+
+def write_fits(path, cal: CalibratedSky, scene=None) -> None:
+    """Write ``cal`` as FITS (module docstring; :func:`sky_hdus`); ``scene`` adds its TOML to the
+    primary header's comments."""
+    from astropy.io import fits
+    from astropy.table import Table
+
+    bands = [(name, cal.surface_brightness[b], {
+        "WAVELEN": (float(cal.band_wavelength_nm[b]), "band centre, nm"),
+        "BANDLO": (float(cal.band_edges_nm[b, 0]), "nm"), "BANDHI": (float(cal.band_edges_nm[b, 1]), "nm")})
+        for b, name in enumerate(cal.band_names)]
     world = cal.wcs.pixel_to_world_values(cal.star_pixel[:, 0], cal.star_pixel[:, 1])
     stars = Table({"x_pixel": cal.star_pixel[:, 0] + 1.0, "y_pixel": cal.star_pixel[:, 1] + 1.0,
                    "ra": np.atleast_1d(world[0]), "dec": np.atleast_1d(world[1])})
@@ -398,8 +426,10 @@ def write_fits(path, cal: CalibratedSky, scene=None) -> None:
     stars["ra"].unit = stars["dec"].unit = "deg"
     thdu = fits.table_to_hdu(stars)
     thdu.name = "STARS"
-    hdus.append(thdu)
-    fits.HDUList(hdus).writeto(path, overwrite=True)
+    hdus = sky_hdus({"BUNIT": "", **cal.meta}, cal.wcs.to_header(), bands,
+                    [(name, cal.mag[x]) for x, name in enumerate(cal.passbands)], cal.mag_system,
+                    comments=scene.to_toml().splitlines() if scene is not None else (), stars=thdu)
+    hdus.writeto(path, overwrite=True)
 
 
 def picture(cal: CalibratedSky, scene, exposure="auto", percentile: float = 99.0):
@@ -409,17 +439,8 @@ def picture(cal: CalibratedSky, scene, exposure="auto", percentile: float = 99.0
     component maps to full scale; stars saturate) and the scene's ``colour.stretch``."""
 
     m = colour_convert.band_to_xyz_matrix(cal.band_wavelength_nm, _dominant_source(scene.stars))
-    lum = cal.band_luminosity[:, None, None]
-
-    def rgb_of(img):
-        return colour_convert.gamut_map(colour_convert.xyz_to_linear_srgb(
-            np.tensordot(img / lum, m, axes=([0], [1]))))
-
-    rgb = rgb_of(cal.intensity_box)
-    if exposure == "auto":
-        exposure = colour_convert.auto_exposure(rgb_of(cal.scattered_box), percentile=percentile)
-    exposure = float(exposure)
-    return colour_convert.encode_picture(rgb, exposure, scene.colour.stretch, scene.colour.asinh_q), exposure
+    return colour_convert.sky_picture(cal.intensity_box, cal.scattered_box, cal.band_luminosity, m, exposure,
+                                      percentile, scene.colour.stretch, scene.colour.asinh_q)
 
 
 def write_png(path, rgb8) -> None:

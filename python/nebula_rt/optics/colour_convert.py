@@ -425,6 +425,41 @@ def encode_picture(linear, exposure: float, stretch: str = "linear", q: float = 
     raise ValueError(f'stretch must be "linear" or "asinh", got {stretch!r}')
 
 
+def sky_picture(intensity, scattered, band_luminosity, matrix, exposure="auto", percentile: float = 99.0,
+                stretch: str = "linear", q: float = 8.0):
+    """The true-colour picture of a sky image: (uint8 (W, H, 3) sRGB, exposure used).
+
+    Every sky picture is made here (the calibrated image's, ``nebula-rt sky``; Nebula Sky
+    Image's): per band the image over the stars' band luminosity (the colour relative to the
+    stars' light), to XYZ by ``matrix`` (:func:`band_to_xyz_matrix` of the dominant star),
+    linear sRGB, :func:`gamut_map`, the exposure and the tone curve (:func:`encode_picture`).
+
+    Parameters
+    ----------
+    intensity, scattered : ndarray (n_bands, W, H)
+        The image with the stars, and its scattered light alone (box-unit intensities).
+    band_luminosity : ndarray (n_bands,)
+        The stars' luminosity per band (scene units).
+    matrix : ndarray (3, n_bands)
+        Bands -> XYZ.
+    exposure : "auto" or float
+        "auto": ``percentile`` of the scattered light's largest displayed component maps to
+        full scale (the stars saturate).
+    stretch, q : str, float
+        ``colour.stretch`` and ``colour.asinh_q``.
+    """
+    lum = np.asarray(band_luminosity, np.float64)[:, None, None]
+
+    def displayed(img):
+        return gamut_map(xyz_to_linear_srgb(np.tensordot(np.asarray(img) / lum, matrix, axes=([0], [1]))))
+
+    rgb = displayed(intensity)
+    if exposure == "auto":
+        exposure = auto_exposure(displayed(scattered), percentile=percentile)
+    exposure = float(exposure)
+    return encode_picture(rgb, exposure, stretch, q), exposure
+
+
 def auto_exposure(linear_rgb, percentile: float = 99.5) -> float:
     """Exposure mapping a percentile of pixel brightness to full scale.
 
