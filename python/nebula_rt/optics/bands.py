@@ -45,6 +45,10 @@ _NAME_RE = re.compile(r"^[A-Za-z0-9_-]+$")
 
 #: Keys of one ``[[bands.list]]`` table.
 BAND_KEYS = ("name", "wavelength", "extinction", "albedo", "g")
+#: The ranges of a band's albedo and g, declared once: a band's own values and the scene's
+#: overrides (``bands.albedo``, ``bands.g``: nebula_rt.scene.sections) are held to them
+ALBEDO_RANGE = (0.0, 1.0)
+G_RANGE = (-1.0, 1.0)
 
 
 @dataclass(frozen=True)
@@ -145,26 +149,34 @@ def _as_float(param: str, value: Any, allowed: str) -> float:
 
 #: Albedo and g reach the device as float32: 0, or a magnitude of at least FLOAT32_TINY.
 _TINY_TEXT = f"0 or at least {fmt(FLOAT32_TINY)} in magnitude (float32)"
+#: What each entry of a ``[[bands.list]]`` table may be (the refusals' words), by key
+ENTRY_ALLOWED = {
+    "name": "must be a non-empty name made of [A-Za-z0-9_-]",
+    "wavelength": f"must be a wavelength in nm in [{MIN_WAVELENGTH_NM:g}, {MAX_WAVELENGTH_NM:.0e}]".replace("e+0", "e"),
+    "extinction": f"must be a number > 0 (relative to the reference band) in {FLOAT32_RANGE_TEXT} (float32)",
+    "albedo": f"must be in [{ALBEDO_RANGE[0]:g}, {ALBEDO_RANGE[1]:g}], {_TINY_TEXT}",
+    "g": f"must be in [{G_RANGE[0]:g}, {G_RANGE[1]:g}], {_TINY_TEXT}",
+}
 
 
 def _check_albedo(param: str, value: Any) -> float:
-    allowed = f"must be in [0, 1], {_TINY_TEXT}"
+    allowed = ENTRY_ALLOWED["albedo"]
     v = _as_float(param, value, allowed)
-    if not (0.0 <= v <= 1.0 and in_float32_range(v)):  # False for NaN
+    if not (ALBEDO_RANGE[0] <= v <= ALBEDO_RANGE[1] and in_float32_range(v)):  # False for NaN
         raise SceneError(param, value, allowed)
     return v
 
 
 def _check_g(param: str, value: Any) -> float:
-    allowed = f"must be in [-1, 1], {_TINY_TEXT}"
+    allowed = ENTRY_ALLOWED["g"]
     v = _as_float(param, value, allowed)
-    if not (-1.0 <= v <= 1.0 and in_float32_range(v)):
+    if not (G_RANGE[0] <= v <= G_RANGE[1] and in_float32_range(v)):
         raise SceneError(param, value, allowed)
     return v
 
 
 def _check_extinction(param: str, value: Any) -> float:
-    allowed = f"must be a number > 0 (relative to the reference band) in {FLOAT32_RANGE_TEXT} (float32)"
+    allowed = ENTRY_ALLOWED["extinction"]
     v = _as_float(param, value, allowed)
     if not (v > 0.0 and in_float32_range(v, zero=False)):
         raise SceneError(param, value, allowed)
@@ -172,7 +184,7 @@ def _check_extinction(param: str, value: Any) -> float:
 
 
 def _check_wavelength(param: str, value: Any) -> float:
-    allowed = "must be a wavelength in nm in [1, 1e5]"
+    allowed = ENTRY_ALLOWED["wavelength"]
     v = _as_float(param, value, allowed)
     if not (MIN_WAVELENGTH_NM <= v <= MAX_WAVELENGTH_NM):
         raise SceneError(param, value, allowed)
@@ -180,7 +192,7 @@ def _check_wavelength(param: str, value: Any) -> float:
 
 
 def _check_name(param: str, value: Any) -> str:
-    allowed = "must be a non-empty name made of [A-Za-z0-9_-]"
+    allowed = ENTRY_ALLOWED["name"]
     if not isinstance(value, str) or not _NAME_RE.match(value):
         raise SceneError(param, value, allowed)
     return value

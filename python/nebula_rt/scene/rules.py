@@ -10,8 +10,8 @@ from typing import Any, Callable, Dict, Mapping, Optional, Sequence
 
 from .. import limits
 from ..errors import SceneError
-from ..limits import FLOAT32_RANGE_TEXT, in_float32_range
-from ..optics.bands import BAND_KEYS, Band
+from ..limits import in_float32_range
+from ..optics.bands import BAND_KEYS, ENTRY_ALLOWED, Band
 from .schema import Param, _num, interval
 from .sections import BandsConfig, Colour, Dust, Grid, Observer, Star, Transport
 from .values import CONVERT, WHAT, is_real, to_float, to_str
@@ -132,12 +132,7 @@ BANDS_RULES = rules_of(BandsConfig, skip=("list",))
 # [[bands.list]] entries: a Band's fields (nebula_rt.optics.bands), whose ranges resolve_bands()
 # checks once the bands are known; here their types
 BAND_ENTRY_RULES: Dict[str, _Rule] = {
-    "name": _Rule(to_str, "must be a non-empty name made of [A-Za-z0-9_-]"),
-    "wavelength": _Rule(to_float, "must be a wavelength in nm in [1, 1e5]"),
-    "extinction": _Rule(to_float, "must be a number > 0 (relative to the reference band) in " + FLOAT32_RANGE_TEXT),
-    "albedo": _Rule(to_float, "must be in [0, 1]"),
-    "g": _Rule(to_float, "must be in [-1, 1]"),
-}
+    key: _Rule(to_str if key == "name" else to_float, ENTRY_ALLOWED[key]) for key in BAND_KEYS}
 assert tuple(BAND_ENTRY_RULES) == BAND_KEYS
 TRANSPORT_RULES = rules_of(Transport)
 COLOUR_RULES = rules_of(Colour)

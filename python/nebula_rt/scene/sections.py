@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from typing import Any, Dict, List, Optional, Tuple, Union
 
 from ..limits import INT32_MAX, MAX_OFFSET, TEMPERATURE_RANGE
-from ..optics.bands import PRESETS, Band, resolve_bands
+from ..optics.bands import ALBEDO_RANGE, G_RANGE, PRESETS, Band, resolve_bands
 from . import schema, units, values
 from .schema import document, param
 
@@ -220,10 +220,10 @@ class BandsConfig:
             "G 550, B 439 nm with the thesis's extinction factors 0.748 / 1 / 1.324); None whenever "
             "`list` is given")
     albedo: Optional[float] = param(
-        None, type="float or None", lo=0.0, hi=1.0, group=G_OPTICS,
+        None, type="float or None", lo=ALBEDO_RANGE[0], hi=ALBEDO_RANGE[1], group=G_OPTICS,
         doc="If given, the single-scattering albedo of the dust in every band (else each band's own)")
     g: Optional[float] = param(
-        None, type="float or None", lo=-1.0, hi=1.0, label="G", group=G_OPTICS,
+        None, type="float or None", lo=G_RANGE[0], hi=G_RANGE[1], label="G", group=G_OPTICS,
         doc="If given, the Henyey-Greenstein asymmetry parameter of every band (else each band's own)")
     list: Optional[List[Dict[str, Any]]] = param(
         None, type="list of dict or None", group=G_OPTICS,
