@@ -1534,12 +1534,11 @@ NRT_DEVICE nrt_u64 nrt_batch_of(nrt_u64 photon, nrt_u64 base, nrt_u64 extra)
  * keeps the kernel correct for smaller launches too.
  */
 NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
+                              const nrt_launch launch,          /* this launch's photons, bands, pass */
                               const NRT_GLOBAL float *density,  /* nx*ny*nz, x fastest */
                               const NRT_GLOBAL float *optics,   /* per band: tau k_b, albedo, g, 0 */
                               const NRT_GLOBAL float *stars,    /* per star: x, y, z, pad */
                               const NRT_GLOBAL float *star_cdf, /* per band: n_stars cdf */
-                              nrt_u64 photon_start, nrt_u64 count, nrt_u64 first_batch,
-                              int band0, int n_lbands,
                               NRT_GLOBAL nrt_u64 *acc,      /* slots * n_lbands * nvox */
                               NRT_GLOBAL nrt_u64 *sq,       /* NRT_PACKET_SQ: as acc, the squares */
                               NRT_GLOBAL nrt_u64 *tallies,  /* slots * n_lbands * 4 */
@@ -1552,10 +1551,13 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
                               NRT_GLOBAL nrt_packet *states,   /* NRT_REGIONS: per state slot */
                               const NRT_GLOBAL float *window,  /* NRT_BIASED: the weight windows' depth
                                                                   per voxel */
-                              NRT_GLOBAL nrt_u64 *keys_out,    /* NRT_REGIONS: per item it */
-                              nrt_u64 n_resume, nrt_u64 n_fresh, nrt_u64 fresh0, nrt_u64 n_free,
-                              nrt_u64 hwm, int region_shift)
+                              NRT_GLOBAL nrt_u64 *keys_out)    /* NRT_REGIONS: per item it */
 {
+    const nrt_u64 photon_start = launch.photon_start, count = launch.count, first_batch = launch.first_batch;
+    const nrt_u64 n_resume = launch.n_resume, n_fresh = launch.n_fresh, fresh0 = launch.fresh0;
+    const nrt_u64 n_free = launch.n_free, hwm = launch.hwm;
+    const int band0 = launch.band0, n_lbands = launch.n_lbands, region_shift = launch.region_shift;
+    (void)n_resume, (void)n_fresh, (void)fresh0, (void)n_free, (void)hwm, (void)region_shift; /* NRT_REGIONS */
     const int nx = prm->nx, ny = prm->ny, nz = prm->nz, n_stars = prm->n_stars;
     const nrt_u64 seed = prm->seed, batch_base = prm->batch_base, batch_extra = prm->batch_extra;
     const int max_scatterings = prm->max_scatterings;
@@ -1709,11 +1711,11 @@ NRT_DEVICE nrt_u32 nrt_spread_bits(nrt_u32 x) /* bit i -> bit 2i, for x < 2^16 *
     return x;
 }
 
-NRT_KERNEL void emission_keys(const NRT_GLOBAL nrt_trace_params *prm,
-                              const NRT_GLOBAL float *star_cdf,
-                              nrt_u64 photon_start, nrt_u64 count, nrt_u64 first_batch,
-                              int band0, int n_lbands, int n_slots, NRT_GLOBAL nrt_u64 *keys)
+NRT_KERNEL void emission_keys(const NRT_GLOBAL nrt_trace_params *prm, const nrt_launch launch,
+                              const NRT_GLOBAL float *star_cdf, NRT_GLOBAL nrt_u64 *keys)
 {
+    const nrt_u64 photon_start = launch.photon_start, count = launch.count, first_batch = launch.first_batch;
+    const int band0 = launch.band0, n_lbands = launch.n_lbands, n_slots = launch.slots;
     nrt_u64 total = count * (nrt_u64)n_lbands;
     for (nrt_u64 t = NRT_GLOBAL_ID(); t < total; t += NRT_GLOBAL_SIZE()) {
         int lband = (int)(t / count);

@@ -24,14 +24,16 @@ from nebula_rt.optics.bands import PRESETS
 from nebula_rt.transport import trace
 
 
-def test_param_struct_layout_matches_the_device(backend):
-    """The device lays nrt_trace_params out exactly as the host's dtype (every offset and the
-    size), so the struct the host uploads is the struct the kernel reads."""
-    dt = kernel_params.dtype("nrt_trace_params")
+@pytest.mark.parametrize("name", sorted(kernel_params.STRUCTS))
+def test_param_struct_layout_matches_the_device(backend, name):
+    """The device lays every shared struct out exactly as the host's dtype (every offset and
+    the size), so the struct the host uploads (or passes by value) is the struct the kernel
+    reads."""
+    dt = kernel_params.dtype(name)
     d_in = backend.to_device(np.zeros(dt.itemsize, np.uint8))
-    fields = kernel_params.STRUCTS["nrt_trace_params"]
+    fields = kernel_params.STRUCTS[name]
     d_out = backend.device_zeros(len(fields) + 1, np.uint64)
-    backend.launch("sampling.cl", "nrt_trace_params_layout", 1, d_in, d_out)
+    backend.launch("sampling.cl", f"{name}_layout", 1, d_in, d_out)
     out = backend.to_host(d_out)
     assert int(out[0]) == dt.itemsize
     assert [int(x) for x in out[1:]] == [dt.fields[name][1] for name, *_ in fields]
@@ -44,6 +46,21 @@ def test_param_struct_is_declared_once():
         assert f" {name}{f'[{n}]' if n > 1 else ''};" in text
     with pytest.raises(TypeError, match="missing fields"):
         kernel_params.pack(seed=1)
+
+
+def test_launch_struct_reaches_the_kernel_by_value(backend):
+    """A struct passed by value (the per-launch one) arrives byte for byte, with values that
+    need all 64 bits of a u64 field and negative ints."""
+    for name in kernel_params.BY_VALUE:
+        dt = kernel_params.dtype(name)
+        values = {}
+        for i, (field, t, n, _m) in enumerate(kernel_params.STRUCTS[name]):
+            v = (2**63 + 2**40 + i) if t == "u64" else (-7 - i if t == "i32" else 0.5 + i)
+            values[field] = [v] * n if n > 1 else v
+        sent = kernel_params.pack(name, **values)
+        d_out = backend.device_zeros(dt.itemsize, np.uint8)
+        backend.launch("sampling.cl", f"{name}_echo", 1, sent[0], d_out)
+        assert backend.to_host(d_out).tobytes() == sent.tobytes()
 
 
 def _fold(backend, slots: np.ndarray, s1=None, m2=None, k0: int = 0):

@@ -1,7 +1,9 @@
 """Parameter structs shared by the kernels and the host: one definition, three languages.
 
 The transport kernel reads a run's constants (grid, seed, batch plan, fixed-point scales,
-peel-off camera) from one struct in device memory instead of two dozen positional arguments.
+peel-off camera) from one struct in device memory, and what changes from launch to launch
+(photon range, bands, the pass of a run by regions) from a second struct passed by value,
+instead of two dozen positional arguments.
 The fields are declared here once; :func:`c_struct` writes the C typedef that
 :mod:`nebula_rt.backends.kernel_source` pastes into every kernel program (OpenCL C and CUDA C), and
 :func:`dtype` the NumPy structured dtype the host fills and uploads. Fields are ordered by
@@ -58,7 +60,25 @@ PACKET_STATE = (
     ("peel_score", "u64", 1, "NRT_PEEL: the packet's peel-off units so far (the heavy-tail diagnostic)"),
 )
 
-STRUCTS = {"nrt_trace_params": TRACE_PARAMS, "nrt_packet": PACKET_STATE}
+#: nrt_launch: what changes from one launch of the transport kernels to the next, passed by
+#: value (kernels/transport.cl: trace_photons, emission_keys); the run's constants stay in
+#: nrt_trace_params in device memory
+LAUNCH = (
+    ("photon_start", "u64", 1, "first photon number of the launch (or of the chunk, by regions)"),
+    ("count", "u64", 1, "photons per band of the launch (of the chunk)"),
+    ("first_batch", "u64", 1, "batch of slot 0"),
+    ("n_resume", "u64", 1, "NRT_REGIONS: stopped packets to go on with"),
+    ("n_fresh", "u64", 1, "NRT_REGIONS: new packets of the chunk in this pass"),
+    ("fresh0", "u64", 1, "NRT_REGIONS: the chunk's item of the first new packet"),
+    ("n_free", "u64", 1, "NRT_REGIONS: free state slots listed after the stopped keys"),
+    ("hwm", "u64", 1, "NRT_REGIONS: state slots from here on are unused"),
+    ("band0", "i32", 1, "first band of the launch"),
+    ("n_lbands", "i32", 1, "bands of the launch"),
+    ("region_shift", "i32", 1, "NRT_REGIONS: packets stop at faces of regions of 2^region_shift voxels"),
+    ("slots", "i32", 1, "batch slots of the launch"),
+)
+
+STRUCTS = {"nrt_trace_params": TRACE_PARAMS, "nrt_packet": PACKET_STATE, "nrt_launch": LAUNCH}
 
 #: Constants the kernels and the host share, pasted into the kernel sources as #defines.
 CONSTANTS = (
@@ -107,6 +127,22 @@ def layout_kernel(name: str) -> str:
             + "\n".join(body) + "\n}")
 
 
+#: the structs the kernels take by value (the others live in device memory)
+BY_VALUE = ("nrt_launch",)
+
+
+def echo_kernel(name: str) -> str:
+    """OpenCL/CUDA C of a kernel ``<name>_echo(v, out)`` copying a struct ``name`` passed by
+    value into ``out``: the bytes the kernel received, for the by-value test."""
+    return (f"NRT_KERNEL void {name}_echo(const {name} v, NRT_GLOBAL {name} *out)\n{{\n"
+            "    *out = v;\n}")
+
+
+def test_kernels() -> str:
+    """The layout kernels of every struct and the echo kernels of those passed by value."""
+    return "\n\n".join([layout_kernel(n) for n in STRUCTS] + [echo_kernel(n) for n in BY_VALUE])
+
+
 def all_structs() -> str:
     """The C text of every shared constant and struct, for the kernel sources."""
     consts = "\n".join(f"#define {name} {value} /* {meaning} */" for name, value, meaning in CONSTANTS)
@@ -114,8 +150,9 @@ def all_structs() -> str:
 
 
 def pack(name: str = "nrt_trace_params", **values) -> np.ndarray:
-    """One struct ``name`` as a (1,) structured array with ``values`` filled in (the rest 0);
-    every field must be given."""
+    """One struct ``name`` as a (1,) structured array with ``values`` filled in; every field
+    must be given. Its element (``pack(...)[0]``) is the by-value kernel argument on both
+    backends (pyopencl and CuPy pass a structured scalar's bytes)."""
     dt = dtype(name)
     missing = set(dt.names) - set(values)
     extra = set(values) - set(dt.names)

@@ -35,5 +35,4 @@ def kernel_source(name: str) -> str:
 
     text = _INCLUDE.sub(_inline, read_kernel_file(name))
     text = text.replace("/* NRT_PARAM_STRUCTS */", kernel_params.all_structs())
-    layouts = "\n\n".join(kernel_params.layout_kernel(n) for n in kernel_params.STRUCTS)
-    return text.replace("/* NRT_PARAM_LAYOUT_KERNELS */", layouts)
+    return text.replace("/* NRT_PARAM_LAYOUT_KERNELS */", kernel_params.test_kernels())

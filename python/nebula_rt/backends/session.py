@@ -234,9 +234,10 @@ class DeviceTransport(TransportSession):
                 self._emit_scratch = None
                 self._emit_scratch = be.device_zeros(items, np.uint64)
             scratch = self._emit_scratch
-        be.launch(be.transport_program, "emission_keys", items, self.d_params, self.d_cdf,
-                  np.uint64(photon_start), np.uint64(count), np.uint64(first_batch),
-                  np.int32(band0), np.int32(n_lb), np.int32(self.slots), scratch,
+        launch = kernel_params.pack(
+            "nrt_launch", photon_start=photon_start, count=count, first_batch=first_batch, n_resume=0, n_fresh=0,
+            fresh0=0, n_free=0, hwm=0, band0=band0, n_lbands=n_lb, region_shift=NO_REGIONS, slots=self.slots)[0]
+        be.launch(be.transport_program, "emission_keys", items, self.d_params, launch, self.d_cdf, scratch,
                   defines=self.defines)
         self._counting_sort(scratch, items, keys, self.d_emit_bins, self.n_emit_bins, self.emit_shift, read=False)
         return keys
@@ -269,15 +270,16 @@ class DeviceTransport(TransportSession):
         be = self.backend
         regions = bool(self.region_shift)
         items = n_resume + max(n_fresh, n_free) if regions else int(count) * n_lb
+        launch = kernel_params.pack(
+            "nrt_launch", photon_start=photon_start, count=count, first_batch=first_batch, n_resume=n_resume,
+            n_fresh=n_fresh, fresh0=fresh0, n_free=n_free, hwm=hwm, band0=band0, n_lbands=n_lb,
+            region_shift=shift, slots=self.slots)[0]
         be.launch_trace(
-            be.transport_program, "trace_photons", items,
-            self.d_params, self.d_density, self.d_optics, self.d_stars, self.d_cdf,
-            np.uint64(photon_start), np.uint64(count), np.uint64(first_batch),
-            np.int32(band0), np.int32(n_lb),
+            be.transport_program, "trace_photons", items, self.d_params, launch,
+            self.d_density, self.d_optics, self.d_stars, self.d_cdf,
             self.d_acc, self.d_sq, self.d_tallies, self.d_overflow, self.d_image, self.d_keys,
             self.d_emit if regions else self.d_keys, self.d_states if regions else self.d_keys, self.d_window,
-            self.d_stopped if regions else self.d_keys, np.uint64(n_resume), np.uint64(n_fresh),
-            np.uint64(fresh0), np.uint64(n_free), np.uint64(hwm), np.int32(shift), defines=self.defines)
+            self.d_stopped if regions else self.d_keys, defines=self.defines)
         return items
 
     def _trace_by_regions(self, photon_start, count, first_batch, band0, n_lb, drain=True):
