@@ -164,14 +164,16 @@ def _build_kernels(backend, n: int, photons: int, n_bands: int) -> None:
 
     from nebula_rt.optics.bands import Band
     from nebula_rt.scene import Star
+    from nebula_rt.transport import TransportRequest
     from nebula_rt.transport.plan import plan_transport
 
     bands = [Band(name=f"b{i}", wavelength=450.0 + 100.0 * i, extinction=1.0, albedo=ALBEDO, g=G)
              for i in range(n_bands)]
     stars = [Star(position=(0.5, 0.5, 0.5), luminosity=1.0, temperature=None, bump_radius=0.0)]
-    plan = plan_transport(np.ones((n, n, n), np.float32), bands, stars, tau=TAU, photons=int(photons),
-                          batch_size=_batch_size_from_env(), backend=backend,
-                          error_estimate=os.environ.get("NRT_BENCH_ERROR_ESTIMATE", "auto"))
+    request = TransportRequest(bands=tuple(bands), stars=tuple(stars), tau=TAU, photons=int(photons),
+                               method="analog", batch_size=_batch_size_from_env(),
+                               error_estimate=os.environ.get("NRT_BENCH_ERROR_ESTIMATE", "auto"))
+    plan = plan_transport(np.ones((n, n, n), np.float32), request, backend)
     backend.transport_session(plan.setup, plan.launches.slots, plan.launches.bands_per_launch).close()
 
 

@@ -30,7 +30,7 @@ from provenance import provenance  # noqa: E402  (benchmarks/provenance.py)
 
 from nebula_rt.optics.bands import Band  # noqa: E402
 from nebula_rt.scene.sections import Star  # noqa: E402
-from nebula_rt.transport.run import trace  # noqa: E402
+from nebula_rt.transport import trace  # noqa: E402
 
 
 def make_backend(kind: str, device: str, tuning: dict):

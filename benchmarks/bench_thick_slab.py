@@ -49,7 +49,7 @@ import nebula_rt  # noqa: E402
 from provenance import provenance  # noqa: E402  (benchmarks/provenance.py)
 from nebula_rt.backends import get_backend  # noqa: E402
 from nebula_rt.errors import NebulaWarning  # noqa: E402
-from nebula_rt.transport.run import trace  # noqa: E402
+from nebula_rt.transport import trace  # noqa: E402
 
 
 def measure(backend, albedo, g, tau, method, photons, seeds, side="below", importance="auto"):

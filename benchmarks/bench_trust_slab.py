@@ -35,7 +35,7 @@ from oracles.slab_mc import scattered  # noqa: E402
 from provenance import provenance  # noqa: E402  (benchmarks/provenance.py)
 from nebula_rt.backends import get_backend  # noqa: E402
 from nebula_rt.errors import NebulaWarning  # noqa: E402
-from nebula_rt.transport.run import trace  # noqa: E402
+from nebula_rt.transport import trace  # noqa: E402
 
 TARGET = 0.10
 

@@ -15,31 +15,43 @@ from nebula_rt import scene as _scene
 from nebula_rt.optics.bands import reference_band_index
 from nebula_rt.errors import CancelledError, NebulaError, NebulaWarning, SceneError
 
-#: Star records in the flat ``Stars`` property: x, y, z (box units), luminosity,
-#: temperature (K; 0 = no spectrum, flat), bump radius (box units).
-STAR_FIELDS = ("x", "y", "z", "luminosity", "temperature", "bump_radius")
+#: The flat ``Stars`` property (the filters' and ParaView's table), one row per star:
+#: (column header, the star's scene field, component of it or None). The scene's Star
+#: declarations give every column its meaning, unit and range; the table writes an omitted
+#: field (None) as its ``STAR_NONE_AS`` number.
+STAR_COLUMNS = (("X", "position", 0), ("Y", "position", 1), ("Z", "position", 2),
+                ("Luminosity", "luminosity", None), ("Temperature", "temperature", None),
+                ("Bump Radius", "bump_radius", None))
+#: a table's number for an omitted field, and what it means: temperature 0 = no spectrum
+#: (every band an equal share)
+STAR_NONE_AS = {"temperature": (0.0, "flat spectrum")}
 
 
 def stars_from_flat(values) -> list[dict]:
-    """Scene-file star tables from the flat ``Stars`` vector (6 numbers per star).
+    """Scene-file star tables from the flat ``Stars`` vector (a row of ``STAR_COLUMNS`` per
+    star).
 
     A temperature of exactly 0 means no spectrum (flat); any other value goes to the scene's
     validation (a negative or NaN temperature is an error, not a flat spectrum)."""
-    allowed = "must hold 6 numbers per star: x, y, z, luminosity, temperature (0 = flat spectrum), bump radius"
+    width = len(STAR_COLUMNS)
+    allowed = (f"must hold {width} numbers per star: "
+               + ", ".join(h.lower() + (" ({:g} = {})".format(*STAR_NONE_AS[f]) if f in STAR_NONE_AS else "")
+                           for h, f, _c in STAR_COLUMNS))
     try:
         vals = list(values)
     except TypeError:
         raise SceneError("Stars", values, allowed) from None
-    if not vals or len(vals) % len(STAR_FIELDS) or not all(
+    if not vals or len(vals) % width or not all(
             isinstance(v, numbers.Real) and not isinstance(v, bool) for v in vals):
         raise SceneError("Stars", vals, allowed)
-    vals = [float(v) for v in vals]
     out = []
-    for i in range(0, len(vals), 6):
-        x, y, z, lum, temp, bump = vals[i:i + 6]
-        star = {"position": [x, y, z], "luminosity": lum, "bump_radius": bump}
-        if temp != 0.0:
-            star["temperature"] = temp
+    for i in range(0, len(vals), width):
+        star = {}
+        for (_h, field, comp), v in zip(STAR_COLUMNS, vals[i:i + width]):
+            if comp is not None:
+                star.setdefault(field, []).append(float(v))
+            elif not (field in STAR_NONE_AS and float(v) == STAR_NONE_AS[field][0]):
+                star[field] = float(v)
         out.append(star)
     return out
 
@@ -60,11 +72,13 @@ def _arrays_mtime(data) -> int:
 
 
 def default_star_row() -> list:
-    """The Stars property's row of the scene's default star: x, y, z, luminosity, temperature
-    (0 = flat spectrum), bump radius."""
+    """The Stars property's row (``STAR_COLUMNS``) of the scene's default star."""
     star = _scene.Star()
-    return [*map(float, star.position), float(star.luminosity), float(star.temperature or 0.0),
-            float(star.bump_radius)]
+    row = []
+    for _h, field, comp in STAR_COLUMNS:
+        v = getattr(star, field)
+        row.append(float(STAR_NONE_AS[field][0] if v is None else v if comp is None else v[comp]))
+    return row
 
 
 def default_reference_band():

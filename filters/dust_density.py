@@ -45,7 +45,7 @@ class NebulaDustDensity(NebulaAlgorithm):
         self._stars = default_star_row()
 
     def SetStars(self, *values):
-        """Flat list, 6 numbers per star: x, y, z, luminosity, temperature (0: none), bump radius."""
+        """Flat list, a row of ``base.STAR_COLUMNS`` per star: x, y, z, luminosity, temperature (0: none), bump radius."""
         self._stars = list(values[0]) if len(values) == 1 and hasattr(values[0], "__len__") else list(values)
         self.Modified()
 

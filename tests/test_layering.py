@@ -301,7 +301,8 @@ def test_old_io_vti_name_forwards_to_the_vtk_layer():
 
 
 def test_one_place_turns_a_scene_into_a_run():
-    """Only nebula_rt.transport.request calls the transport's trace() and reads the scene's
+    """Only nebula_rt.transport.request calls the transport's trace() (or its request form,
+    or the planner) and reads the scene's
     device (transport.backend, transport.device): every observable, filter and command gets
     its run and its device from there, so a [transport] key reaches every run alike."""
     import nebula_rt.filters
@@ -315,9 +316,10 @@ def test_one_place_turns_a_scene_into_a_run():
             continue
         tree = ast.parse(path.read_text(), str(path))
         for node in ast.walk(tree):
-            if isinstance(node, ast.ImportFrom) and any(a.name == "trace" for a in node.names):
+            if isinstance(node, ast.ImportFrom) and any(
+                    a.name in ("trace", "trace_request", "plan_transport") for a in node.names):
                 base = node.module or ""
-                if base.split(".")[-1] in ("transport", "run") and "transport" in base:
+                if base.split(".")[-1] in ("transport", "run", "plan", "request") and "transport" in base:
                     tracing.append(f"{module}:{node.lineno}")
             if (isinstance(node, ast.Attribute) and node.attr in ("backend", "device")
                     and isinstance(node.value, ast.Attribute) and node.value.attr == "transport"):

@@ -110,30 +110,24 @@ def panel(props, defaults=None, extra=None, head=(), own_groups=None):
 
 def star_columns():
     """The Stars table's column headers, in the order of the flat Stars vector
-    (nebula_rt.filters.base.STAR_FIELDS): x, y, z, then the star's own scene fields' labels."""
-    from nebula_rt import scene
-    from nebula_rt.filters.base import STAR_FIELDS
-    from nebula_rt.scene.schema import label
+    (nebula_rt.filters.base.STAR_COLUMNS)."""
+    from nebula_rt.filters.base import STAR_COLUMNS
 
-    out = []
-    for name in STAR_FIELDS:
-        if name in ("x", "y", "z"):
-            out.append(name.upper())
-        else:
-            key = "stars." + name
-            out.append(" ".join(w.capitalize() for w in label(key, scene.declaration(key)).split()))
-    return out
+    return [header for header, _f, _c in STAR_COLUMNS]
 
 
 def stars_doc():
-    """The Stars table's tooltip: its columns with the star's declarations (scene keys
-    ``stars.position``, ``stars.luminosity``, ``stars.temperature``, ``stars.bump_radius``)."""
+    """The Stars table's tooltip: its columns with the star's declarations (the scene keys of
+    nebula_rt.filters.base.STAR_COLUMNS)."""
     from nebula_rt import scene
+    from nebula_rt.filters.base import STAR_COLUMNS
     from nebula_rt.scene.schema import range_text
 
     parts = []
-    for cols, key in (("X, Y, Z", "stars.position"), ("Luminosity", "stars.luminosity"),
-                      ("Temperature", "stars.temperature"), ("Bump Radius", "stars.bump_radius")):
+    fields = list(dict.fromkeys(f for _h, f, _c in STAR_COLUMNS))
+    for field in fields:
+        cols = ", ".join(h for h, f, _c in STAR_COLUMNS if f == field)
+        key = "stars." + field
         p = scene.declaration(key)
         extra = "; ".join(x for x in (p.unit, range_text(p), "scene key " + key) if x)
         parts.append(f"{cols}: {p.doc} ({extra}).")
@@ -141,8 +135,8 @@ def stars_doc():
 
 
 def stars_property(default, enabled_by=None):
-    """The repeatable ``Stars`` property: 6 numbers per star, ``AddStar`` once per star after
-    ``RemoveAllStars``; ``default``: the rows (6 numbers each) it starts with; ``enabled_by``:
+    """The repeatable ``Stars`` property: a row of STAR_COLUMNS per star, ``AddStar`` once per
+    star after ``RemoveAllStars``; ``default``: the rows it starts with; ``enabled_by``:
     ``(property, value)`` that enables the table.
 
     The table's columns have headers (``ShowComponentLabels``, read by ParaView's
@@ -151,6 +145,8 @@ def stars_property(default, enabled_by=None):
     pqScalarValueListPropertyWidget; no XML sets a new row's values): the table starts with
     the default star, so "+" adds a visible star, and only a table emptied first gets a row of
     zeros (luminosity 0, refused on Apply naming the star's luminosity)."""
+    from nebula_rt.filters.base import STAR_COLUMNS
+
     values = " ".join(repr(float(v)) for v in default)
     labels = "".join('<ComponentLabel component="%d" label=%s/>' % (i, quoteattr(t))
                      for i, t in enumerate(star_columns()))
@@ -162,10 +158,10 @@ def stars_property(default, enabled_by=None):
     hints = "<Hints>%s</Hints>" % hints
     return """
 <DoubleVectorProperty name="Stars" label="Stars" command="AddStar" clean_command="RemoveAllStars"
-    repeat_command="1" number_of_elements_per_command="6" use_index="0"
+    repeat_command="1" number_of_elements_per_command="%d" use_index="0"
     number_of_elements="%d" default_values="%s">
   <Documentation>%s</Documentation>%s
-</DoubleVectorProperty>""" % (len(default), values, doc, hints)
+</DoubleVectorProperty>""" % (len(STAR_COLUMNS), len(default), values, doc, hints)
 
 
 STARS_FROM_INPUT = """

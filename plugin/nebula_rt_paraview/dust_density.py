@@ -27,8 +27,8 @@ class NebulaDustDensity(_base.NebulaDustDensity):
     point array ``density`` on the voxel centres."""
 
     # -- the repeatable Stars property: RemoveAllStars, then AddStar per star ----------------
-    def AddStar(self, x, y, z, luminosity, temperature, bump_radius):
-        self.SetStars(list(self._stars) + [x, y, z, luminosity, temperature, bump_radius])
+    def AddStar(self, *row):  # one row of nebula_rt.filters.base.STAR_COLUMNS
+        self.SetStars(list(self._stars) + list(row))
 
     def RemoveAllStars(self):
         self.SetStars([])

@@ -70,8 +70,8 @@ class NebulaLightField(_base.NebulaLightField):
     ``J_<band>``, ``emissivity_<band>``, ``rel_error_<band>`` and the run's field data."""
 
     # -- the repeatable Stars property: RemoveAllStars, then AddStar per star ----------------
-    def AddStar(self, x, y, z, luminosity, temperature, bump_radius):
-        self.SetStars(list(self._stars) + [x, y, z, luminosity, temperature, bump_radius])
+    def AddStar(self, *row):  # one row of nebula_rt.filters.base.STAR_COLUMNS
+        self.SetStars(list(self._stars) + list(row))
 
     def RemoveAllStars(self):
         self.SetStars([])

@@ -25,7 +25,7 @@ from conftest import tuned_backend
 from nebula_rt.transport import tails
 from nebula_rt.errors import NebulaWarning
 from nebula_rt.transport.plan import plan_transport
-from nebula_rt.transport import trace
+from nebula_rt.transport import TransportRequest, trace
 from slab_scene import peel_bins, seeded_runs, slab
 
 
@@ -99,7 +99,9 @@ def test_histogram_is_every_packets_contribution(backend, method):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", NebulaWarning)
         r = trace(rho, bands, stars, peel_bins=peel_bins(cam), **kw)
-    plan = plan_transport(rho, bands, stars, **kw)
+    request = TransportRequest(bands=tuple(bands), stars=tuple(stars), tau=kappa, photons=600, seed=5,
+                               method=method, peel=cam, batch_size=1)
+    plan = plan_transport(rho, request, backend)
     # image units per fixed-point unit of the score (transport.estimate_light)
     unit = float(r.packet_energy[0]) / (plan.setup.peel_scale * cam.pixel_size**2)
     per_packet = r.peel_bin_batches[:, 0, 0] / unit

@@ -457,7 +457,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("scene", help="scene file (TOML)")
     c.add_argument("--png", default="compare.png", help="plot (default compare.png)")
     c.add_argument("--json", default=None, help="also write the measured profiles as JSON")
-    c.add_argument("--size", type=int, default=128,
+    c.add_argument("--size", type=int, default=sky_schema.COMPARISON_SIZE,
                    help="sky image pixels per side ({}-{})".format(*_size_range()))
     from .fit import add_fit_parser, add_table_options
 

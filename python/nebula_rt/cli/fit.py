@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 
 from ..errors import SceneError
+from ..scene import sky_schema
 
 
 def add_table_options(p) -> None:
@@ -186,13 +187,7 @@ def add_fit_parser(sub, func, sizes, parents=()) -> None:
     f.add_argument("--png", default="fit.png", help="plot of the best fit against the tables (default fit.png)")
     f.add_argument("--json", default=None, help="also write the result as JSON")
     f.add_argument("--scene-out", default=None, help="write the best-fit scene (TOML)")
-    f.add_argument("--size", type=int, default=comparison_size(),
+    f.add_argument("--size", type=int, default=sky_schema.COMPARISON_SIZE,
                    help=f"peel-off image pixels per side ({sizes[0]}-{sizes[1]})")
     f.add_argument("-q", "--quiet", action="store_true", help="no progress bar or summary on stderr")
     f.set_defaults(func=func)
-
-
-def comparison_size() -> int:
-    from ..observe.comparison import DEFAULT_SIZE
-
-    return DEFAULT_SIZE

@@ -48,6 +48,7 @@ import numpy as np
 from ..optics import colour_convert
 from ..scene import units
 from ..optics.colour_convert import band_edges, hat_basis
+from ..optics.blackbody import planck_lambda, stefan_boltzmann
 from ..density.generate import generate_density
 from ..errors import SceneError
 from ..transport.line_of_sight import line_of_sight_tau
@@ -117,8 +118,8 @@ def star_spectra(scene, wavelength_nm) -> np.ndarray:
     out = []
     for i, s in enumerate(scene.stars):
         _, lbol = units.star_luminosity(s, i, bands)
-        out.append(lbol * math.pi * units.planck_lambda(wl, s.temperature)
-                   / (units.stefan_boltzmann() * s.temperature ** 4))
+        out.append(lbol * math.pi * planck_lambda(wl, s.temperature)
+                   / (stefan_boltzmann() * s.temperature ** 4))
     return np.array(out)
 
 

@@ -52,6 +52,7 @@ from ..pipeline.rgba import _dominant_source
 from .sky import Camera, sky_image
 from ..transport.estimate import batch_standard_error
 from ..transport.request import TransportRequest, scene_backend
+from ..scene.sky_schema import COMPARISON_SIZE
 
 try:
     import tomllib
@@ -242,7 +243,7 @@ def _camera(star, direction, size):
     return Camera(direction=tuple(direction), size=(size, size), extent=1.0, center=tuple(star.position))
 
 
-def profiles(light, direction=(0.0, 0.0, -1.0), size: int = 128, edges=None,
+def profiles(light, direction=(0.0, 0.0, -1.0), size: int = COMPARISON_SIZE, edges=None,
              reference: str = "observed") -> Profiles:
     """Measure a light field (:class:`nebula_rt.pipeline.LightField`) as an observer would,
     from its sky image (ray marching the emissivity, which treats each voxel's scattered
@@ -271,7 +272,7 @@ def profiles(light, direction=(0.0, 0.0, -1.0), size: int = 128, edges=None,
                    _dominant_source(light.scene.stars), tau_star, reference)
 
 
-def observe_scene(scene, direction=(0.0, 0.0, -1.0), size: int = 128, edges=None, backend=None,
+def observe_scene(scene, direction=(0.0, 0.0, -1.0), size: int = COMPARISON_SIZE, edges=None, backend=None,
                   progress=None, reference: str = "observed", cancel=None) -> tuple[Profiles, object]:
     """Trace ``scene`` with a peel-off image seen along ``direction`` (the phase function at
     every scattering towards the observer: forward and backward scattering as they are) and

@@ -36,11 +36,12 @@ from .observed_tables import ObservedTable, finite_or_none
 from ..pipeline.outputs import Publication
 from ..pipeline.rgba import _dominant_source
 from .sky import Camera
+from ..scene.sky_schema import COMPARISON_SIZE
 from ..transport.estimate import batch_standard_error
 from ..transport.request import TransportRequest, scene_backend
 
 #: Sky image pixels per side of the comparison's peel-off image (over 2 x the largest offset).
-DEFAULT_SIZE = 96
+DEFAULT_SIZE = COMPARISON_SIZE
 
 
 @dataclass

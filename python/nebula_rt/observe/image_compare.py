@@ -72,6 +72,7 @@ from .calibrate import PASSBANDS
 from ..errors import SceneError
 from .observed_images import ObservedImage, read_image  # noqa: F401 (read_image: also the API here)
 from ..transport.plan import batch_count, planned_batch_size
+from ..scene.sky_schema import COMPARISON_SIZE
 
 #: How the observation is resampled onto the model image's grid
 REPROJECT_MODES = ("exact", "interp")
@@ -427,7 +428,7 @@ class ImageResult:
         }
 
 
-def compare_observed_image(scene, obs: ObservedImage, *, band=None, direction=(0.0, 0.0, -1.0), size: int = 128,
+def compare_observed_image(scene, obs: ObservedImage, *, band=None, direction=(0.0, 0.0, -1.0), size: int = COMPARISON_SIZE,
                            mode: str = "exact", mask_stars_arcsec: float = 0.0, backend=None, progress=None,
                            cancel=None) -> ImageResult:
     """Hold ``scene``'s calibrated peel-off image against ``obs``: the observation reprojected

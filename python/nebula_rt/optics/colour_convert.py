@@ -33,6 +33,7 @@ import colour
 import numpy as np
 
 from ..array_api import array_module
+from .blackbody import planck_lambda
 
 __all__ = [
     "auto_exposure",
@@ -110,8 +111,8 @@ def star_spectrum(source, wavelengths_nm: np.ndarray) -> np.ndarray:
     Parameters
     ----------
     source : float, None, or array_like (n, 2)
-        A number: effective temperature in K, Planck blackbody
-        (``colour.colorimetry.planck_law``, the law behind ``colour.sd_blackbody``).
+        A number: effective temperature in K, Planck blackbody with CIE 015's constants
+        (:func:`nebula_rt.optics.blackbody.planck_lambda`, the law behind ``colour.sd_blackbody``).
         ``None``: flat, equal-energy spectrum (CIE illuminant E).
         (n, 2) pairs: a measured spectrum, wavelength in nm (increasing) and relative power
         per unit wavelength, interpolated linearly and 0 outside its range.
@@ -135,11 +136,11 @@ def star_spectrum(source, wavelengths_nm: np.ndarray) -> np.ndarray:
     t = _check_temperature(source)
     if t is None:
         return np.ones_like(wl)
-    # planck_law takes metres and returns W sr^-1 m^-2 m^-1; the absolute value
-    # is irrelevant, and ~1e13 numbers are awkward, hence the 560 nm reference.
-    spd = colour.colorimetry.planck_law(wl * 1e-9, t)
-    ref = colour.colorimetry.planck_law(560e-9, t)
-    return np.asarray(spd / ref, dtype=np.float64).reshape(wl.shape)  # (planck_law squeezes)
+    # the absolute value (W sr^-1 m^-2 m^-1) is irrelevant, and ~1e13 numbers are awkward,
+    # hence the 560 nm reference
+    spd = planck_lambda(wl * 1e-9, t, colorimetry=True)
+    ref = planck_lambda(560e-9, t, colorimetry=True)
+    return spd / ref
 
 
 def hat_basis(band_wavelengths_nm, wavelengths_nm) -> np.ndarray:

@@ -155,6 +155,27 @@ def default(sections, key: str) -> Any:
     raise KeyError(key)
 
 
+class Declarations:
+    """The lookups of one set of ``sections`` (``(table name, dataclass)`` pairs): the scene's
+    (:mod:`nebula_rt.scene.sections`) and the sky image's (:mod:`nebula_rt.scene.sky_schema`)
+    export its bound methods as their ``parameters``, ``declaration`` and ``default``."""
+
+    def __init__(self, sections):
+        self.sections = sections
+
+    def parameters(self) -> Iterator[Tuple[str, Param, Any]]:
+        """Every declared parameter as (key, :class:`Param`, default), in the tables' order."""
+        return parameters(self.sections)
+
+    def declaration(self, key: str) -> Param:
+        """The declaration of ``key`` (``"transport.photons"``); KeyError if none."""
+        return declaration(self.sections, key)
+
+    def default(self, key: str) -> Any:
+        """The default value of ``key``; KeyError if none."""
+        return default(self.sections, key)
+
+
 def label(key: str, p: Param) -> str:
     """The panel label of ``key`` declared by ``p``."""
     return p.label or key.rsplit(".", 1)[1].replace("_", " ").capitalize()

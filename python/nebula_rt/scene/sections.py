@@ -393,16 +393,7 @@ SECTIONS = (("grid", Grid), ("dust", Dust), ("stars", Star), ("bands", BandsConf
             ("colour", Colour), ("observer", Observer))
 
 
-def parameters():
-    """Every scene parameter as (key, :class:`~nebula_rt.scene.schema.Param`, default), in the file's order."""
-    return schema.parameters(SECTIONS)
-
-
-def declaration(key: str) -> "schema.Param":
-    """The declaration of scene key ``key`` (``"transport.photons"``); KeyError if none."""
-    return schema.declaration(SECTIONS, key)
-
-
-def default(key: str):
-    """The default value of scene key ``key``."""
-    return schema.default(SECTIONS, key)
+#: the scene keys' lookups: parameters() (key, declaration, default) in the file's order,
+#: declaration(key), default(key)
+parameters, declaration, default = (getattr(schema.Declarations(SECTIONS), n)
+                                    for n in ("parameters", "declaration", "default"))

@@ -25,6 +25,11 @@ G_CAMERA, G_PICTURE = "Camera", "Picture"
 #: sums on the device, about what one GPU gives a peel-off image beside its grid
 MAX_SKY_SIZE = 16384
 
+#: pixels per side of a comparison's peel-off image (the annulus profiles of ``nebula-rt
+#: compare``, the observed tables and images, the fits): a smaller default than a picture's,
+#: since the rings sum many pixels and a fit traces the scene many times
+COMPARISON_SIZE = 128
+
 
 @document
 @dataclass
@@ -59,19 +64,9 @@ class SkyImageParameters:
 SECTIONS = (("sky", SkyImageParameters),)
 
 
-def parameters():
-    """Every sky-image parameter as (key, :class:`~nebula_rt.scene.schema.Param`, default)."""
-    return schema.parameters(SECTIONS)
-
-
-def declaration(key: str) -> "schema.Param":
-    """The declaration of ``key`` (``"sky.direction"``); KeyError if none."""
-    return schema.declaration(SECTIONS, key)
-
-
-def default(key: str):
-    """The default value of ``key``."""
-    return schema.default(SECTIONS, key)
+#: the sky-image keys' lookups: parameters(), declaration("sky.direction"), default(key)
+parameters, declaration, default = (getattr(schema.Declarations(SECTIONS), n)
+                                    for n in ("parameters", "declaration", "default"))
 
 
 def validate_exposure(value) -> Union[float, str]:

@@ -58,6 +58,7 @@ from typing import Any, Optional, Tuple
 import numpy as np
 
 from ..errors import SceneError
+from ..optics.blackbody import planck_lambda, stefan_boltzmann
 
 #: Nominal solar luminosity, W (IAU 2015 Resolution B3; ``astropy.constants.L_sun``).
 L_SUN_W = 3.828e26
@@ -260,25 +261,6 @@ def band_range_nm(bands) -> Tuple[float, float]:
 
     e = band_edges([b.wavelength for b in bands])
     return float(e[0]), float(e[-1])
-
-
-def planck_lambda(wavelength_m, temperature: float) -> np.ndarray:
-    """Planck's B_lambda = 2 h c^2 / lambda^5 / (exp(h c / (lambda k T)) - 1), W m^-2 sr^-1 m^-1,
-    with the exact SI constants (``scipy.constants``), so that its integral is sigma T^4 / pi
-    with :func:`stefan_boltzmann` (colour-science's ``planck_law`` rounds c2 to 0.014388 m K,
-    which moves the total by 6e-5; it only shapes the band fractions, which are ratios)."""
-    from scipy.constants import Boltzmann as k, c, h
-
-    wl = np.asarray(wavelength_m, np.float64)
-    with np.errstate(over="ignore"):
-        return 2.0 * h * c * c / wl**5 / np.expm1(h * c / (wl * k * float(temperature)))
-
-
-def stefan_boltzmann() -> float:
-    """sigma, W m^-2 K^-4 (``scipy.constants``: exact in the 2019 SI)."""
-    from scipy.constants import Stefan_Boltzmann
-
-    return float(Stefan_Boltzmann)
 
 
 def inside_fraction(temperature: float, lo_nm: float, hi_nm: float) -> float:

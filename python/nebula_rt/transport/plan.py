@@ -442,21 +442,24 @@ class Tallies:
         return int(self.band_done.min())
 
 
-def plan_transport(density, bands, stars, *, tau: float, photons: int, estimator: str = "track-length",
-                   max_scatterings: int = 1000, seed: int = 1, batch_size: int = 0, backend: Backend,
-                   target_error: float = 0.0, time_limit: float = 0.0, peel=None, peel_bins=None,
-                   checked_adds: bool = False, _acc_limit_bits: int = 63, method: str = "analog",
-                   error_estimate: str = "batches", importance: str = "auto") -> TransportPlan:
-    """The first stage: check every input against what the device can represent, then resolve
-    the run (see :func:`trace` for the parameters; ``checked_adds`` checks every deposit for
-    the headroom as it is added)."""
+def plan_transport(density, request, backend: Backend, *, checked_adds: bool = False,
+                   acc_limit_bits: int = 63) -> TransportPlan:
+    """The first stage: check every input of ``request`` (a
+    :class:`~nebula_rt.transport.request.TransportRequest`) against what the device can
+    represent, then resolve the run (see :func:`nebula_rt.transport.trace` for the
+    parameters; ``checked_adds`` checks every deposit for the headroom as it is added,
+    ``acc_limit_bits`` is the headroom limit, lower in tests)."""
+    bands, stars, tau, photons = list(request.bands), list(request.stars), request.tau, request.photons
+    estimator, method, max_scatterings = request.estimator, request.method, request.max_scatterings
+    seed, batch_size, target_error, time_limit = request.seed, request.batch_size, request.target_error, request.time_limit
+    peel, peel_bins, error_estimate = request.peel, request.peel_bins, request.error_estimate
     density = np.asarray(density, dtype=np.float32)
     shape = density.shape
     wl = np.array([b.wavelength for b in bands], dtype=np.float64)
     slum = star_band_luminosities(stars, wl)
     band_lum = slum.sum(axis=0)
     biased = resolve_method(method, density, tau, stars, peel) == "biased"
-    importance = resolve_importance(importance, peel)
+    importance = resolve_importance(request.importance, peel)
     track_scale = float(2.0**FIXED_POINT_BITS * max(shape))
     # what the device forms from these inputs must fit float32/int32: checked before any work
     rho_max = limits.check_transport(density, bands, stars, slum, tau=tau, photons=photons, max_scatterings=max_scatterings,
@@ -487,7 +490,7 @@ def plan_transport(density, bands, stars, *, tau: float, photons: int, estimator
         max_scatterings=int(max_scatterings),
         seed=int(seed),
         track_scale=track_scale * (WIDE_SCALE if biased else 1.0),
-        acc_limit_bits=int(_acc_limit_bits),
+        acc_limit_bits=int(acc_limit_bits),
         unchecked_adds=(not biased and not checked_adds
                         and (packets or _no_wrap(base + 1, max_scatterings, estimator, track_scale, shape))),
         biased=biased,

@@ -8,6 +8,10 @@ calibrated sky image (:mod:`nebula_rt.observe.calibrate`), the annulus profiles
 ``transport.error_estimate`` silently ignored a value it would have refused), and a new key is
 added here once. ``tests/test_layering.py`` keeps it so: no other module calls
 :func:`nebula_rt.transport.trace` or picks a scene's device.
+
+A run is described by one request object, whose defaults are the scene's declarations
+(:mod:`nebula_rt.scene.sections`); :func:`trace` is the keyword form of the same call, kept
+for scripts and notebooks, and builds a request.
 """
 
 from __future__ import annotations
@@ -15,9 +19,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Callable, Optional
 
+import numpy as np
+
 from ..backends import Backend, get_backend
+from ..scene.sections import default as _declared
 from .result import TransportResult
-from .run import trace
+from .run import trace_request
 
 
 def scene_backend(scene, comm=None) -> Backend:
@@ -37,7 +44,8 @@ def scene_backend(scene, comm=None) -> Backend:
 
 @dataclass(frozen=True)
 class TransportRequest:
-    """Everything :func:`~nebula_rt.transport.trace` takes besides the density and the device.
+    """Everything a run takes besides the density and the device (see :func:`trace` for the
+    meaning of every field); the defaults are the scene's.
 
     Attributes
     ----------
@@ -52,8 +60,9 @@ class TransportRequest:
         0, or the lit-region error to stop at (after ``transport.quality``).
     time_limit : float
         Seconds (0: none).
-    estimator, method, error_estimate : str
-        ``transport.estimator``, ``transport.method``, ``transport.error_estimate``.
+    estimator, method, error_estimate, importance : str
+        ``transport.estimator``, ``transport.method``, ``transport.error_estimate``; what
+        steers weighted packets' windows.
     max_scatterings, seed, batch_size : int
     peel : nebula_rt.observe.sky.Camera or None
         A peel-off image's camera.
@@ -65,16 +74,17 @@ class TransportRequest:
     stars: tuple
     tau: float
     photons: int
-    target_error: float
-    time_limit: float
-    estimator: str
-    method: str
-    error_estimate: str
-    max_scatterings: int
-    seed: int
-    batch_size: int
+    target_error: float = _declared("transport.target_error")
+    time_limit: float = _declared("transport.time_limit")
+    estimator: str = _declared("transport.estimator")
+    method: str = _declared("transport.method")
+    error_estimate: str = _declared("transport.error_estimate")
+    max_scatterings: int = _declared("transport.max_scatterings")
+    seed: int = _declared("transport.seed")
+    batch_size: int = _declared("transport.batch_size")
     peel: Any = None
     peel_bins: Any = None
+    importance: str = "auto"
 
     @classmethod
     def from_scene(cls, scene, peel=None, peel_bins=None) -> "TransportRequest":
@@ -88,11 +98,116 @@ class TransportRequest:
                    peel=peel, peel_bins=peel_bins)
 
     def trace(self, density, backend: Backend, *, progress: Optional[Callable[[int, int], None]] = None,
-              cancel: Optional[Callable[[], bool]] = None, on_device: bool = False, comm=None) -> TransportResult:
-        """Trace the request through ``density`` on ``backend`` (see
-        :func:`nebula_rt.transport.trace` for ``progress``, ``cancel``, ``on_device``, ``comm``)."""
-        return trace(density, list(self.bands), list(self.stars), tau=self.tau, photons=self.photons,
-                     target_error=self.target_error, time_limit=self.time_limit, estimator=self.estimator,
-                     method=self.method, error_estimate=self.error_estimate, max_scatterings=self.max_scatterings,
-                     seed=self.seed, batch_size=self.batch_size, backend=backend, progress=progress, cancel=cancel,
-                     on_device=on_device, comm=comm, peel=self.peel, peel_bins=self.peel_bins)
+              cancel: Optional[Callable[[], bool]] = None, on_device: bool = False, comm=None,
+              _acc_limit_bits: int = 63, _checked_adds: bool = False) -> TransportResult:
+        """Trace the request through ``density`` on ``backend`` (see :func:`trace` for
+        ``progress``, ``cancel``, ``on_device``, ``comm``)."""
+        return trace_request(density, self, backend, progress=progress, cancel=cancel, on_device=on_device,
+                             comm=comm, _acc_limit_bits=_acc_limit_bits, _checked_adds=_checked_adds)
+
+
+def trace(
+    density: np.ndarray,
+    bands,
+    stars,
+    *,
+    tau: float,
+    photons: int,
+    estimator: str = _declared("transport.estimator"),
+    max_scatterings: int = _declared("transport.max_scatterings"),
+    seed: int = _declared("transport.seed"),
+    batch_size: int = _declared("transport.batch_size"),
+    backend: Backend,
+    progress: Optional[Callable[[int, int], None]] = None,
+    cancel: Optional[Callable[[], bool]] = None,
+    _acc_limit_bits: int = 63,
+    on_device: bool = False,
+    target_error: float = _declared("transport.target_error"),
+    time_limit: float = _declared("transport.time_limit"),
+    peel=None,
+    peel_bins=None,
+    comm=None,
+    _checked_adds: bool = False,
+    method: str = _declared("transport.method"),
+    error_estimate: str = _declared("transport.error_estimate"),
+    importance: str = "auto",
+) -> TransportResult:
+    """Trace ``photons`` packets per band through ``density`` and estimate J: the keyword
+    form of ``TransportRequest(...).trace(density, backend, ...)``.
+
+    The defaults of the keywords that are scene keys are the scene's (the declarations of
+    :mod:`nebula_rt.scene.sections`), so a call and a scene file that leave a key out trace
+    alike.
+
+    Parameters
+    ----------
+    density : ndarray (nx, ny, nz)
+        Dust density per voxel (>= 0).
+    bands : sequence of nebula_rt.optics.bands.Band
+        Band optical properties (extinction relative to the reference band, albedo, g).
+    stars : sequence of nebula_rt.scene.Star
+        Positions (box units), luminosities, optional temperatures.
+    tau : float
+        Optical depth across one box edge at density 1 in the reference band.
+    photons : int
+        Packets per band.
+    estimator : {"track-length", "collision-filter"}
+        Which tally the kernel accumulates (the collision estimate is unfiltered here).
+    progress : callable(done, total), optional
+        Called after every group of batches (and after each launch of a group traced in
+        several) with the packets per band done so far.
+    cancel : callable() -> bool, optional
+        Polled before every launch (launches last at most ``LAUNCH_SECONDS``) and after the
+        last; True raises :class:`~nebula_rt.errors.CancelledError`.
+    target_error : float
+        0: trace ``photons`` packets. In (0, 1): trace batch after batch (the plan is made for
+        ``photons``, now a budget) until :func:`lit_region_error` is at most this, checked once
+        ``MIN_BATCHES`` batches are in and then where the 1/sqrt(N) fall of the error predicts
+        the target (O(log N) checks); ``result.photons`` is what was used
+        and ``result.achieved_error`` the error reached, sqrt(statistical^2 + bias^2) with the
+        bias bound of terminated packets (:func:`terminated_bias`), which more packets do not
+        shrink and so does not enter the stopping rule.
+    time_limit : float
+        Seconds; > 0 stops any run within one launch of this long, keeping the finished
+        batches (the photon count then depends on the machine's speed).
+    peel : nebula_rt.observe.sky.Camera, optional
+        Also make a peel-off image of the scattered light seen by this camera (the phase
+        function at every scattering towards the observer, attenuated to the box's edge):
+        ``result.peel_image``, luminosity per box-unit area per steradian, (n_bands, W, H),
+        the layout of :class:`nebula_rt.observe.sky.SkyImage`; ``result.peel_error`` its batch-means
+        standard error per pixel.
+    peel_bins : int ndarray (W, H), optional
+        With ``peel``: a pixel group per pixel (-1: none); ``result.peel_bin_batches`` then
+        holds every batch's image summed over each group, for the errors of statistics of
+        several pixels (an annulus's sum: the pixels of a batch are correlated, one packet
+        peeling off into many of them).
+    on_device : bool
+        Leave the sums on the device (``result.device_sums``, for
+        :func:`nebula_rt.transport.finish.finish`) instead of computing J and rel_error on the host.
+    comm : communicator, optional
+        Trace with several processes (:func:`nebula_rt.backends.parallel.world` under ``mpiexec``):
+        every rank calls ``trace`` with the same arguments, traces a share of the packets, and
+        gets the one-rank result, bit for bit.
+    method : {"auto", "analog", "biased"}
+        Analog packets, or weighted ones for optically thick dust (forced scattering,
+        composite path-length biasing, Russian roulette; kernels/transport.cl, docs/physics.md),
+        or the one measured best for this run (:func:`resolve_method`); ``result.method`` says
+        which ran.
+    error_estimate : {"auto", "batches", "packets"}
+        How the error of J is estimated (:func:`resolve_error_estimate`): the spread of batch
+        totals, or every packet's contribution per voxel and its square (then
+        ``result.batches`` is the packet count: batches of one packet).
+    importance : {"auto", "stars", "observer"}
+        What steers the weighted packets' windows (:mod:`nebula_rt.transport.importance`): the light
+        field from the stars, or the peel-off image's observer (``peel`` needed); ``"auto"``
+        takes the observer's when there is a peel-off image, the stars' otherwise.
+        ``result.importance`` says which ran ("" for analog packets). J's heavy-tail classes
+        (``result.tail_j``) are checked under the stars' windows only.
+    """
+    request = TransportRequest(
+        bands=tuple(bands), stars=tuple(stars), tau=tau, photons=photons, target_error=target_error,
+        time_limit=time_limit, estimator=estimator, method=method, error_estimate=error_estimate,
+        max_scatterings=max_scatterings, seed=seed, batch_size=batch_size, peel=peel, peel_bins=peel_bins,
+        importance=importance)
+    return request.trace(density, backend, progress=progress, cancel=cancel, on_device=on_device, comm=comm,
+                         _acc_limit_bits=_acc_limit_bits, _checked_adds=_checked_adds)

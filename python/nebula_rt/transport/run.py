@@ -43,7 +43,6 @@ from .finish import DeviceSums
 from .tails import (
     IMAGE_ERROR_LIMIT, J_ERROR_LIMIT, TAIL_BINS, check_histograms, class_cells)
 
-from ..scene.sections import default as _declared
 from .plan import BIASED_TALLY_NAMES, MIN_BATCHES, Tallies, TransportPlan, WEIGHT_UNIT, plan_transport
 from .result import TransportResult, exact_packet_energy, terminated_bias, warn_if_heavy_tailed, warn_if_terminated
 from .estimate import _PeelSums, _current_error, _j_scale, light_from_sums
@@ -397,116 +396,26 @@ def estimate_light(plan: TransportPlan, tallies: Tallies, backend: Backend, *, o
     )
 
 
-def trace(
-    density: np.ndarray,
-    bands,
-    stars,
-    *,
-    tau: float,
-    photons: int,
-    estimator: str = _declared("transport.estimator"),
-    max_scatterings: int = _declared("transport.max_scatterings"),
-    seed: int = _declared("transport.seed"),
-    batch_size: int = _declared("transport.batch_size"),
-    backend: Backend,
-    progress: Optional[Callable[[int, int], None]] = None,
-    cancel: Optional[Callable[[], bool]] = None,
-    _acc_limit_bits: int = 63,
-    on_device: bool = False,
-    target_error: float = _declared("transport.target_error"),
-    time_limit: float = _declared("transport.time_limit"),
-    peel=None,
-    peel_bins=None,
-    comm=None,
-    _checked_adds: bool = False,
-    method: str = _declared("transport.method"),
-    error_estimate: str = _declared("transport.error_estimate"),
-    importance: str = "auto",
-) -> TransportResult:
-    """Trace ``photons`` packets per band through ``density`` and estimate J.
+def trace_request(density: np.ndarray, request, backend: Backend, *,
+                  progress: Optional[Callable[[int, int], None]] = None,
+                  cancel: Optional[Callable[[], bool]] = None, on_device: bool = False, comm=None,
+                  _acc_limit_bits: int = 63, _checked_adds: bool = False) -> TransportResult:
+    """Trace ``request`` (a :class:`~nebula_rt.transport.request.TransportRequest`) through
+    ``density`` on ``backend``: plan, run, estimate, and the warnings about trust (see
+    :func:`nebula_rt.transport.trace` for every parameter).
 
-    The defaults of the keywords that are scene keys are the scene's (the declarations of
-    :mod:`nebula_rt.scene.sections`), so a call and a scene file that leave a key out trace
-    alike.
-
-    Parameters
-    ----------
-    density : ndarray (nx, ny, nz)
-        Dust density per voxel (>= 0).
-    bands : sequence of nebula_rt.optics.bands.Band
-        Band optical properties (extinction relative to the reference band, albedo, g).
-    stars : sequence of nebula_rt.scene.Star
-        Positions (box units), luminosities, optional temperatures.
-    tau : float
-        Optical depth across one box edge at density 1 in the reference band.
-    photons : int
-        Packets per band.
-    estimator : {"track-length", "collision-filter"}
-        Which tally the kernel accumulates (the collision estimate is unfiltered here).
-    progress : callable(done, total), optional
-        Called after every group of batches (and after each launch of a group traced in
-        several) with the packets per band done so far.
-    cancel : callable() -> bool, optional
-        Polled before every launch (launches last at most ``LAUNCH_SECONDS``) and after the
-        last; True raises :class:`~nebula_rt.errors.CancelledError`.
-    target_error : float
-        0: trace ``photons`` packets. In (0, 1): trace batch after batch (the plan is made for
-        ``photons``, now a budget) until :func:`lit_region_error` is at most this, checked once
-        ``MIN_BATCHES`` batches are in and then where the 1/sqrt(N) fall of the error predicts
-        the target (O(log N) checks); ``result.photons`` is what was used
-        and ``result.achieved_error`` the error reached, sqrt(statistical^2 + bias^2) with the
-        bias bound of terminated packets (:func:`terminated_bias`), which more packets do not
-        shrink and so does not enter the stopping rule.
-    time_limit : float
-        Seconds; > 0 stops any run within one launch of this long, keeping the finished
-        batches (the photon count then depends on the machine's speed).
-    peel : nebula_rt.observe.sky.Camera, optional
-        Also make a peel-off image of the scattered light seen by this camera (the phase
-        function at every scattering towards the observer, attenuated to the box's edge):
-        ``result.peel_image``, luminosity per box-unit area per steradian, (n_bands, W, H),
-        the layout of :class:`nebula_rt.observe.sky.SkyImage`; ``result.peel_error`` its batch-means
-        standard error per pixel.
-    peel_bins : int ndarray (W, H), optional
-        With ``peel``: a pixel group per pixel (-1: none); ``result.peel_bin_batches`` then
-        holds every batch's image summed over each group, for the errors of statistics of
-        several pixels (an annulus's sum: the pixels of a batch are correlated, one packet
-        peeling off into many of them).
-    on_device : bool
-        Leave the sums on the device (``result.device_sums``, for
-        :func:`nebula_rt.transport.finish.finish`) instead of computing J and rel_error on the host.
-    comm : communicator, optional
-        Trace with several processes (:func:`nebula_rt.backends.parallel.world` under ``mpiexec``):
-        every rank calls ``trace`` with the same arguments, traces a share of the packets, and
-        gets the one-rank result, bit for bit.
-    method : {"auto", "analog", "biased"}
-        Analog packets, or weighted ones for optically thick dust (forced scattering,
-        composite path-length biasing, Russian roulette; kernels/transport.cl, docs/physics.md),
-        or the one measured best for this run (:func:`resolve_method`); ``result.method`` says
-        which ran.
-    error_estimate : {"auto", "batches", "packets"}
-        How the error of J is estimated (:func:`resolve_error_estimate`): the spread of batch
-        totals, or every packet's contribution per voxel and its square (then
-        ``result.batches`` is the packet count: batches of one packet).
-    importance : {"auto", "stars", "observer"}
-        What steers the weighted packets' windows (:mod:`nebula_rt.transport.importance`): the light
-        field from the stars, or the peel-off image's observer (``peel`` needed); ``"auto"``
-        takes the observer's when there is a peel-off image, the stars' otherwise.
-        ``result.importance`` says which ran ("" for analog packets). J's heavy-tail classes
-        (``result.tail_j``) are checked under the stars' windows only.
+    ``_acc_limit_bits`` (tests: a lower headroom limit) and ``_checked_adds`` (every deposit
+    checked from the start) exercise the overflow paths.
     """
     t0 = time.perf_counter()
-    kw = dict(tau=tau, photons=photons, estimator=estimator, max_scatterings=max_scatterings, seed=seed,
-              batch_size=batch_size, backend=backend, target_error=target_error, time_limit=time_limit,
-              peel=peel, peel_bins=peel_bins, _acc_limit_bits=_acc_limit_bits, method=method,
-              error_estimate=error_estimate, importance=importance)
-    plan = plan_transport(density, bands, stars, checked_adds=_checked_adds, **kw)
+    plan = plan_transport(density, request, backend, checked_adds=_checked_adds, acc_limit_bits=_acc_limit_bits)
     tallies = run_transport(plan, backend, progress=progress, cancel=cancel, started=t0, comm=comm)
     try:
         if plan.setup.unchecked_adds and tallies.session.overflow_seen():
             # a cell reached the headroom limit unnoticed during a launch: trace again with
             # every add checked (same packets, same bits as a checked run)
             tallies.session.close()
-            plan = plan_transport(density, bands, stars, checked_adds=True, **kw)
+            plan = plan_transport(density, request, backend, checked_adds=True, acc_limit_bits=_acc_limit_bits)
             tallies = run_transport(plan, backend, progress=progress, cancel=cancel, started=t0, comm=comm)
         result = estimate_light(plan, tallies, backend, on_device=on_device)
     finally:
