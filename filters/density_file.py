@@ -21,6 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
+from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
+
+from nebula_rt.backends.capacity import host_available_bytes
 from nebula_rt.errors import NebulaError
 
 from .image_data import cell_array, point_array
@@ -91,12 +94,40 @@ class _Reader:
             raise ValueError(f"{self.path}: unreadable .vti file: {detail}")
 
 
-def read_density_array(path, array_name: str) -> np.ndarray:
+def declared_points(reader) -> tuple:
+    """Points per axis of the image an XML image reader's file declares (its header, read by
+    UpdateInformation, before any data)."""
+    ext = reader.GetOutputInformation(0).Get(vtkStreamingDemandDrivenPipeline.WHOLE_EXTENT())
+    if ext is None:
+        return (0, 0, 0)
+    return tuple(int(ext[2 * i + 1]) - int(ext[2 * i]) + 1 for i in range(3))
+
+
+def _check_declared_size(path: Path, where: str, shape: tuple, expected_shape, available_bytes) -> None:
+    """Refuse, from the header alone, an image of another shape than the grid's or one whose
+    array (read as float64) would not fit the memory there is: a 400-byte file claiming a huge
+    extent would otherwise make VTK's reader allocate it (and abort the process)."""
+    if expected_shape is not None and tuple(shape) != tuple(expected_shape):
+        raise ValueError(f"{path}: the {where} array's shape {tuple(shape)} (from the file's extent) must equal "
+                         f"grid.shape {tuple(expected_shape)}")
+    values = 1
+    for n in shape:
+        values *= max(int(n), 0)
+    if available_bytes is not None and values * 8 > available_bytes:
+        raise ValueError(f"{path}: the file declares {values} values per array ({tuple(shape)}), "
+                         f"{values * 8} bytes as float64, more than the {available_bytes} bytes of memory available")
+
+
+def read_density_array(path, array_name: str, expected_shape=None) -> np.ndarray:
     """Read one scalar array of a ``.vti`` file as a ``float64`` grid.
 
     The array is looked up among the point data first (shape ``(nx, ny, nz)``, the image's
     dimensions), then among the cell data, for images whose cells are the voxels (shape
     ``dimensions - 1``). Only that array is read from the file.
+
+    ``expected_shape`` (nx, ny, nz), if given, is checked against the extent the file
+    declares before any data is read; without it the declared size must fit the host's
+    available memory.
 
     Raises
     ------
@@ -129,6 +160,9 @@ def read_density_array(path, array_name: str) -> np.ndarray:
     else:
         available = [f"{n} (point)" for n in point_names] + [f"{n} (cell)" for n in cell_names]
         raise ArrayNotFoundError(path, array_name, available)
+    points = declared_points(r.reader)
+    declared = points if where == "point" else tuple(max(n - 1, 1) for n in points)
+    _check_declared_size(path, where, declared, expected_shape, host_available_bytes())
     psel.DisableAllArrays()
     csel.DisableAllArrays()
     (psel if where == "point" else csel).EnableArray(array_name)

@@ -32,6 +32,9 @@ from vtkmodules.util.vtkAlgorithm import VTKPythonAlgorithmBase
 from vtkmodules.vtkCommonCore import vtkDoubleArray, vtkIntArray, vtkStringArray
 from vtkmodules.vtkCommonDataModel import vtkTable
 
+from nebula_rt.errors import SceneError
+from nebula_rt.input_files import MAX_JSON_BYTES, read_input_text
+
 __all__ = ["FitResultError", "read_fit_result", "parameters_table", "comparison_table", "NebulaFitResultReader"]
 
 #: numeric columns of the comparison table, as ``Comparison.to_dict`` names them
@@ -58,11 +61,15 @@ def read_fit_result(path) -> dict:
         Not JSON, or without the parameters, chi^2 or comparison of a fit result.
     """
     path = Path(os.fspath(path))
-    if not path.is_file():
+    if not path.exists():
         raise FileNotFoundError(2, f"no such file: {path}", str(path))
     try:
-        result = json.loads(path.read_text(encoding="utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        text = read_input_text("file", path, "a fit result (JSON, UTF-8)", MAX_JSON_BYTES)
+    except SceneError as exc:  # a FIFO, a device, too large, not UTF-8: this reader's error type
+        raise FitResultError(f"{path}: {exc.allowed}") from None
+    try:
+        result = json.loads(text)
+    except json.JSONDecodeError as exc:
         raise FitResultError(f"{path}: not a NebulaRT fit result (not JSON: {exc})") from None
     if not isinstance(result, dict):
         raise FitResultError(f"{path}: not a NebulaRT fit result (a JSON {type(result).__name__}, not an object)")

@@ -32,7 +32,10 @@ from vtkmodules.vtkIOXML import vtkXMLImageDataWriter
 
 from nebula_rt.pipeline.outputs import Publication
 
-from .density_file import ArrayNotFoundError, read_density_array  # noqa: F401 - this module's API too
+from nebula_rt.backends.capacity import host_available_bytes
+from nebula_rt.input_files import check_input_file
+
+from .density_file import ArrayNotFoundError, declared_points, read_density_array  # noqa: F401 - this module's API too
 from .image_data import check_numeric_dtype, field_data_dict, image_geometry, point_array, to_image_data
 from .vtk_messages import VtkMessages
 
@@ -141,10 +144,19 @@ def _open(path: Path):
         raise FileNotFoundError(2, f"no such file: {path}", str(path))
     if path.is_dir():
         raise IsADirectoryError(21, f"is a directory, not a .vti file: {path}", str(path))
+    check_input_file("file", path, "a .vti file")  # (a FIFO or a device: refused before VTK reads)
     with VtkMessages() as messages:
         reader = pv.XMLImageDataReader(str(path))
     if reader.reader.GetErrorCode() != 0 or messages.errors:
         _unreadable(path, reader, messages.errors)
+    # the extent the header declares, before the data is read: a crafted 400-byte file
+    # claiming 10^15 points would make VTK allocate them (and abort the process)
+    points = math.prod(max(n, 0) for n in declared_points(reader.reader))
+    arrays = max(1, reader.reader.GetNumberOfPointArrays() + reader.reader.GetNumberOfCellArrays())
+    available = host_available_bytes()
+    if points * 8 * arrays > available:
+        raise ValueError(f"{path}: the file declares {points} points with {arrays} arrays, about "
+                         f"{points * 8 * arrays} bytes, more than the {available} bytes of memory available")
     return reader
 
 

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+import sys
+
 
 class NebulaError(Exception):
     """Base class of every NebulaRT error."""
@@ -78,6 +81,18 @@ class TimeLimitError(NebulaError):
 
 class AccumulatorOverflowError(NebulaError, OverflowError):
     """A 64-bit fixed-point tally would have overflowed and could not be recovered."""
+
+
+def user_stacklevel() -> int:
+    """The ``stacklevel`` for :func:`warnings.warn` called by the caller of this function that
+    names the first frame outside the ``nebula_rt`` package: a warning then points at the
+    user's line whichever of the library's paths (``trace``, a request, an observable) led to
+    it, as a fixed stacklevel cannot."""
+    here = os.path.dirname(os.path.abspath(__file__)) + os.sep
+    frame, level = sys._getframe(1), 1
+    while frame is not None and os.path.abspath(frame.f_code.co_filename).startswith(here):
+        frame, level = frame.f_back, level + 1
+    return level
 
 
 class NebulaWarning(UserWarning):

@@ -382,10 +382,10 @@ def test_sky_image_refuses_fractional_sizes():
 # --- 4. weak spots ---------------------------------------------------------------------------
 def test_scene_file_missing_folder_unreadable(tmp_path):
     refused(lambda: Scene.load(tmp_path / "none.toml"), "scene file", str(tmp_path / "none.toml"), "no such file")
-    refused(lambda: Scene.load(tmp_path), "scene file", str(tmp_path), "not a folder")
+    refused(lambda: Scene.load(tmp_path), "scene file", str(tmp_path), "it is a folder")
     f = tmp_path / "f.toml"
     f.write_text("")
-    refused(lambda: Scene.load(f / "scene.toml"), "scene file", str(f / "scene.toml"), "readable")
+    refused(lambda: Scene.load(f / "scene.toml"), "scene file", str(f / "scene.toml"), "is a file, not a folder")
 
 
 def test_scene_file_binary_garbage_and_bad_utf8(tmp_path):

@@ -23,6 +23,7 @@ from .. import limits
 from ..backends import Backend
 from ..backends.base import MODEL_TURBULENCE, MODEL_UNIFORM
 from ..errors import SceneError
+from ..input_files import check_input_file, open_input
 
 #: Midpoint samples per axis used to average a star's bump over a voxel.
 BUMP_SUBSAMPLES = 8
@@ -34,12 +35,39 @@ def _stars_array(stars) -> np.ndarray:
 
 def file_digest(path: Path) -> str:
     """SHA-256 (hex) of a file's bytes: identifies a density file by its content (a file
-    rewritten with its modification time kept is still recognised as changed)."""
+    rewritten with its modification time kept is still recognised as changed).
+
+    Raises
+    ------
+    SceneError
+        ``dust.file`` is not an existing, readable regular file (a FIFO or a device would
+        never end the hash: :mod:`nebula_rt.input_files`).
+    """
     h = hashlib.sha256()
-    with open(path, "rb") as fh:
+    with open_input("dust.file", path, DENSITY_FILE) as fh:
         for chunk in iter(lambda: fh.read(1 << 22), b""):
             h.update(chunk)
     return h.hexdigest()
+
+
+#: what ``dust.file`` must be, for the refusals
+DENSITY_FILE = "an existing .npy or .vti file"
+
+
+def _npy_header_shape(fh, path: Path, shape: tuple[int, int, int]) -> None:
+    """Check a ``.npy`` header before its data is read: the array it claims must have the
+    grid's shape (a crafted header claiming 2^40 values is refused without allocating)."""
+    try:
+        version = np.lib.format.read_magic(fh)
+        read = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+        claimed, _fortran, dtype = read(fh)
+    except Exception as exc:  # not a .npy header: numpy's words say why
+        raise SceneError("dust.file", str(path), f"could not be read as density data ({exc})") from None
+    if tuple(claimed) != tuple(shape):
+        raise SceneError("dust.file", str(path),
+                         f"array shape {tuple(claimed)} must equal grid.shape {tuple(shape)}")
+    if dtype.kind not in "fiu":
+        raise SceneError("dust.file", str(path), f"must hold a numeric array (found dtype {dtype})")
 
 
 def load_density_file(path: Path, array: str, shape: tuple[int, int, int]) -> np.ndarray:
@@ -53,19 +81,21 @@ def load_density_file(path: Path, array: str, shape: tuple[int, int, int]) -> np
         1.2e-38: the transport's density is float32).
     """
     path = Path(path)
-    if not path.is_file():
-        raise SceneError("dust.file", str(path), "must name an existing .npy or .vti file")
+    check_input_file("dust.file", path, DENSITY_FILE)
     suffix = path.suffix.lower()
     try:
         if suffix == ".npy":
-            data = np.load(path, allow_pickle=False)
+            with open_input("dust.file", path, DENSITY_FILE) as fh:
+                _npy_header_shape(fh, path, shape)
+                fh.seek(0)
+                data = np.load(fh, allow_pickle=False)
         elif suffix == ".vti":
             try:  # the VTK layer: VTK's own reader (the io extra, or ParaView's VTK; no pyvista needed)
                 from ..filters.density_file import read_density_array
             except ImportError as exc:
                 raise SceneError("dust.file", str(path), f"a .vti density needs {(exc.name or 'vtk').split('.')[0]}: "
                                                          "pip install 'nebula-rt[io]', or give a .npy file") from None
-            data = read_density_array(path, array)
+            data = read_density_array(path, array, expected_shape=shape)
         else:
             raise SceneError("dust.file", str(path), "must be a .npy or .vti file")
     except SceneError:

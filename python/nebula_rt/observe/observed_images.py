@@ -18,7 +18,9 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from ..backends.capacity import host_available_bytes
 from ..errors import SceneError
+from ..input_files import check_input_file
 
 _UNITS_ALLOWED = ("must be a surface brightness per unit frequency, convertible to MJy/sr (e.g. MJy/sr, Jy/arcsec2, "
                   "erg/s/cm2/Hz/sr); convert counts, magnitudes or per-wavelength units first (docs/observations.md)")
@@ -84,7 +86,9 @@ def _image_hdus(hdul):
     from astropy.io import fits
 
     kinds = (fits.PrimaryHDU, fits.ImageHDU, fits.CompImageHDU)
-    return [(i, h) for i, h in enumerate(hdul) if isinstance(h, kinds) and h.data is not None and h.data.ndim >= 2]
+    # from the headers (h.shape): reading every HDU's data to see its shape would allocate
+    # what a crafted header claims before anything is checked
+    return [(i, h) for i, h in enumerate(hdul) if isinstance(h, kinds) and len(getattr(h, "shape", ()) or ()) >= 2]
 
 
 def _hdu_name(i, h) -> str:
@@ -100,6 +104,30 @@ def _find_hdu(hdul, key, path, option: str):
         if text.isdigit() and int(text) == i or text.upper() == (h.name or "").upper():
             return i, h
     raise SceneError(option, key, f"must be an image HDU of {path}: it has {names or 'none'} (name or number)")
+
+
+def _hdu_data(h, path: str, label: str):
+    """The data of HDU ``h``, once its header's claim is checked: a header may not declare
+    more bytes than the file holds after it (a crafted or truncated file would make astropy
+    allocate the claim, e.g. 600 GB for a 6 kB file), nor an image larger than the memory
+    there is (as float64)."""
+    from astropy.io import fits
+
+    shape = tuple(int(n) for n in (getattr(h, "shape", None) or ()))
+    values = math.prod(shape) if shape else 0
+    if not isinstance(h, fits.CompImageHDU):  # (tile-compressed HDUs decompress beyond their bytes)
+        offset = getattr(h, "_data_offset", None)
+        size = int(getattr(h, "size", 0) or 0)
+        file_bytes = Path(path).stat().st_size
+        if offset is not None and int(offset) + size > file_bytes:
+            raise SceneError(f"image {label}", f"shape {shape}",
+                             f"the header declares {size} bytes of data, the file holds {max(file_bytes - int(offset), 0)} "
+                             "after the header: a truncated or damaged FITS file")
+    available = host_available_bytes()
+    if values * 8 > available:
+        raise SceneError(f"image {label}", f"shape {shape}",
+                         f"needs {values * 8} bytes as float64, more than the {available} bytes of memory available")
+    return h.data
 
 
 def _squeeze(data, label: str) -> np.ndarray:
@@ -161,7 +189,7 @@ def _error_term(spec, hdul, path, data, unit):
             pass
         if q is None or q.unit == u.dimensionless_unscaled:  # an HDU's name or number
             i, h = _find_hdu(hdul, text, path, "--image-error")
-            err = _squeeze(h.data, f"{path}[{_hdu_name(i, h)}]")
+            err = _squeeze(_hdu_data(h, path, f"{path}[{_hdu_name(i, h)}]"), f"{path}[{_hdu_name(i, h)}]")
             if err.shape != data.shape:
                 raise SceneError("--image-error", spec, f"the error HDU of {path} must have the image's shape "
                                  f"{data.shape}, not {err.shape}")
@@ -204,8 +232,7 @@ def read_image(path, hdu=None, *, unit=None, errors: Sequence = ()) -> ObservedI
     from astropy.io import fits
 
     path = str(path)
-    if not Path(path).is_file():
-        raise SceneError("image", path, "must be a readable FITS file")
+    check_input_file("image", path, "a readable FITS file")
     try:
         hdul = fits.open(path, memmap=False)
     except (OSError, ValueError) as exc:
@@ -219,7 +246,7 @@ def read_image(path, hdu=None, *, unit=None, errors: Sequence = ()) -> ObservedI
         else:
             i, h = _find_hdu(hdul, hdu, path, "--image-hdu")
         label = f"{path}[{_hdu_name(i, h)}]"
-        data = _squeeze(h.data, label)
+        data = _squeeze(_hdu_data(h, path, label), label)
         wcs = _celestial_wcs(h.header, label)
         text = unit if unit is not None else h.header.get("BUNIT")
         if text is None or not str(text).strip():

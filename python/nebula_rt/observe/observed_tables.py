@@ -43,6 +43,7 @@ from typing import Optional, Sequence, Union
 import numpy as np
 
 from ..errors import SceneError
+from ..input_files import MAX_TABLE_BYTES, check_input_file, read_input_text
 
 KINDS = ("colour", "ratio")
 #: Columns of each kind: the required ones; ``offset_lo`` and ``offset_hi`` are optional for both.
@@ -159,7 +160,7 @@ def _split_header(name: str):
 def _read_astropy(path: Path, where: str):
     from astropy.table import Table
 
-    text = path.read_text(encoding="utf-8")
+    text = read_input_text("table", path, "a .csv or .ecsv file of UTF-8 text", MAX_TABLE_BYTES)
     fmt = "ascii.ecsv" if text.lstrip().startswith("# %ECSV") else "ascii.csv"
     if path.suffix.lower() == ".ecsv" and fmt != "ascii.ecsv":
         raise SceneError(where, str(path), "an .ecsv file must start with the '# %ECSV' header line")
@@ -301,6 +302,7 @@ def read_table(source: Union[str, Path, "object"], *, scale: Optional[OffsetScal
         where = f"table {str(path)!r}"
         if path.suffix.lower() not in SUFFIXES:
             raise SceneError("table", str(path), "must be a .csv or .ecsv file")
+        check_input_file("table", path, "an existing .csv or .ecsv file", MAX_TABLE_BYTES)
         try:
             table = _read_astropy(path, where)
         except FileNotFoundError:

@@ -13,6 +13,7 @@ from typing import Any, Dict, List, Mapping, Optional, Sequence, Union
 
 from .. import limits
 from ..errors import SceneError
+from ..input_files import MAX_SCENE_BYTES, read_input_text
 from . import units
 from .sections import BandsConfig, Colour, Dust, Grid, Observer, Star, Transport
 from .rules import BANDS_RULES, BAND_ENTRY_RULES, COLOUR_RULES, DUST_RULES, GRID_RULES, OBSERVER_RULES, STAR_RULES, TRANSPORT_RULES, _SCHEMA, _TABLE_NAMES, _check_dataclass, _check_star_spectra, _parse_array, _parse_table
@@ -161,19 +162,9 @@ class Scene:
             the file is not UTF-8 TOML; else as :meth:`from_dict`.
         """
         path = Path(path)
-        try:
-            data = path.read_bytes()
-        except FileNotFoundError:
-            raise SceneError("scene file", str(path), "must be an existing TOML file (no such file)") from None
-        except IsADirectoryError:
-            raise SceneError("scene file", str(path), "must be a TOML file, not a folder") from None
-        except OSError as e:  # permission denied, a device, an I/O error
-            raise SceneError("scene file", str(path), f"must be a readable TOML file ({e.strerror or e})") from None
-        try:
-            text = data.decode("utf-8")
-        except UnicodeDecodeError as e:
-            raise SceneError("scene file", str(path), f"must be UTF-8 TOML text (byte 0x{data[e.start]:02x} at "
-                                                      f"offset {e.start} is not UTF-8)") from None
+        # a regular file of at most MAX_SCENE_BYTES (a FIFO or /dev/zero would never end the
+        # read), UTF-8 with or without a byte-order mark
+        text = read_input_text("scene file", path, "an existing UTF-8 TOML file", MAX_SCENE_BYTES)
         return cls.from_dict(_parse_toml(text, str(path)), base_dir=path.absolute().parent)
 
     # -- serialisation ------------------------------------------------------

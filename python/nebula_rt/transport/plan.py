@@ -15,7 +15,7 @@ from ..optics import colour_convert
 from .. import limits
 from ..backends import Backend, TransportSetup
 from ..backends.regions import region_capacity
-from ..errors import NebulaWarning, SceneError
+from ..errors import NebulaWarning, SceneError, user_stacklevel
 from .importance import depth_map, observer_depth_map, resolve_importance, window_rates
 from .line_of_sight import line_of_sight_tau
 from ..scene.sections import AUTO_THICK, AUTO_THIN, ERROR_ESTIMATES, METHODS as _scene_methods
@@ -146,7 +146,7 @@ def resolve_error_estimate(choice: str, *, biased: bool, peel, targeted: bool, t
                 f"packets that leave them (albedo x optical depth of a voxel edge {scatter_depth:.3g}), and "
                 f"the estimate by packets misses those returns: the stated errors there are about "
                 f"{20 * scatter_depth:.2g} % low (docs/physics.md); \"batches\" has no such bias",
-                NebulaWarning, stacklevel=3)
+                NebulaWarning, stacklevel=user_stacklevel())
         return True
     if (why is not None or not in_flight
             or launches.slots * launches.bands_per_launch * (launches.batches.base + 1) >= fraction * in_flight

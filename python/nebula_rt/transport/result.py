@@ -10,7 +10,7 @@ from typing import Optional
 
 import numpy as np
 
-from ..errors import NebulaWarning
+from ..errors import NebulaWarning, user_stacklevel
 from .finish import DeviceSums
 from .tails import (
     DEPTH_CLASS_NAMES, failures)
@@ -180,7 +180,7 @@ def warn_if_heavy_tailed(result: "TransportResult", band_names, image: str = "th
             "the stated error is not reliable (a few packets carry much of the light, or none reached; "
             "nebula_rt.transport.tails): " + "; ".join(lines) + ". Trace more packets"
             + ("" if result.method == "biased" else ', or use transport.method = "biased" (weighted packets) '
-               "where the dust is optically thick")), stacklevel=3)
+               "where the dust is optically thick")), stacklevel=user_stacklevel())
 
 
 def warn_if_terminated(counts, band_names, max_scatterings: int) -> None:
@@ -196,7 +196,7 @@ def warn_if_terminated(counts, band_names, max_scatterings: int) -> None:
         + ", ".join(f"{n} {x:.3g}" for n, x in zip(band_names, f))
         + f"); their light is missing, so J may be low by up to {bias[worst]:.3g} (sum of sigma J over "
         + ("the grid; with albedo 1 no energy balance bounds it" if bias[worst] >= 1.0 else "the grid")
-        + "); raise transport.max_scatterings"), stacklevel=3)
+        + "); raise transport.max_scatterings"), stacklevel=user_stacklevel())
 
 
 def exact_packet_energy(luminosity: float, photons: int) -> float:
