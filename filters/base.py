@@ -165,8 +165,16 @@ class NebulaAlgorithm(VTKPythonAlgorithmBase):
         self.last_warnings = []
         if self.GetNumberOfInputPorts() > 0:
             if inp is None or inp.GetNumberOfPoints() == 0:
-                # an upstream NebulaRT filter failed (it said why): pass the emptiness on
-                # instead of leaving a stale result downstream
+                # an upstream NebulaRT filter that failed said why: pass the emptiness on
+                # instead of leaving a stale result downstream; an empty input nothing
+                # explained (a reader's empty image, an empty source) is reported here
+                upstream = self.GetInputAlgorithm(0, 0) if self.GetNumberOfInputConnections(0) else None
+                if getattr(upstream, "last_error", None) is None:
+                    self.last_error = f"{type(self).__name__}: " + self.describe_error(SceneError(
+                        "input", "an empty image (0 points)",
+                        "must be an image with points and arrays (e.g. Nebula Dust Density's output)"))
+                    self._failed_key = key
+                    vtkOutputWindow.GetInstance().DisplayErrorText(f"NebulaRT error: {self.last_error}\n")
                 self._empty_outputs(outInfo)
                 return 1
         try:

@@ -16,7 +16,7 @@ from nebula_rt.limits import check_float32_array
 from nebula_rt.scene.sky_schema import G_PICTURE
 from nebula_rt.pipeline.rgba import colour_source_from_field_data
 from nebula_rt.scene import Scene
-from nebula_rt.observe.sky import Camera, sky_image
+from nebula_rt.observe.sky import Camera, check_sky_image_memory, sky_image
 from nebula_rt.transport.plan import star_band_luminosities
 
 from nebula_rt.scene.sky_schema import validate_exposure
@@ -159,6 +159,7 @@ class NebulaSkyImage(NebulaAlgorithm):
         fd = contract.LightFieldData.from_field_data(
             field_data_dict(inp), need=("band_names", "band_wavelength_nm", "band_extinction", "tau", "scene"))
         names = fd.band_names
+        check_sky_image_memory(len(names), cam.size)  # (before the arrays are gathered)
         wl, ext = fd.band_wavelength_nm, fd.band_extinction
         emissivity = np.stack([point_array(inp, contract.EMISSIVITY.name(n)) for n in names]).astype(np.float64)
         if not inp.GetPointData().HasArray(contract.DENSITY.name()):
@@ -169,7 +170,9 @@ class NebulaSkyImage(NebulaAlgorithm):
         stars = [s.position for s in scene.stars] if include_stars else []
         slum = star_band_luminosities(scene.stars, wl) if include_stars else None
         self._report(0.1, "NebulaRT: ray marching the sky image")
-        img = sky_image(emissivity, sigma, cam, stars=stars, star_band_luminosity=slum)
+        img = sky_image(emissivity, sigma, cam, stars=stars, star_band_luminosity=slum, cancel=self._abort_requested,
+                        progress=lambda done, total: self._report(0.1 + 0.8 * done / max(total, 1),
+                                                                  "NebulaRT: ray marching the sky image"))
         band_lum = star_band_luminosities(scene.stars, wl).sum(axis=0)
         m = colour_convert.band_to_xyz_matrix(wl, colour_source_from_field_data(fd))
         rgb8, exposure = colour_convert.sky_picture(  # (W, H, 3)

@@ -465,3 +465,25 @@ def test_light_field_filter_spectral_types():
         with pytest.raises(SceneError) as info:
             lf.scene((8, 8, 8))
         assert info.value.parameter == key, str(info.value)
+
+
+def test_sky_image_filter_refuses_an_image_the_memory_cannot_hold(monkeypatch):
+    """Nebula Sky Image checks the images' memory before it gathers or marches anything: an
+    empty output and one message naming Image Size (sky.size) and the need."""
+    from nebula_rt.filters import NebulaLightField, NebulaSkyImage
+    from nebula_rt.observe import sky as sky_module
+    from test_input_limits import image_input
+
+    lf = NebulaLightField()
+    image_input(lf, np.ones((8, 8, 8), np.float32))
+    lf.SetBackend(TEST_BACKEND)
+    lf.SetDevice(TEST_DEVICE)
+    lf.SetPhotons(2000)
+    s = NebulaSkyImage()
+    s.SetInputConnection(lf.GetOutputPort())
+    s.SetImageSize(4096, 4096)
+    monkeypatch.setattr(sky_module, "host_available_bytes", lambda: 1 << 30)
+    s.Update()
+    assert lf.last_error is None
+    assert s.GetOutputDataObject(0).GetNumberOfPoints() == 0
+    assert s.last_error.startswith("NebulaSkyImage: Image Size (sky.size) = (4096, 4096)") and "GiB" in s.last_error

@@ -364,3 +364,40 @@ def test_bad_inputs(args, kwargs, name):
 def test_camera_must_be_a_camera():
     with pytest.raises(ValueError, match="camera"):
         sky_image(*GOOD, camera=(0, 0, -1))
+
+
+# --------------------------------------------------------------------------------------------
+# Limits: memory checked before work, progress, cancel
+# --------------------------------------------------------------------------------------------
+def test_an_image_the_memory_cannot_hold_is_refused_before_work(monkeypatch):
+    """The images' bytes (sky.SKY_IMAGE_ARRAYS float64 images per band) against the host's
+    available memory, before any ray is marched: with 1 MiB available, 3 bands of 32 x 32
+    (147 kB) are made and 3 bands of 256 x 256 (9.4 MB) are refused naming sky.size."""
+    em, sig = np.ones((3, 4, 4, 4)), np.ones((3, 4, 4, 4))
+    monkeypatch.setattr(sky, "host_available_bytes", lambda: 1 << 20)
+    marched = []
+    monkeypatch.setattr(sky, "_march", lambda *a, **k: marched.append(1) or (np.zeros((3, len(a[0]))), None))
+    assert sky_image(em, sig, Camera(size=(32, 32))).scattered.shape == (3, 32, 32) and marched
+    marched.clear()
+    from nebula_rt.errors import ResourceError
+
+    with pytest.raises(ResourceError, match=r"sky.size = \(256, 256\).*GiB of host memory") as e:
+        sky_image(em, sig, Camera(size=(256, 256)))
+    assert e.value.parameter == "sky.size" and not marched
+
+
+def test_progress_reaches_every_pixel_and_cancel_stops_between_chunks(monkeypatch):
+    """Progress is reported after every chunk of rays, rising to W x H; a cancel polled before
+    every chunk stops the march after the chunks already done (CancelledError)."""
+    from nebula_rt.errors import CancelledError
+
+    monkeypatch.setattr(sky, "_CHUNK_ELEMENTS", 1)  # 256-ray chunks
+    em, sig = np.ones((2, 4, 4, 4)), np.ones((2, 4, 4, 4))
+    cam = Camera(size=(40, 30))  # 1200 rays: 5 chunks
+    seen = []
+    sky_image(em, sig, cam, progress=lambda done, total: seen.append((done, total)))
+    assert [d for d, _ in seen] == [256, 512, 768, 1024, 1200] and {t for _, t in seen} == {1200}
+    polls = []
+    with pytest.raises(CancelledError):
+        sky_image(em, sig, cam, cancel=lambda: polls.append(1) or len(polls) > 2)
+    assert len(polls) == 3  # two chunks marched, the third not begun

@@ -474,3 +474,28 @@ def test_output_records_the_density_file_absolutely(tmp_path, backend, monkeypat
 
 def test_generated_density_overflow_names_its_parameter(backend):
     refused(lambda: Pipeline(backend).run(tiny_scene(dust={"scale": 3e38})), "dust.scale", "3e+38", "allowed scale <=")
+
+
+def test_an_empty_input_is_reported_unless_an_upstream_filter_said_why():
+    """An empty image into the Light Field (a reader's or source's empty output) ends with one
+    message naming the input; an empty output of a NebulaRT filter that failed upstream is
+    passed on quietly (that filter already said why)."""
+    from vtkmodules.vtkCommonDataModel import vtkImageData
+    from vtkmodules.vtkCommonExecutionModel import vtkTrivialProducer
+
+    from nebula_rt.filters import NebulaDustDensity, NebulaLightField
+
+    producer = vtkTrivialProducer()
+    producer.SetOutput(vtkImageData())
+    lf = NebulaLightField()
+    lf.SetInputConnection(producer.GetOutputPort())
+    lf.Update()
+    assert lf.GetOutputDataObject(0).GetNumberOfPoints() == 0
+    assert lf.last_error.startswith("NebulaLightField: input = 'an empty image (0 points)'")
+    dust = NebulaDustDensity()
+    dust.SetGridShape(0, 4, 4)
+    lf = NebulaLightField()
+    lf.SetInputConnection(dust.GetOutputPort())
+    lf.Update()
+    assert "grid.shape" in dust.last_error and lf.last_error is None
+    assert lf.GetOutputDataObject(0).GetNumberOfPoints() == 0

@@ -32,10 +32,12 @@ from __future__ import annotations
 import math
 import numbers
 from dataclasses import dataclass, field
-from typing import Optional, Sequence
+from typing import Callable, Optional, Sequence
 
 import numpy as np
 
+from ..backends.capacity import host_available_bytes
+from ..errors import CancelledError, ResourceError
 from ..scene import sky_schema as _declared
 
 __all__ = ["Camera", "SkyImage", "sky_image"]
@@ -361,8 +363,31 @@ def _march(points, d, t_hi, j_flat, s_flat, shape, ds_max, emission=True):
     return intensity, tau
 
 
+#: float64 images of (n_bands, W, H) a sky image holds at once (scattered, direct,
+#: intensity) and the picture made from it needs besides (its colour and tone steps)
+SKY_IMAGE_ARRAYS = 6
+
+
+def sky_image_bytes(n_bands: int, size) -> int:
+    """Host memory a sky image of ``n_bands`` bands and ``size`` (W, H) pixels needs (bytes)."""
+    w, h = (int(n) for n in size)
+    return SKY_IMAGE_ARRAYS * 8 * int(n_bands) * w * h
+
+
+def check_sky_image_memory(n_bands: int, size, parameter: str = "sky.size") -> None:
+    """Refuse a sky image the host's available memory cannot hold, naming ``parameter``
+    (ResourceError), before any work."""
+    need, avail = sky_image_bytes(n_bands, size), host_available_bytes()
+    if need > avail:
+        raise ResourceError(parameter, tuple(int(n) for n in size),
+                            f"a sky image of {n_bands} bands needs about {need / 2**30:.3g} GiB of host memory "
+                            f"({SKY_IMAGE_ARRAYS} float64 images of W x H per band); {avail / 2**30:.3g} GiB is available")
+
+
 def sky_image(emissivity, sigma, camera: Camera, *, stars: Sequence = (),
-              star_band_luminosity: Optional[np.ndarray] = None, step: float = 0.5) -> SkyImage:
+              star_band_luminosity: Optional[np.ndarray] = None, step: float = 0.5,
+              progress: Optional[Callable[[int, int], None]] = None,
+              cancel: Optional[Callable[[], bool]] = None) -> SkyImage:
     """Render what a distant observer sees: attenuated scattered light plus the stars.
 
     For every pixel ray and band ``b`` computes ``I_b = integral j_b(x) exp(-tau_b(x ->
@@ -391,6 +416,11 @@ def sky_image(emissivity, sigma, camera: Camera, *, stars: Sequence = (),
         the view along a box axis the segments never straddle a voxel face, and the result is
         exact for the piecewise-constant medium; otherwise a segment straddling a face is
         assigned to one voxel, an error that shrinks linearly with ``step``.
+    progress : callable(done, total), optional
+        Called after every chunk of pixel rays with the pixels done so far.
+    cancel : callable() -> bool, optional
+        Polled before every chunk (a chunk marches about 2^18 band-pixels, well under a
+        second); True raises :class:`~nebula_rt.errors.CancelledError`.
 
     Returns
     -------
@@ -407,6 +437,10 @@ def sky_image(emissivity, sigma, camera: Camera, *, stars: Sequence = (),
     ValueError
         Malformed input; the message names the parameter (``emissivity``, ``sigma``,
         ``camera``, ``stars``, ``star_band_luminosity``, ``step``).
+    ResourceError
+        (``sky.size``) the images would not fit the host's available memory.
+    CancelledError
+        ``cancel`` returned True.
     """
     if not isinstance(camera, Camera):
         raise ValueError(f"camera must be a nebula_rt.observe.sky.Camera, got {type(camera).__name__}")
@@ -415,6 +449,7 @@ def sky_image(emissivity, sigma, camera: Camera, *, stars: Sequence = (),
         raise ValueError(f"step must be a finite number > 0 (fraction of a voxel edge), got {step!r}")
     n_bands, nx, ny, nz = j.shape
     star_pos, star_lum = _check_stars(stars, star_band_luminosity, n_bands)
+    check_sky_image_memory(n_bands, camera.size)
 
     d, u, v = camera.basis()
     w, h = camera.size
@@ -429,10 +464,14 @@ def sky_image(emissivity, sigma, camera: Camera, *, stars: Sequence = (),
     scattered = np.empty((n_bands, w * h))
     chunk = max(256, _CHUNK_ELEMENTS // n_bands)
     for start in range(0, w * h, chunk):
+        if cancel is not None and cancel():
+            raise CancelledError("sky image cancelled")
         stop = min(start + chunk, w * h)
         p_idx, q_idx = np.divmod(np.arange(start, stop), h)
         pts = origin + ps * (p_idx[:, None] * u + q_idx[:, None] * v)
         scattered[:, start:stop] = _march(pts, d, np.inf, j_flat, s_flat, shape, ds_max)[0]
+        if progress is not None:
+            progress(stop, w * h)
     scattered = scattered.reshape(n_bands, w, h)
 
     direct = np.zeros((n_bands, w, h))

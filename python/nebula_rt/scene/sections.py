@@ -7,6 +7,7 @@ box units (the box is [0, 1]^3), physical quantities convert to them when the sc
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any, Dict, List, Optional, Tuple, Union
 
@@ -272,9 +273,10 @@ class Transport:
             "by regions where batch slots would leave its passes poorly filled (on a CPU: always), "
             "a <= 0.025 and the memory target holds, else batches (docs/physics.md)")
     filter_radius: float = param(
-        0.02, type="float", lo=0.0, lo_open=True, unit="box units", label="Filter Radius", group=G_TRANSPORT,
-        note="box units",
-        doc="Radius of the collision filter (collision-filter only)")
+        0.02, type="float", lo=0.0, lo_open=True, hi=math.sqrt(3.0), unit="box units", label="Filter Radius",
+        group=G_TRANSPORT, note="box units; at most the box's diagonal",
+        doc="Radius of the collision filter (collision-filter only); at most the box's diagonal, sqrt(3): "
+            "a wider filter reaches the whole box from every voxel")
     max_scatterings: int = param(
         1000, type="int", lo=0, hi=INT32_MAX, label="Max Scatterings", group=G_TRANSPORT, advanced=True,
         note="int32 on the device",
