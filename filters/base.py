@@ -8,7 +8,7 @@ import sys
 import warnings
 
 from vtkmodules.util.vtkAlgorithm import VTKPythonAlgorithmBase
-from vtkmodules.vtkCommonCore import vtkOutputWindow
+from vtkmodules.vtkCommonCore import vtkOutputWindow, vtkStringArray
 
 from nebula_rt.scene import schema
 from nebula_rt import scene as _scene
@@ -54,6 +54,17 @@ def stars_from_flat(values) -> list[dict]:
                 star[field] = float(v)
         out.append(star)
     return out
+
+
+#: field-data string of an output a NebulaRT filter emptied because it failed: the error
+FAILURE = "nebula_rt_failure"
+
+
+def failure_of(data) -> str | None:
+    """The error that emptied ``data`` upstream (its ``FAILURE`` field-data string), if any."""
+    fd = data.GetFieldData() if data is not None else None
+    arr = fd.GetAbstractArray(FAILURE) if fd is not None else None
+    return arr.GetValue(0) if arr is not None and arr.GetNumberOfValues() else None
 
 
 def _arrays_mtime(data) -> int:
@@ -158,7 +169,7 @@ class NebulaAlgorithm(VTKPythonAlgorithmBase):
         # way, so they are not run (nor reported) again until one of them changes.
         key = (self.GetMTime(), _arrays_mtime(inp))
         if self.last_error is not None and key == getattr(self, "_failed_key", None):
-            self._empty_outputs(outInfo)
+            self._empty_outputs(outInfo, self.last_error)
             return 1
         self._failed_key = None
         self.last_error = None
@@ -168,14 +179,14 @@ class NebulaAlgorithm(VTKPythonAlgorithmBase):
                 # an upstream NebulaRT filter that failed said why: pass the emptiness on
                 # instead of leaving a stale result downstream; an empty input nothing
                 # explained (a reader's empty image, an empty source) is reported here
-                upstream = self.GetInputAlgorithm(0, 0) if self.GetNumberOfInputConnections(0) else None
-                if getattr(upstream, "last_error", None) is None:
-                    self.last_error = f"{type(self).__name__}: " + self.describe_error(SceneError(
+                reason = failure_of(inp)
+                if reason is None:
+                    self.last_error = reason = f"{type(self).__name__}: " + self.describe_error(SceneError(
                         "input", "an empty image (0 points)",
                         "must be an image with points and arrays (e.g. Nebula Dust Density's output)"))
                     self._failed_key = key
                     vtkOutputWindow.GetInstance().DisplayErrorText(f"NebulaRT error: {self.last_error}\n")
-                self._empty_outputs(outInfo)
+                self._empty_outputs(outInfo, reason)
                 return 1
         try:
             with warnings.catch_warnings(record=True) as caught:
@@ -193,17 +204,25 @@ class NebulaAlgorithm(VTKPythonAlgorithmBase):
                 self.SetAbortExecute(0)
             self.last_error = f"{type(self).__name__}: {self.describe_error(exc)}"
             self._failed_key = key
-            self._empty_outputs(outInfo)  # no half-made output
+            self._empty_outputs(outInfo, self.last_error)  # no half-made output
             vtkOutputWindow.GetInstance().DisplayErrorText(f"NebulaRT {kind}: {self.last_error}\n")
         # Succeed either way: an empty output (with the error on the output window) lets
         # downstream filters re-execute to empty rather than keep stale data.
         return 1
 
-    def _empty_outputs(self, outInfo) -> None:
+    def _empty_outputs(self, outInfo, reason: str | None = None) -> None:
+        """Empty every output, each carrying ``reason`` (the error that emptied it, the
+        field-data string ``FAILURE``), so that the filters downstream pass the emptiness on
+        quietly instead of reporting an empty input nobody explained."""
         for port in range(self.GetNumberOfOutputPorts()):
             out = self.GetOutputData(outInfo, port)
             if out is not None:
                 out.Initialize()
+                if reason is not None:
+                    mark = vtkStringArray()
+                    mark.SetName(FAILURE)
+                    mark.InsertNextValue(reason)
+                    out.GetFieldData().AddArray(mark)
 
     def _abort_if_distributed(self, exc: BaseException) -> None:
         """In a parallel ParaView a failure of one rank's transport (other than a cancel, which

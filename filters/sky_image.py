@@ -157,7 +157,8 @@ class NebulaSkyImage(NebulaAlgorithm):
             raise SceneError("Units", self._units, "must be one of " + ", ".join(repr(u) for u in SKY_UNITS))
         inp = vtkImageData.GetData(inInfo[0])
         fd = contract.LightFieldData.from_field_data(
-            field_data_dict(inp), need=("band_names", "band_wavelength_nm", "band_extinction", "tau", "scene"))
+            field_data_dict(inp),
+            need=("band_names", "band_wavelength_nm", "band_extinction", "tau", "scene", "band_luminosity"))
         names = fd.band_names
         check_sky_image_memory(len(names), cam.size)  # (before the arrays are gathered)
         wl, ext = fd.band_wavelength_nm, fd.band_extinction
@@ -167,6 +168,14 @@ class NebulaSkyImage(NebulaAlgorithm):
         rho = point_array(inp, contract.DENSITY.name()).astype(np.float64)
         sigma = fd.tau * ext[:, None, None, None] * rho[None]
         scene = Scene.loads(fd.scene)
+        # the stars drawn are the scene text's: they must be the stars whose light the field
+        # carries (a foreign or edited file could draw stars that lit nothing)
+        traced = np.asarray(fd.band_luminosity, np.float64)
+        drawn = star_band_luminosities(scene.stars, wl).sum(axis=0)
+        if not np.allclose(drawn, traced, rtol=1e-9, atol=0.0):
+            raise SceneError("input", "field data scene",
+                             f"must hold the stars that lit the light field: their band luminosities "
+                             f"{_numbers(drawn)} differ from the light field's {_numbers(traced)}")
         stars = [s.position for s in scene.stars] if include_stars else []
         slum = star_band_luminosities(scene.stars, wl) if include_stars else None
         self._report(0.1, "NebulaRT: ray marching the sky image")
@@ -217,6 +226,11 @@ class NebulaSkyImage(NebulaAlgorithm):
             pixel_size=img.pixel_size, exposure=exposure,
             tau_star=img.tau_star[0] if len(img.tau_star) else None, **calibrated).to_field_data())
         out.GetPointData().SetActiveScalars(contract.SKY_RGB.name())
+
+
+def _numbers(values) -> str:
+    """A short list of numbers for a message."""
+    return "[" + ", ".join(f"{float(v):.6g}" for v in values) + "]"
 
 
 def write_fits(image, path) -> None:

@@ -487,3 +487,41 @@ def test_sky_image_filter_refuses_an_image_the_memory_cannot_hold(monkeypatch):
     assert lf.last_error is None
     assert s.GetOutputDataObject(0).GetNumberOfPoints() == 0
     assert s.last_error.startswith("NebulaSkyImage: Image Size (sky.size) = (4096, 4096)") and "GiB" in s.last_error
+
+
+def test_sky_image_refuses_a_scene_text_whose_stars_did_not_light_the_field():
+    """The sky image draws the stars of the light field's scene text: a file whose scene text
+    names other stars than those whose light it carries (edited, or from another run) is
+    refused naming the input and both band luminosities, not drawn."""
+    from vtkmodules.vtkCommonDataModel import vtkImageData
+    from vtkmodules.vtkCommonExecutionModel import vtkTrivialProducer
+
+    from nebula_rt.filters import NebulaLightField, NebulaSkyImage
+    from nebula_rt.filters.image_data import add_field_data, field_data_dict
+    from nebula_rt.scene import Scene
+    from test_input_limits import image_input
+
+    lf = NebulaLightField()
+    image_input(lf, np.ones((8, 8, 8), np.float32))
+    lf.SetBackend(TEST_BACKEND)
+    lf.SetDevice(TEST_DEVICE)
+    lf.SetPhotons(2000)
+    lf.Update()
+    assert lf.last_error is None
+    edited = vtkImageData()
+    edited.DeepCopy(lf.GetOutputDataObject(0))
+    scene = Scene.loads(field_data_dict(edited)["scene"])
+    other = scene.with_overrides(["stars.0.luminosity=3.0"])
+    add_field_data(edited, {"scene": other.to_toml()})
+    producer = vtkTrivialProducer()
+    producer.SetOutput(edited)
+    s = NebulaSkyImage()
+    s.SetInputConnection(producer.GetOutputPort())
+    s.SetImageSize(16, 16)
+    s.Update()
+    assert s.GetOutputDataObject(0).GetNumberOfPoints() == 0
+    assert "must hold the stars that lit the light field" in s.last_error and "input" in s.last_error
+    producer.SetOutput(lf.GetOutputDataObject(0))  # the light field as it came: drawn
+    producer.Modified()
+    s.Update()
+    assert s.last_error is None and s.GetOutputDataObject(0).GetNumberOfPoints() == 256

@@ -148,6 +148,18 @@ def test_readers_name_what_is_missing():
         contract.LightFieldData.from_field_data(fd, need=("band_name",))
 
 
+@pytest.mark.parametrize("ref", [-1, 2, 2**40])
+def test_a_reference_band_outside_the_bands_is_refused(ref):
+    """A crafted reference band (an index the Colour filter and the sky image use to pick a
+    band's arrays) is refused as the input's, naming the index and the bands' range, instead
+    of an IndexError further down."""
+    fd = {"band_names": "R,G", "tau": 2.0, "reference_band": ref}
+    with pytest.raises(SceneError, match=rf"reference_band = {ref}'?: must be a band index in \[0, 1\]") as e:
+        contract.LightFieldData.from_field_data(fd, need=("band_names",))
+    assert e.value.parameter == "input"
+    assert contract.LightFieldData.from_field_data({**fd, "reference_band": 1}).reference_band == 1
+
+
 def test_writers_must_give_the_whole_contract():
     """A record missing a required field is refused when the whole contract is written (a
     filter adding one field writes a partial one on purpose); per-band values must match the

@@ -295,6 +295,12 @@ class ContractData:
                   for n in need if n not in values]
         if absent:
             raise SceneError("input", "field data", f"must come from {cls.SOURCE} (missing {', '.join(absent)})")
+        ref = values.get("reference_band")
+        if ref is not None and bands is not None and not 0 <= int(ref) < len(bands):
+            # a crafted or foreign file: the index picks a band's arrays further down
+            raise SceneError("input", f"field data reference_band = {int(ref)}",
+                             f"must be a band index in [0, {len(bands) - 1}] (the input's {len(bands)} bands; "
+                             f"field data of {cls.SOURCE})")
         return cls(**values)
 
 
