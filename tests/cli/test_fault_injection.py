@@ -92,6 +92,11 @@ def assert_intact(folder: Path, before: dict):
     ("during-write", "SIGINT", 130),
     ("during-write", "SIGTERM", 143),
     ("during-png", "SIGINT", 130),
+    # a second signal inside VTK's renderer ended in SIGSEGV, and two SIGTERMs in an
+    # ImportError: now the temporary files go and the process ends with the first's status
+    ("during-png", "SIGINTx2", 130),
+    ("during-png", "SIGTERMx2", 143),
+    ("mid-launch", "SIGQUIT", 131),  # Ctrl-\\ was swallowed and the run published
 ])
 def test_interrupt_publishes_nothing(scene_dir, point, sig, status):
     before = old_outputs(scene_dir, png=True)
@@ -101,6 +106,24 @@ def test_interrupt_publishes_nothing(scene_dir, point, sig, status):
     assert r.returncode == status, (r.returncode, r.stderr)
     assert "nothing written" in r.stderr and "Traceback" not in r.stderr, r.stderr
     assert_intact(scene_dir, before)
+
+
+def test_a_run_removes_what_killed_runs_left_in_its_folder(scene_dir):
+    """Temporary files of a process of this host that no longer runs (killed by SIGKILL, it
+    could not remove them) are removed by the next run into that folder; a live process's
+    and another host's stay."""
+    from nebula_rt.pipeline.outputs import _host
+
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
+                          text=True).stdout.strip()
+    host = _host()
+    stale = [f".nrt-{dead}@{host}-abcd1234.tmp.vti", f".nrt-{dead}@{host}-efgh5678.bak"]
+    kept = [f".nrt-{os.getpid()}@{host}-ijkl9012.tmp.png", f".nrt-{dead}@elsewhere.example-mnop3456.tmp.vti"]
+    for name in stale + kept:
+        (scene_dir / name).write_bytes(b"partial")
+    r = run_cli("render", str(scene_dir / "s.toml"), "-o", str(scene_dir / "out.vti"), "-q")
+    assert r.returncode == 0, r.stderr
+    assert leftovers(scene_dir) == sorted(kept)
 
 
 @pytest.mark.parametrize("run", [

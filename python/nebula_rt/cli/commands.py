@@ -477,8 +477,8 @@ def main(argv=None) -> int:
 
     0 done; 1 a run that failed (an output that could not be written, an internal error); 2
     bad input (a scene value, an option, an output path, more memory than there is: nothing
-    was written); 3 the backend or device cannot be used; 130 / 143 cancelled by SIGINT /
-    SIGTERM (nothing was written).
+    was written); 3 the backend or device cannot be used; 130 / 143 / 129 / 131 cancelled by
+    SIGINT / SIGTERM / SIGHUP / SIGQUIT (nothing was written).
     """
     import warnings
 

@@ -14,23 +14,75 @@ Three rules keep a user's files safe:
    of them are complete; the rename is the only step that publishes. If one rename fails the
    targets already replaced are restored from hard-link backups: both or neither. Leaving the
    ``with`` block without publishing (an error, a cancel) removes every temporary file.
+
+A signal cannot break these rules: the renames run with the cancelling signals held back,
+after a last look at the cancel flag (:func:`nebula_rt.interrupts.held`); a second signal,
+which ends the process at once, first removes the temporary files
+(:func:`nebula_rt.interrupts.on_abort`). The temporary files carry the process's number and
+host, so a run that was killed outright (SIGKILL, a power cut) leaves files the next run into
+that folder removes (:func:`remove_stale`).
 """
 
 from __future__ import annotations
 
 import errno
 import os
+import re
 import shutil
+import signal
+import socket
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable, Optional
 
-from ..errors import OutputError
+from .. import interrupts
+from ..errors import CancelledError, OutputError
 
-#: prefix of every temporary file (hidden; ``.nrt-<random>.tmp.<suffix>``: the suffix last, so
-#: writers that choose the format by suffix still do)
+#: prefix of every temporary file (hidden; ``.nrt-<pid>@<host>-<random>.tmp.<suffix>``: the
+#: suffix last, so writers that choose the format by suffix still do)
 TMP_PREFIX = ".nrt-"
+#: a temporary file's name: the process that made it, its host (tempfile's 8 random characters)
+_TMP_NAME = re.compile(r"^\.nrt-(\d+)@(.+)-[a-z0-9_]{8}\.(tmp|bak)")
+
+
+def _host() -> str:
+    return re.sub(r"[^A-Za-z0-9._-]", "_", socket.gethostname()) or "host"
+
+
+def _own_prefix() -> str:
+    return f"{TMP_PREFIX}{os.getpid()}@{_host()}-"
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # another user's process (EPERM): alive
+        return True
+    return True
+
+
+def remove_stale(folder) -> list:
+    """Remove the temporary files a dead process of this host left in ``folder`` (killed
+    outright, it could not remove them); another host's files and a live process's stay.
+    Returns the names removed."""
+    removed = []
+    host = _host()
+    try:
+        names = os.listdir(folder)
+    except OSError:
+        return removed
+    for name in names:
+        m = _TMP_NAME.match(name)
+        if m and m.group(2) == host and int(m.group(1)) != os.getpid() and not _alive(int(m.group(1))):
+            try:
+                os.unlink(os.path.join(folder, name))
+                removed.append(name)
+            except OSError:
+                pass
+    return removed
 
 
 @dataclass(frozen=True)
@@ -160,12 +212,20 @@ class Publication:
     def __init__(self):
         self._staged: list[tuple[Path, Path]] = []  # (temporary, target)
         self.published = False
+        self._cleaned: set = set()
+        self._unhook = None
 
     def stage(self, target) -> Path:
-        """A new, empty temporary file beside ``target`` (unique to this call) to write into."""
+        """A new, empty temporary file beside ``target`` (unique to this call) to write into;
+        the first in a folder also removes what dead runs left there (:func:`remove_stale`)."""
         target = Path(target)
-        fd, tmp = tempfile.mkstemp(dir=target.parent if str(target.parent) else ".",
-                                   prefix=TMP_PREFIX, suffix=".tmp" + target.suffix)
+        folder = target.parent if str(target.parent) else Path(".")
+        if folder not in self._cleaned:
+            self._cleaned.add(folder)
+            remove_stale(folder)
+        if self._unhook is None:  # a second signal ends the process: the files go first
+            self._unhook = interrupts.on_abort(self.discard)
+        fd, tmp = tempfile.mkstemp(dir=folder, prefix=_own_prefix(), suffix=".tmp" + target.suffix)
         os.close(fd)
         # mkstemp makes the file private (0600); a published output gets the usual mode
         os.chmod(tmp, 0o666 & ~_umask())
@@ -174,13 +234,27 @@ class Publication:
 
     def publish(self) -> None:
         """Rename every staged file onto its target; on a failure restore the targets already
-        replaced (from hard-link backups of their old contents) and raise."""
+        replaced (from hard-link backups of their old contents) and raise.
+
+        Raises
+        ------
+        CancelledError
+            A signal asked the command to cancel (nothing is renamed); the renames run with
+            the signals held back, so a signal either comes before them or after them.
+        """
+        with interrupts.held():
+            requested = interrupts.cancel_requested()
+            if requested is not None:
+                raise CancelledError(f"run cancelled by {signal.Signals(requested).name}")
+            self._publish()
+
+    def _publish(self) -> None:
         done: list[tuple[Path, Optional[Path]]] = []  # (target, backup of its old contents)
         try:
             for tmp, target in self._staged:
                 backup = None
                 if target.exists():
-                    backup = Path(tempfile.mktemp(dir=target.parent, prefix=TMP_PREFIX, suffix=".bak"))
+                    backup = Path(tempfile.mktemp(dir=target.parent, prefix=_own_prefix(), suffix=".bak"))
                     try:
                         os.link(target, backup)
                     except OSError:  # no hard links here: publish without a way back
@@ -220,6 +294,9 @@ class Publication:
 
     def __exit__(self, *exc) -> None:
         self.discard()
+        if self._unhook is not None:
+            self._unhook()
+            self._unhook = None
 
 
 def _unlink(p: Path) -> None:
