@@ -179,3 +179,24 @@ def test_collision_filter_against_the_absorber_at_the_faces(backend):
     bound = 5 * math.sqrt((2 / (seeds - 1) + 2 / (seeds * 15)) * kernel.size / near.sum())
     print(f"variance ratio {ratio:.3f} (bound {bound:.3f}), layer-0 s.e. {runs[:, layers[0]].mean(axis=1).std(ddof=1) / math.sqrt(seeds) / J[layers[0]].mean():.4f}")
     assert abs(ratio - 1) < bound, (ratio, bound)  # measured 0.99
+
+
+def test_the_filter_polls_cancel_between_its_ffts():
+    """The collision filter (many seconds on a CPU for a large grid) polls ``cancel`` before
+    every inverse FFT: a cancel stops it there (CancelledError), and polls that stay False
+    change nothing in the result."""
+    from nebula_rt.errors import CancelledError
+
+    rng = np.random.default_rng(2)
+    field, var = rng.random((12, 10, 8)), rng.random((12, 10, 8))
+    kernel = filtering.cubic_kernel((12, 10, 8), 0.2)
+    ref = filtering.normalised_convolution(field, kernel, var)
+    polls = []
+    out = filtering.normalised_convolution(field, kernel, var, cancel=lambda: polls.append(1) and False)
+    assert np.array_equal(out[0], ref[0]) and np.array_equal(out[1], ref[1])
+    terms = len(polls)
+    assert terms >= 2  # the mean's terms and the variance's
+    polls.clear()
+    with pytest.raises(CancelledError):
+        filtering.normalised_convolution(field, kernel, var, cancel=lambda: polls.append(1) or len(polls) > 1)
+    assert len(polls) == 2

@@ -294,13 +294,14 @@ def compute_light(scene, density: np.ndarray, backend: Backend, progress=None, c
         if res.device_sums is not None and _opencl_fft(backend):
             bands = scene.bands.resolve()
             params = np.stack([res.j_scale, res.sigma_scale, [b.albedo for b in bands]], axis=1)
-            J, rel = postprocess.filter_collisions_opencl(res.device_sums, params, res.band_batches, t.filter_radius)
+            J, rel = postprocess.filter_collisions_opencl(res.device_sums, params, res.band_batches, t.filter_radius,
+                                                          cancel=cancel)
         elif res.device_sums is not None:
             s1, s2 = res.device_sums.host_sums()
             J0, _ = light_from_sums(s1, s2, res.band_batches, res.estimator, res.j_scale, res.sigma_scale, density)
-            J, rel = filter_collisions(J0, s1, s2, res.band_batches, t.filter_radius)
+            J, rel = filter_collisions(J0, s1, s2, res.band_batches, t.filter_radius, cancel)
         else:
-            J, rel = filter_collisions(res.J, res.raw_sum, res.raw_m2, res.band_batches, t.filter_radius)
+            J, rel = filter_collisions(res.J, res.raw_sum, res.raw_m2, res.band_batches, t.filter_radius, cancel)
     else:
         J, rel = res.J, res.rel_error
     return res, J, rel
@@ -415,14 +416,15 @@ def assemble_light_field(scene, rho, res: TransportResult, J, rel, with_device_e
     return (light, emissivity, rho_x) if with_device_emissivity else light
 
 
-def filter_collisions(J, s1, s2, batches: int, radius: float):
+def filter_collisions(J, s1, s2, batches: int, radius: float, cancel=None):
     """Smooth the collision estimate of J with the normalised cubic kernel of ``radius`` (box units).
 
     ``s1``, ``s2``: the sum of the batch totals (collision counts) and their centred sum of
     squares (``batches`` of them, an int or per band), from which the per-voxel variance of J
     is filtered with the squared kernel: the filtered
     field's statistical error (the filter's bias is not included). Runs on the device of ``J``
-    (CuPy FFTs on CUDA).
+    (CuPy FFTs on CUDA). ``cancel`` is polled between the FFTs (the filter of a large grid on
+    a CPU takes many seconds).
     """
     xp = array_module(J)
     shape = J.shape[1:]
@@ -433,7 +435,7 @@ def filter_collisions(J, s1, s2, batches: int, radius: float):
     Jf = xp.empty_like(J)
     rel = xp.empty_like(J)
     for b in range(J.shape[0]):
-        jf, vf = filtering.normalised_convolution(J[b], kernel, var[b])
+        jf, vf = filtering.normalised_convolution(J[b], kernel, var[b], cancel=cancel)
         Jf[b] = jf
         rel[b] = xp.where(jf > 0, xp.sqrt(vf) / xp.where(jf > 0, jf, 1.0), 1.0)
     return Jf, rel

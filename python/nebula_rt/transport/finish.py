@@ -21,6 +21,7 @@ from typing import Optional
 import numpy as np
 from . import filtering
 from ..array_api import array_module
+from ..errors import CancelledError
 from ..backends.session import M2_SCALE
 
 #: Bins of one radix-select pass (16 bits of the float32 key) plus one for exact zeros.
@@ -202,7 +203,7 @@ def finish(ds: DeviceSums, band_params: np.ndarray, *, batches, collision: bool,
                           device_bytes=nbytes, peak_device_bytes=int(max(stage_a, stage_b)))
 
 
-def filter_collisions_opencl(ds: DeviceSums, band_params: np.ndarray, batches, radius: float):
+def filter_collisions_opencl(ds: DeviceSums, band_params: np.ndarray, batches, radius: float, cancel=None):
     """The collision filter on an OpenCL device (VkFFT through pyvkfft): the unfiltered J and
     its variance from the sums, each band convolved on the device
     (:func:`nebula_rt.transport.filtering_opencl.normalised_convolution_cl`), and the relative error.
@@ -232,6 +233,8 @@ def filter_collisions_opencl(ds: DeviceSums, band_params: np.ndarray, batches, r
     band_j, band_v = be.device_zeros(nvox, np.float64), be.device_zeros(nvox, np.float64)
     nbytes = 8 * nvox
     for b in range(nb):  # band blocks copied in and out (the FFT code takes whole buffers)
+        if cancel is not None and cancel():  # (polled per band: a band's FFTs are queued at once)
+            raise CancelledError("collision filter cancelled")
         cl.enqueue_copy(be.queue, band_j.data, J0.data, src_offset=b * nbytes, byte_count=nbytes)
         cl.enqueue_copy(be.queue, band_v.data, var.data, src_offset=b * nbytes, byte_count=nbytes)
         jf, vf = normalised_convolution_cl(be.queue, band_j.reshape(nz, ny, nx), kernel,
