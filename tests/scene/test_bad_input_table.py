@@ -110,12 +110,12 @@ RANGES = {
     "transport.error_estimate": "'auto', 'batches', 'packets'",
     "transport.filter_radius": "(0, 1.73205]", "transport.max_scatterings": "[0, 2147483647]",
     "transport.seed": "[0, 2**53]", "transport.backend": "'auto', 'opencl', 'cuda'", "transport.device": "string",
-    "transport.batch_size": ("[0, 2**53]", "less than the 2000 photons"), "transport.target_error": "(0, 1)",
+    "transport.batch_size": ("[0, 2**53]", "less than the 2000 photons"), "transport.target_error": "[1e-08, 1)",
     "transport.time_limit": ">= 0", "transport.quality": "'preview'",
     "colour.exposure": FLOAT32_RANGE_TEXT, "colour.white_point": "'D65', 'E', 'star'", "colour.opacity_scale": "> 0",
     "colour.stretch": "'linear', 'asinh'", "colour.asinh_q": "(0, 1e+10]",
     "observer.distance": ("distance > 0", "units: pc"), "observer.ra": "[0, 360)", "observer.dec": "[-90, 90]",
-    "observer.position_angle": "[-360, 360]", "observer.psf_fwhm": "arcsec >= 0",
+    "observer.position_angle": "[-360, 360]", "observer.psf_fwhm": "arcsec in [0, 648000]",
     "observer.magnitude_system": "'AB', 'Vega'",
 }
 
@@ -199,6 +199,8 @@ TABLE = [
     *floats("stars.0.luminosity_lsun", runtime={"beyond-float32": "1.3e38 L_sun inside the bands: J overflows"}),
     *floats("stars.0.absolute_magnitude", {"negative": "a bright star, M_V = -1.5", "zero": "M_V = 0",
                                            "below-float32": "M_V = 1e-40, i.e. 0"}),
+    # 10^(0.4 x 1e300) overflows float64: refused with the magnitudes that fit, not an OverflowError
+    Row("stars.0.absolute_magnitude", "huge-negative", "-1e300"),
     Row("stars.0.temperature", "too-cool", "10.0"),
     # no luminosity class, O0 and B10 (no such types), a class letter DJ87 does not calibrate
     *strings("stars.0.spectral_type", ["B2", "O0V", "B10V", "X5III", "B2 VI"],
@@ -232,8 +234,12 @@ TABLE = [
     *strings("transport.device"),
     *ints("transport.batch_size", {"zero": "automatic"}),
     Row("transport.batch_size", "single-batch", "2000", note="one batch: no error estimate"),
-    *floats("transport.target_error", {"zero": "off", "below-float32": "host float64: the whole budget is traced"}),
+    # below 1e-8 (1e-40 here) no budget of packets reaches the target: refused before tracing
+    *floats("transport.target_error", {"zero": "off"}),
     Row("transport.target_error", "one", "1.0"),
+    Row("transport.target_error", "beyond-any-budget", "1e-300"),
+    Row("transport.target_error", "smallest", "1e-8", ALLOWED, "about 1 / sqrt(2**53): the largest budget's reach",
+        run=False),
     *floats("transport.time_limit", {"zero": "none", "huge": "seconds, host float64",
                                      "beyond-float32": "seconds, host float64",
                                      "below-float32": "seconds, host float64 (used only with a target error)"}),
@@ -246,16 +252,20 @@ TABLE = [
     Row("colour.opacity_scale", "auto", '"auto"', ALLOWED, "the factor chosen from the data (the default)"),
     *strings("colour.stretch", ["log"], allowed={"asinh": "Lupton et al. (2004)"}),
     *floats("colour.asinh_q", {"below-float32": "host float64: the linear curve in the limit"}),
-    *floats("observer.distance", {"huge": SKY, "beyond-float32": SKY, "below-float32": SKY}),
+    # 1e300 pc is 3e316 m, infinite in float64; 1e39 pc (3e55 m) and 1e-40 pc (3e-24 m) lie in [1e-150, 1e150] m
+    *floats("observer.distance", {"beyond-float32": SKY, "below-float32": SKY}),
     Row("observer.distance", "quantity", '"140 pc"', ALLOWED, "a distance with its unit"),
+    Row("observer.distance", "quantity-beyond-float64", '"1e308 Mpc"'),
+    Row("observer.distance", "quantity-below-float64", '"1e-300 pc"'),
     Row("observer.distance", "not-a-length", '"3 s"'),
     *floats("observer.ra", {"zero": SKY, "below-float32": SKY}),
     Row("observer.ra", "full-circle", "360.0"),
     *floats("observer.dec", {"negative": SKY, "zero": SKY, "below-float32": SKY}),
     Row("observer.dec", "beyond-pole", "90.5"),
     *floats("observer.position_angle", {"negative": SKY, "zero": SKY, "below-float32": SKY}),
-    *floats("observer.psf_fwhm", {"zero": "no PSF", "huge": SKY + " (wider than the image: the light leaves it)",
-                                  "beyond-float32": SKY, "below-float32": SKY}),
+    # at most 180 deg (648000 arcsec): 1e300 arcsec made an image of zeros
+    *floats("observer.psf_fwhm", {"zero": "no PSF", "below-float32": SKY}),
+    Row("observer.psf_fwhm", "widest", "648000.0", ALLOWED, SKY + " (wider than the image: the light leaves it)"),
     *strings("observer.magnitude_system", ["ST", "ab"], allowed={"Vega": "AB minus Blanton & Roweis (2007)'s offsets"}),
 ]
 # "negative" is -1.5 for every float key: below g's -1 too

@@ -195,14 +195,15 @@ def _render(args, cancel) -> int:
 
 
 def parse_direction(text: str) -> tuple:
-    """``--direction x,y,z`` -> a tuple of 3 finite floats, not all 0 (SceneError otherwise)."""
-    import math
-
+    """``--direction x,y,z`` -> a tuple of 3 floats by the rule of ``sky.direction`` (a length
+    that normalises in float64: :data:`nebula_rt.scene.sky_schema.DIRECTION_ALLOWED`);
+    SceneError naming ``--direction`` otherwise."""
     try:
         direction = tuple(float(x) for x in text.split(","))
-        assert len(direction) == 3 and any(direction) and all(math.isfinite(x) for x in direction)
-    except (ValueError, AssertionError):
-        raise SceneError("--direction", text, "must be three finite numbers x,y,z, not all 0") from None
+    except ValueError:
+        direction = None
+    if direction is None or not sky_schema.valid_direction(direction):
+        raise SceneError("--direction", text, sky_schema.DIRECTION_ALLOWED)
     return direction
 
 

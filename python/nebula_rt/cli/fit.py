@@ -37,6 +37,9 @@ def add_table_options(p) -> None:
 
 def _quantity(option: str, text):
     import astropy.units as u
+    import numpy as np
+
+    from ..scene.units import LENGTH_RANGE_M, LENGTH_RANGE_TEXT
 
     if text is None:
         return None
@@ -44,8 +47,15 @@ def _quantity(option: str, text):
         q = u.Quantity(text)
     except (TypeError, ValueError):
         raise SceneError(option, text, "must be a length with its unit, e.g. '430 pc' or '0.5 pc'") from None
+    allowed = f"must be a positive length with its unit, e.g. '430 pc' or '0.5 pc', {LENGTH_RANGE_TEXT}"
     if not q.unit.is_equivalent(u.m) or not (math.isfinite(q.value) and q.value > 0):
-        raise SceneError(option, text, "must be a positive length with its unit, e.g. '430 pc' or '0.5 pc'")
+        raise SceneError(option, text, allowed)
+    # the offsets in angles go through box / distance: a length beyond float64's squares is refused
+    # here, by its option, not as an offset of no width later
+    with np.errstate(over="ignore", under="ignore"):  # beyond float64: inf or 0, refused below
+        metres = float(q.to_value(u.m))
+    if not LENGTH_RANGE_M[0] <= metres <= LENGTH_RANGE_M[1]:
+        raise SceneError(option, text, allowed)
     return q
 
 
@@ -93,7 +103,7 @@ def compare_tables_command(args, cancel, scene, direction, backend_of, inputs, p
     from ..pipeline.outputs import Publication
 
     tables = read_tables(args, scene)
-    comparison.check_tables_against_scene(scene, tables)
+    comparison.check_tables_against_scene(scene, tables, direction=direction, size=args.size, option="--table")
     backend = backend_of()
     resources.check(scene, backend, peel_pixels=args.size * args.size, peel_option="--size", peel_value=args.size)
     _outputs(args, scene, inputs)
@@ -125,7 +135,10 @@ def fit_command(args, cancel, scene, direction, backend_of, inputs, print_summar
     free = [fit_parameters.parse_free(s, scene, direction) for s in args.free]
     if not free:
         raise SceneError("--free", [], "name at least one parameter to fit, e.g. --free albedo --free tau")
-    comparison.check_tables_against_scene(scene, tables)
+    comparison.check_tables_against_scene(scene, tables, direction=direction, size=args.size, option="--table")
+    request = fit.FitRequest(scene, tables, free, direction=direction, size=args.size, reference=args.reference,
+                             uncertainty=args.uncertainty, grid=args.grid, starts=args.starts)
+    request.parameters()  # every option and bound, before the device is opened
     backend = backend_of()
     resources.check(scene, backend, peel_pixels=args.size * args.size, peel_option="--size", peel_value=args.size)
     _outputs(args, scene, inputs)
@@ -142,8 +155,6 @@ def fit_command(args, cancel, scene, direction, backend_of, inputs, print_summar
             bar.set_postfix_str(f"best chi2 {best:.2f}", refresh=False)
             bar.refresh()
 
-        request = fit.FitRequest(scene, tables, free, direction=direction, size=args.size, reference=args.reference,
-                                 uncertainty=args.uncertainty, grid=args.grid, starts=args.starts)
         res = request.run(backend=backend, progress=progress, cancel=cancel)
     finally:
         if bar is not None:

@@ -179,6 +179,21 @@ def convolve_psf(image, sigma: float) -> np.ndarray:
     return convolve1d(out, kernel, axis=-1, mode="constant", cval=0.0)
 
 
+def pixel_angle(scene, camera) -> float:
+    """The side of one pixel of ``camera``'s image on the sky, radians (small angle: pixel side
+    x box edge / distance)."""
+    box_m = units.box_length_cm(scene.grid) / 100.0
+    return camera.pixel_size * box_m / units.distance_metres(scene.observer)
+
+
+def star_pixels(scene, camera) -> np.ndarray:
+    """(n_stars, 2) image pixel coordinates (p, q) of each star in ``camera``'s image (pixel
+    centres at integers)."""
+    _, u, v = camera.basis()
+    rel = np.array([s.position for s in scene.stars], np.float64) - camera.origin()[None, :]
+    return np.stack([rel @ u / camera.pixel_size, rel @ v / camera.pixel_size], axis=1)
+
+
 def celestial_wcs(scene, camera):
     """The TAN WCS of an image of ``camera`` (module docstring): FITS pixel (p + 1, q + 1) is
     image pixel [p, q]."""
@@ -297,15 +312,13 @@ def calibrate(scene, camera, scattered, star_band_luminosity, tau_star, method: 
     box_m = units.box_length_cm(scene.grid) / 100.0
     dist_m = units.distance_metres(scene.observer)
     ps = camera.pixel_size
-    theta = ps * box_m / dist_m  # pixel side, rad
+    theta = pixel_angle(scene, camera)  # pixel side, rad
     omega = theta * theta
     scale_arcsec = theta / ARCSEC_RAD
     sigma_pix = scene.observer.psf_fwhm / (2.0 * math.sqrt(2.0 * math.log(2.0))) / scale_arcsec
 
     # stars: flux through their dust, as box-unit intensity spread by the PSF over the pixels
-    _, u, v = camera.basis()
-    rel = np.array([s.position for s in scene.stars], np.float64) - camera.origin()[None, :]
-    star_pixel = np.stack([rel @ u / ps, rel @ v / ps], axis=1)
+    star_pixel = star_pixels(scene, camera)
     seen = slum * np.exp(-tau)  # L_sun per band, as seen
     direct = np.zeros((nb, w, h))
     for k in range(len(scene.stars)):

@@ -21,6 +21,7 @@ should be in a fit (:func:`nebula_rt.observe.fit.fit_observations` reports the r
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass, field
 from typing import Optional, Sequence
@@ -67,6 +68,10 @@ class RingSums:
         The star's spectrum (temperature, pairs or None) for the passband weights.
     photons : int
         Packets per band.
+    pixels : ndarray (n_rings,) or None
+        Pixels of each ring whose central ray crosses the box (:func:`ring_pixels`): a ring
+        without any holds no light of the model but what pixelisation carries in. None: not
+        counted (ring sums made elsewhere).
     """
 
     edges: np.ndarray
@@ -78,19 +83,65 @@ class RingSums:
     star_tau: np.ndarray
     source: object
     photons: int = 0
+    pixels: Optional[np.ndarray] = None
 
 
 def ring_edges(tables: Sequence[ObservedTable]) -> np.ndarray:
     """Sorted distinct annulus edges of all tables (box units), rounded to 1e-12 so that one edge
-    computed two ways (0.1 and (0.05 + 0.15) / 2) is one edge, not a ring of no width."""
+    computed two ways (0.1 and (0.05 + 0.15) / 2) is one edge, not a ring of no width. Python's
+    round, as :func:`_rings_of` rounds an annulus's edges: the same edge either way, and no
+    overflow (numpy's rounding multiplies by 1e12, which made an edge of 1e308 infinite)."""
     e = np.concatenate([np.concatenate([t.lo, t.hi]) for t in tables])
-    return np.unique(np.round(e, 12))
+    return np.unique(np.array([round(float(x), 12) for x in e], np.float64))
+
+
+def box_reach(star_position, direction) -> float:
+    """How far the box reaches from the star on the sky (box units): the largest distance of
+    its projection, seen along ``direction``, from the star's. The projection of the box is
+    the convex hull of its corners', so the farthest point is a corner; the scattered light of
+    the model lies within this distance of the star, and an annulus beyond it compares
+    nothing."""
+    d = np.asarray(direction, np.float64) / math.hypot(*direction)
+    rel = np.array(list(itertools.product((0.0, 1.0), repeat=3))) - np.asarray(star_position, np.float64)
+    return float(np.linalg.norm(rel - (rel @ d)[:, None] * d, axis=1).max())
 
 
 def _camera(star_position, direction, size, edges):
+    # the outermost ring whole inside the image, but no farther than the box reaches: pixels
+    # beyond it hold no light, and an annulus out to 1e308 would make the pixels as large
+    # (or the field infinite)
+    outer = min(float(edges[-1]), box_reach(star_position, direction))
+    return Camera(direction=tuple(direction), size=(size, size), extent=2.0 * outer * 1.02,
+                  center=tuple(star_position))
 
-    extent = 2.0 * float(edges[-1]) * 1.02  # the outermost ring whole inside the image
-    return Camera(direction=tuple(direction), size=(size, size), extent=extent, center=tuple(star_position))
+
+def _on_box(cam) -> np.ndarray:
+    """(W, H) True for the pixels whose central ray (along the camera's direction) crosses the
+    box [0, 1]^3: the slab test, axis by axis."""
+    d, u, v = cam.basis()
+    w, h = cam.size
+    P, Q = np.meshgrid(np.arange(w), np.arange(h), indexing="ij")
+    c = cam.origin()[None, None, :] + cam.pixel_size * (P[..., None] * u + Q[..., None] * v)
+    t_lo, t_hi = np.full((w, h), -np.inf), np.full((w, h), np.inf)
+    inside = np.ones((w, h), bool)
+    for a in range(3):
+        if d[a] == 0.0:
+            inside &= (c[..., a] >= 0.0) & (c[..., a] <= 1.0)
+        else:
+            t0, t1 = -c[..., a] / d[a], (1.0 - c[..., a]) / d[a]
+            t_lo, t_hi = np.maximum(t_lo, np.minimum(t0, t1)), np.minimum(t_hi, np.maximum(t0, t1))
+    return inside & (t_lo <= t_hi)
+
+
+def ring_pixels(star_position, direction, size, edges):
+    """The comparison's camera for ``edges`` (box units) about the star, each pixel's ring
+    (-1: none) and the pixels per ring whose central ray crosses the box (n_rings,)."""
+    e = np.asarray(edges, np.float64)
+    cam = _camera(star_position, direction, size, e)
+    _, u, v = cam.basis()
+    labels = _labels(_offsets(cam.origin(), cam.pixel_size, u, v, cam.size, star_position, direction), e)
+    seen = labels[(labels >= 0) & _on_box(cam)]
+    return cam, labels, np.bincount(seen, minlength=len(e) - 1)[:len(e) - 1]
 
 
 def trace_rings(scene, edges, *, direction=(0.0, 0.0, -1.0), size: int = DEFAULT_SIZE, backend=None,
@@ -108,9 +159,7 @@ def trace_rings(scene, edges, *, direction=(0.0, 0.0, -1.0), size: int = DEFAULT
     wl = np.array([b.wavelength for b in bands])
     star = max(scene.stars, key=lambda s: s.luminosity)
     e = np.asarray(edges, np.float64)
-    cam = _camera(star.position, direction, size, e)
-    _, u, v = cam.basis()
-    labels = _labels(_offsets(cam.origin(), cam.pixel_size, u, v, cam.size, star.position, direction), e)
+    cam, labels, pixels = ring_pixels(star.position, direction, size, e)
     rho = generate_density(scene, backend) if density is None else density
     res = TransportRequest.from_scene(scene, peel=cam, peel_bins=labels).trace(rho, backend, progress=progress,
                                                                               cancel=cancel)
@@ -122,7 +171,7 @@ def trace_rings(scene, edges, *, direction=(0.0, 0.0, -1.0), size: int = DEFAULT
         xb = np.concatenate([xb, np.zeros(xb.shape[:2] + (len(e) - 1 - xb.shape[2],))], axis=2)
     return RingSums(edges=e, sums=xb.sum(axis=0), batches=xb, band_luminosity=np.asarray(res.band_luminosity,
                     np.float64), wavelength_nm=wl, pixel_area=cam.pixel_size ** 2, star_tau=tau_star,
-                    source=_dominant_source(scene.stars), photons=int(res.photons))
+                    source=_dominant_source(scene.stars), photons=int(res.photons), pixels=pixels)
 
 
 def _rings_of(edges, lo, hi) -> np.ndarray:
@@ -257,7 +306,8 @@ class Comparison:
     def to_dict(self) -> dict:
         from scipy.stats import chi2 as chi2_dist
 
-        p = finite_or_none(chi2_dist.sf(self.chi2, self.dof)) if self.dof > 0 else None
+        # no p-value without a chi^2 (a row the model gives no colour, NaN) or without a degree of freedom
+        p = finite_or_none(chi2_dist.sf(self.chi2, self.dof)) if self.dof > 0 and math.isfinite(self.chi2) else None
         return {"reference": self.reference, "chi2": finite_or_none(self.chi2), "dof": self.dof,
                 "reduced_chi2": finite_or_none(self.chi2 / self.dof) if self.dof > 0 else None, "p_value": p,
                 "max_model_to_data_error": finite_or_none(self.model_error_ratio()),
@@ -277,7 +327,11 @@ def compare_tables(rings: RingSums, tables: Sequence[ObservedTable], reference: 
     v = sigma_d^2), and its degrees of freedom are the rows less one per annulus.
     """
     out = Comparison(reference=reference, rings=rings)
+    if not tables:
+        raise SceneError("tables", [], "give at least one table of observations")
     for j, t in enumerate(tables):
+        if rings.pixels is not None:
+            _check_rows_have_pixels(rings.edges, rings.pixels, t)
         model, merr = model_values(rings, t, reference)
         if model_errors is not None:
             merr = np.asarray(model_errors[j], np.float64)
@@ -305,25 +359,45 @@ def compare_tables(rings: RingSums, tables: Sequence[ObservedTable], reference: 
     return out
 
 
+def _check_rows_have_pixels(edges, pixels, t: ObservedTable, option: str = "table") -> None:
+    """Every row of ``t`` must sum at least one pixel that sees the box (``pixels`` per ring
+    between ``edges``, :func:`ring_pixels`): a row of no pixel would be compared with nothing
+    (a colour of NaN, a ratio of 0)."""
+    for i, (lo, hi) in enumerate(zip(t.lo, t.hi)):
+        if not _rings_of(edges, lo, hi) @ pixels > 0:
+            raise SceneError(f"{option} {t.path!r}, row {i + 1}", [float(lo), float(hi)],
+                             "the annulus holds no pixel centre of the model image on the box, so it would be "
+                             "compared with nothing: widen it, or give the image more pixels (--size)")
+
+
 def compare(scene, tables: Sequence[ObservedTable], *, direction=(0.0, 0.0, -1.0), size: int = DEFAULT_SIZE,
             reference: str = "observed", backend=None, progress=None, cancel=None) -> Comparison:
-    """Trace ``scene`` once and hold it against ``tables`` (:func:`compare_tables`)."""
+    """Trace ``scene`` once and hold it against ``tables`` (:func:`compare_tables`); the tables
+    are checked against the scene and the model image first
+    (:func:`check_tables_against_scene`: no row compared with nothing)."""
     _check_reference(reference)
-    check_tables_against_scene(scene, tables)
+    check_tables_against_scene(scene, tables, direction=direction, size=size)
     rings = trace_rings(scene, ring_edges(tables), direction=direction, size=size, backend=backend,
                         progress=progress, cancel=cancel)
     return compare_tables(rings, tables, reference)
 
 
-def check_tables_against_scene(scene, tables: Sequence[ObservedTable]) -> None:
+def check_tables_against_scene(scene, tables: Sequence[ObservedTable], direction=None, size: int = DEFAULT_SIZE,
+                               option: str = "table") -> None:
     """What the scene must have for the tables: bands that cover each ratio table's wavelengths
-    (no extrapolation) and, for colours, the B and V passbands; at least one table."""
+    (no extrapolation) and, for colours, the B and V passbands; at least one table.
+
+    With ``direction``, the model image too (``size`` pixels per side, about the most luminous
+    star): every row's annulus must start inside the box's reach on the sky
+    (:func:`box_reach`) and hold a pixel centre that sees the box, or it would be compared with
+    nothing. Refusals name ``option`` (``--table`` on the command line), the file and the row.
+    """
 
     if not tables:
         raise SceneError("tables", [], "give at least one table of observations")
     wl = sorted(b.wavelength for b in scene.bands.resolve())
     for t in tables:
-        where = f"table {t.path!r}"
+        where = f"{option} {t.path!r}"
         if t.kind == "ratio":
             out = (t.x < wl[0] - 1e-9) | (t.x > wl[-1] + 1e-9)
             if out.any():
@@ -336,6 +410,28 @@ def check_tables_against_scene(scene, tables: Sequence[ObservedTable]) -> None:
             raise SceneError("bands", [round(w, 1) for w in wl],
                              f"{where} holds Delta(B-V): the scene needs at least 2 bands, one at or below 480 nm "
                              "and one at or above 520 nm (e.g. bands.preset = 'spectral-8')")
+    if direction is not None:
+        _check_tables_in_image(scene, tables, direction, size, option)
+
+
+def _check_tables_in_image(scene, tables, direction, size: int, option: str) -> None:
+    """Every row's annulus inside the box's reach and on a pixel that sees the box
+    (:func:`check_tables_against_scene`)."""
+    star = max(scene.stars, key=lambda s: s.luminosity)
+    reach = box_reach(star.position, direction)
+    view = ",".join(f"{x:g}" for x in direction)
+    for t in tables:
+        beyond = t.lo >= reach
+        if beyond.any():
+            i = int(np.flatnonzero(beyond)[0])
+            raise SceneError(f"{option} {t.path!r}, row {i + 1}", [float(t.lo[i]), float(t.hi[i])],
+                             f"the annulus lies outside the model image: seen along {view}, the box reaches "
+                             f"{reach:.4g} box units from the star (the most luminous), so an annulus must start "
+                             f"below {reach:.4g} (offset_lo, box units)")
+    edges = ring_edges(tables)
+    _, _, pixels = ring_pixels(star.position, direction, size, edges)
+    for t in tables:
+        _check_rows_have_pixels(edges, pixels, t, option)
 
 
 def plot(comp: Comparison, path, title: str = "") -> None:

@@ -19,10 +19,12 @@ surface fitted by least squares to designs about the minimum (:func:`_refine`).
 
 Parameters (``free``, :class:`FreeParameter`, parsed from ``name=lo:hi[:log]``):
 
-- ``albedo``, ``g``: every band's value (as ``bands.albedo`` / ``bands.g``);
+- ``albedo``, ``g``: every band's value (as ``bands.albedo`` / ``bands.g``; bounds within
+  [0, 1] and [-1, 1]);
 - ``albedo_slope``, ``g_slope``: a linear function of wavelength with the above as its value
-  at 550 nm, the slope per 100 nm (clipped to [0, 1] and [-1, 1] per band);
-- ``albedo.NAME``, ``g.NAME``: one band's value (band ``NAME``);
+  at 550 nm, the slope per 100 nm (bounds within +-1 and +-2; the value clipped to [0, 1] and
+  [-1, 1] per band where value and slope together leave it);
+- ``albedo.NAME``, ``g.NAME``: one band's value (band ``NAME``; bounds as ``albedo``, ``g``);
 - ``tau``: ``dust.tau`` (default bounds a factor 10 either side of the scene's, log scale);
 - ``depth``: the most luminous star's coordinate along the line of sight, p . d (box units;
   d the unit viewing direction, so larger is farther from the observer), moving the star
@@ -57,6 +59,7 @@ from __future__ import annotations
 
 import json
 import math
+import numbers
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -73,9 +76,14 @@ from .fit_parameters import FreeParameter, current_value, parse_free, scene_with
 from .fit_surface import _covariance, _design, _local_start, _minimise, _refine
 from .observed_tables import ObservedTable, _annuli_from_offsets, finite_or_none
 from ..scene.model import Scene
+from ..scene.sky_schema import DIRECTION_ALLOWED, valid_direction
 from ..transport.request import scene_backend
 
 UNCERTAINTIES = ("profile", "mcmc", "none")
+#: Most points of the starting grid (``grid`` per parameter, to the power of the parameters):
+#: each is held in memory and traced, so that 100,000 are a day at a trace a second; a grid
+#: larger than this is a mistake, not a search (3 parameters at 100 points made 1e6 traces).
+MAX_GRID_POINTS = 100_000
 #: Largest model/data error ratio a fit accepts without a warning (at 0.5 the combined error is
 #: 12 % above the data's).
 MAX_MODEL_ERROR = 0.5
@@ -263,19 +271,24 @@ class FitRequest:
     uncertainty : {"profile", "mcmc", "none"}
     grid : int, optional
         Points per parameter of the starting grid (default 3 for up to 3 parameters, else 0:
-        start at ``start``, default the scene's values).
+        start at ``start``, default the scene's values); >= 0, at most
+        :data:`MAX_GRID_POINTS` points in all.
     start : sequence of float, optional
-        The starting values (default the scene's, within the bounds).
+        The starting values, each within its parameter's bounds (default the scene's, moved
+        into the bounds).
     starts : int
         Nelder-Mead runs, from the best ``starts`` points of the grid (and the start); 0: none,
         the refinement starts from the grid's best.
     maxfev : int, optional
-        Traces per optimiser run (default 20 + 15 per parameter).
+        Traces per optimiser run (default 20 + 15 per parameter), >= 1.
     fatol : float
-        The optimiser stops when the simplex's chi^2 values agree to this.
+        The optimiser stops when the simplex's chi^2 values agree to this (> 0).
     mcmc_walkers, mcmc_steps : int
-        For ``uncertainty="mcmc"`` (walkers default 4 x parameters, at least 8); the first
-        half of the steps is discarded as burn-in.
+        For ``uncertainty="mcmc"`` (walkers default 4 x parameters, at least 8; given, at least
+        2 x parameters); the first half of the steps (at least 2) is discarded as burn-in.
+
+    Every field is checked by :meth:`parameters` before any trace: a value out of range is
+    refused (SceneError naming it), never clipped into range.
     """
 
     scene: Scene
@@ -306,21 +319,62 @@ class FitRequest:
                 raise SceneError(key, v, "must be unset for a fit: every trial traces transport.photons packets with "
                                          "one seed (common random numbers), so the objective is smooth in the "
                                          "parameters")
-        check_tables_against_scene(scene, self.tables)
+        if not valid_direction(self.direction):
+            raise SceneError("direction", self.direction, DIRECTION_ALLOWED)
+        check_tables_against_scene(scene, self.tables, direction=self.direction, size=self.size)
         params = [p if isinstance(p, FreeParameter) else parse_free(p, scene, self.direction) for p in self.free]
         if not params:
             raise SceneError("--free", [], "name at least one parameter to fit")
         names = [p.name for p in params]
         if len(set(names)) != len(names):
             raise SceneError("--free", names, "each parameter once")
+        for p in params:  # each bound a valid scene, named by its parameter
+            for v in (p.lo, p.hi):
+                try:
+                    scene_with(scene, [p], [v], self.direction)
+                except SceneError as exc:
+                    raise SceneError(f"--free {p.name}", (p.lo, p.hi), f"the bound {v:g} gives {exc}") from None
         for vals in ([p.lo for p in params], [p.hi for p in params]):  # both corners must be valid scenes
             scene_with(scene, params, vals, self.direction)
+        self._check_search(params)
         if self.uncertainty == "mcmc":
             try:
                 import emcee  # noqa: F401  (optional: the fit extra)
             except ImportError:
                 raise SceneError("uncertainty", "mcmc", "needs emcee: pip install 'nebula-rt[fit]' (or emcee)") from None
         return params
+
+    def _check_search(self, params) -> None:
+        """The search's options: counts that are whole and in range, a start within the bounds
+        (each refused rather than clipped into range)."""
+        k = len(params)
+
+        def count(name, value, lo, what):
+            if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < lo:
+                raise SceneError(name, value, f"must be an integer >= {lo} ({what})")
+
+        if self.grid is not None:
+            count("--grid", self.grid, 0, "points per parameter of the starting grid; 0: none")
+            if int(self.grid) ** k > MAX_GRID_POINTS:
+                raise SceneError("--grid", self.grid, f"gives {int(self.grid)}^{k} = {int(self.grid) ** k:,} starting "
+                                                      f"traces ({k} free parameter{'s' if k > 1 else ''}); at most "
+                                                      f"{MAX_GRID_POINTS:,} "
+                                                      f"(--grid <= {math.floor(MAX_GRID_POINTS ** (1.0 / k) + 1e-9)})")
+        count("--starts", self.starts, 0, "Nelder-Mead runs from the grid's best points; 0: none")
+        if self.maxfev is not None:
+            count("maxfev", self.maxfev, 1, "traces per optimiser run")
+        count("mcmc_steps", self.mcmc_steps, 2, "steps of the MCMC chain, half of them burn-in")
+        if self.mcmc_walkers:
+            count("mcmc_walkers", self.mcmc_walkers, 2 * k, "walkers of the ensemble sampler, at least twice the "
+                                                            "free parameters; 0: 4 per parameter")
+        if not (isinstance(self.fatol, numbers.Real) and math.isfinite(self.fatol) and self.fatol > 0):
+            raise SceneError("fatol", self.fatol, "must be a finite number > 0 (the chi^2 tolerance of the optimiser)")
+        if self.start is not None:
+            start = list(self.start)
+            if len(start) != k or not all(isinstance(v, numbers.Real) and p.lo <= v <= p.hi
+                                          for p, v in zip(params, start)):
+                raise SceneError("start", start, "must hold one value per free parameter, each within its bounds "
+                                 + ", ".join(f"{p.name} [{p.lo:g}, {p.hi:g}]" for p in params))
 
     def run(self, backend=None, progress: Optional[Callable] = None,
             cancel: Optional[Callable[[], bool]] = None) -> FitResult:
@@ -341,7 +395,7 @@ class FitRequest:
         walkers = max(8, 4 * k) if not self.mcmc_walkers else int(self.mcmc_walkers)
         # MCMC: emcee evaluates the starting ensemble too
         unc_budget = {"profile": 2 * k, "mcmc": walkers * (self.mcmc_steps + 1), "none": 0}[self.uncertainty]
-        total = grid ** k + 1 + max(0, int(self.starts)) * maxfev + 3 * len(_design(k)) + 1 + unc_budget
+        total = grid ** k + 1 + int(self.starts) * maxfev + 3 * len(_design(k)) + 1 + unc_budget
         obj = _Objective(scene, params, list(self.tables), direction, self.size, self.reference, backend, progress,
                          cancel, total)
         z_best, cov, f_best = self._search(obj, z_start, grid, maxfev)
@@ -384,7 +438,7 @@ class FitRequest:
         # cells, or two minima, e.g. g > 0 and g < 0, can trap one start), the simplex a grid cell wide
         obj.stage = "optimiser"
         step = 0.5 / grid if grid > 0 else 0.1
-        for j in np.argsort(scores)[:max(0, int(self.starts))]:
+        for j in np.argsort(scores)[:int(self.starts)]:
             _minimise(obj, candidates[j], step, list(range(k)), candidates[j], self.fatol, maxfev)
         # 3. refinement: a quadratic response surface about the minimum (see _refine), with the
         # Monte Carlo errors of the optimiser's best

@@ -11,6 +11,7 @@ from typing import Sequence
 import numpy as np
 
 from ..errors import SceneError
+from ..optics.bands import ALBEDO_RANGE, G_RANGE
 from ..scene.model import Scene
 
 SPECIAL = ("albedo", "g", "albedo_slope", "g_slope", "tau", "depth")
@@ -22,6 +23,13 @@ DEFAULT_BOUNDS = {"albedo": (0.02, 0.98), "g": (0.0, 0.95), "albedo_slope": (-0.
 #: Wavelength (nm) at which a linear albedo(lambda) or g(lambda) takes its base value, and the
 #: span (nm) its slope is given per.
 PIVOT_NM, SLOPE_NM = 550.0, 100.0
+#: The values the bounds of a band parameter may take: a band's albedo and g (their declared
+#: ranges, nebula_rt.optics.bands), and their slopes per SLOPE_NM at most the whole range of the
+#: value (a steeper slope takes it from one end to the other within 100 nm of the pivot, and
+#: every band farther out is clipped to an end: a slope that fits nothing).
+RANGES = {"albedo": ALBEDO_RANGE, "g": G_RANGE,
+          "albedo_slope": (ALBEDO_RANGE[0] - ALBEDO_RANGE[1], ALBEDO_RANGE[1] - ALBEDO_RANGE[0]),
+          "g_slope": (G_RANGE[0] - G_RANGE[1], G_RANGE[1] - G_RANGE[0])}
 
 #: The star keeps at least this far from the box's faces when its depth is free (box units).
 DEPTH_MARGIN = 0.01
@@ -162,6 +170,12 @@ def make_parameter(name: str, scene, lo=None, hi=None, log: bool = False, direct
         raise SceneError(where, (lo, hi), "bounds must be finite with LO < HI")
     if log and lo <= 0:
         raise SceneError(where, (lo, hi), "a log parameter needs LO > 0")
+    kind = name.split(".", 1)[0] if name.startswith(("albedo.", "g.")) else name
+    if kind in RANGES:
+        rlo, rhi = RANGES[kind]
+        if lo < rlo or hi > rhi:
+            raise SceneError(where, (lo, hi), f"bounds must lie within [{rlo:g}, {rhi:g}]"
+                             + (f" (per {SLOPE_NM:g} nm)" if kind.endswith("_slope") else f" (a band's {kind})"))
     if name == "depth":
         dlo, dhi = depth_range(scene, direction)
         if lo < dlo - 1e-12 or hi > dhi + 1e-12:

@@ -385,11 +385,18 @@ def compare_image(model, model_err, observed, observed_err, mask=None) -> ImageC
 def star_mask(cal, radius_arcsec: float) -> np.ndarray:
     """(H, W) True within ``radius_arcsec`` of a star's pixel (False everywhere for radius 0)."""
     w, h = cal.surface_brightness.shape[1:]
+    return _star_mask((w, h), cal.star_pixel, cal.pixel_scale_arcsec, radius_arcsec)
+
+
+def _star_mask(size, star_pixel, pixel_arcsec: float, radius_arcsec: float) -> np.ndarray:
+    """(H, W) True within ``radius_arcsec`` of a star at ``star_pixel`` ((n, 2) image pixel
+    coordinates) in an image of ``size`` (W, H) and pixels of ``pixel_arcsec``."""
+    w, h = size
     out = np.zeros((h, w), bool)
     if radius_arcsec > 0:
-        r = radius_arcsec / cal.pixel_scale_arcsec
+        r = radius_arcsec / pixel_arcsec
         yy, xx = np.indices((h, w))
-        for p, q in cal.star_pixel:
+        for p, q in star_pixel:
             out |= (xx - p) ** 2 + (yy - q) ** 2 <= r * r
     return out
 
@@ -468,6 +475,15 @@ def compare_observed_image(scene, obs: ObservedImage, *, band=None, direction=(0
         raise SceneError(f"image {obs.label}", "no model pixel wholly inside it",
                          "must cover at least one whole model pixel with finite values and errors (a larger image, "
                          "or a larger --size for smaller model pixels)")
+    # the stars' pixels are known before the trace: a radius that leaves no pixel is refused
+    # here, by name, rather than after the trace as an empty comparison
+    pixel_arcsec = calibrate.pixel_angle(scene, cam) / calibrate.ARCSEC_RAD  # as the calibration's
+    masked = _star_mask(cam.size, calibrate.star_pixels(scene, cam), pixel_arcsec, mask_stars_arcsec)
+    if not (rep.usable & ~masked).any():
+        raise SceneError("--mask-stars", mask_stars_arcsec,
+                         f"leaves none of the {int(rep.usable.sum())} model pixels the image covers to compare: "
+                         f"must be a radius in arcsec >= 0 that leaves some (model pixels of {pixel_arcsec:.4g} "
+                         "arcsec)")
     mod = model_image(scene, kind, cam, backend, progress=progress, cancel=cancel)
     mask = rep.usable & ~star_mask(mod.cal, mask_stars_arcsec)
     comp = compare_image(mod.image, mod.error, rep.data, rep.error, mask=mask)

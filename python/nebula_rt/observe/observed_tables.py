@@ -57,6 +57,14 @@ NORMALISATIONS = ("free", "absolute")
 DEFAULT_ANNULUS = (0.0, 0.5)
 SUFFIXES = (".csv", ".ecsv")
 
+#: The largest magnitude of a table's values and errors, and the smallest error. chi^2 squares
+#: (data - model) / error and sums the squares over the rows in float64 (at most 1.8e308): a
+#: value of 1e308 made chi^2 infinite and its p-value 0, an error of 1e-320 (its square 0) left
+#: the data's error out. Values within +-1e50 and errors in [1e-50, 1e50] keep every pull below
+#: 1e100 and its square below 1e200, whatever the number of rows.
+MAX_VALUE = 1e50
+MIN_ERROR = 1e-50
+
 _HEADER_UNIT = re.compile(r"^\s*([A-Za-z_][A-Za-z0-9_]*)\s*[\[(]\s*([^\])]*?)\s*[\])]\s*$")
 
 
@@ -225,6 +233,19 @@ def _positive(v, name: str, where: str) -> None:
     if np.any(v <= 0):
         i = int(np.flatnonzero(v <= 0)[0])
         raise SceneError(f"{where}, column {name!r}, row {i + 1}", float(v[i]), "must be > 0 (a 1-sigma error)")
+    _bounded(v, name, where, MIN_ERROR)
+
+
+def _bounded(v, name: str, where: str, smallest: float = 0.0) -> None:
+    """Values (and, with ``smallest``, errors) within what chi^2 can square and sum
+    (:data:`MAX_VALUE`, :data:`MIN_ERROR`)."""
+    bad = (np.abs(v) > MAX_VALUE) | (np.abs(v) < smallest)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        span = (f"in [{MIN_ERROR:.0e}, {MAX_VALUE:.0e}]" if smallest else
+                f"in [-{MAX_VALUE:.0e}, {MAX_VALUE:.0e}]").replace("e+", "e")
+        raise SceneError(f"{where}, column {name!r}, row {i + 1}", float(v[i]),
+                         f"must be {span} (chi^2 squares (data - model) / error in float64)")
 
 
 def _annuli_from_offsets(x, where: str):
@@ -290,6 +311,7 @@ def read_table(source: Union[str, Path, "object"], *, scale: Optional[OffsetScal
     SceneError
         Naming the file and column (and row) for a missing, unreadable or malformed file,
         missing columns, wrong units, non-finite values, errors that are not positive,
+        values or errors beyond what chi^2 can square (:data:`MAX_VALUE`, :data:`MIN_ERROR`),
         overlapping annuli.
     """
     import astropy.units as u
@@ -344,7 +366,13 @@ def read_table(source: Union[str, Path, "object"], *, scale: Optional[OffsetScal
     def offsets(name):
         col, unit = cols[name]
         v = _values(col, name, where)
-        return scale.box_units(v, unit, f"{where}, column {name!r}"), v, unit
+        with np.errstate(over="ignore"):
+            x = scale.box_units(v, unit, f"{where}, column {name!r}")
+        if not np.all(np.isfinite(x)):  # an angle over a tiny box, a length over a tiny edge
+            i = int(np.flatnonzero(~np.isfinite(x))[0])
+            raise SceneError(f"{where}, column {name!r}, row {i + 1}", float(v[i]),
+                             "must be finite in box units (through the distance and the box's edge)")
+        return x, v, unit
 
     mag_text = "must be in mag (or have no unit)"
     meta = dict(getattr(table, "meta", {}) or {})
@@ -356,6 +384,7 @@ def read_table(source: Union[str, Path, "object"], *, scale: Optional[OffsetScal
         for c in ("delta_bv", "delta_bv_err"):
             _check_unit(cols[c][1], c, where, [u.mag, u.dimensionless_unscaled], mag_text)
         value = _values(cols["delta_bv"][0], "delta_bv", where)
+        _bounded(value, "delta_bv", where)
         error = _values(cols["delta_bv_err"][0], "delta_bv_err", where)
         _positive(error, "delta_bv_err", where)
         if "offset_lo" in cols:
@@ -385,6 +414,7 @@ def read_table(source: Union[str, Path, "object"], *, scale: Optional[OffsetScal
         for c in ("ratio", "ratio_err"):
             _check_unit(cols[c][1], c, where, [u.dimensionless_unscaled], text)
         value = _values(cols["ratio"][0], "ratio", where)
+        _bounded(value, "ratio", where)
         error = _values(cols["ratio_err"][0], "ratio_err", where)
         _positive(error, "ratio_err", where)
         if "offset_lo" in cols:

@@ -69,10 +69,11 @@ class Camera:
     Parameters
     ----------
     direction : tuple of 3 float
-        Viewing direction, from the observer into the scene (any non-zero length; it is
-        normalised).  Light reaching the observer travels along ``-direction``.
+        Viewing direction, from the observer into the scene (any length from 1e-150, components
+        within +-1e150: ``sky.direction``'s rule; it is normalised).  Light reaching the
+        observer travels along ``-direction``.
     up : tuple of 3 float
-        Rough "up" of the image; its component perpendicular to ``direction`` becomes the image
+        Rough "up" of the image (the same rule); its component perpendicular to ``direction`` becomes the image
         axis ``v``.  If it is (nearly) parallel to ``direction``, the first of the box axes
         ``+y, +z, +x`` least aligned with ``direction`` is used instead (deterministic).
     size : tuple of 2 int
@@ -106,12 +107,14 @@ class Camera:
     def __post_init__(self):
         # Frozen dataclass: normalise the stored types through object.__setattr__ so that
         # equality and hashing see plain tuples of floats/ints whatever the caller passed.
+        # a direction is normalised in float64: the declared rule (sky.direction, sky.up) keeps
+        # its squares from overflowing or vanishing (a NaN or empty image otherwise)
         direction = _vector3("Camera.direction", self.direction)
-        if math.hypot(*direction) == 0.0:
-            raise ValueError(f"Camera.direction must be non-zero, got {self.direction!r}")
+        if not _declared.valid_direction(direction):
+            raise ValueError(f"Camera.direction {_declared.DIRECTION_ALLOWED}, got {self.direction!r}")
         up = _vector3("Camera.up", self.up)
-        if math.hypot(*up) == 0.0:
-            raise ValueError(f"Camera.up must be non-zero, got {self.up!r}")
+        if not _declared.valid_direction(up):
+            raise ValueError(f"Camera.up {_declared.DIRECTION_ALLOWED}, got {self.up!r}")
         try:
             size = tuple(self.size)
         except TypeError as exc:

@@ -307,9 +307,14 @@ class Scene:
             lum, lbol = units.star_luminosity(s, i, bands)
             k = "luminosity_lsun" if s.luminosity_lsun is not None else "absolute_magnitude"
             if not STAR_RULES["luminosity"].check(lum):
+                allowed = STAR_RULES["luminosity"].allowed
+                if k == "absolute_magnitude":  # the range in the key's own unit
+                    m_lo, m_hi = units.absolute_magnitude_range(
+                        s.temperature, bands, (limits.FLOAT32_TINY, limits.FLOAT32_MAX))  # stars.luminosity: float32
+                    allowed += f": M_V in [{m_lo:.6g}, {m_hi:.6g}] for {s.temperature:g} K and these bands"
                 raise SceneError(f"stars[{i}].{k}", getattr(s, k),
                                  f"gives a luminosity of {lum:.6g} L_sun inside the bands (bolometric {lbol:.6g} "
-                                 f"L_sun), which " + STAR_RULES["luminosity"].allowed)
+                                 f"L_sun), which " + allowed)
             if given_luminosity and i in given_luminosity and given_luminosity[i] != lum:
                 raise SceneError(f"stars[{i}].luminosity", given_luminosity[i],
                                  f"is set by stars[{i}].{k} = {getattr(s, k)!r}, which gives {lum!r} L_sun inside "

@@ -39,7 +39,16 @@ WHITE_POINTS = ("D65", "E", "star")
 STRETCHES = ("linear", "asinh")
 #: magnitude systems of calibrated sky images (nebula_rt.observe.calibrate.AB_MINUS_VEGA)
 MAG_SYSTEMS = ("AB", "Vega")
+#: The widest PSF (arcsec): 180 deg, the widest angle on the sky. Wider ones are no blur but a
+#: number: 1e308 arcsec spread every star and pixel over 1e305 pixels, an image of zeros.
+MAX_PSF_FWHM = 180.0 * 3600.0
 MAX_PHOTONS = 2**53
+#: The smallest error a run can target: the error falls as c / sqrt(packets), c the relative
+#: scatter of one packet's tally, of order 1 or more in the lit region (most packets miss most
+#: voxels), so the largest budget, MAX_PHOTONS packets per band, reaches about 1 / sqrt(2**53) =
+#: 1.05e-8. A smaller target is never reached; 1e-300 overflowed the run's prediction of when it
+#: would be, (error / target)^2, after tracing.
+MIN_TARGET_ERROR = 1e-8
 #: Seeds are [0, 2**53]: the RNG's key is 64 bits (any uint64 would work on the device), but a
 #: seed travels as a double in ParaView's panel, in pvpython and in JSON, which hold every
 #: integer exactly up to 2**53 and no further (2**53 + 1 becomes 2**53 without a word). So the
@@ -299,10 +308,11 @@ class Transport:
         doc="Packets per band in one batch, the unit of the Monte Carlo error estimate (0 = automatic: "
             "at least 16 batches); progress and cancelling happen between kernel launches")
     target_error: float = param(
-        0.0, type="float", lo=0.0, hi=1.0, label="Target Error", group=G_QUALITY,
-        lo_open=True, hi_open=True, off=True,
-        doc="0: trace `photons` packets. In (0, 1): trace until the relative error in the lit region "
-            "(RMS over the lit voxels, 1 sigma) is at most this, `photons` being the budget")
+        0.0, type="float", lo=MIN_TARGET_ERROR, hi=1.0, label="Target Error", group=G_QUALITY,
+        hi_open=True, off=True,
+        doc=f"0: trace `photons` packets. In [{MIN_TARGET_ERROR:g}, 1): trace until the relative error in the "
+            "lit region (RMS over the lit voxels, 1 sigma) is at most this, `photons` being the budget (a "
+            "smaller target is beyond any budget: about 1 / sqrt(2**53))")
     time_limit: float = param(
         0.0, type="float", lo=0.0, unit="s", label="Time Limit", group=G_QUALITY, advanced=True,
         note="seconds; 0 = none",
@@ -363,7 +373,7 @@ class Observer:
 
     distance: Optional[Union[float, str]] = param(
         None, type="float or str or None", lo=0.0, lo_open=True, unit="pc", group=G_OBSERVER,
-        convert=values.to_opt_length, check=units.valid_length,
+        convert=values.to_opt_length, check=units.valid_distance,
         allowed=units.length_allowed("a distance > 0", "pc") + " (or omitted)",
         doc="Distance from the observer to the box centre: a quantity (\"140 pc\") or a number in "
             "pc; sets the image's angular scale and the stars' flux")
@@ -379,8 +389,8 @@ class Observer:
         doc="Position angle of the image's up axis, from north through east (0: up is north and "
             "east is left)")
     psf_fwhm: float = param(
-        0.0, type="float", lo=0.0, unit="arcsec", label="PSF FWHM", group=G_OBSERVER,
-        what="a FWHM in arcsec", note="finite; 0 = no PSF",
+        0.0, type="float", lo=0.0, hi=MAX_PSF_FWHM, unit="arcsec", label="PSF FWHM", group=G_OBSERVER,
+        what="a FWHM in arcsec", note="180 deg at most, no angle on the sky is wider; 0 = no PSF",
         doc="FWHM of the Gaussian point-spread function the calibrated image is convolved with "
             "(0: none; a star then fills the pixel it falls in)")
     magnitude_system: str = param(

@@ -12,13 +12,15 @@ Keys are ``"sky.<field>"``. This module never imports VTK.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Tuple, Union
 
 from . import schema
 from .schema import document, param
 
-__all__ = ["SkyImageParameters", "SECTIONS", "parameters", "declaration", "default", "validate_exposure"]
+__all__ = ["SkyImageParameters", "SECTIONS", "parameters", "declaration", "default", "validate_exposure",
+           "valid_direction"]
 
 G_CAMERA, G_PICTURE = "Camera", "Picture"
 #: The largest side of a sky image (pixels): a 16384^2 image of 3 bands is 6 GiB of float64
@@ -30,6 +32,29 @@ MAX_SKY_SIZE = 16384
 #: since the rings sum many pixels and a fit traces the scene many times
 COMPARISON_SIZE = 128
 
+#: A direction (``sky.direction``, ``sky.up``, ``nebula-rt --direction``) is normalised in float64
+#: as v / sqrt(x^2 + y^2 + z^2): its squares must neither overflow (1e308 along x and y made the
+#: camera's basis NaN) nor vanish below float64's smallest normal number, 2.2e-308 (1e-320 along x
+#: was divided by a length of 0). Components at most 1e150 in magnitude and a length of at least 1e-150 keep
+#: every square that matters within [3e-301, 1e300].
+MAX_DIRECTION_COMPONENT = 1e150
+MIN_DIRECTION_LENGTH = 1e-150
+_BIG, _SMALL = (f"{x:.0e}".replace("e+", "e") for x in (MAX_DIRECTION_COMPONENT, MIN_DIRECTION_LENGTH))
+DIRECTION_ALLOWED = (f"must be 3 finite numbers x, y, z, each in [-{_BIG}, {_BIG}], of length "
+                     f"sqrt(x^2 + y^2 + z^2) at least {_SMALL} (the direction is normalised in float64, whose "
+                     "squares must neither overflow nor underflow)")
+
+
+def valid_direction(v) -> bool:
+    """``v`` (3 numbers) is a direction that normalises in float64 (:data:`DIRECTION_ALLOWED`);
+    its length is taken with ``math.hypot``, which neither overflows nor underflows."""
+    try:
+        x = [float(c) for c in v]
+    except (TypeError, ValueError):
+        return False
+    return (len(x) == 3 and all(math.isfinite(c) and abs(c) <= MAX_DIRECTION_COMPONENT for c in x)
+            and math.hypot(*x) >= MIN_DIRECTION_LENGTH)
+
 
 @document
 @dataclass
@@ -37,10 +62,12 @@ class SkyImageParameters:
     """What a telescope far away sees: the camera and the picture of a sky image."""
 
     direction: Tuple[float, float, float] = param(
-        (0.0, 0.0, -1.0), type="tuple of 3 float", label="View Direction", group=G_CAMERA,
-        doc="Direction the telescope looks in, from the observer into the box (any non-zero length)")
+        (0.0, 0.0, -1.0), type="tuple of 3 float", lo=-MAX_DIRECTION_COMPONENT, hi=MAX_DIRECTION_COMPONENT,
+        label="View Direction", group=G_CAMERA, check=valid_direction, allowed=DIRECTION_ALLOWED,
+        doc=f"Direction the telescope looks in, from the observer into the box (any length from {_SMALL})")
     up: Tuple[float, float, float] = param(
-        (0.0, 1.0, 0.0), type="tuple of 3 float", label="View Up", group=G_CAMERA,
+        (0.0, 1.0, 0.0), type="tuple of 3 float", lo=-MAX_DIRECTION_COMPONENT, hi=MAX_DIRECTION_COMPONENT,
+        label="View Up", group=G_CAMERA, check=valid_direction, allowed=DIRECTION_ALLOWED,
         doc="Up direction of the image (its part perpendicular to the view direction; a box axis if "
             "it is parallel to it)")
     size: Tuple[int, int] = param(

@@ -77,6 +77,15 @@ PRESET_DUST = {"spectral-8": ("3.1", 8), "spectral-16": ("3.1", 16), "spectral-8
 DEFAULT_RV = "3.1"
 #: The default unit of ``grid.unit``: known to be a length without importing astropy.
 DEFAULT_LENGTH_UNIT = "pc"
+#: One parsec in metres, exact by definition (648000 / pi au; IAU 2015 Resolution B2), for a
+#: number in pc checked without importing astropy.
+PARSEC_M = 648000.0 / math.pi * 149_597_870_700.0
+#: A physical length (``grid.length``, ``observer.distance``) in metres. The calibration squares
+#: it in float64 (a star's flux L / (4 pi D^2), the surface brightness L / L_box^2), so that its
+#: square must stay a normal float64 (2.2e-308 to 1.8e308): within [1e-150, 1e150] m. A distance
+#: of "1e308 Mpc" (3e330 m, infinite in float64) made the pixel scale 0 and the PSF divide by it.
+LENGTH_RANGE_M = (1e-150, 1e150)
+LENGTH_RANGE_TEXT = "within [1e-150, 1e150] m (its square is formed in float64)"
 
 
 def _units():
@@ -139,22 +148,37 @@ def length_metres(value: Any, unit: str = DEFAULT_LENGTH_UNIT) -> float:
     return float(value) * metres
 
 
-def valid_length(value: Any, zero: bool = False) -> bool:
-    """A finite length > 0 (or 0 when ``zero``): a number, or a quantity string of a length."""
+def valid_length(value: Any, zero: bool = False, unit: Optional[str] = None) -> bool:
+    """A finite length > 0 (or 0 when ``zero``): a number, or a quantity string of a length,
+    whose metres (in the quantity's own unit, or a number's ``unit`` where known) lie in
+    :data:`LENGTH_RANGE_M`."""
+    metres = None
     if isinstance(value, str):
         try:
             number, name = _split_quantity(value)
         except ValueError:
             return False
-        if _unit_metres(name) is None:
+        metres = _unit_metres(name)
+        if metres is None:
             return False
         value = number
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and (
+    elif unit is not None:
+        metres = PARSEC_M if unit == "pc" else _unit_metres(unit)
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and (
         value > 0 or (zero and value == 0))
+    if ok and value and metres is not None:
+        ok = LENGTH_RANGE_M[0] <= float(value) * metres <= LENGTH_RANGE_M[1]  # inf past float64: refused
+    return ok
+
+
+def valid_distance(value: Any) -> bool:
+    """``observer.distance``: :func:`valid_length` with numbers in pc."""
+    return valid_length(value, unit="pc")
 
 
 def length_allowed(what: str = "a length > 0", number_unit: str = "grid.unit") -> str:
-    return f"must be {what}: a number (in {number_unit}) or a quantity such as '3 pc'; units: {LENGTH_UNITS_TEXT}"
+    return (f"must be {what}: a number (in {number_unit}) or a quantity such as '3 pc', {LENGTH_RANGE_TEXT}; "
+            f"units: {LENGTH_UNITS_TEXT}")
 
 
 def box_length_cm(grid) -> float:
@@ -318,8 +342,19 @@ def blackbody_absolute_magnitude(temperature: float, passband_name: str = "besse
 
 def bolometric_from_absolute_magnitude(m_v: float, temperature: float) -> float:
     """L_bol / L_sun of a blackbody of ``temperature`` whose AB magnitude through Bessell V at
-    10 pc is ``m_v``."""
-    return 10.0 ** (-0.4 * (float(m_v) - blackbody_absolute_magnitude(temperature)))
+    10 pc is ``m_v``; infinite beyond float64 (the luminosity's range check then names the
+    magnitude, :func:`absolute_magnitude_range`)."""
+    exponent = -0.4 * (float(m_v) - blackbody_absolute_magnitude(temperature))
+    return math.inf if exponent > 308.0 else 10.0 ** exponent  # 10^x overflows float64 past x = 308.25
+
+
+def absolute_magnitude_range(temperature: float, bands, luminosity_range) -> Tuple[float, float]:
+    """The absolute magnitudes M_V (brightest, faintest) of a blackbody of ``temperature`` whose
+    luminosity inside the bands' range lies in ``luminosity_range`` (L_sun): the inverse of
+    :func:`bolometric_from_absolute_magnitude` times :func:`inside_fraction`."""
+    lo, hi = band_range_nm(bands)
+    m0 = blackbody_absolute_magnitude(temperature) + 2.5 * math.log10(inside_fraction(temperature, lo, hi))
+    return m0 - 2.5 * math.log10(luminosity_range[1]), m0 - 2.5 * math.log10(luminosity_range[0])
 
 
 @functools.lru_cache(maxsize=None)
