@@ -302,16 +302,22 @@ def _fit(args, cancel) -> int:
 
 
 def _devices(args, cancel) -> int:
-    from ..backends.opencl import list_devices, probe_device
+    from ..backends.opencl import POCL_PLATFORM, list_devices, pocl_cache_refusal, probe_device
 
     found = list_devices()
+    # PoCL lists no device at all when it cannot make its kernel cache folder
+    refusal = pocl_cache_refusal()
     if not found:
+        if refusal is not None:
+            raise refusal
         print("no OpenCL devices found")
         return 1
     for p, d, name, gpu in found:
         problem = probe_device(f"{p}:{d}")
         state = "usable" if problem is None else f"NOT usable: {problem}"
         print(f"opencl {p}:{d}  {name}  ({'GPU' if gpu else 'CPU/other'}; {state})", flush=True)
+    if refusal is not None:
+        print(f"opencl {POCL_PLATFORM}  (NOT usable: {refusal})", flush=True)
     return 0
 
 
