@@ -212,35 +212,178 @@ def test_cli_render_under_mpiexec_writes_the_one_rank_file(tmp_path):
             assert arrays[n][name].tobytes() == a.tobytes(), (n, name)
 
 
-def _long_render(out):
-    """`mpiexec -n 2 nebula-rt render` of 1e9 packets into ``out``, started (a Popen)."""
+def _long_render(out, quiet=True):
+    """`mpiexec -n 2 nebula-rt render` of 1e9 packets into ``out``, started (a Popen).
+    ``quiet=False``: rank 0 shows its progress bar on stderr (see :class:`_Stderr`)."""
     scene = ROOT / "examples" / "scenes" / "thesis-default.toml"
     exe = str(Path(sys.executable).with_name("nebula-rt"))
     return subprocess.Popen([shutil.which("mpiexec"), "--allow-run-as-root", "--oversubscribe", "-n", "2", exe,
                              "render", str(scene), "-o", str(out), "--device", TEST_DEVICE,
-                             "--set", "grid.shape=[16,16,16]", "--set", "transport.photons=1e9", "-q"],
+                             "--set", "grid.shape=[16,16,16]", "--set", "transport.photons=1e9",
+                             *(["-q"] if quiet else [])],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
+class _Stderr:
+    """The stderr of a running job, read as it comes (a thread), so that a test can wait until
+    the trace runs: rank 0's progress bar shows a speed once packets are traced."""
+
+    def __init__(self, proc):
+        import threading
+
+        self.proc, self.parts = proc, []
+        self.thread = threading.Thread(target=self._read, daemon=True)
+        self.thread.start()
+
+    def _read(self):
+        for chunk in iter(lambda: self.proc.stderr.read(256), ""):
+            self.parts.append(chunk)
+
+    @property
+    def text(self) -> str:
+        return "".join(self.parts)
+
+    def wait_for_tracing(self, timeout: float = 120.0) -> None:
+        """Until the bar shows a measured speed ("65.5kpkt/s"): the start-up (kernel builds
+        included, seconds on a cold cache) is over and launches run, each of about 0.25 s."""
+        import re
+        import time
+
+        deadline = time.monotonic() + timeout
+        while not re.search(r"\d[kMG]?pkt/s", self.text):
+            assert self.proc.poll() is None and time.monotonic() < deadline, self.text[-2000:]
+            time.sleep(0.1)
+
+    def finish(self, timeout: float) -> str:
+        self.proc.wait(timeout=timeout)
+        self.thread.join(timeout=10)
+        return self.text
+
+
+def _rank_pids(out, n: int = 2, timeout: float = 60.0) -> list:
+    """The process ids of the ranks of the job writing ``out``, in rank order."""
+    import time
+
+    pids = {}
+    deadline = time.monotonic() + timeout
+    while len(pids) < n and time.monotonic() < deadline:
+        for pid in os.listdir("/proc"):
+            if not pid.isdigit():
+                continue
+            try:
+                env = open(f"/proc/{pid}/environ", "rb").read().split(b"\0")
+                cmd = open(f"/proc/{pid}/cmdline", "rb").read()
+            except OSError:
+                continue
+            ranks = [e for e in env if e.startswith(b"OMPI_COMM_WORLD_RANK=")]
+            if ranks and str(out).encode() in cmd:
+                pids[int(ranks[0].split(b"=")[1])] = int(pid)
+        time.sleep(0.2)
+    assert len(pids) == n, f"ranks not found: {pids}"
+    return [pids[r] for r in range(n)]
+
+
 def test_ctrl_c_under_mpiexec_ends_every_rank_and_writes_nothing(tmp_path):
-    """A SIGINT to mpiexec (which passes it to every rank) during a long run: all ranks stop
-    together after their current launch (they check for a cancel together after every launch
-    of about 0.25 s), each says so, nothing is written and no temporary file is left; the job
-    ends within a few seconds (mpiexec's own shutdown included)."""
+    """A SIGINT to mpiexec during a long run: mpiexec passes SIGTERM to every rank one second
+    later (Open MPI 4.1; SIGKILL one more second on), all ranks stop together after their
+    current launch (they check for a cancel together after every launch of about 0.25 s),
+    rank 0 alone says so, nothing is written and no temporary file is left. The job's status
+    is mpiexec's own, 1: Open MPI's mpiexec sets it when it is signalled, whatever the ranks
+    return (the ranks' 143 shows where the ranks are signalled themselves, below)."""
     import signal
     import time
 
     out = tmp_path / "o.vti"
-    proc = _long_render(out)
-    time.sleep(5.0)  # start-up and the first launches
-    assert proc.poll() is None
+    proc = _long_render(out, quiet=False)
+    err = _Stderr(proc)
+    err.wait_for_tracing()
     proc.send_signal(signal.SIGINT)
     t0 = time.perf_counter()
-    _, err = proc.communicate(timeout=30)
+    text = err.finish(timeout=30)
     elapsed = time.perf_counter() - t0
-    assert proc.returncode != 0 and elapsed < 5.0, (proc.returncode, elapsed, err[-1500:])
-    assert err.count("transport cancelled; nothing written") == 2, err[-1500:]
+    assert proc.returncode != 0 and elapsed < 5.0, (proc.returncode, elapsed, text[-1500:])
+    assert text.count("nebula-rt: transport cancelled") == 1 and "rank 1" not in text, text[-1500:]
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("sig,status", [("SIGTERM", 143), ("SIGINT", 130)])
+def test_signalled_ranks_exit_with_the_serial_status(tmp_path, sig, status):
+    """The signal sent to the ranks themselves (as a batch system stops a job's tasks): every
+    rank exits with a serial run's status, 143 for SIGTERM and 130 for SIGINT, and so does
+    mpiexec; rank 0 alone prints the cancel; nothing is written."""
+    import signal
+    import time
+
+    out = tmp_path / "o.vti"
+    proc = _long_render(out, quiet=False)
+    err = _Stderr(proc)
+    err.wait_for_tracing()
+    for pid in _rank_pids(out):
+        os.kill(pid, getattr(signal, sig))
+    t0 = time.perf_counter()
+    text = err.finish(timeout=30)
+    assert proc.returncode == status and time.perf_counter() - t0 < 5.0, (proc.returncode, text[-1500:])
+    assert text.count("transport cancelled") == 1 and "nebula-rt: transport cancelled" in text, text[-1500:]
+    assert "MPI_ABORT" not in text and list(tmp_path.iterdir()) == []
+
+
+def _mpiexec_cli(*argv, quiet=False, timeout=120):
+    """`mpiexec -n 2 nebula-rt ARGV` (``quiet``: mpiexec's -q, which leaves out Open MPI's
+    notice about ranks that exited non-zero); the finished CompletedProcess."""
+    exe = str(Path(sys.executable).with_name("nebula-rt"))
+    env = dict(os.environ)
+    env.pop("POCL_CPU_MAX_CU_COUNT", None)
+    return subprocess.run([shutil.which("mpiexec"), "--allow-run-as-root", "--oversubscribe",
+                           *(["-q"] if quiet else []), "-n", "2", exe, *argv],
+                          capture_output=True, text=True, timeout=timeout, env=env)
+
+
+def test_bad_input_under_mpiexec_is_one_message_and_the_serial_status(tmp_path):
+    """A bad scene value, and a bad option, under mpiexec: rank 0 alone prints the serial run's
+    message, no rank aborts the job (no MPI_ABORT notice), and every rank, so the job, exits 2.
+    Open MPI's mpiexec adds a notice of its own for ranks that exit non-zero unless run with
+    -q; with -q the message is all there is on stderr."""
+    scene = ROOT / "examples" / "scenes" / "thesis-default.toml"
+    out = tmp_path / "o.vti"
+    bad = ["render", str(scene), "-o", str(out), "--set", "transport.photons=-5", "-q"]
+    message = "nebula-rt: invalid scene: transport.photons = -5: must be an integer in [1, 2**53]; nothing written\n"
+    r = _mpiexec_cli(*bad)
+    assert r.returncode == 2 and r.stderr.count("invalid scene") == 1 and message in r.stderr, r.stderr
+    assert "rank 1" not in r.stderr and "MPI_ABORT" not in r.stderr and "ORTE_ERROR" not in r.stderr, r.stderr
+    r = _mpiexec_cli(*bad, quiet=True)
+    assert (r.returncode, r.stderr) == (2, message)
+    r = _mpiexec_cli("render", str(scene), "-o", str(out), "--no-such-option", quiet=True)
+    assert r.returncode == 2 and r.stderr.count("usage: nebula-rt") == 1, r.stderr
+    assert r.stderr.count("error: unrecognized arguments: --no-such-option") == 1, r.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_one_rank_failing_at_start_up_is_reported_once(tmp_path):
+    """Rank 1 alone cannot build kernels (its PoCL kernel cache folder cannot be made: its
+    XDG_CACHE_HOME lies below a regular file) while rank 0 starts up fine: the ranks agree at
+    the end of the start-up, rank 0 prints rank 1's message (the rank and the folder named),
+    every rank exits 3 as a serial run would, and nothing is written."""
+    scene = ROOT / "examples" / "scenes" / "thesis-default.toml"
+    out = tmp_path / "out" / "o.vti"
+    out.parent.mkdir()
+    blocker = tmp_path / "a-file"
+    blocker.write_text("not a folder")
+    exe = str(Path(sys.executable).with_name("nebula-rt"))
+    args = [exe, "render", str(scene), "-o", str(out), "--device", TEST_DEVICE, "--set", "grid.shape=[8,8,8]",
+            "--set", "transport.photons=1000", "-q"]
+    env = dict(os.environ)
+    env.pop("POCL_CPU_MAX_CU_COUNT", None)
+    env.pop("POCL_CACHE_DIR", None)
+    r = subprocess.run([shutil.which("mpiexec"), "--allow-run-as-root", "--oversubscribe", "-q", "-n", "1", *args,
+                        ":", "-n", "1", "-x", f"XDG_CACHE_HOME={blocker / 'cache'}",
+                        "-x", f"MPLCONFIGDIR={tmp_path / 'mpl'}", *args],
+                       capture_output=True, text=True, timeout=300, env=env)
+    folder = str(blocker / "cache" / "pocl" / "kcache")
+    assert r.returncode == 3, (r.returncode, r.stderr[-2000:])
+    assert r.stderr.startswith("nebula-rt (rank 1 of 2): transport.backend = 'opencl': PoCL cannot use its "
+                               f"kernel cache folder {folder!r} (Not a directory)"), r.stderr[-2000:]
+    assert r.stderr.count("\n") == 1, r.stderr
+    assert list(out.parent.iterdir()) == []
 
 
 def test_one_rank_failing_ends_the_job_naming_the_rank(tmp_path):
@@ -271,21 +414,7 @@ def test_a_killed_rank_ends_the_job(tmp_path):
 
     out = tmp_path / "o.vti"
     proc = _long_render(out)
-    rank1 = None
-    deadline = time.monotonic() + 30
-    while rank1 is None and time.monotonic() < deadline:
-        time.sleep(0.5)
-        for pid in os.listdir("/proc"):
-            if not pid.isdigit():
-                continue
-            try:
-                env = open(f"/proc/{pid}/environ", "rb").read().split(b"\0")
-                cmd = open(f"/proc/{pid}/cmdline", "rb").read()
-            except OSError:
-                continue
-            if b"OMPI_COMM_WORLD_RANK=1" in env and str(out).encode() in cmd:
-                rank1 = int(pid)
-    assert rank1 is not None, "rank 1 not found"
+    rank1 = _rank_pids(out, timeout=30)[1]
     time.sleep(2.0)  # tracing by now
     os.kill(rank1, signal.SIGKILL)
     t0 = time.perf_counter()

@@ -71,6 +71,27 @@ class BackendUnavailableError(NebulaError, RuntimeError):
     """The requested compute backend or device cannot be used here."""
 
 
+class KernelCacheError(BackendUnavailableError):
+    """An OpenCL compiler cannot use its kernel cache folder (the device itself may be fine).
+
+    Parameters
+    ----------
+    compiler : str
+        Whose cache: ``"PoCL"`` or ``"pyopencl"``.
+    folder : str
+        The cache folder.
+    reason : str
+        Why it cannot be used (the operating system's words).
+    remedy : str
+        What to set instead, e.g. ``"set POCL_CACHE_DIR to a writable folder"``.
+    """
+
+    def __init__(self, compiler: str, folder: object, reason: str, remedy: str):
+        self.compiler, self.folder, self.reason = compiler, str(folder), reason
+        super().__init__(f"transport.backend = 'opencl': {compiler} cannot use its kernel cache folder "
+                         f"{str(folder)!r} ({reason}); {remedy}")
+
+
 class CancelledError(NebulaError):
     """A run was cancelled between batches by its progress callback."""
 

@@ -13,6 +13,8 @@ during-png         inside the PNG rendering
 fill-disk          the output's file system is filled just before the .vti is written
 png-fails          the PNG rendering raises after the .vti was staged
 rank1-fails        (under mpiexec) rank 1 alone raises a device error in its second launch
+cache-vanishes     PoCL's kernel cache folder (POCL_CACHE_DIR, which the caller sets) is removed
+                   just before the first kernel build: that build fails in PoCL for real
 
 The functions are wrapped, not replaced: the real pipeline, kernels and writers run.
 """
@@ -39,7 +41,22 @@ def main() -> int:
     from nebula_rt.filters import render, vti
     from nebula_rt.backends import session
 
-    if point == "rank1-fails":
+    if point == "cache-vanishes":
+        import shutil
+
+        import pyopencl as cl
+
+        build = cl.Program.build
+        calls = {"n": 0}
+
+        def vanishing(self, *a, **kw):
+            calls["n"] += 1
+            if calls["n"] == 1:
+                shutil.rmtree(os.environ["POCL_CACHE_DIR"])
+                print("fault: PoCL's kernel cache folder removed", file=sys.stderr, flush=True)
+            return build(self, *a, **kw)
+        cl.Program.build = vanishing
+    elif point == "rank1-fails":
         from nebula_rt.errors import NebulaError
         from nebula_rt.backends.parallel import world
 

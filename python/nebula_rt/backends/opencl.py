@@ -4,11 +4,15 @@ from __future__ import annotations
 
 import contextlib
 import math
+import os
 import sys
+import tempfile
 
 import numpy as np
 
-from ..errors import BackendUnavailableError
+from ..errors import BackendUnavailableError, KernelCacheError
+from .kernel_cache import (build_log_blames_files, cache_failure, folder_problem, pocl_cache_folder,
+                           pyopencl_cache_folder)
 from .kernel_source import kernel_source
 from .base import Backend
 from .transport_setup import NVIDIA_TRACE_REGISTERS
@@ -46,6 +50,10 @@ def list_devices() -> list[tuple[int, int, str, bool]]:
     """All OpenCL devices as (platform index, device index, "platform: device", is_gpu)."""
     if cl is None:
         return []
+    if os.environ.get("POCL_CACHE_DIR") == "":
+        # an empty one stands for none: PoCL 3.1 takes it for a folder and aborts the process
+        # (an assertion) at its first device query
+        del os.environ["POCL_CACHE_DIR"]
     out = []
     try:
         platforms = cl.get_platforms()
@@ -60,6 +68,38 @@ def list_devices() -> list[tuple[int, int, str, bool]]:
             is_gpu = bool(dev.type & cl.device_type.GPU)
             out.append((pi, di, f"{plat.name.strip()}: {dev.name.strip()}", is_gpu))
     return out
+
+
+#: the platform name of PoCL (OpenCL on the CPU), which keeps a kernel cache of its own
+POCL_PLATFORM = "Portable Computing Language"
+
+#: what to do about a PoCL cache folder that cannot be used
+POCL_CACHE_REMEDY = "set POCL_CACHE_DIR to a writable folder"
+
+
+def pocl_cache_refusal():
+    """A :class:`~nebula_rt.errors.KernelCacheError` naming PoCL's cache folder where a PoCL
+    platform has no devices because that folder cannot be made or written (PoCL then reports
+    only "no devices"), else None."""
+    if cl is None:
+        return None
+    try:
+        platforms = cl.get_platforms()
+    except cl.Error:
+        return None
+    for plat in platforms:
+        if POCL_PLATFORM not in plat.name:
+            continue
+        try:
+            if plat.get_devices():
+                continue
+        except cl.Error:
+            pass
+        folder = pocl_cache_folder()
+        why = folder_problem(folder)
+        if why is not None:
+            return KernelCacheError("PoCL", folder, why, POCL_CACHE_REMEDY)
+    return None
 
 
 def _usable(dev) -> bool:
@@ -83,6 +123,9 @@ def select_device(selector: str = ""):
         raise BackendUnavailableError(f"transport.backend = 'opencl': pyopencl cannot be imported ({_IMPORT_ERROR})")
     found = list_devices()
     if not found:
+        refusal = pocl_cache_refusal()
+        if refusal is not None:
+            raise refusal
         raise BackendUnavailableError(
             "transport.backend = 'opencl': no OpenCL platform found; install an OpenCL driver "
             "(for CPUs: pip install pocl-binary-distribution, or Debian's pocl-opencl-icd)"
@@ -102,10 +145,93 @@ def select_device(selector: str = ""):
         dev = platforms[p].get_devices()[d]
         if _usable(dev):
             return dev, name
+    refusal = pocl_cache_refusal()  # PoCL's devices missing from the list for its cache
+    if refusal is not None:
+        raise refusal
     raise BackendUnavailableError(
         f"transport.device = {selector!r}: no matching OpenCL device with 64-bit atomics and "
         f"doubles; available: {names}"
     )
+
+
+def _build_log(program, device) -> str:
+    """The build log of a program whose build failed ("" where the driver keeps none)."""
+    try:
+        return str(program.get_build_info(device, cl.program_build_info.LOG) or "")
+    except cl.Error:
+        return ""
+
+
+def _failed_in_cache(exc, program, device) -> bool:
+    """Whether a failed build (``exc`` raised by ``program.build``) may have failed in a
+    kernel cache rather than in the source."""
+    if not isinstance(exc, cl.Error):
+        return cache_failure(exc)
+    return build_log_blames_files(_build_log(program, device) or str(exc))
+
+
+def _refuse_unusable_cache(exc, pocl_folder) -> None:
+    """Raise a :class:`~nebula_rt.errors.KernelCacheError` where the cache that a build failed
+    in (pyopencl's, or PoCL's folder ``pocl_folder``) cannot be written; a folder that went
+    away is made again (PoCL does not)."""
+    if cache_failure(exc):
+        compiler, folder = "pyopencl", pyopencl_cache_folder()
+        remedy = "set XDG_CACHE_HOME to a writable folder, or PYOPENCL_NO_CACHE=1"
+    elif pocl_folder is not None:
+        compiler, folder, remedy = "PoCL", pocl_folder, POCL_CACHE_REMEDY
+    else:
+        return
+    why = folder_problem(folder)
+    if why is not None:
+        raise KernelCacheError(compiler, folder, why, remedy) from None
+
+
+def build_program(context, source: str, options=()):
+    """Build ``source`` for the device of ``context``; returns the built pyopencl Program.
+
+    Parameters
+    ----------
+    context : pyopencl.Context
+    source : str
+        OpenCL C source.
+    options : sequence of str
+        Compiler options.
+
+    Notes
+    -----
+    A build can fail in a compiler's kernel cache rather than in the source: PoCL's folder
+    removed while the process runs, a file in it that lost a race with another process using
+    the same folder (clang: "unable to rename temporary ... No such file or directory"),
+    pyopencl's binary cache failing. Such a failure is tried once more with a private cache:
+    pyopencl's in a temporary folder (``cache_dir``); PoCL's folder cannot be moved once PoCL
+    has initialised (:mod:`~nebula_rt.backends.kernel_cache`), so it is made again where it
+    went away, and the build is given an entry of its own in it (an extra define changes
+    PoCL's key of the build). A cache folder that cannot be written is reported as such
+    (:class:`~nebula_rt.errors.KernelCacheError`, naming it); any other failure is the
+    compiler's verdict on the source and raised as it came.
+    """
+    device = context.devices[0]
+    # PoCL's folder as the environment gives it now (PoCL read it at the process's first
+    # device query; the environment seldom changes after)
+    pocl_folder = pocl_cache_folder() if POCL_PLATFORM in device.platform.name else None
+    options = list(options)
+    program = cl.Program(context, source)
+    try:
+        return program.build(options=options)
+    except (cl.Error, OSError, KeyError) as exc:
+        failure = exc
+    if not _failed_in_cache(failure, program, device):
+        raise failure
+    _refuse_unusable_cache(failure, pocl_folder)
+    with tempfile.TemporaryDirectory(prefix="nebula-rt-kernels-") as private:
+        program = cl.Program(context, source)
+        try:
+            return program.build(options=[*options, f"-DNRT_PRIVATE_BUILD={os.getpid()}"], cache_dir=private)
+        except (cl.Error, OSError, KeyError) as exc:
+            failure = exc
+    if _failed_in_cache(failure, program, device):
+        _refuse_unusable_cache(failure, pocl_folder)
+    raise failure
 
 
 def probe_device(selector: str):
@@ -171,7 +297,7 @@ class OpenCLBackend(Backend):
         cap = self.register_cap(name, defines)
         if cap:  # NVIDIA's OpenCL compiler takes a register cap (as NVRTC's --maxrregcount)
             options.append(f"-cl-nv-maxrregcount={cap}")
-        return cl.Program(self.context, kernel_source(name)).build(options=options)
+        return build_program(self.context, kernel_source(name), options)
 
     def _get_kernel(self, program, kernel_name):
         return cl.Kernel(program, kernel_name)

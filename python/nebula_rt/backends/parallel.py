@@ -60,6 +60,10 @@ class Serial:
     def bcast(self, obj, root: int = 0):
         return obj
 
+    def allgather(self, obj) -> list:
+        """Every rank's ``obj`` (a small picklable value), in rank order."""
+        return [obj]
+
     def barrier(self) -> None:
         pass
 
@@ -98,6 +102,9 @@ class MPIComm:
     def bcast(self, obj, root: int = 0):
         return self.comm.bcast(obj, root=root)
 
+    def allgather(self, obj) -> list:
+        return self.comm.allgather(obj)
+
     def barrier(self) -> None:
         self.comm.Barrier()
 
@@ -118,6 +125,16 @@ def _flat_u64(buf: np.ndarray) -> np.ndarray:
 def _launched_by_mpi() -> bool:
     """Whether an MPI launcher started this process (Open MPI, MPICH/Hydra, Slurm's PMI)."""
     return any(k in os.environ for k in ("OMPI_COMM_WORLD_SIZE", "PMI_SIZE", "PMIX_RANK", "PMI_RANK"))
+
+
+def launched_rank() -> int:
+    """This process's rank as its MPI launcher's environment gives it, 0 where none started
+    it: who prints, known before MPI starts (and without starting it)."""
+    for key in ("OMPI_COMM_WORLD_RANK", "PMIX_RANK", "PMI_RANK"):
+        value = os.environ.get(key, "").strip()
+        if value.isdigit():
+            return int(value)
+    return 0
 
 
 @functools.lru_cache(maxsize=1)

@@ -7,17 +7,19 @@ Every scene key can be overridden with ``--set dotted.key=value`` (repeatable), 
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import sys
 import time
 from pathlib import Path
 
-from ..errors import (
-    BackendUnavailableError, CancelledError, NebulaError, OutputError, ResourceError, SceneError)
+from ..errors import CancelledError, OutputError, SceneError
 from .. import scene as _scene
 from ..scene import sky_schema
 from ..interrupts import SignalCancel
+from .failures import (
+    RanksFailed, abort_the_other_ranks, describe, error, on_lead, quiet_rank, say, together)
 
 #: pixels per side of the sky image of ``nebula-rt compare``
 
@@ -105,35 +107,38 @@ def _print_summary(summary: dict) -> None:
             pass
 
 
-# One function though long (about 80 lines): the render command's steps in the order they
+# One function though long (about 90 lines): the render command's steps in the order they
 # happen (inputs, outputs checked, memory, trace, write, picture, publish), each followed by
 # its cancel point, which a reader should see together.
 def _render(args, cancel) -> int:
+    from ..backends.parallel import world
     from ..pipeline.outputs import Output, Publication, check_outputs
     from ..pipeline.stages import Pipeline
-
-    scene = _scene_from_args(args)
-    out = Path(args.output)
-    outputs = [Output("--output", out, ".vti", _vti_bytes(scene))]
-    _require_io("--output", out)
-    if args.png:
-        outputs.append(Output("--png", Path(args.png), ".png", PNG_BYTES))
-        _require_io("--png", args.png, png=True)
     from ..transport import resources
-    from ..backends.parallel import world
 
-    # under mpiexec: every rank traces a share and holds the whole result; rank 0 writes it
+    # under mpiexec: every rank traces a share and holds the whole result; rank 0 writes it.
+    # The ranks agree on how each step ended (cli.failures): one message, one exit status.
     comm = world()
     lead = comm.rank == 0
-    backend = _backend_for(scene, comm)
-    resources.check(scene, backend)  # memory first: an impossible run is refused as such
-    check_outputs(outputs, _inputs(args, scene))
-    pipe = Pipeline(backend, comm=comm)
-    cancel.check("start-up")
+    failure = functools.partial(describe, args=args, cancel=cancel, distributed=True)
+    with together(comm, failure):  # the start-up, whatever fails on whichever rank
+        scene = _scene_from_args(args)
+        out = Path(args.output)
+        outputs = [Output("--output", out, ".vti", _vti_bytes(scene))]
+        _require_io("--output", out)
+        if args.png:
+            outputs.append(Output("--png", Path(args.png), ".png", PNG_BYTES))
+            _require_io("--png", args.png, png=True)
+        backend = _backend_for(scene, comm)
+        resources.check(scene, backend)  # memory first: an impossible run is refused as such
+        check_outputs(outputs, _inputs(args, scene))
+        pipe = Pipeline(backend, comm=comm)
+        cancel.check("start-up")
 
     bar = None
     t0 = time.perf_counter()
-    with Publication() as pub:
+    # the trace: the ranks decide a cancel together; any other failure is one rank's own
+    with together(comm, failure, catch=CancelledError):
         try:
             from tqdm import tqdm
 
@@ -149,26 +154,31 @@ def _render(args, cancel) -> int:
             if bar is not None:
                 bar.close()
         cancel.check("run")  # a cancel after the last launch publishes nothing either
-        if not lead:
-            return 0
 
+    def publish():
         from ..filters.vti import write_vti
 
-        write_vti(pub.stage(out), light.point_arrays(), light.field_data(), light.spacing, light.origin)
-        cancel.check("run")
-        if args.png:
-            import numpy as np
-
-            from ..pipeline.rgba import colour_rgba
-            from ..filters.render import render_rgba_png
-
-            rgba = light.rgba
-            if rgba is None:  # one band: no colour stage ran; the PNG asks for one (star's colour)
-                rho = light.density.astype(np.float64)
-                rgba, _ = colour_rgba(scene, light.bands, rho, light.emissivity.astype(np.float64), light.transport)
-            render_rgba_png(pub.stage(args.png), rgba, light.spacing, light.origin)
+        with Publication() as pub:
+            write_vti(pub.stage(out), light.point_arrays(), light.field_data(), light.spacing, light.origin)
             cancel.check("run")
-        pub.publish()  # both outputs or neither
+            if args.png:
+                import numpy as np
+
+                from ..pipeline.rgba import colour_rgba
+                from ..filters.render import render_rgba_png
+
+                rgba = light.rgba
+                if rgba is None:  # one band: no colour stage ran; the PNG asks for one (star's colour)
+                    rho = light.density.astype(np.float64)
+                    rgba, _ = colour_rgba(scene, light.bands, rho, light.emissivity.astype(np.float64),
+                                          light.transport)
+                render_rgba_png(pub.stage(args.png), rgba, light.spacing, light.origin)
+                cancel.check("run")
+            pub.publish()  # both outputs or neither
+
+    on_lead(comm, publish, failure)  # the other ranks wait for rank 0's outcome
+    if not lead:
+        return 0
     elapsed = time.perf_counter() - t0
     tr = light.transport
     summary = {
@@ -303,16 +313,22 @@ def _fit(args, cancel) -> int:
 
 
 def _devices(args, cancel) -> int:
-    from ..backends.opencl import list_devices, probe_device
+    from ..backends.opencl import POCL_PLATFORM, list_devices, pocl_cache_refusal, probe_device
 
     found = list_devices()
+    # PoCL lists no device at all when it cannot make its kernel cache folder
+    refusal = pocl_cache_refusal()
     if not found:
+        if refusal is not None:
+            raise refusal
         print("no OpenCL devices found")
         return 1
     for p, d, name, gpu in found:
         problem = probe_device(f"{p}:{d}")
         state = "usable" if problem is None else f"NOT usable: {problem}"
         print(f"opencl {p}:{d}  {name}  ({'GPU' if gpu else 'CPU/other'}; {state})", flush=True)
+    if refusal is not None:
+        print(f"opencl {POCL_PLATFORM}  (NOT usable: {refusal})", flush=True)
     return 0
 
 
@@ -426,7 +442,7 @@ def _reference_options() -> argparse.ArgumentParser:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="nebula-rt", description="Radiative transfer in reflection nebulae")
+    ap = _Parser(prog="nebula-rt", description="Radiative transfer in reflection nebulae")
     sub = ap.add_subparsers(dest="command", required=True)
     run, view, reference = _run_options(), _view_options(), _reference_options()
     r = sub.add_parser("render", parents=[run], help="trace a scene and write a .vti (and optionally a PNG)")
@@ -479,7 +495,9 @@ def main(argv=None) -> int:
     0 done; 1 a run that failed (an output that could not be written, an internal error); 2
     bad input (a scene value, an option, an output path, more memory than there is: nothing
     was written); 3 the backend or device cannot be used; 130 / 143 / 129 / 131 cancelled by
-    SIGINT / SIGTERM / SIGHUP / SIGQUIT (nothing was written).
+    SIGINT / SIGTERM / SIGHUP / SIGQUIT (nothing was written). Under mpiexec the ranks of a
+    render agree on the failure (:mod:`~nebula_rt.cli.failures`): rank 0 alone prints it and
+    every rank exits with its status.
     """
     import warnings
 
@@ -488,7 +506,8 @@ def main(argv=None) -> int:
     def show(message, category, filename, lineno, file=None, line=None):
         # NebulaRT's warnings are for the user: one line, no source location
         if issubclass(category, NebulaWarning):
-            _error(f"warning: {message}")
+            if not quiet_rank():  # the ranks' results, and so their warnings, are the same
+                say(f"warning: {message}")
         else:
             _show_default(message, category, filename, lineno, file, line)
 
@@ -503,77 +522,35 @@ def main(argv=None) -> int:
 def _main(argv) -> int:
     cancel = SignalCancel()
     with cancel:
-        status = None
         args = None
         try:
             args = build_parser().parse_args(argv)
-            cancel.quiet = bool(getattr(args, "quiet", False))
+            # under mpiexec rank 0 alone says that a signal is cancelling the run
+            cancel.quiet = bool(getattr(args, "quiet", False)) or quiet_rank()
             return args.func(args, cancel)
-        except SceneError as exc:
-            from ..scene.units import attribute
-
-            exc = attribute(exc, getattr(args, "scene_used", None))
-            _error(f"invalid scene: {exc}; nothing written")
-            status = 2
-        except (OutputError, ResourceError) as exc:
-            _error(f"{exc}; nothing written")
-            status = 2
-        except BackendUnavailableError as exc:
-            _error(str(exc))
-            status = 3
-        except CancelledError as exc:
-            # every rank of a distributed run raises this together: no need to abort the others
-            _error(f"{exc}; nothing written")
-            return cancel.exit_status
-        except KeyboardInterrupt:
-            _error("aborted; nothing written")
-            status = 130
-        except OSError as exc:
-            from ..pipeline.outputs import describe_os_error
-
-            where = f"{exc.filename}: " if exc.filename else ""
-            _error(f"{where}{describe_os_error(exc)}; nothing written")
-            status = 1
-        except NebulaError as exc:
-            _error(str(exc))
-            status = 1
-        except Exception as exc:  # a defect: one line, not a traceback (NEBULA_RT_DEBUG=1 shows it)
-            if os.environ.get("NEBULA_RT_DEBUG"):
+        except RanksFailed as exc:  # every rank of a distributed run raised it together
+            if not quiet_rank():
+                say(exc.failure.message, exc.rank if exc.rank else None, exc.size)
+            return exc.status
+        except (Exception, KeyboardInterrupt) as exc:
+            failure = describe(exc, args, cancel)
+            if failure is None:  # NEBULA_RT_DEBUG: the traceback of an internal error
                 raise
-            _error(f"internal error: {type(exc).__name__}: {exc} (set NEBULA_RT_DEBUG=1 for the "
-                   "traceback; nothing written)")
-            status = 1
-        _abort_the_other_ranks(status)
-        return status
+            error(failure.message)
+            if not isinstance(exc, CancelledError):
+                # every rank of a distributed run raises a CancelledError together: no need to
+                # abort the others
+                abort_the_other_ranks(failure.status)
+            return failure.status
 
 
-def _distributed():
-    """The communicator when this process is one of several ranks, else None."""
-    from ..backends.parallel import _launched_by_mpi, world
+class _Parser(argparse.ArgumentParser):
+    """argparse's parser, whose usage, help and errors only rank 0 of an MPI job prints:
+    every rank parses the same arguments and exits alike."""
 
-    if not _launched_by_mpi():
-        return None
-    comm = world()
-    return comm if comm.size > 1 else None
-
-
-def _abort_the_other_ranks(status: int) -> None:
-    """One rank of a distributed run failed on its own: the others would wait for it in their
-    next reduction forever, so the whole job is ended (MPI_Abort) with this rank's status,
-    after its message (which names the rank) is out."""
-    comm = _distributed()
-    if comm is not None:
-        sys.stderr.flush()
-        comm.comm.Abort(int(status))
-
-
-def _error(message: str) -> None:
-    comm = _distributed()
-    who = "nebula-rt" if comm is None else f"nebula-rt (rank {comm.rank} of {comm.size})"
-    try:
-        print(f"{who}: {message}", file=sys.stderr, flush=True)
-    except (OSError, ValueError):
-        pass
+    def _print_message(self, message, file=None):
+        if not quiet_rank():
+            super()._print_message(message, file)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -140,7 +140,9 @@ class _Kernels:
     creates a new, independent Kernel on every ``program.name`` access)."""
 
     def __init__(self, context):
-        prog = cl.Program(context, _SOURCE).build()
+        from ..backends.opencl import build_program
+
+        prog = build_program(context, _SOURCE)
         for name in _KERNEL_NAMES:
             setattr(self, name, cl.Kernel(prog, name))
 
