@@ -16,7 +16,7 @@ import pytest
 from conftest import centre_star, one_band
 from nebula_rt.transport import resources
 from nebula_rt.cli import main
-from nebula_rt.errors import CancelledError, ResourceError
+from nebula_rt.errors import CancelledError, ResourceError, SceneError
 from nebula_rt.pipeline import Pipeline
 from nebula_rt.scene import Scene
 from nebula_rt.transport import trace
@@ -56,7 +56,7 @@ def test_estimate_covers_what_a_run_holds(backend):
 
 
 def test_filter_radius_beyond_the_box_costs_the_grid_not_the_radius(backend):
-    """A collision-filter radius of 10 box units: the kernel is cut at the grid's extent, which
+    """A collision-filter radius beyond the box (10 box units; the scene allows up to sqrt 3): the kernel is cut at the grid's extent, which
     changes nothing (a same-size convolution never reaches further) and bounds the memory."""
     from nebula_rt.transport import filtering
 
@@ -76,7 +76,11 @@ def test_filter_radius_beyond_the_box_costs_the_grid_not_the_radius(backend):
     cut, _ = filtering.normalised_convolution(field, filtering.cubic_kernel(shape, 2.0))
     ref, _ = filtering.normalised_convolution(field, k_ref)
     np.testing.assert_allclose(cut, ref, rtol=1e-10)
-    s = scene("grid.shape=[16,16,16]", 'transport.estimator="collision-filter"', "transport.filter_radius=10")
+    # the largest radius allowed (the box's diagonal) still reaches beyond the grid; wider ones
+    # are refused by the declaration
+    with pytest.raises(SceneError, match="filter_radius"):
+        scene("grid.shape=[16,16,16]", 'transport.estimator="collision-filter"', "transport.filter_radius=10")
+    s = scene("grid.shape=[16,16,16]", 'transport.estimator="collision-filter"', "transport.filter_radius=1.7")
     est = resources.estimate(s, backend)
     assert est.host_bytes < 64 * 2**20
     light = Pipeline(backend).run(s, colour=False)
