@@ -15,15 +15,26 @@ signal's exit status (``os._exit``).
 
 SIGQUIT (Ctrl-\\) and SIGHUP (the terminal closed) cancel as SIGINT and SIGTERM do; the exit
 status is 128 + the signal number, the shell's convention (130, 143, 129, 131).
+
+Python runs a handler only between bytecodes of the main thread, and a run polls only between
+its steps; a kernel compile in PoCL (seconds on a cold cache), VTK's renderer or a slow import
+hold the main thread longer than that. A watchdog thread therefore hears every signal at once
+(``signal.set_wakeup_fd``) and, if no poll has seen the cancel within
+:data:`GRACE_SECONDS`, ends the process as a second signal would: the temporary files go, the
+exit status is the signal's, nothing is published (the renames that publish hold the signals
+back and the watchdog waits for them). Runs under an MPI launcher keep the polls alone: their
+ranks agree on a cancel together, and one rank ending on its own would end the job.
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
+import select
 import signal
 import sys
 import threading
+import time
 from typing import Callable, Optional
 
 from .errors import CancelledError
@@ -33,16 +44,25 @@ SIGNALS = tuple(getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP", "SIG
 #: exit status of a run cancelled by each signal (128 + the signal number, the shell's convention)
 EXIT_STATUS = {sig: 128 + int(sig) for sig in SIGNALS}
 
+#: how long a signal may wait for a poll of the run before the watchdog ends the process (s)
+GRACE_SECONDS = 1.0
+
 #: the handler installed now (the innermost ``with SignalCancel()``), or None
 _active: Optional["SignalCancel"] = None
 #: what a second signal runs before the process ends (each publication's clean-up)
 _abort_hooks: list = []
+#: held by the renames that publish (:func:`held`) and by the watchdog as it ends the process,
+#: so a publication completes or does not start
+_publishing = threading.Lock()
 
 
 def cancel_requested() -> Optional[int]:
     """The signal that asked the running command to cancel, or None (also None when no
     handler is installed: a library call in a notebook)."""
-    return None if _active is None else _active.requested
+    if _active is None:
+        return None
+    _active._seen()
+    return _active.requested
 
 
 def on_abort(hook: Callable[[], None]) -> Callable[[], None]:
@@ -65,11 +85,12 @@ def held():
     if mask is None or threading.current_thread() is not threading.main_thread():
         yield
         return
-    old = mask(signal.SIG_BLOCK, SIGNALS)
-    try:
-        yield
-    finally:
-        mask(signal.SIG_SETMASK, old)
+    with _publishing:
+        old = mask(signal.SIG_BLOCK, SIGNALS)
+        try:
+            yield
+        finally:
+            mask(signal.SIG_SETMASK, old)
 
 
 class SignalCancel:
@@ -80,6 +101,9 @@ class SignalCancel:
     ----------
     quiet : bool
         Do not print the "cancelling" notice on stderr.
+    watchdog : bool
+        End the process if no poll sees a cancel within :data:`GRACE_SECONDS` of its signal
+        (the module's notes); off for the ranks of an MPI job.
 
     Notes
     -----
@@ -89,16 +113,25 @@ class SignalCancel:
 
     SIGNALS = SIGNALS
 
-    def __init__(self, quiet: bool = False):
+    def __init__(self, quiet: bool = False, watchdog: bool = True):
         self.quiet = quiet
+        self.watchdog = watchdog
         self.requested: Optional[int] = None  # the signal that asked for the cancel
+        self.noticed = False  # a poll has seen the cancel: the run is unwinding by itself
         self._old: dict = {}
+        self._wakeup: Optional[tuple] = None  # (read end, write end, the old wakeup fd)
+        self._stop = threading.Event()
 
     # -- the flag -------------------------------------------------------------------------
     def __call__(self) -> bool:
         """True once a cancel was requested (the ``cancel`` callback of the pipeline)."""
         self._reassert()
+        self._seen()
         return self.requested is not None
+
+    def _seen(self) -> None:
+        if self.requested is not None:
+            self.noticed = True
 
     def _reassert(self) -> None:
         """Install the handlers again: LLVM (inside PoCL's kernel compiler) installs its own
@@ -112,6 +145,7 @@ class SignalCancel:
     def check(self, what: str = "run") -> None:
         """Raise :class:`CancelledError` if a cancel was requested."""
         self._reassert()
+        self._seen()
         if self.requested is not None:
             raise CancelledError(f"{what} cancelled by {signal.Signals(self.requested).name}")
 
@@ -137,17 +171,74 @@ class SignalCancel:
     def _abort(self, signum) -> None:
         """A second signal: remove the temporary files (the abort hooks) and end the process
         now with the first signal's status, raising nothing into whatever runs."""
+        self._end(EXIT_STATUS.get(self.requested, 130), f"aborted by a second {signal.Signals(signum).name}")
+
+    @staticmethod
+    def _end(status: int, why: str) -> None:
+        """Run the abort hooks (the temporary files go), say why, end the process now."""
         for hook in list(_abort_hooks):
             try:
                 hook()
             except Exception:  # noqa: BLE001 - the others still run, the process still ends
                 pass
         try:
-            print(f"nebula-rt: aborted by a second {signal.Signals(signum).name}; nothing written",
-                  file=sys.stderr, flush=True)
+            print(f"nebula-rt: {why}; nothing written", file=sys.stderr, flush=True)
         except (OSError, ValueError):
             pass
-        os._exit(EXIT_STATUS.get(self.requested, 130))
+        os._exit(status)
+
+    # -- the watchdog -------------------------------------------------------------------------
+    def _start_watchdog(self) -> None:
+        read, write = os.pipe()
+        os.set_blocking(write, False)  # set_wakeup_fd needs it: a full pipe must not block
+        os.set_blocking(read, False)
+        try:
+            old = signal.set_wakeup_fd(write, warn_on_full_buffer=False)
+        except (ValueError, OSError):  # not the main thread, or an embedding that forbids it
+            os.close(read)
+            os.close(write)
+            return
+        self._wakeup = (read, write, old)
+        self._stop.clear()
+        threading.Thread(target=self._watch, args=(read,), name="nebula-rt signal watchdog",
+                         daemon=True).start()
+
+    def _stop_watchdog(self) -> None:
+        if self._wakeup is None:
+            return
+        read, write, old = self._wakeup
+        self._wakeup = None
+        signal.set_wakeup_fd(old)
+        self._stop.set()
+        os.close(write)  # the watchdog's select wakes up (end of file) and it closes ``read``
+
+    def _watch(self, read: int) -> None:
+        """Wait for signals; after each, give the run :data:`GRACE_SECONDS` to poll."""
+        try:
+            while not self._stop.is_set():
+                select.select([read], [], [], 1.0)
+                try:
+                    data = os.read(read, 64)
+                except BlockingIOError:
+                    continue
+                if not data or self._stop.is_set():  # the write end closed: the run is over
+                    return
+                signum = data[-1]
+                deadline = time.monotonic() + GRACE_SECONDS
+                while time.monotonic() < deadline and not self.noticed and not self._stop.is_set():
+                    time.sleep(0.02)
+                if self.noticed or self._stop.is_set():
+                    continue
+                # the main thread is inside a call that does not return to Python (a kernel
+                # compile, VTK's renderer): end the process, but never inside the renames
+                with _publishing:
+                    if not self.noticed and not self._stop.is_set():
+                        status = EXIT_STATUS.get(self.requested or signum, 128 + signum)
+                        name = signal.Signals(self.requested or signum).name
+                        self._end(status, f"cancelled by {name} (the step under way could not stop "
+                                          "by itself)")
+        finally:
+            os.close(read)
 
     def __enter__(self) -> "SignalCancel":
         global _active
@@ -155,10 +246,13 @@ class SignalCancel:
             for sig in self.SIGNALS:
                 self._old[sig] = signal.signal(sig, self._handler)
             self._outer, _active = _active, self
+            if self.watchdog:
+                self._start_watchdog()
         return self
 
     def __exit__(self, *exc) -> None:
         global _active
+        self._stop_watchdog()
         for sig, old in self._old.items():
             signal.signal(sig, old)
         if self._old:

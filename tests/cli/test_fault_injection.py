@@ -165,6 +165,38 @@ def test_ctrl_c_within_one_long_launch_is_honoured_at_once(scene_dir, run):
     assert_intact(scene_dir, before)
 
 
+def test_a_step_that_does_not_poll_is_ended_by_the_watchdog(scene_dir):
+    """A signal while the main thread is held by a step that does not poll (here the PNG stage
+    waits 120 s before rendering; in life a kernel compile in PoCL, VTK's renderer, an import):
+    the watchdog ends the run GRACE_SECONDS after the signal, with the signal's status, the
+    old outputs intact and no temporary file. The bound below is the stall's length, not a
+    timing: only the watchdog can end the run before it."""
+    before = old_outputs(scene_dir, png=True)
+    t0 = time.monotonic()
+    r = run_fault("stalled", "SIGTERM", "render", str(scene_dir / "s.toml"), "-o", str(scene_dir / "out.vti"),
+                  "--png", str(scene_dir / "out.png"))
+    assert time.monotonic() - t0 < 100, "the run waited for the stall"
+    assert r.returncode == 143, (r.returncode, r.stderr)
+    assert "could not stop by itself); nothing written" in r.stderr and "Traceback" not in r.stderr, r.stderr
+    assert_intact(scene_dir, before)
+
+
+def test_a_signal_during_a_cold_kernel_build(scene_dir, tmp_path_factory):
+    """SIGINT 0.1 s into the first kernel build with every cache cold (PoCL's and pyopencl's:
+    seconds of compiling on a CPU): exit 130, nothing written, no temporary file. Whether the
+    build ends within the grace or the watchdog ends it, the outcome is the same."""
+    before = old_outputs(scene_dir)
+    caches = tmp_path_factory.mktemp("cold-caches")
+    env = {**_env(), "POCL_CACHE_DIR": str(caches / "pocl"), "XDG_CACHE_HOME": str(caches / "xdg")}
+    (caches / "pocl").mkdir()
+    cmd = [sys.executable, str(FAULT), "during-build", "SIGINT", "--", "render", str(scene_dir / "s.toml"),
+           "-o", str(scene_dir / "out.vti"), "--device", TEST_DEVICE]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env)
+    assert r.returncode == 130, (r.returncode, r.stderr)
+    assert "nothing written" in r.stderr and "Traceback" not in r.stderr, r.stderr
+    assert_intact(scene_dir, before)
+
+
 # --------------------------------------------------------------------------- concurrency
 
 def test_concurrent_renders_to_one_output(scene_dir):

@@ -10,6 +10,9 @@ mid-launch         during the transport's second launch
 after-last-batch   when the trace has returned (the progress bar at 100 %)
 during-write       inside the .vti writer, before VTK writes
 during-png         inside the PNG rendering
+during-build       as the first kernel build starts (cold caches make it seconds inside PoCL)
+stalled            before the PNG rendering, which then waits 120 s without polling: only the
+                   signal watchdog can end the run in time
 fill-disk          the output's file system is filled just before the .vti is written
 png-fails          the PNG rendering raises after the .vti was staged
 rank1-fails        (under mpiexec) rank 1 alone raises a device error in its second launch
@@ -108,6 +111,30 @@ def main() -> int:
             fire()
             return png(*a, **kw)
         render.render_rgba_png = rendering
+    elif point == "during-build":
+        import threading
+
+        import pyopencl as cl
+
+        build = cl.Program.build
+        calls = {"n": 0}
+
+        def building(self, *a, **kw):
+            calls["n"] += 1
+            if calls["n"] == 1:  # from another thread, 0.1 s in: the main thread is inside PoCL
+                threading.Timer(0.1, fire).start()
+            return build(self, *a, **kw)
+        cl.Program.build = building
+    elif point == "stalled":
+        import time
+
+        png = render.render_rgba_png
+
+        def stalling(*a, **kw):
+            fire()
+            time.sleep(120)
+            return png(*a, **kw)
+        render.render_rgba_png = stalling
     elif point == "fill-disk":
         write = vti.write_vti
 

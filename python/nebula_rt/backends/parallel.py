@@ -122,7 +122,7 @@ def _flat_u64(buf: np.ndarray) -> np.ndarray:
     return buf.reshape(-1)
 
 
-def _launched_by_mpi() -> bool:
+def launched_by_mpi() -> bool:
     """Whether an MPI launcher started this process (Open MPI, MPICH/Hydra, Slurm's PMI)."""
     return any(k in os.environ for k in ("OMPI_COMM_WORLD_SIZE", "PMI_SIZE", "PMIX_RANK", "PMI_RANK"))
 
@@ -143,7 +143,7 @@ def world():
     an MPI launcher with several ranks and mpi4py imports, else :class:`Serial`. On the CPU the
     ranks of a node share its cores: PoCL is told to use cores / local ranks each (unless
     ``POCL_CPU_MAX_CU_COUNT`` is set)."""
-    if not _launched_by_mpi():
+    if not launched_by_mpi():
         return Serial()
     try:
         from mpi4py import MPI

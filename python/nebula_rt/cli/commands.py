@@ -520,7 +520,10 @@ def main(argv=None) -> int:
 
 
 def _main(argv) -> int:
-    cancel = SignalCancel()
+    from ..backends.parallel import launched_by_mpi
+
+    # the ranks of an MPI job cancel together, by their polls (no watchdog: interrupts)
+    cancel = SignalCancel(watchdog=not launched_by_mpi())
     with cancel:
         args = None
         try:

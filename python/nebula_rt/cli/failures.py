@@ -173,9 +173,9 @@ def quiet_rank() -> bool:
 
 def _distributed():
     """The communicator when this process is one of several ranks, else None."""
-    from ..backends.parallel import _launched_by_mpi, world
+    from ..backends.parallel import launched_by_mpi, world
 
-    if not _launched_by_mpi():
+    if not launched_by_mpi():
         return None
     comm = world()
     return comm if comm.size > 1 else None
