@@ -421,3 +421,97 @@ def test_a_killed_rank_ends_the_job(tmp_path):
     proc.communicate(timeout=60)
     assert proc.returncode != 0 and time.perf_counter() - t0 < 30
     assert list(tmp_path.iterdir()) == []
+
+
+def _observing_case(tmp_path, command):
+    """The command line of a ``sky``, ``compare --table`` or ``fit`` run on the small scenes of
+    tests/cli/test_hostile_numbers.py, writing into ``tmp_path/out``, and the file to compare."""
+    from test_hostile_numbers import COLOUR_SCENE, SKY_SCENE, TABLES
+    from nebula_rt.scene import Scene
+
+    (tmp_path / "colour.toml").write_text(Scene.from_dict(COLOUR_SCENE).to_toml())
+    (tmp_path / "sky.toml").write_text(Scene.from_dict(SKY_SCENE).to_toml())
+    (tmp_path / "colour.csv").write_text(TABLES["colour.csv"])
+    out = tmp_path / "out"
+    out.mkdir(exist_ok=True)
+    colour, table = str(tmp_path / "colour.toml"), str(tmp_path / "colour.csv")
+    if command == "sky":
+        return ["sky", str(tmp_path / "sky.toml"), "--size", "16", "--fits", str(out / "s.fits"), "-q"], out / "s.fits"
+    if command == "compare":
+        return ["compare", colour, "--table", table, "--size", "16", "--png", str(out / "c.png"),
+                "--json", str(out / "c.json")], out / "c.json"
+    return ["fit", colour, "--table", table, "--free", "albedo", "--grid", "3", "--starts", "1",
+            "--uncertainty", "profile", "--size", "16", "--png", str(out / "f.png"), "--json", str(out / "f.json"),
+            "-q"], out / "f.json"
+
+
+def _observed(path: Path):
+    """What a run's output says, without what names the run (paths, wall time)."""
+    import json
+
+    if path.suffix == ".fits":
+        from astropy.io import fits
+
+        with fits.open(path) as hdus:
+            return [h.data.tobytes() for h in hdus if h.data is not None]
+    data = json.loads(path.read_text())
+    for key in ("png", "scene", "wall_s"):
+        data.pop(key, None)
+    return data
+
+
+@pytest.mark.parametrize("command", ["sky", "compare", "fit"])
+def test_observing_commands_under_mpiexec_give_the_serial_outputs(tmp_path, command):
+    """`mpiexec -n 2 nebula-rt sky | compare --table | fit`: the ranks share every trace (a fit's
+    every trial: each ends with the same bits on both ranks, so both take the same steps), rank
+    0 alone writes, and the outputs are the serial run's (the FITS images' bytes; the
+    summaries' every number: chi^2, the best fit and its errors)."""
+    argv, out = _observing_case(tmp_path, command)
+    exe = str(Path(sys.executable).with_name("nebula-rt"))
+    serial = subprocess.run([exe, *argv], capture_output=True, text=True, timeout=300)
+    assert serial.returncode == 0, serial.stderr[-2000:]
+    one = _observed(out)
+    written = sorted(p.name for p in out.parent.iterdir())
+    for p in out.parent.iterdir():
+        p.unlink()
+    r = _mpiexec_cli(*argv, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert sorted(p.name for p in out.parent.iterdir()) == written
+    assert _observed(out) == one
+    assert "rank 1" not in r.stderr
+
+
+@pytest.mark.parametrize("command", ["sky", "compare", "fit"])
+def test_bad_input_to_observing_commands_under_mpiexec_is_one_message(tmp_path, command):
+    """A bad scene value under mpiexec: one message from rank 0 and status 2 (not a message per
+    rank and Open MPI's MPI_ABORT notice), nothing written."""
+    argv, out = _observing_case(tmp_path, command)
+    r = _mpiexec_cli(*argv, "--set", "transport.photons=-5", quiet=True)
+    assert r.returncode == 2 and r.stderr.count("nebula-rt: invalid scene: transport.photons = -5") == 1, r.stderr
+    assert r.stderr.count("\n") == 1, r.stderr
+    assert list(out.parent.iterdir()) == []
+
+
+def test_signalled_ranks_of_a_fit_stop_together(tmp_path):
+    """SIGTERM to both ranks of a fit between or within its traces: the ranks decide the cancel
+    together (in the trace, and between traces: a rank that stopped alone would leave the other
+    waiting in the next trace forever), exit 143 with one message, and write nothing."""
+    import signal
+    import time
+
+    argv, out = _observing_case(tmp_path, "fit")
+    argv = [a for a in argv if a != "-q"] + ["--free", "g", "--grid", "6", "--set", "transport.photons=40000"]
+    exe = str(Path(sys.executable).with_name("nebula-rt"))
+    proc = subprocess.Popen([shutil.which("mpiexec"), "--allow-run-as-root", "--oversubscribe", "-n", "2", exe,
+                             *argv], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    err = _Stderr(proc)
+    deadline = time.monotonic() + 120
+    while "best chi2" not in err.text:  # the fit has traced its first trial
+        assert proc.poll() is None and time.monotonic() < deadline, err.text[-2000:]
+        time.sleep(0.1)
+    for pid in _rank_pids(out.parent / "f.png"):
+        os.kill(pid, signal.SIGTERM)
+    text = err.finish(timeout=60)
+    assert proc.returncode == 143, (proc.returncode, text[-1500:])
+    assert text.count("nebula-rt: fit cancelled") == 1 and "rank 1" not in text and "MPI_ABORT" not in text, text[-1500:]
+    assert list(out.parent.iterdir()) == []

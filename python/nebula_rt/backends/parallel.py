@@ -122,6 +122,15 @@ def _flat_u64(buf: np.ndarray) -> np.ndarray:
     return buf.reshape(-1)
 
 
+def any_rank(comm, flag: bool) -> bool:
+    """Whether ``flag`` holds on any rank of ``comm`` (None or one rank: ``flag`` itself): a
+    decision every rank takes alike, e.g. to cancel between traces (a rank that stopped alone
+    would leave the others waiting in the next one). Collective."""
+    if comm is None or comm.size < 2:
+        return bool(flag)
+    return comm.allreduce_max(1.0 if flag else 0.0) > 0
+
+
 def launched_by_mpi() -> bool:
     """Whether an MPI launcher started this process (Open MPI, MPICH/Hydra, Slurm's PMI)."""
     return any(k in os.environ for k in ("OMPI_COMM_WORLD_SIZE", "PMI_SIZE", "PMIX_RANK", "PMI_RANK"))

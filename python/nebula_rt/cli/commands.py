@@ -7,7 +7,6 @@ Every scene key can be overridden with ``--set dotted.key=value`` (repeatable), 
 from __future__ import annotations
 
 import argparse
-import functools
 import json
 import os
 import sys
@@ -18,8 +17,7 @@ from ..errors import CancelledError, OutputError, SceneError
 from .. import scene as _scene
 from ..scene import sky_schema
 from ..interrupts import SignalCancel
-from .failures import (
-    RanksFailed, abort_the_other_ranks, describe, error, on_lead, quiet_rank, say, together)
+from .failures import RanksFailed, Ranks, abort_the_other_ranks, describe, error, quiet_rank, say
 
 #: pixels per side of the sky image of ``nebula-rt compare``
 
@@ -111,17 +109,15 @@ def _print_summary(summary: dict) -> None:
 # happen (inputs, outputs checked, memory, trace, write, picture, publish), each followed by
 # its cancel point, which a reader should see together.
 def _render(args, cancel) -> int:
-    from ..backends.parallel import world
     from ..pipeline.outputs import Output, Publication, check_outputs
     from ..pipeline.stages import Pipeline
     from ..transport import resources
 
     # under mpiexec: every rank traces a share and holds the whole result; rank 0 writes it.
     # The ranks agree on how each step ended (cli.failures): one message, one exit status.
-    comm = world()
-    lead = comm.rank == 0
-    failure = functools.partial(describe, args=args, cancel=cancel, distributed=True)
-    with together(comm, failure):  # the start-up, whatever fails on whichever rank
+    ranks = Ranks(args, cancel)
+    comm, lead = ranks.comm, ranks.lead
+    with ranks.start():  # the start-up, whatever fails on whichever rank
         scene = _scene_from_args(args)
         out = Path(args.output)
         outputs = [Output("--output", out, ".vti", _vti_bytes(scene))]
@@ -138,7 +134,7 @@ def _render(args, cancel) -> int:
     bar = None
     t0 = time.perf_counter()
     # the trace: the ranks decide a cancel together; any other failure is one rank's own
-    with together(comm, failure, catch=CancelledError):
+    with ranks.trace():
         try:
             from tqdm import tqdm
 
@@ -176,7 +172,7 @@ def _render(args, cancel) -> int:
                 cancel.check("run")
             pub.publish()  # both outputs or neither
 
-    on_lead(comm, publish, failure)  # the other ranks wait for rank 0's outcome
+    ranks.publish(publish)  # the other ranks wait for rank 0's outcome
     if not lead:
         return 0
     elapsed = time.perf_counter() - t0
@@ -231,7 +227,8 @@ def check_size(size: int) -> None:
 
 
 def _compare(args, cancel) -> int:
-    """Trace a scene and measure its colours as an observer would, beside observed values."""
+    """Trace a scene and measure its colours as an observer would, beside observed values.
+    Under mpiexec the ranks share the trace and rank 0 writes (:class:`~nebula_rt.cli.failures.Ranks`)."""
 
     import numpy as np
 
@@ -239,36 +236,41 @@ def _compare(args, cancel) -> int:
     from ..transport import resources
     from ..pipeline.outputs import Output, Publication, check_outputs
 
-    scene = _scene_from_args(args)
-    direction = parse_direction(args.direction)
-    check_size(args.size)
-    from .image import check_image_options, compare_image_command
+    ranks = Ranks(args, cancel)
+    with ranks.start():
+        scene = _scene_from_args(args)
+        direction = parse_direction(args.direction)
+        check_size(args.size)
+        from .image import check_image_options, compare_image_command
 
-    check_image_options(args)
+        check_image_options(args)
     if args.image:  # the user's observed image (nebula_rt.cli.image)
-        return compare_image_command(args, cancel, scene, direction, lambda: _backend_for(scene),
+        return compare_image_command(args, ranks, scene, direction, lambda: _backend_for(scene, ranks.comm),
                                      _inputs(args, scene), _print_summary)
     if args.table:  # the user's own observations (nebula_rt.cli.fit)
         from .fit import compare_tables_command
 
-        return compare_tables_command(args, cancel, scene, direction, lambda: _backend_for(scene),
+        return compare_tables_command(args, ranks, scene, direction, lambda: _backend_for(scene, ranks.comm),
                                       _inputs(args, scene), _print_summary)
-    wl = sorted(b.wavelength for b in scene.bands.resolve())
-    if len(wl) < 2 or wl[0] > 480.0 or wl[-1] < 520.0:
-        raise SceneError("bands", [round(w, 1) for w in wl],
-                         "nebula-rt compare measures B-V: it needs at least 2 bands, one at or "
-                         "below 480 nm and one at or above 520 nm (e.g. bands.preset = 'spectral-8')")
-    png = Path(args.png)
-    outputs = [Output("--png", png, ".png", 4 << 20)]
-    if args.json:
-        outputs.append(Output("--json", Path(args.json), ".json", 1 << 20))
-    backend = _backend_for(scene)
-    resources.check(scene, backend, peel_pixels=args.size * args.size, peel_option="--size", peel_value=args.size)
-    check_outputs(outputs, _inputs(args, scene))
-    cancel.check("start-up")
-    prof, res = observe.observe_scene(scene, direction=direction, size=args.size, backend=backend,
-                                      reference=args.reference, cancel=cancel)
-    cancel.check("run")
+    with ranks.start():
+        wl = sorted(b.wavelength for b in scene.bands.resolve())
+        if len(wl) < 2 or wl[0] > 480.0 or wl[-1] < 520.0:
+            raise SceneError("bands", [round(w, 1) for w in wl],
+                             "nebula-rt compare measures B-V: it needs at least 2 bands, one at or "
+                             "below 480 nm and one at or above 520 nm (e.g. bands.preset = 'spectral-8')")
+        png = Path(args.png)
+        outputs = [Output("--png", png, ".png", 4 << 20)]
+        if args.json:
+            outputs.append(Output("--json", Path(args.json), ".json", 1 << 20))
+        backend = _backend_for(scene, ranks.comm)
+        resources.check(scene, backend, peel_pixels=args.size * args.size, peel_option="--size",
+                        peel_value=args.size)
+        check_outputs(outputs, _inputs(args, scene))
+        cancel.check("start-up")
+    with ranks.trace():
+        prof, res = observe.observe_scene(scene, direction=direction, size=args.size, backend=backend,
+                                          reference=args.reference, cancel=cancel, comm=ranks.comm)
+        cancel.check("run")
 
     def mags(values):
         return [None if not np.isfinite(x) else round(float(x), 4) for x in values]
@@ -289,27 +291,34 @@ def _compare(args, cancel) -> int:
         "observed_mean_delta_bv_mag": observe.observations()["mean_delta_bv"]["value"],
         "single_scattering_delta_bv_mag": observe.observations()["single_scattering_delta_bv"]["range"],
     }
-    with Publication() as pub:  # the plot and the JSON, both or neither
-        observe.plot(prof, pub.stage(png), title=f"{Path(args.scene).stem}: {len(res.band_luminosity)} bands, "
-                                                 f"{res.photons:,} packets per band, peel-off image, "
-                                                 f"against the {observe.REFERENCE_LABELS[prof.reference]}")
-        if args.json:
-            pub.stage(args.json).write_text(json.dumps(summary, indent=2) + "\n")
-        cancel.check("run")
-        pub.publish()
-    _print_summary(summary)
+
+    def publish():
+        with Publication() as pub:  # the plot and the JSON, both or neither
+            observe.plot(prof, pub.stage(png), title=f"{Path(args.scene).stem}: {len(res.band_luminosity)} bands, "
+                                                     f"{res.photons:,} packets per band, peel-off image, "
+                                                     f"against the {observe.REFERENCE_LABELS[prof.reference]}")
+            if args.json:
+                pub.stage(args.json).write_text(json.dumps(summary, indent=2) + "\n")
+            cancel.check("run")
+            pub.publish()
+        _print_summary(summary)
+
+    ranks.publish(publish)
     return 0
 
 
 def _fit(args, cancel) -> int:
-    """Fit the scene's dust to the user's tables (nebula_rt.cli.fit)."""
+    """Fit the scene's dust to the user's tables (nebula_rt.cli.fit); under mpiexec the ranks
+    share every trace and rank 0 writes."""
     from .fit import fit_command
 
-    scene = _scene_from_args(args)
-    direction = parse_direction(args.direction)
-    check_size(args.size)
-    return fit_command(args, cancel, scene, direction, lambda: _backend_for(scene), _inputs(args, scene),
-                       _print_summary)
+    ranks = Ranks(args, cancel)
+    with ranks.start():
+        scene = _scene_from_args(args)
+        direction = parse_direction(args.direction)
+        check_size(args.size)
+    return fit_command(args, ranks, scene, direction, lambda: _backend_for(scene, ranks.comm),
+                       _inputs(args, scene), _print_summary)
 
 
 def _devices(args, cancel) -> int:
@@ -334,51 +343,57 @@ def _devices(args, cancel) -> int:
 
 def _sky(args, cancel) -> int:
     """A calibrated sky image of a scene (nebula_rt.observe.calibrate): FITS in MJy/sr and mag/arcsec^2
-    with a celestial WCS, and a true-colour PNG."""
+    with a celestial WCS, and a true-colour PNG. Under mpiexec the ranks share the trace and
+    rank 0 writes."""
     import numpy as np
 
     from ..observe import calibrate
     from ..transport import resources
     from ..pipeline.outputs import Output, Publication, check_outputs
 
-    scene = _scene_from_args(args)
-    direction = parse_direction(args.direction)
-    check_size(args.size)
-    calibrate.check_scene(scene)
-    npix = args.size * args.size
-    nb = len(scene.bands.resolve())
-    outputs = [Output("--fits", Path(args.fits), ".fits", (nb + len(calibrate.PASSBANDS)) * npix * 4 + (256 << 10))]
-    if args.png:
-        outputs.append(Output("--png", Path(args.png), ".png", npix * 4 + 65536))
-    if args.json:
-        outputs.append(Output("--json", Path(args.json), ".json", 1 << 20))
-    backend = _backend_for(scene)
-    resources.check(scene, backend, peel_pixels=npix if args.method == "peel-off" else 0, peel_option="--size",
-                    peel_value=args.size)
-    check_outputs(outputs, _inputs(args, scene))
-    cancel.check("start-up")
-    cam = calibrate.camera_for(scene, direction, args.size)
+    ranks = Ranks(args, cancel)
+    with ranks.start():
+        scene = _scene_from_args(args)
+        direction = parse_direction(args.direction)
+        check_size(args.size)
+        calibrate.check_scene(scene)
+        npix = args.size * args.size
+        nb = len(scene.bands.resolve())
+        outputs = [Output("--fits", Path(args.fits), ".fits",
+                          (nb + len(calibrate.PASSBANDS)) * npix * 4 + (256 << 10))]
+        if args.png:
+            outputs.append(Output("--png", Path(args.png), ".png", npix * 4 + 65536))
+        if args.json:
+            outputs.append(Output("--json", Path(args.json), ".json", 1 << 20))
+        backend = _backend_for(scene, ranks.comm)
+        resources.check(scene, backend, peel_pixels=npix if args.method == "peel-off" else 0,
+                        peel_option="--size", peel_value=args.size)
+        check_outputs(outputs, _inputs(args, scene))
+        cancel.check("start-up")
+        cam = calibrate.camera_for(scene, direction, args.size)
     from tqdm import tqdm
 
     bar = tqdm(total=scene.transport.effective()[0], unit="pkt", unit_scale=True, desc="tracing",
-               disable=args.quiet, file=sys.stderr)
+               disable=args.quiet or not ranks.lead, file=sys.stderr)
 
     def progress(done, total):
         bar.n = done
         bar.refresh()
 
-    try:
-        if args.method == "peel-off":
-            cal, res = calibrate.peel_off_sky(scene, cam, backend, progress=progress, cancel=cancel)
-        else:
-            from ..pipeline.stages import Pipeline
+    with ranks.trace():
+        try:
+            if args.method == "peel-off":
+                cal, res = calibrate.peel_off_sky(scene, cam, backend, progress=progress, cancel=cancel,
+                                                  comm=ranks.comm)
+            else:
+                from ..pipeline.stages import Pipeline
 
-            light = Pipeline(backend).run(scene, progress=progress, cancel=cancel, colour=False)
-            res = light.transport
-            cal = calibrate.ray_march_sky(light, cam)
-    finally:
-        bar.close()
-    cancel.check("run")
+                light = Pipeline(backend, comm=ranks.comm).run(scene, progress=progress, cancel=cancel, colour=False)
+                res = light.transport
+                cal = calibrate.ray_march_sky(light, cam)
+        finally:
+            bar.close()
+        cancel.check("run")
     summary = {
         "scene": str(args.scene), "fits": str(args.fits), "png": args.png, "method": cal.method,
         "photons_per_band": int(res.photons), "pixel_scale_arcsec": round(cal.pixel_scale_arcsec, 6),
@@ -389,18 +404,22 @@ def _sky(args, cancel) -> int:
         "faintest_lit_mag_arcsec2": {n: None if not (cal.mag[x] == cal.mag[x]).any() else
                                      round(float(np.nanmax(cal.mag[x])), 3) for x, n in enumerate(cal.passbands)},
     }
-    with Publication() as pub:  # the FITS, the PNG and the JSON: all or none
-        calibrate.write_fits(pub.stage(args.fits), cal, scene)
-        if args.png:
-            rgb8, exposure = calibrate.picture(cal, scene, scene.colour.exposure)
-            calibrate.write_png(pub.stage(args.png), rgb8)
-            summary["exposure"] = exposure
-        if args.json:
-            pub.stage(args.json).write_text(json.dumps(summary, indent=2) + "\n")
-        cancel.check("run")
-        pub.publish()
-    if not args.quiet:
-        _print_summary(summary)
+
+    def publish():
+        with Publication() as pub:  # the FITS, the PNG and the JSON: all or none
+            calibrate.write_fits(pub.stage(args.fits), cal, scene)
+            if args.png:
+                rgb8, exposure = calibrate.picture(cal, scene, scene.colour.exposure)
+                calibrate.write_png(pub.stage(args.png), rgb8)
+                summary["exposure"] = exposure
+            if args.json:
+                pub.stage(args.json).write_text(json.dumps(summary, indent=2) + "\n")
+            cancel.check("run")
+            pub.publish()
+        if not args.quiet:
+            _print_summary(summary)
+
+    ranks.publish(publish)
     return 0
 
 

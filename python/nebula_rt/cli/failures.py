@@ -4,7 +4,8 @@ by the ranks of a distributed run.
 :func:`describe` maps the exception that ended a command to a :class:`Failure` (the statuses
 of :func:`nebula_rt.cli.commands.main`).
 
-Under ``mpiexec`` every rank runs the same ``nebula-rt render``. Most failures meet every rank
+Under ``mpiexec`` every rank runs the same command (``render``, ``sky``, ``compare``, ``fit``;
+each rank traces a share of every trace, :class:`Ranks`). Most failures meet every rank
 alike (a scene value, an output path, more memory than there is, a cancel), and a run whose
 ranks each printed the message and ended the job with ``MPI_Abort`` said the same thing N
 times under Open MPI's abort notice. So the ranks agree on how each step of the run ended:
@@ -31,6 +32,7 @@ out. A signal to mpiexec itself makes mpiexec exit 1 whatever the ranks return (
 from __future__ import annotations
 
 import contextlib
+import functools
 import os
 import sys
 from dataclasses import dataclass
@@ -161,6 +163,46 @@ def on_lead(comm, work: Callable[[], object], describe_: Callable[[BaseException
         raise RanksFailed(failure, 0, comm.size) from exc
     comm.bcast(None)
     return value
+
+
+class Ranks:
+    """The steps of a command on the ranks of an MPI job (one process: plain calls).
+
+    Every rank runs the whole command; each trace is shared by the ranks (pass :attr:`comm`
+    to it) and ends with the same bits on every rank, so every rank takes the same decisions
+    after it (a fit's next trial too). The steps:
+
+    - ``with ranks.start():`` the start-up (the scene, the options, the outputs, the device),
+      :func:`together`: whatever fails on whichever rank;
+    - ``with ranks.trace():`` the traces: a cancel is decided together (the transport, and
+      :func:`nebula_rt.backends.parallel.any_rank` between traces); any other failure there
+      is one rank's own;
+    - ``ranks.publish(work)``: rank 0 writes the outputs, :func:`on_lead`.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The command line (for the failure's message).
+    cancel : nebula_rt.interrupts.SignalCancel
+        The command's cancel flag.
+    """
+
+    def __init__(self, args, cancel):
+        from ..backends.parallel import world
+
+        self.comm = world()
+        self.lead = self.comm.rank == 0
+        self.cancel = cancel
+        self._failure = functools.partial(describe, args=args, cancel=cancel, distributed=True)
+
+    def start(self):
+        return together(self.comm, self._failure)
+
+    def trace(self):
+        return together(self.comm, self._failure, catch=CancelledError)
+
+    def publish(self, work: Callable[[], object]):
+        return on_lead(self.comm, work, self._failure)
 
 
 def quiet_rank() -> bool:

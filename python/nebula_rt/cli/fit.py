@@ -94,87 +94,106 @@ def _outputs(args, scene, inputs):
     check_outputs(outs, inputs + [("--table", Path(t)) for t in args.table])
 
 
-def compare_tables_command(args, cancel, scene, direction, backend_of, inputs, print_summary) -> int:
+def compare_tables_command(args, ranks, scene, direction, backend_of, inputs, print_summary) -> int:
     """``nebula-rt compare --table``: one trace, residuals and chi^2 of every table, the plot.
-    ``backend_of()`` makes the backend (after the tables are checked); ``inputs`` are the files
-    no output may replace; ``print_summary`` prints the JSON summary (nebula_rt.cli's)."""
+    ``ranks``: the command's steps on the ranks (:class:`nebula_rt.cli.failures.Ranks`, with
+    its cancel); ``backend_of()`` makes the backend (after the tables are checked); ``inputs``
+    are the files no output may replace; ``print_summary`` prints the JSON summary
+    (nebula_rt.cli's)."""
     from ..observe import comparison
     from ..transport import resources
     from ..pipeline.outputs import Publication
 
-    tables = read_tables(args, scene)
-    comparison.check_tables_against_scene(scene, tables, direction=direction, size=args.size, option="--table")
-    backend = backend_of()
-    resources.check(scene, backend, peel_pixels=args.size * args.size, peel_option="--size", peel_value=args.size)
-    _outputs(args, scene, inputs)
-    cancel.check("start-up")
-    comp = comparison.compare(scene, tables, direction=direction, size=args.size, reference=args.reference,
-                              backend=backend, cancel=cancel)
-    cancel.check("run")
+    cancel = ranks.cancel
+    with ranks.start():
+        tables = read_tables(args, scene)
+        comparison.check_tables_against_scene(scene, tables, direction=direction, size=args.size, option="--table")
+        backend = backend_of()
+        resources.check(scene, backend, peel_pixels=args.size * args.size, peel_option="--size",
+                        peel_value=args.size)
+        _outputs(args, scene, inputs)
+        cancel.check("start-up")
+    with ranks.trace():
+        comp = comparison.compare(scene, tables, direction=direction, size=args.size, reference=args.reference,
+                                  backend=backend, cancel=cancel, comm=ranks.comm)
+        cancel.check("run")
     summary = {"scene": str(args.scene), "png": str(args.png), "photons_per_band": comp.rings.photons,
                **comp.to_dict()}
-    with Publication() as pub:
-        comparison.plot(comp, pub.stage(args.png),
-                        title=f"{Path(args.scene).stem} against {len(tables)} table(s): chi2 = {comp.chi2:.2f} for "
-                              f"{comp.dof} dof ({comp.rings.photons:,} packets per band)")
-        if args.json:
-            pub.stage(args.json).write_text(json.dumps(summary, indent=2) + "\n")
-        cancel.check("run")
-        pub.publish()
-    print_summary(summary)
+
+    def publish():
+        with Publication() as pub:
+            comparison.plot(comp, pub.stage(args.png),
+                            title=f"{Path(args.scene).stem} against {len(tables)} table(s): chi2 = {comp.chi2:.2f} "
+                                  f"for {comp.dof} dof ({comp.rings.photons:,} packets per band)")
+            if args.json:
+                pub.stage(args.json).write_text(json.dumps(summary, indent=2) + "\n")
+            cancel.check("run")
+            pub.publish()
+        print_summary(summary)
+
+    ranks.publish(publish)
     return 0
 
 
-def fit_command(args, cancel, scene, direction, backend_of, inputs, print_summary) -> int:
-    """``nebula-rt fit`` (arguments as :func:`compare_tables_command`'s)."""
+def fit_command(args, ranks, scene, direction, backend_of, inputs, print_summary) -> int:
+    """``nebula-rt fit`` (arguments as :func:`compare_tables_command`'s). Under mpiexec the
+    ranks share every trace and take the same steps (:meth:`nebula_rt.observe.fit.FitRequest.run`)."""
     from ..observe import comparison, fit, fit_parameters
     from ..transport import resources
     from ..pipeline.outputs import Publication
 
-    tables = read_tables(args, scene)
-    free = [fit_parameters.parse_free(s, scene, direction) for s in args.free]
-    if not free:
-        raise SceneError("--free", [], "name at least one parameter to fit, e.g. --free albedo --free tau")
-    comparison.check_tables_against_scene(scene, tables, direction=direction, size=args.size, option="--table")
-    request = fit.FitRequest(scene, tables, free, direction=direction, size=args.size, reference=args.reference,
-                             uncertainty=args.uncertainty, grid=args.grid, starts=args.starts)
-    request.parameters()  # every option and bound, before the device is opened
-    backend = backend_of()
-    resources.check(scene, backend, peel_pixels=args.size * args.size, peel_option="--size", peel_value=args.size)
-    _outputs(args, scene, inputs)
-    cancel.check("start-up")
+    cancel = ranks.cancel
+    with ranks.start():
+        tables = read_tables(args, scene)
+        free = [fit_parameters.parse_free(s, scene, direction) for s in args.free]
+        if not free:
+            raise SceneError("--free", [], "name at least one parameter to fit, e.g. --free albedo --free tau")
+        comparison.check_tables_against_scene(scene, tables, direction=direction, size=args.size, option="--table")
+        request = fit.FitRequest(scene, tables, free, direction=direction, size=args.size, reference=args.reference,
+                                 uncertainty=args.uncertainty, grid=args.grid, starts=args.starts)
+        request.parameters()  # every option and bound, before the device is opened
+        backend = backend_of()
+        resources.check(scene, backend, peel_pixels=args.size * args.size, peel_option="--size",
+                        peel_value=args.size)
+        _outputs(args, scene, inputs)
+        cancel.check("start-up")
     bar = None
-    try:
-        from tqdm import tqdm
+    with ranks.trace():
+        try:
+            from tqdm import tqdm
 
-        bar = tqdm(total=1, unit="trace", desc="fitting", disable=args.quiet, file=sys.stderr)
+            bar = tqdm(total=1, unit="trace", desc="fitting", disable=args.quiet or not ranks.lead, file=sys.stderr)
 
-        def progress(done, total, best):
-            bar.total = total
-            bar.n = done
-            bar.set_postfix_str(f"best chi2 {best:.2f}", refresh=False)
-            bar.refresh()
+            def progress(done, total, best):
+                bar.total = total
+                bar.n = done
+                bar.set_postfix_str(f"best chi2 {best:.2f}", refresh=False)
+                bar.refresh()
 
-        res = request.run(backend=backend, progress=progress, cancel=cancel)
-    finally:
-        if bar is not None:
-            bar.close()
-    cancel.check("run")
-    summary = {"scene": str(args.scene), "png": str(args.png), **res.to_dict()}
-    with Publication() as pub:
-        comparison.plot(res.comparison, pub.stage(args.png),
-                        title=f"best fit of {Path(args.scene).stem}: " + ", ".join(
-                            f"{p.name} = {v:.4g}" for p, v in zip(res.parameters, res.best)) +
-                              f"; chi2 = {res.chi2:.2f} for {res.dof} dof")
-        if args.json:
-            pub.stage(args.json).write_text(json.dumps(summary, indent=2) + "\n")
-        if args.scene_out:
-            pub.stage(args.scene_out).write_text(res.scene.to_toml())
+            res = request.run(backend=backend, progress=progress, cancel=cancel, comm=ranks.comm)
+        finally:
+            if bar is not None:
+                bar.close()
         cancel.check("run")
-        pub.publish()
-    if not args.quiet:
-        print(res.summary(), file=sys.stderr, flush=True)
-    print_summary(summary)
+    summary = {"scene": str(args.scene), "png": str(args.png), **res.to_dict()}
+
+    def publish():
+        with Publication() as pub:
+            comparison.plot(res.comparison, pub.stage(args.png),
+                            title=f"best fit of {Path(args.scene).stem}: " + ", ".join(
+                                f"{p.name} = {v:.4g}" for p, v in zip(res.parameters, res.best)) +
+                                  f"; chi2 = {res.chi2:.2f} for {res.dof} dof")
+            if args.json:
+                pub.stage(args.json).write_text(json.dumps(summary, indent=2) + "\n")
+            if args.scene_out:
+                pub.stage(args.scene_out).write_text(res.scene.to_toml())
+            cancel.check("run")
+            pub.publish()
+        if not args.quiet:
+            print(res.summary(), file=sys.stderr, flush=True)
+        print_summary(summary)
+
+    ranks.publish(publish)
     return 0
 
 

@@ -50,48 +50,55 @@ def check_image_options(args) -> None:
                          "applies to an observed image: give it with --image obs.fits")
 
 
-def compare_image_command(args, cancel, scene, direction, backend_of, inputs, print_summary) -> int:
+def compare_image_command(args, ranks, scene, direction, backend_of, inputs, print_summary) -> int:
     """``nebula-rt compare --image``: arguments as :func:`nebula_rt.cli.fit.compare_tables_command`'s."""
     from ..observe import calibrate, image_compare as ic
     from ..transport import resources
     from ..pipeline.outputs import Output, Publication, check_outputs
 
-    if args.table:
-        raise SceneError("--image", args.image, "compare an image or tables (--table), not both in one run")
-    if not (math.isfinite(args.mask_stars) and args.mask_stars >= 0):
-        raise SceneError("--mask-stars", args.mask_stars, "must be a radius in arcsec >= 0")
-    calibrate.check_scene(scene)
-    obs = ic.read_image(args.image, args.image_hdu, unit=args.image_unit, errors=args.image_error)
-    kind = ic.resolve_band(scene, args.image_band, obs.header_band)
-    ic.check_pixel_batches(scene, args.size)
-    cam = calibrate.camera_for(scene, direction, args.size)
-    wcs = calibrate.celestial_wcs(scene, cam)
-    ic.check_overlap(obs, wcs, (cam.size[1], cam.size[0]))
-    npix = args.size * args.size
-    outs = [Output("--png", Path(args.png), ".png", 4 << 20)]
-    if args.json:
-        outs.append(Output("--json", Path(args.json), ".json", 1 << 20))
-    if args.fits:
-        outs.append(Output("--fits", Path(args.fits), ".fits", 7 * npix * 4 + (64 << 10)))
-    check_outputs(outs, inputs + [("--image", Path(args.image))])
-    backend = backend_of()
-    resources.check(scene, backend, peel_pixels=npix, peel_option="--size", peel_value=args.size)
-    cancel.check("start-up")
-    res = ic.compare_observed_image(scene, obs, band=kind[2], direction=direction, size=args.size,
-                                    mode=args.reproject, mask_stars_arcsec=args.mask_stars, backend=backend,
-                                    cancel=cancel)
-    cancel.check("run")
+    cancel = ranks.cancel
+    with ranks.start():
+        if args.table:
+            raise SceneError("--image", args.image, "compare an image or tables (--table), not both in one run")
+        if not (math.isfinite(args.mask_stars) and args.mask_stars >= 0):
+            raise SceneError("--mask-stars", args.mask_stars, "must be a radius in arcsec >= 0")
+        calibrate.check_scene(scene)
+        obs = ic.read_image(args.image, args.image_hdu, unit=args.image_unit, errors=args.image_error)
+        kind = ic.resolve_band(scene, args.image_band, obs.header_band)
+        ic.check_pixel_batches(scene, args.size)
+        cam = calibrate.camera_for(scene, direction, args.size)
+        wcs = calibrate.celestial_wcs(scene, cam)
+        ic.check_overlap(obs, wcs, (cam.size[1], cam.size[0]))
+        npix = args.size * args.size
+        outs = [Output("--png", Path(args.png), ".png", 4 << 20)]
+        if args.json:
+            outs.append(Output("--json", Path(args.json), ".json", 1 << 20))
+        if args.fits:
+            outs.append(Output("--fits", Path(args.fits), ".fits", 7 * npix * 4 + (64 << 10)))
+        check_outputs(outs, inputs + [("--image", Path(args.image))])
+        backend = backend_of()
+        resources.check(scene, backend, peel_pixels=npix, peel_option="--size", peel_value=args.size)
+        cancel.check("start-up")
+    with ranks.trace():
+        res = ic.compare_observed_image(scene, obs, band=kind[2], direction=direction, size=args.size,
+                                        mode=args.reproject, mask_stars_arcsec=args.mask_stars, backend=backend,
+                                        cancel=cancel, comm=ranks.comm)
+        cancel.check("run")
     c = res.comparison
     summary = {"scene": str(args.scene), "png": str(args.png), **res.to_dict()}
-    with Publication() as pub:
-        ic.plot(res, pub.stage(args.png),
-                title=f"{Path(args.scene).stem} ({res.model.band}) against {Path(args.image).name}: chi2 = "
-                      f"{c.chi2:.1f} for {c.n} pixels ({res.model.photons:,} packets per band)")
-        if args.json:
-            pub.stage(args.json).write_text(json.dumps(summary, indent=2) + "\n")
-        if args.fits:
-            ic.write_fits(pub.stage(args.fits), res)
-        cancel.check("run")
-        pub.publish()
-    print_summary(summary)
+
+    def publish():
+        with Publication() as pub:
+            ic.plot(res, pub.stage(args.png),
+                    title=f"{Path(args.scene).stem} ({res.model.band}) against {Path(args.image).name}: chi2 = "
+                          f"{c.chi2:.1f} for {c.n} pixels ({res.model.photons:,} packets per band)")
+            if args.json:
+                pub.stage(args.json).write_text(json.dumps(summary, indent=2) + "\n")
+            if args.fits:
+                ic.write_fits(pub.stage(args.fits), res)
+            cancel.check("run")
+            pub.publish()
+        print_summary(summary)
+
+    ranks.publish(publish)
     return 0

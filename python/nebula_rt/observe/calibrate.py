@@ -473,14 +473,16 @@ def camera_for(scene, direction=(0.0, 0.0, -1.0), size: int = 256, up=(0.0, 1.0,
     return Camera(direction=tuple(direction), up=tuple(up), size=(size, size), extent=extent, center=(0.5, 0.5, 0.5))
 
 
-def peel_off_sky(scene, camera, backend=None, progress=None, cancel=None, pixel_batches: bool = False):
+def peel_off_sky(scene, camera, backend=None, progress=None, cancel=None, pixel_batches: bool = False, comm=None):
     """Trace ``scene`` with a peel-off image for ``camera`` and calibrate it; returns
     (CalibratedSky, transport result). The stars' optical depths to the observer are the
     exact march of :func:`nebula_rt.transport.line_of_sight.line_of_sight_tau`.
 
     ``pixel_batches``: keep every batch's image (``result.peel_bin_batches``, (batches,
     n_bands, W * H), pixel p * H + q), for the Monte Carlo error of any linear function of the
-    calibrated image (:mod:`nebula_rt.observe.image_compare`); otherwise each batch's image sum."""
+    calibrated image (:mod:`nebula_rt.observe.image_compare`); otherwise each batch's image sum.
+    ``comm``: the ranks that share the trace (:mod:`nebula_rt.backends.parallel`); every rank
+    gets the same image."""
 
     check_scene(scene)
     backend = backend or scene_backend(scene)
@@ -489,7 +491,7 @@ def peel_off_sky(scene, camera, backend=None, progress=None, cancel=None, pixel_
     bins = (np.arange(camera.size[0] * camera.size[1], dtype=np.int64).reshape(camera.size) if pixel_batches
             else np.zeros(camera.size, np.int64))
     request = TransportRequest.from_scene(scene, peel=camera, peel_bins=bins)
-    res = request.trace(rho, backend, progress=progress, cancel=cancel)
+    res = request.trace(rho, backend, progress=progress, cancel=cancel, comm=comm)
     tau = star_tau(scene, bands, rho, camera)
     meta = {"NPHOTON": (int(res.photons), "packets per band"), "SEED": str(request.seed)}
     meta.update(fits_cards(res.tail_image, [b.name for b in bands]))  # the heavy-tail checks

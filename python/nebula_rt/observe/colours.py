@@ -273,11 +273,12 @@ def profiles(light, direction=(0.0, 0.0, -1.0), size: int = COMPARISON_SIZE, edg
 
 
 def observe_scene(scene, direction=(0.0, 0.0, -1.0), size: int = COMPARISON_SIZE, edges=None, backend=None,
-                  progress=None, reference: str = "observed", cancel=None) -> tuple[Profiles, object]:
+                  progress=None, reference: str = "observed", cancel=None, comm=None) -> tuple[Profiles, object]:
     """Trace ``scene`` with a peel-off image seen along ``direction`` (the phase function at
     every scattering towards the observer: forward and backward scattering as they are) and
     measure it as :func:`profiles` does, against ``reference``, with batch-means errors.
-    Returns (profiles, transport result)."""
+    Returns (profiles, transport result). ``comm``: the ranks that share the trace
+    (:mod:`nebula_rt.backends.parallel`); every rank gets the same result."""
 
     _check_reference(reference)
     backend = backend or scene_backend(scene)
@@ -290,7 +291,7 @@ def observe_scene(scene, direction=(0.0, 0.0, -1.0), size: int = COMPARISON_SIZE
     labels = _labels(_offsets(cam.origin(), cam.pixel_size, u, v, cam.size, star.position, direction), e)
     rho = generate_density(scene, backend)
     res = TransportRequest.from_scene(scene, peel=cam, peel_bins=labels).trace(rho, backend, progress=progress,
-                                                                              cancel=cancel)
+                                                                              cancel=cancel, comm=comm)
     sigma = np.array([scene.dust.tau * b.extinction for b in bands])[:, None, None, None] * \
         np.asarray(rho, np.float64)[None]
     tau_star = line_of_sight_tau(sigma, star.position, -np.asarray(direction, float))

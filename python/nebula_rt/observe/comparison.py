@@ -145,13 +145,14 @@ def ring_pixels(star_position, direction, size, edges):
 
 
 def trace_rings(scene, edges, *, direction=(0.0, 0.0, -1.0), size: int = DEFAULT_SIZE, backend=None,
-                progress=None, cancel=None, density=None) -> RingSums:
+                progress=None, cancel=None, density=None, comm=None) -> RingSums:
     """Trace ``scene`` with a peel-off image along ``direction`` centred on its most luminous
     star and sum it over the rings between consecutive ``edges`` (box units).
 
     ``density`` (nx, ny, nz) skips making the density (a fit reuses it while no dust key
     changes). The scene's error target and time limit apply (a fit refuses both: its trials
-    trace a fixed number of packets with one seed).
+    trace a fixed number of packets with one seed). ``comm``: the ranks that share the trace
+    (:mod:`nebula_rt.backends.parallel`); every rank gets the same sums.
     """
 
     backend = backend or scene_backend(scene)
@@ -162,7 +163,7 @@ def trace_rings(scene, edges, *, direction=(0.0, 0.0, -1.0), size: int = DEFAULT
     cam, labels, pixels = ring_pixels(star.position, direction, size, e)
     rho = generate_density(scene, backend) if density is None else density
     res = TransportRequest.from_scene(scene, peel=cam, peel_bins=labels).trace(rho, backend, progress=progress,
-                                                                              cancel=cancel)
+                                                                              cancel=cancel, comm=comm)
     sigma = np.array([scene.dust.tau * b.extinction for b in bands])[:, None, None, None] * \
         np.asarray(rho, np.float64)[None]
     tau_star = line_of_sight_tau(sigma, star.position, -np.asarray(direction, float))
@@ -371,14 +372,14 @@ def _check_rows_have_pixels(edges, pixels, t: ObservedTable, option: str = "tabl
 
 
 def compare(scene, tables: Sequence[ObservedTable], *, direction=(0.0, 0.0, -1.0), size: int = DEFAULT_SIZE,
-            reference: str = "observed", backend=None, progress=None, cancel=None) -> Comparison:
+            reference: str = "observed", backend=None, progress=None, cancel=None, comm=None) -> Comparison:
     """Trace ``scene`` once and hold it against ``tables`` (:func:`compare_tables`); the tables
     are checked against the scene and the model image first
     (:func:`check_tables_against_scene`: no row compared with nothing)."""
     _check_reference(reference)
     check_tables_against_scene(scene, tables, direction=direction, size=size)
     rings = trace_rings(scene, ring_edges(tables), direction=direction, size=size, backend=backend,
-                        progress=progress, cancel=cancel)
+                        progress=progress, cancel=cancel, comm=comm)
     return compare_tables(rings, tables, reference)
 
 

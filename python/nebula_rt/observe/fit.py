@@ -77,6 +77,7 @@ from .fit_surface import _covariance, _design, _local_start, _minimise, _refine
 from .observed_tables import ObservedTable, _annuli_from_offsets, finite_or_none
 from ..scene.model import Scene
 from ..scene.sky_schema import DIRECTION_ALLOWED, valid_direction
+from ..backends.parallel import any_rank
 from ..transport.request import scene_backend
 
 UNCERTAINTIES = ("profile", "mcmc", "none")
@@ -161,10 +162,12 @@ class _Objective:
     (a change of the fixed Monte Carlo errors re-scores them without tracing again), reports
     progress, polls the cancel."""
 
-    def __init__(self, base, params, tables, direction, size, reference, backend, progress, cancel, total):
+    def __init__(self, base, params, tables, direction, size, reference, backend, progress, cancel, total,
+                 comm=None):
         self.base, self.params, self.tables = base, params, tables
         self.direction, self.size, self.reference = direction, size, reference
         self.backend, self.progress, self.cancel = backend, progress, cancel
+        self.comm = comm  # the ranks sharing every trace: each takes the same steps after it
         self.edges = ring_edges(tables)
         self.total = total
         self.done = 0
@@ -192,7 +195,7 @@ class _Objective:
     def _trace(self, values):
         scene = scene_with(self.base, self.params, values, self.direction)
         return trace_rings(scene, self.edges, direction=self.direction, size=self.size, backend=self.backend,
-                           cancel=self.cancel, density=self._density(scene))
+                           cancel=self.cancel, density=self._density(scene), comm=self.comm)
 
     def comparison(self, z, own_errors: bool = False) -> Comparison:
         """The comparison at unit-cube point z (traced if new), with the fixed or its own errors."""
@@ -213,7 +216,7 @@ class _Objective:
     def _rings(self, z):
         key = tuple(np.round(z, 12))
         if key not in self.rings:
-            if self.cancel is not None and self.cancel():
+            if any_rank(self.comm, self.cancel is not None and self.cancel()):
                 raise CancelledError(f"fit cancelled after {self.done} traces")
             values = self.values(z)
             try:
@@ -377,10 +380,13 @@ class FitRequest:
                                  + ", ".join(f"{p.name} [{p.lo:g}, {p.hi:g}]" for p in params))
 
     def run(self, backend=None, progress: Optional[Callable] = None,
-            cancel: Optional[Callable[[], bool]] = None) -> FitResult:
+            cancel: Optional[Callable[[], bool]] = None, comm=None) -> FitResult:
         """Fit: a coarse grid, Nelder-Mead from its best points, a quadratic surface about the
         minimum, then the errors (``progress(done, total, best_chi2)`` after every trace,
-        ``cancel()`` before every trace and launch)."""
+        ``cancel()`` before every trace and launch). ``comm``: the ranks that share every
+        trace (:mod:`nebula_rt.backends.parallel`); each trace ends with the same bits on every
+        rank and the search is deterministic, so every rank takes the same steps and returns
+        the same result."""
         t0 = time.perf_counter()
         scene, direction = self.scene, self.direction
         params = self.parameters()
@@ -397,7 +403,7 @@ class FitRequest:
         unc_budget = {"profile": 2 * k, "mcmc": walkers * (self.mcmc_steps + 1), "none": 0}[self.uncertainty]
         total = grid ** k + 1 + int(self.starts) * maxfev + 3 * len(_design(k)) + 1 + unc_budget
         obj = _Objective(scene, params, list(self.tables), direction, self.size, self.reference, backend, progress,
-                         cancel, total)
+                         cancel, total, comm)
         z_best, cov, f_best = self._search(obj, z_start, grid, maxfev)
         comp = obj.comparison(z_best)
         best = obj.values(z_best)
@@ -505,6 +511,9 @@ class FitRequest:
         # walkers start in a ball of half the refined quadratic's width about the best fit
         p0 = np.clip(z_best[None] + 0.5 * rng.standard_normal((walkers, k)) @ L.T, 0.0, 1.0)
         sampler = emcee.EnsembleSampler(walkers, k, log_prob)
+        # emcee starts its moves from numpy's global random state: seeded here, the chain is
+        # the scene's (the same on every run and every rank of an MPI job)
+        sampler.random_state = np.random.RandomState(int(self.scene.transport.seed) & 0xFFFFFFFF).get_state()
         sampler.run_mcmc(p0, steps, progress=False)
         chain = sampler.get_chain(discard=steps // 2, flat=True)
         vals = np.array([obj.values(z) for z in chain])

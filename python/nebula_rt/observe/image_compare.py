@@ -306,14 +306,15 @@ def check_pixel_batches(scene, size: int) -> None:
                          "transport.batch_size for fewer batches")
 
 
-def model_image(scene, kind: tuple, camera, backend=None, progress=None, cancel=None) -> ModelImage:
+def model_image(scene, kind: tuple, camera, backend=None, progress=None, cancel=None, comm=None) -> ModelImage:
     """Trace ``scene`` with the peel-off image of ``camera``, calibrate it
     (:func:`nebula_rt.observe.calibrate.peel_off_sky`) and give the image of ``kind``
     (:func:`resolve_band`) with its Monte Carlo error: the batch-means standard error of the
     calibrated pixel, from the calibration (affine in the scattered light: L(x) + c, the stars c)
     of each batch's deviation from the mean, L(d_k) = cal(d_k) - cal(0)."""
 
-    cal, res = calibrate.peel_off_sky(scene, camera, backend, progress=progress, cancel=cancel, pixel_batches=True)
+    cal, res = calibrate.peel_off_sky(scene, camera, backend, progress=progress, cancel=cancel, pixel_batches=True,
+                                      comm=comm)
     w, h = camera.size
     xb = np.asarray(res.peel_bin_batches, np.float64)
     m = xb.shape[0]
@@ -437,7 +438,7 @@ class ImageResult:
 
 def compare_observed_image(scene, obs: ObservedImage, *, band=None, direction=(0.0, 0.0, -1.0), size: int = COMPARISON_SIZE,
                            mode: str = "exact", mask_stars_arcsec: float = 0.0, backend=None, progress=None,
-                           cancel=None) -> ImageResult:
+                           cancel=None, comm=None) -> ImageResult:
     """Hold ``scene``'s calibrated peel-off image against ``obs``: the observation reprojected
     onto the model image (checked before any tracing), the trace, residuals and chi^2.
 
@@ -458,6 +459,9 @@ def compare_observed_image(scene, obs: ObservedImage, *, band=None, direction=(0
         Leave out pixels within this radius of each star (its PSF core, often saturated).
     cancel : callable or CancelToken, optional
         As for :func:`nebula_rt.transport.trace`.
+    comm : communicator, optional
+        The ranks that share the trace (:mod:`nebula_rt.backends.parallel`), as for
+        :func:`nebula_rt.transport.trace`: every rank gets the same result.
     """
 
     calibrate.check_scene(scene)
@@ -484,7 +488,7 @@ def compare_observed_image(scene, obs: ObservedImage, *, band=None, direction=(0
                          f"leaves none of the {int(rep.usable.sum())} model pixels the image covers to compare: "
                          f"must be a radius in arcsec >= 0 that leaves some (model pixels of {pixel_arcsec:.4g} "
                          "arcsec)")
-    mod = model_image(scene, kind, cam, backend, progress=progress, cancel=cancel)
+    mod = model_image(scene, kind, cam, backend, progress=progress, cancel=cancel, comm=comm)
     mask = rep.usable & ~star_mask(mod.cal, mask_stars_arcsec)
     comp = compare_image(mod.image, mod.error, rep.data, rep.error, mask=mask)
     return ImageResult(model=mod, observed=rep, comparison=comp, image=obs.label,

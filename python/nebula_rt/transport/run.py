@@ -38,7 +38,7 @@ import numpy as np
 
 from ..backends import Backend
 from ..errors import AccumulatorOverflowError, CancelledError, TimeLimitError
-from ..backends.parallel import Serial, device_reducer, share
+from ..backends.parallel import Serial, any_rank, device_reducer, share
 from .finish import DeviceSums
 from .tails import (
     IMAGE_ERROR_LIMIT, J_ERROR_LIMIT, TAIL_BINS, check_histograms, class_cells)
@@ -138,7 +138,7 @@ class _Launcher:
                 traced += chunk
                 if on_progress is not None and i + 1 < launches:
                     on_progress(traced * comm.size)
-            if comm.allreduce_max(1.0 if cancel is not None and cancel() else 0.0) > 0:
+            if any_rank(comm, cancel is not None and cancel()):
                 raise CancelledError("transport cancelled")
         if tallies is None:
             tallies, overflow = self.session.empty_group(n_slots, bands)
@@ -211,7 +211,7 @@ def run_transport(plan: TransportPlan, backend: Backend, *, progress=None, cance
         passed the time limit (all stop), decided between groups."""
         if not distributed:
             return time.perf_counter() >= deadline
-        if comm.allreduce_max(1.0 if cancel is not None and cancel() else 0.0) > 0:
+        if any_rank(comm, cancel is not None and cancel()):
             raise CancelledError(f"transport cancelled after {done:,} of {photons:,} packets per band")
         return bool(comm.bcast(time.perf_counter() >= deadline))
     next_check = 0  # packets per band after which the error is checked next (targeted runs)
