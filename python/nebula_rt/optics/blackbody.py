@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import math
 
-import colour
 import numpy as np
 from scipy.constants import Boltzmann, Stefan_Boltzmann, c, h
 
@@ -42,6 +41,10 @@ def planck_lambda(wavelength_m, temperature: float, *, colorimetry: bool = False
     ndarray, the shape of ``wavelength_m``
         Spectral radiance, W m^-2 sr^-1 m^-1 (0 where exp overflows: far Wien tail).
     """
+    # imported here: colour-science's package import takes about 1.5 s (it loads matplotlib
+    # for its plotting), which every command's start-up and every scene would pay
+    import colour
+
     wl = np.asarray(wavelength_m, np.float64)
     constants = {} if colorimetry else {"c1": SI_C1, "c2": SI_C2}
     with np.errstate(over="ignore"):  # (the Wien tail: exp overflows, B -> 0)
