@@ -42,19 +42,30 @@ def test_mpi4py_is_there():
     import mpi4py  # noqa: F401  (the mpi extra)
 
 
-def _ranks(tmp_path, n, *extra):
-    out = tmp_path / f"r{n}-{'-'.join(extra)}.npz"
-    mpiexec(n, sys.executable, str(SCRIPT), str(out), *extra)
-    return np.load(out)
+def _ranks(folder: Path, n: int, cases) -> dict:
+    """Every (estimator, mode) of ``cases`` traced by one job of ``n`` ranks
+    (tests/mpi/trace_ranks.py): {case: the saved arrays}."""
+    folder.mkdir(parents=True, exist_ok=True)
+    mpiexec(n, sys.executable, str(SCRIPT), str(folder), TEST_DEVICE, *(f"{e}:{m}" for e, m in cases))
+    return {(e, m): np.load(folder / f"{e}-{m}.npz") for e, m in cases}
 
 
-@pytest.mark.parametrize("case", [("track-length", "plain"), ("collision-filter", "plain"),
-                                  ("track-length", "checked"), ("track-length", "checked+copied"),
-                                  ("track-length", "biased+checked"), ("collision-filter", "biased+copied"),
-                                  ("track-length", "regions+checked"), ("track-length", "packets+regions"),
-                                  ("collision-filter", "packets+copied")],
-                         ids="-".join)
-def test_trace_is_the_same_bits_on_1_2_3_ranks(tmp_path, case):
+CASES = [("track-length", "plain"), ("collision-filter", "plain"),
+         ("track-length", "checked"), ("track-length", "checked+copied"),
+         ("track-length", "biased+checked"), ("collision-filter", "biased+copied"),
+         ("track-length", "regions+checked"), ("track-length", "packets+regions"),
+         ("collision-filter", "packets+copied")]
+
+
+@pytest.fixture(scope="module")
+def rank_runs(tmp_path_factory):
+    """Every case of CASES on 1, 2 and 3 ranks: {ranks: {case: arrays}} (one job per rank count)."""
+    folder = tmp_path_factory.mktemp("ranks")
+    return {n: _ranks(folder / f"n{n}", n, CASES) for n in (1, 2, 3)}
+
+
+@pytest.mark.parametrize("case", CASES, ids="-".join)
+def test_trace_is_the_same_bits_on_1_2_3_ranks(rank_runs, case):
     """Sums, centred squares, packet counts, peel-off image and batches per band: identical
     bytes on 1, 2 and 3 ranks (two bands, two stars, 9001 packets in batches of 1500, several
     batches per launch; 'checked': headroom 2^36, so batches overflow and are re-traced;
@@ -64,7 +75,7 @@ def test_trace_is_the_same_bits_on_1_2_3_ranks(tmp_path, case):
     streamed through launches of about 300 packets and drained at the group's last;
     'packets': the error estimate by packets, the ranks' squares added as well)."""
     estimator, mode = case
-    runs = {n: _ranks(tmp_path, n, estimator, mode, TEST_DEVICE) for n in (1, 2, 3)}
+    runs = {n: rank_runs[n][case] for n in (1, 2, 3)}
     one = runs[1]
     assert int(one["size"]) == 1 and int(runs[3]["size"]) == 3
     unit = 2**96 if "biased" in mode else 1  # weight units per packet
@@ -90,7 +101,8 @@ def test_tail_histograms_do_not_depend_on_the_path(tmp_path):
     """A packet's contribution does not depend on how it was traced: the heavy-tail histograms
     (nebula_rt.transport.tails) of one rank plain, with batches re-traced after overflows, and by regions
     (the packets' image scores saved and resumed across passes) are the same bits."""
-    runs = [_ranks(tmp_path, 1, "track-length", mode, TEST_DEVICE) for mode in ("plain", "checked", "regions+checked")]
+    cases = [("track-length", mode) for mode in ("plain", "checked", "regions+checked")]
+    runs = list(_ranks(tmp_path, 1, cases).values())
     assert runs[0]["tail_hist"].sum() > 0
     for r in runs[1:]:
         assert r["tail_hist"].tobytes() == runs[0]["tail_hist"].tobytes()
@@ -99,11 +111,11 @@ def test_tail_histograms_do_not_depend_on_the_path(tmp_path):
 def test_allreduce_choice_is_checked_before_tracing(tmp_path):
     """A wrong NEBULA_RT_ALLREDUCE ends every rank of a distributed run with an error naming
     the variable, the value and the choices, and nothing is saved."""
-    out = tmp_path / "r2.npz"
+    out = tmp_path / "track-length-plain.npz"
     env = dict(os.environ, NEBULA_RT_ALLREDUCE="gpu")
     env.pop("POCL_CPU_MAX_CU_COUNT", None)
     r = subprocess.run([shutil.which("mpiexec"), "--allow-run-as-root", "--oversubscribe", "-n", "2", sys.executable,
-                        str(SCRIPT), str(out), "track-length", "plain", TEST_DEVICE],
+                        str(SCRIPT), str(tmp_path), TEST_DEVICE, "track-length:plain"],
                        capture_output=True, text=True, timeout=120, env=env)
     assert r.returncode != 0
     assert "NEBULA_RT_ALLREDUCE = 'gpu': expected one of auto, nccl, host" in r.stderr, r.stderr[-2000:]

@@ -1,7 +1,11 @@
-"""Run by tests/test_mpi.py under mpiexec: every rank traces the same run through
-``trace(comm=world())``; rank 0 saves the sums, squares, counts, peel-off image and heavy-tail histograms (.npz).
+"""Run by tests/test_mpi.py under mpiexec: every rank traces the same runs through
+``trace(comm=world())``; rank 0 saves each run's sums, squares, counts, peel-off image and
+heavy-tail histograms (.npz).
 
-    mpiexec -n N python tests/mpi/trace_ranks.py OUT.npz ESTIMATOR MODE [DEVICE]
+    mpiexec -n N python tests/mpi/trace_ranks.py OUTDIR DEVICE ESTIMATOR:MODE...
+
+Each ESTIMATOR:MODE is one run, saved as OUTDIR/ESTIMATOR-MODE.npz (one process runs them all:
+an MPI job's start-up costs more than a run).
 
 MODE: ``plain``, ``checked`` (headroom lowered: batches overflow and are re-traced), ``biased``
 (weighted packets, 128-bit cells), ``regions`` (the transport by regions, each group streamed
@@ -19,7 +23,6 @@ import sys
 
 import numpy as np
 
-from nebula_rt.backends import get_backend
 from nebula_rt.optics.bands import Band
 from nebula_rt.backends.parallel import world
 from nebula_rt.scene import Star
@@ -27,19 +30,23 @@ from nebula_rt.observe.sky import Camera
 from nebula_rt.transport import trace
 
 
-def main() -> int:
-    out, estimator = sys.argv[1], sys.argv[2]
-    mode = sys.argv[3] if len(sys.argv) > 3 else "plain"
+def run_case(out: str, estimator: str, mode: str, device: str, comm) -> None:
+    """Trace one run on every rank of ``comm``; rank 0 saves it to ``out``."""
+    import nebula_rt.transport.run as transport_mod
+
     parts = mode.split("+")
     checked, biased = "checked" in parts, "biased" in parts
-    comm = world()
-    device = sys.argv[4] if len(sys.argv) > 4 else ""
+    # a new backend per run (get_backend's are cached): the modes change it
     if os.environ.get("NEBULA_RT_TEST_BACKEND", "opencl") == "cuda":
         import cupy
 
-        backend = get_backend("cuda", device or str(comm.local_rank % cupy.cuda.runtime.getDeviceCount()))
+        from nebula_rt.backends.cuda import CUDABackend
+
+        backend = CUDABackend(device or str(comm.local_rank % cupy.cuda.runtime.getDeviceCount()))
     else:
-        backend = get_backend("opencl", device)
+        from nebula_rt.backends.opencl import OpenCLBackend
+
+        backend = OpenCLBackend(device)
     if "+copied" in mode:
         backend.map_host = lambda dev, n: None
     rng = np.random.default_rng(11)
@@ -57,12 +64,14 @@ def main() -> int:
     if "packets" in parts:  # one batch of every packet, no peel-off image (it needs batches)
         kw.update(error_estimate="packets", batch_size=0, peel=None, tau=2.5)
     backend.launch_packets = 2 * 3 * 1500  # several launches, each of several batches
+    budget = transport_mod._Launcher._budget
     if "regions" in parts:  # by regions of 4 voxels, each group in launches of about 300 packets
-        import nebula_rt.transport.run as transport_mod
-
         backend.transport_tuning.update({"NRT_REGIONS": 2, "region_tail": 50})
         transport_mod._Launcher._budget = lambda self, nb: 600  # packets (all bands) per launch
-    res = trace(cloud, bands, stars, comm=comm, **kw)
+    try:
+        res = trace(cloud, bands, stars, comm=comm, **kw)
+    finally:
+        transport_mod._Launcher._budget = budget
     if comm.rank == 0:
         # counts: exact integers (128-bit weight sums when biased) as decimal text
         counts = np.array([[str(int(x)) for x in row] for row in res.counts])
@@ -70,6 +79,14 @@ def main() -> int:
                  peel=np.zeros(0) if res.peel_image is None else res.peel_image,
                  band_batches=res.band_batches, size=comm.size, reduce_path=res.reduce_path,
                  tail_hist=res.tail_hist)
+
+
+def main() -> int:
+    outdir, device = sys.argv[1], sys.argv[2]
+    comm = world()
+    for case in sys.argv[3:]:
+        estimator, mode = case.split(":")
+        run_case(os.path.join(outdir, f"{estimator}-{mode}.npz"), estimator, mode, device, comm)
     return 0
 
 
