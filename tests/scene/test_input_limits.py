@@ -23,7 +23,6 @@ from nebula_rt.errors import SceneError
 from nebula_rt.filters.vti import read_vti, write_vti
 from nebula_rt.pipeline import Pipeline
 from nebula_rt.scene import Scene
-from nebula_rt.transport.plan import FIXED_POINT_BITS
 from nebula_rt.transport import trace
 
 F32_MAX = float(np.finfo(np.float32).max)

@@ -20,7 +20,6 @@ from nebula_rt import scene as sc
 from nebula_rt.filters.colour import COLOUR_PROPERTIES, NebulaColour
 from nebula_rt.filters.dust_density import DUST_DENSITY_PROPERTIES, NebulaDustDensity
 from nebula_rt.filters.light_field import LIGHT_FIELD_PROPERTIES, NebulaLightField
-from nebula_rt.scene.schema import label
 
 from conftest import TEST_DEVICE
 

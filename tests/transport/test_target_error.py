@@ -21,7 +21,6 @@ from conftest import centre_star, one_band, voxel_centres
 from nebula_rt.errors import SceneError
 from nebula_rt.scene import QUALITY_PRESETS, Transport
 from nebula_rt.scene import Scene
-from nebula_rt.transport.plan import MIN_BATCHES
 from nebula_rt.transport.estimate import lit_region
 from nebula_rt.transport import trace
 from nebula_rt.transport.analytic import voxel_average_point_source

@@ -17,9 +17,17 @@ from ..errors import CancelledError, OutputError, SceneError
 from .. import scene as _scene
 from ..scene import sky_schema
 from ..interrupts import SignalCancel
+from .arguments import file_name
 from .failures import RanksFailed, Ranks, abort_the_other_ranks, describe, error, quiet_rank, say
 
 #: pixels per side of the sky image of ``nebula-rt compare``
+
+
+def _toml_string(text: str) -> str:
+    """``text`` as a TOML basic string, every quote, backslash and control character escaped:
+    spliced between quotes as it was, ``--device 'a"b'`` was not TOML and reached the scene as
+    the raw text with the quotes around it."""
+    return '"' + "".join(c if c >= " " and c not in '"\\\x7f' else f"\\u{ord(c):04x}" for c in text) + '"'
 
 
 def _scene_from_args(args):
@@ -28,12 +36,16 @@ def _scene_from_args(args):
 
     scene = Scene.load(args.scene)
     args.scene_used = scene  # a later error on a converted value names the physical key (units.attribute)
+    for item in args.set:
+        # an override without a key ("", "=1") has nothing the scene's message could name
+        if "=" not in item or not item.partition("=")[0].strip():
+            raise SceneError("--set", item, "must be KEY=VALUE with a dotted scene key, e.g. transport.photons=1e6")
     if args.set:
         scene = scene.with_overrides(args.set)
     if args.backend:
         scene = scene.with_overrides([f"transport.backend={args.backend}"])
     if args.device is not None:
-        scene = scene.with_overrides([f'transport.device="{args.device}"'])
+        scene = scene.with_overrides([f"transport.device={_toml_string(args.device)}"])
     if args.photons is not None:
         scene = scene.with_overrides([f"transport.photons={args.photons}"])
     if args.target_error is not None:
@@ -465,19 +477,19 @@ def build_parser() -> argparse.ArgumentParser:
     sub = ap.add_subparsers(dest="command", required=True)
     run, view, reference = _run_options(), _view_options(), _reference_options()
     r = sub.add_parser("render", parents=[run], help="trace a scene and write a .vti (and optionally a PNG)")
-    r.add_argument("scene", help="scene file (TOML)")
-    r.add_argument("-o", "--output", default="nebula.vti", help="output .vti file (default nebula.vti)")
-    r.add_argument("--png", default=None, help="also write a volume rendering of rgba to this PNG")
+    r.add_argument("scene", type=file_name, help="scene file (TOML)")
+    r.add_argument("-o", "--output", type=file_name, default="nebula.vti", help="output .vti file (default nebula.vti)")
+    r.add_argument("--png", type=file_name, default=None, help="also write a volume rendering of rgba to this PNG")
     r.add_argument("--stretch", default=None, choices=_choices("colour.stretch"),
                    help="shorthand for --set colour.stretch=S: " + _scene.declaration("colour.stretch").doc)
     r.add_argument("-q", "--quiet", action="store_true", help="no progress bar or summary")
     r.set_defaults(func=_render)
     k = sub.add_parser("sky", parents=[run, view],
                        help="a calibrated sky image: FITS (MJy/sr, mag/arcsec^2, celestial WCS) and PNG")
-    k.add_argument("scene", help="scene file (TOML) with [observer] distance and stars in L_sun or M_V")
-    k.add_argument("--fits", required=True, help="output FITS file")
-    k.add_argument("--png", default=None, help="also write the true-colour picture to this PNG")
-    k.add_argument("--json", default=None, help="also write the summary (fluxes, magnitudes) as JSON")
+    k.add_argument("scene", type=file_name, help="scene file (TOML) with [observer] distance and stars in L_sun or M_V")
+    k.add_argument("--fits", type=file_name, required=True, help="output FITS file")
+    k.add_argument("--png", type=file_name, default=None, help="also write the true-colour picture to this PNG")
+    k.add_argument("--json", type=file_name, default=None, help="also write the summary (fluxes, magnitudes) as JSON")
     k.add_argument("--method", default="peel-off", choices=["peel-off", "ray-march"],
                    help="peel-off during the transport (the phase function; default) or the ray march of the "
                         "light field's emissivity (isotropic per voxel)")
@@ -490,9 +502,9 @@ def build_parser() -> argparse.ArgumentParser:
     c = sub.add_parser("compare", parents=[run, view, reference],
                        help="a scene's colours (Delta(B-V), nebula/star ratio) against observed nebulae, "
                             "the user's tables (--table) or FITS image (--image)")
-    c.add_argument("scene", help="scene file (TOML)")
-    c.add_argument("--png", default="compare.png", help="plot (default compare.png)")
-    c.add_argument("--json", default=None, help="also write the measured profiles as JSON")
+    c.add_argument("scene", type=file_name, help="scene file (TOML)")
+    c.add_argument("--png", type=file_name, default="compare.png", help="plot (default compare.png)")
+    c.add_argument("--json", type=file_name, default=None, help="also write the measured profiles as JSON")
     c.add_argument("--size", type=int, default=sky_schema.COMPARISON_SIZE,
                    help="sky image pixels per side ({}-{})".format(*_size_range()))
     from .fit import add_fit_parser, add_table_options

@@ -17,11 +17,12 @@ from pathlib import Path
 
 from ..errors import SceneError
 from ..scene import sky_schema
+from .arguments import file_name
 
 
 def add_table_options(p) -> None:
     """The options that say how to read the tables (shared by compare and fit)."""
-    p.add_argument("--table", action="append", default=[], metavar="PATH",
+    p.add_argument("--table", action="append", type=file_name, default=[], metavar="PATH",
                    help="the user's observations: a .csv or .ecsv table of Delta(B-V) versus offset (columns offset, "
                         "delta_bv, delta_bv_err) or of the nebula/star ratio versus wavelength (wavelength, ratio, "
                         "ratio_err); repeatable (docs/observations.md)")
@@ -80,7 +81,8 @@ def read_tables(args, scene) -> list:
     except (ValueError, AssertionError):
         raise SceneError("--annulus", args.annulus, "must be lo,hi with 0 <= lo < hi (box units)") from None
     scale = OffsetScale(box_length=_box_length(args, scene), distance=_quantity("--distance", args.distance))
-    return [read_table(p, scale=scale, normalisation=args.normalisation, annulus=annulus) for p in args.table]
+    return [read_table(p, scale=scale, normalisation=args.normalisation, annulus=annulus, option="--table")
+            for p in args.table]
 
 
 def _outputs(args, scene, inputs):
@@ -205,7 +207,7 @@ def add_fit_parser(sub, func, sizes, parents=()) -> None:
     number of packets)."""
     f = sub.add_parser("fit", parents=list(parents),
                        help="fit the dust (albedo, g, tau, the star's depth, any scene key) to observations")
-    f.add_argument("scene", help="scene file (TOML): the model, and the start")
+    f.add_argument("scene", type=file_name, help="scene file (TOML): the model, and the start")
     add_table_options(f)
     f.add_argument("--free", action="append", default=[], metavar="NAME[=LO:HI[:log]]",
                    help="a parameter to fit: albedo, g, albedo_slope, g_slope, albedo.BAND, g.BAND, tau, depth or a "
@@ -213,10 +215,13 @@ def add_fit_parser(sub, func, sizes, parents=()) -> None:
     f.add_argument("--uncertainty", default="profile", choices=["profile", "mcmc", "none"],
                    help="profile likelihood (default), MCMC (emcee), or none")
     f.add_argument("--grid", type=int, default=None, help="starting grid points per parameter (default 3 for <= 3)")
-    f.add_argument("--starts", type=int, default=2, help="Nelder-Mead runs from the grid's best points (default 2)")
-    f.add_argument("--png", default="fit.png", help="plot of the best fit against the tables (default fit.png)")
-    f.add_argument("--json", default=None, help="also write the result as JSON")
-    f.add_argument("--scene-out", default=None, help="write the best-fit scene (TOML)")
+    f.add_argument("--starts", type=int, default=None,
+                   help="Nelder-Mead runs from the grid's best points and the start, at most as many as there are "
+                        "(default 2, or 1 without a grid)")
+    f.add_argument("--png", type=file_name, default="fit.png",
+                   help="plot of the best fit against the tables (default fit.png)")
+    f.add_argument("--json", type=file_name, default=None, help="also write the result as JSON")
+    f.add_argument("--scene-out", type=file_name, default=None, help="write the best-fit scene (TOML)")
     f.add_argument("--size", type=int, default=sky_schema.COMPARISON_SIZE,
                    help=f"peel-off image pixels per side ({sizes[0]}-{sizes[1]})")
     f.add_argument("-q", "--quiet", action="store_true", help="no progress bar or summary on stderr")

@@ -15,13 +15,14 @@ import math
 from pathlib import Path
 
 from ..errors import SceneError
+from .arguments import file_name
 
 
 def add_image_options(p) -> None:
     """The options of ``compare --image``."""
     from ..observe.image_compare import REPROJECT_MODES
 
-    p.add_argument("--image", default=None, metavar="FITS",
+    p.add_argument("--image", type=file_name, default=None, metavar="FITS",
                    help="the user's observed image: FITS with a celestial WCS, in MJy/sr or another surface brightness "
                         "per unit frequency (docs/observations.md)")
     p.add_argument("--image-hdu", default=None, help="the image's HDU, by name or number (default: the first image)")
@@ -36,7 +37,7 @@ def add_image_options(p) -> None:
                    help="exact: flux-conserving area means (default); interp: bilinear at the model pixels' centres")
     p.add_argument("--mask-stars", type=float, default=0.0, metavar="ARCSEC",
                    help="leave out the pixels within this radius of each star (default 0)")
-    p.add_argument("--fits", default=None,
+    p.add_argument("--fits", type=file_name, default=None,
                    help="with --image: also write model, data, errors, residual and pull as FITS on the model's WCS")
 
 
@@ -63,7 +64,8 @@ def compare_image_command(args, ranks, scene, direction, backend_of, inputs, pri
         if not (math.isfinite(args.mask_stars) and args.mask_stars >= 0):
             raise SceneError("--mask-stars", args.mask_stars, "must be a radius in arcsec >= 0")
         calibrate.check_scene(scene)
-        obs = ic.read_image(args.image, args.image_hdu, unit=args.image_unit, errors=args.image_error)
+        obs = ic.read_image(args.image, args.image_hdu, unit=args.image_unit, errors=args.image_error,
+                             option="--image")
         kind = ic.resolve_band(scene, args.image_band, obs.header_band)
         ic.check_pixel_batches(scene, args.size)
         cam = calibrate.camera_for(scene, direction, args.size)

@@ -279,9 +279,10 @@ class FitRequest:
     start : sequence of float, optional
         The starting values, each within its parameter's bounds (default the scene's, moved
         into the bounds).
-    starts : int
+    starts : int, optional
         Nelder-Mead runs, from the best ``starts`` points of the grid (and the start); 0: none,
-        the refinement starts from the grid's best.
+        the refinement starts from the grid's best. At most the grid's points and the start;
+        default 2, or 1 where there is only the start.
     maxfev : int, optional
         Traces per optimiser run (default 20 + 15 per parameter), >= 1.
     fatol : float
@@ -303,7 +304,7 @@ class FitRequest:
     uncertainty: str = "profile"
     grid: Optional[int] = None
     start: Optional[Sequence[float]] = None
-    starts: int = 2
+    starts: Optional[int] = None
     maxfev: Optional[int] = None
     fatol: float = 0.05
     mcmc_walkers: int = 0
@@ -363,7 +364,12 @@ class FitRequest:
                                                       f"traces ({k} free parameter{'s' if k > 1 else ''}); at most "
                                                       f"{MAX_GRID_POINTS:,} "
                                                       f"(--grid <= {math.floor(MAX_GRID_POINTS ** (1.0 / k) + 1e-9)})")
-        count("--starts", self.starts, 0, "Nelder-Mead runs from the grid's best points; 0: none")
+        if self.starts is not None:
+            count("--starts", self.starts, 0, "Nelder-Mead runs from the grid's best points; 0: none")
+            points = self._grid(k) ** k + 1
+            if self.starts > points:  # (was: as many as there are, silently)
+                raise SceneError("--starts", self.starts, f"must be at most {points}: a run starts from one of the "
+                                                          f"grid's {self._grid(k)}^{k} points or the start")
         if self.maxfev is not None:
             count("maxfev", self.maxfev, 1, "traces per optimiser run")
         count("mcmc_steps", self.mcmc_steps, 2, "steps of the MCMC chain, half of them burn-in")
@@ -378,6 +384,14 @@ class FitRequest:
                                           for p, v in zip(params, start)):
                 raise SceneError("start", start, "must hold one value per free parameter, each within its bounds "
                                  + ", ".join(f"{p.name} [{p.lo:g}, {p.hi:g}]" for p in params))
+
+    def _grid(self, k: int) -> int:
+        """Points per parameter of the starting grid, for ``k`` free parameters."""
+        return (3 if k <= 3 else 0) if self.grid is None else int(self.grid)
+
+    def _starts(self, k: int) -> int:
+        """Nelder-Mead runs: as given, else 2 where the grid and the start offer 2 points."""
+        return min(2, self._grid(k) ** k + 1) if self.starts is None else int(self.starts)
 
     def run(self, backend=None, progress: Optional[Callable] = None,
             cancel: Optional[Callable[[], bool]] = None, comm=None) -> FitResult:
@@ -395,13 +409,14 @@ class FitRequest:
         if start is None:
             start = [min(max(current_value(scene, p.name, direction), p.lo), p.hi) for p in params]
         z_start = np.array([p.to_unit(v) for p, v in zip(params, start)])
-        grid = (3 if k <= 3 else 0) if self.grid is None else int(self.grid)
+        grid = self._grid(k)
+        starts = self._starts(k)
         maxfev = 20 + 15 * k if self.maxfev is None else int(self.maxfev)
         backend = backend or scene_backend(scene)
         walkers = max(8, 4 * k) if not self.mcmc_walkers else int(self.mcmc_walkers)
         # MCMC: emcee evaluates the starting ensemble too
         unc_budget = {"profile": 2 * k, "mcmc": walkers * (self.mcmc_steps + 1), "none": 0}[self.uncertainty]
-        total = grid ** k + 1 + int(self.starts) * maxfev + 3 * len(_design(k)) + 1 + unc_budget
+        total = grid ** k + 1 + starts * maxfev + 3 * len(_design(k)) + 1 + unc_budget
         obj = _Objective(scene, params, list(self.tables), direction, self.size, self.reference, backend, progress,
                          cancel, total, comm)
         z_best, cov, f_best = self._search(obj, z_start, grid, maxfev)
@@ -444,7 +459,7 @@ class FitRequest:
         # cells, or two minima, e.g. g > 0 and g < 0, can trap one start), the simplex a grid cell wide
         obj.stage = "optimiser"
         step = 0.5 / grid if grid > 0 else 0.1
-        for j in np.argsort(scores)[:int(self.starts)]:
+        for j in np.argsort(scores)[:self._starts(k)]:
             _minimise(obj, candidates[j], step, list(range(k)), candidates[j], self.fatol, maxfev)
         # 3. refinement: a quadratic response surface about the minimum (see _refine), with the
         # Monte Carlo errors of the optimiser's best

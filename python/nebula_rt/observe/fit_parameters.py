@@ -119,9 +119,11 @@ def _get_key(d, key: str):
 def parse_free(spec: str, scene, direction=(0.0, 0.0, -1.0)) -> FreeParameter:
     """``name``, ``name=lo:hi`` or ``name=lo:hi:log`` -> :class:`FreeParameter` (default bounds
     where the parameter has them). Raises SceneError("--free", spec, ...) if malformed."""
-    name, _, rng = spec.partition("=")
+    name, eq, rng = spec.partition("=")
     name = name.strip()
     log = False
+    if eq and not rng.strip():  # "albedo=": bounds meant but not given (was: the default bounds, silently)
+        raise SceneError("--free", spec, "must be NAME, NAME=LO:HI or NAME=LO:HI:log (numbers LO < HI)")
     if rng:
         parts = [p.strip() for p in rng.split(":")]
         if len(parts) == 3 and parts[2] == "log":

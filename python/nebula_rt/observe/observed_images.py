@@ -21,6 +21,7 @@ import numpy as np
 from ..backends.capacity import host_available_bytes
 from ..errors import SceneError
 from ..input_files import check_input_file
+from .observed_tables import MAX_VALUE, MIN_ERROR
 
 _UNITS_ALLOWED = ("must be a surface brightness per unit frequency, convertible to MJy/sr (e.g. MJy/sr, Jy/arcsec2, "
                   "erg/s/cm2/Hz/sr); convert counts, magnitudes or per-wavelength units first (docs/observations.md)")
@@ -181,6 +182,9 @@ def _error_term(spec, hdul, path, data, unit):
                 raise SceneError("--image-error", spec, _ERROR_ALLOWED) from None
             if not (math.isfinite(frac) and frac > 0):
                 raise SceneError("--image-error", spec, "a relative error must be a positive percentage, e.g. '5%'")
+            if frac < MIN_ERROR:  # its square underflows: the data's error would be left out
+                raise SceneError("--image-error", spec, f"a relative error must be at least {MIN_ERROR * 100:.0e} % "
+                                                        "(its square is formed in float64)")
             return frac * np.abs(data), f"{text} of the image"
         q = None
         try:
@@ -206,7 +210,26 @@ def _error_term(spec, hdul, path, data, unit):
     return np.full(data.shape, val), f"{q} per pixel"
 
 
-def read_image(path, hdu=None, *, unit=None, errors: Sequence = ()) -> ObservedImage:
+def _check_sigma(sigma, data, spec, floor: bool = True) -> None:
+    """An error term's values on the observed pixels within what chi^2 can square and sum: at
+    most MAX_VALUE MJy/sr, and (``floor``) 0 or at least MIN_ERROR (the tables' bounds,
+    :mod:`nebula_rt.observe.observed_tables`). Checked per term, before the terms are squared:
+    an error of 1e308 MJy/sr (or 1e308 %) squared to infinity and left the comparison without a
+    pixel, refused as the image's fault; one of 1e-320 MJy/sr squared to 0 and left the data's
+    error out. A relative error has no floor per pixel (5 % of a pixel of nearly nothing is
+    nearly nothing): its percentage is bounded instead (:func:`_error_term`)."""
+    s = np.abs(sigma[np.isfinite(data)])
+    bad = ~np.isfinite(s) | (s > MAX_VALUE)
+    if floor:
+        bad |= (s > 0) & (s < MIN_ERROR)
+    if bad.any():
+        span = f"0 or in [{MIN_ERROR:.0e}, {MAX_VALUE:.0e}]" if floor else f"at most {MAX_VALUE:.0e}"
+        raise SceneError("--image-error", spec, f"gives a 1-sigma error of {float(s[bad][0]):.4g} MJy/sr on an "
+                         f"observed pixel; errors must be {span} MJy/sr (chi^2 squares (data - model) / error in "
+                         "float64)".replace("e+", "e"))
+
+
+def read_image(path, hdu=None, *, unit=None, errors: Sequence = (), option: str = "image") -> ObservedImage:
     """Read an observed image and its errors from FITS (module docstring).
 
     Parameters
@@ -222,6 +245,8 @@ def read_image(path, hdu=None, *, unit=None, errors: Sequence = ()) -> ObservedI
         1-sigma error terms, added in quadrature: an HDU's name or number (the image's shape;
         its BUNIT, else the image's), a relative error ``"5%"``, or a surface brightness
         (``"0.2 MJy/sr"`` or an astropy Quantity). At least one.
+    option : str
+        What names the file in messages (the command line's ``--image``).
 
     Raises
     ------
@@ -232,22 +257,24 @@ def read_image(path, hdu=None, *, unit=None, errors: Sequence = ()) -> ObservedI
     from astropy.io import fits
 
     path = str(path)
-    check_input_file("image", path, "a readable FITS file")
+    check_input_file(option, path, "a readable FITS file")
     try:
         hdul = fits.open(path, memmap=False)
     except (OSError, ValueError) as exc:
-        raise SceneError("image", path, f"must be a FITS file (astropy.io.fits: {exc})") from None
+        raise SceneError(option, path, f"must be a FITS file (astropy.io.fits: {exc})") from None
     with hdul:
         if hdu is None:
             images = _image_hdus(hdul)
             if not images:
-                raise SceneError("image", path, "holds no image HDU: it needs a 2-D image with a celestial WCS")
+                raise SceneError(option, path, "holds no image HDU: it needs a 2-D image with a celestial WCS")
             i, h = images[0]
         else:
             i, h = _find_hdu(hdul, hdu, path, "--image-hdu")
         label = f"{path}[{_hdu_name(i, h)}]"
         data = _squeeze(_hdu_data(h, path, label), label)
         wcs = _celestial_wcs(h.header, label)
+        if unit is not None and not str(unit).strip():  # (was: reported as the header's BUNIT missing)
+            raise SceneError("--image-unit", unit, _UNITS_ALLOWED)
         text = unit if unit is not None else h.header.get("BUNIT")
         if text is None or not str(text).strip():
             raise SceneError(f"image {label} BUNIT", None, _UNITS_ALLOWED + ": give it in BUNIT or with --image-unit")
@@ -258,6 +285,8 @@ def read_image(path, hdu=None, *, unit=None, errors: Sequence = ()) -> ObservedI
         if not errors:
             raise SceneError("--image-error", None, "the observation's 1-sigma error is needed: " + _ERROR_ALLOWED[8:])
         terms = [_error_term(e, hdul, path, data, str(text)) for e in errors]
+        for e, (term, _) in zip(errors, terms):
+            _check_sigma(term, data, e, floor=not (isinstance(e, str) and e.strip().endswith("%")))
         sigma = np.sqrt(sum(t[0] ** 2 for t in terms))
         band = h.header.get("BAND") or h.header.get("FILTER")
     return ObservedImage(path=path, label=label, data=data, sigma=sigma, wcs=wcs, unit=str(text),

@@ -165,15 +165,44 @@ def _split_header(name: str):
     return name.strip(), None
 
 
-def _read_astropy(path: Path, where: str):
-    from astropy.table import Table
+def _check_names_once(text: str, fmt: str, where: str) -> None:
+    """No column name twice in the names line (the first line that is not a comment). astropy
+    renames a second ``offset`` to ``offset_1``, which was then refused as an unknown column."""
+    import csv
 
-    text = read_input_text("table", path, "a .csv or .ecsv file of UTF-8 text", MAX_TABLE_BYTES)
+    line = next((ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")), None)
+    if line is None:
+        return
+    comma = fmt == "ascii.csv" or re.search(r"^#\s*delimiter:\s*['\"]?,", text, re.M)
+    try:
+        names = next(csv.reader([line], delimiter="," if comma else " ", skipinitialspace=True), [])
+    except csv.Error:  # (a NUL, a name beyond csv's field limit): astropy's reader says what is wrong
+        return
+    seen = set()
+    for name in (_split_header(n)[0] for n in names):
+        if name and name in seen:
+            raise SceneError(f"{where}, column {name!r}", name, "appears twice")
+        seen.add(name)
+
+
+def _read_astropy(path: Path, where: str, option: str = "table"):
+    import warnings
+
+    from astropy.table import Table
+    from astropy.utils.exceptions import AstropyWarning
+
+    text = read_input_text(option, path, "a .csv or .ecsv file of UTF-8 text", MAX_TABLE_BYTES)
     fmt = "ascii.ecsv" if text.lstrip().startswith("# %ECSV") else "ascii.csv"
     if path.suffix.lower() == ".ecsv" and fmt != "ascii.ecsv":
         raise SceneError(where, str(path), "an .ecsv file must start with the '# %ECSV' header line")
+    _check_names_once(text, fmt, where)
     try:
-        return Table.read(text, format=fmt)
+        with warnings.catch_warnings():
+            # a number beyond float64 (1e999, a denormal such as 1e-320): astropy warns that it
+            # lost precision, a line of its own on stderr beside the refusal; the values are
+            # checked, and named by column and row, below
+            warnings.filterwarnings("ignore", message="OverflowError converting to", category=AstropyWarning)
+            return Table.read(text, format=fmt)
     except Exception as exc:  # astropy's parser errors are of many types
         raise SceneError(where, str(path), f"must be a readable {fmt[6:].upper()} table ({exc})") from None
 
@@ -290,7 +319,8 @@ def _check_annuli(lo, hi, where: str, shared: bool) -> None:
 # One function though long (about 110 lines): a table's columns are recognised, converted
 # and checked one after another against the same header, and every refusal names its column.
 def read_table(source: Union[str, Path, "object"], *, scale: Optional[OffsetScale] = None,
-               normalisation: str = "free", annulus=DEFAULT_ANNULUS, name: str = "") -> ObservedTable:
+               normalisation: str = "free", annulus=DEFAULT_ANNULUS, name: str = "",
+               option: str = "table") -> ObservedTable:
     """Read and validate a table of observations.
 
     Parameters
@@ -305,6 +335,8 @@ def read_table(source: Union[str, Path, "object"], *, scale: Optional[OffsetScal
         The annulus of a ratio table without offset columns.
     name : str
         A label for a table given in memory.
+    option : str
+        What names the file in messages (the command line's ``--table``).
 
     Raises
     ------
@@ -321,26 +353,34 @@ def read_table(source: Union[str, Path, "object"], *, scale: Optional[OffsetScal
         raise SceneError("normalisation", normalisation, f"must be one of {', '.join(NORMALISATIONS)}")
     if isinstance(source, (str, Path)):
         path = Path(source)
-        where = f"table {str(path)!r}"
+        where = f"{option} {str(path)!r}"
         if path.suffix.lower() not in SUFFIXES:
-            raise SceneError("table", str(path), "must be a .csv or .ecsv file")
-        check_input_file("table", path, "an existing .csv or .ecsv file", MAX_TABLE_BYTES)
+            raise SceneError(option, str(path), "must be a .csv or .ecsv file")
+        check_input_file(option, path, "an existing .csv or .ecsv file", MAX_TABLE_BYTES)
         try:
-            table = _read_astropy(path, where)
+            table = _read_astropy(path, where, option)
         except FileNotFoundError:
-            raise SceneError("table", str(path), "must be an existing .csv or .ecsv file (no such file)") from None
+            raise SceneError(option, str(path), "must be an existing .csv or .ecsv file (no such file)") from None
         except IsADirectoryError:
-            raise SceneError("table", str(path), "must be a file, not a folder") from None
+            raise SceneError(option, str(path), "must be a file, not a folder") from None
         except UnicodeDecodeError:
-            raise SceneError("table", str(path), "must be UTF-8 text") from None
+            raise SceneError(option, str(path), "must be UTF-8 text") from None
         except OSError as e:
-            raise SceneError("table", str(path), f"must be readable ({e.strerror or e})") from None
+            raise SceneError(option, str(path), f"must be readable ({e.strerror or e})") from None
         label = str(path)
     else:
         table, label = source, name or "table"
         where = f"table {label!r}"
     cols = _columns(table, where)
     kinds = [k for k in KINDS if REQUIRED[k][1] in cols]
+    if not kinds:
+        # no delta_bv or ratio column: the kind whose other columns are there (offset and
+        # delta_bv_err) is the one, and its missing column is named below (was: the columns
+        # listed, the missing one not named)
+        present = {k: sum(c in cols for c in REQUIRED[k]) for k in KINDS}
+        best = max(present.values())
+        if best and list(present.values()).count(best) == 1:
+            kinds = [k for k in KINDS if present[k] == best]
     if len(kinds) != 1:
         have = ", ".join(cols) or "none"
         raise SceneError(f"{where}, columns", have,
@@ -389,6 +429,9 @@ def read_table(source: Union[str, Path, "object"], *, scale: Optional[OffsetScal
         _positive(error, "delta_bv_err", where)
         if "offset_lo" in cols:
             lo, hi = offsets("offset_lo")[0], offsets("offset_hi")[0]
+            # the annuli first: an offset_lo above its offset_hi is theirs to name, not the
+            # offset's (which no annulus of that row could hold)
+            _check_annuli(lo, hi, where, shared=False)
             bad = (x < lo) | (x > hi)
             if bad.any():
                 i = int(np.flatnonzero(bad)[0])
@@ -396,7 +439,7 @@ def read_table(source: Union[str, Path, "object"], *, scale: Optional[OffsetScal
                                  "must lie in its annulus [offset_lo, offset_hi]")
         else:
             lo, hi = _annuli_from_offsets(x, where)
-        _check_annuli(lo, hi, where, shared=False)
+            _check_annuli(lo, hi, where, shared=False)
         norm = "free"
     else:
         col, unit = cols["wavelength"]
