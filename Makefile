@@ -14,8 +14,11 @@ render: setup
 	@mkdir -p out
 	$(VENV)/bin/nebula-rt render $(SCENE) -o out/thesis-default.vti --png out/thesis-default.png
 
+# the suite in TEST_WORKERS processes, each module's tests in one (module fixtures once);
+# TEST_WORKERS=0 runs it in this process
+TEST_WORKERS ?= 2
 test: setup
-	$(PY) -m pytest -q $(PYTEST_ARGS)
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadscope $(PYTEST_ARGS)
 
 bench: setup
 	$(PY) benchmarks/bench_transport.py

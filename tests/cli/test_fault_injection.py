@@ -161,7 +161,8 @@ def test_ctrl_c_within_one_long_launch_is_honoured_at_once(scene_dir, run):
     err = b"".join(chunks).decode(errors="replace")
     assert proc.returncode == 130, err
     # one launch lasts at most LAUNCH_SECONDS (0.25 s) plus the process's exit
-    assert waited < 1.5, waited
+    # (idle: 0.5-0.6 s; the bound leaves room for a loaded machine, the suite's other process)
+    assert waited < 2.5, waited
     assert_intact(scene_dir, before)
 
 

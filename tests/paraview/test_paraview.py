@@ -166,7 +166,8 @@ def test_paraview_proxy_is_the_schema_and_gives_the_same_bits(pv_env, xdisplay, 
     checks the other layers): labels, visibility, defaults, ranges and choices are the scene
     schema's, the panel follows the workflow, and the same values give the same bits in
     pvpython, plain VTK and a scene file (exact: same scene, seed and device)."""
-    from test_schema_layers import LIGHT_FIELD_PROPERTIES, PHOTONS, label
+    from nebula_rt.scene.schema import label
+    from test_schema_layers import LIGHT_FIELD_PROPERTIES, PHOTONS
 
     npy, vti, rho = schema_density
     r, _ = run_pv(pv_env, xdisplay, "schema_layers.py", vti, npy, PHOTONS)
