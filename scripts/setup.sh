@@ -74,8 +74,11 @@ RENDER_PKGS=(libegl1 libegl-mesa0 libgl1-mesa-dri)
 X11_PKGS=(libgl1 libglx-mesa0 libx11-6 libxcursor1)
 # The ParaView plugin (plugin/) and its tests: ParaView 5.11 with its Python
 # modules, an X server for pvpython/pvbatch renders, and Debian's PoCL ICD
-# (the OpenCL device ParaView's Python sees through the pyopencl wheel).
-PV_PKGS=(paraview python3-paraview xvfb pocl-opencl-icd)
+# (the OpenCL device ParaView's Python sees through the pyopencl wheel). libqt5svg5: Qt's SVG
+# image plugin, without which every icon of ParaView's GUI (the toolbars, the Stars table's +
+# and -, the abort button, the advanced-properties gear) is an empty square; Debian's paraview
+# package does not pull it in.
+PV_PKGS=(paraview python3-paraview xvfb pocl-opencl-icd libqt5svg5)
 if [[ "$SKIP_PV" == 1 ]]; then PV_PKGS=(); fi
 # Building pyvkfft (b2): the OpenCL headers, the ICD loader's libOpenCL.so and a C++ compiler.
 FFT_PKGS=(opencl-headers ocl-icd-opencl-dev g++)
