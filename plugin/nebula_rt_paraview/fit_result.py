@@ -16,7 +16,7 @@ from . import _xml
 PORTS = '<OutputPort name="Parameters" index="0" /><OutputPort name="Comparison" index="1" />'
 
 
-@smproxy.reader(name="NebulaFitResultReader", label="NebulaRT fit result", extensions="json",
+@smproxy.reader(name="NebulaFitResultReader", label="Nebula Fit Result Reader", extensions="json",
                 file_description="NebulaRT fit result", support_reload=False)
 @_xml.proxy_doc(_base.NebulaFitResultReader)
 @smproperty.xml(PORTS)

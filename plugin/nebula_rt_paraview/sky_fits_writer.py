@@ -6,7 +6,7 @@ mag/arcsec^2), each with the celestial WCS (:func:`nebula_rt.filters.sky_image.w
 In pvpython: ``SaveData("sky.fits", proxy=sky)``.
 """
 
-from paraview.util.vtkAlgorithm import smdomain, smhint, smproperty, smproxy
+from paraview.util.vtkAlgorithm import smdomain, smproperty, smproxy
 
 from nebula_rt.filters import sky_image as _base
 

@@ -73,14 +73,16 @@ def _missing_definitions() -> list:
 def load_plugin(path: str | None = None) -> None:
     """Load the plugin (``plugin/NebulaRT.py``) unless its proxies are already defined (with
     PV_PLUGIN_PATH set, ParaView loads it at start-up)."""
-    if plugin_loaded():
-        return
-    simple.LoadPlugin(path or PLUGIN_FILE, remote=False)
-    if servermanager.ActiveConnection is not None and servermanager.ActiveConnection.IsRemote():
-        simple.LoadPlugin(path or PLUGIN_FILE, remote=True)
+    from . import renamed
+
     if not plugin_loaded():
-        raise RuntimeError(f"loading {path or PLUGIN_FILE} did not define the NebulaRT proxies {_missing_definitions()} "
-                           "(see the messages above; docs/paraview.md explains the set-up)")
+        simple.LoadPlugin(path or PLUGIN_FILE, remote=False)
+        if servermanager.ActiveConnection is not None and servermanager.ActiveConnection.IsRemote():
+            simple.LoadPlugin(path or PLUGIN_FILE, remote=True)
+        if not plugin_loaded():
+            raise RuntimeError(f"loading {path or PLUGIN_FILE} did not define the NebulaRT proxies "
+                               f"{_missing_definitions()} (see the messages above; docs/paraview.md explains the set-up)")
+    renamed.install()  # paraview.simple is imported now: its former function names too
 
 
 # -- showing ----------------------------------------------------------------------------------

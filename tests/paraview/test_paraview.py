@@ -683,3 +683,21 @@ def test_one_rank_failing_under_paraview_mpi_ends_the_job(pv_env, xdisplay):
     assert "RESULT " not in proc.stdout
     assert ("NebulaRT error (rank 1 of 2): NebulaLightField: the device lost its context (injected on rank 1)"
             in proc.stderr + proc.stdout), proc.stderr[-3000:]
+
+
+def test_one_name_per_property_and_the_former_names_still_work(pv_env, xdisplay):
+    """pvpython names a property after its label: every NebulaRT property's pvpython name is
+    its XML name (VTK's setter, the state files, the docs); ``Method`` was ``TransportMethod``
+    in pvpython and the fit-result reader ``NebulaRTfitresult``: both former names still work,
+    each with a FutureWarning naming the new one."""
+    r, _ = run_pv(pv_env, xdisplay, "names.py")
+    assert r["mismatches"] == {name: [] for name in PROXY_NAMES_ALL}, r["mismatches"]
+    assert r["method_set"] == "analog"
+    assert r["method_after_former_set"] == "biased" and r["former_get"] == "biased"
+    assert sorted(r["reader_names"]) == ["NebulaFitResultReader", "NebulaRTfitresult"]
+    assert r["former_reader_name"] == "NebulaRTfitresult"
+    assert sum("'TransportMethod' is now called 'Method'" in w for w in r["warnings"]) == 2, r["warnings"]
+    assert all(w.startswith("FutureWarning") for w in r["warnings"] if "NebulaRT" in w), r["warnings"]
+
+
+PROXY_NAMES_ALL = ("NebulaDustDensity", "NebulaLightField", "NebulaColour", "NebulaSkyImage")

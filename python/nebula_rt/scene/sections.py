@@ -264,7 +264,7 @@ class Transport:
             "voxel scores there (low noise); collision-filter: the thesis's estimator, collisions "
             "spread over filter_radius")
     method: str = param(
-        "auto", type="str", choices=METHODS, label="Transport Method", group=G_TRANSPORT,
+        "auto", type="str", choices=METHODS, group=G_TRANSPORT,
         doc="How packets are traced. analog: every packet is one unit of energy, absorbed or "
             "scattered with probability albedo; biased: weighted packets with forced scattering, "
             "composite path-length biasing and weight windows (splitting and Russian roulette), "
