@@ -15,6 +15,8 @@ from nebula_rt import scene as _scene
 from nebula_rt.optics.bands import reference_band_index
 from nebula_rt.errors import CancelledError, NebulaError, NebulaWarning, SceneError
 
+from .properties import inert_properties
+
 #: The flat ``Stars`` property (the filters' and ParaView's table), one row per star:
 #: (column header, the star's scene field, component of it or None). The scene's Star
 #: declarations give every column its meaning, unit and range; the table writes an omitted
@@ -191,6 +193,8 @@ class NebulaAlgorithm(VTKPythonAlgorithmBase):
         try:
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always", NebulaWarning)
+                for text in inert_properties(self) + self.inert_messages():
+                    warnings.warn(text, NebulaWarning)
                 self._execute(request, inInfo, outInfo)
                 self._crop_to_request(outInfo.GetInformationObject(0), output)
             self._surface_warnings(caught)
@@ -285,10 +289,18 @@ class NebulaAlgorithm(VTKPythonAlgorithmBase):
         for w in caught:
             if issubclass(w.category, NebulaWarning):
                 text = f"{type(self).__name__}: {w.message}"
+                if text in self.last_warnings:  # (a step asked twice in one execution)
+                    continue
                 self.last_warnings.append(text)
                 vtkOutputWindow.GetInstance().DisplayWarningText(f"NebulaRT warning: {text}\n")
             else:
                 warnings.warn_explicit(w.message, w.category, w.filename, w.lineno, source=w.source)
+
+    def inert_messages(self) -> list:
+        """Messages for settings that have no effect now beyond the panel's rules
+        (:func:`~nebula_rt.filters.properties.inert_properties`); an algorithm with such cases
+        overrides this."""
+        return []
 
     def _execute(self, request, inInfo, outInfo) -> None:  # pragma: no cover - abstract
         raise NotImplementedError

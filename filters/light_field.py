@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 from vtkmodules.vtkCommonDataModel import vtkDataObject, vtkImageData
 from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm, vtkStreamingDemandDrivenPipeline
 
 from nebula_rt.pipeline import output_contract as contract
 from nebula_rt.transport import scene_backend
-from nebula_rt.errors import SceneError
+from nebula_rt.errors import NebulaWarning, SceneError
 from nebula_rt.limits import check_float32_array
 from nebula_rt.pipeline.stages import compute_light, finish_light_field
 from nebula_rt.scene import Scene
@@ -93,6 +95,7 @@ class NebulaLightField(NebulaAlgorithm):
         """Flat list, 6 numbers per star: x, y, z (box units), luminosity, temperature (K, 0 =
         flat spectrum), bump radius (ignored here: the density comes from the input)."""
         self._stars = list(values[0]) if len(values) == 1 and hasattr(values[0], "__len__") else list(values)
+        self._stars_set = self._stars != default_star_row()
         self.Modified()
 
     def SetStarsFromInput(self, flag):
@@ -105,6 +108,9 @@ class NebulaLightField(NebulaAlgorithm):
     def stars(self) -> list:
         """The flat Stars list this filter traces (6 numbers per star)."""
         if self._stars_from_input and self._input_stars is not None and len(self._input_stars):
+            if getattr(self, "_stars_set", False):
+                warnings.warn("Stars has no effect: the input's stars (the density's) are traced while StarsFromInput "
+                              "is 1; set StarsFromInput to 0 to trace the Stars property's", NebulaWarning)
             return [float(v) for v in self._input_stars]
         return list(self._stars)
 
@@ -127,6 +133,9 @@ class NebulaLightField(NebulaAlgorithm):
         if text != self._spectral_types:
             self._spectral_types = text
             self.Modified()
+
+    def GetOverrideOptics(self) -> int:
+        return int(self._override_optics)
 
     def SetOverrideOptics(self, flag):
         """Apply Albedo and G to every band (else each band's own values; default off, as a scene

@@ -136,6 +136,8 @@ def bind(props: Sequence[Property]):
             def setter(self, *args, _p=prop):
                 value = _coerce(_p, args)
                 if self._values.get(_p.key, object()) != value:
+                    # the value before the first change: what "changed" means (inert_properties)
+                    self.__dict__.setdefault("_initial_values", {}).setdefault(_p.key, self._values.get(_p.key))
                     self._values[_p.key] = value
                     self.Modified()
 
@@ -171,6 +173,7 @@ def _bind_auto(cls, prop: Property) -> None:
     def set_number(self, *args, _p=prop):
         value = _coerce(_p, args)
         if self._numbers[key] != value:
+            self.__dict__.setdefault("_initial_numbers", {}).setdefault(key, self._numbers[key])
             self._numbers[key] = value
             if self._values[key] != "auto":
                 self._values[key] = value
@@ -207,4 +210,46 @@ def scene_values(values: Dict[str, Any], base: Optional[dict] = None) -> dict:
         if isinstance(value, tuple):
             value = list(value)
         out.setdefault(table, {})[name] = value
+    return out
+
+
+def _enabled(alg, name: str, want) -> bool:
+    """Whether the property ``name`` of ``alg`` has the panel value ``want`` (an enumeration's
+    index, a flag's 0/1): a bound property's choice, or the algorithm's own property through
+    its getter (a text among ``alg.OWN_CHOICES[name]``)."""
+    bound = {p.name: p for p in getattr(alg, "BOUND_PROPERTIES", ())}.get(name)
+    if bound is not None:
+        value, choices = alg._values[bound.key], bound.choices
+    else:
+        value, choices = getattr(alg, "Get" + name)(), getattr(alg, "OWN_CHOICES", {}).get(name, ())
+    if isinstance(value, str) and choices and isinstance(want, int) and 0 <= want < len(choices):
+        return value == choices[want]
+    return value == want
+
+
+def inert_properties(alg) -> list:
+    """The messages for properties changed from their initial value that have no effect now:
+    the panel greys them out or hides them (``enabled_by``, ``shown_by``) while the property
+    that enables them has another value, and a script that sets them would otherwise change nothing without a word (e.g.
+    Albedo without OverrideOptics)."""
+    initial = getattr(alg, "_initial_values", {})
+    out = []
+    for p in getattr(alg, "BOUND_PROPERTIES", ()):
+        if not (p.enabled_by or p.shown_by) or p.key not in initial or alg._values[p.key] == initial[p.key]:
+            continue
+        name, want = p.enabled_by or p.shown_by
+        if not _enabled(alg, name, want):
+            own = getattr(alg, "OWN_CHOICES", {}).get(name, ())
+            bound = {q.name: q for q in alg.BOUND_PROPERTIES}.get(name)
+            choices = bound.choices if bound is not None else own
+            wanted = repr(choices[want]) if choices and 0 <= want < len(choices) else want
+            out.append(f"{p.name} = {alg._values[p.key]!r} has no effect: it applies while {name} is {wanted}; "
+                       f"set {name} to {wanted} to use it")
+    numbers = getattr(alg, "_initial_numbers", {})
+    for p in getattr(alg, "BOUND_PROPERTIES", ()):
+        # an "auto or number" property's number while its flag chooses "auto"
+        if p.widget == "auto" and p.key in numbers and alg._numbers[p.key] != numbers[p.key] \
+                and alg._values[p.key] == "auto":
+            out.append(f"{p.name} = {alg._numbers[p.key]!r} has no effect: it applies while {p.flag} is 0 "
+                       f"(now 1: chosen from the data); set {p.flag} to 0 to use it")
     return out

@@ -107,6 +107,21 @@ class NebulaSkyImage(NebulaAlgorithm):
     def GetUnits(self):
         return self._units
 
+    #: the choices of the sky image's own enumerations (the panel's index -> the value)
+    OWN_CHOICES = {"Units": SKY_UNITS}
+
+    def inert_messages(self) -> list:
+        """The observer's properties set while Distance is empty in MJy/sr: the light field's
+        scene's own [observer] table places the box on the sky instead (Units' own case, box
+        units, is the panel's: properties.inert_properties)."""
+        if self._units != "MJy/sr" or self._values["observer.distance"] not in ("", None):
+            return []
+        initial = getattr(self, "_initial_values", {})
+        return [f"{p.name} = {self._values[p.key]!r} has no effect: Distance is empty, so the scene's own "
+                "[observer] table places the box on the sky; give a Distance to use it"
+                for p in SKY_OBSERVER_PROPERTIES
+                if p.key != "observer.distance" and p.key in initial and self._values[p.key] != initial[p.key]]
+
     def _observer(self, scene):
         """The scene placed on the sky: the Distance ... properties, or the scene's own
         [observer] table while Distance is empty."""
@@ -152,7 +167,12 @@ class NebulaSkyImage(NebulaAlgorithm):
         # observer (an empty Distance: the light field's scene's own [observer] table)
         values = {k: v for k, v in self._values.items()
                   if not k.startswith("sky.") and not (k == "observer.distance" and v in ("", None))}
-        Scene.from_dict(scene_values(values))
+        # in box units the observer's properties place nothing (they are inert, and said so:
+        # inert_properties): their values are checked on their own, with a star in physical
+        # units standing in for the scene's (a calibrated image's rule on the stars is MJy/sr's)
+        stand_in = None if self._units == "MJy/sr" else {
+            "stars": [{"position": [0.5, 0.5, 0.5], "luminosity_lsun": 1.0, "temperature": 10000.0}]}
+        Scene.from_dict(scene_values(values, stand_in))
         if self._units not in SKY_UNITS:
             raise SceneError("Units", self._units, "must be one of " + ", ".join(repr(u) for u in SKY_UNITS))
         inp = vtkImageData.GetData(inInfo[0])
