@@ -37,7 +37,7 @@ dust = simple.NebulaDustDensity(GridShape=[args.grid] * 3, Model="turbulence", S
                                 Offset=[0.5, 0.5, 0.5], Stars=star, Device=args.device)
 # pass the input positionally: paraview.simple then picks the density array from it
 light = simple.NebulaLightField(dust, Stars=star, Tau=128.0, Photons=args.photons,
-                                BandPreset="thesis-rgb", Albedo=0.6, G=0.6, Device=args.device)
+                                BandPreset="thesis-rgb", OverrideOptics=1, Albedo=0.6, G=0.6, Device=args.device)
 light.DensityArray = ["POINTS", "density"]  # explicit is better (and what states store)
 colour = simple.NebulaColour(light, WhitePoint="D65")
 
