@@ -19,6 +19,7 @@ import colorsys
 import json
 import re
 import subprocess
+import time
 from pathlib import Path
 from xml.sax.saxutils import quoteattr
 
@@ -88,11 +89,12 @@ def run_gui(pv_env, display, tmp_path, events, args=(), timeout=400, thesis=True
     xml.write_text('<?xml version="1.0" ?>\n<pqevents>\n' + "\n".join(events) + "\n</pqevents>\n")
     env = dict(pv_env, DISPLAY=display, HOME=str(home), XDG_CONFIG_HOME=str(home / ".config"),
                XDG_RUNTIME_DIR=str(tmp_path), NEBULA_GUI_OUT=str(out))
-    for attempt in range(2):
+    for attempt in range(3):  # (as run_pv: Xvfb under load may refuse a connection)
         proc = subprocess.run(["paraview", "-geometry", "1280x1024+0+0", *args, f"--test-script={xml}", "--exit"],
                               env=env, cwd=str(tmp_path), capture_output=True, text=True, timeout=timeout)
         if not (proc.returncode != 0 and "bad X server connection" in proc.stdout + proc.stderr):
             break
+        time.sleep(1.0)
     assert proc.returncode == 0 and "Success =  true" in proc.stdout + proc.stderr, (
         f"paraview exited {proc.returncode}\n--- stdout ---\n{proc.stdout[-3000:]}\n--- stderr ---\n{proc.stderr[-4000:]}")
     assert "NebulaRT warning: setting up the default display failed" not in proc.stdout + proc.stderr, proc.stderr[-3000:]
