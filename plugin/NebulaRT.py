@@ -43,7 +43,5 @@ from nebula_rt_paraview import (  # noqa: E402,F401
     NebulaSkyView,
 )
 from nebula_rt_paraview import defaults  # noqa: E402,F401  (what Apply shows)
-from nebula_rt_paraview import renamed  # noqa: E402  (former names in pvpython scripts)
+from nebula_rt_paraview import renamed  # noqa: E402,F401  (former names in pvpython scripts)
 from nebula_rt import __version__ as paraview_plugin_version  # noqa: E402,F401  (pyproject.toml)
-
-renamed.install()

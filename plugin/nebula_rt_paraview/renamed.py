@@ -11,7 +11,8 @@ former name (paraview.simple)                 name now (VTK, state files, pvpyth
 ``NebulaRTfitresult(...)``                    ``NebulaFitResultReader(...)``
 ============================================  ==========================================
 
-The properties go through ParaView's own hook for renamed properties
+Importing this module installs them (as importing ``defaults`` installs the displays; the
+plugin's entry file imports both). The properties go through ParaView's own hook for renamed properties
 (``paraview._backwardscompatibilityhelper``: ``setattr`` / ``getattr``, which
 ``servermanager.Proxy`` asks about a name it does not know), the reader through a function
 added to ``paraview.simple``. Nothing is stored under a former name: state files always held
@@ -88,3 +89,6 @@ def _former_function(simple, old: str, new: str):
     former.__name__ = old
     former.__doc__ = f"Former name of :func:`{new}` (FutureWarning)."
     return former
+
+
+install()
