@@ -554,7 +554,7 @@ def _main(argv) -> int:
     from ..backends.parallel import launched_by_mpi
 
     # the ranks of an MPI job cancel together, by their polls (no watchdog: interrupts)
-    cancel = SignalCancel(watchdog=not launched_by_mpi())
+    cancel = SignalCancel(watchdog=not launched_by_mpi(), ends_process=True)
     with cancel:
         args = None
         try:
