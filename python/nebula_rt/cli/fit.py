@@ -164,9 +164,11 @@ def fit_command(args, ranks, scene, direction, backend_of, inputs, print_summary
         try:
             from tqdm import tqdm
 
-            bar = tqdm(total=1, unit="trace", desc="fitting", disable=args.quiet or not ranks.lead, file=sys.stderr)
-
             def progress(done, total, best):
+                nonlocal bar
+                if bar is None:  # from the first trace on (a refusal on the way has no empty bar)
+                    bar = tqdm(total=1, unit="trace", desc="fitting", disable=args.quiet or not ranks.lead,
+                               file=sys.stderr)
                 bar.total = total
                 bar.n = done
                 bar.set_postfix_str(f"best chi2 {best:.2f}", refresh=False)
