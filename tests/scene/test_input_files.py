@@ -195,3 +195,50 @@ def test_the_density_file_reader_refuses_a_fifo_and_says_why_in_one_line(tmp_pat
         text = str(e.value)
         assert "\n" not in text and "Error parsing XML" in text and "returned failure" not in text, text
         assert not any(part.strip().isdigit() for part in text.split(";")), text
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/mem"), reason="needs /proc")
+def test_a_regular_file_that_cannot_be_read_is_named(tmp_path):
+    """A scene file that is regular but fails to read (/proc/self/mem: EIO; a failing disk):
+    the command ended with status 1 and 'Input/output error', naming nothing."""
+    link = tmp_path / "mem.toml"
+    link.symlink_to("/proc/self/mem")
+    with pytest.raises(SceneError, match="Input/output error") as e:
+        Scene.load(link)
+    assert e.value.parameter == "scene file" and e.value.value == str(link)
+
+
+def test_an_integer_too_long_for_python_is_bad_toml(tmp_path):
+    """A scene with a 300,000-digit number: Python's own limit on converting digits (4300)
+    raised a ValueError the command reported as an internal error."""
+    p = tmp_path / "s.toml"
+    p.write_text("[transport]\nphotons = " + "9" * 300_000 + "\n")
+    with pytest.raises(SceneError, match=r"not valid TOML here: Exceeds the limit \(4300 digits\)") as e:
+        Scene.load(p)
+    assert e.value.parameter == "(toml)"
+
+
+def test_a_huge_value_is_shown_shortened(tmp_path):
+    """A 300 kB value (or key) in a scene: the message quoted all of it, a line of 300 kB. It
+    shows the start and the length; the exception keeps the value."""
+    p = tmp_path / "s.toml"
+    p.write_text('[dust]\nmodel = "' + "u" * 300_000 + '"\n')
+    with pytest.raises(SceneError) as e:
+        Scene.load(p)
+    assert len(str(e.value)) < 500 and "(300002 characters)" in str(e.value) and str(e.value).startswith("dust.model")
+    assert e.value.value == "u" * 300_000
+
+
+@pytest.mark.parametrize("text,words", [("", "is empty"), ("  \n\n", "is empty"),
+                                        ("offset,delta_bv,delta_bv_err", "no rows|row")])
+def test_an_empty_table_or_one_of_a_header_alone_is_refused_as_such(tmp_path, text, words):
+    """An empty --table was refused with astropy's "Is a directory: '.'" (the empty text taken
+    for a file name), a header line without a newline with "No such file or directory"."""
+    from nebula_rt.observe.observed_tables import read_table
+
+    p = tmp_path / "t.csv"
+    p.write_text(text)
+    with pytest.raises(SceneError) as e:
+        read_table(p, option="--table")
+    assert e.value.parameter.startswith("--table") and str(p) in str(e.value), e.value
+    assert "directory" not in str(e.value) and __import__("re").search(words, str(e.value)), e.value

@@ -65,8 +65,10 @@ def _box_length(args, scene):
 
     if args.box_length is not None:
         return _quantity("--box-length", args.box_length)
-    try:  # the scene's label of its box edge
-        return scene.grid.length * u.Unit(scene.grid.unit)
+    from ..scene.units import length_metres
+
+    try:  # the scene's box edge: a number in grid.unit, or a quantity such as "0.5 pc"
+        return length_metres(scene.grid.length, scene.grid.unit) * u.m
     except (ValueError, TypeError, AttributeError):
         return None
 
