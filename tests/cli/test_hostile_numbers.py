@@ -387,3 +387,21 @@ def test_a_fits_header_claiming_more_data_than_the_file_holds_is_one_line(folder
     assert status == 2 and len(err.strip().splitlines()) == 1, err
     assert "huge.fits" in err and "40000000000 bytes" in err and "WARNING" not in err, err
     assert list((folder / "out").iterdir()) == []
+
+
+@pytest.mark.parametrize("preset", ["thesis-rgb", "spectral-8"])
+@pytest.mark.parametrize("key,value", [("hydrogen_density", 2700.0), ("visual_extinction", 1.0)])
+def test_a_fit_of_the_optics_keeps_a_physical_scene_optical_depth(preset, key, value):
+    """--free albedo (or g, a slope, a band's) on a scene whose dust is given in physical
+    units: each trial's scene lists the bands, whose reference band gives another dust.tau for
+    the same n_H or A_V (0.1 % for spectral-8), and the trial scene, holding both, was refused
+    ('is set by dust.hydrogen_density ...: give one of them') before the fit started. The trials
+    keep the base scene's dust.tau."""
+    d = {**SKY_SCENE, "dust": {"model": "uniform", "density": 1.0, key: value}, "bands": {"preset": preset}}
+    from nebula_rt.observe import fit_parameters
+
+    base = Scene.from_dict(d)
+    for name in ("albedo", "g", "albedo_slope"):
+        p = fit_parameters.make_parameter(name, base)
+        trial = fit_parameters.scene_with(base, [p], [0.5 * (p.lo + p.hi)])
+        assert trial.dust.tau == base.dust.tau
