@@ -405,3 +405,12 @@ def test_a_fit_of_the_optics_keeps_a_physical_scene_optical_depth(preset, key, v
         p = fit_parameters.make_parameter(name, base)
         trial = fit_parameters.scene_with(base, [p], [0.5 * (p.lo + p.hi)])
         assert trial.dust.tau == base.dust.tau
+
+
+def test_a_fit_without_an_interval_says_so_not_nan(folder, traces, capsys):
+    """fit --uncertainty none: the summary on stderr gave each parameter as 'albedo = 0.5
+    -nan +nan'."""
+    status, _, err = _run(folder, FIT + " --free albedo --grid 0", capsys)
+    assert status == 0, err
+    line = next(ln for ln in err.splitlines() if ln.strip().startswith("albedo ="))
+    assert "nan" not in line and "(no interval)" in line, line
