@@ -25,10 +25,11 @@ from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
 
 from nebula_rt.backends.capacity import host_available_bytes
 from nebula_rt.errors import NebulaError
+from nebula_rt.input_files import check_input_file
 
 from .image_data import cell_array, point_array
 
-__all__ = ["ArrayNotFoundError", "read_density_array"]
+__all__ = ["ArrayNotFoundError", "declared_density", "read_density_array"]
 
 
 class ArrayNotFoundError(NebulaError, KeyError, ValueError):
@@ -54,6 +55,16 @@ class ArrayNotFoundError(NebulaError, KeyError, ValueError):
 
     def __str__(self) -> str:  # KeyError would quote the message
         return self.message
+
+
+def one_line(errors) -> str:
+    """VTK's error messages as one line: each message's whitespace (VTK's multi-line dumps
+    of a pipeline request) collapsed, repeats and bare numbers left out, and the executive's
+    "returned failure for request" left out where a message says what failed."""
+    texts = [" ".join(str(e).split()) for e in errors]
+    texts = [t for t in texts if t and not t.isdigit()]
+    said = [t for t in texts if "returned failure for request" not in t]
+    return "; ".join(dict.fromkeys(said or texts))
 
 
 def _messages():
@@ -90,7 +101,7 @@ class _Reader:
             step()
         errors = self.errors + (caught.errors if caught is not None else [])
         if self.reader.GetErrorCode() != 0 or errors:
-            detail = "; ".join(errors) or f"VTK error code {self.reader.GetErrorCode()}"
+            detail = one_line(errors) or f"VTK error code {self.reader.GetErrorCode()}"
             raise ValueError(f"{self.path}: unreadable .vti file: {detail}")
 
 
@@ -118,6 +129,45 @@ def _check_declared_size(path: Path, where: str, shape: tuple, expected_shape, a
                          f"{values * 8} bytes as float64, more than the {available_bytes} bytes of memory available")
 
 
+def _open_header(path, array_name: str, expected_shape):
+    """The reader of ``path`` with its header read and checked (the array is there, its
+    declared shape is ``expected_shape`` or fits memory); returns (reader, where, points,
+    arrays): "point" or "cell", the points per axis the extent declares, and how many
+    arrays the file declares."""
+    path = Path(os.fspath(path))
+    if not path.exists():
+        raise FileNotFoundError(2, f"no such file: {path}", str(path))
+    if path.suffix.lower() != ".vti":
+        raise ValueError(f"{path}: unsupported density file type {path.suffix!r}; expected .vti")
+    if path.is_dir():
+        raise IsADirectoryError(21, f"is a directory, not a .vti file: {path}", str(path))
+    check_input_file("file", path, "a .vti file")  # a FIFO would block VTK's reader for ever
+    r = _Reader(path)
+    r.run(r.reader.UpdateInformation)
+    psel, csel = r.reader.GetPointDataArraySelection(), r.reader.GetCellDataArraySelection()
+    point_names = [psel.GetArrayName(i) for i in range(psel.GetNumberOfArrays())]
+    cell_names = [csel.GetArrayName(i) for i in range(csel.GetNumberOfArrays())]
+    if array_name in point_names:
+        where = "point"
+    elif array_name in cell_names:
+        where = "cell"
+    else:
+        available = [f"{n} (point)" for n in point_names] + [f"{n} (cell)" for n in cell_names]
+        raise ArrayNotFoundError(path, array_name, available)
+    points = declared_points(r.reader)
+    declared = points if where == "point" else tuple(max(n - 1, 1) for n in points)
+    _check_declared_size(path, where, declared, expected_shape, host_available_bytes())
+    return r, where, points, len(point_names) + len(cell_names)
+
+
+def declared_density(path, array_name: str, expected_shape=None) -> tuple:
+    """From the header of a ``.vti`` alone (no data read): the points per axis its extent
+    declares and the number of arrays it declares, after the checks of
+    :func:`read_density_array` that need no data (the array is there, of ``expected_shape``)."""
+    _r, _where, points, arrays = _open_header(path, array_name, expected_shape)
+    return points, arrays
+
+
 def read_density_array(path, array_name: str, expected_shape=None) -> np.ndarray:
     """Read one scalar array of a ``.vti`` file as a ``float64`` grid.
 
@@ -139,30 +189,13 @@ def read_density_array(path, array_name: str, expected_shape=None) -> np.ndarray
         (a ``KeyError`` and ``ValueError``) no point or cell array has that name; the message
         lists the arrays there are.
     ValueError
-        Unsupported file type, unreadable file, or the array has more than one component.
+        Unsupported file type, unreadable file, or the array has more than one component;
+        a FIFO, a device or a socket (:class:`nebula_rt.errors.SceneError`, a ValueError:
+        VTK's reader would wait on a FIFO for ever).
     """
     path = Path(os.fspath(path))
-    if not path.exists():
-        raise FileNotFoundError(2, f"no such file: {path}", str(path))
-    if path.suffix.lower() != ".vti":
-        raise ValueError(f"{path}: unsupported density file type {path.suffix!r}; expected .vti")
-    if path.is_dir():
-        raise IsADirectoryError(21, f"is a directory, not a .vti file: {path}", str(path))
-    r = _Reader(path)
-    r.run(r.reader.UpdateInformation)
+    r, where, _points, _arrays = _open_header(path, array_name, expected_shape)
     psel, csel = r.reader.GetPointDataArraySelection(), r.reader.GetCellDataArraySelection()
-    point_names = [psel.GetArrayName(i) for i in range(psel.GetNumberOfArrays())]
-    cell_names = [csel.GetArrayName(i) for i in range(csel.GetNumberOfArrays())]
-    if array_name in point_names:
-        where = "point"
-    elif array_name in cell_names:
-        where = "cell"
-    else:
-        available = [f"{n} (point)" for n in point_names] + [f"{n} (cell)" for n in cell_names]
-        raise ArrayNotFoundError(path, array_name, available)
-    points = declared_points(r.reader)
-    declared = points if where == "point" else tuple(max(n - 1, 1) for n in points)
-    _check_declared_size(path, where, declared, expected_shape, host_available_bytes())
     psel.DisableAllArrays()
     csel.DisableAllArrays()
     (psel if where == "point" else csel).EnableArray(array_name)

@@ -35,7 +35,7 @@ from nebula_rt.pipeline.outputs import Publication
 from nebula_rt.backends.capacity import host_available_bytes
 from nebula_rt.input_files import check_input_file
 
-from .density_file import ArrayNotFoundError, declared_points, read_density_array  # noqa: F401 - this module's API too
+from .density_file import ArrayNotFoundError, declared_points, one_line, read_density_array  # noqa: F401 - this module's API too
 from .image_data import check_numeric_dtype, field_data_dict, image_geometry, point_array, to_image_data
 from .vtk_messages import VtkMessages
 
@@ -161,7 +161,7 @@ def _open(path: Path):
 
 
 def _unreadable(path: Path, reader, errors) -> None:
-    detail = "; ".join(errors) or f"VTK error code {reader.reader.GetErrorCode()}"
+    detail = one_line(errors) or f"VTK error code {reader.reader.GetErrorCode()}"
     raise ValueError(f"{path}: unreadable .vti file: {detail}")
 
 

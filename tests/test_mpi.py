@@ -504,6 +504,48 @@ def test_bad_input_to_observing_commands_under_mpiexec_is_one_message(tmp_path, 
     assert list(out.parent.iterdir()) == []
 
 
+@pytest.mark.parametrize("case", ["mask-stars", "dust-file-fifo", "dust-file-truncated"])
+def test_refusals_of_the_inputs_read_before_the_trace_are_one_message_under_mpiexec(tmp_path, case):
+    """compare --image with --mask-stars covering every pixel, and a density file that is a
+    FIFO or a truncated .npy: refused before the trace, but in a step each rank ran on its own
+    (the comparison's preparation, the density's first read in the trace), so each rank told
+    it and rank 0 aborted the job (MPI_ABORT). Now they are refused in the start-up: one
+    message, status 2, nothing written."""
+    from astropy.io import fits
+
+    from test_hostile_numbers import SKY_SCENE
+    from nebula_rt.observe import calibrate
+    from nebula_rt.scene import Scene
+
+    out = tmp_path / "out"
+    out.mkdir()
+    if case == "mask-stars":
+        scene = Scene.from_dict(SKY_SCENE)
+        (tmp_path / "sky.toml").write_text(scene.to_toml())
+        header = calibrate.celestial_wcs(scene, calibrate.camera_for(scene, size=16)).to_header()
+        header["BUNIT"] = "MJy/sr"
+        fits.HDUList([fits.PrimaryHDU(), fits.ImageHDU(np.ones((16, 16)), header=header)]).writeto(
+            tmp_path / "obs.fits")
+        argv = ["compare", str(tmp_path / "sky.toml"), "--image", str(tmp_path / "obs.fits"), "--image-band", "G",
+                "--image-error", "5%", "--size", "16", "--png", str(out / "c.png"), "--mask-stars", "1e308",
+                "--device", TEST_DEVICE]
+        words = "--mask-stars = 1e+308"
+    else:
+        density = tmp_path / "d.npy"
+        if case == "dust-file-fifo":
+            os.mkfifo(density)
+        else:
+            np.save(density, np.ones((8, 8, 8)))
+            density.write_bytes(density.read_bytes()[:300])
+        (tmp_path / "s.toml").write_text(f'[grid]\nshape = [8, 8, 8]\n[dust]\nmodel = "file"\nfile = "{density}"\n')
+        argv = ["render", str(tmp_path / "s.toml"), "-o", str(out / "o.vti"), "--device", TEST_DEVICE]
+        words = "dust.file = "
+    r = _mpiexec_cli(*argv, quiet=True)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and words in r.stderr, r.stderr
+    assert "rank 1" not in r.stderr and "MPI_ABORT" not in r.stderr, r.stderr
+    assert list(out.iterdir()) == []
+
+
 def test_signalled_ranks_of_a_fit_stop_together(tmp_path):
     """SIGTERM to both ranks of a fit between or within its traces: the ranks decide the cancel
     together (in the trace, and between traces: a rank that stopped alone would leave the other

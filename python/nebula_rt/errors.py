@@ -27,7 +27,18 @@ class SceneError(NebulaError, ValueError):
         self.parameter = parameter
         self.value = value
         self.allowed = allowed
-        super().__init__(f"{parameter} = {value!r}: {allowed}")
+        super().__init__(f"{_shorten(str(parameter))} = {_shorten(repr(value))}: {allowed}")
+
+
+#: Characters of a parameter's name or value a message shows at most (a 300 kB value in a
+#: scene file made a message of 300 kB): the first ones, then how many there are
+MESSAGE_VALUE_CHARS = 200
+
+
+def _shorten(text: str) -> str:
+    if len(text) <= MESSAGE_VALUE_CHARS:
+        return text
+    return f"{text[:MESSAGE_VALUE_CHARS - 40]}... ({len(text)} characters)"
 
 
 class OutputError(NebulaError, ValueError):

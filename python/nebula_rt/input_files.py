@@ -115,7 +115,10 @@ def open_input(parameter: str, path: Union[str, os.PathLike], what: str = "a rea
 def read_input_bytes(parameter: str, path, what: str = "a readable file", max_bytes: Optional[int] = None) -> bytes:
     """The bytes of a checked input file (:func:`open_input`)."""
     with open_input(parameter, path, what, max_bytes) as fh:
-        return fh.read()
+        try:
+            return fh.read()
+        except OSError as e:  # a regular file the kernel cannot read (EIO: /proc/self/mem, a failing disk)
+            raise _refuse(parameter, path, what, e.strerror or str(e)) from None
 
 
 def read_input_text(parameter: str, path, what: str = "UTF-8 text", max_bytes: Optional[int] = None) -> str:

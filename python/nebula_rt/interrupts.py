@@ -24,6 +24,11 @@ hold the main thread longer than that. A watchdog thread therefore hears every s
 exit status is the signal's, nothing is published (the renames that publish hold the signals
 back and the watchdog waits for them). Runs under an MPI launcher keep the polls alone: their
 ranks agree on a cancel together, and one rank ending on its own would end the job.
+
+The command line hears the signals from its first import on (:func:`install_early`), before
+its modules (a third of a second of numpy, astropy and the scene) have loaded: a signal then
+cancels the run as soon as its handlers are installed, before anything starts. A signal whose
+disposition the process inherited as ignored (``nohup`` ignores SIGHUP) stays ignored.
 """
 
 from __future__ import annotations
@@ -54,6 +59,30 @@ _abort_hooks: list = []
 #: held by the renames that publish (:func:`held`) and by the watchdog as it ends the process,
 #: so a publication completes or does not start
 _publishing = threading.Lock()
+
+
+#: the signals heard by :func:`install_early`'s handler before a SignalCancel was installed
+_early: list = []
+
+
+def _early_handler(signum, frame) -> None:
+    """Record a signal that came before the run's handlers; a second one ends the process now
+    with the first's status (nothing has started that could leave a file)."""
+    if _early:
+        SignalCancel._end(EXIT_STATUS.get(_early[0], 128 + signum),
+                          f"cancelled by {signal.Signals(_early[0]).name} before the run started")
+    _early.append(signum)
+
+
+def install_early() -> None:
+    """Hear the cancelling signals from now on (the command line's first import), before the
+    run's :class:`SignalCancel` is installed: the first such signal cancels the run when it is.
+    Signals the process inherited as ignored stay ignored; only the main thread may install."""
+    if threading.current_thread() is not threading.main_thread():
+        return
+    for sig in SIGNALS:
+        if signal.getsignal(sig) in (signal.SIG_DFL, signal.default_int_handler):
+            signal.signal(sig, _early_handler)
 
 
 def cancel_requested() -> Optional[int]:
@@ -104,6 +133,11 @@ class SignalCancel:
     watchdog : bool
         End the process if no poll sees a cancel within :data:`GRACE_SECONDS` of its signal
         (the module's notes); off for the ranks of an MPI job.
+    ends_process : bool
+        The process ends when the block does (the command line): once a cancel was requested,
+        the block leaves the signals ignored, so that one coming while the process exits does
+        not end it by the signal's default action (or a KeyboardInterrupt) instead of the
+        cancel's status.
 
     Notes
     -----
@@ -113,9 +147,10 @@ class SignalCancel:
 
     SIGNALS = SIGNALS
 
-    def __init__(self, quiet: bool = False, watchdog: bool = True):
+    def __init__(self, quiet: bool = False, watchdog: bool = True, ends_process: bool = False):
         self.quiet = quiet
         self.watchdog = watchdog
+        self.ends_process = ends_process
         self.requested: Optional[int] = None  # the signal that asked for the cancel
         self.noticed = False  # a poll has seen the cancel: the run is unwinding by itself
         self._old: dict = {}
@@ -139,7 +174,7 @@ class SignalCancel:
         the signal. Every poll re-installs ours (a few sigaction calls, at most a few per
         second); only the main thread may."""
         if self._old and threading.current_thread() is threading.main_thread():
-            for sig in self.SIGNALS:
+            for sig in self._old:  # (not those the process inherited as ignored)
                 signal.signal(sig, self._handler)
 
     def check(self, what: str = "run") -> None:
@@ -244,8 +279,16 @@ class SignalCancel:
         global _active
         if threading.current_thread() is threading.main_thread():
             for sig in self.SIGNALS:
+                if signal.getsignal(sig) is signal.SIG_IGN:  # inherited as ignored (nohup): left so
+                    continue
                 self._old[sig] = signal.signal(sig, self._handler)
             self._outer, _active = _active, self
+            if _early and self.requested is None:  # a signal during the imports (install_early)
+                self.requested = _early.pop(0)
+                _early.clear()
+                if self.watchdog:  # nothing has started: end now (the ranks of a job cancel together)
+                    self._end(self.exit_status, f"cancelled by {signal.Signals(self.requested).name} before "
+                                                "the run started")
             if self.watchdog:
                 self._start_watchdog()
         return self
@@ -254,7 +297,10 @@ class SignalCancel:
         global _active
         self._stop_watchdog()
         for sig, old in self._old.items():
-            signal.signal(sig, old)
+            # a cancelled command line is ending with the cancel's status: a later signal is
+            # ignored (a Python handler would be reset to the default action, which kills the
+            # process, once the interpreter's shutdown removes its handlers)
+            signal.signal(sig, signal.SIG_IGN if self.ends_process and self.requested is not None else old)
         if self._old:
             _active = self._outer
         self._old.clear()

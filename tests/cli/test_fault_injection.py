@@ -198,6 +198,75 @@ def test_a_signal_during_a_cold_kernel_build(scene_dir, tmp_path_factory):
     assert_intact(scene_dir, before)
 
 
+def _has_loaded(pid: int, library: str) -> bool:
+    """Whether process ``pid`` has mapped a shared library whose path contains ``library``."""
+    try:
+        return library in Path(f"/proc/{pid}/maps").read_text()
+    except OSError:
+        return False
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="needs /proc")
+@pytest.mark.parametrize("sig,status", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_a_signal_while_the_command_imports_its_modules(scene_dir, sig, status):
+    """A signal while the command is still importing its modules (numpy's core is loaded, the
+    scene and astropy are not yet: a third of a second before its run's handlers exist): it
+    ended the process by the signal's default action (a KeyboardInterrupt traceback for
+    SIGINT). Now the run cancels as soon as it starts: the signal's status, one line, nothing
+    written."""
+    before = old_outputs(scene_dir)
+    proc = subprocess.Popen(_cli("render", str(scene_dir / "s.toml"), "-o", str(scene_dir / "out.vti")),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env())
+    t0 = time.monotonic()
+    while not _has_loaded(proc.pid, "_multiarray_umath") and proc.poll() is None and time.monotonic() - t0 < 30:
+        time.sleep(0.001)
+    proc.send_signal(sig)
+    _out, err = proc.communicate(timeout=60)
+    assert proc.returncode == status, (proc.returncode, err)
+    assert "Traceback" not in err and err.strip().splitlines()[-1].startswith("nebula-rt: "), err
+    assert "nothing written" in err
+    assert_intact(scene_dir, before)
+
+
+def test_a_second_signal_while_a_cancelled_run_exits():
+    """A second signal after a cancelled run has left its handlers, while the command exits
+    (the interpreter's shutdown, which takes a moment after a trace or a PNG): it ended the
+    process by the signal's default action (killed by SIGTERM, or a KeyboardInterrupt for
+    SIGINT) instead of the cancel's status. The command line's handlers leave the signals
+    ignored once a cancel was requested."""
+    code = """if True:
+        import os, signal, sys, time
+        from nebula_rt.interrupts import SignalCancel
+        with SignalCancel(quiet=True, ends_process=True) as cancel:
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.05)
+            assert cancel()
+        os.kill(os.getpid(), signal.SIGTERM)  # after the block: the command is exiting
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.05)
+        sys.exit(cancel.exit_status)
+    """
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, env=_env())
+    assert r.returncode == 130 and "Traceback" not in r.stderr, (r.returncode, r.stderr)
+
+
+def test_nohup_keeps_sighup_ignored(scene_dir):
+    """A run started with SIGHUP ignored (``nohup``) must not be cancelled by a SIGHUP (the
+    terminal closing): the handlers took every signal, whatever the process inherited, and
+    the run was cancelled with status 129."""
+    proc = subprocess.Popen(_cli("render", str(scene_dir / "s.toml"), "-o", str(scene_dir / "out.vti"),
+                                 "--set", "transport.photons=1e6"),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=_env(),
+                            preexec_fn=lambda: signal.signal(signal.SIGHUP, signal.SIG_IGN))
+    err = b""
+    while b"tracing" not in err and proc.poll() is None:
+        err += proc.stderr.read1(256)
+    proc.send_signal(signal.SIGHUP)
+    err += proc.communicate(timeout=120)[1]
+    assert proc.returncode == 0, err.decode(errors="replace")
+    assert (scene_dir / "out.vti").exists() and leftovers(scene_dir) == []
+
+
 # --------------------------------------------------------------------------- concurrency
 
 def test_concurrent_renders_to_one_output(scene_dir):

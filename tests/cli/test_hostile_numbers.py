@@ -347,3 +347,70 @@ def test_fit_options_are_refused_not_clipped(backend, traces):
             fit.fit_observations(scene, [table], ["albedo"], size=16, backend=backend, **options)
         assert e.value.parameter == name, (options, e.value)
     assert traces == []
+
+
+def test_offsets_in_arcsec_take_the_box_edge_of_a_scene_in_physical_units(folder, traces, capsys):
+    """A table of offsets in arcsec and --distance, against a scene whose box edge is a
+    quantity (grid.length = "0.5 pc", as the shipped merope-sky.toml): the box length was
+    formed as the text times grid.unit, 0.5 pc^2 (with astropy's deprecation warning on
+    stderr), and the command ended in an internal error. It is the scene's 0.5 pc, the same
+    comparison as with --box-length '0.5 pc'."""
+    base = ("compare {sky} --size 16 --png {dir}/out/c.png --table {dir}/arcsec.csv --distance '136 pc'")
+    summaries = []
+    for extra in ("", " --box-length '0.5 pc'"):
+        status, out, err = _run(folder, base + extra, capsys)
+        assert status == 0 and "Warning" not in err and "internal error" not in err, err
+        summaries.append(json.loads(out))
+        (folder / "out" / "c.png").unlink()
+    assert summaries[0]["tables"][0]["offset_lo"] == summaries[1]["tables"][0]["offset_lo"]
+    assert summaries[0]["chi2"] == summaries[1]["chi2"] and math.isfinite(summaries[0]["chi2"])
+
+
+def test_a_fits_header_claiming_more_data_than_the_file_holds_is_one_line(folder):
+    """--image whose header declares 100000 x 100000 pixels over one block of data: refused
+    before any trace (as before) in one line; astropy's "File may have been truncated"
+    warning was a line of its own before it."""
+    from astropy.io import fits
+
+    h = fits.Header()
+    h["SIMPLE"], h["BITPIX"], h["NAXIS"], h["NAXIS1"], h["NAXIS2"] = True, -32, 2, 100000, 100000
+    (folder / "huge.fits").write_bytes(h.tostring().encode() + b"\0" * 2880)
+    import subprocess
+    import sys
+
+    # in a process of its own: astropy's logger writes to the stderr it found at import
+    line = "compare {sky} --size 16 --png {dir}/out/c.png --image {dir}/huge.fits --image-error 5%"
+    p = subprocess.run([sys.executable, "-m", "nebula_rt.cli", *shlex.split(line.format(sky=folder / "sky.toml",
+                                                                                          dir=folder))],
+                       capture_output=True, text=True, timeout=120)
+    status, err = p.returncode, p.stderr
+    assert status == 2 and len(err.strip().splitlines()) == 1, err
+    assert "huge.fits" in err and "40000000000 bytes" in err and "WARNING" not in err, err
+    assert list((folder / "out").iterdir()) == []
+
+
+@pytest.mark.parametrize("preset", ["thesis-rgb", "spectral-8"])
+@pytest.mark.parametrize("key,value", [("hydrogen_density", 2700.0), ("visual_extinction", 1.0)])
+def test_a_fit_of_the_optics_keeps_a_physical_scene_optical_depth(preset, key, value):
+    """--free albedo (or g, a slope, a band's) on a scene whose dust is given in physical
+    units: each trial's scene lists the bands, whose reference band gives another dust.tau for
+    the same n_H or A_V (0.1 % for spectral-8), and the trial scene, holding both, was refused
+    ('is set by dust.hydrogen_density ...: give one of them') before the fit started. The trials
+    keep the base scene's dust.tau."""
+    d = {**SKY_SCENE, "dust": {"model": "uniform", "density": 1.0, key: value}, "bands": {"preset": preset}}
+    from nebula_rt.observe import fit_parameters
+
+    base = Scene.from_dict(d)
+    for name in ("albedo", "g", "albedo_slope"):
+        p = fit_parameters.make_parameter(name, base)
+        trial = fit_parameters.scene_with(base, [p], [0.5 * (p.lo + p.hi)])
+        assert trial.dust.tau == base.dust.tau
+
+
+def test_a_fit_without_an_interval_says_so_not_nan(folder, traces, capsys):
+    """fit --uncertainty none: the summary on stderr gave each parameter as 'albedo = 0.5
+    -nan +nan'."""
+    status, _, err = _run(folder, FIT + " --free albedo --grid 0", capsys)
+    assert status == 0, err
+    line = next(ln for ln in err.splitlines() if ln.strip().startswith("albedo ="))
+    assert "nan" not in line and "(no interval)" in line, line

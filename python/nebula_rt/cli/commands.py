@@ -55,6 +55,10 @@ def _scene_from_args(args):
     if getattr(args, "stretch", None) is not None:
         scene = scene.with_overrides([f'colour.stretch="{args.stretch}"'])
     args.scene_used = scene
+    if scene.dust.model == "file":  # the density file's kind, header and size, before any work
+        from ..density import check_density_file
+
+        check_density_file(scene.dust_file_path(), scene.dust.array, tuple(scene.grid.shape))
     return scene
 
 
@@ -103,6 +107,28 @@ def _backend_for(scene, comm=None):
     return backend
 
 
+class _Progress:
+    """The trace's progress bar on stderr, shown from the first packets traced on: a run
+    refused on the way (a density file's values, dust.tau against the density) says so in
+    its one line, without an empty bar before it."""
+
+    def __init__(self, scene, quiet: bool):
+        self.total, self.quiet, self.bar = scene.transport.effective()[0], quiet, None
+
+    def __call__(self, done, total) -> None:
+        if self.bar is None:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=self.total, unit="pkt", unit_scale=True, desc="tracing", disable=self.quiet,
+                            file=sys.stderr)
+        self.bar.n = done
+        self.bar.refresh()
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
 def _print_summary(summary: dict) -> None:
     """Print the run's summary; a closed or broken stdout loses only the summary (the outputs
     are already published)."""
@@ -143,24 +169,14 @@ def _render(args, cancel) -> int:
         pipe = Pipeline(backend, comm=comm)
         cancel.check("start-up")
 
-    bar = None
     t0 = time.perf_counter()
+    progress = _Progress(scene, args.quiet or not lead)
     # the trace: the ranks decide a cancel together; any other failure is one rank's own
     with ranks.trace():
         try:
-            from tqdm import tqdm
-
-            bar = tqdm(total=scene.transport.effective()[0], unit="pkt", unit_scale=True, desc="tracing",
-                       disable=args.quiet or not lead, file=sys.stderr)
-
-            def progress(done, total):
-                bar.n = done
-                bar.refresh()
-
             light = pipe.run(scene, progress=progress, cancel=cancel)
         finally:
-            if bar is not None:
-                bar.close()
+            progress.close()
         cancel.check("run")  # a cancel after the last launch publishes nothing either
 
     def publish():
@@ -383,15 +399,7 @@ def _sky(args, cancel) -> int:
         check_outputs(outputs, _inputs(args, scene))
         cancel.check("start-up")
         cam = calibrate.camera_for(scene, direction, args.size)
-    from tqdm import tqdm
-
-    bar = tqdm(total=scene.transport.effective()[0], unit="pkt", unit_scale=True, desc="tracing",
-               disable=args.quiet or not ranks.lead, file=sys.stderr)
-
-    def progress(done, total):
-        bar.n = done
-        bar.refresh()
-
+    progress = _Progress(scene, args.quiet or not ranks.lead)
     with ranks.trace():
         try:
             if args.method == "peel-off":
@@ -404,7 +412,7 @@ def _sky(args, cancel) -> int:
                 res = light.transport
                 cal = calibrate.ray_march_sky(light, cam)
         finally:
-            bar.close()
+            progress.close()
         cancel.check("run")
     summary = {
         "scene": str(args.scene), "fits": str(args.fits), "png": args.png, "method": cal.method,
@@ -554,7 +562,7 @@ def _main(argv) -> int:
     from ..backends.parallel import launched_by_mpi
 
     # the ranks of an MPI job cancel together, by their polls (no watchdog: interrupts)
-    cancel = SignalCancel(watchdog=not launched_by_mpi())
+    cancel = SignalCancel(watchdog=not launched_by_mpi(), ends_process=True)
     with cancel:
         args = None
         try:

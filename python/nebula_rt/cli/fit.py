@@ -65,8 +65,10 @@ def _box_length(args, scene):
 
     if args.box_length is not None:
         return _quantity("--box-length", args.box_length)
-    try:  # the scene's label of its box edge
-        return scene.grid.length * u.Unit(scene.grid.unit)
+    from ..scene.units import length_metres
+
+    try:  # the scene's box edge: a number in grid.unit, or a quantity such as "0.5 pc"
+        return length_metres(scene.grid.length, scene.grid.unit) * u.m
     except (ValueError, TypeError, AttributeError):
         return None
 
@@ -164,9 +166,11 @@ def fit_command(args, ranks, scene, direction, backend_of, inputs, print_summary
         try:
             from tqdm import tqdm
 
-            bar = tqdm(total=1, unit="trace", desc="fitting", disable=args.quiet or not ranks.lead, file=sys.stderr)
-
             def progress(done, total, best):
+                nonlocal bar
+                if bar is None:  # from the first trace on (a refusal on the way has no empty bar)
+                    bar = tqdm(total=1, unit="trace", desc="fitting", disable=args.quiet or not ranks.lead,
+                               file=sys.stderr)
                 bar.total = total
                 bar.n = done
                 bar.set_postfix_str(f"best chi2 {best:.2f}", refresh=False)

@@ -66,11 +66,10 @@ def compare_image_command(args, ranks, scene, direction, backend_of, inputs, pri
         calibrate.check_scene(scene)
         obs = ic.read_image(args.image, args.image_hdu, unit=args.image_unit, errors=args.image_error,
                              option="--image")
-        kind = ic.resolve_band(scene, args.image_band, obs.header_band)
-        ic.check_pixel_batches(scene, args.size)
-        cam = calibrate.camera_for(scene, direction, args.size)
-        wcs = calibrate.celestial_wcs(scene, cam)
-        ic.check_overlap(obs, wcs, (cam.size[1], cam.size[0]))
+        # the band, the overlap, the reprojection and the star mask: refused here, where the
+        # ranks of an MPI job agree on it (in the trace, each rank told it and aborted the job)
+        prepared = ic.prepare_observed_image(scene, obs, band=args.image_band, direction=direction, size=args.size,
+                                             mode=args.reproject, mask_stars_arcsec=args.mask_stars)
         npix = args.size * args.size
         outs = [Output("--png", Path(args.png), ".png", 4 << 20)]
         if args.json:
@@ -82,9 +81,9 @@ def compare_image_command(args, ranks, scene, direction, backend_of, inputs, pri
         resources.check(scene, backend, peel_pixels=npix, peel_option="--size", peel_value=args.size)
         cancel.check("start-up")
     with ranks.trace():
-        res = ic.compare_observed_image(scene, obs, band=kind[2], direction=direction, size=args.size,
+        res = ic.compare_observed_image(scene, obs, band=prepared.kind[2], direction=direction, size=args.size,
                                         mode=args.reproject, mask_stars_arcsec=args.mask_stars, backend=backend,
-                                        cancel=cancel, comm=ranks.comm)
+                                        cancel=cancel, comm=ranks.comm, prepared=prepared)
         cancel.check("run")
     c = res.comparison
     summary = {"scene": str(args.scene), "png": str(args.png), **res.to_dict()}

@@ -54,9 +54,10 @@ def file_digest(path: Path) -> str:
 DENSITY_FILE = "an existing .npy or .vti file"
 
 
-def _npy_header_shape(fh, path: Path, shape: tuple[int, int, int]) -> None:
+def _npy_header_shape(fh, path: Path, shape: tuple[int, int, int]) -> np.dtype:
     """Check a ``.npy`` header before its data is read: the array it claims must have the
-    grid's shape (a crafted header claiming 2^40 values is refused without allocating)."""
+    grid's shape (a crafted header claiming 2^40 values is refused without allocating).
+    Returns the header's dtype, ``fh`` at the first byte of the data."""
     try:
         version = np.lib.format.read_magic(fh)
         read = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
@@ -68,6 +69,63 @@ def _npy_header_shape(fh, path: Path, shape: tuple[int, int, int]) -> None:
                          f"array shape {tuple(claimed)} must equal grid.shape {tuple(shape)}")
     if dtype.kind not in "fiu":
         raise SceneError("dust.file", str(path), f"must hold a numeric array (found dtype {dtype})")
+    return dtype
+
+
+#: Bytes a ``.vti`` may spend on a value of one of its arrays at most (a float64 as ASCII text
+#: with its separator takes at most 25; binary, base64 or compressed take less), on the XML
+#: around the arrays, and the components an array may have (a 3 x 3 tensor): a density file
+#: larger than its header's arrays can take up is refused before it is hashed or read.
+VTI_BYTES_PER_VALUE = 32
+VTI_XML_BYTES = 1 << 20
+VTI_MAX_COMPONENTS = 9
+
+
+def check_density_file(path: Path, array: str, shape: tuple[int, int, int]) -> None:
+    """What can be told of ``dust.file`` before its data is read, in milliseconds: a regular,
+    readable file; a ``.npy`` whose header declares the grid's shape, a numeric type and
+    exactly the bytes the file holds; a ``.vti`` whose header declares ``array`` on the grid's
+    shape, and no more bytes than its arrays can take up (:data:`VTI_BYTES_PER_VALUE`).
+
+    The command line's start-up checks a scene's density file here, before the device is
+    opened and before the file is hashed (:func:`file_digest` reads all of it: a 100 GB file
+    behind a valid header took minutes), as :meth:`nebula_rt.pipeline.stages.Pipeline.run` does.
+
+    Raises
+    ------
+    SceneError
+        Naming ``dust.file``, the path and why.
+    """
+    path = Path(path)
+    st = check_input_file("dust.file", path, DENSITY_FILE)
+    suffix = path.suffix.lower()
+    if suffix == ".npy":
+        with open_input("dust.file", path, DENSITY_FILE) as fh:
+            dtype = _npy_header_shape(fh, path, shape)
+            declared = fh.tell() + math.prod(shape) * dtype.itemsize
+        if st.st_size != declared:
+            raise SceneError("dust.file", str(path), f"holds {st.st_size} bytes, its .npy header declares {declared} "
+                                                     f"(a {dtype} array of shape {tuple(shape)}): a truncated or "
+                                                     "damaged file")
+    elif suffix == ".vti":
+        try:
+            from ..filters.density_file import declared_density
+        except ImportError as exc:
+            raise SceneError("dust.file", str(path), f"a .vti density needs {(exc.name or 'vtk').split('.')[0]}: "
+                                                     "pip install 'nebula-rt[io]', or give a .npy file") from None
+        try:
+            points, arrays = declared_density(path, array, expected_shape=shape)
+        except SceneError:
+            raise
+        except Exception as exc:  # unreadable header: say which file and why
+            raise SceneError("dust.file", str(path), f"could not be read as density data ({exc})") from None
+        most = VTI_XML_BYTES + arrays * VTI_MAX_COMPONENTS * VTI_BYTES_PER_VALUE * math.prod(points)
+        if st.st_size > most:
+            raise SceneError("dust.file", str(path), f"{st.st_size} bytes, more than the {most} its header's {arrays} "
+                                                     f"array(s) of {math.prod(points)} points can take up: a damaged "
+                                                     "file")
+    else:
+        raise SceneError("dust.file", str(path), "must be a .npy or .vti file")
 
 
 def load_density_file(path: Path, array: str, shape: tuple[int, int, int]) -> np.ndarray:

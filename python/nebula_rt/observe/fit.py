@@ -152,7 +152,10 @@ class FitResult:
     def summary(self) -> str:
         lines = [f"chi2 = {self.chi2:.3f} for {self.dof} degrees of freedom ({sum(self.traces.values())} traces)"]
         for i, p in enumerate(self.parameters):
-            lines.append(f"  {p.name} = {self.best[i]:.5g}  -{self.err_minus[i]:.3g} +{self.err_plus[i]:.3g}"
+            lo, hi = self.err_minus[i], self.err_plus[i]
+            # no interval (--uncertainty none, or none found): said in words, not "-nan +nan"
+            interval = f"-{lo:.3g} +{hi:.3g}" if math.isfinite(lo) and math.isfinite(hi) else "(no interval)"
+            lines.append(f"  {p.name} = {self.best[i]:.5g}  {interval}"
                          + ("  (interval reaches a bound)" if any(self.at_bound[i]) else ""))
         return "\n".join(lines)
 

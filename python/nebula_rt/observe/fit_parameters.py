@@ -13,6 +13,7 @@ import numpy as np
 from ..errors import SceneError
 from ..optics.bands import ALBEDO_RANGE, G_RANGE
 from ..scene.model import Scene
+from ..scene.units import DUST_KEYS
 
 SPECIAL = ("albedo", "g", "albedo_slope", "g_slope", "tau", "depth")
 #: Default bounds of the parameters that have them.
@@ -204,6 +205,11 @@ def scene_with(base, params: Sequence[FreeParameter], values: Sequence[float], d
                 row[attr] = min(max(v, lim[0]), lim[1])
             rows.append(row)
         d["bands"] = {"list": rows}
+        # the optical depth stays the base scene's: a physical dust key (n_H, the dust's mass
+        # density, A_V) gives dust.tau through the preset's reference band, which a list of
+        # bands defines otherwise (0.1 % apart for spectral-8), and the two then disagreed
+        for key in DUST_KEYS:
+            d["dust"].pop(key, None)
     if "tau" in vals:
         d["dust"]["tau"] = vals["tau"]
     if "depth" in vals:

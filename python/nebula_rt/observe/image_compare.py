@@ -436,34 +436,31 @@ class ImageResult:
         }
 
 
-def compare_observed_image(scene, obs: ObservedImage, *, band=None, direction=(0.0, 0.0, -1.0), size: int = COMPARISON_SIZE,
-                           mode: str = "exact", mask_stars_arcsec: float = 0.0, backend=None, progress=None,
-                           cancel=None, comm=None) -> ImageResult:
-    """Hold ``scene``'s calibrated peel-off image against ``obs``: the observation reprojected
-    onto the model image (checked before any tracing), the trace, residuals and chi^2.
+@dataclass
+class PreparedImage:
+    """An observation reprojected onto the model image, checked before any tracing
+    (:func:`prepare_observed_image`): the band, the camera and its WCS, the reprojection."""
 
-    Parameters
-    ----------
-    scene : nebula_rt.scene.Scene
-        With ``[observer]`` distance and stars in physical units (:func:`nebula_rt.observe.calibrate.check_scene`).
-    obs : ObservedImage
-    band : str, optional
-        A scene band or a passband's speclite name (default: the image header's BAND or FILTER).
-    direction : (3,) float
-        Viewing direction, from the observer into the scene.
-    size : int
-        Model image pixels per side (over the box's projection, :func:`nebula_rt.observe.calibrate.camera_for`).
-    mode : str
-        Reprojection, ``exact`` or ``interp``.
-    mask_stars_arcsec : float
-        Leave out pixels within this radius of each star (its PSF core, often saturated).
-    cancel : callable or CancelToken, optional
-        As for :func:`nebula_rt.transport.trace`.
-    comm : communicator, optional
-        The ranks that share the trace (:mod:`nebula_rt.backends.parallel`), as for
-        :func:`nebula_rt.transport.trace`: every rank gets the same result.
+    kind: tuple
+    camera: object
+    wcs: object
+    observed: Reprojected
+    mask_stars_arcsec: float
+
+
+def prepare_observed_image(scene, obs: ObservedImage, *, band=None, direction=(0.0, 0.0, -1.0),
+                           size: int = COMPARISON_SIZE, mode: str = "exact",
+                           mask_stars_arcsec: float = 0.0) -> PreparedImage:
+    """What :func:`compare_observed_image` does before its trace: every check (the band, the
+    scene on the sky, the overlap, a model pixel wholly inside the image, a star mask that
+    leaves some) and the reprojection. The command line runs it in its start-up, where the
+    ranks of an MPI job agree on a refusal (one message), and hands it to the comparison.
+
+    Raises
+    ------
+    SceneError
+        As :func:`compare_observed_image`, before anything is traced.
     """
-
     calibrate.check_scene(scene)
     kind = resolve_band(scene, band, obs.header_band)
     r = mask_stars_arcsec
@@ -488,11 +485,48 @@ def compare_observed_image(scene, obs: ObservedImage, *, band=None, direction=(0
                          f"leaves none of the {int(rep.usable.sum())} model pixels the image covers to compare: "
                          f"must be a radius in arcsec >= 0 that leaves some (model pixels of {pixel_arcsec:.4g} "
                          "arcsec)")
-    mod = model_image(scene, kind, cam, backend, progress=progress, cancel=cancel, comm=comm)
-    mask = rep.usable & ~star_mask(mod.cal, mask_stars_arcsec)
+    return PreparedImage(kind=kind, camera=cam, wcs=wcs, observed=rep, mask_stars_arcsec=float(mask_stars_arcsec))
+
+
+def compare_observed_image(scene, obs: ObservedImage, *, band=None, direction=(0.0, 0.0, -1.0), size: int = COMPARISON_SIZE,
+                           mode: str = "exact", mask_stars_arcsec: float = 0.0, backend=None, progress=None,
+                           cancel=None, comm=None, prepared: Optional[PreparedImage] = None) -> ImageResult:
+    """Hold ``scene``'s calibrated peel-off image against ``obs``: the observation reprojected
+    onto the model image (checked before any tracing), the trace, residuals and chi^2.
+
+    Parameters
+    ----------
+    scene : nebula_rt.scene.Scene
+        With ``[observer]`` distance and stars in physical units (:func:`nebula_rt.observe.calibrate.check_scene`).
+    obs : ObservedImage
+    band : str, optional
+        A scene band or a passband's speclite name (default: the image header's BAND or FILTER).
+    direction : (3,) float
+        Viewing direction, from the observer into the scene.
+    size : int
+        Model image pixels per side (over the box's projection, :func:`nebula_rt.observe.calibrate.camera_for`).
+    mode : str
+        Reprojection, ``exact`` or ``interp``.
+    mask_stars_arcsec : float
+        Leave out pixels within this radius of each star (its PSF core, often saturated).
+    cancel : callable or CancelToken, optional
+        As for :func:`nebula_rt.transport.trace`.
+    comm : communicator, optional
+        The ranks that share the trace (:mod:`nebula_rt.backends.parallel`), as for
+        :func:`nebula_rt.transport.trace`: every rank gets the same result.
+    prepared : PreparedImage, optional
+        :func:`prepare_observed_image`'s result for these arguments, if already made.
+    """
+
+    if prepared is None:
+        prepared = prepare_observed_image(scene, obs, band=band, direction=direction, size=size, mode=mode,
+                                          mask_stars_arcsec=mask_stars_arcsec)
+    rep = prepared.observed
+    mod = model_image(scene, prepared.kind, prepared.camera, backend, progress=progress, cancel=cancel, comm=comm)
+    mask = rep.usable & ~star_mask(mod.cal, prepared.mask_stars_arcsec)
     comp = compare_image(mod.image, mod.error, rep.data, rep.error, mask=mask)
     return ImageResult(model=mod, observed=rep, comparison=comp, image=obs.label,
-                       masked_stars_arcsec=float(mask_stars_arcsec))
+                       masked_stars_arcsec=prepared.mask_stars_arcsec)
 
 
 # --------------------------------------------------------------------------------------------

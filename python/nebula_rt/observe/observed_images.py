@@ -256,8 +256,18 @@ def read_image(path, hdu=None, *, unit=None, errors: Sequence = (), option: str 
     """
     from astropy.io import fits
 
+    import warnings
+
     path = str(path)
     check_input_file(option, path, "a readable FITS file")
+    with warnings.catch_warnings():
+        # a header declaring more data than the file holds: astropy's warning was a line of its
+        # own beside the refusal (_hdu_data), which names the file, the HDU and the sizes
+        warnings.filterwarnings("ignore", message="File may have been truncated")
+        return _read_image(fits, path, hdu, unit, errors, option)
+
+
+def _read_image(fits, path: str, hdu, unit, errors, option) -> ObservedImage:
     try:
         hdul = fits.open(path, memmap=False)
     except (OSError, ValueError) as exc:

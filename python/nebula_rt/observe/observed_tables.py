@@ -192,6 +192,8 @@ def _read_astropy(path: Path, where: str, option: str = "table"):
     from astropy.utils.exceptions import AstropyWarning
 
     text = read_input_text(option, path, "a .csv or .ecsv file of UTF-8 text", MAX_TABLE_BYTES)
+    if not text.strip():  # (astropy took the empty text for a file name: "Is a directory: '.'")
+        raise SceneError(option, str(path), "is empty: a table needs its header line and a row per measurement")
     fmt = "ascii.ecsv" if text.lstrip().startswith("# %ECSV") else "ascii.csv"
     if path.suffix.lower() == ".ecsv" and fmt != "ascii.ecsv":
         raise SceneError(where, str(path), "an .ecsv file must start with the '# %ECSV' header line")
@@ -202,7 +204,8 @@ def _read_astropy(path: Path, where: str, option: str = "table"):
             # lost precision, a line of its own on stderr beside the refusal; the values are
             # checked, and named by column and row, below
             warnings.filterwarnings("ignore", message="OverflowError converting to", category=AstropyWarning)
-            return Table.read(text, format=fmt)
+            # as lines: a text of one line (a header without rows or newline) is not a file name
+            return Table.read(text.splitlines(), format=fmt)
     except Exception as exc:  # astropy's parser errors are of many types
         raise SceneError(where, str(path), f"must be a readable {fmt[6:].upper()} table ({exc})") from None
 

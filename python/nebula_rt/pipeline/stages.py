@@ -20,7 +20,7 @@ from . import output_contract as contract
 from ..array_api import array_module, to_numpy
 from ..backends import Backend
 from ..optics.bands import Band, reference_band_index
-from ..density.generate import file_digest, generate_density
+from ..density.generate import check_density_file, file_digest, generate_density
 from ..transport.tails import DEPTH_CLASS_NAMES, figures
 from ..transport.result import TransportResult
 from ..transport.estimate import batch_standard_error, light_from_sums
@@ -239,6 +239,8 @@ class Pipeline:
 
         t0 = time.perf_counter()
         resources.check(scene, self.backend_for(scene))  # before the density is allocated
+        if scene.dust.model == "file":  # its header and size, before it is hashed
+            check_density_file(scene.dust_file_path(), scene.dust.array, tuple(scene.grid.shape))
         digest = dust_file_digest(scene)  # the file is hashed once per run
         dkey = self.density_key(scene, digest)
         rho = self.density(scene, dkey)

@@ -46,6 +46,8 @@ def _parse_toml(text: str, where: str) -> Dict[str, Any]:
         raise SceneError("(toml)", where, f"not valid TOML: {e}") from None
     except RecursionError:
         raise SceneError("(toml)", where, "not valid TOML: arrays or tables nested too deeply") from None
+    except ValueError as e:  # Python's own limit: an integer of more than 4300 digits
+        raise SceneError("(toml)", where, f"not valid TOML here: {str(e).split(';')[0]}") from None
 
 
 _NUMERIC_ARRAY = re.compile(r"= \[\n((?:[ \t]+[-+0-9.eE_infa]+,\n)+)\]")
