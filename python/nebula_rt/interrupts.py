@@ -63,6 +63,8 @@ _publishing = threading.Lock()
 
 #: the signals heard by :func:`install_early`'s handler before a SignalCancel was installed
 _early: list = []
+#: whether :func:`install_early` ran: this process is the command, which ends when its run does
+_command = False
 
 
 def _early_handler(signum, frame) -> None:
@@ -78,11 +80,19 @@ def install_early() -> None:
     """Hear the cancelling signals from now on (the command line's first import), before the
     run's :class:`SignalCancel` is installed: the first such signal cancels the run when it is.
     Signals the process inherited as ignored stay ignored; only the main thread may install."""
+    global _command
     if threading.current_thread() is not threading.main_thread():
         return
+    _command = True
     for sig in SIGNALS:
         if signal.getsignal(sig) in (signal.SIG_DFL, signal.default_int_handler):
             signal.signal(sig, _early_handler)
+
+
+def is_command() -> bool:
+    """Whether this process is the command line (:func:`install_early` ran), not Python that
+    called its ``main`` (a test, a notebook), whose signals a run must leave as it found them."""
+    return _command
 
 
 def cancel_requested() -> Optional[int]:

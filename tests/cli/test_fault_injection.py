@@ -250,6 +250,18 @@ def test_a_second_signal_while_a_cancelled_run_exits():
     assert r.returncode == 130 and "Traceback" not in r.stderr, (r.returncode, r.stderr)
 
 
+def test_importing_the_command_line_from_python_leaves_its_signals_alone():
+    """Only the command (nebula-rt, python -m nebula_rt.cli) hears signals from its imports on
+    and leaves them ignored after a cancel; Python that imports nebula_rt.cli (a notebook,
+    these tests) keeps its Ctrl-C."""
+    before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
+    import nebula_rt.cli  # noqa: F401
+    from nebula_rt import interrupts
+
+    assert not interrupts.is_command()
+    assert {s: signal.getsignal(s) for s in before} == before
+
+
 def test_nohup_keeps_sighup_ignored(scene_dir):
     """A run started with SIGHUP ignored (``nohup``) must not be cancelled by a SIGHUP (the
     terminal closing): the handlers took every signal, whatever the process inherited, and
