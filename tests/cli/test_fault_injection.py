@@ -279,6 +279,28 @@ def test_nohup_keeps_sighup_ignored(scene_dir):
     assert (scene_dir / "out.vti").exists() and leftovers(scene_dir) == []
 
 
+def test_a_background_job_that_ignores_sigint_is_still_cancelled_by_it(scene_dir):
+    """A shell without job control starts a background job with SIGINT and SIGQUIT ignored; a
+    `kill -INT` of such a run (as these tests send) still cancels it: only SIGHUP's inherited
+    ignore (nohup) is kept."""
+    before = old_outputs(scene_dir)
+
+    def background():
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGQUIT, signal.SIG_IGN)
+
+    proc = subprocess.Popen(_cli("render", str(scene_dir / "s.toml"), "-o", str(scene_dir / "out.vti"),
+                                 "--set", "transport.photons=5e7"),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=_env(), preexec_fn=background)
+    err = b""
+    while b"tracing" not in err and proc.poll() is None:
+        err += proc.stderr.read1(256)
+    proc.send_signal(signal.SIGINT)
+    err += proc.communicate(timeout=60)[1]
+    assert proc.returncode == 130, err.decode(errors="replace")
+    assert_intact(scene_dir, before)
+
+
 # --------------------------------------------------------------------------- concurrency
 
 def test_concurrent_renders_to_one_output(scene_dir):
