@@ -27,8 +27,10 @@ ranks agree on a cancel together, and one rank ending on its own would end the j
 
 The command line hears the signals from its first import on (:func:`install_early`), before
 its modules (a third of a second of numpy, astropy and the scene) have loaded: a signal then
-cancels the run as soon as its handlers are installed, before anything starts. A signal whose
-disposition the process inherited as ignored (``nohup`` ignores SIGHUP) stays ignored.
+cancels the run as soon as its handlers are installed, before anything starts. A SIGHUP the
+process inherited as ignored stays ignored (:data:`KEPT_IGNORED`: ``nohup``'s whole purpose);
+SIGINT and SIGQUIT, which a shell ignores in a job it starts in the background, still cancel
+(``kill -INT`` of such a run, as the tests send).
 """
 
 from __future__ import annotations
@@ -46,6 +48,8 @@ from .errors import CancelledError
 
 #: the signals that cancel a run (those this platform has)
 SIGNALS = tuple(getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT") if hasattr(signal, n))
+#: the signals that stay ignored where the process inherited them so: SIGHUP under ``nohup``
+KEPT_IGNORED = tuple(getattr(signal, n) for n in ("SIGHUP",) if hasattr(signal, n))
 #: exit status of a run cancelled by each signal (128 + the signal number, the shell's convention)
 EXIT_STATUS = {sig: 128 + int(sig) for sig in SIGNALS}
 
@@ -63,6 +67,8 @@ _publishing = threading.Lock()
 
 #: the signals heard by :func:`install_early`'s handler before a SignalCancel was installed
 _early: list = []
+#: whether :func:`install_early` ran: this process is the command, which ends when its run does
+_command = False
 
 
 def _early_handler(signum, frame) -> None:
@@ -77,12 +83,20 @@ def _early_handler(signum, frame) -> None:
 def install_early() -> None:
     """Hear the cancelling signals from now on (the command line's first import), before the
     run's :class:`SignalCancel` is installed: the first such signal cancels the run when it is.
-    Signals the process inherited as ignored stay ignored; only the main thread may install."""
+    Only the main thread may install."""
+    global _command
     if threading.current_thread() is not threading.main_thread():
         return
+    _command = True
     for sig in SIGNALS:
-        if signal.getsignal(sig) in (signal.SIG_DFL, signal.default_int_handler):
+        if not (sig in KEPT_IGNORED and signal.getsignal(sig) is signal.SIG_IGN):
             signal.signal(sig, _early_handler)
+
+
+def is_command() -> bool:
+    """Whether this process is the command line (:func:`install_early` ran), not Python that
+    called its ``main`` (a test, a notebook), whose signals a run must leave as it found them."""
+    return _command
 
 
 def cancel_requested() -> Optional[int]:
@@ -174,7 +188,7 @@ class SignalCancel:
         the signal. Every poll re-installs ours (a few sigaction calls, at most a few per
         second); only the main thread may."""
         if self._old and threading.current_thread() is threading.main_thread():
-            for sig in self._old:  # (not those the process inherited as ignored)
+            for sig in self._old:  # (not a SIGHUP the process inherited as ignored)
                 signal.signal(sig, self._handler)
 
     def check(self, what: str = "run") -> None:
@@ -279,7 +293,7 @@ class SignalCancel:
         global _active
         if threading.current_thread() is threading.main_thread():
             for sig in self.SIGNALS:
-                if signal.getsignal(sig) is signal.SIG_IGN:  # inherited as ignored (nohup): left so
+                if sig in KEPT_IGNORED and signal.getsignal(sig) is signal.SIG_IGN:  # nohup: left so
                     continue
                 self._old[sig] = signal.signal(sig, self._handler)
             self._outer, _active = _active, self

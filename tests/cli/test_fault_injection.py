@@ -250,6 +250,18 @@ def test_a_second_signal_while_a_cancelled_run_exits():
     assert r.returncode == 130 and "Traceback" not in r.stderr, (r.returncode, r.stderr)
 
 
+def test_importing_the_command_line_from_python_leaves_its_signals_alone():
+    """Only the command (nebula-rt, python -m nebula_rt.cli) hears signals from its imports on
+    and leaves them ignored after a cancel; Python that imports nebula_rt.cli (a notebook,
+    these tests) keeps its Ctrl-C."""
+    before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
+    import nebula_rt.cli  # noqa: F401
+    from nebula_rt import interrupts
+
+    assert not interrupts.is_command()
+    assert {s: signal.getsignal(s) for s in before} == before
+
+
 def test_nohup_keeps_sighup_ignored(scene_dir):
     """A run started with SIGHUP ignored (``nohup``) must not be cancelled by a SIGHUP (the
     terminal closing): the handlers took every signal, whatever the process inherited, and
@@ -265,6 +277,28 @@ def test_nohup_keeps_sighup_ignored(scene_dir):
     err += proc.communicate(timeout=120)[1]
     assert proc.returncode == 0, err.decode(errors="replace")
     assert (scene_dir / "out.vti").exists() and leftovers(scene_dir) == []
+
+
+def test_a_background_job_that_ignores_sigint_is_still_cancelled_by_it(scene_dir):
+    """A shell without job control starts a background job with SIGINT and SIGQUIT ignored; a
+    `kill -INT` of such a run (as these tests send) still cancels it: only SIGHUP's inherited
+    ignore (nohup) is kept."""
+    before = old_outputs(scene_dir)
+
+    def background():
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGQUIT, signal.SIG_IGN)
+
+    proc = subprocess.Popen(_cli("render", str(scene_dir / "s.toml"), "-o", str(scene_dir / "out.vti"),
+                                 "--set", "transport.photons=5e7"),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=_env(), preexec_fn=background)
+    err = b""
+    while b"tracing" not in err and proc.poll() is None:
+        err += proc.stderr.read1(256)
+    proc.send_signal(signal.SIGINT)
+    err += proc.communicate(timeout=60)[1]
+    assert proc.returncode == 130, err.decode(errors="replace")
+    assert_intact(scene_dir, before)
 
 
 # --------------------------------------------------------------------------- concurrency

@@ -414,3 +414,13 @@ def test_a_fit_without_an_interval_says_so_not_nan(folder, traces, capsys):
     assert status == 0, err
     line = next(ln for ln in err.splitlines() if ln.strip().startswith("albedo ="))
     assert "nan" not in line and "(no interval)" in line, line
+
+
+def test_a_table_entry_that_is_not_a_number_is_named_by_its_row(tmp_path):
+    """A word among a column's numbers: the message gave the column's dtype ('<U3') as the
+    value; it names the row and the entry."""
+    p = tmp_path / "t.csv"
+    p.write_text("offset,delta_bv,delta_bv_err\n0.1,-0.2,0.05\n0.3,x1,0.05\n")
+    with pytest.raises(SceneError) as e:
+        read_table(p, option="--table")
+    assert e.value.parameter.endswith("column 'delta_bv', row 2") and e.value.value == "x1", e.value

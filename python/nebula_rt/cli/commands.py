@@ -16,6 +16,7 @@ from pathlib import Path
 from ..errors import CancelledError, OutputError, SceneError
 from .. import scene as _scene
 from ..scene import sky_schema
+from .. import interrupts
 from ..interrupts import SignalCancel
 from .arguments import file_name
 from .failures import RanksFailed, Ranks, abort_the_other_ranks, describe, error, quiet_rank, say
@@ -562,7 +563,7 @@ def _main(argv) -> int:
     from ..backends.parallel import launched_by_mpi
 
     # the ranks of an MPI job cancel together, by their polls (no watchdog: interrupts)
-    cancel = SignalCancel(watchdog=not launched_by_mpi(), ends_process=True)
+    cancel = SignalCancel(watchdog=not launched_by_mpi(), ends_process=interrupts.is_command())
     with cancel:
         args = None
         try:

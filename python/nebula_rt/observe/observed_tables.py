@@ -242,6 +242,12 @@ def _values(col, name: str, where: str) -> np.ndarray:
     try:
         v = np.asarray(col, np.float64).reshape(len(col))
     except (TypeError, ValueError):
+        # the first entry that is not a number, by its row (was: the column's dtype, '<U3')
+        for row, cell in enumerate(np.asarray(col).reshape(len(col), -1)[:, 0], start=1):
+            try:
+                float(cell)
+            except (TypeError, ValueError):
+                raise SceneError(f"{where}, column {name!r}, row {row}", str(cell), "must be a number") from None
         raise SceneError(f"{where}, column {name!r}", str(col.dtype), "must hold numbers") from None
     bad = mask | ~np.isfinite(v)
     if bad.any():
