@@ -33,8 +33,9 @@ def stars_from_flat(values) -> list[dict]:
     """Scene-file star tables from the flat ``Stars`` vector (a row of ``STAR_COLUMNS`` per
     star).
 
-    A temperature of exactly 0 means no spectrum (flat); any other value goes to the scene's
-    validation (a negative or NaN temperature is an error, not a flat spectrum)."""
+    A temperature of exactly 0 means no spectrum (flat), as in a scene file; any other value
+    goes to the scene's validation (a negative or NaN temperature is an error, not a flat
+    spectrum)."""
     width = len(STAR_COLUMNS)
     allowed = (f"must hold {width} numbers per star: "
                + ", ".join(h.lower() + (" ({:g} = {})".format(*STAR_NONE_AS[f]) if f in STAR_NONE_AS else "")
@@ -52,7 +53,7 @@ def stars_from_flat(values) -> list[dict]:
         for (_h, field, comp), v in zip(STAR_COLUMNS, vals[i:i + width]):
             if comp is not None:
                 star.setdefault(field, []).append(float(v))
-            elif not (field in STAR_NONE_AS and float(v) == STAR_NONE_AS[field][0]):
+            else:
                 star[field] = float(v)
         out.append(star)
     return out
@@ -102,6 +103,12 @@ def default_reference_band():
 
 
 #: The star fields of the flat Stars property, by scene key.
+#: Where a request to abort can come from besides the algorithm's own ``AbortExecute`` flag:
+#: objects with ``start(algorithm)`` and ``stop()`` (around each execution) and ``poll() ->
+#: bool`` (at each of its abort polls). Plain VTK has none; the ParaView GUI adds its Abort
+#: button (``plugin/nebula_rt_paraview/abort.py``).
+ABORT_SOURCES: list = []
+
 _STAR_KEY = re.compile(r"^stars\[(\d+)\]\.(\w+)$")
 
 
@@ -134,6 +141,8 @@ class NebulaAlgorithm(VTKPythonAlgorithmBase):
         check = getattr(self, "CheckAbort", None)  # VTK >= 9.3 (ParaView >= 5.12 honours it)
         if check is not None and check():
             return True
+        if any([src.poll() for src in ABORT_SOURCES]):  # (every source polled: each may need to run)
+            self.SetAbortExecute(1)
         return bool(self.GetAbortExecute())
 
     def _progress_callback(self, what: str):
@@ -195,7 +204,13 @@ class NebulaAlgorithm(VTKPythonAlgorithmBase):
                 warnings.simplefilter("always", NebulaWarning)
                 for text in inert_properties(self) + self.inert_messages():
                     warnings.warn(text, NebulaWarning)
-                self._execute(request, inInfo, outInfo)
+                for src in ABORT_SOURCES:
+                    src.start(self)
+                try:
+                    self._execute(request, inInfo, outInfo)
+                finally:
+                    for src in ABORT_SOURCES:
+                        src.stop()
                 self._crop_to_request(outInfo.GetInformationObject(0), output)
             self._surface_warnings(caught)
             self._report(1.0, "")
@@ -204,8 +219,12 @@ class NebulaAlgorithm(VTKPythonAlgorithmBase):
             self._abort_if_distributed(exc)
             if isinstance(exc, CancelledError):
                 # VTK 9.2 (ParaView 5.11) does not clear the flag before the next execution:
-                # without this every later update would be cancelled at once
+                # without this every later update would be cancelled at once. Clearing it
+                # modifies the algorithm, so the key of this failure is taken after: else the
+                # next consumer of the same Apply (the representation, the data information)
+                # would start the cancelled trace again from the beginning
                 self.SetAbortExecute(0)
+                key = (self.GetMTime(), key[1])
             self.last_error = f"{type(self).__name__}: {self.describe_error(exc)}"
             self._failed_key = key
             self._empty_outputs(outInfo, self.last_error)  # no half-made output

@@ -77,8 +77,11 @@ X11_PKGS=(libgl1 libglx-mesa0 libx11-6 libxcursor1)
 # (the OpenCL device ParaView's Python sees through the pyopencl wheel). libqt5svg5: Qt's SVG
 # image plugin, without which every icon of ParaView's GUI (the toolbars, the Stars table's +
 # and -, the abort button, the advanced-properties gear) is an empty square; Debian's paraview
-# package does not pull it in.
-PV_PKGS=(paraview python3-paraview xvfb pocl-opencl-icd libqt5svg5)
+# package does not pull it in. python3-pyqt5: Qt's Python binding for the same Qt that ParaView
+# uses (Debian's), through which the plugin enables ParaView's Abort button during a trace and
+# hears it (ParaView 5.11 connects that button to nothing; plugin/nebula_rt_paraview/abort.py).
+# xdotool: the GUI tests press that button as a user does, with a real mouse click on the X server.
+PV_PKGS=(paraview python3-paraview xvfb pocl-opencl-icd libqt5svg5 python3-pyqt5 xdotool)
 if [[ "$SKIP_PV" == 1 ]]; then PV_PKGS=(); fi
 # Building pyvkfft (b2): the OpenCL headers, the ICD loader's libOpenCL.so and a C++ compiler.
 FFT_PKGS=(opencl-headers ocl-icd-opencl-dev g++)

@@ -14,6 +14,18 @@ one shared fixed exposure so brightness can be compared across the series):
 - fig4_4_nebula_offset_a.pvsm      turbulence, scale 0.15, tau 128, noise offset (0.5, 0.5, 0.5)
 - fig4_5_nebula_offset_b.pvsm      the same with noise offset (3.5, 1.5, 0.5)  -- Figs. 4.4/4.5
 
+And one for a fit's result:
+
+- fit_result.pvsm                  the worked example's fit (examples/observations/fit-result.json,
+                                   ``nebula-rt fit`` of the NGC 7023-like scene to the synthetic
+                                   colour and ratio tables, docs/observations.md) opened by the
+                                   plugin's reader into a Python View: the parameters with
+                                   their errors first, one chart per observable kind with error
+                                   bars (nebula_rt_paraview.fit_view). Its FileName is relative
+                                   to the repository: load it with the data directory set to the
+                                   repository (File > Load State, "Search files under specified
+                                   directory"; ``load_state_safely(..., data_directory=REPO)``).
+
 The defaults (48^3 voxels, 200 000 packets per band) load and render in a few seconds on two
 CPU cores; the thesis used 128^3 voxels and 2.1 million packets (--grid 128 --photons 2100000,
 or change GridShape / Photons in ParaView after loading: the properties panel of the dust
@@ -170,6 +182,24 @@ def build(name, spec, grid, photons, tau, device):
     return view, colours
 
 
+FIT_RESULT = os.path.join("examples", "observations", "fit-result.json")
+FIT_SIZE = [900, 900]
+
+
+def build_fit_result():
+    """The fit result's layout: its reader's two ports in a Python View (nebula_rt_paraview.fit_view).
+    The reader's FileName is stored relative to the repository (made from there)."""
+    from nebula_rt_paraview.view import show_fit_result
+
+    reset_session()
+    reader = simple.NebulaFitResultReader(registrationName="fit-result.json", FileName=FIT_RESULT)
+    view = simple.CreateView("PythonView")
+    simple.AssignViewToLayout(view)
+    simple.GetLayout(view).PreviewMode = FIT_SIZE
+    show_fit_result(reader, view)
+    return view, reader
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--grid", type=int, default=48, help="voxels per axis (default 48; thesis 128)")
@@ -183,6 +213,24 @@ def main(argv=None):
 
     load_plugin()
     os.makedirs(args.out, exist_ok=True)
+    if not args.only or "fit_result" in args.only:
+        cwd = os.getcwd()
+        os.chdir(os.path.dirname(HERE))  # (the reader's relative FileName)
+        try:
+            view, reader = build_fit_result()
+            simple.Render(view)
+            if reader.GetClientSideObject().last_error:
+                raise SystemExit(f"fit_result: {reader.GetClientSideObject().last_error}")
+            path = os.path.join(os.path.abspath(os.path.join(cwd, args.out)), "fit_result.pvsm")
+            simple.SaveState(path)
+            print(f"wrote {path}")
+            if args.screenshots:
+                png = os.path.join(os.path.abspath(os.path.join(cwd, args.screenshots)), "paraview-fit_result.png")
+                os.makedirs(os.path.dirname(png), exist_ok=True)
+                simple.SaveScreenshot(png, view, ImageResolution=FIT_SIZE)
+                print(f"wrote {png}")
+        finally:
+            os.chdir(cwd)
     for name, spec in FIGURES.items():
         if args.only and name not in args.only:
             continue

@@ -116,14 +116,21 @@ def pv_env():
 
 
 @pytest.fixture(scope="session")
-def xdisplay(pv_env):
-    """One Xvfb for the whole session on a free display number (killed at the end)."""
+def xdisplay(pv_env, tmp_path_factory):
+    """One Xvfb for the whole session on a free display number (killed at the end).
+
+    Its messages go to a file, never to a pipe: Xvfb writes the keymap compiler's warnings
+    (about 1 KB) each time its last client leaves and it resets, and a pipe that nobody reads
+    fills after some dozens of ParaView runs; Xvfb then blocks in write() and refuses every
+    later connection ("bad X server connection"). ``-noreset`` keeps it from resetting at all."""
+    log = tmp_path_factory.mktemp("xvfb") / "xvfb.log"
     start = 100 + os.getpid() % 300
     for n in list(range(start, 420)) + list(range(100, start)):
         if os.path.exists(f"/tmp/.X11-unix/X{n}") or os.path.exists(f"/tmp/.X{n}-lock"):
             continue
-        proc = subprocess.Popen(["Xvfb", f":{n}", "-screen", "0", "1280x1024x24", "-nolisten", "tcp"],
-                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        with open(log, "ab") as err:
+            proc = subprocess.Popen(["Xvfb", f":{n}", "-screen", "0", "1280x1024x24", "-nolisten", "tcp",
+                                     "-noreset"], stdout=subprocess.DEVNULL, stderr=err)
         deadline = time.monotonic() + 30
         while time.monotonic() < deadline and proc.poll() is None:
             if os.path.exists(f"/tmp/.X11-unix/X{n}") and _accepts(f"/tmp/.X11-unix/X{n}"):

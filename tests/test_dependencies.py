@@ -4,7 +4,10 @@ The imports are read from the source (function bodies included) of the library, 
 and the plugin; each is mapped to the distribution that installs it by the installed packages'
 own metadata (importlib.metadata.packages_distributions). Not installed here, and so named by
 hand: tomli (Python < 3.11 only) and CuPy (the CUDA path). ParaView's own modules come with
-ParaView, which pip does not install.
+ParaView, which pip does not install; so does PyQt5, which the plugin imports only inside the
+GUI: it must be the binding of the Qt that ParaView links (Debian's python3-pyqt5, installed by
+scripts/setup.sh beside ParaView and named in pyproject.toml's comments), never a pip wheel,
+which brings a Qt of its own.
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 SOURCES = ("python/nebula_rt", "filters", "plugin")
 OWN = {"nebula_rt", "nebula_rt_paraview", "nebula_rt_site"}
-WITH_PARAVIEW = {"paraview"}
+WITH_PARAVIEW = {"paraview", "PyQt5"}
 NOT_INSTALLED_HERE = {"tomli": ["tomli"], "cupy": ["cupy-cuda12x"], "cupyx": ["cupy-cuda12x"]}
 
 

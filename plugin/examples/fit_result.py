@@ -1,5 +1,5 @@
-"""A fit's result in ParaView (pvpython/pvbatch): the parameters table and the best fit
-against the observed table as a line chart.
+"""A fit's result in ParaView (pvpython/pvbatch): the parameters with their errors and the
+best fit against the observed tables, one chart per observable kind.
 
     nebula-rt fit examples/scenes/thesis-default.toml --table rings.ecsv --free albedo --free g \
         --json out/fit.json
@@ -10,7 +10,10 @@ against the observed table as a line chart.
 ``nebula-rt fit``: output port 0 holds one row per free parameter (value, err_minus, err_plus,
 bounds; chi^2 in the field data), port 1 one row per observed point (data, data_err, model,
 model_err, residual, pull over x). Prints the parameters as ``name = value -err +err`` and the
-chi^2; with --png, saves a line chart of data and model over x.
+chi^2; with --png, saves the fit's picture: a Python View (matplotlib) with the parameters'
+table first, then colour against offset and ratio against wavelength, observed points with
+their error bars and the model with its Monte Carlo band (nebula_rt_paraview.fit_view; the
+state file state_files/fit_result.pvsm opens a fit result into the same layout).
 """
 
 import argparse
@@ -22,11 +25,11 @@ import sys
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))  # plugin/
 
 from paraview import servermanager, simple  # noqa: E402
-from nebula_rt_paraview.view import load_plugin  # noqa: E402
+from nebula_rt_paraview.view import load_plugin, show_fit_result  # noqa: E402
 
 ap = argparse.ArgumentParser()
 ap.add_argument("fit_json", help="the file of nebula-rt fit --json")
-ap.add_argument("--png", default=None, help="save a line chart of data and model over x")
+ap.add_argument("--png", default=None, help="save the parameters and the charts of the fit")
 ap.add_argument("--result", action="store_true", help=argparse.SUPPRESS)  # one RESULT line (tests)
 args = ap.parse_args()
 
@@ -63,16 +66,11 @@ if not args.result:
               + ("  (interval reaches a bound)" if p["at_bound"][i] else ""))
     print(f"chi2 = {chi2:.3f} for {dof:.0f} degrees of freedom; {len(c.get('x', []))} observed points")
 
-chart = None
 if args.png:
-    view = simple.CreateView("XYChartView")
-    chart = simple.Show(simple.OutputPort(reader, 1), view)
-    chart.UseIndexForXAxis = 0
-    chart.XArrayName = "x"
-    chart.SeriesVisibility = ["data", "model"]
-    view.LeftAxisTitle = "colour or ratio"
-    view.BottomAxisTitle = "offset (box units) or wavelength (nm)"
-    simple.SaveScreenshot(args.png, view, ImageResolution=[800, 500])
+    # the parameters first, then one chart per observable kind (colour against offset, ratio
+    # against wavelength) with error bars: a Python View drawn by nebula_rt_paraview.fit_view
+    view = show_fit_result(reader)
+    simple.SaveScreenshot(args.png, view, ImageResolution=[900, 900])
 
 if args.result:
     def clean(v):

@@ -199,6 +199,20 @@ INT32 = (-2**31, 2**31 - 1)
 #: integers past int32 (photon counts, seeds) travel as doubles: exact up to 2^53, which the
 #: scene's ranges keep to, and a pvpython ``Photons=1e5`` is taken as the integer it is
 DOUBLE_EXACT = 2**53
+#: A number whose range spans more than this gets a text field, not a slider: ParaView draws a
+#: slider for every one-number range with both ends, and over 2^31 or 2^53 (Photons, Seed,
+#: Batch Size, Max Scatterings) its knob sits at the far left for every useful value. The
+#: panel's domain then holds the lower end only; the scene's validation keeps the upper one
+#: (a value past it is refused at Apply, naming the property and the range).
+SLIDER_SPAN = 1e6
+
+
+def panel_range(p, elements: int):
+    """The (min, max) a panel's range domain holds for declaration ``p`` (None: no such end)."""
+    lo, hi = p.lo, p.hi
+    if elements == 1 and lo is not None and hi is not None and hi - lo > SLIDER_SPAN:
+        hi = None
+    return lo, hi
 
 
 def _values_text(v):
@@ -254,13 +268,12 @@ def bound_property(prop, default=None):
         integer = p.type.startswith("int") or p.type.endswith("int")
         if integer and p.lo is not None and p.hi is not None and INT32[0] <= p.lo and p.hi <= INT32[1]:
             tag, dom = "IntVectorProperty", "IntRangeDomain"
-            lo, hi = p.lo, p.hi
         else:
             tag, dom = "DoubleVectorProperty", "DoubleRangeDomain"
-            lo, hi = p.lo, p.hi
-            if integer and (hi is None or hi > DOUBLE_EXACT or lo is None or lo < -DOUBLE_EXACT):
+            if integer and (p.hi is None or p.hi > DOUBLE_EXACT or p.lo is None or p.lo < -DOUBLE_EXACT):
                 # the scene must declare what the panel holds (nebula_rt.scene.MAX_SEED)
                 raise ValueError(f"{prop.key}: an integer range past 2**53 cannot be a panel property exactly")
+        lo, hi = panel_range(p, n)
         bounds = "".join(' %s="%s"' % (k, _values_text(v)) for k, v in (("min", lo), ("max", hi)) if v is not None)
         if n > 1 and bounds:  # every element in the same range
             bounds = "".join(' %s="%s"' % (k, " ".join([_values_text(v)] * n)) for k, v in (("min", lo), ("max", hi))

@@ -1,8 +1,11 @@
-"""What Apply (or Show) shows, installed on import (by the plugin's entry file): the
-true-colour volume with its stars (:mod:`.display`; only where this process has a client) and
-the sky image in its own view's defaults (:mod:`.views`)."""
+"""What the GUI does on its own, installed on import (by the plugin's entry file): what Apply
+(or Show) shows, the true-colour volume with its stars (:mod:`.display`; only where this
+process has a client) and the sky image in its own view's defaults (:mod:`.views`); and the
+Abort button beside the progress bar, heard while a NebulaRT algorithm executes (:mod:`.abort`;
+only in the GUI)."""
 
-from . import display, views
+from . import abort, display, views
 
 views.install_view_defaults()
 display.install()
+abort.install()

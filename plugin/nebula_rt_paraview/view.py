@@ -4,6 +4,7 @@
 - :func:`show_rgba_volume`       show the ``rgba`` array of Nebula Colour as a volume, composited right
 - :func:`show_sky_image`         show the ``rgb`` image of Nebula Sky Image as it is
 - :func:`show_stars`             show the Stars output of Nebula Light Field, a point per star
+- :func:`show_fit_result`        a fit result's parameters and one chart per observable kind (Python View)
 - :func:`set_orbit_camera`       the camera of ``nebula_rt.filters.render`` (``nebula-rt render --png``)
 - :func:`set_compute_device`     pin the Device property of every NebulaRT proxy
 - :func:`load_state_safely`      LoadState, then check that the expected proxies exist
@@ -309,6 +310,21 @@ def set_points_on_top(display, offset: float = ON_TOP_POINT_OFFSET) -> bool:
         if mapper is not None:
             mapper.SetRelativeCoincidentTopologyPointOffsetParameter(offset)  # (Modified only on a change)
     return True
+
+
+def show_fit_result(reader, view=None):
+    """Show a ``NebulaFitResultReader``'s two ports in a Python View drawn by
+    :mod:`nebula_rt_paraview.fit_view`: the parameters with their errors first, then one
+    chart per observable kind with error bars (a new view unless ``view``, a Python View, is
+    given). Returns the view."""
+    from .fit_view import SCRIPT
+
+    if view is None:
+        view = simple.CreateView("PythonView")
+    view.Script = SCRIPT
+    for port in (0, 1):
+        simple.Show(simple.OutputPort(reader, port), view)
+    return view
 
 
 def set_orbit_camera(view, bounds=None, azimuth: float = 30.0, elevation: float = 20.0, view_angle: float = 30.0):

@@ -94,3 +94,63 @@ def test_reader_refuses_what_is_no_fit_result(tmp_path, fitted):
     r.SetFileName(str(fitted[1]))
     r.Update()
     assert r.last_error is None and r.GetOutputDataObject(0).GetNumberOfRows() == 2
+
+
+def _fit_view():
+    """plugin/nebula_rt_paraview/fit_view.py, the Python View's script, loaded as a file: its
+    package imports ParaView, which this process has not (the module itself does not)."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[2] / "plugin" / "nebula_rt_paraview" / "fit_view.py"
+    spec = importlib.util.spec_from_file_location("fit_view", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_the_fit_view_shows_the_parameters_first_and_a_chart_per_kind():
+    """What a Python View shows of a fit result (nebula_rt_paraview.fit_view, drawn here into a
+    matplotlib figure from the reader's two tables of the worked example's fit,
+    examples/observations/fit-result.json): a table whose columns are parameter, value,
+    -1 sigma, +1 sigma, bounds, one row per free parameter with the file's numbers; then one
+    chart per observable kind, colour against projected offset and ratio against wavelength
+    (never one axis for both), each observed point with the file's 1-sigma error as its bar,
+    and a ratio table's annuli as series of their own (not joined across annuli)."""
+    from pathlib import Path
+
+    from matplotlib.container import ErrorbarContainer
+    from matplotlib.figure import Figure
+
+    path = Path(__file__).resolve().parents[2] / "examples" / "observations" / "fit-result.json"
+    saved = json.loads(path.read_text())
+    r = NebulaFitResultReader()
+    r.SetFileName(str(path))
+    r.Update()
+    assert r.last_error is None
+    fig = Figure(figsize=(9, 9))
+    _fit_view().draw(fig, r.GetOutputDataObject(0), r.GetOutputDataObject(1))
+    table_ax, colour_ax, ratio_ax = fig.axes
+    cells = table_ax.tables[0].get_celld()
+    assert [cells[(0, j)].get_text().get_text() for j in range(5)] == ["parameter", "value", "-1 sigma", "+1 sigma",
+                                                                       "bounds"]
+    for i, (name, p) in enumerate(saved["parameters"].items(), start=1):
+        row = [cells[(i, j)].get_text().get_text() for j in range(4)]
+        assert row[0] == name
+        assert float(row[1]) == pytest.approx(p["value"], rel=1e-3)
+        assert -float(row[2]) == pytest.approx(p["err_minus"], rel=1e-2)  # written "-0.038"
+        assert float(row[3]) == pytest.approx(p["err_plus"], rel=1e-2)
+    assert "chi^2 = 8.309 for 14" in table_ax.get_title()
+    assert colour_ax.get_xlabel() == "projected offset (box units)"
+    assert ratio_ax.get_xlabel() == "wavelength (nm)"
+    for ax, kind, series in ((colour_ax, "colour", 1), (ratio_ax, "ratio", 3)):
+        (table,) = [t for t in saved["comparison"]["tables"] if t["kind"] == kind]
+        bars = [c for c in ax.containers if isinstance(c, ErrorbarContainer)]
+        assert len(bars) == series
+        drawn = []
+        for bar in bars:
+            points, _caps, (lines,) = bar.lines
+            for x, y, seg in zip(points.get_xdata(), points.get_ydata(), lines.get_segments()):
+                drawn.append((x, y, seg[1][1] - y))  # the bar's upper end above the point
+        want = sorted(zip(table["x"], table["data"], table["data_err"]))
+        np.testing.assert_allclose(sorted(drawn), want, rtol=1e-12)

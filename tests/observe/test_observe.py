@@ -38,7 +38,7 @@ def uniform_scene(tau, seed=1, photons=60_000):
     return Scene.from_dict({
         "grid": {"shape": [24, 24, 24]},
         "dust": {"model": "uniform", "density": 1.0, "tau": tau},
-        "stars": [{"position": [0.5, 0.5, 0.5], "temperature": 14000.0}],
+        "stars": [{"position": [0.5, 0.5, 0.5], "temperature": 14000.0, "bump_radius": 0.0}],
         "bands": {"preset": "spectral-8"},
         "transport": {"photons": photons, "seed": seed, "backend": TEST_BACKEND, "device": TEST_DEVICE},
     })

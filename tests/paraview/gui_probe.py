@@ -10,7 +10,8 @@ $NEBULA_GUI_OUT:
   background and representations (producer, port, representation type, colouring, Map
   Scalars, visibility, colour bar), the stars' display positions, and data facts (the sky
   image's mean rgb); the NebulaRT proxies' Stars values, last errors, exposure and opacity
-  factor;
+  factor; ParaView's Abort button (its place on the screen, enabled or not, and when the
+  plugin last heard it pressed);
 - with ``GRAB = True``: ``<step>-window.png``, the whole screen (the docs' picture).
 """
 
@@ -64,8 +65,9 @@ try:
                 r["opacity_points"] = len(rep.ScalarOpacityFunction.Points) // 4
             if src.GetXMLName() == "NebulaLightField" and port == 1 and r["visible"]:
                 stars = servermanager.Fetch(servermanager._getPyProxy(src), idx=1)
-                xyz = vtk_to_numpy(stars.GetPoints().GetData())
-                rgb = vtk_to_numpy(stars.GetPointData().GetArray("star_rgb"))
+                empty = stars.GetPoints() is None  # (a failed or cancelled light field)
+                xyz = np.zeros((0, 3)) if empty else vtk_to_numpy(stars.GetPoints().GetData())
+                rgb = np.zeros((0, 3)) if empty else vtk_to_numpy(stars.GetPointData().GetArray("star_rgb"))
                 ren = view.GetRenderer()
                 pos = []
                 for p in xyz:
@@ -118,7 +120,8 @@ try:
     for (name, _id), px in simple.GetSources().items():
         if not px.GetXMLName().startswith("Nebula"):
             continue
-        entry = {"xml": px.GetXMLName(), "last_error": px.GetClientSideObject().last_error}
+        entry = {"xml": px.GetXMLName(), "last_error": px.GetClientSideObject().last_error,
+                 "points": int(px.GetDataInformation(0).GetNumberOfPoints())}
         if "Stars" in px.ListProperties():
             entry["Stars"] = [float(x) for x in px.Stars]
         if px.GetXMLName() in ("NebulaLightField", "NebulaColour") and entry["last_error"] is None:
@@ -127,6 +130,28 @@ try:
                 arr = fd.GetArray(key)
                 entry[key] = float(arr.GetValue(0)) if arr is not None else None
         record["proxies"][name] = entry
+    # ParaView's Abort button: where it is on the screen (for the test's real mouse click) and,
+    # as the plugin heard it, when the last execution saw it pressed and when it ended
+    # (time.monotonic: the system-wide CLOCK_MONOTONIC, which the test process reads too)
+    from PyQt5 import QtWidgets
+
+    from nebula_rt.filters.base import ABORT_SOURCES
+
+    button = [w for w in QtWidgets.QApplication.instance().allWidgets() if w.objectName() == "AbortButton"]
+    centre = button[0].mapToGlobal(button[0].rect().center()) if button else None
+    record["abort_button"] = {"screen": [centre.x(), centre.y()] if centre is not None else None,
+                              "enabled": bool(button and button[0].isEnabled()),
+                              "sources": [{"pressed_at": a.pressed_at, "stopped_at": a.stopped_at}
+                                          for a in ABORT_SOURCES]}
+    # the properties panel: the kinds of widget (Qt class names) that show the counts
+    panel = [w for w in QtWidgets.QApplication.instance().allWidgets() if w.objectName() == "ProxyPanel"]
+    record["panel_widgets"] = {}
+    for name in ("Photons", "Seed", "MaxScatterings", "BatchSize", "Tau"):
+        for root in panel:
+            found = root.findChild(QtWidgets.QWidget, name)
+            if found is not None:
+                record["panel_widgets"][name] = sorted({c.metaObject().className()
+                                                        for c in found.findChildren(QtWidgets.QWidget)})
     if globals().get("GRAB"):
         from PIL import ImageGrab
 

@@ -194,7 +194,7 @@ TABLE = [
     *floats("stars.0.luminosity"),
     Row("stars.0.luminosity", "J-overflow", "1e38", RUNTIME, "J of this grid and max_scatterings overflows float32"),
     Row("stars.0.luminosity", "J-underflow", "1e-30", RUNTIME, "J's smallest tally underflows float32"),
-    *floats("stars.0.temperature", literal={"negative": "-5000.0"}),
+    *floats("stars.0.temperature", {"zero": "a flat spectrum"}, literal={"negative": "-5000.0"}),
     # 13.3 % of a 20,000 K blackbody lies inside the bands' 380-780 nm
     *floats("stars.0.luminosity_lsun", runtime={"beyond-float32": "1.3e38 L_sun inside the bands: J overflows"}),
     *floats("stars.0.absolute_magnitude", {"negative": "a bright star, M_V = -1.5", "zero": "M_V = 0",
@@ -417,7 +417,6 @@ SETTERS = {
 }
 #: rows whose value means something else to the setter than to the scene file
 SETTER_MEANS_ELSE = {
-    ("stars.0.temperature", "zero"): "0 is the flat spectrum of the Stars property",
     ("stars.0.temperature", "type"): "refused as a whole by the Stars property (checked below by name only)",
     ("transport.backend", "type"): "an integer selects a backend by index",
     ("transport.estimator", "type"): "an integer selects an estimator by index",

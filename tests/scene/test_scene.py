@@ -38,8 +38,8 @@ def test_default_round_trip():
 def test_default_values_match_contract():
     s = Scene.default()
     assert s.grid == Grid((64, 64, 64), 1.0, "pc")
-    assert s.dust.model == "turbulence" and s.dust.tau == 1.0 and s.dust.floor == 1e-4
-    assert s.stars == [Star((0.5, 0.5, 0.5), 1.0, None, 0.0)]
+    assert s.dust.model == "turbulence" and s.dust.tau == 128.0 and s.dust.floor == 1e-4
+    assert s.stars == [Star((0.5, 0.5, 0.5), 1.0, 20000.0, 0.01)]
     assert s.bands.preset == "thesis-rgb"
     assert s.transport.photons == 2_100_000 and s.transport.estimator == "track-length"
     assert s.colour == Colour("auto", "D65", "auto")
@@ -118,7 +118,7 @@ device = ""
     assert s.grid.shape == (64, 64, 32)
     assert len(s.stars) == 2 and s.stars[1].luminosity == 2.0
     assert isinstance(s.stars[1].luminosity, float)
-    assert s.stars[1].temperature is None
+    assert s.stars[1].temperature == 20000.0  # the default star's
     assert s.base_dir == tmp_path.absolute()
     assert s.dust_file_path() == tmp_path.absolute() / "cloud.npy"
     assert Scene.loads(s.to_toml()) == s  # base_dir is not compared
@@ -191,7 +191,7 @@ BAD_VALUES = [
     ("stars", "luminosity", -2.0, "stars[0].luminosity"),
     ("stars", "luminosity", INF, "stars[0].luminosity"),
     ("stars", "luminosity", NAN, "stars[0].luminosity"),
-    ("stars", "temperature", 0.0, "stars[0].temperature"),
+    ("stars", "temperature", 500.0, "stars[0].temperature"),
     ("stars", "temperature", -5000.0, "stars[0].temperature"),
     ("stars", "temperature", NAN, "stars[0].temperature"),
     ("stars", "bump_radius", -0.01, "stars[0].bump_radius"),

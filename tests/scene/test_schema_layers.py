@@ -45,6 +45,56 @@ def test_the_schema_defaults_are_the_scene_defaults():
         assert getattr(obj, name) == default, key
 
 
+def test_the_defaults_are_the_thesis_nebula():
+    """An empty scene is the 2010 thesis's nebula (sections 3.2.1-3.2.2): tau 128 across the
+    box, one star of 20000 K at the centre in its cubic dust bump of half-size 0.01, the
+    thesis-rgb bands (R 677, G 550, B 439 nm, extinction 0.748 / 1 / 1.324) with albedo and g
+    0.6, smooth turbulence scaled by 0.15 at noise offset 0.5, 2.1 million packets per band.
+    The numbers are the thesis's, written here from it, not read from the schema."""
+    s = sc.Scene.loads("")
+    assert s.dust.model == "turbulence" and s.dust.tau == 128.0
+    assert s.dust.scale == 0.15 and tuple(s.dust.offset) == (0.5, 0.5, 0.5)
+    (star,) = s.stars
+    assert tuple(star.position) == (0.5, 0.5, 0.5) and star.temperature == 20000.0 and star.bump_radius == 0.01
+    bands = s.bands.resolve()
+    assert [b.name for b in bands] == ["R", "G", "B"]
+    assert [b.wavelength for b in bands] == pytest.approx([677.0, 550.0, 439.0])
+    assert [b.extinction for b in bands] == pytest.approx([0.748, 1.0, 1.324])
+    assert all(b.albedo == pytest.approx(0.6) and b.g == pytest.approx(0.6) for b in bands)
+    assert s.transport.effective() == (2_100_000, 0.0)
+
+
+def test_a_flat_spectrum_is_temperature_0_and_survives_a_round_trip():
+    """The default star has a spectrum, so a flat one is written temperature = 0 (None in
+    Python); a scene file written from it reads back flat, not as the default 20000 K."""
+    s = sc.Scene.loads("[[stars]]\ntemperature = 0\n")
+    assert s.stars[0].temperature is None and s.stars[0].spectral_source() is None
+    again = sc.Scene.loads(s.to_toml())
+    assert again.stars[0].temperature is None
+    assert sc.Scene.loads(sc.Scene.loads("").to_toml()).stars[0].temperature == 20000.0
+    with pytest.raises(sc.SceneError, match=r"stars\[0\]\.temperature"):
+        sc.Scene.loads("[[stars]]\ntemperature = 500\n")
+
+
+def test_the_readme_scene_block_is_the_defaults():
+    """README.md's "Scene files" block says it is exactly the defaults: read as a scene file it
+    is the empty scene, and each of its keys is written with the default's own value."""
+    import re
+    import tomllib
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[2] / "README.md").read_text()
+    section = text[text.index("## Scene files"):]
+    block = re.search(r"```toml\n(.*?)```", section, re.S).group(1)
+    assert sc.Scene.loads(block) == sc.Scene.loads("")
+    defaults = sc.Scene.loads("").to_dict()
+    for table, keys in tomllib.loads(block).items():
+        for entry in (keys if isinstance(keys, list) else [keys]):
+            want = defaults[table][0] if table == "stars" else defaults[table]
+            for key, value in entry.items():
+                assert key in want and want[key] == value, (table, key, value)
+
+
 def test_choices_of_the_schema_are_what_the_scene_accepts():
     for key, p, default in sc.parameters():
         if not p.choices:

@@ -222,7 +222,8 @@ def test_spectral_types_order_as_temperatures_do():
 @pytest.mark.parametrize("star, key, words", [
     ({"spectral_type": "B2V", "temperature": 20000.0}, "stars[0].temperature", "is set by stars[0].spectral_type"),
     ({"spectral_type": "B2"}, "stars[0].spectral_type", "luminosity class"),
-    ({"luminosity_lsun": 100.0}, "stars[0].luminosity_lsun", "or stars[0].spectral_type"),
+    # (a flat spectrum, temperature 0, has no bolometric correction)
+    ({"luminosity_lsun": 100.0, "temperature": 0.0}, "stars[0].luminosity_lsun", "or stars[0].spectral_type"),
 ])
 def test_spectral_type_errors(star, key, words):
     with pytest.raises(SceneError) as info:
@@ -231,7 +232,7 @@ def test_spectral_type_errors(star, key, words):
 
 
 @pytest.mark.parametrize("star, key, words", [
-    ({"luminosity_lsun": 100.0}, "stars[0].luminosity_lsun", "give stars[0].temperature"),
+    ({"luminosity_lsun": 100.0, "temperature": 0.0}, "stars[0].luminosity_lsun", "give stars[0].temperature"),
     ({"luminosity_lsun": 100.0, "temperature": 9000.0, "spectrum": [[400, 1], [700, 1]]},
      "stars[0].luminosity_lsun", "no measured spectrum"),
     ({"luminosity_lsun": 100.0, "absolute_magnitude": 1.0, "temperature": 9000.0},

@@ -69,7 +69,7 @@ def _voxel_edge(shape) -> float:
 def _dominant_temperature(stars):
     """Temperature of the most luminous star (None: flat spectrum or a measured one)."""
     star = max(stars, key=lambda s: s.luminosity)
-    return star.temperature
+    return star.temperature or None  # (0: flat)
 
 
 def colour_source_from_field_data(fd):

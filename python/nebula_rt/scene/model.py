@@ -108,6 +108,9 @@ class Scene:
             ]
         else:
             stars = [Star()]
+        for s in stars:  # a temperature of 0 is the flat spectrum, None in Python
+            if s.temperature == 0:
+                s.temperature = None
 
         bands_d = d.get("bands", {})
         if not isinstance(bands_d, Mapping):
@@ -170,7 +173,8 @@ class Scene:
     # -- serialisation ------------------------------------------------------
 
     def to_dict(self) -> Dict[str, Any]:
-        """The scene as a TOML-shaped dict (None values omitted, tuples as lists)."""
+        """The scene as a TOML-shaped dict (None values omitted but a star's temperature, 0 for
+        a flat spectrum; tuples as lists)."""
 
         def table(obj: Any) -> Dict[str, Any]:
             out = {}
@@ -188,7 +192,8 @@ class Scene:
         out = {
             "grid": table(self.grid),
             "dust": table(self.dust),
-            "stars": [table(s) for s in self.stars],
+            # a flat spectrum is written as temperature 0: omitted, it would read as the default
+            "stars": [dict(table(s), **({"temperature": 0.0} if s.temperature is None else {})) for s in self.stars],
             "bands": table(self.bands),
             "transport": table(self.transport),
             "colour": table(self.colour),

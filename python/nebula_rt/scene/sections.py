@@ -141,7 +141,7 @@ class Dust:
         float32=True,
         doc="Minimum density everywhere (the thesis's clamp; keeps the medium from being empty)")
     tau: float = param(
-        1.0, type="float", lo=0.0, label="Tau", group=G_DUST,
+        128.0, type="float", lo=0.0, label="Tau", group=G_DUST,
         float32=True,
         doc="Optical depth across one box edge at density 1 in the reference band: the extinction "
             "per box edge is tau x extinction_b x density (the thesis's 128^3 nebula: 128, i.e. "
@@ -180,12 +180,13 @@ class Star:
         doc="Total luminosity over all bands; set (in L_sun inside the bands' range) by "
             "luminosity_lsun or absolute_magnitude where one is given")
     temperature: Optional[float] = param(
-        None, type="float or None", lo=TEMPERATURE_RANGE[0], hi=TEMPERATURE_RANGE[1], unit="K", group=G_STARS,
-        note="K",
-        doc="Effective temperature: a blackbody spectrum then splits the luminosity over the bands "
-            "and colours the star; None (omitted, 0 in a Stars table) gives every band an equal share")
+        20000.0, type="float or None", lo=TEMPERATURE_RANGE[0], hi=TEMPERATURE_RANGE[1], unit="K", group=G_STARS,
+        note="K; 0 = flat spectrum", off=True,
+        doc="Effective temperature: a blackbody spectrum splits the luminosity over the bands and "
+            "colours the star (the thesis's star: 20000 K); 0 (None in Python) gives every band an "
+            "equal share, a flat spectrum")
     bump_radius: float = param(
-        0.0, type="float", lo=0.0, hi=1.0, unit="box units", group=G_STARS,
+        0.01, type="float", lo=0.0, hi=1.0, unit="box units", group=G_STARS,
         hi_open=True, float32=True, note="box units; float32",
         doc="Half-size of the thesis's cubic dust bump around the star (0 = none; the thesis used "
             "0.01); used where the density is made, not by the light field of a given density")
@@ -216,7 +217,7 @@ class Star:
     def spectral_source(self):
         """What sets the star's spectrum: the measured pairs, else the temperature (K), else
         None (flat); see :func:`nebula_rt.optics.colour_convert.star_spectrum`."""
-        return self.spectrum if self.spectrum else self.temperature
+        return self.spectrum if self.spectrum else (self.temperature or None)
 
 
 @document

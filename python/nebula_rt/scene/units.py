@@ -420,7 +420,7 @@ def star_luminosity(star, index: int, bands) -> Tuple[float, float]:
     if star.luminosity_lsun is not None and star.absolute_magnitude is not None:
         raise SceneError(f"stars[{index}].absolute_magnitude", star.absolute_magnitude,
                          f"give one of stars[{index}].luminosity_lsun and stars[{index}].absolute_magnitude")
-    if star.spectrum or star.temperature is None:
+    if star.spectrum or not star.temperature:
         raise SceneError(f"stars[{index}].{key}", value,
                          f"a bolometric luminosity (L_sun) or an absolute magnitude needs the star's "
                          f"blackbody: give stars[{index}].temperature (K) or stars[{index}].spectral_type and no "
