@@ -50,6 +50,15 @@ def stars_from_flat(values) -> list[dict]:
     out = []
     for i in range(0, len(vals), width):
         star = {}
+        if all(float(v) == 0.0 for v in vals[i:i + width]):
+            # ParaView's "+" on an emptied table adds a row of blank cells, which reach the
+            # property as zeros: a star nobody could mean (no light, in a corner). It is the
+            # default star, and the message says so (the cells still show zeros).
+            warnings.warn(NebulaWarning(
+                f"Stars: row {i // width + 1} is blank (all 0, what '+' gives on an emptied table): it is "
+                f"the default star ({', '.join(f'{h} {v:g}' for (h, _f, _c), v in zip(STAR_COLUMNS, default_star_row()))}); "
+                "type its values into the row"))
+            vals = vals[:i] + default_star_row() + vals[i + width:]
         for (_h, field, comp), v in zip(STAR_COLUMNS, vals[i:i + width]):
             if comp is not None:
                 star.setdefault(field, []).append(float(v))

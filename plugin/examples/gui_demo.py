@@ -21,6 +21,9 @@ from paraview import simple  # noqa: E402
 from nebula_rt_paraview.view import set_orbit_camera  # noqa: E402
 
 dust = simple.NebulaDustDensity(registrationName="Nebula Dust Density1", GridShape=[48, 48, 48])
+# the density made before the light field is: the light field's Density Array box lists the
+# arrays its input has when the panel is made (made on an input not yet run, it stays empty)
+dust.UpdatePipeline()
 light = simple.NebulaLightField(dust, registrationName="Nebula Light Field1", Photons=300000)
 light.DensityArray = ["POINTS", "density"]
 colour = simple.NebulaColour(light, registrationName="Nebula Colour1")

@@ -121,6 +121,7 @@ try:
         if not px.GetXMLName().startswith("Nebula"):
             continue
         entry = {"xml": px.GetXMLName(), "last_error": px.GetClientSideObject().last_error,
+                 "last_warnings": list(getattr(px.GetClientSideObject(), "last_warnings", [])),
                  "points": int(px.GetDataInformation(0).GetNumberOfPoints())}
         if "Stars" in px.ListProperties():
             entry["Stars"] = [float(x) for x in px.Stars]
@@ -152,6 +153,13 @@ try:
             if found is not None:
                 record["panel_widgets"][name] = sorted({c.metaObject().className()
                                                         for c in found.findChildren(QtWidgets.QWidget)})
+    # what the panel's Density Array box shows (its combo box's text)
+    record["panel_texts"] = {}
+    for root in panel:
+        found = root.findChild(QtWidgets.QWidget, "DensityArray")
+        box = found.findChild(QtWidgets.QComboBox) if found is not None else None
+        if box is not None:
+            record["panel_texts"]["DensityArray"] = box.currentText()
     if globals().get("GRAB"):
         from PIL import ImageGrab
 

@@ -309,6 +309,23 @@ def test_counts_are_text_fields_not_sliders(applied):
         assert any("LineEdit" in k for k in kinds), (name, kinds)
 
 
+def test_plus_on_an_emptied_stars_table_gives_a_usable_star(pv_env, xdisplay, tmp_path):
+    """The density's Stars table emptied ("Remove All"), then "+": ParaView adds a row of blank
+    cells (it copies the selected row, and there is none), which reach the property as zeros.
+    Apply makes the density with the default star in that row's place (the thesis's: its dust
+    bump is there) and says so in a warning naming the row; no error."""
+    table = f"{PANEL}/Stars/ScalarValueList"
+    events = (menu("menuSources", "NebulaRT", "NebulaDustDensity")
+              + [_event(f"{table}/RemoveAll", "activate")] + check(f"{table}/Table", "modelRowCount", "0")
+              + [_event(f"{table}/Add", "activate")] + check(f"{table}/Table", "modelRowCount", "1")
+              + apply() + probe("blank"))
+    r = step_record(run_gui(pv_env, xdisplay, tmp_path, events), "blank")
+    (dust,) = [p for p in r["proxies"].values() if p["xml"] == "NebulaDustDensity"]
+    assert dust["Stars"] == [0.0] * 6, dust["Stars"]
+    assert dust["last_error"] is None and dust["points"] == 64 ** 3, dust
+    assert any("row 1 is blank" in w and "default star" in w for w in dust["last_warnings"]), dust["last_warnings"]
+
+
 def test_the_icons_are_drawn(applied):
     """ParaView's icons are SVG: without Qt's SVG image plugin (libqt5svg5, which Debian's
     paraview does not pull in; scripts/setup.sh installs it) every toolbar button, the Stars
@@ -319,6 +336,21 @@ def test_the_icons_are_drawn(applied):
     band = im[25:140]  # the three toolbar rows under the menu bar, 1280 x 1024 screen
     coloured = (band.max(axis=2) - band.min(axis=2)) > 60
     assert coloured.any(axis=0).sum() > 300, coloured.any(axis=0).sum()
+
+
+def test_the_gui_demo_script_shows_its_pipeline_with_the_density_array_chosen(pv_env, xdisplay, tmp_path):
+    """``paraview --script=plugin/examples/gui_demo.py``: the light field (selected, its
+    properties in the panel) traced without error, its Density Array box showing the array
+    the script chose ("density"), and the colour's volume shown."""
+    out = run_gui(pv_env, xdisplay, tmp_path, probe("demo"),
+                  args=(f"--script={REPO / 'plugin' / 'examples' / 'gui_demo.py'}",))
+    r = step_record(out, "demo")
+    assert r["panel_texts"].get("DensityArray") == "density", r["panel_texts"]
+    errors = {p["xml"]: p["last_error"] for p in r["proxies"].values()}
+    assert set(errors) == {"NebulaDustDensity", "NebulaLightField", "NebulaColour"} and not any(errors.values()), errors
+    (view,) = r["views"]
+    (vol,) = reps_of(view, "NebulaColour", 0)
+    assert vol["visible"] and vol["representation"] == "Volume" and vol["color"] == ["POINTS", "rgba"], vol
 
 
 # -- Abort -----------------------------------------------------------------------------------
