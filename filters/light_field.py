@@ -264,7 +264,7 @@ class NebulaLightField(NebulaAlgorithm):
         add_field_data(out, light.field_data())
         active = contract.RGBA.name() if light.rgba is not None else contract.J.name(light.bands[light.reference_band].name)
         out.GetPointData().SetActiveScalars(active)
-        self._stars_output(outInfo, light, out)
+        self._stars_output(request, outInfo, light, out)
         self.last_light = light
 
     # -- the Stars port ------------------------------------------------------------------------
@@ -273,17 +273,27 @@ class NebulaLightField(NebulaAlgorithm):
         return 1
 
     @staticmethod
-    def _stars_output(outInfo, light, image) -> None:
+    def _stars_output(request, outInfo, light, image) -> None:
         """Port 1: the stars (on piece 0 only: in a parallel ParaView every rank holds the
-        whole field, and the stars are drawn once)."""
+        whole field, and the stars are drawn once). The piece is the one asked of the port
+        whose request runs this execution, else of the other port, else this process's rank:
+        a pvserver's ranks execute for the image's request, while port 1 still holds piece 0
+        on every rank (each rank made the stars, so a fetch had them once per rank)."""
         from vtkmodules.vtkCommonDataModel import vtkPolyData
+        from vtkmodules.vtkCommonExecutionModel import vtkExecutive
 
+        from .controller import vtk_world
         from .stars import star_points
 
         info = outInfo.GetInformationObject(1)
         target = vtkPolyData.GetData(info)
-        piece = info.Get(vtkStreamingDemandDrivenPipeline.UPDATE_PIECE_NUMBER()) \
-            if info.Has(vtkStreamingDemandDrivenPipeline.UPDATE_PIECE_NUMBER()) else 0
+        key = vtkStreamingDemandDrivenPipeline.UPDATE_PIECE_NUMBER()
+        frm = vtkExecutive.FROM_OUTPUT_PORT()
+        first = request.Get(frm) if request is not None and request.Has(frm) else 1
+        asked = [outInfo.GetInformationObject(p) for p in ((0, 1) if first == 0 else (1, 0))]
+        piece = next((i.Get(key) for i in asked if i.Has(key)), None)
+        if piece is None:
+            piece = vtk_world().rank
         if piece:
             target.Initialize()
             return

@@ -13,8 +13,10 @@ name (NEBULA_RT_TEST_DEVICE, as in conftest.py).
 from __future__ import annotations
 
 import json
+import os
 import re
 import shutil
+import signal
 import subprocess
 import time
 from pathlib import Path
@@ -722,3 +724,62 @@ def test_fit_result_state_opens_the_fit_layout(pv_env, xdisplay, tmp_path):
     blue = (np.abs(im - np.array([31, 119, 180])).max(axis=2) < 30)  # matplotlib's C0
     rows = [dark[:225].mean(), blue[300:600].mean(), blue[600:].mean()]
     assert rows[0] > 0.005 and rows[1] > 0.001 and rows[2] > 0.001, rows
+
+
+def _pvserver(pv_env, display, ranks):
+    """``mpiexec -n RANKS pvserver`` on a free port of localhost, with the environment of
+    scripts/pv-env.sh (so each rank loads the plugin from PV_PLUGIN_PATH); returns (process,
+    port) once it accepts connections."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("localhost", 0))
+        port = s.getsockname()[1]
+    log = open(os.devnull, "w")
+    proc = subprocess.Popen([shutil.which("mpiexec"), "--allow-run-as-root", "--oversubscribe", "-n", str(ranks),
+                             "pvserver", f"--server-port={port}", "--force-offscreen-rendering"],
+                            env=dict(pv_env, DISPLAY=display), stdout=subprocess.PIPE, stderr=log, text=True,
+                            start_new_session=True)
+    deadline = time.monotonic() + 60
+    for line in proc.stdout:
+        if "Accepting connection" in line or time.monotonic() > deadline:
+            break
+    return proc, port
+
+
+@pytest.mark.parametrize("ranks", [1, 2])
+def test_client_server_session_shows_what_the_builtin_one_does(pv_env, xdisplay, tmp_path, ranks):
+    """The GUI's client/server set-up, scripted: pvpython connected to a pvserver of 1 or 2
+    ranks (started with scripts/pv-env.sh's environment, so the server loads the plugin
+    itself), ``load_plugin()`` on the client (no error: a second LoadPlugin of the same file
+    on the server is what fails in ParaView 5.11), Show of the light field. Against the
+    built-in session: the same J bits, one star point (not one per rank), the same
+    representations (the volume and the stars' points) and the same camera; on one rank the
+    same picture (mean absolute difference under 1 level) with the star's marker drawn (its
+    3 x 3 pixels at full brightness in one channel). With 2 ranks the server composites the
+    volume's pieces in depth order and the star, made on rank 0, lies under the other rank's
+    dust (docs/paraview.md, "Client/server"): only the picture's overall match is checked."""
+    ref, _ = run_pv(pv_env, xdisplay, "client_server.py", "builtin", tmp_path / "builtin.png")
+    assert ref["error"] is None and ref["stars"] == 1 and ref["points"] == 24 ** 3
+    server, port = _pvserver(pv_env, xdisplay, ranks)
+    try:
+        got, _ = run_pv(pv_env, xdisplay, "client_server.py", port, tmp_path / "server.png")
+    finally:
+        os.killpg(server.pid, signal.SIGTERM)
+        server.wait(timeout=30)
+    # the same bits: the fetched piece (rank 0's on 2 ranks) is that part of the one-rank field
+    x0, x1, y0, y1, z0, z1 = got["extent"]
+    whole = np.load(ref["j_file"]).reshape(24, 24, 24)  # (z, y, x): VTK's x varies fastest
+    piece = np.load(got["j_file"]).reshape(z1 - z0 + 1, y1 - y0 + 1, x1 - x0 + 1)
+    assert (ranks == 1) == (got["points"] == 24 ** 3), got["extent"]
+    np.testing.assert_array_equal(piece, whole[z0:z1 + 1, y0:y1 + 1, x0:x1 + 1])
+    assert got["stars"] == 1, got["stars"]
+    assert got["shown"] == ref["shown"] == ["NebulaLightField:Points", "NebulaLightField:Volume"], got["shown"]
+    np.testing.assert_allclose(np.concatenate([np.ravel(c) for c in got["camera"]]),
+                               np.concatenate([np.ravel(c) for c in ref["camera"]]), rtol=0, atol=1e-9)
+    a, b = read_png(ref["png"]), read_png(got["png"])
+    diff = np.abs(a - b)
+    assert diff.mean() < (1.0 if ranks == 1 else 3.0), diff.mean()
+    if ranks == 1:
+        star = a.max(axis=2) >= 254  # the builtin picture's marker
+        assert star.sum() >= 9 and (b.max(axis=2)[star] >= 254).all()
