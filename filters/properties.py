@@ -227,6 +227,12 @@ def _enabled(alg, name: str, want) -> bool:
     return value == want
 
 
+def _unchanged(a, b) -> bool:
+    """Two values of a property are the same setting (an empty text and None are both "not
+    given": ParaView's panel sends "" for the Distance that the algorithm holds as None)."""
+    return a == b or (a in ("", None) and b in ("", None))
+
+
 def inert_properties(alg) -> list:
     """The messages for properties changed from their initial value that have no effect now:
     the panel greys them out or hides them (``enabled_by``, ``shown_by``) while the property
@@ -235,7 +241,7 @@ def inert_properties(alg) -> list:
     initial = getattr(alg, "_initial_values", {})
     out = []
     for p in getattr(alg, "BOUND_PROPERTIES", ()):
-        if not (p.enabled_by or p.shown_by) or p.key not in initial or alg._values[p.key] == initial[p.key]:
+        if not (p.enabled_by or p.shown_by) or p.key not in initial or _unchanged(alg._values[p.key], initial[p.key]):
             continue
         name, want = p.enabled_by or p.shown_by
         if not _enabled(alg, name, want):

@@ -176,3 +176,16 @@ def test_a_changed_property_changes_the_output_or_says_why(baseline, alg_name, p
     said = [w for w in alg.last_warnings if prop_name in w]
     assert alg.last_error is None, alg.last_error
     assert changed or said, f"{alg_name}.{prop_name}: the output did not change and nothing said why"
+
+
+@pytest.mark.parametrize("empty", ["", None])
+def test_an_empty_distance_is_no_setting(empty):
+    """ParaView's panel sends Distance "" (its empty text box) where the algorithm starts from
+    None: setting it so, or back, is no change, so no property is reported as set to no
+    effect (the default pipeline's sky image once warned "Distance = None has no effect")."""
+    from nebula_rt.filters.properties import inert_properties
+
+    sky = NebulaSkyImage()
+    sky.SetDistance(empty)
+    sky.SetDistance("" if empty is None else None)
+    assert inert_properties(sky) == [] and sky.inert_messages() == []

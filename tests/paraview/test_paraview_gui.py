@@ -280,6 +280,10 @@ def test_sky_image_opens_in_its_own_2d_view_in_true_colour(applied):
     mean = srgb_to_linear(sub[lit]).mean(axis=0)
     assert mean[2] / mean[0] > 1.5, mean
     assert Path(r["window_png"]).exists()
+    # every property at its default: no error and no warning anywhere in the pipeline (a
+    # Distance left empty once read as "set while Units is box units")
+    said = {p["xml"]: (p["last_error"], p["last_warnings"]) for p in r["proxies"].values()}
+    assert all(e is None and not w for e, w in said.values()), said
 
 
 def test_stars_table_has_headers_and_plus_adds_a_visible_star(applied):
@@ -428,7 +432,7 @@ def test_state_file_in_the_gui_keeps_its_figure(pv_env, xdisplay, tmp_path, name
     assert pinned.count(pv_env["NEBULA_RT_TEST_DEVICE"]) == 5
     state = tmp_path / f"{name}.pvsm"
     state.write_text(pinned)
-    out = run_gui(pv_env, xdisplay, tmp_path, probe("state"), args=(f"--state={state}",))
+    out = run_gui(pv_env, xdisplay, tmp_path, probe("state", grab=True), args=(f"--state={state}",))
     r = step_record(out, "state")
     assert len(r["layouts"]) == 1 and len(r["layouts"][0]["views"]) == 1, r["layouts"]
     (view,) = r["views"]
