@@ -141,6 +141,24 @@ class NebulaAlgorithm(VTKPythonAlgorithmBase):
         #: the NebulaWarning texts of the last execution (also shown as VTK warnings)
         self.last_warnings: list[str] = []
 
+    # -- what an "auto" property chose ---------------------------------------------------------
+    def chosen(self, name: str) -> float:
+        """The value the last execution used for the "auto or number" property ``name``
+        (``Exposure``, ``OpacityScale``): its output's field data of that key (``exposure``,
+        ``opacity_scale``), which the filters write whether it was chosen from the data or
+        given; NaN before a successful execution. ParaView shows it beside the property
+        (an information property, ``<name>Chosen``)."""
+        key = re.sub(r"(?<!^)(?=[A-Z])", "_", name).lower()
+        out = self.GetOutputDataObject(0) if self.GetNumberOfOutputPorts() else None
+        arr = out.GetFieldData().GetArray(key) if out is not None else None
+        return float(arr.GetValue(0)) if arr is not None and arr.GetNumberOfTuples() else float("nan")
+
+    def GetExposureChosen(self) -> float:
+        return self.chosen("Exposure")
+
+    def GetOpacityScaleChosen(self) -> float:
+        return self.chosen("OpacityScale")
+
     # -- progress and abort ------------------------------------------------------------------
     def _report(self, fraction: float, text: str) -> None:
         self.SetProgressText(text)

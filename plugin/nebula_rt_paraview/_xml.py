@@ -93,12 +93,14 @@ def panel(props, defaults=None, extra=None, head=(), own_groups=None):
     """A proxy's panel: its schema-bound properties' XML (as :func:`bound_properties`, with
     ``head``, XML of the filter's own properties, first) and its property groups, read from
     the declarations: a bound property sits in its ``Property.panel_group`` (its scene key's
-    ``Param.group`` unless the algorithm says otherwise), its "auto" check box beside it, and a
+    ``Param.group`` unless the algorithm says otherwise), its "auto" check box and the value
+    "auto" chose beside it, and a
     property of the filter's own in ``own_groups[name]``. Groups in the order of their first
     property; every property is in one (a ValueError names one that is not)."""
     body = "\n".join(list(head) + [bound_properties(props, defaults, extra)])
     group_of = {p.name: p.panel_group for p in props}
     group_of.update({p.flag: p.panel_group for p in props if p.flag})
+    group_of.update({p.name + "Chosen": p.panel_group for p in props if p.widget == "auto"})
     group_of.update(own_groups or {})
     groups = {}
     for name in _PROPERTY_NAME.findall(body):
@@ -287,8 +289,24 @@ def bound_property(prop, default=None):
                       % (mode, quoteattr(rule[0]), quoteattr(str(rule[1]))))
     if hints:
         hints = "<Hints>%s</Hints>" % hints
+    chosen = _chosen_property(prop, p) if prop.widget == "auto" else ""
     return flag + ('<%s %s number_of_elements="%d" default_values="%s">%s<Documentation>%s</Documentation>%s</%s>'
-                   % (tag, attrs, n, dflt, domain, _tooltip(prop, p), hints, tag))
+                   % (tag, attrs, n, dflt, domain, _tooltip(prop, p), hints, tag)) + chosen
+
+
+def _chosen_property(prop, p):
+    """An information property after an "auto or number" property: the value the last
+    execution used (``NebulaAlgorithm.chosen``), so the panel shows what "auto" chose."""
+    from nebula_rt.scene.schema import label
+
+    vis = ' panel_visibility="advanced"' if p.advanced else ""
+    tip = escape(f"The {label(prop.key, p)} the last Apply used: chosen from the data while {prop.flag} is on, "
+                 "else the number above (read only).")
+    return ('<DoubleVectorProperty name=%s label=%s command=%s information_only="1" number_of_elements="1" '
+            'default_values="0"%s><SimpleDoubleInformationHelper/><Documentation>%s</Documentation>'
+            '</DoubleVectorProperty>'
+            % (quoteattr(prop.name + "Chosen"), quoteattr(re.sub(r"(?<!^)(?=[A-Z])", " ", prop.name) + " Chosen"),
+               quoteattr("Get" + prop.name + "Chosen"), vis, tip))
 
 
 def _auto_flag(prop, p, on):

@@ -160,6 +160,7 @@ try:
         box = found.findChild(QtWidgets.QComboBox) if found is not None else None
         if box is not None:
             record["panel_texts"]["DensityArray"] = box.currentText()
+
     if globals().get("GRAB"):
         from PIL import ImageGrab
 

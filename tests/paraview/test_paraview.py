@@ -183,7 +183,9 @@ def test_paraview_proxy_is_the_schema_and_gives_the_same_bits(pv_env, xdisplay, 
         # every property of the panel is a bound one (or its check box), bar the filters' own
         own = {"Input", "DensityArray", "OverrideOptics", "StarsFromInput", "Stars", "LuminosityUnit", "SpectralTypes",
                "Units"}
-        assert set(order) - own == {x.name for x in bound} | {x.flag for x in bound if x.flag}, order
+        # (and, after an "auto or number" property, the information property of what it chose)
+        assert set(order) - own == ({x.name for x in bound} | {x.flag for x in bound if x.flag}
+                                    | {x.name + "Chosen" for x in bound if x.widget == "auto"}), order
         for prop in bound:
             e, p = props[prop.name], prop.param
             # the sky image's Distance, declared None: the panel holds it empty
@@ -216,7 +218,8 @@ def test_paraview_proxy_is_the_schema_and_gives_the_same_bits(pv_env, xdisplay, 
                 assert hi == want_hi, prop.name
     assert list(r["density_groups"]) == ["Dust", "Stars", "Compute device"]
     assert r["sky_groups"] == {"Camera": ["ViewDirection", "ViewUp", "ImageSize", "Extent"],
-                               "Picture": ["IncludeStars", "AutoExposure", "Exposure", "Stretch", "AsinhQ"],
+                               "Picture": ["IncludeStars", "AutoExposure", "Exposure", "ExposureChosen", "Stretch",
+                                           "AsinhQ"],
                                "Observer": ["Units", "Distance", "RA", "Dec", "PositionAngle", "PSFFWHM",
                                             "MagnitudeSystem"]}
     # the sky image's panel: the camera, the picture, then Units before the observer it enables
@@ -783,3 +786,19 @@ def test_client_server_session_shows_what_the_builtin_one_does(pv_env, xdisplay,
     if ranks == 1:
         star = a.max(axis=2) >= 254  # the builtin picture's marker
         assert star.sum() >= 9 and (b.max(axis=2)[star] >= 254).all()
+
+
+def test_what_auto_chose_is_a_property_to_read(pv_env, xdisplay, tmp_path):
+    """Auto Exposure and Auto Opacity on: the proxies' information properties ExposureChosen
+    and OpacityScaleChosen (Nebula Colour; ExposureChosen of Nebula Sky Image) hold the values
+    the execution used, its output's field data ``exposure`` and ``opacity_scale``, after
+    ``UpdatePropertyInformation`` (NaN before any execution). ParaView 5.11's panel shows no
+    information property, so in the GUI they are read in the Python shell or the Information
+    tab's field data."""
+    import math
+
+    r, _ = run_pv(pv_env, xdisplay, "chosen.py")
+    assert r["before"] is None or math.isnan(r["before"]), r["before"]
+    for name, values in r["chosen"].items():
+        for key, (chosen, field) in values.items():
+            assert chosen == field and math.isfinite(field) and field > 0, (name, key, chosen, field)
