@@ -26,7 +26,7 @@ And one for a fit's result:
                                    repository (File > Load State, "Search files under specified
                                    directory"; ``load_state_safely(..., data_directory=REPO)``).
 
-The defaults (48^3 voxels, 200 000 packets per band) load and render in a few seconds on two
+The defaults (48^3 voxels, 200 000 packets per band) load and render in about 11 s on two
 CPU cores; the thesis used 128^3 voxels and 2.1 million packets (--grid 128 --photons 2100000,
 or change GridShape / Photons in ParaView after loading: the properties panel of the dust
 source and of each light field). The states leave Device empty and Backend "auto": a GPU is
