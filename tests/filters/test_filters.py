@@ -287,3 +287,65 @@ def test_an_unchosen_density_array_is_named_in_the_error():
     lf.SetDensityArrayName("rho")
     lf.Update()
     assert lf.last_error is None and lf.GetOutputDataObject(0).GetNumberOfPoints() == 6 * 5 * 4
+
+
+class PressAt:
+    """An abort source as ParaView's Abort button is one (the protocol of
+    ``nebula_rt.filters.base.ABORT_SOURCES``: start, poll, stop around each execution), pressed
+    at its ``n``-th poll of an execution of ``kind`` (never, for other algorithms)."""
+
+    def __init__(self, kind, n):
+        self.kind, self.n = kind, n
+        self.log = []  # (algorithm class, polls, polls after the press) per execution
+
+    def start(self, algorithm):
+        self.alg, self.polls, self.after = type(algorithm).__name__, 0, 0
+
+    def poll(self):
+        if self.alg != self.kind:
+            return False
+        self.polls += 1
+        self.after += self.polls > self.n
+        return self.polls >= self.n
+
+    def stop(self):
+        self.log.append((self.alg, self.polls, self.after))
+
+
+@pytest.mark.parametrize("stage", ["trace", "collision filter", "sky image"])
+def test_an_abort_source_stops_each_stage_at_the_poll_that_heard_it(stage, monkeypatch):
+    """Every stage of a NebulaRT execution polls the abort sources (ParaView's Abort button in
+    the GUI, tests/paraview/test_paraview_gui.py) and stops at the very poll that heard the
+    press, with an empty output and a message naming the stage: the trace (between launches),
+    the collision filter's stage after it (per band) and the sky image; each execution's
+    start and stop reach the source once, and the algorithms upstream are not touched."""
+    from nebula_rt.filters import NebulaSkyImage, base
+
+    d, lf, c = chain(shape=(16, 16, 16), photons=20_000)
+    sky = NebulaSkyImage()
+    sky.SetInputConnection(lf.GetOutputPort())
+    sky.SetImageSize(32, 32)
+    if stage == "collision filter":
+        lf.SetEstimator("collision-filter")
+        # the polls of an untouched run: the filter's stage comes after the trace's, so the
+        # last poll of the light field's execution is in the filter's stage
+        counter = PressAt("NebulaLightField", 10 ** 9)
+        monkeypatch.setattr(base, "ABORT_SOURCES", [counter])
+        lf.Update()
+        assert lf.last_error is None, lf.last_error
+        (_alg, total, _after), = [e for e in counter.log if e[0] == "NebulaLightField"]
+        lf.SetTau(49.0)  # (a new execution)
+        source = PressAt("NebulaLightField", total)
+    else:
+        source = PressAt("NebulaSkyImage" if stage == "sky image" else "NebulaLightField", 1)
+    monkeypatch.setattr(base, "ABORT_SOURCES", [source])
+    (sky if stage == "sky image" else lf).Update()
+    alg = sky if stage == "sky image" else lf
+    want = {"trace": "transport cancelled", "collision filter": "collision filter cancelled",
+            "sky image": "sky image cancelled"}[stage]
+    assert alg.last_error is not None and want in alg.last_error, alg.last_error
+    assert alg.GetOutputDataObject(0).GetNumberOfPoints() == 0
+    mine = [e for e in source.log if e[0] == type(alg).__name__]
+    assert len(mine) == 1 and mine[0][2] == 0, source.log  # stopped at the poll that heard it
+    if stage == "sky image":
+        assert lf.last_error is None and lf.GetOutputDataObject(0).GetNumberOfPoints() == 16 ** 3
