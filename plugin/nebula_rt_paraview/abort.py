@@ -51,7 +51,7 @@ class AbortButton:
         self._last_events = 0.0
         self.pressed_at = None
         self.stopped_at = None
-        self.polls = 0
+        self._broken = None  # the Qt error that turned this source off, if one did
 
     def _find_button(self):
         QtWidgets = self._qt.QtWidgets
@@ -65,8 +65,36 @@ class AbortButton:
                     return w
         return None
 
+    def _guarded(self, step, *args):
+        """Run a step; a Qt error turns this source off (said once on stderr) instead of
+        failing the executing filter: the filters then run as without a GUI."""
+        if self._broken is not None:
+            return None
+        try:
+            return step(*args)
+        except Exception as exc:  # noqa: BLE001 - the GUI's state is ParaView's, not ours
+            import sys
+
+            self._broken = exc
+            self._button = None
+            sys.stderr.write(f"NebulaRT warning: the Abort button cannot be reached ({exc!r}); "
+                             "traces run to the end\n")
+            return None
+
     def start(self, algorithm) -> None:
         """An execution begins: the button enabled and heard (nested executions share it)."""
+        self._guarded(self._start)
+
+    def poll(self) -> bool:
+        """True once the button was pressed during this execution; delivers the GUI's pending
+        window-system events first (at most every :data:`EVENT_SECONDS`)."""
+        return bool(self._guarded(self._poll))
+
+    def stop(self) -> None:
+        """The execution ended: the button disabled, the input let through."""
+        self._guarded(self._stop)
+
+    def _start(self) -> None:
         self._depth += 1
         if self._depth > 1:
             return
@@ -85,12 +113,9 @@ class AbortButton:
         if self.pressed_at is None:
             self.pressed_at = time.monotonic()
 
-    def poll(self) -> bool:
-        """True once the button was pressed during this execution; delivers the GUI's pending
-        window-system events first (at most every :data:`EVENT_SECONDS`)."""
+    def _poll(self) -> bool:
         if self._button is None:
             return False
-        self.polls += 1
         now = time.monotonic()
         if now - self._last_events >= EVENT_SECONDS:
             self._last_events = now
@@ -99,8 +124,7 @@ class AbortButton:
                 loop.AllEvents | loop.X11ExcludeTimers | loop.ExcludeSocketNotifiers)
         return self.pressed_at is not None
 
-    def stop(self) -> None:
-        """The execution ended: the button disabled and disconnected, the input let through."""
+    def _stop(self) -> None:
         self._depth = max(0, self._depth - 1)
         if self._depth:
             return
