@@ -525,3 +525,24 @@ def test_sky_image_refuses_a_scene_text_whose_stars_did_not_light_the_field():
     producer.Modified()
     s.Update()
     assert s.last_error is None and s.GetOutputDataObject(0).GetNumberOfPoints() == 256
+
+
+@pytest.mark.parametrize("fwhm", [60.0, 120.0])
+def test_the_psf_has_the_declared_width(fwhm):
+    """A star in vacuum is the PSF alone: per axis, the image's variance about its centroid is
+    sigma^2 + 1/12 pixel^2 (the Gaussian of sigma = FWHM / (2 sqrt(2 ln 2)) integrated over
+    square pixels: a box of one pixel added), with sigma = observer.psf_fwhm over the pixel
+    scale, the pixel scale computed here as pixel_size x L / D (size 64: pixel_size sqrt(3)/64
+    box units, L 0.2 pc, D 50 pc). The centroid is the star's projection. A PSF 41 % too wide
+    doubles the variance; 2 % is refused (tolerance 1e-3, the discrete sum's error)."""
+    s = base(observer={"psf_fwhm": fwhm})
+    cal = vacuum_image(s, calibrate.camera_for(s, size=64))
+    theta_arcsec = math.sqrt(3.0) / 64 * 0.2 / 50.0 * 180 / math.pi * 3600
+    sigma = fwhm / (2 * math.sqrt(2 * math.log(2))) / theta_arcsec
+    img = cal.surface_brightness[1]  # (W, H): the G band
+    p, q = np.meshgrid(np.arange(img.shape[0]), np.arange(img.shape[1]), indexing="ij")
+    total = img.sum()
+    cp, cq = (img * p).sum() / total, (img * q).sum() / total
+    np.testing.assert_allclose([cp, cq], cal.star_pixel[0], rtol=0, atol=1e-6)
+    for var in ((img * (p - cp) ** 2).sum() / total, (img * (q - cq) ** 2).sum() / total):
+        assert var == pytest.approx(sigma**2 + 1.0 / 12.0, rel=1e-3), (var, sigma)
