@@ -409,3 +409,43 @@ def test_mcmc_without_emcee_is_a_clear_error(backend, monkeypatch):
     with pytest.raises(SceneError, match="emcee"):
         fit.fit_observations(cube(photons=5_000), [_colour_table()], ["g"], uncertainty="mcmc", backend=backend)
     assert not traced
+
+
+class _QuadraticChi2:
+    """chi^2(z) = (z - m)^T C^-1 (z - m) in the fit's unit cube: its profile likelihood's
+    1-sigma interval of parameter i is exactly m_i +- sqrt(C_ii), the others re-minimised."""
+
+    stage = ""
+
+    def __init__(self, mean, cov):
+        self.mean, self.inv = np.asarray(mean, float), np.linalg.inv(np.asarray(cov, float))
+
+    def __call__(self, z):
+        d = np.asarray(z, float) - self.mean
+        return float(d @ self.inv @ d)
+
+
+@pytest.mark.parametrize("scale", [0.7, 1.0, 1.5])
+def test_profile_errors_find_the_delta_chi2_of_one(scale):
+    """The profile errors' scale, against the exact answer: on a quadratic chi^2 with
+    correlated parameters (correlation 0.8) the profile likelihood's 1-sigma errors are
+    sqrt(C_ii) in the unit cube, whatever the width of the quadratic the search starts from
+    (its covariance scaled by ``scale``^2: too narrow, right, too wide), as the secant
+    correction sigma / sqrt(rise) makes them; an inverted correction (sigma x sqrt(rise))
+    gives 0.49 or 2.25 times the error and fails here. Bounds 0..10 map the unit cube to
+    values, so the errors are 10 sqrt(C_ii)."""
+    from types import SimpleNamespace
+
+    true = np.array([[0.04 ** 2, 0.8 * 0.04 * 0.06], [0.8 * 0.04 * 0.06, 0.06 ** 2]])
+    mean = np.array([0.45, 0.55])
+    obj = _QuadraticChi2(mean, true)
+    params = [fit_parameters.FreeParameter("a", 0.0, 10.0), fit_parameters.FreeParameter("b", 0.0, 10.0)]
+    best = [p.from_unit(z) for p, z in zip(params, mean)]
+    at_bound = [[False, False], [False, False]]
+    err_m, err_p, checks = fit.FitRequest._profile_errors(
+        SimpleNamespace(fatol=1e-4), obj, params, mean.copy(), true * scale ** 2, 0.0, best, at_bound)
+    want = 10.0 * np.sqrt(np.diag(true))
+    np.testing.assert_allclose(err_m, want, rtol=0.01)
+    np.testing.assert_allclose(err_p, want, rtol=0.01)
+    assert not any(any(b) for b in at_bound)
+    assert all(v == pytest.approx(scale ** 2, rel=0.02) for v in checks.values()), checks
