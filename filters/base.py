@@ -111,13 +111,13 @@ def default_reference_band():
     return bands[reference_band_index(bands)]
 
 
-#: The star fields of the flat Stars property, by scene key.
 #: Where a request to abort can come from besides the algorithm's own ``AbortExecute`` flag:
 #: objects with ``start(algorithm)`` and ``stop()`` (around each execution) and ``poll() ->
 #: bool`` (at each of its abort polls). Plain VTK has none; the ParaView GUI adds its Abort
 #: button (``plugin/nebula_rt_paraview/abort.py``).
 ABORT_SOURCES: list = []
 
+#: The star fields of the flat Stars property, by scene key.
 _STAR_KEY = re.compile(r"^stars\[(\d+)\]\.(\w+)$")
 
 
@@ -146,8 +146,8 @@ class NebulaAlgorithm(VTKPythonAlgorithmBase):
         """The value the last execution used for the "auto or number" property ``name``
         (``Exposure``, ``OpacityScale``): its output's field data of that key (``exposure``,
         ``opacity_scale``), which the filters write whether it was chosen from the data or
-        given; NaN before a successful execution. ParaView shows it beside the property
-        (an information property, ``<name>Chosen``)."""
+        given; NaN before a successful execution. The ParaView proxies hold it in an
+        information property, ``<name>Chosen`` (5.11's panel does not show those)."""
         key = re.sub(r"(?<!^)(?=[A-Z])", "_", name).lower()
         out = self.GetOutputDataObject(0) if self.GetNumberOfOutputPorts() else None
         arr = out.GetFieldData().GetArray(key) if out is not None else None

@@ -93,8 +93,8 @@ def panel(props, defaults=None, extra=None, head=(), own_groups=None):
     """A proxy's panel: its schema-bound properties' XML (as :func:`bound_properties`, with
     ``head``, XML of the filter's own properties, first) and its property groups, read from
     the declarations: a bound property sits in its ``Property.panel_group`` (its scene key's
-    ``Param.group`` unless the algorithm says otherwise), its "auto" check box and the value
-    "auto" chose beside it, and a
+    ``Param.group`` unless the algorithm says otherwise), its "auto" check box and the
+    information property of what "auto" chose beside it, and a
     property of the filter's own in ``own_groups[name]``. Groups in the order of their first
     property; every property is in one (a ValueError names one that is not)."""
     body = "\n".join(list(head) + [bound_properties(props, defaults, extra)])
@@ -294,9 +294,15 @@ def bound_property(prop, default=None):
                    % (tag, attrs, n, dflt, domain, _tooltip(prop, p), hints, tag)) + chosen
 
 
+def _words(name: str) -> str:
+    """A property's name as a label: ``AutoExposure`` -> ``Auto Exposure``."""
+    return re.sub(r"(?<!^)(?=[A-Z])", " ", name)
+
+
 def _chosen_property(prop, p):
     """An information property after an "auto or number" property: the value the last
-    execution used (``NebulaAlgorithm.chosen``), so the panel shows what "auto" chose."""
+    execution used (``NebulaAlgorithm.chosen``), what "auto" chose, for scripts (pvpython's
+    ``GetPropertyValue``; ParaView 5.11's panel shows no information property)."""
     from nebula_rt.scene.schema import label
 
     vis = ' panel_visibility="advanced"' if p.advanced else ""
@@ -305,18 +311,16 @@ def _chosen_property(prop, p):
     return ('<DoubleVectorProperty name=%s label=%s command=%s information_only="1" number_of_elements="1" '
             'default_values="0"%s><SimpleDoubleInformationHelper/><Documentation>%s</Documentation>'
             '</DoubleVectorProperty>'
-            % (quoteattr(prop.name + "Chosen"), quoteattr(re.sub(r"(?<!^)(?=[A-Z])", " ", prop.name) + " Chosen"),
+            % (quoteattr(prop.name + "Chosen"), quoteattr(_words(prop.name) + " Chosen"),
                quoteattr("Get" + prop.name + "Chosen"), vis, tip))
 
 
 def _auto_flag(prop, p, on):
     """The check box of an "auto or number" property (``Auto Exposure``: its label from its
     name), shown with the same visibility as the number."""
-    import re
-
     from nebula_rt.scene.schema import label
 
-    text = re.sub(r"(?<!^)(?=[A-Z])", " ", prop.flag)
+    text = _words(prop.flag)
     tip = escape(" ".join((f"On: {label(prop.key, p)} is chosen from the data ({_key_text(prop.key)} = "
                            f"'auto'); off: the number below. {p.doc}.").split()))
     vis = ' panel_visibility="advanced"' if p.advanced else ""
