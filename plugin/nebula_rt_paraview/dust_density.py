@@ -12,6 +12,7 @@ from nebula_rt.filters.base import default_star_row
 from nebula_rt.scene import G_STARS
 
 from . import _xml
+from .remote_abort import ADDRESS_PROPERTY, Addressed
 
 PANEL = _xml.panel(_base.DUST_DENSITY_PROPERTIES, extra={"<Backend": _xml.stars_property(default_star_row())},
                    own_groups={"Stars": G_STARS})
@@ -22,7 +23,8 @@ PANEL = _xml.panel(_base.DUST_DENSITY_PROPERTIES, extra={"<Backend": _xml.stars_
 @_xml.proxy_doc(_base.NebulaDustDensity)
 @smhint.xml(_xml.VOLUME)
 @smproperty.xml(PANEL)
-class NebulaDustDensity(_base.NebulaDustDensity):
+@smproperty.xml(ADDRESS_PROPERTY)
+class NebulaDustDensity(Addressed, _base.NebulaDustDensity):
     """Dust density on an nx x ny x nz grid spanning the box [0, 1]^3 (thesis Eq. 3.2/3.3):
     point array ``density`` on the voxel centres."""
 

@@ -13,6 +13,7 @@ from nebula_rt.filters.base import default_reference_band, default_star_row
 from nebula_rt.scene import G_DUST, G_OPTICS, G_STARS, G_UNITS
 
 from . import _xml
+from .remote_abort import ADDRESS_PROPERTY, Addressed
 
 _REF = default_reference_band()
 
@@ -61,11 +62,12 @@ PANEL = _xml.panel(
 @smhint.xml(_xml.LIGHT_FIELD_DISPLAY)
 @smproperty.xml(_xml.LIGHT_FIELD_PORTS)
 @smproperty.xml(PANEL)
+@smproperty.xml(ADDRESS_PROPERTY)
 @smproperty.input(name="Input", port_index=0)
 @smdomain.datatype(dataTypes=["vtkImageData"], composite_data_supported=False)
 @_xml.doc("The vtkImageData holding the dust density (e.g. Nebula Dust Density, or a .vti file).")
 @_xml.input_with_array_domain()
-class NebulaLightField(_base.NebulaLightField):
+class NebulaLightField(Addressed, _base.NebulaLightField):
     """Traces photon packets from the stars through the input's dust density; adds per band
     ``J_<band>``, ``emissivity_<band>``, ``rel_error_<band>`` and the run's field data."""
 

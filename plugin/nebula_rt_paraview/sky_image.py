@@ -15,6 +15,7 @@ from nebula_rt.filters import sky_image as _base
 from nebula_rt.scene import G_OBSERVER
 
 from . import _xml
+from .remote_abort import ADDRESS_PROPERTY, Addressed
 
 UNITS = """
 <IntVectorProperty name="Units" label="Units" command="SetUnits" number_of_elements="1" default_values="0">
@@ -34,10 +35,11 @@ PANEL = _xml.panel(_base.SKY_IMAGE_PROPERTIES, defaults=_base.SKY_PANEL_DEFAULTS
 @_xml.proxy_doc(_base.NebulaSkyImage)
 @smhint.xml(_xml.SKY_IMAGE_DISPLAY)
 @smproperty.xml(PANEL)
+@smproperty.xml(ADDRESS_PROPERTY)
 @smproperty.input(name="Input", port_index=0)
 @smdomain.datatype(dataTypes=["vtkImageData"], composite_data_supported=False)
 @_xml.doc("The output of Nebula Light Field (it must carry its density array).")
-class NebulaSkyImage(_base.NebulaSkyImage):
+class NebulaSkyImage(Addressed, _base.NebulaSkyImage):
     """What a telescope far away sees along View Direction: a 2D image with ``I_<band>``,
     ``scattered_<band>`` (float) and ``rgb`` (uint8 x 3; shown directly with Map Scalars off; see
     nebula_rt_paraview.view.show_sky_image)."""

@@ -65,7 +65,9 @@ try:
                 r["opacity_points"] = len(rep.ScalarOpacityFunction.Points) // 4
             if src.GetXMLName() == "NebulaLightField" and port == 1 and r["visible"]:
                 stars = servermanager.Fetch(servermanager._getPyProxy(src), idx=1)
-                empty = stars.GetPoints() is None  # (a failed or cancelled light field)
+                # (a failed or cancelled light field: no points, or, fetched from a pvserver's
+                # pieces, points without arrays)
+                empty = stars.GetPoints() is None or stars.GetPointData().GetArray("star_rgb") is None
                 xyz = np.zeros((0, 3)) if empty else vtk_to_numpy(stars.GetPoints().GetData())
                 rgb = np.zeros((0, 3)) if empty else vtk_to_numpy(stars.GetPointData().GetArray("star_rgb"))
                 ren = view.GetRenderer()
@@ -120,12 +122,14 @@ try:
     for (name, _id), px in simple.GetSources().items():
         if not px.GetXMLName().startswith("Nebula"):
             continue
-        entry = {"xml": px.GetXMLName(), "last_error": px.GetClientSideObject().last_error,
-                 "last_warnings": list(getattr(px.GetClientSideObject(), "last_warnings", [])),
-                 "points": int(px.GetDataInformation(0).GetNumberOfPoints())}
+        # (in a client/server session the algorithm is the server's: no client-side object)
+        algorithm = px.GetClientSideObject()
+        entry = {"xml": px.GetXMLName(), "last_error": getattr(algorithm, "last_error", None),
+                 "last_warnings": list(getattr(algorithm, "last_warnings", [])),
+                 "points": int(px.GetDataInformation(0).GetNumberOfPoints()), "remote": algorithm is None}
         if "Stars" in px.ListProperties():
             entry["Stars"] = [float(x) for x in px.Stars]
-        if px.GetXMLName() in ("NebulaLightField", "NebulaColour") and entry["last_error"] is None:
+        if px.GetXMLName() in ("NebulaLightField", "NebulaColour") and algorithm is not None and entry["last_error"] is None:
             fd = servermanager.Fetch(px).GetFieldData()
             for key in ("exposure", "opacity_scale"):
                 arr = fd.GetArray(key)
@@ -144,6 +148,11 @@ try:
                               "enabled": bool(button and button[0].isEnabled()),
                               "sources": [{"pressed_at": a.pressed_at, "stopped_at": a.stopped_at}
                                           for a in ABORT_SOURCES]}
+    from nebula_rt_paraview import remote_abort
+
+    relay = remote_abort.RELAY
+    record["abort_button"]["relay"] = (None if relay is None else
+                                       {"pressed_at": relay.pressed_at, "sent_at": relay.sent_at, "ended_at": relay.ended_at})
     # the properties panel: the kinds of widget (Qt class names) that show the counts
     panel = [w for w in QtWidgets.QApplication.instance().allWidgets() if w.objectName() == "ProxyPanel"]
     record["panel_widgets"] = {}

@@ -181,8 +181,9 @@ def test_paraview_proxy_is_the_schema_and_gives_the_same_bits(pv_env, xdisplay, 
         props = {e["name"]: e for e in proxy_props}
         order = [e["name"] for e in proxy_props]
         # every property of the panel is a bound one (or its check box), bar the filters' own
+        # (and the information property that carries a pvserver's abort port)
         own = {"Input", "DensityArray", "OverrideOptics", "StarsFromInput", "Stars", "LuminosityUnit", "SpectralTypes",
-               "Units"}
+               "Units", "AbortAddress"}
         # (and, after an "auto or number" property, the information property of what it chose)
         assert set(order) - own == ({x.name for x in bound} | {x.flag for x in bound if x.flag}
                                     | {x.name + "Chosen" for x in bound if x.widget == "auto"}), order
@@ -223,7 +224,7 @@ def test_paraview_proxy_is_the_schema_and_gives_the_same_bits(pv_env, xdisplay, 
                                "Observer": ["Units", "Distance", "RA", "Dec", "PositionAngle", "PSFFWHM",
                                             "MagnitudeSystem"]}
     # the sky image's panel: the camera, the picture, then Units before the observer it enables
-    sky_order = [e["name"] for e in r["sky_properties"] if e["name"] != "Input"]
+    sky_order = [e["name"] for e in r["sky_properties"] if e["name"] not in ("Input", "AbortAddress")]
     assert sky_order == [n for g in r["sky_groups"].values() for n in g], sky_order
     units = {e["name"]: e for e in r["sky_properties"]}["Units"]
     assert units["enum"] == ["box units", "MJy/sr"] and units["default"] == [0], units
@@ -243,9 +244,10 @@ def test_paraview_proxy_is_the_schema_and_gives_the_same_bits(pv_env, xdisplay, 
     for props, groups in ((LIGHT_FIELD_PROPERTIES, r["groups"]), (SKY_IMAGE_PROPERTIES, r["sky_groups"])):
         for prop in props:
             assert prop.name in groups[prop.panel_group], (prop.name, prop.panel_group, groups)
-    # every panel property but the input sits in a group (one left out shows below the groups)
+    # every panel property but the input (and the information property AbortAddress, never shown)
+    # sits in a group (one left out shows below the groups)
     grouped = [p for names in r["groups"].values() for p in names]
-    assert sorted(set(order) - set(grouped)) == ["Input"] and len(grouped) == len(set(grouped)), (order, r["groups"])
+    assert sorted(set(order) - set(grouped)) == ["AbortAddress", "Input"] and len(grouped) == len(set(grouped)), (order, r["groups"])
     assert r["int_photons_from_float"] == 10000
     # the same values through the proxy, the plain VTK filter and a scene file, in ParaView's
     # Python on its OpenCL device: the same bits (test_schema_layers compares the last two in
@@ -729,16 +731,16 @@ def test_fit_result_state_opens_the_fit_layout(pv_env, xdisplay, tmp_path):
     assert rows[0] > 0.005 and rows[1] > 0.001 and rows[2] > 0.001, rows
 
 
-def _pvserver(pv_env, display, ranks):
+def _pvserver(pv_env, display, ranks, log=None):
     """``mpiexec -n RANKS pvserver`` on a free port of localhost, with the environment of
     scripts/pv-env.sh (so each rank loads the plugin from PV_PLUGIN_PATH); returns (process,
-    port) once it accepts connections."""
+    port) once it accepts connections. Its messages go to the file ``log`` (or nowhere)."""
     import socket
 
     with socket.socket() as s:
         s.bind(("localhost", 0))
         port = s.getsockname()[1]
-    log = open(os.devnull, "w")
+    log = open(log or os.devnull, "w")
     proc = subprocess.Popen([shutil.which("mpiexec"), "--allow-run-as-root", "--oversubscribe", "-n", str(ranks),
                              "pvserver", f"--server-port={port}", "--force-offscreen-rendering"],
                             env=dict(pv_env, DISPLAY=display), stdout=subprocess.PIPE, stderr=log, text=True,

@@ -17,7 +17,9 @@ from __future__ import annotations
 
 import colorsys
 import json
+import os
 import re
+import signal
 import subprocess
 import threading
 import time
@@ -411,6 +413,43 @@ def test_abort_stops_a_trace_within_a_second(pv_env, xdisplay, tmp_path):
     clicks = [t for t in json.loads((out / "clicks.json").read_text()) if t <= src["pressed_at"]]
     assert clicks, "no click before the press was heard"
     assert src["stopped_at"] - clicks[-1] < 3.0, (src, clicks[-1])
+
+
+@pytest.mark.parametrize("ranks", [2])
+def test_abort_stops_a_trace_in_a_pvserver_within_a_second(pv_env, xdisplay, tmp_path, ranks):
+    """The same click with the GUI connected to a pvserver of 2 ranks (``--server-url``), where
+    the trace runs: the press reaches the server through the plugin's abort port
+    (plugin/nebula_rt_paraview/remote_abort.py), both ranks stop and say so, the light
+    field's output is empty, and the button is disabled again afterwards.
+
+    How fast: from the click that stopped it (the latest click before the client heard the
+    press) to the end of the execution as the client heard it, under 3 s on a loaded 2-core
+    machine (progress messages every 0.2 s carry the press, the server's polls come between
+    launches of at most about 0.25 s)."""
+    from test_paraview import _pvserver
+
+    log = tmp_path / "pvserver.log"
+    server, port = _pvserver(pv_env, xdisplay, ranks, log=log)
+    try:
+        events = (menu("menuSources", "NebulaRT", "NebulaDustDensity") + apply() + probe("ready")
+                  + menu("menuFilters", "NebulaRT", "NebulaLightField") + apply() + probe("aborted"))
+        out = run_gui(pv_env, xdisplay, tmp_path, events, args=(f"--server-url=cs://localhost:{port}",),
+                      light_field={"Photons": 50_000_000}, clicker=abort_clicker(xdisplay))
+    finally:
+        os.killpg(server.pid, signal.SIGTERM)
+        server.wait(timeout=30)
+    r = step_record(out, "aborted")
+    light = next(p for p in r["proxies"].values() if p["xml"] == "NebulaLightField")
+    assert light["remote"] and light["points"] == 0, light
+    # every rank says so (the ranks decide together between launches)
+    said = re.findall(r"NebulaRT cancelled: NebulaLightField: transport cancelled", log.read_text())
+    assert len(said) == ranks, log.read_text()[-3000:]
+    relay = r["abort_button"]["relay"]
+    assert not r["abort_button"]["enabled"]
+    assert relay["pressed_at"] is not None and relay["ended_at"] >= relay["sent_at"] >= relay["pressed_at"], relay
+    clicks = [t for t in json.loads((out / "clicks.json").read_text()) if t <= relay["pressed_at"]]
+    assert clicks, "no click before the press was heard"
+    assert relay["ended_at"] - clicks[-1] < 3.0, (relay, clicks[-1])
 
 
 # -- state files in the GUI --------------------------------------------------------------------
