@@ -14,6 +14,7 @@ from nebula_rt.errors import NebulaWarning, SceneError
 from nebula_rt.limits import check_float32_array
 from nebula_rt.pipeline.stages import compute_light, finish_light_field
 from nebula_rt.scene import Scene
+from nebula_rt.scene.units import SPECTRAL_CALIBRATIONS
 
 from .base import NebulaAlgorithm, default_reference_band, default_star_row, shallow_copy_image, stars_from_flat
 from .controller import vtk_world
@@ -88,6 +89,7 @@ class NebulaLightField(NebulaAlgorithm):
         self._density_name = None
         self._luminosity_unit = LUMINOSITY_UNITS[0]
         self._spectral_types = ""
+        self._spectral_calibration = SPECTRAL_CALIBRATIONS[0]
         self.last_light = None
 
     # -- the filter's own properties -----------------------------------------------------------
@@ -127,12 +129,29 @@ class NebulaLightField(NebulaAlgorithm):
     def SetSpectralTypes(self, text):
         """MK spectral types of the stars in the Stars' order, separated by ";" ("B2V; A0 III";
         an empty entry keeps that star's temperature column; default none): each sets its
-        star's temperature (scene key ``stars.spectral_type``: de Jager & Nieuwenhuijzen 1987),
-        in place of the column."""
+        star's temperature (scene key ``stars.spectral_type``, by SpectralCalibration), in place
+        of the column."""
         text = "" if text is None else text
         if text != self._spectral_types:
             self._spectral_types = text
             self.Modified()
+
+    def SetSpectralCalibration(self, calibration):
+        """How SpectralTypes set the temperatures (scene key ``stars.spectral_calibration``, for
+        every star with a type): "auto" (0, default), "pecaut-mamajek-2013" (1) or
+        "de-jager-1987" (2), by name or index."""
+        calibration = SPECTRAL_CALIBRATIONS[calibration] if isinstance(calibration, int) and not isinstance(
+            calibration, bool) and 0 <= calibration < len(SPECTRAL_CALIBRATIONS) else calibration
+        if calibration != self._spectral_calibration:
+            self._spectral_calibration = calibration
+            self.Modified()
+
+    def inert_messages(self) -> list:
+        """SpectralCalibration without SpectralTypes sets nothing."""
+        if self._spectral_calibration != SPECTRAL_CALIBRATIONS[0] and not str(self._spectral_types).strip():
+            return [f"SpectralCalibration = {self._spectral_calibration!r} has no effect: no star has a spectral type "
+                    "(SpectralTypes is empty)"]
+        return []
 
     def GetOverrideOptics(self) -> int:
         return int(self._override_optics)
@@ -179,6 +198,7 @@ class NebulaLightField(NebulaAlgorithm):
         for star, text in zip(stars, types):
             if text:
                 star["spectral_type"] = text
+                star["spectral_calibration"] = self._spectral_calibration
                 star.pop("temperature", None)
         return Scene.from_dict(scene_values(values, {"grid": {"shape": list(shape)}, "dust": {"model": "uniform"},
                                                      "stars": stars}))

@@ -11,6 +11,7 @@ from paraview.util.vtkAlgorithm import smdomain, smhint, smproperty, smproxy
 from nebula_rt.filters import light_field as _base
 from nebula_rt.filters.base import default_reference_band, default_star_row
 from nebula_rt.scene import G_DUST, G_OPTICS, G_STARS, G_UNITS
+from nebula_rt.scene.units import SPECTRAL_CALIBRATIONS
 
 from . import _xml
 from .remote_abort import ADDRESS_PROPERTY, Addressed
@@ -40,9 +41,18 @@ SPECTRAL_TYPES = """
     number_of_elements="1" default_values="" panel_visibility="advanced">
   <Documentation>MK spectral types of the stars, in the Stars' order, separated by ";" (such as
     "B2V; A0 III"; an empty entry keeps that star's temperature): each sets its star's
-    temperature in place of the Stars' column (scene key stars.spectral_type, from the
-    calibration of de Jager and Nieuwenhuijzen 1987).</Documentation>
-</StringVectorProperty>"""
+    temperature in place of the Stars' column (scene key stars.spectral_type, by Spectral
+    Calibration).</Documentation>
+</StringVectorProperty>
+<StringVectorProperty name="SpectralCalibration" label="Spectral Calibration" command="SetSpectralCalibration"
+    number_of_elements="1" default_values="auto" panel_visibility="advanced">
+  %s
+  <Documentation>How Spectral Types set the temperatures (scene key
+    stars.spectral_calibration): auto (Pecaut and Mamajek 2013 for a dwarf from O3V to M9.5V, de
+    Jager and Nieuwenhuijzen 1987 otherwise), pecaut-mamajek-2013 (dwarfs only) or de-jager-1987
+    (every class).</Documentation>
+</StringVectorProperty>""" % ('<StringListDomain name="list">%s</StringListDomain>'
+                              % "".join('<String value="%s"/>' % c for c in SPECTRAL_CALIBRATIONS))
 
 PANEL = _xml.panel(
     _base.LIGHT_FIELD_PROPERTIES,
@@ -53,7 +63,7 @@ PANEL = _xml.panel(
            "<BoxLength": LUMINOSITY_UNIT + SPECTRAL_TYPES},
     # the filter's own properties: the density array, the optics switch, the stars and their units
     own_groups={"DensityArray": G_DUST, "OverrideOptics": G_OPTICS, "StarsFromInput": G_STARS, "Stars": G_STARS,
-                "LuminosityUnit": G_UNITS, "SpectralTypes": G_UNITS})
+                "LuminosityUnit": G_UNITS, "SpectralTypes": G_UNITS, "SpectralCalibration": G_UNITS})
 
 
 @smproxy.filter(name="NebulaLightField", label="Nebula Light Field", support_reload=False)

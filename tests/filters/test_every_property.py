@@ -115,7 +115,7 @@ def _cases():
         for prop in alg.BOUND_PROPERTIES:
             cases.append((name, prop.name, "bound"))
     cases += [("NebulaLightField", own, "own") for own in
-              ("OverrideOptics", "StarsFromInput", "Stars", "LuminosityUnit", "SpectralTypes")]
+              ("OverrideOptics", "StarsFromInput", "Stars", "LuminosityUnit", "SpectralTypes", "SpectralCalibration")]
     cases += [("NebulaColour", "AutoExposure", "own"), ("NebulaColour", "AutoOpacity", "own"),
               ("NebulaSkyImage", "AutoExposure", "own"), ("NebulaSkyImage", "Units", "own"),
               ("NebulaDustDensity", "Stars", "own")]
@@ -128,6 +128,7 @@ OWN_VALUES = {
     ("NebulaLightField", "Stars"): [0.3, 0.5, 0.5, 1.0, 0.0, 0.0],
     ("NebulaLightField", "LuminosityUnit"): 1,
     ("NebulaLightField", "SpectralTypes"): "B2V",
+    ("NebulaLightField", "SpectralCalibration"): "de-jager-1987",  # (with SpectralTypes B2V against B2V alone)
     ("NebulaColour", "AutoExposure"): 0,
     ("NebulaColour", "AutoOpacity"): 0,
     ("NebulaSkyImage", "AutoExposure"): 0,
@@ -167,6 +168,11 @@ def test_a_changed_property_changes_the_output_or_says_why(baseline, alg_name, p
         baseline_of = _pipeline()
         baseline_of["NebulaDustDensity"].SetStars([0.5, 0.5, 0.5, 1.0, 10000.0, 0.0])
         baseline = {alg_name: _digest(baseline_of[alg_name])}
+    if (alg_name, prop_name) == ("NebulaLightField", "SpectralCalibration"):
+        alg.SetSpectralTypes("B2V")  # Pecaut & Mamajek's 20600 K against de Jager's 19737 K
+        baseline_of = _pipeline()
+        baseline_of[alg_name].SetSpectralTypes("B2V")
+        baseline = {alg_name: _digest(baseline_of[alg_name])}
     if (alg_name, prop_name) == ("NebulaSkyImage", "Units"):
         # MJy/sr: the box placed on the sky, its star in physical units
         algs["NebulaDustDensity"].SetStars([0.5, 0.5, 0.5, 100.0, 10000.0, 0.0])
@@ -189,3 +195,18 @@ def test_an_empty_distance_is_no_setting(empty):
     sky.SetDistance(empty)
     sky.SetDistance("" if empty is None else None)
     assert inert_properties(sky) == [] and sky.inert_messages() == []
+
+
+def test_a_spectral_calibration_without_spectral_types_says_it_sets_nothing():
+    """SpectralCalibration chooses how SpectralTypes set temperatures: with none given it
+    changes nothing, and the execution's warnings say so by name; with a type, no warning."""
+    algs = _pipeline()
+    light = algs["NebulaLightField"]
+    light.SetSpectralCalibration(2)  # (by index: de-jager-1987)
+    before = _digest(light)
+    assert any("SpectralCalibration = 'de-jager-1987' has no effect" in w for w in light.last_warnings), \
+        light.last_warnings
+    assert before == _digest(_pipeline()["NebulaLightField"])
+    light.SetSpectralTypes("B7V")
+    _digest(light)
+    assert light.last_error is None and not [w for w in light.last_warnings if "SpectralCalibration" in w]

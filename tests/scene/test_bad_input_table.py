@@ -98,6 +98,7 @@ RANGES = {
     "stars.0.luminosity_lsun": ("in L_sun > 0", "gives a luminosity"),
     "stars.0.absolute_magnitude": ("M_V in mag", "gives a luminosity"),
     "stars.0.spectral_type": "MK spectral type",
+    "stars.0.spectral_calibration": "'auto', 'pecaut-mamajek-2013', 'de-jager-1987'",
     "stars.0.position": "[0, 1]", "stars.0.luminosity": FLOAT32_RANGE_TEXT,
     "stars.0.temperature": "[1000, 1e+07]", "stars.0.bump_radius": "[1.1754944e-38, 1)",
     # the pairs' own rule, or where a valid spectrum must have power
@@ -116,7 +117,7 @@ RANGES = {
     "colour.stretch": "'linear', 'asinh'", "colour.asinh_q": "(0, 1e+10]",
     "observer.distance": ("distance > 0", "units: pc"), "observer.ra": "[0, 360)", "observer.dec": "[-90, 90]",
     "observer.position_angle": "[-360, 360]", "observer.psf_fwhm": "arcsec in [0, 648000]",
-    "observer.magnitude_system": "'AB', 'Vega'",
+    "observer.magnitude_system": "'AB', 'Vega', 'Vega-Blanton2007'",
 }
 
 FLOAT_KINDS = {"type": '"x"', "nan": "nan", "inf": "inf", "-inf": "-inf", "negative": "-1.5", "zero": "0.0",
@@ -206,6 +207,8 @@ TABLE = [
     *strings("stars.0.spectral_type", ["B2", "O0V", "B10V", "X5III", "B2 VI"],
              allowed={"B2.5 IV": "a decimal subtype, a space", "M10V": "DJ87's coolest type",
                       "O1Ia+": "DJ87's hottest type, a hypergiant"}),
+    *strings("stars.0.spectral_calibration", ["PM13", "Auto"],
+             allowed={"de-jager-1987": "the old calibration by name", "pecaut-mamajek-2013": "dwarfs"}),
     *floats("stars.0.bump_radius", {"zero": "no bump"}),
     *[Row("stars.0.spectrum", kind, lit) for kind, lit in {
         "type": '"x"', "nan": "[[nan, 1.0], [700.0, 1.0]]", "inf": "[[400.0, inf], [700.0, 1.0]]",
@@ -266,7 +269,7 @@ TABLE = [
     # at most 180 deg (648000 arcsec): 1e300 arcsec made an image of zeros
     *floats("observer.psf_fwhm", {"zero": "no PSF", "below-float32": SKY}),
     Row("observer.psf_fwhm", "widest", "648000.0", ALLOWED, SKY + " (wider than the image: the light leaves it)"),
-    *strings("observer.magnitude_system", ["ST", "ab"], allowed={"Vega": "AB minus Blanton & Roweis (2007)'s offsets"}),
+    *strings("observer.magnitude_system", ["ST", "ab"], allowed={"Vega": "CALSPEC", "Vega-Blanton2007": "Blanton & Roweis 2007"}),
 ]
 # "negative" is -1.5 for every float key: below g's -1 too
 

@@ -185,12 +185,58 @@ def test_the_sun_as_a_blackbody_is_near_its_measured_absolute_magnitude():
     assert abs(units.blackbody_absolute_magnitude(5772.0) - 4.81) < 0.1
 
 
-# --- spectral type -> T_eff (de Jager & Nieuwenhuijzen 1987) -----------------------------------
+# --- spectral type -> T_eff (Pecaut & Mamajek 2013; de Jager & Nieuwenhuijzen 1987) -----------
+
+#: rows of Pecaut & Mamajek's dwarf sequence (E. Mamajek's table, version 2024.05.15, read from
+#: the published table for this test: SpT, Teff, B-V, U-B, V-Rc, V-Ic)
+PM13_ROWS = {"B1.5V": (24500, -0.252, -0.910, -0.114, -0.281), "B2V": (20600, -0.215, -0.790, -0.094, -0.230),
+             "B7V": (14000, -0.128, -0.459, -0.058, -0.133), "A0V": (9700, 0.000, -0.005, 0.001, 0.004),
+             "G2V": (5770, 0.650, 0.133, 0.363, 0.713), "M9.5V": (2330, math.nan, math.nan, 2.510, 4.73)}
+
+
+@pytest.mark.parametrize("spt", sorted(PM13_ROWS))
+def test_a_dwarf_takes_pecaut_and_mamajeks_values(spt):
+    """A class V type that is a row of the sequence: its T_eff and intrinsic colours exactly
+    (as the table prints them), under "auto" and by name."""
+    t_eff, *colours = PM13_ROWS[spt]
+    assert units.temperature_from_spectral_type(spt) == t_eff
+    assert units.temperature_from_spectral_type(spt, "pecaut-mamajek-2013") == t_eff
+    got = units.dwarf_properties(spt)
+    assert got["T_eff"] == t_eff
+    for name, want in zip(units.DWARF_COLOURS, colours):
+        assert got[name] == want or (math.isnan(want) and math.isnan(got[name])), name
+
+
+def test_between_rows_the_sequence_is_interpolated():
+    """B1.75V lies between B1.5V and B2V: T_eff at the geometric mean of theirs (linear in
+    log T_eff), B-V at the mean; B8.5V between B8V (12300 K) and B9V (10700 K)."""
+    got = units.dwarf_properties("B1.75 V")
+    assert got["T_eff"] == pytest.approx(math.sqrt(24500 * 20600), rel=1e-12)
+    assert got["B-V"] == pytest.approx(0.5 * (-0.252 - 0.215), abs=1e-12)
+    assert units.temperature_from_spectral_type("B8.5V") == pytest.approx(math.sqrt(12300 * 10700), rel=1e-12)
+
+
+def test_the_old_calibration_is_there_by_name_and_for_other_classes():
+    """de Jager & Nieuwenhuijzen (1987) by name (PyAstronomy's evaluation of their Eq. 2b, the
+    oracle), and under "auto" for every class but V and for dwarfs outside O3V-M9.5V; it is
+    9.3 % cooler than Pecaut & Mamajek at B7V."""
+    from PyAstronomy.pyasl import SpecTypeDeJager
+
+    def dj87(spt, lclass):
+        return 10.0 ** SpecTypeDeJager().lumAndTeff(spt, lclass)[1]
+
+    assert units.temperature_from_spectral_type("B2.5 IV") == dj87("B2.5", "IV")
+    assert units.temperature_from_spectral_type("K0III", "de-jager-1987") == dj87("K0", "III")
+    assert units.temperature_from_spectral_type("B7V", "de-jager-1987") == dj87("B7", "V")
+    assert units.temperature_from_spectral_type("O2V") == dj87("O2", "V")  # (before O3V)
+    assert 1 - dj87("B7", "V") / 14000.0 == pytest.approx(0.093, abs=0.001)
+    with pytest.raises(ValueError, match="class V"):
+        units.temperature_from_spectral_type("K0III", "pecaut-mamajek-2013")
 
 
 def test_spectral_type_sets_the_temperature_and_the_luminosity_follows_it():
-    """The scene's temperature is DJ87's (PyAstronomy's evaluation of their Eq. 2b), and an
-    absolute magnitude then gives the bits of the same star with that temperature given."""
+    """The scene's temperature is its calibration's, and an absolute magnitude then gives the
+    bits of the same star with that temperature given."""
     from PyAstronomy.pyasl import SpecTypeDeJager
 
     t = 10.0 ** SpecTypeDeJager().lumAndTeff("B2.5", "IV")[1]
@@ -199,29 +245,41 @@ def test_spectral_type_sets_the_temperature_and_the_luminosity_follows_it():
     same = scene(stars=[{"temperature": t, "absolute_magnitude": -1.0}])
     assert s.stars[0].luminosity == same.stars[0].luminosity
     assert Scene.loads(s.to_toml()) == s  # the file holds the temperature too, as converted
-    cooler = s.with_overrides(['stars.0.spectral_type="A0V"'])  # converted again
-    assert cooler.stars[0].temperature == pytest.approx(10.0 ** SpecTypeDeJager().lumAndTeff("A0", "V")[1], rel=1e-15)
+    cooler = s.with_overrides(['stars.0.spectral_type="A0V"'])  # converted again, a dwarf: PM13's row
+    assert cooler.stars[0].temperature == 9700.0
     assert cooler.stars[0].luminosity != s.stars[0].luminosity
+    old = cooler.with_overrides(['stars.0.spectral_calibration="de-jager-1987"'])
+    assert old.stars[0].temperature == pytest.approx(10.0 ** SpecTypeDeJager().lumAndTeff("A0", "V")[1], rel=1e-15)
+    assert Scene.loads(old.to_toml()) == old
 
 
 def test_spectral_types_order_as_temperatures_do():
-    """Plausibility of the calibration over its range: hotter along M10 .. O1 on the main
-    sequence, giants cooler than dwarfs of the same late type, the Sun (G2V) within the few
-    per cent DJ87 state of its nominal 5772 K (IAU 2015 Resolution B3)."""
-    seq = [f"{c}{n}V" for c in "OBAFGKM" for n in range(10) if f"{c}{n}" != "O0"] + ["M10V"]
-    temps = [units.temperature_from_spectral_type(t) for t in seq]
-    assert all(a > b for a, b in zip(temps, temps[1:])), list(zip(seq, temps))
-    assert 2000.0 < temps[-1] < 3500.0 and 40000.0 < temps[0] < 60000.0
-    for sub in ("G8", "K0", "K5"):
-        assert units.temperature_from_spectral_type(sub + "III") < units.temperature_from_spectral_type(sub + "V")
-    assert units.temperature_from_spectral_type("G2V") == pytest.approx(5772.0, rel=0.05)
+    """Plausibility of both calibrations over their ranges: hotter along M10 .. O1 on the main
+    sequence, giants cooler than dwarfs of the same late type, the Sun (G2V) within 5 % of its
+    nominal 5772 K (IAU 2015 Resolution B3)."""
+    for calibration in ("auto", "de-jager-1987"):
+        # (under "auto" up to M9V: M10V is past the dwarf sequence's M9.5V, and DJ87's M10V is
+        # hotter than the sequence's M9.5V, 2596 K against 2330 K)
+        seq = [f"{c}{n}V" for c in "OBAFGKM" for n in range(10) if f"{c}{n}" != "O0"]
+        seq += ["M10V"] if calibration == "de-jager-1987" else []
+        temps = [units.temperature_from_spectral_type(t, calibration) for t in seq]
+        assert all(a > b for a, b in zip(temps, temps[1:])), list(zip(seq, temps))
+        assert 2000.0 < temps[-1] < 3500.0 and 40000.0 < temps[0] < 60000.0
+        assert temps[seq.index("O3V")] < temps[seq.index("O2V")]  # (where auto changes calibration)
+        for sub in ("G8", "K0", "K5"):
+            assert (units.temperature_from_spectral_type(sub + "III", calibration)
+                    < units.temperature_from_spectral_type(sub + "V", calibration))
+        assert units.temperature_from_spectral_type("G2V", calibration) == pytest.approx(5772.0, rel=0.05)
     assert units.temperature_from_spectral_type("M10V") == pytest.approx(
-        units.temperature_from_spectral_type("M9.99999V"), rel=1e-5)
+        units.temperature_from_spectral_type("M9.99999V", "de-jager-1987"), rel=1e-5)
 
 
 @pytest.mark.parametrize("star, key, words", [
     ({"spectral_type": "B2V", "temperature": 20000.0}, "stars[0].temperature", "is set by stars[0].spectral_type"),
     ({"spectral_type": "B2"}, "stars[0].spectral_type", "luminosity class"),
+    ({"spectral_type": "K0III", "spectral_calibration": "pecaut-mamajek-2013"}, "stars[0].spectral_type",
+     "'de-jager-1987' holds every luminosity class"),
+    ({"spectral_type": "O2V", "spectral_calibration": "pecaut-mamajek-2013"}, "stars[0].spectral_type", "O3V to M9.5V"),
     # (a flat spectrum, temperature 0, has no bolometric correction)
     ({"luminosity_lsun": 100.0, "temperature": 0.0}, "stars[0].luminosity_lsun", "or stars[0].spectral_type"),
 ])

@@ -24,8 +24,9 @@ With the stars' luminosities in L_sun (``stars.luminosity_lsun`` or ``absolute_m
   east is to the left at position angle 0 (the sky as seen from inside);
 - in passbands X (Bessell B, V, R and SDSS g, r, i, ``speclite``), the AB surface brightness
   ``mu_X = -2.5 log10(S_nu,X arcsec^2 / 3631 Jy)`` mag/arcsec^2 (with
-  ``observer.magnitude_system = "Vega"``: minus the passband's m_AB - m_Vega of Blanton &
-  Roweis 2007, AJ 133, 734, Table 1, :data:`AB_MINUS_VEGA`), with S_nu,X the photon-counting
+  ``observer.magnitude_system = "Vega"``: minus the passband's m_AB - m_Vega, Vega's own AB
+  magnitude through it from the CALSPEC spectrum alpha_lyr_stis_011; ``"Vega-Blanton2007"``:
+  Blanton & Roweis 2007's offsets; :func:`nebula_rt.scene.units.ab_minus_vega`), with S_nu,X the photon-counting
   mean ``int S_lambda R lambda dl / int (c / lambda^2) R lambda dl``. S_lambda is the
   per-band nebula/star ratio interpolated across wavelength (the hat functions of the colour
   conversion) times the stars' full blackbody spectrum, so the parts of a passband beyond the
@@ -62,11 +63,14 @@ PASSBANDS = units.PASSBANDS
 #: FITS extension of each passband's magnitude image (extension names are case-blind: R and r differ by system)
 PASSBAND_EXTENSIONS = {"B": "MAG_BESSELL_B", "V": "MAG_BESSELL_V", "R": "MAG_BESSELL_R", "g": "MAG_SDSS_G",
                        "r": "MAG_SDSS_R", "i": "MAG_SDSS_I"}
-#: m_AB - m_Vega of each passband (Blanton & Roweis 2007, AJ 133, 734, Table 1): a Vega
-#: magnitude is the AB magnitude minus this (observer.magnitude_system = "Vega")
-AB_MINUS_VEGA = {"B": -0.09, "V": 0.02, "R": 0.21, "g": -0.08, "r": 0.16, "i": 0.37}
+#: the FITS comment of each magnitude system (observer.magnitude_system; the offsets:
+#: nebula_rt.scene.units.ab_minus_vega)
 MAGSYS_COMMENT = {"AB": "magnitudes: AB (3631 Jy)",
-                  "Vega": "magnitudes: Vega (AB - offset, Blanton+ 2007)"}
+                  "Vega": "magnitudes: Vega = 0 (CALSPEC alpha_lyr_stis_011)",
+                  "Vega-Blanton2007": "magnitudes: Vega (AB - offset, Blanton+ 2007)"}
+#: the FITS comment of a passband's ABVEGA card, by magnitude system
+ABVEGA_COMMENT = {"Vega": "m_AB - m_Vega subtracted (CALSPEC Vega)",
+                  "Vega-Blanton2007": "m_AB - m_Vega subtracted (Blanton+ 2007)"}
 ARCSEC_RAD = math.pi / (180.0 * 3600.0)
 C_LIGHT = 299_792_458.0
 #: W m^-2 Hz^-1 in MJy
@@ -347,8 +351,9 @@ def calibrate(scene, camera, scattered, star_band_luminosity, tau_star, method: 
     with np.errstate(divide="ignore", invalid="ignore"):
         mag = np.where(psb > 0, -2.5 * np.log10(psb * 1e6 * ARCSEC_RAD**2 / units.AB_ZERO_JY), np.nan)
     system = scene.observer.magnitude_system
-    if system == "Vega":
-        offset = np.array([AB_MINUS_VEGA[name] for name in pb])
+    if system != "AB":
+        vega = units.ab_minus_vega(system)
+        offset = np.array([vega[name] for name in pb])
         mag = mag - offset[:, None, None]
         star_mag = star_mag - offset[None, :]
     info = {"METHOD": method, "DISTANCE": (dist_m / units._pc_metres(), "distance to the box centre, pc"),
@@ -370,8 +375,8 @@ def passband_header(hh, name: str, system: str) -> None:
     hh["BUNIT"] = "mag/arcsec2"
     hh["FILTER"] = (PASSBANDS[name], "speclite passband")
     hh["MAGSYS"] = (system, MAGSYS_COMMENT[system])
-    if system == "Vega":
-        hh["ABVEGA"] = (AB_MINUS_VEGA[name], "m_AB - m_Vega subtracted (Blanton+ 2007)")
+    if system != "AB":
+        hh["ABVEGA"] = (units.ab_minus_vega(system)[name], ABVEGA_COMMENT[system])
 
 
 def sky_hdus(primary: dict, wcs_header, band_images, passband_images, mag_system: str, comments=(), stars=None):

@@ -277,11 +277,17 @@ class Scene:
         for i, s in enumerate(self.stars):
             if s.spectral_type is None:
                 continue
-            temperature = units.temperature_from_spectral_type(s.spectral_type)
+            calibration = units.spectral_calibration_of(s.spectral_type, s.spectral_calibration)
+            try:
+                temperature = units.temperature_from_spectral_type(s.spectral_type, calibration)
+            except ValueError as exc:
+                raise SceneError(f"stars[{i}].spectral_type", s.spectral_type,
+                                 f"is not a type of stars[{i}].spectral_calibration = {calibration!r} ({exc}); "
+                                 "'de-jager-1987' holds every luminosity class") from None
             if given_temperature and i in given_temperature and given_temperature[i] != temperature:
                 raise SceneError(f"stars[{i}].temperature", given_temperature[i],
                                  f"is set by stars[{i}].spectral_type = {s.spectral_type!r}, which gives "
-                                 f"{temperature!r} K (de Jager & Nieuwenhuijzen 1987): give one of them")
+                                 f"{temperature!r} K ({calibration}): give one of them")
             s.temperature = temperature
         key = units.physical_dust_key(self.dust)
         physical = [units.physical_star(s) for s in self.stars]

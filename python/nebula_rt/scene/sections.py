@@ -37,8 +37,8 @@ ERROR_ESTIMATES = ("auto", "batches", "packets")
 BACKENDS = ("auto", "opencl", "cuda")
 WHITE_POINTS = ("D65", "E", "star")
 STRETCHES = ("linear", "asinh")
-#: magnitude systems of calibrated sky images (nebula_rt.observe.calibrate.AB_MINUS_VEGA)
-MAG_SYSTEMS = ("AB", "Vega")
+#: magnitude systems of calibrated sky images (their offsets: nebula_rt.scene.units.ab_minus_vega)
+MAG_SYSTEMS = ("AB", "Vega", "Vega-Blanton2007")
 #: The widest PSF (arcsec): 180 deg, the widest angle on the sky. Wider ones are no blur but a
 #: number: 1e308 arcsec spread every star and pixel over 1e305 pixels, an image of zeros.
 MAX_PSF_FWHM = 180.0 * 3600.0
@@ -211,8 +211,13 @@ class Star:
         None, type="str or None", group=G_STARS,
         check=_known_spectral_type, allowed="must be " + units.SPECTRAL_TYPE_FORM + " (or omitted)",
         doc="MK spectral type and luminosity class (\"B2V\", \"B2.5 IV\", \"K0III\"; O1-M10): sets "
-            "`temperature` from the calibration of de Jager & Nieuwenhuijzen (1987, A&A 177, 217), "
-            "accurate to a few per cent")
+            "`temperature` by `spectral_calibration`")
+    spectral_calibration: str = param(
+        "auto", type="str", choices=units.SPECTRAL_CALIBRATIONS, group=G_STARS,
+        doc="How `spectral_type` sets `temperature`: pecaut-mamajek-2013 (the mean dwarf sequence of "
+            "Pecaut & Mamajek 2013, ApJS 208, 9: class V, O3V-M9.5V), de-jager-1987 (de Jager & "
+            "Nieuwenhuijzen 1987, A&A 177, 217: every class, O1-M10), or auto (the first for a dwarf "
+            "inside its range, else the second)")
 
     def spectral_source(self):
         """What sets the star's spectrum: the measured pairs, else the temperature (K), else
@@ -396,8 +401,10 @@ class Observer:
             "(0: none; a star then fills the pixel it falls in)")
     magnitude_system: str = param(
         "AB", type="str", choices=MAG_SYSTEMS, label="Magnitude System", group=G_OBSERVER,
-        doc="Zero point of the calibrated images' magnitudes: AB (3631 Jy) or Vega (AB minus the "
-            "passband's AB - Vega offset of Blanton & Roweis 2007, AJ 133, 734, Table 1)")
+        doc="Zero point of the calibrated images' magnitudes: AB (3631 Jy); Vega (0 mag for Vega: AB "
+            "minus Vega's AB magnitude through the passband, from its CALSPEC spectrum alpha_lyr_stis_011, "
+            "Bohlin et al. 2020, AJ 160, 21); or Vega-Blanton2007 (AB minus the offsets of Blanton & Roweis "
+            "2007, AJ 133, 734, Table 1, which differ by up to 0.03 mag)")
 
 
 #: The scene file's tables with their dataclasses, in the file's order: the schema
