@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """Make the synthetic observation of the worked example (docs/observations.md).
 
-The NGC 7023-like scene (examples/scenes/ngc7023.toml) on a 24^3 grid with albedo 0.6, g 0.5 in
+The NGC 7023-like scene (examples/scenes/ngc7023-like.toml) on a 24^3 grid with albedo 0.6, g 0.5 in
 every band and tau 15 is traced with 400,000 packets per band (seed 99) and observed along -z:
 Delta(B-V) in 5 annuli of projected offset (error 0.05 mag) and the absolute nebula/star ratio at
 4 wavelengths in 3 annuli (error 8 %), plus Gaussian noise of those errors (noise seed 7). The
@@ -24,7 +24,7 @@ OVERRIDES = ["grid.shape=[24,24,24]", "transport.photons=400000", "transport.see
 
 
 def main():
-    scene = Scene.load(HERE.parent / "scenes" / "ngc7023.toml").with_overrides(
+    scene = Scene.load(HERE.parent / "scenes" / "ngc7023-like.toml").with_overrides(
         OVERRIDES + [f"{k}={v}" for k, v in TRUTH.items()])
     offs = np.array([0.06, 0.14, 0.22, 0.30, 0.38])
     col = ObservedTable("colour", "colour", offs, np.zeros(5), np.full(5, 0.05), *_annuli_from_offsets(offs, "offset"))
@@ -39,7 +39,7 @@ def main():
     rat.error = 0.08 * comp.results[1].model
     rat.value = comp.results[1].model + rat.error * rng.standard_normal(len(x))
     meta = {"source": "synthetic: made by NebulaRT (examples/observations/make_synthetic.py), not observed",
-            "scene": "examples/scenes/ngc7023.toml with " + ", ".join(OVERRIDES),
+            "scene": "examples/scenes/ngc7023-like.toml with " + ", ".join(OVERRIDES),
             "truth": TRUTH, "direction": [0.0, 0.0, -1.0], "reference": "observed",
             "noise": "Gaussian, the errors of the table, numpy default_rng(7)"}
     write_table(col, HERE / "synthetic-colour.ecsv", meta={**meta, "quantity": "Delta(B-V) nebula - star as seen"})

@@ -223,7 +223,7 @@ def test_ngc7023_star_is_reddened_towards_the_observer(backend):
     of sight (tau about 0.52 near 550 nm, E(B-V) about +0.10 mag)."""
     from nebula_rt.density import generate_density
 
-    scene = Scene.load(ROOT / "examples/scenes/ngc7023.toml")
+    scene = Scene.load(ROOT / "examples/scenes/ngc7023-like.toml")
     bands = scene.bands.resolve()
     rho = generate_density(scene, backend).astype(np.float64)
     sigma = np.array([scene.dust.tau * b.extinction for b in bands])[:, None, None, None] * rho[None]

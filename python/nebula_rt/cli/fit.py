@@ -104,7 +104,7 @@ def compare_tables_command(args, ranks, scene, direction, backend_of, inputs, pr
     its cancel); ``backend_of()`` makes the backend (after the tables are checked); ``inputs``
     are the files no output may replace; ``print_summary`` prints the JSON summary
     (nebula_rt.cli's)."""
-    from ..observe import comparison
+    from ..observe import comparison, published
     from ..transport import resources
     from ..pipeline.outputs import Publication
 
@@ -121,14 +121,15 @@ def compare_tables_command(args, ranks, scene, direction, backend_of, inputs, pr
         comp = comparison.compare(scene, tables, direction=direction, size=args.size, reference=args.reference,
                                   backend=backend, cancel=cancel, comm=ranks.comm)
         cancel.check("run")
+    dust = published.beside(scene)
     summary = {"scene": str(args.scene), "png": str(args.png), "photons_per_band": comp.rings.photons,
-               **comp.to_dict()}
+               **comp.to_dict(), "dust_optics": dust.to_dict()}
 
     def publish():
         with Publication() as pub:
             comparison.plot(comp, pub.stage(args.png),
                             title=f"{Path(args.scene).stem} against {len(tables)} table(s): chi2 = {comp.chi2:.2f} "
-                                  f"for {comp.dof} dof ({comp.rings.photons:,} packets per band)")
+                                  f"for {comp.dof} dof ({comp.rings.photons:,} packets per band)", dust=dust)
             if args.json:
                 pub.stage(args.json).write_text(json.dumps(summary, indent=2) + "\n")
             cancel.check("run")
@@ -142,7 +143,7 @@ def compare_tables_command(args, ranks, scene, direction, backend_of, inputs, pr
 def fit_command(args, ranks, scene, direction, backend_of, inputs, print_summary) -> int:
     """``nebula-rt fit`` (arguments as :func:`compare_tables_command`'s). Under mpiexec the
     ranks share every trace and take the same steps (:meth:`nebula_rt.observe.fit.FitRequest.run`)."""
-    from ..observe import comparison, fit, fit_parameters
+    from ..observe import comparison, fit, fit_parameters, published
     from ..transport import resources
     from ..pipeline.outputs import Publication
 
@@ -181,14 +182,15 @@ def fit_command(args, ranks, scene, direction, backend_of, inputs, print_summary
             if bar is not None:
                 bar.close()
         cancel.check("run")
-    summary = {"scene": str(args.scene), "png": str(args.png), **res.to_dict()}
+    dust = published.beside(res.scene)  # (the best fit's dust beside the published)
+    summary = {"scene": str(args.scene), "png": str(args.png), **res.to_dict(), "dust_optics": dust.to_dict()}
 
     def publish():
         with Publication() as pub:
             comparison.plot(res.comparison, pub.stage(args.png),
                             title=f"best fit of {Path(args.scene).stem}: " + ", ".join(
                                 f"{p.name} = {v:.4g}" for p, v in zip(res.parameters, res.best)) +
-                                  f"; chi2 = {res.chi2:.2f} for {res.dof} dof")
+                                  f"; chi2 = {res.chi2:.2f} for {res.dof} dof", dust=dust)
             if args.json:
                 pub.stage(args.json).write_text(json.dumps(summary, indent=2) + "\n")
             if args.scene_out:

@@ -435,17 +435,24 @@ def _check_tables_in_image(scene, tables, direction, size: int, option: str) -> 
         _check_rows_have_pixels(edges, pixels, t, option)
 
 
-def plot(comp: Comparison, path, title: str = "") -> None:
+def plot(comp: Comparison, path, title: str = "", dust=None) -> None:
     """Model, data and residuals side by side, one row per table: left the data (1-sigma
     errors) with the model (its Monte Carlo error as a band), right the residuals in units of
-    the combined error. Written as a PNG through a temporary file."""
+    the combined error; with ``dust`` (:class:`nebula_rt.observe.published.DustBeside`) a last
+    row of the scene's band albedo and g beside the published values of real nebulae. Written as
+    a PNG through a temporary file."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     n = len(comp.results)
-    fig, axes = plt.subplots(n, 2, figsize=(11, 3.6 * n), squeeze=False)
+    rows = n + (dust is not None)
+    fig, axes = plt.subplots(rows, 2, figsize=(11, 3.6 * rows), squeeze=False)
+    if dust is not None:
+        from .published import plot_beside
+
+        plot_beside(axes[n], dust)
     ref = REFERENCE_LABELS[comp.reference]
     for (a1, a2), r in zip(axes, comp.results):
         t = r.table

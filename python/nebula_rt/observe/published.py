@@ -177,6 +177,7 @@ def plot_beside(axes, dust_beside: DustBeside) -> None:
     """Draw albedo (``axes[0]``) and g (``axes[1]``) against wavelength: the scene's bands as
     a line, each nebula's published values with their 1-sigma errors."""
     import numpy as np
+    from matplotlib.ticker import NullFormatter, ScalarFormatter
 
     wl = np.array([b[1] for b in dust_beside.bands])
     order = np.argsort(wl)
@@ -193,6 +194,9 @@ def plot_beside(axes, dust_beside: DustBeside) -> None:
                         yerr=[getattr(p, attr + "_unc") or 0.0 for p in rows], fmt=markers[j % len(markers)],
                         color=f"C{j}", ms=4, capsize=2, lw=0.8, label=name)
         ax.set_xscale("log")
+        ax.set_xticks([100, 150, 200, 300, 400, 550, 750])
+        ax.xaxis.set_major_formatter(ScalarFormatter())
+        ax.xaxis.set_minor_formatter(NullFormatter())
         ax.set_xlabel("wavelength (nm)")
         ax.set_ylabel(label)
         ax.set_title(f"dust {attr}: published values are model fits (plausibility bounds, not truth)", fontsize=8)
