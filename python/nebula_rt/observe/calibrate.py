@@ -30,7 +30,9 @@ With the stars' luminosities in L_sun (``stars.luminosity_lsun`` or ``absolute_m
   mean ``int S_lambda R lambda dl / int (c / lambda^2) R lambda dl``. S_lambda is the
   per-band nebula/star ratio interpolated across wavelength (the hat functions of the colour
   conversion) times the stars' full blackbody spectrum, so the parts of a passband beyond the
-  bands' range (R and i reach 900 / 840 nm) take the outermost band's ratio.
+  bands' range (R and i reach 900 / 840 nm) take the outermost band's ratio; each star's own
+  light is its spectrum through its dust at every wavelength, the extinction law beyond the
+  bands (:func:`nebula_rt.observe.colours.star_transmission`).
 
 FITS (:func:`write_fits`): an empty primary HDU with the run's description, then one image HDU
 per band (``SB_<band>``, MJy/sr) and per passband (``MAG_BESSELL_B``, ``_V``, ``_R``,
@@ -54,6 +56,7 @@ from ..density.generate import generate_density
 from ..errors import SceneError
 from ..transport.line_of_sight import line_of_sight_tau
 from ..pipeline.rgba import _dominant_source
+from .colours import star_transmission
 from .sky import Camera, sky_image
 from ..transport.tails import fits_cards
 from ..transport.request import TransportRequest, scene_backend
@@ -145,6 +148,14 @@ def passband_weights(band_wavelengths_nm, wl, response, spectra) -> np.ndarray:
     norm = np.trapezoid(C_LIGHT / lam**2 * response * lam, lam)
     sp = np.atleast_2d(spectra)
     return np.trapezoid(h[None, :, :] * (sp * response * lam)[:, None, :], lam, axis=2) / norm
+
+
+def passband_mean(wl, response, spectrum) -> float:
+    """The photon-counting mean f_nu of ``spectrum`` (per m, on ``wl`` nm) through a passband
+    (``response`` on ``wl``): int S R lambda dl / int (c / lambda^2) R lambda dl, in the
+    spectrum's units x m per Hz (as :func:`passband_weights`)."""
+    lam = np.asarray(wl, np.float64) * 1e-9
+    return float(np.trapezoid(spectrum * response * lam, lam) / np.trapezoid(C_LIGHT / lam**2 * response * lam, lam))
 
 
 def _ndtr(x):
@@ -325,8 +336,10 @@ def calibrate(scene, camera, scattered, star_band_luminosity, tau_star, method: 
     star_pixel = star_pixels(scene, camera)
     seen = slum * np.exp(-tau)  # L_sun per band, as seen
     direct = np.zeros((nb, w, h))
+    spots = []
     for k in range(len(scene.stars)):
         spot = np.outer(psf_weights(w, star_pixel[k, 0], sigma_pix), psf_weights(h, star_pixel[k, 1], sigma_pix))
+        spots.append(spot)
         direct += (seen[k] / (4.0 * math.pi) / ps**2)[:, None, None] * spot[None]
     scat_psf = convolve_psf(scat, sigma_pix)
     box_total = scat_psf + direct
@@ -334,20 +347,26 @@ def calibrate(scene, camera, scattered, star_band_luminosity, tau_star, method: 
     sb = box_total * to_mjy
     star_flux = seen * units.L_SUN_W / (4.0 * math.pi * dist_m**2) / dnu[None, :] * 1e26
 
-    # passbands: ratio to the stars' light per band x their full spectrum
+    # passbands: the scattered light's ratio to the stars' light per band x their full spectrum;
+    # each star's own light, its spectrum through its dust at every wavelength (the extinction
+    # law beyond the bands: colours.star_transmission)
     band_lum = slum.sum(axis=0)
-    ratio = box_total / band_lum[:, None, None]  # per box-unit area per sr
+    ratio = scat_psf / band_lum[:, None, None]  # per box-unit area per sr
+    rv = units.dust_model(scene.bands)[0]
     pb = list(PASSBANDS)
     psb = np.empty((len(pb), w, h))
     star_mag = np.empty((len(scene.stars), len(pb)))
     for x, name in enumerate(pb):
         grid, resp = passband_grid(name)
         spectra = star_spectra(scene, grid)  # L_sun per m
-        wts = passband_weights(wl, grid, resp, np.vstack([spectra.sum(axis=0), spectra]))  # L_sun per Hz
-        psb[x] = np.tensordot(wts[0], ratio, axes=(0, 0)) * units.L_SUN_W / box_m**2 / W_M2_HZ_PER_MJY
+        wts = passband_weights(wl, grid, resp, spectra.sum(axis=0)[None])  # L_sun per Hz
+        box_x = np.tensordot(wts[0], ratio, axes=(0, 0))  # L_sun per Hz per box-unit area per sr
         for k in range(len(scene.stars)):
-            f = float(wts[1 + k] @ np.exp(-tau[k])) * units.L_SUN_W / (4.0 * math.pi * dist_m**2) * 1e26  # Jy
+            fk = passband_mean(grid, resp, spectra[k] * star_transmission(tau[k], wl, grid, rv))  # L_sun per Hz
+            box_x = box_x + fk / (4.0 * math.pi) / ps**2 * spots[k]
+            f = fk * units.L_SUN_W / (4.0 * math.pi * dist_m**2) * 1e26  # Jy
             star_mag[k, x] = -2.5 * math.log10(f / units.AB_ZERO_JY) if f > 0 else math.nan
+        psb[x] = box_x * units.L_SUN_W / box_m**2 / W_M2_HZ_PER_MJY
     with np.errstate(divide="ignore", invalid="ignore"):
         mag = np.where(psb > 0, -2.5 * np.log10(psb * 1e6 * ARCSEC_RAD**2 / units.AB_ZERO_JY), np.nan)
     system = scene.observer.magnitude_system

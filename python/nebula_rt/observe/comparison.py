@@ -31,6 +31,7 @@ import numpy as np
 from ..optics.colour_convert import hat_basis
 from ..density.generate import generate_density
 from ..errors import SceneError
+from ..scene import units
 from .colours import (
     REFERENCE_LABELS, _check_reference, _labels, _offsets, line_of_sight_tau, passband_weights, star_reddening)
 from .observed_tables import ObservedTable, finite_or_none
@@ -68,6 +69,9 @@ class RingSums:
         The star's spectrum (temperature, pairs or None) for the passband weights.
     photons : int
         Packets per band.
+    rv : str
+        R_V of the dust's extinction law (Draine 2003), for the star's transmission beyond the
+        bands (:func:`nebula_rt.observe.colours.star_transmission`).
     pixels : ndarray (n_rings,) or None
         Pixels of each ring whose central ray crosses the box (:func:`ring_pixels`): a ring
         without any holds no light of the model but what pixelisation carries in. None: not
@@ -84,6 +88,7 @@ class RingSums:
     source: object
     photons: int = 0
     pixels: Optional[np.ndarray] = None
+    rv: str = units.DEFAULT_RV
 
 
 def ring_edges(tables: Sequence[ObservedTable]) -> np.ndarray:
@@ -172,7 +177,8 @@ def trace_rings(scene, edges, *, direction=(0.0, 0.0, -1.0), size: int = DEFAULT
         xb = np.concatenate([xb, np.zeros(xb.shape[:2] + (len(e) - 1 - xb.shape[2],))], axis=2)
     return RingSums(edges=e, sums=xb.sum(axis=0), batches=xb, band_luminosity=np.asarray(res.band_luminosity,
                     np.float64), wavelength_nm=wl, pixel_area=cam.pixel_size ** 2, star_tau=tau_star,
-                    source=_dominant_source(scene.stars), photons=int(res.photons), pixels=pixels)
+                    source=_dominant_source(scene.stars), photons=int(res.photons), pixels=pixels,
+                    rv=units.dust_model(scene.bands)[0])
 
 
 def _rings_of(edges, lo, hi) -> np.ndarray:
@@ -212,7 +218,7 @@ def model_values(rings: RingSums, table: ObservedTable, reference: str = "observ
         wv = passband_weights(wl, rings.source, "V")
         r = S / L[:, None]
         fb, fv = wb @ r, wv @ r
-        ebv = star_reddening(rings.star_tau, wl, rings.source) if reference == "observed" else 0.0
+        ebv = star_reddening(rings.star_tau, wl, rings.source, rings.rv) if reference == "observed" else 0.0
         with np.errstate(divide="ignore", invalid="ignore"):
             model = np.where((fb > 0) & (fv > 0), -2.5 * np.log10(fb / fv), np.nan) - ebv
             # d Delta = -2.5 / ln 10 (sum_b wB_b dS_b / (L_b FB) - sum_b wV_b dS_b / (L_b FV))
