@@ -430,10 +430,11 @@ def test_profile_errors_find_the_delta_chi2_of_one(scale):
     """The profile errors' scale, against the exact answer: on a quadratic chi^2 with
     correlated parameters (correlation 0.8) the profile likelihood's 1-sigma errors are
     sqrt(C_ii) in the unit cube, whatever the width of the quadratic the search starts from
-    (its covariance scaled by ``scale``^2: too narrow, right, too wide), as the secant
-    correction sigma / sqrt(rise) makes them; an inverted correction (sigma x sqrt(rise))
-    gives 0.49 or 2.25 times the error and fails here. Bounds 0..10 map the unit cube to
-    values, so the errors are 10 sqrt(C_ii)."""
+    (its covariance scaled by ``scale``^2: too narrow, right, too wide): the profile's own
+    rises at the steps give them, and ``profile_check`` says how far the quadratic was
+    (scale^2). Taking the quadratic's width as the error would be 0.7 or 1.5 times it and
+    fails here; so would an error of sigma x sqrt(rise) in place of sigma / sqrt(rise).
+    Bounds 0..10 map the unit cube to values, so the errors are 10 sqrt(C_ii)."""
     from types import SimpleNamespace
 
     true = np.array([[0.04 ** 2, 0.8 * 0.04 * 0.06], [0.8 * 0.04 * 0.06, 0.06 ** 2]])
@@ -449,3 +450,43 @@ def test_profile_errors_find_the_delta_chi2_of_one(scale):
     np.testing.assert_allclose(err_p, want, rtol=0.01)
     assert not any(any(b) for b in at_bound)
     assert all(v == pytest.approx(scale ** 2, rel=0.02) for v in checks.values()), checks
+
+
+class _RoughQuadraticChi2(_QuadraticChi2):
+    """The quadratic chi^2 plus a fixed roughness of up to +-0.5 at the scale of 1e-3 in the
+    unit cube (a hash of the point and ``salt``: deterministic), as common random numbers
+    leave a fit's chi^2 rough at the scale of one packet."""
+
+    def __init__(self, mean, cov, salt: int):
+        super().__init__(mean, cov)
+        self.salt = salt
+
+    def __call__(self, z):
+        import hashlib
+
+        key = np.round(np.asarray(z, float), 3).tobytes() + bytes([self.salt])
+        rough = int.from_bytes(hashlib.sha256(key).digest()[:4], "little") / 2 ** 32 - 0.5
+        return super().__call__(z) + float(rough)
+
+
+def test_profile_errors_average_the_roughness_of_chi2():
+    """With chi^2 rough by +-0.5 (half the rise that defines the error), over 40 roughness
+    patterns, the profile's parabola through two steps per side finds sqrt(C_ii) with an rms
+    relative error under 12 % and none off by 30 % (measured: 6.8 % and 16 %): the roughness
+    is averaged over the steps' rises (about 1 and 4). One point's rise with a secant step, the
+    earlier method, takes it whole: rms 28 %, the worst 100 % off (fails here)."""
+    from types import SimpleNamespace
+
+    true = np.array([[0.04 ** 2, 0.8 * 0.04 * 0.06], [0.8 * 0.04 * 0.06, 0.06 ** 2]])
+    mean = np.array([0.45, 0.55])
+    params = [fit_parameters.FreeParameter("a", 0.0, 10.0), fit_parameters.FreeParameter("b", 0.0, 10.0)]
+    best = [p.from_unit(z) for p, z in zip(params, mean)]
+    want = 10.0 * np.sqrt(np.diag(true))
+    rel = []
+    for salt in range(40):
+        obj = _RoughQuadraticChi2(mean, true, salt)
+        err_m, err_p, _ = fit.FitRequest._profile_errors(
+            SimpleNamespace(fatol=1e-4), obj, params, mean.copy(), true, obj(mean), best, [[False] * 2, [False] * 2])
+        rel += list(err_m / want - 1) + list(err_p / want - 1)
+    rel = np.array(rel)
+    assert math.sqrt(np.mean(rel ** 2)) < 0.12 and np.abs(rel).max() < 0.3, (np.sqrt(np.mean(rel ** 2)), rel)

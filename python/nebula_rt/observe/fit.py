@@ -34,10 +34,11 @@ Parameters (``free``, :class:`FreeParameter`, parsed from ``name=lo:hi[:log]``):
 Uncertainties (``uncertainty``):
 
 - ``"profile"`` (default): the profile likelihood, for each parameter the values where the
-  chi^2 minimised over the other parameters is chi^2_min + 1 (68.3 % for one parameter):
-  started from the refined quadratic, traced there (the others re-minimised where chi^2 rose
-  by more than 1.5), corrected by one secant step; asymmetric errors, and the rises traced
-  (``profile_check``: near 1 where the quadratic holds, far from it in a curved valley);
+  chi^2 minimised over the other parameters is chi^2_min + 1 (68.3 % for one parameter),
+  from the profile itself: the others re-minimised at 1 and 2 of the quadratic's standard
+  deviations on each side, a parabola through the best fit fitted to each side's rises, the
+  error where it reaches 1 (asymmetric errors; ``profile_check``: each side's curvature
+  against the quadratic's, near 1 where the quadratic holds, far from it in a curved valley);
 - ``"mcmc"``: emcee's affine-invariant ensemble sampler (``pip install emcee``) on
   exp(-chi^2 / 2) with a flat prior inside the bounds (flat in log for log parameters); the
   16th and 84th percentiles;
@@ -81,6 +82,13 @@ from ..backends.parallel import any_rank
 from ..transport.request import scene_backend
 
 UNCERTAINTIES = ("profile", "mcmc", "none")
+#: The profile's steps on each side of the best fit, in the quadratic surface's standard
+#: deviations: where chi^2 rises by about 1 and 4, each well inside the bounds of a fit
+#: whose errors are small against them (FitRequest._profile_errors)
+PROFILE_STEPS = (1.0, 2.0)
+#: Nelder-Mead traces per other parameter at each profile step (plus 4): the start is the
+#: quadratic's conditional optimum, continued from the last step's optimum, so it is near
+PROFILE_MAXFEV_PER_PARAMETER = 6
 #: Most points of the starting grid (``grid`` per parameter, to the power of the parameters):
 #: each is held in memory and traced, so that 100,000 are a day at a trace a second; a grid
 #: larger than this is a mistake, not a search (3 parameters at 100 points made 1e6 traces).
@@ -418,7 +426,8 @@ class FitRequest:
         backend = backend or scene_backend(scene)
         walkers = max(8, 4 * k) if not self.mcmc_walkers else int(self.mcmc_walkers)
         # MCMC: emcee evaluates the starting ensemble too
-        unc_budget = {"profile": 2 * k, "mcmc": walkers * (self.mcmc_steps + 1), "none": 0}[self.uncertainty]
+        profile_traces = 2 * k * len(PROFILE_STEPS) * (PROFILE_MAXFEV_PER_PARAMETER * (k - 1) + 4 if k > 1 else 1)
+        unc_budget = {"profile": profile_traces, "mcmc": walkers * (self.mcmc_steps + 1), "none": 0}[self.uncertainty]
         total = grid ** k + 1 + starts * maxfev + 3 * len(_design(k)) + 1 + unc_budget
         obj = _Objective(scene, params, list(self.tables), direction, self.size, self.reference, backend, progress,
                          cancel, total, comm)
@@ -482,33 +491,59 @@ class FitRequest:
         return z_best, cov, f_best
 
     def _profile_errors(self, obj: _Objective, params, z_best, cov, chi2_best: float, best, at_bound):
-        """The profile likelihood's errors (minus, plus) and the rises traced.
+        """The profile likelihood's errors (minus, plus), from the profile itself, and its
+        curvature against the quadratic's (``profile_check``).
 
-        Started from the refined quadratic (sigma_i = sqrt(cov_ii), reached with the others at
-        their conditional optimum cov[:, i] / sigma_i), chi^2 is traced there, the others
-        minimised from there when it rose by more than 1.5 (a curved valley leaves the
-        quadratic's line), and the distance corrected by the secant of a parabola through the
-        minimum, sigma / sqrt(rise), kept within [0.5, 2] sigma. ``at_bound`` is filled in."""
+        For each parameter i and side, chi^2 is minimised over the other parameters at
+        :data:`PROFILE_STEPS` quadratic standard deviations sigma_i = sqrt(cov_ii) from the best
+        fit (Nelder-Mead over the others, started where the quadratic puts their conditional
+        optimum and continued outwards from the last step's optimum; parameter i alone: traced
+        there). Each side's profile rises Delta chi^2_j at offsets d_j are fitted by least
+        squares with a parabola through the best fit, Delta chi^2 = a d^2, and the error is
+        where it reaches 1, 1 / sqrt(a). The fit averages the roughness of chi^2 (about 1 at a
+        fit's Monte Carlo errors, as much as the rise that defines the error) over the steps,
+        where one point's rise, or a secant through it, takes it whole. The chi^2 holds the
+        run's frozen Monte Carlo errors beside the data's. A side whose rises do not grow (a
+        <= 0: flat or too rough) gets the farthest step as its error, and its check is 0.
+        ``profile_check``: a sigma_i^2 per side, 1 where the quadratic surface holds, above 1
+        where the profile is narrower (the nuisance parameters cannot follow), below where it
+        is wider. ``at_bound`` is filled in (the error reaches the parameter's bound)."""
         k = len(params)
         err_m, err_p = np.full(k, np.nan), np.full(k, np.nan)
         obj.stage = "profile"
         checks = {}
+        maxfev = PROFILE_MAXFEV_PER_PARAMETER * (k - 1) + 4
         for i in range(k):
             sd = math.sqrt(cov[i, i])
             others = [j for j in range(k) if j != i]
+            so = float(np.sqrt(np.max(np.diag(cov)[others]))) if others else 0.0
             for s, arr in ((-1, err_m), (1, err_p)):
-                zi = np.clip(z_best + s * cov[:, i] / sd, 0.0, 1.0)
-                q = obj(zi) - chi2_best
-                if q > 1.5 and others:
-                    so = float(np.sqrt(np.max(np.diag(cov)[others])))
-                    _, chi2_p = _minimise(obj, zi, max(0.5 * so, 0.005), others, zi, self.fatol, 8 * len(others) + 4)
-                    q = chi2_p - chi2_best
-                d = sd / math.sqrt(q) if q > 0.25 else 2.0 * sd
-                d = min(max(d, 0.5 * sd), 2.0 * sd)
-                zc = min(max(z_best[i] + s * d, 0.0), 1.0)
-                at_bound[i][0 if s < 0 else 1] = bool(zc != z_best[i] + s * d)
+                d, q = [], []
+                z_prev = z_best.copy()
+                for m in PROFILE_STEPS:
+                    target = z_best[i] + s * m * sd
+                    zi = min(max(target, 0.0), 1.0)
+                    # the quadratic's conditional optimum of the others, moved from the last step
+                    z0 = np.clip(z_prev + (zi - z_prev[i]) * cov[:, i] / cov[i, i], 0.0, 1.0)
+                    z0[i] = zi
+                    if others:
+                        z_prev, chi2_p = _minimise(obj, z0, max(0.5 * so, 0.005), others, z0, self.fatol, maxfev)
+                    else:
+                        chi2_p = obj(z0)
+                    if zi == z_best[i]:
+                        break  # (at a bound already: no step out)
+                    d.append(zi - z_best[i])
+                    q.append(chi2_p - chi2_best)
+                    if zi != target:
+                        break  # the bound: no farther step
+                d, q = np.abs(np.array(d)), np.array(q)
+                a = float((d * d * q).sum() / (d ** 4).sum()) if d.size else 0.0
+                err_z = 1.0 / math.sqrt(a) if a > 0 else (float(d.max()) if d.size else 0.0)
+                zc = z_best[i] + s * err_z
+                at_bound[i][0 if s < 0 else 1] = bool(zc < 0.0 or zc > 1.0)
+                zc = min(max(zc, 0.0), 1.0)
                 arr[i] = abs(params[i].from_unit(zc) - best[i])
-                checks[params[i].name + ("+" if s > 0 else "-")] = round(q, 3)
+                checks[params[i].name + ("+" if s > 0 else "-")] = round(max(a, 0.0) * sd * sd, 3)
         return err_m, err_p, checks
 
     def _mcmc_errors(self, obj: _Objective, z_best, cov, walkers: int):
