@@ -17,7 +17,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import pytest
 
 from conftest import TEST_BACKEND, TEST_DEVICE
 from nebula_rt.observe import fit
