@@ -167,11 +167,11 @@ def trace_rings(scene, edges, *, direction=(0.0, 0.0, -1.0), size: int = DEFAULT
     e = np.asarray(edges, np.float64)
     cam, labels, pixels = ring_pixels(star.position, direction, size, e)
     rho = generate_density(scene, backend) if density is None else density
+    # (the sums of J stay on the device: only the peel-off image's ring sums are used)
     res = TransportRequest.from_scene(scene, peel=cam, peel_bins=labels).trace(rho, backend, progress=progress,
-                                                                              cancel=cancel, comm=comm)
-    sigma = np.array([scene.dust.tau * b.extinction for b in bands])[:, None, None, None] * \
-        np.asarray(rho, np.float64)[None]
-    tau_star = line_of_sight_tau(sigma, star.position, -np.asarray(direction, float))
+                                                                              cancel=cancel, comm=comm, on_device=True)
+    tau_star = np.array([scene.dust.tau * b.extinction for b in bands]) * density_column(rho, star.position,
+                                                                                         direction)
     xb = np.asarray(res.peel_bin_batches, np.float64)
     if xb.shape[2] < len(e) - 1:  # the outermost rings hold no pixel centre (finer than a pixel)
         xb = np.concatenate([xb, np.zeros(xb.shape[:2] + (len(e) - 1 - xb.shape[2],))], axis=2)
@@ -179,6 +179,31 @@ def trace_rings(scene, edges, *, direction=(0.0, 0.0, -1.0), size: int = DEFAULT
                     np.float64), wavelength_nm=wl, pixel_area=cam.pixel_size ** 2, star_tau=tau_star,
                     source=_dominant_source(scene.stars), photons=int(res.photons), pixels=pixels,
                     rv=units.dust_model(scene.bands)[0])
+
+
+#: the last few density columns (:func:`density_column`), by density, star and direction
+_COLUMNS: dict = {}
+
+
+def density_column(rho, position, direction) -> float:
+    """The density integrated from ``position`` towards the observer (against ``direction``)
+    to the box's edge, box units: the star's optical depth in a band is tau x extinction x
+    this (:func:`nebula_rt.transport.line_of_sight.line_of_sight_tau` is linear in sigma).
+    Kept for the last few (density, star, direction): a fit traces one density many times."""
+    import weakref
+
+    key = (id(rho), tuple(float(x) for x in position), tuple(float(x) for x in direction))
+    hit = _COLUMNS.get(key)
+    if hit is not None and hit[0]() is rho:
+        return hit[1]
+    col = float(line_of_sight_tau(np.asarray(rho, np.float64)[None], position, -np.asarray(direction, float))[0])
+    if len(_COLUMNS) >= 4:
+        _COLUMNS.pop(next(iter(_COLUMNS)))
+    try:
+        _COLUMNS[key] = (weakref.ref(rho), col)
+    except TypeError:  # (not weakly referable: not kept)
+        pass
+    return col
 
 
 def _rings_of(edges, lo, hi) -> np.ndarray:
