@@ -7,7 +7,7 @@
 # WHEELDIR holds wheels for what the machine lacks (pyopencl and its pure-Python needs,
 # colour-science, tomli-w; pmcx for the MCX comparison), fetched elsewhere with
 # `pip download --only-binary=:all: --python-version 3.12 ...`.
-# STEPS (default "tests bench neb128 compare profile"; also "tests-cuda", "thick", "thick-grid", "trust", "scaling", "large", "regions", "regcaps", "profile-regions", "layout", "sorted", "probe", "ranks", "ranks-thesis", "ranks-weak", "tests-mpi", "e2e1e9", "biasing", "fit", "tune",
+# STEPS (default "tests bench neb128 compare profile"; also "tests-cuda", "thick", "thick-grid", "trust", "scaling", "large", "regions", "regcaps", "profile-regions", "layout", "sorted", "probe", "ranks", "ranks-thesis", "ranks-weak", "tests-mpi", "e2e1e9", "biasing", "fit", "fitprof", "tune",
 # "stages", "trade", "presets", "empty", "fft") selects what runs. Everything printed
 # goes to OUTDIR/log.txt as well; JSON and .npz results beside it.
 set -uo pipefail
@@ -213,6 +213,10 @@ if [[ " $steps " == *" biasing "* ]]; then
     python3 benchmarks/bench_biasing.py --backend cuda --grid 64 --photons 1e7 --seeds 4 --forced-flights 1 2 4 8 \
         --taus 0.1 0.3 1 3 10 20 30 60 \
         --out "$out/biasing-cuda.json" --plot "$out/biasing-cuda.png" 2>&1 | tail -n 30
+fi
+if [[ " $steps " == *" fitprof "* ]]; then
+    echo "== where a fit's trace spends its time, thesis 128^3, CUDA"
+    python3 benchmarks/profile_fit_trace.py --backend cuda --shape 128 --photons 2.1e6 --out "$out/fit-trace-profile-cuda.json" 2>&1 | tail -n 45
 fi
 if [[ " $steps " == *" fit "* ]]; then
     echo "== fit of the thesis scene, 3 free parameters, CUDA (64^3, then the thesis's 128^3)"
