@@ -33,13 +33,14 @@ from ..density.generate import generate_density
 from ..errors import SceneError
 from ..scene import units
 from .colours import (
-    REFERENCE_LABELS, _check_reference, _labels, _offsets, line_of_sight_tau, passband_weights, star_reddening)
+    REFERENCE_LABELS, _check_reference, _labels, _offsets, passband_weights, star_reddening)
 from .observed_tables import ObservedTable, finite_or_none
 from ..pipeline.outputs import Publication
 from ..pipeline.rgba import _dominant_source
 from .sky import Camera
 from ..scene.sky_schema import COMPARISON_SIZE
 from ..transport.estimate import batch_standard_error
+from ..transport.line_of_sight import density_column
 from ..transport.request import TransportRequest, scene_backend
 
 #: Sky image pixels per side of the comparison's peel-off image (over 2 x the largest offset).
@@ -170,8 +171,8 @@ def trace_rings(scene, edges, *, direction=(0.0, 0.0, -1.0), size: int = DEFAULT
     # (the sums of J stay on the device: only the peel-off image's ring sums are used)
     res = TransportRequest.from_scene(scene, peel=cam, peel_bins=labels).trace(rho, backend, progress=progress,
                                                                               cancel=cancel, comm=comm, on_device=True)
-    tau_star = np.array([scene.dust.tau * b.extinction for b in bands]) * density_column(rho, star.position,
-                                                                                         direction)
+    tau_star = np.array([scene.dust.tau * b.extinction for b in bands]) * density_column(
+        rho, star.position, -np.asarray(direction, float))
     xb = np.asarray(res.peel_bin_batches, np.float64)
     if xb.shape[2] < len(e) - 1:  # the outermost rings hold no pixel centre (finer than a pixel)
         xb = np.concatenate([xb, np.zeros(xb.shape[:2] + (len(e) - 1 - xb.shape[2],))], axis=2)
@@ -179,31 +180,6 @@ def trace_rings(scene, edges, *, direction=(0.0, 0.0, -1.0), size: int = DEFAULT
                     np.float64), wavelength_nm=wl, pixel_area=cam.pixel_size ** 2, star_tau=tau_star,
                     source=_dominant_source(scene.stars), photons=int(res.photons), pixels=pixels,
                     rv=units.dust_model(scene.bands)[0])
-
-
-#: the last few density columns (:func:`density_column`), by density, star and direction
-_COLUMNS: dict = {}
-
-
-def density_column(rho, position, direction) -> float:
-    """The density integrated from ``position`` towards the observer (against ``direction``)
-    to the box's edge, box units: the star's optical depth in a band is tau x extinction x
-    this (:func:`nebula_rt.transport.line_of_sight.line_of_sight_tau` is linear in sigma).
-    Kept for the last few (density, star, direction): a fit traces one density many times."""
-    import weakref
-
-    key = (id(rho), tuple(float(x) for x in position), tuple(float(x) for x in direction))
-    hit = _COLUMNS.get(key)
-    if hit is not None and hit[0]() is rho:
-        return hit[1]
-    col = float(line_of_sight_tau(np.asarray(rho, np.float64)[None], position, -np.asarray(direction, float))[0])
-    if len(_COLUMNS) >= 4:
-        _COLUMNS.pop(next(iter(_COLUMNS)))
-    try:
-        _COLUMNS[key] = (weakref.ref(rho), col)
-    except TypeError:  # (not weakly referable: not kept)
-        pass
-    return col
 
 
 def _rings_of(edges, lo, hi) -> np.ndarray:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["line_of_sight_tau"]
+__all__ = ["line_of_sight_tau", "density_column"]
 
 
 def line_of_sight_tau(sigma, start, toward) -> np.ndarray:
@@ -58,3 +58,28 @@ def line_of_sight_tau(sigma, start, toward) -> np.ndarray:
     mid = p[None, :] + (0.5 * (ts[1:] + ts[:-1]))[:, None] * o[None, :]
     idx = np.clip(np.floor(mid * shape[None, :]).astype(np.int64), 0, shape - 1)
     return sig[:, idx[:, 0], idx[:, 1], idx[:, 2]] @ np.diff(ts)
+
+
+#: the last density columns taken (:func:`density_column`), by density, start and direction
+_COLUMNS: dict = {}
+_MAX_COLUMNS = 32
+
+
+def density_column(density, start, toward) -> float:
+    """The density integrated along a ray from ``start`` towards ``toward`` to the box's edge
+    (box units): :func:`line_of_sight_tau` of the density alone, which is linear in sigma, so
+    a band's optical depth is its extinction coefficient per unit density times this. Kept for
+    the last few (density, start, direction): a fit or a run's method choice asks for the same
+    ones at every trial (a read-only density array is known by its identity while it lives)."""
+    import weakref
+
+    key = (id(density), tuple(float(x) for x in start), tuple(float(x) for x in toward))
+    hit = _COLUMNS.get(key)
+    if hit is not None and hit[0]() is density:
+        return hit[1]
+    col = float(line_of_sight_tau(np.asarray(density, np.float64)[None], start, toward)[0])
+    if isinstance(density, np.ndarray) and not density.flags.writeable:
+        if len(_COLUMNS) >= _MAX_COLUMNS:
+            _COLUMNS.pop(next(iter(_COLUMNS)))
+        _COLUMNS[key] = (weakref.ref(density), col)
+    return col

@@ -17,7 +17,7 @@ from ..backends import Backend, TransportSetup
 from ..backends.regions import region_capacity
 from ..errors import NebulaWarning, SceneError, user_stacklevel
 from .importance import depth_map, observer_depth_map, resolve_importance, window_rates
-from .line_of_sight import line_of_sight_tau
+from .line_of_sight import density_column
 from ..scene.sections import AUTO_THICK, AUTO_THIN, ERROR_ESTIMATES, METHODS as _scene_methods
 from .tails import (
     DEPTH_CLASS_NAMES, class_edges)
@@ -57,8 +57,7 @@ def scene_optical_depth(density, tau: float, stars) -> float:
     axis directions, of the optical depth from the star to the box's edge (an exact voxel
     march, :func:`nebula_rt.transport.line_of_sight.line_of_sight_tau`)."""
 
-    sigma = float(tau) * np.asarray(density, np.float64)
-    depths = [float(line_of_sight_tau(sigma, s.position, d)[0]) for s in stars
+    depths = [float(tau) * density_column(density, s.position, d) for s in stars
               for d in ((1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1))]
     return float(np.median(depths)) if depths else 0.0
 
