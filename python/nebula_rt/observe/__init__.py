@@ -7,6 +7,8 @@
 - :mod:`~nebula_rt.observe.image_compare`: models against observed images;
 - :mod:`~nebula_rt.observe.observed_tables`, :mod:`~nebula_rt.observe.observed_images`: reading
   observations;
+- :mod:`~nebula_rt.observe.published`: published dust albedo and g of real reflection nebulae
+  and their illuminating stars (package data with provenance);
 - :mod:`~nebula_rt.observe.fit`: fitting a scene's parameters to observations (:class:`FitRequest`), with
   :mod:`~nebula_rt.observe.fit_parameters` (what may be freed) and
   :mod:`~nebula_rt.observe.fit_surface` (the optimiser and its quadratic surface).
