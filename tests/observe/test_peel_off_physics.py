@@ -104,7 +104,7 @@ def images(backend):
     rho = dust_block()
     return np.array([
         trace(rho, one_band(albedo=OMEGA, g=G), centre_star(L, STAR), tau=KAPPA, photons=PHOTONS, seed=seed,
-              backend=backend, peel=CAMERA, max_scatterings=1).peel_image[0]
+              backend=backend, peel=CAMERA, max_scatterings=1, light_field=False).peel_image[0]
         for seed in range(1, SEEDS + 1)
     ])
 

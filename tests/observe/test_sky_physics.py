@@ -121,7 +121,7 @@ def test_peel_off_image_is_single_scattering_at_any_g(backend, g):
     rho = partial_volume_sphere((N, N, N), R)
     cam = Camera(direction=(0.0, 0.0, -1.0), size=(64, 64), extent=1.0)
     images = [trace(rho, one_band(albedo=omega, g=g), centre_star(L), tau=kappa, photons=1_500_000, seed=s,
-                    backend=backend, peel=cam, max_scatterings=1).peel_image[0] for s in range(1, 5)]
+                    backend=backend, peel=cam, max_scatterings=1, light_field=False).peel_image[0] for s in range(1, 5)]
     img0 = sky_image(np.zeros((1, N, N, N)), np.zeros((1, N, N, N)), cam)
     p = np.arange(64)
     P, Q = np.meshgrid(p, p, indexing="ij")
@@ -161,7 +161,7 @@ def test_peel_off_keeps_weights_far_below_one_fixed_point_unit(backend):
     rho = partial_volume_sphere((N, N, N), R)
     cam = Camera(direction=(0.0, 0.0, -1.0), size=(64, 64), extent=1.0)
     images = [trace(rho, one_band(albedo=1.0, g=g), centre_star(L), tau=kappa, photons=2_500_000, seed=s,
-                    backend=backend, peel=cam, max_scatterings=1).peel_image[0] for s in range(1, 5)]
+                    backend=backend, peel=cam, max_scatterings=1, light_field=False).peel_image[0] for s in range(1, 5)]
     img0 = sky_image(np.zeros((1, N, N, N)), np.zeros((1, N, N, N)), cam)
     p = np.arange(64)
     P, Q = np.meshgrid(p, p, indexing="ij")

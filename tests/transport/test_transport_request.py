@@ -61,3 +61,37 @@ def test_a_peel_off_image_refuses_packets_by_name(tmp_path, backend):
     cam = calibrate.camera_for(s, direction=(0.0, 0.0, 1.0), size=8, extent=2.0)
     with pytest.raises(SceneError, match=r"transport.error_estimate = 'packets': .*a peel-off image"):
         calibrate.peel_off_sky(s, cam, backend)
+
+
+@pytest.mark.parametrize("method", ["analog", "biased"])
+def test_a_peel_off_image_without_the_light_field_is_the_same_bits(backend, method):
+    """light_field=False deposits nothing into the voxels and folds no J, and traces all
+    batches in one launch; the image, its ring sums per batch and the energy tallies are the
+    same bits as the full run's (the deposits draw no random numbers), and J is absent."""
+    scene = _scene(photons=6000, seed=5, method=method, max_scatterings=200)
+    rho = np.ones(scene.grid.shape, np.float32)
+    cam = Camera(direction=(0.0, 0.0, -1.0), size=(12, 12), center=(0.5, 0.5, 0.5))
+    bins = (np.arange(144) % 5).reshape(12, 12)
+    full = TransportRequest.from_scene(scene, peel=cam, peel_bins=bins).trace(rho, backend)
+    image = TransportRequest.from_scene(scene, peel=cam, peel_bins=bins, light_field=False).trace(rho, backend)
+    assert full.method == image.method == method
+    assert image.J is None and image.rel_error is None and image.device_sums is None and full.J is not None
+    assert image.peel_image.tobytes() == full.peel_image.tobytes()
+    assert image.peel_error.tobytes() == full.peel_error.tobytes()
+    assert image.peel_bin_batches.tobytes() == full.peel_bin_batches.tobytes()
+    assert np.array_equal(np.asarray(image.counts), np.asarray(full.counts)) and image.batches == full.batches
+    assert image.peel_image.sum() > 0
+
+
+def test_a_run_without_the_light_field_refuses_what_it_cannot_serve(backend):
+    scene = _scene(photons=2000)
+    rho = np.ones(scene.grid.shape, np.float32)
+    with pytest.raises(SceneError, match="light_field.*peel-off image"):
+        TransportRequest.from_scene(scene, light_field=False).trace(rho, backend)
+    cam = Camera(direction=(0.0, 0.0, -1.0), size=(4, 4))
+    targeted = _scene(photons=4000, target_error=0.05)
+    with pytest.raises(SceneError, match="transport.target_error.*error of J"):
+        TransportRequest.from_scene(targeted, peel=cam, light_field=False).trace(rho, backend)
+    packets = _scene(photons=2000, error_estimate="packets")
+    with pytest.raises(SceneError, match="transport.error_estimate"):
+        TransportRequest.from_scene(packets, peel=cam, light_field=False).trace(rho, backend)

@@ -72,7 +72,8 @@ class DeviceTransport(TransportSession):
         self.ncell = nb * self.nvox
         self.slots = int(slots)
         self.bands_per_launch = int(bands_per_launch) if bands_per_launch else nb
-        self.slot_cells = self.bands_per_launch * self.nvox
+        # no light field (a peel-off image alone): the kernel deposits nothing, so no slots
+        self.slot_cells = self.bands_per_launch * self.nvox if setup.light_field else 0
         self.words = setup.cell_words  # 64-bit words per cell (2: 128-bit, weighted packets)
         self.tally_words = setup.tally_words
         resident = be.resident_density(setup.density)
@@ -101,7 +102,7 @@ class DeviceTransport(TransportSession):
             track_scale=setup.track_scale, peel_scale=setup.peel_scale, collision_scale=setup.collision_scale,
             peel=np.zeros(15, np.float32) if setup.peel is None else np.asarray(setup.peel, np.float32))
         self.d_params = be.to_device(self.params.view(np.uint8))
-        self.d_acc = be.device_zeros(self.slot_cells * self.slots * self.words, np.uint64)
+        self.d_acc = be.device_zeros(max(1, self.slot_cells * self.slots * self.words), np.uint64)
         self.packet_sq = bool(setup.packet_sq)
         if self.packet_sq:
             if self.slots != 1 or self.bands_per_launch != nb:
@@ -111,8 +112,9 @@ class DeviceTransport(TransportSession):
             self.d_sum1 = self.d_m2 = None
         else:
             self.d_sq = be.device_zeros(1, np.uint64)
-            self.d_sum1 = be.device_zeros(self.ncell, np.float64)
-            self.d_m2 = be.device_zeros(self.ncell, np.float32)
+            stats = self.ncell if setup.light_field else 1
+            self.d_sum1 = be.device_zeros(stats, np.float64)
+            self.d_m2 = be.device_zeros(stats, np.float32)
         self.d_tallies = be.device_zeros(self.slots * self.bands_per_launch * self.tally_words, np.uint64)
         self.d_overflow = be.device_zeros(self.slots, np.uint32)
         self.d_seen = be.device_zeros(1, np.uint32)
@@ -122,7 +124,8 @@ class DeviceTransport(TransportSession):
         tuning = dict(be.transport_tuning)
         if "NRT_SORTED" not in tuning and self.nvox >= getattr(be, "sort_min_voxels", 0) > 0:
             tuning["NRT_SORTED"] = 1  # large grids: a warp's first flights side by side
-        self.region_shift = region_shift_of(be, setup, tuning)
+        # (regions keep the deposits of a pass in cache: without deposits, none)
+        self.region_shift = region_shift_of(be, setup, tuning) if setup.light_field else 0
         if self.region_shift and "NRT_REGIONS" not in tuning:
             # larger regions where the bins of every cell and region would pass the sort's
             # local bins (e.g. three bands at 1024^3), whose counts would go key by key
@@ -142,7 +145,8 @@ class DeviceTransport(TransportSession):
         self._h_stage = None  # several ranks: the host buffer of reduce_group
         # build the kernels of this option set now (setup time): compiled inside the first
         # launch, they were counted as tracing (up to 1 s per option set on CUDA)
-        names = (("trace_photons",) + (("packet_m2", "packet_sum1") if self.packet_sq else ("fold_batches",))
+        names = (("trace_photons",) + (("packet_m2", "packet_sum1") if self.packet_sq else
+                                       ("fold_batches",) if setup.light_field else ())
                  + (("emission_keys",) if self.sorted else ()))
         for name in names + (("counting_sort_pass", "scan_bins") if self.region_shift or self.sorted else ()):
             be.kernel(be.transport_program, name, self.defines)
@@ -390,7 +394,7 @@ class DeviceTransport(TransportSession):
 
         be = self.backend
         n_lb = bands[1]
-        cells = n_slots * n_lb * self.nvox * self.words
+        cells = n_slots * (self.slot_cells // self.bands_per_launch) * n_lb * self.words
         if reducer is not None:
             sums = DeviceSums(comm, reducer)
             if self.packet_sq:
@@ -398,6 +402,8 @@ class DeviceTransport(TransportSession):
             return self._reduce(sums, n_slots, n_lb, tallies, overflow, self.d_acc[:cells])
         if self.packet_sq:
             self._reduce_squares(comm)
+        if cells == 0:  # no light field: images, tallies and flags only
+            return self._reduce(comm, n_slots, n_lb, tallies, overflow, np.zeros(0, np.uint64))
         mapped = be.map_host(self.d_acc, cells)
         if mapped is None:
             return self._reduce(comm, n_slots, n_lb, tallies, overflow, None)
@@ -424,12 +430,12 @@ class DeviceTransport(TransportSession):
         from .parallel import sum_checked, sum_wide
 
         be = self.backend
-        cells = 0 if acc is not None else n_slots * n_lb * self.nvox * self.words
+        cells = 0 if acc is not None else n_slots * (self.slot_cells // self.bands_per_launch) * n_lb * self.words
         pix, nt = n_slots * n_lb * self.pixels * self.words, tallies.size
         need = cells + pix + nt + n_slots
         if self._h_stage is None or self._h_stage.size < need:
             most = self.slots * self.bands_per_launch
-            self._h_stage = be.host_empty((0 if acc is not None else most * self.nvox * self.words)
+            self._h_stage = be.host_empty((0 if acc is not None else self.slots * self.slot_cells * self.words)
                                           + most * (self.pixels * self.words + self.tally_words)
                                           + self.slots, np.uint64)
         buf = self._h_stage[:need]
@@ -480,6 +486,8 @@ class DeviceTransport(TransportSession):
                 raise RuntimeError("the error estimate by packets folds its one batch once")
             self._finish_packets(int(packets))
             return
+        if not self.setup.light_field:
+            return  # no J: the images and tallies are folded on the host
         band0, n_lb = bands if bands is not None else (0, self.setup.n_bands)
         n = n_lb * self.nvox
         self.backend.launch(self.backend.transport_program, "fold_batches", n,
@@ -561,6 +569,7 @@ class DeviceTransport(TransportSession):
                    + 4 * self.n_bins
                    if self.region_shift else 0)
         stats = 8 * self.ncell if self.packet_sq else 12 * self.ncell  # (packets: the squares' slot)
+        stats = stats if self.setup.light_field else 12
         return (8 * self.words * self.slot_cells * self.slots + stats + 4 * self.nvox
                 + 8 * self.tally_words * self.bands_per_launch * self.slots + 4 * self.slots
                 + 8 * self.words * self.slots * self.bands_per_launch * self.pixels + regions)

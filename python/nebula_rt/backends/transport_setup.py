@@ -31,7 +31,8 @@ class TransportSetup:
     star_cdf : ndarray, float32, shape (n_bands, n_stars)
         Cumulative probability of choosing each star, per band.
     estimator : str
-        ``"track-length"`` or ``"collision-filter"``.
+        ``"track-length"`` or ``"collision-filter"``; ``"none"``: no J (a peel-off image
+        alone, ``trace(light_field=False)``), no batch slots.
     max_scatterings : int
         Packets are terminated when they would scatter more often than this.
     seed : int
@@ -91,6 +92,11 @@ class TransportSetup:
     tail_edges: object = None
 
     @property
+    def light_field(self) -> bool:
+        """Whether the run estimates J (deposits into batch slots, folded into statistics)."""
+        return self.estimator != "none"
+
+    @property
     def cell_words(self) -> int:
         """64-bit words per accumulator cell and image pixel (2: 128-bit cells when biased)."""
         return 2 if self.biased else 1
@@ -146,7 +152,8 @@ NVIDIA_TRACE_REGISTERS = {False: 80, True: 64}
 def transport_defines(setup: TransportSetup, tuning: dict | None = None) -> dict:
     """Compile-time options of the transport kernel: only the estimator the scene asks for is
     built, the accumulator headroom (lowered only by tests) and the performance options."""
-    defines = {"track-length": {"NRT_TRACK_LENGTH": 1}, "collision-filter": {"NRT_COLLISION": 1}}[setup.estimator]
+    defines = {"track-length": {"NRT_TRACK_LENGTH": 1}, "collision-filter": {"NRT_COLLISION": 1},
+               "none": {}}[setup.estimator]
     defines = dict(defines)
     if setup.acc_limit_bits != 63:
         defines["NRT_ACC_LIMIT_BITS"] = int(setup.acc_limit_bits)

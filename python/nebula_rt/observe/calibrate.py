@@ -514,7 +514,7 @@ def peel_off_sky(scene, camera, backend=None, progress=None, cancel=None, pixel_
     rho = generate_density(scene, backend)
     bins = (np.arange(camera.size[0] * camera.size[1], dtype=np.int64).reshape(camera.size) if pixel_batches
             else np.zeros(camera.size, np.int64))
-    request = TransportRequest.from_scene(scene, peel=camera, peel_bins=bins)
+    request = TransportRequest.from_scene(scene, peel=camera, peel_bins=bins, light_field=False)
     res = request.trace(rho, backend, progress=progress, cancel=cancel, comm=comm)
     tau = star_tau(scene, bands, rho, camera)
     meta = {"NPHOTON": (int(res.photons), "packets per band"), "SEED": str(request.seed)}

@@ -321,8 +321,8 @@ def observe_scene(scene, direction=(0.0, 0.0, -1.0), size: int = COMPARISON_SIZE
     e = _edges(edges)
     labels = _labels(_offsets(cam.origin(), cam.pixel_size, u, v, cam.size, star.position, direction), e)
     rho = generate_density(scene, backend)
-    res = TransportRequest.from_scene(scene, peel=cam, peel_bins=labels).trace(rho, backend, progress=progress,
-                                                                              cancel=cancel, comm=comm)
+    res = TransportRequest.from_scene(scene, peel=cam, peel_bins=labels, light_field=False).trace(
+        rho, backend, progress=progress, cancel=cancel, comm=comm)
     sigma = np.array([scene.dust.tau * b.extinction for b in bands])[:, None, None, None] * \
         np.asarray(rho, np.float64)[None]
     tau_star = line_of_sight_tau(sigma, star.position, -np.asarray(direction, float))

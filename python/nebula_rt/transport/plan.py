@@ -327,6 +327,16 @@ def plan_launches(photons: int, batch_size: int, targeted: bool, shape, n_bands:
     plan = batch_plan(photons, size, nvox)
     per_launch, slots = backend.launch_plan(nvox, n_bands, plan.base + 1, len(plan), cell_bytes)
     launches = LaunchPlan(plan, size, per_launch, slots, int(n_bands))
+    if estimator == "none":  # no J: the slots hold only the images, so every band and up to
+        # the fold's 32 batches go in one launch, within the slot budget (a peel-off image
+        # refuses the estimate by packets as any other does)
+        resolve_error_estimate(error_estimate, biased=cell_bytes == 16, peel=peel, targeted=targeted,
+                               time_limit=time_limit, batch_size=batch_size, launches=launches, scales=None,
+                               nvox=nvox, in_flight=0)
+        per_image = max(1, cell_bytes * n_bands * (0 if peel is None else int(np.prod(peel.size))))
+        return LaunchPlan(plan, size, int(n_bands), int(max(1, min(32, len(plan),
+                                                                   backend.slot_memory_budget // per_image))),
+                          int(n_bands))
     scales = packet_scales(photons, max_scatterings, shape, estimator)
 
     if resolve_error_estimate(error_estimate, biased=cell_bytes == 16, peel=peel, targeted=targeted,
@@ -452,6 +462,12 @@ def plan_transport(density, request, backend: Backend, *, checked_adds: bool = F
     estimator, method, max_scatterings = request.estimator, request.method, request.max_scatterings
     seed, batch_size, target_error, time_limit = request.seed, request.batch_size, request.target_error, request.time_limit
     peel, peel_bins, error_estimate = request.peel, request.peel_bins, request.error_estimate
+    if not request.light_field:
+        if peel is None:
+            raise SceneError("light_field", False, "a run without the light field needs a peel-off image (peel)")
+        if target_error > 0.0:
+            raise SceneError("transport.target_error", target_error,
+                             "must be 0 for a run without the light field (it is the error of J)")
     density = np.asarray(density, dtype=np.float32)
     shape = density.shape
     wl = np.array([b.wavelength for b in bands], dtype=np.float64)
@@ -471,6 +487,8 @@ def plan_transport(density, request, backend: Backend, *, checked_adds: bool = F
     albedo = np.array([b.albedo for b in bands], dtype=np.float64)
     # albedo x optical depth of the longest voxel edge at the densest voxel, the largest over the bands
     scatter_depth = float(np.max(sigma_scale * albedo)) * rho_max / min(shape)
+    if not request.light_field:
+        estimator = "none"  # (checked above as the scene's, which the image does not use)
     launches = plan_launches(photons, batch_size, target_error > 0.0, shape, len(bands), backend,
                              16 if biased else 8, error_estimate=error_estimate, peel=peel, time_limit=time_limit,
                              max_scatterings=max_scatterings, estimator=estimator, scatter_depth=scatter_depth)
@@ -490,7 +508,7 @@ def plan_transport(density, request, backend: Backend, *, checked_adds: bool = F
         seed=int(seed),
         track_scale=track_scale * (WIDE_SCALE if biased else 1.0),
         acc_limit_bits=int(acc_limit_bits),
-        unchecked_adds=(not biased and not checked_adds
+        unchecked_adds=(not biased and not checked_adds and request.light_field
                         and (packets or _no_wrap(base + 1, max_scatterings, estimator, track_scale, shape))),
         biased=biased,
         collision_scale=float(2.0**FIXED_POINT_BITS * WIDE_SCALE) if biased else 1.0,

@@ -68,6 +68,8 @@ class TransportRequest:
         A peel-off image's camera.
     peel_bins : int ndarray (W, H) or None
         With ``peel``: the pixel groups whose batch sums the run keeps.
+    light_field : bool
+        False: the peel-off image alone, no J.
     """
 
     bands: tuple
@@ -85,17 +87,19 @@ class TransportRequest:
     peel: Any = None
     peel_bins: Any = None
     importance: str = "auto"
+    light_field: bool = True
 
     @classmethod
-    def from_scene(cls, scene, peel=None, peel_bins=None) -> "TransportRequest":
-        """The run ``scene`` asks for, with a peel-off image by ``peel`` (a Camera) if given."""
+    def from_scene(cls, scene, peel=None, peel_bins=None, light_field: bool = True) -> "TransportRequest":
+        """The run ``scene`` asks for, with a peel-off image by ``peel`` (a Camera) if given
+        (``light_field`` False: the image alone, see :func:`trace`)."""
         t = scene.transport
         photons, target_error = t.effective()
         return cls(bands=tuple(scene.bands.resolve()), stars=tuple(scene.stars), tau=float(scene.dust.tau),
                    photons=int(photons), target_error=float(target_error), time_limit=float(t.time_limit),
                    estimator=t.estimator, method=t.method, error_estimate=t.error_estimate,
                    max_scatterings=int(t.max_scatterings), seed=int(t.seed), batch_size=int(t.batch_size),
-                   peel=peel, peel_bins=peel_bins)
+                   peel=peel, peel_bins=peel_bins, light_field=bool(light_field))
 
     def trace(self, density, backend: Backend, *, progress: Optional[Callable[[int, int], None]] = None,
               cancel: Optional[Callable[[], bool]] = None, on_device: bool = False, comm=None,
@@ -131,6 +135,7 @@ def trace(
     method: str = _declared("transport.method"),
     error_estimate: str = _declared("transport.error_estimate"),
     importance: str = "auto",
+    light_field: bool = True,
 ) -> TransportResult:
     """Trace ``photons`` packets per band through ``density`` and estimate J: the keyword
     form of ``TransportRequest(...).trace(density, backend, ...)``.
@@ -203,11 +208,20 @@ def trace(
         takes the observer's when there is a peel-off image, the stars' otherwise.
         ``result.importance`` says which ran ("" for analog packets). J's heavy-tail classes
         (``result.tail_j``) are checked under the stars' windows only.
+    light_field : bool
+        False (with ``peel``): the peel-off image alone. The kernel deposits nothing into the
+        voxels and no batch of J is folded (``result.J``, ``rel_error`` and ``device_sums``
+        are None), so the run needs no batch slots and traces every batch in one launch. The
+        image is the same bits as with the light field: the deposits draw no random numbers.
+        For the observables that read only the image (annulus profiles, sky images, fits),
+        where J was most of the work (on an H200 about half a fit trial's time; see
+        benchmarks/profile_fit_trace.py). Needs ``peel`` and no ``target_error`` (which is
+        J's error).
     """
     request = TransportRequest(
         bands=tuple(bands), stars=tuple(stars), tau=tau, photons=photons, target_error=target_error,
         time_limit=time_limit, estimator=estimator, method=method, error_estimate=error_estimate,
         max_scatterings=max_scatterings, seed=seed, batch_size=batch_size, peel=peel, peel_bins=peel_bins,
-        importance=importance)
+        importance=importance, light_field=light_field)
     return request.trace(density, backend, progress=progress, cancel=cancel, on_device=on_device, comm=comm,
                          _acc_limit_bits=_acc_limit_bits, _checked_adds=_checked_adds)

@@ -24,7 +24,8 @@ class TransportResult:
     Attributes
     ----------
     J : ndarray, float64, (n_bands, nx, ny, nz)
-        Mean intensity (luminosity per box-unit area per steradian), unfiltered estimate.
+        Mean intensity (luminosity per box-unit area per steradian), unfiltered estimate
+        (None with ``on_device`` or ``light_field=False``).
     rel_error : ndarray, float64, (n_bands, nx, ny, nz)
         Batch-means relative standard error of J (1.0 where nothing was tallied).
     counts : ndarray, int64, (n_bands, 4)

@@ -353,7 +353,9 @@ def estimate_light(plan: TransportPlan, tallies: Tallies, backend: Backend, *, o
     tail_image = [row[0] for row in checks] if checks is not None and has_image else None
     tail_j = ([row[int(has_image):] for row in checks] if checks is not None and plan.setup.tail_classes
               else None)
-    if on_device:
+    if not plan.setup.light_field:  # a peel-off image alone: no J was deposited
+        device_sums = J = rel = s1 = s2 = None
+    elif on_device:
         s1, s2, d_rho = session.release_sums()
         device_sums = DeviceSums(backend, shape, nb, s1, s2, d_rho)
         J = rel = None
