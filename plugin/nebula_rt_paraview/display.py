@@ -79,6 +79,7 @@ class _Behaviour:
         self.busy = False
         self.busy_reset = False
         self.reset_watched = {}  # key -> vtkPVRenderView of a sky view whose camera resets fit the image
+        self.overlays = {}  # (view key, representation GlobalID) -> StarOverlay (client/server)
         self.warned = False
         from paraview.modules.vtkRemotingServerManager import vtkSMProxyManager
 
@@ -162,6 +163,7 @@ class _Behaviour:
         if view.GetXMLName() == "NebulaSkyView":
             self._watch_camera_resets(view)
         reps = self._nebula_representations(view)
+        self._drop_overlays(view, {_gid(rep) for kind, rep, *_ in reps if kind == "stars"})
         if not reps:
             return
         from paraview import servermanager
@@ -196,12 +198,23 @@ class _Behaviour:
                     helpers.configure_star_points(display, pyview)
                 elif display.SMProxy.GetProperty("Representation").GetElement(0) == "Points":
                     helpers.set_points_on_top(display)  # not in a state: the rendering object's
+                if servermanager.ActiveConnection is not None and servermanager.ActiveConnection.IsRemote():
+                    overlay = self.overlays.get((_key(view), g))
+                    if overlay is None:
+                        overlay = self.overlays[(_key(view), g)] = helpers.StarOverlay(pyview)
+                    overlay.follow(display)
             elif kind == "sky" and new:
                 helpers.configure_sky_image(display, pyview, fit_camera=self._alone(view, rep))
             lut = rep.GetProperty("LookupTable")
             if lut is not None and lut.GetNumberOfProxies() and lut.GetProxy(0) is not None:
                 luts.add(_gid(lut.GetProxy(0)))
         self._hide_unused_colour_bars(view, luts)
+
+    def _drop_overlays(self, view, shown):
+        """Remove the star overlays of ``view`` whose stars display is gone (``shown``: the
+        GlobalIDs of its stars displays)."""
+        for key in [k for k in self.overlays if k[0] == _key(view) and k[1] not in shown]:
+            self.overlays.pop(key).remove()
 
     @staticmethod
     def _hide_unused_colour_bars(view, luts):

@@ -312,6 +312,59 @@ def set_points_on_top(display, offset: float = ON_TOP_POINT_OFFSET) -> bool:
     return True
 
 
+class StarOverlay:
+    """The stars drawn by the client over the server's composited picture (client/server).
+
+    A pvserver of several ranks composites the ranks' pictures in depth order, and the star
+    points, made on rank 0, lie under the other ranks' dust: at tau 128 they are not seen (the
+    depth offset of :func:`set_points_on_top` acts within one rank's picture only). The
+    client's render view draws its annotations in a renderer of its own after compositing (the
+    view's non-composited renderer, which shares the view's camera); an actor there with the
+    star points, fetched once per change of the Stars output, is drawn over the picture as the
+    built-in session draws them. It follows the stars display's visibility, point size and
+    representation."""
+
+    def __init__(self, view):
+        from vtkmodules.vtkRenderingCore import vtkActor, vtkPolyDataMapper
+
+        self.renderer = view.GetClientSideObject().GetNonCompositedRenderer()
+        self.mapper = vtkPolyDataMapper()
+        self.mapper.SetScalarModeToUsePointFieldData()
+        self.mapper.SetColorModeToDirectScalars()
+        self.actor = vtkActor()
+        self.actor.SetMapper(self.mapper)
+        prop = self.actor.GetProperty()
+        prop.SetAmbient(1.0)
+        prop.SetDiffuse(0.0)
+        prop.SetRenderPointsAsSpheres(True)
+        self.signature = None
+        self.renderer.AddActor(self.actor)
+
+    def follow(self, display, array: str = "star_rgb") -> None:
+        """Match the stars display (fetching its points again where its output changed)."""
+        src, port = display_input(display)
+        info = src.GetDataInformation(port)
+        rgb = info.GetPointDataInformation().GetArrayInformation(array)
+        signature = (info.GetNumberOfPoints(), tuple(info.GetBounds()),
+                     None if rgb is None else tuple(rgb.GetComponentRange(-1)))
+        if signature != self.signature:
+            from vtkmodules.vtkFiltersGeneral import vtkVertexGlyphFilter
+
+            glyphs = vtkVertexGlyphFilter()  # a vertex per point: the Stars output has none
+            glyphs.SetInputData(servermanager.Fetch(servermanager._getPyProxy(src), idx=port))
+            glyphs.Update()
+            self.mapper.SetInputData(glyphs.GetOutput())
+            self.mapper.SelectColorArray(array)
+            self.mapper.SetScalarVisibility(bool(rgb is not None))
+            self.signature = signature
+        self.actor.GetProperty().SetPointSize(float(display.PointSize))
+        self.actor.SetVisibility(bool(display.Visibility)
+                                 and display.SMProxy.GetProperty("Representation").GetElement(0) == "Points")
+
+    def remove(self) -> None:
+        self.renderer.RemoveActor(self.actor)
+
+
 def show_fit_result(reader, view=None):
     """Show a ``NebulaFitResultReader``'s two ports in a Python View drawn by
     :mod:`nebula_rt_paraview.fit_view`: the parameters with their errors first, then one

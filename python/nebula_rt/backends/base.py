@@ -174,6 +174,21 @@ class Backend(abc.ABC):
             return entry[1]
         return None
 
+    def density_with_columns(self, host: np.ndarray, columns: np.ndarray):
+        """A device buffer of the densities ``host`` then their peel-off ``columns`` (x fastest
+        each; kernels/transport.cl, NRT_PEEL_AXIS), kept for the next run with the same
+        read-only arrays (a fit traces one density many times)."""
+        import weakref
+
+        entry = getattr(self, "_density_with_columns", None)
+        if entry is not None and entry[0]() is host and entry[1]() is columns:
+            return entry[2]
+        dev = self.to_device(np.concatenate([np.ravel(np.asarray(host, np.float32), order="F"),
+                                             np.ravel(np.asarray(columns, np.float32), order="F")]))
+        if all(isinstance(a, np.ndarray) and not a.flags.writeable for a in (host, columns)):
+            self._density_with_columns = (weakref.ref(host), weakref.ref(columns), dev)
+        return dev
+
     def density_extremes(self, host: np.ndarray) -> tuple[float, float] | None:
         """(min, max) of ``host`` reduced on the device where it has a resident copy there and
         the backend reduces on the device (:meth:`device_extremes`), once per density: the

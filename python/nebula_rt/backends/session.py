@@ -76,9 +76,12 @@ class DeviceTransport(TransportSession):
         self.slot_cells = self.bands_per_launch * self.nvox if setup.light_field else 0
         self.words = setup.cell_words  # 64-bit words per cell (2: 128-bit, weighted packets)
         self.tally_words = setup.tally_words
-        resident = be.resident_density(setup.density)
-        self.d_density = (resident if resident is not None else
-                          be.to_device(np.ravel(np.asarray(setup.density, np.float32), order="F")))
+        if setup.peel_columns is not None:  # the densities, then their columns (NRT_PEEL_AXIS)
+            self.d_density = be.density_with_columns(setup.density, setup.peel_columns)
+        else:
+            resident = be.resident_density(setup.density)
+            self.d_density = (resident if resident is not None else
+                              be.to_device(np.ravel(np.asarray(setup.density, np.float32), order="F")))
         optics = np.zeros((nb, 4), np.float32)
         optics[:, 0], optics[:, 1], optics[:, 2] = setup.sigma_scale, setup.albedo, setup.g
         if setup.window_rate is not None:
@@ -570,7 +573,8 @@ class DeviceTransport(TransportSession):
                    if self.region_shift else 0)
         stats = 8 * self.ncell if self.packet_sq else 12 * self.ncell  # (packets: the squares' slot)
         stats = stats if self.setup.light_field else 12
-        return (8 * self.words * self.slot_cells * self.slots + stats + 4 * self.nvox
+        return (8 * self.words * self.slot_cells * self.slots + stats
+                + 4 * self.nvox * (1 if self.setup.peel_columns is None else 2)
                 + 8 * self.tally_words * self.bands_per_launch * self.slots + 4 * self.slots
                 + 8 * self.words * self.slots * self.bands_per_launch * self.pixels + regions)
 

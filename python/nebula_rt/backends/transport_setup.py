@@ -71,6 +71,11 @@ class TransportSetup:
     #: (0, 0), pixel size, W, H), fixed-point units per 1/sr, or None for no image
     peel: object = None
     peel_scale: float = 0.0
+    #: peel-off towards an observer along a grid axis: (axis, up) and each voxel's density
+    #: column beyond it along that axis (float32, the density's shape), which the kernel reads
+    #: after the densities instead of marching to the edge (kernels/transport.cl, NRT_PEEL_AXIS)
+    peel_axis: object = None
+    peel_columns: object = None
     #: no fixed-point cell can wrap past 2^64 within one launch (see ``trace``), so deposits may
     #: be added without reading the old value back and checked by the fold instead
     unchecked_adds: bool = False
@@ -159,6 +164,8 @@ def transport_defines(setup: TransportSetup, tuning: dict | None = None) -> dict
         defines["NRT_ACC_LIMIT_BITS"] = int(setup.acc_limit_bits)
     if setup.peel is not None:
         defines["NRT_PEEL"] = 1
+        if setup.peel_columns is not None:
+            defines["NRT_PEEL_AXIS"], defines["NRT_PEEL_UP"] = int(setup.peel_axis[0]), int(setup.peel_axis[1])
     opts = dict(TRANSPORT_TUNING, **(tuning or {}))
     if not setup.unchecked_adds:
         opts["NRT_ACC_RED"] = 0

@@ -211,6 +211,16 @@ def band_luminosity_fractions(band_wavelengths_nm, source) -> np.ndarray:
         Dimensionless fractions in input band order; they sum to 1.
     """
     bands = _check_bands(band_wavelengths_nm)
+    # kept for the last few (bands, spectrum): every scene check and run plan asks again, and
+    # a fit's trials all ask the same (about 1 ms a trial)
+    try:
+        src = np.asarray(source, np.float64) if source is not None else None
+        key = (bands.tobytes(), None if src is None else (src.shape, src.tobytes()))
+    except (TypeError, ValueError):  # not a spectrum: star_spectrum below says why
+        key = None
+    hit = _FRACTIONS.get(key)
+    if hit is not None:
+        return hit.copy()
     edges = band_edges(bands)
     wl = np.arange(np.floor(edges[0]), np.ceil(edges[-1]) + 1.0)
     s = star_spectrum(source, wl)
@@ -227,7 +237,14 @@ def band_luminosity_fractions(band_wavelengths_nm, source) -> np.ndarray:
         raise ValueError("the star's spectrum has no power in the bands' range")
     out = np.empty(bands.size)
     out[np.argsort(bands)] = per_band / total
+    if key is not None:
+        if len(_FRACTIONS) >= 32:
+            _FRACTIONS.pop(next(iter(_FRACTIONS)))
+        _FRACTIONS[key] = out.copy()
     return out
+
+
+_FRACTIONS: dict = {}
 
 
 def band_to_xyz_matrix(band_wavelengths_nm, source) -> np.ndarray:

@@ -70,6 +70,7 @@ class _PeelSums:
         self.band_batches = np.zeros(n_bands, np.int64)
         self.groups = [[] for _ in range(n_bands)]  # per band: every batch's group sums
         self.labels = None
+        self._row_labels = None  # add_batches: the labels of its rows, offset row by row
         if labels is not None:
             lab = np.asarray(labels)
             if lab.shape != tuple(size) or not np.issubdtype(lab.dtype, np.integer):
@@ -83,17 +84,30 @@ class _PeelSums:
         the units are exact integers, and their float64 sum stays exact while a pixel holds
         fewer than 2^29 full-weight deposits over the run. The error uses the batches of the
         first band (the bands of one batch are folded together or one after another)."""
-        x = image.astype(np.float64)
-        sl = slice(band0, band0 + x.shape[0])
-        k = self.band_batches[band0]
-        welford_fold(self.s1[sl], self.s2[sl], x, int(k))
-        self.band_batches[sl] += 1
+        self.add_batches(np.asarray(image)[None], band0)
+
+    def add_batches(self, images, band0: int = 0) -> None:
+        """Fold several batches' images (batches, bands, W, H) in order: the same bits as
+        :meth:`add` of each, with the pixel groups summed for all of them at once (a fit's
+        trial folds 16 batches; one at a time it took 3 ms of an H200 trial's host time)."""
+        x = np.asarray(images).astype(np.float64)
+        m, nb = x.shape[0], x.shape[1]
+        sl = slice(band0, band0 + nb)
+        for j in range(m):
+            welford_fold(self.s1[sl], self.s2[sl], x[j], int(self.band_batches[band0]))
+            self.band_batches[sl] += 1
         self.batches = int(self.band_batches.min())
-        if self.labels is not None:
+        if self.labels is not None and m:
             idx, lab, n = self.labels
-            flat = x.reshape(x.shape[0], -1)[:, idx]
-            for b, row in enumerate(flat, start=band0):
-                self.groups[b].append(np.bincount(lab, weights=row, minlength=n))
+            flat = x.reshape(m * nb, -1)[:, idx]  # rows (batch, band)
+            # one bincount over every row, each row's groups offset by n: a row's sums add its
+            # pixels in the same order as a bincount of that row alone
+            rows = m * nb
+            if self._row_labels is None or self._row_labels.size != rows * lab.size:
+                self._row_labels = (lab[None, :] + n * np.arange(rows)[:, None]).ravel()
+            sums = np.bincount(self._row_labels, weights=flat.ravel(), minlength=rows * n).reshape(m, nb, n)
+            for b in range(nb):
+                self.groups[band0 + b].extend(sums[:, b])
 
     def finish(self, scale):
         """(image, standard error, group sums per batch) in units of ``scale`` per fixed-point

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["line_of_sight_tau", "density_column"]
+__all__ = ["line_of_sight_tau", "density_column", "peel_axis", "peel_columns"]
 
 
 def line_of_sight_tau(sigma, start, toward) -> np.ndarray:
@@ -83,3 +83,41 @@ def density_column(density, start, toward) -> float:
             _COLUMNS.pop(next(iter(_COLUMNS)))
         _COLUMNS[key] = (weakref.ref(density), col)
     return col
+
+
+def peel_axis(toward):
+    """(axis, up) where ``toward`` points along a grid axis (up: to its high end), else None."""
+    o = np.asarray(toward, np.float64)
+    along = np.flatnonzero(o != 0.0)
+    return (int(along[0]), bool(o[along[0]] > 0.0)) if len(along) == 1 else None
+
+
+def peel_columns(density, axis: int, up: bool) -> np.ndarray:
+    """Per voxel, the density column from its far face along ``axis`` (towards the high end
+    where ``up``) to the box's edge: h times the sum of the densities of the voxels beyond it
+    (box units x density; float64 sums, float32 result, read-only, shape of ``density``). A
+    peel-off towards an observer along that axis has the optical depth sigma_b (column + rho
+    x the rest of its own voxel) (kernels/transport.cl, NRT_PEEL_AXIS). Kept for the last few
+    read-only densities, as :func:`density_column`: a fit traces one density many times."""
+    import weakref
+
+    key = (id(density), int(axis), bool(up))
+    hit = _PEEL_COLUMNS.get(key)
+    if hit is not None and hit[0]() is density:
+        return hit[1]
+    rho = np.moveaxis(np.asarray(density, np.float64), axis, -1)
+    beyond = np.zeros_like(rho)
+    if up:
+        beyond[..., :-1] = np.cumsum(rho[..., :0:-1], axis=-1)[..., ::-1]
+    else:
+        beyond[..., 1:] = np.cumsum(rho[..., :-1], axis=-1)
+    cols = np.moveaxis(beyond / rho.shape[-1], -1, axis).astype(np.float32)
+    cols.flags.writeable = False
+    if isinstance(density, np.ndarray) and not density.flags.writeable:
+        if len(_PEEL_COLUMNS) >= 2:  # (a grid's worth each)
+            _PEEL_COLUMNS.pop(next(iter(_PEEL_COLUMNS)))
+        _PEEL_COLUMNS[key] = (weakref.ref(density), cols)
+    return cols
+
+
+_PEEL_COLUMNS: dict = {}

@@ -17,7 +17,7 @@ from ..backends import Backend, TransportSetup
 from ..backends.regions import region_capacity
 from ..errors import NebulaWarning, SceneError, user_stacklevel
 from .importance import depth_map, observer_depth_map, resolve_importance, window_rates
-from .line_of_sight import density_column
+from .line_of_sight import density_column, peel_axis, peel_columns
 from ..scene.sections import AUTO_THICK, AUTO_THIN, ERROR_ESTIMATES, METHODS as _scene_methods
 from .tails import (
     DEPTH_CLASS_NAMES, class_edges)
@@ -528,6 +528,11 @@ def plan_transport(density, request, backend: Backend, *, checked_adds: bool = F
     if peel is not None:
         setup = dataclasses.replace(setup, peel=_peel_camera(peel),
                                     peel_scale=_peel_scale([b.g for b in bands]) * (WIDE_SCALE if biased else 1.0))
+        # an observer along a grid axis: the peel-offs read the density columns (4 bytes a
+        # voxel) instead of marching to the edge (tuning key "peel_columns" 0: always march)
+        axis = peel_axis(setup.peel[:3])
+        if axis is not None and getattr(backend, "transport_tuning", {}).get("peel_columns", 1):
+            setup = dataclasses.replace(setup, peel_axis=axis, peel_columns=peel_columns(density, *axis))
     return TransportPlan(setup=setup, launches=launches, photons=int(photons),
                          band_names=tuple(b.name for b in bands), band_luminosity=band_lum,
                          star_band_luminosity=slum, sigma_scale=sigma_scale, albedo=albedo,

@@ -221,12 +221,13 @@ def run_transport(plan: TransportPlan, backend: Backend, *, progress=None, cance
         """Fold the finished batches ``ranges`` [(start, count)] of a launch's slots (bands
         ``group``) into the counts."""
         b0, nlb = group
+        kept = [k for k in range(len(ranges)) if not overflow[k]]
+        if images is not None and kept:  # (in batch order, as one add per batch)
+            peel_sums.add_batches(images[kept], b0)
         for k, (b_start, b_count) in enumerate(ranges):
             if overflow[k]:
                 redo.append((b_start, b_count, group))
                 continue
-            if images is not None:
-                peel_sums.add(images[k], b0)
             folded[b0:b0 + nlb] += 1
             counts[b0:b0 + nlb] += session.counts_of(tallies[k])
             if setup.tail_hists:
