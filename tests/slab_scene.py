@@ -74,6 +74,6 @@ def seeded_runs(backend, tau: float, albedo: float, g: float, *, seeds: int, pho
         warnings.simplefilter("ignore", NebulaWarning)
         for seed in range(1, seeds + 1):
             r = trace(rho, bands, stars, tau=kappa, photons=photons, seed=seed, backend=backend, method=method,
-                      peel=cam, peel_bins=peel_bins(cam))
+                      peel=cam, peel_bins=peel_bins(cam), light_field=False)
             v, se = image_power(r, cam)
             yield r, v, se, exact, oracle
