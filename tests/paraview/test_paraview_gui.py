@@ -452,6 +452,36 @@ def test_abort_stops_a_trace_in_a_pvserver_within_a_second(pv_env, xdisplay, tmp
     assert relay["ended_at"] - clicks[-1] < 3.0, (relay, clicks[-1])
 
 
+def test_a_pvserver_of_2_ranks_shows_the_star_over_the_nebula(pv_env, xdisplay, tmp_path):
+    """The GUI connected to a pvserver of 2 ranks: Apply on the density and the light field
+    shows the nebula with the star's disc over it in the star's own colour (its 3 x 3 pixels
+    within 3 levels, as in the built-in session). The server composites the ranks' pictures in
+    depth order, and the star, made on rank 0, would lie under the other rank's dust; the
+    client draws it over the composited picture (``view.StarOverlay``)."""
+    from test_paraview import _pvserver
+
+    server, port = _pvserver(pv_env, xdisplay, 2)
+    try:
+        events = (menu("menuSources", "NebulaRT", "NebulaDustDensity") + apply()
+                  + menu("menuFilters", "NebulaRT", "NebulaLightField") + apply() + probe("light", grab=True))
+        out = run_gui(pv_env, xdisplay, tmp_path, events, args=(f"--server-url=cs://localhost:{port}",),
+                      light_field={"Photons": 200_000})
+    finally:
+        os.killpg(server.pid, signal.SIGTERM)
+        server.wait(timeout=30)
+    view = step_record(out, "light")["views"][0]
+    im = read_png(view["png"])
+    h = im.shape[0]
+    lit, m = lit_stats(im)
+    assert lit.mean() > 0.15, lit.mean()  # the nebula is there
+    (stars,) = reps_of(view, "NebulaLightField", 1)
+    assert len(stars["stars"]["display"]) == 1, stars["stars"]
+    for (x, y), rgb in zip(stars["stars"]["display"], stars["stars"]["rgb"]):
+        px, py = int(x), h - 1 - int(y)
+        block = im[py - 1:py + 2, px - 1:px + 2]
+        assert np.abs(block - np.array(rgb, float)).max() <= 3.0, (block, rgb)
+
+
 # -- state files in the GUI --------------------------------------------------------------------
 # one figure: the three share their structure (one tab, one view, four panels, the labels),
 # and each figure's own picture, camera and labels are checked under pvpython and pvbatch
