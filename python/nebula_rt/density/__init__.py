@@ -1,9 +1,12 @@
 """The dust density on the grid: generated on the device (the models are kernels in
 ``kernels/density.cl``: turbulence, uniform, each star's bump) or read from a file
 (:mod:`~nebula_rt.density.generate`); the voxel averages of a field given on boxes, an
-adaptive grid's leaves (:mod:`~nebula_rt.density.resample`)."""
+adaptive grid's leaves (:mod:`~nebula_rt.density.resample`); an adaptive density as a forest of
+octrees in flat arrays (:mod:`~nebula_rt.density.octree`; docs/adaptive_grids.md)."""
 
 from .generate import check_density_file, file_digest, generate_density, load_density_file
+from .octree import Octree, coarsen
 from .resample import box_averages
 
-__all__ = ["box_averages", "check_density_file", "file_digest", "generate_density", "load_density_file"]
+__all__ = ["Octree", "box_averages", "check_density_file", "coarsen", "file_digest", "generate_density",
+           "load_density_file"]
