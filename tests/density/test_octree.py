@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from nebula_rt.density.octree import coarsen
+from nebula_rt.density.octree import coarsen, from_boxes
 from nebula_rt.density.resample import box_averages
 
 
@@ -89,3 +89,60 @@ def test_negative_or_nan_density_is_refused():
         rho[1, 2, 3] = bad
         with pytest.raises(ValueError, match="finite and >= 0"):
             coarsen(rho, (1, 1, 1))
+
+
+def _random_boxes(seed):
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from test_box_averages import random_octree
+
+    return random_octree(seed, roots=3, depth=3)
+
+
+def test_the_leaves_of_a_tree_make_the_same_tree():
+    n = 16
+    rho = np.ones((n, n, n))
+    rho[3:7, 2:9, 5:6] = 7.0
+    rho[12, 12, 12] = 3.0
+    tree = coarsen(rho, (2, 2, 2))
+    lo, hi, dens = tree.leaves()
+    again = from_boxes(lo, hi, dens, (2, 2, 2))
+    np.testing.assert_array_equal(again.child, tree.child)
+    np.testing.assert_array_equal(again.density, tree.density)
+
+
+def test_boxes_in_any_order_keep_their_numbers():
+    lo, hi = _random_boxes(5)
+    vals = np.random.default_rng(6).random(len(lo))
+    perm = np.random.default_rng(7).permutation(len(lo))
+    tree = from_boxes(lo[perm], hi[perm], vals[perm], (3, 3, 3))
+    tlo, thi, tval = tree.leaves()  # leaf i is box i as given
+    np.testing.assert_allclose(tlo, lo[perm], atol=1e-15)
+    np.testing.assert_allclose(thi, hi[perm], atol=1e-15)
+    np.testing.assert_array_equal(tval, vals[perm].astype(np.float32))
+    assert tree.depth() == int(np.rint(np.log2(1 / (3 * (hi - lo)[:, 0].min()))))
+
+
+def test_boxes_that_are_not_a_tiling_are_refused():
+    lo, hi = _random_boxes(8)
+    vals = np.ones(len(lo))
+    roots = (3, 3, 3)
+    with pytest.raises(ValueError, match="holes"):
+        from_boxes(lo[1:], hi[1:], vals[1:], roots)
+    with pytest.raises(ValueError, match="inside another|holes|twice"):
+        from_boxes(np.vstack([lo, [[0, 0, 0]]]), np.vstack([hi, [[1 / 3, 1 / 3, 1 / 3]]]), np.ones(len(lo) + 1), roots)
+    shifted = lo.copy()
+    shifted[0] += 1e-3
+    with pytest.raises(ValueError, match="box 0 .* not a cell"):
+        from_boxes(shifted, hi, vals, roots)
+    flat = hi.copy()
+    flat[2, 2] = lo[2, 2] + (hi[2, 2] - lo[2, 2]) / 2  # halved on one axis only
+    with pytest.raises(ValueError, match="box 2 .* not a cell"):
+        from_boxes(lo, flat, vals, roots)
+    for bad in (np.nan, -1.0):
+        v = vals.copy()
+        v[4] = bad
+        with pytest.raises(ValueError, match="box 4: density"):
+            from_boxes(lo, hi, v, roots)

@@ -11,8 +11,10 @@ leaves, not to the finest resolution.
 :func:`coarsen` makes a tree from a uniform density by merging every 2 x 2 x 2 block of
 cells whose values agree within a tolerance into their mean (bottom up, so a merged block
 may merge again): the mass is kept exactly (a parent is the mean of its children), and a
-tolerance of 0 merges only blocks of equal values. :meth:`Octree.leaves` gives each leaf's
-box and density, for :func:`nebula_rt.density.resample.box_averages` and for tests.
+tolerance of 0 merges only blocks of equal values. :func:`from_boxes` makes one from its
+leaves' boxes (a hyper tree grid's or an AMR hierarchy's, refused where they are not the cells
+of a forest of octrees that tile the box). :meth:`Octree.leaves` gives each leaf's box and
+density, for :func:`nebula_rt.density.resample.box_averages` and for tests.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Octree", "coarsen"]
+__all__ = ["Octree", "coarsen", "from_boxes"]
 
 
 @dataclass(frozen=True)
@@ -79,6 +81,92 @@ class Octree:
         order = np.argsort(ids)
         lo, hi = corner * size, (corner + 1) * size
         return lo[order], hi[order], self.density[ids[order]]
+
+
+def from_boxes(lo, hi, values, roots) -> Octree:
+    """The octree whose leaves are the boxes [lo, hi) (box units) with densities ``values``,
+    over ``roots`` root cells per axis: what a hyper tree grid's or an AMR hierarchy's leaves
+    (refinement ratio 2) give. The leaves are numbered as the boxes are given.
+
+    Every box must be a cell of the forest (a root cell halved L times on every axis, at its
+    place), the boxes must tile the unit box (none inside another, their volumes summing to 1:
+    no hole) and the densities must be finite and >= 0. Raises ValueError naming what is wrong
+    and the first box it concerns."""
+    lo = np.asarray(lo, np.float64).reshape(-1, 3)
+    hi = np.asarray(hi, np.float64).reshape(-1, 3)
+    v = np.asarray(values, np.float64).reshape(-1)
+    r = np.array([int(x) for x in roots], np.int64)
+    if r.size != 3 or r.min() < 1:
+        raise ValueError(f"roots must be 3 positive counts, got {roots}")
+    if not (lo.shape == hi.shape and len(v) == len(lo) and len(v)):
+        raise ValueError(f"lo {lo.shape}, hi {hi.shape} and values {v.shape} must describe the same boxes (at least one)")
+    bad = np.flatnonzero(~np.isfinite(v) | (v < 0.0))
+    if bad.size:
+        raise ValueError(f"box {bad[0]}: density {v[bad[0]]!r} must be finite and >= 0")
+    # level per axis: root size / box size = 2^L, the same L on every axis
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = 1.0 / (r[None, :] * (hi - lo))
+        level = np.rint(np.log2(ratio))
+    ok = np.isfinite(level).all(axis=1) & (np.abs(ratio / 2.0 ** level - 1.0) < 1e-9).all(axis=1) & (level >= 0).all(axis=1)
+    ok &= (level == level[:, :1]).all(axis=1)
+    corner = lo * r[None, :] * 2.0 ** np.where(np.isfinite(level), level, 0)
+    ok &= (np.abs(corner - np.rint(corner)) < 1e-6).all(axis=1)
+    if not ok.all():
+        i = int(np.flatnonzero(~ok)[0])
+        raise ValueError(f"box {i} [{lo[i].tolist()}, {hi[i].tolist()}) is not a cell of an octree over "
+                         f"{tuple(r.tolist())} roots (a root cell halved the same number of times on every axis, in place)")
+    lev = level[:, 0].astype(np.int64)
+    corner = np.rint(corner).astype(np.int64)
+    depth = int(lev.max())
+    if depth > 20:
+        raise ValueError(f"a box {depth} levels below the roots: at most 20")
+    vol = np.prod(hi - lo, axis=1)
+    if abs(vol.sum() - 1.0) > 1e-9:
+        raise ValueError(f"the boxes cover {vol.sum():.12g} of the unit box, not all of it: "
+                         "a tree with holes (or overlapping boxes)")
+
+    def key(level_, c):  # an integer per cell of a level: its corner, x fastest
+        w = r * (1 << int(level_))
+        return c[:, 0] + w[0] * (c[:, 1] + w[1] * c[:, 2])
+
+    leaves = {}  # level -> (sorted keys, box indices)
+    for L in range(depth + 1):
+        at = np.flatnonzero(lev == L)
+        k = key(L, corner[at])
+        order = np.argsort(k)
+        if len(k) and (np.diff(k[order]) == 0).any():
+            dup = at[order][np.flatnonzero(np.diff(k[order]) == 0)[0]]
+            raise ValueError(f"box {dup} is given twice")
+        leaves[L] = (k[order], at[order])
+    # no leaf inside another: a leaf's ancestors are not leaves (with the volumes summing to 1,
+    # the boxes then tile the unit box exactly)
+    for L in range(1, depth + 1):
+        at = np.flatnonzero(lev == L)
+        for up in range(1, L + 1):
+            ks, _ = leaves[L - up]
+            anc = key(L - up, corner[at] >> up)
+            hit = np.isin(anc, ks)
+            if hit.any():
+                raise ValueError(f"box {at[np.flatnonzero(hit)[0]]} lies inside another box")
+    octants = np.array(list(np.ndindex(2, 2, 2)))[:, ::-1]  # c = ix + 2 iy + 4 iz
+    cells = np.stack(np.unravel_index(np.arange(int(r.prod())), tuple(r), order="F"), axis=1)
+    child, next_node = [], int(r.prod())
+    for L in range(depth + 1):
+        ks, ids = leaves[L]
+        k = key(L, cells)
+        pos = np.searchsorted(ks, k)
+        is_leaf = (pos < len(ks)) & (ks[np.minimum(pos, len(ks) - 1)] == k)
+        c = np.empty(len(cells), np.int64)
+        c[is_leaf] = -1 - ids[pos[is_leaf]]
+        inner = np.flatnonzero(~is_leaf)
+        if L == depth and inner.size:  # (cannot happen once the tiling is checked)
+            raise ValueError("a cell at the deepest level is neither a box nor refined")
+        c[inner] = next_node + 8 * np.arange(inner.size)
+        next_node += 8 * inner.size
+        child.append(c)
+        cells = (2 * cells[inner][:, None, :] + octants[None, :, :]).reshape(-1, 3)
+    return Octree(roots=tuple(int(x) for x in r), child=np.concatenate(child).astype(np.int32),
+                  density=v.astype(np.float32))
 
 
 def coarsen(density, roots, tolerance: float = 0.0) -> Octree:
