@@ -22,6 +22,7 @@ The rest of NebulaRT's VTK layer (the library, ``nebula_rt``, imports no VTK) li
 - :mod:`nebula_rt.filters.vti`         reading and writing ``.vti`` files (the ``io`` extra)
 - :mod:`nebula_rt.filters.render`      off-screen PNG volume rendering with pyvista (``io``)
 - :mod:`nebula_rt.filters.controller`  the communicator of ParaView's parallel engine
+- :mod:`nebula_rt.filters.adaptive`    hyper tree grids to and from the library's octrees
 
 The names and types of the outputs' arrays and field data are declared in
 :mod:`nebula_rt.pipeline.output_contract`.
