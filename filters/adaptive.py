@@ -1,9 +1,13 @@
 """Adaptive densities in and out of VTK: a ``vtkHyperTreeGrid`` to and from
-:class:`nebula_rt.density.octree.Octree` (docs/adaptive_grids.md).
+:class:`nebula_rt.density.octree.Octree`, and a ``vtkOverlappingAMR`` to one
+(docs/adaptive_grids.md).
 
 The hyper tree grid must be 3-D with branch factor 2 over a uniform root grid (evenly spaced
 coordinates on each axis); its bounds become the unit box. Every root tree must exist and no
 leaf may be masked (a tree with holes is refused, as the transport needs density everywhere).
+The AMR hierarchy must refine by 2 from level to level, its level 0 must cover its bounds
+(each level-0 cell becomes a root), and its finer blocks must lie on their parents' cells;
+the cells a finer level covers are found from the blocks' boxes, not from blanking arrays.
 """
 
 from __future__ import annotations
@@ -12,7 +16,7 @@ import numpy as np
 
 from nebula_rt.density.octree import Octree, from_boxes
 
-__all__ = ["octree_from_htg", "octree_to_htg"]
+__all__ = ["octree_from_amr", "octree_from_htg", "octree_to_htg"]
 
 
 def _uniform(coords, axis: str) -> tuple[float, float, int]:
@@ -140,3 +144,60 @@ def octree_to_htg(tree: Octree, arrays: dict, bounds=(0.0, 1.0, 0.0, 1.0, 0.0, 1
         fill(i + rx * (j + ry * k))
         offset += cur.GetTree().GetNumberOfVertices()
     return htg
+
+
+def octree_from_amr(amr, array: str = "density") -> Octree:
+    """The :class:`Octree` of a ``vtkOverlappingAMR`` with the values of cell array ``array``
+    on the cells no finer level covers (refinement ratio 2; VTK 9.2's and 9.6+'s block access
+    both). Raises ValueError naming what does not fit (the ratio, a missing array, holes or
+    overlaps, NaN or negative values)."""
+    from vtkmodules.util.numpy_support import vtk_to_numpy
+    from vtkmodules import vtkCommonDataModel as dm
+
+    new_api = hasattr(dm, "vtkOverlappingAMRMetaData")  # VTK 9.6: blocks by GetNumberOfBlocks(level)
+    levels = amr.GetNumberOfLevels()
+    if levels < 1:
+        raise ValueError("the AMR hierarchy has no levels")
+    for L in range(levels - 1):
+        if amr.GetRefinementRatio(L) != 2:
+            raise ValueError(f"level {L} refines by {amr.GetRefinementRatio(L)}; an octree needs 2")
+    boxes = []  # per level: [(lo (3,), hi (3,) inclusive cell indices, block)]
+    for L in range(levels):
+        n = amr.GetNumberOfBlocks(L) if new_api else amr.GetNumberOfDataSets(L)
+        level = []
+        for i in range(n):
+            grid = amr.GetDataSetAsImageData(L, i) if new_api else amr.GetDataSet(L, i)
+            if grid is None:
+                continue
+            lo, hi = [0] * 3, [0] * 3
+            amr.GetAMRBox(L, i).GetDimensions(lo, hi)
+            level.append((np.array(lo, np.int64), np.array(hi, np.int64), grid))
+        boxes.append(level)
+    if not boxes[0]:
+        raise ValueError("the AMR hierarchy has no block on level 0")
+    root_lo = np.min([b[0] for b in boxes[0]], axis=0)
+    roots = np.max([b[1] for b in boxes[0]], axis=0) - root_lo + 1
+    out_lo, out_hi, out_v = [], [], []
+    for L, level in enumerate(boxes):
+        finer = [(b[0] // 2, b[1] // 2) for b in boxes[L + 1]] if L + 1 < levels else []
+        for lo, hi, grid in level:
+            arr = grid.GetCellData().GetArray(array)
+            if arr is None or arr.GetNumberOfComponents() != 1:
+                names = [grid.GetCellData().GetArrayName(k) for k in range(grid.GetCellData().GetNumberOfArrays())]
+                raise ValueError(f"level {L}: no one-component cell array {array!r}; the block has {names}")
+            dims = hi - lo + 1
+            ijk = np.stack(np.unravel_index(np.arange(int(dims.prod())), tuple(dims), order="F"), axis=1) + lo
+            values = vtk_to_numpy(arr).astype(np.float64)
+            if values.size != ijk.shape[0]:
+                raise ValueError(f"level {L}: a block of {ijk.shape[0]} cells holds {values.size} values of {array!r}")
+            covered = np.zeros(len(ijk), bool)
+            for flo, fhi in finer:
+                covered |= np.all((ijk >= flo) & (ijk <= fhi), axis=1)
+            keep = ~covered
+            cells = roots * (1 << L)
+            corner = ijk[keep] - root_lo * (1 << L)
+            out_lo.append(corner / cells)
+            out_hi.append((corner + 1) / cells)
+            out_v.append(values[keep])
+    return from_boxes(np.concatenate(out_lo), np.concatenate(out_hi), np.concatenate(out_v),
+                      tuple(int(r) for r in roots))

@@ -9,7 +9,7 @@ import pytest
 
 from nebula_rt.density.octree import coarsen
 from nebula_rt.density.resample import box_averages
-from nebula_rt.filters.adaptive import octree_from_htg, octree_to_htg
+from nebula_rt.filters.adaptive import octree_from_amr, octree_from_htg, octree_to_htg
 
 
 def clumpy(n=16):
@@ -78,3 +78,67 @@ def test_what_the_transport_cannot_take_is_refused():
         octree_from_htg(octree_to_htg(tree, {"density": bad}))
     with pytest.raises(ValueError, match="values for"):
         octree_to_htg(tree, {"density": tree.density[:-1]})
+
+
+def _amr(ratio=2, level0=(((0, 0, 0), (7, 7, 7)),), fine=((4, 4, 4), (11, 11, 11)), with_array=True):
+    """Two levels over the unit box: level 0 of 8^3 cells, level 1 refining level-0 cells
+    [2, 5]^3 (level-1 cells [4, 11]^3 at ratio 2); each cell's density a function of its centre."""
+    from vtkmodules import vtkCommonDataModel as dm
+    from vtkmodules.util.numpy_support import numpy_to_vtk
+
+    def block(lo, hi, h):
+        n = np.array(hi) - np.array(lo) + 1
+        g = dm.vtkUniformGrid()
+        g.SetOrigin(*(np.array(lo) * h))
+        g.SetSpacing(h, h, h)
+        g.SetDimensions(*(n + 1))
+        ijk = np.stack(np.unravel_index(np.arange(n.prod()), tuple(n), order="F"), axis=1) + lo
+        if with_array:
+            a = numpy_to_vtk(density_at((ijk + 0.5) * h), deep=1)
+            a.SetName("density")
+            g.GetCellData().AddArray(a)
+        return g
+
+    amr = dm.vtkOverlappingAMR()
+    if hasattr(dm, "vtkOverlappingAMRMetaData"):
+        amr.Initialize([len(level0), 1])
+    else:
+        amr.Initialize(2, [len(level0), 1])
+    h0 = 1.0 / 8
+    amr.SetOrigin([0.0, 0.0, 0.0])
+    amr.SetSpacing(0, [h0] * 3)
+    amr.SetSpacing(1, [h0 / ratio] * 3)
+    amr.SetRefinementRatio(0, ratio)
+    for i, (lo, hi) in enumerate(level0):
+        amr.SetAMRBox(0, i, dm.vtkAMRBox(list(lo), list(hi)))
+        amr.SetDataSet(0, i, block(lo, hi, h0))
+    amr.SetAMRBox(1, 0, dm.vtkAMRBox(list(fine[0]), list(fine[1])))
+    amr.SetDataSet(1, 0, block(fine[0], fine[1], h0 / ratio))
+    return amr
+
+
+def density_at(c):
+    return 1.0 + np.exp(-np.sum((c - 0.45) ** 2, axis=1) / 0.01)
+
+
+def test_an_amr_hierarchy_is_the_octree_of_its_visible_cells():
+    tree = octree_from_amr(_amr())
+    assert tree.roots == (8, 8, 8) and tree.depth() == 1
+    assert tree.n_leaves == 8 ** 3 - 4 ** 3 + 8 ** 3  # level 0 less the 64 cells level 1 covers, plus level 1
+    lo, hi, v = tree.leaves()
+    got = box_averages(lo, hi, v, (16, 16, 16))
+    # each 1/16 voxel lies in one level-1 cell (inside [0.25, 0.75)^3) or one level-0 cell
+    centres = (np.array(list(np.ndindex(16, 16, 16))) + 0.5) / 16
+    fine = np.all((centres >= 0.25) & (centres < 0.75), axis=1)
+    want = np.where(fine, density_at(centres), density_at((np.floor(centres * 8) + 0.5) / 8))
+    np.testing.assert_allclose(got.reshape(-1), want.astype(np.float32), rtol=1e-6)
+
+
+def test_what_an_octree_cannot_hold_is_refused():
+    with pytest.raises(ValueError, match="refines by 3"):
+        octree_from_amr(_amr(ratio=3, fine=((6, 6, 6), (11, 11, 11))))
+    with pytest.raises(ValueError, match="no one-component cell array 'density'"):
+        octree_from_amr(_amr(with_array=False))
+    with pytest.raises(ValueError, match="holes"):  # level 0's two blocks leave a gap at i = 4
+        octree_from_amr(_amr(level0=(((0, 0, 0), (3, 7, 7)), ((5, 0, 0), (7, 7, 7)))))
+    assert octree_from_amr(_amr(level0=(((0, 0, 0), (3, 7, 7)), ((4, 0, 0), (7, 7, 7))))).n_leaves == 960

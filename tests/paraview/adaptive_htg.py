@@ -1,10 +1,12 @@
-"""An octree through ParaView's own VTK: written as a vtkHyperTreeGrid, to an .htg file with
-ParaView's writer, read back with its reader and converted again (nebula_rt.filters.adaptive).
+"""Adaptive densities through ParaView's own VTK (nebula_rt.filters.adaptive): an octree written
+as a vtkHyperTreeGrid to an .htg file with ParaView's writer, read back with its reader and
+converted again; a two-level vtkOverlappingAMR written to a .vthb file and read back with every
+level (the reader's default in ParaView 5.11 is level 0 only).
 
-    pvpython adaptive_htg.py OUT.htg
+    pvpython adaptive_htg.py OUT.htg OUT.vthb
 
-RESULT: the VTK version, the leaves and depth of the tree and of the one read back, and whether
-the voxel averages of the two (16 x 8 x 16) are equal.
+RESULT: the VTK version, the leaves and depth of the tree and of the one read back, whether the
+voxel averages of the two (16 x 8 x 16) are equal, and the AMR's leaves as built and as read.
 """
 
 import sys
@@ -32,5 +34,44 @@ reader.SetFileName(sys.argv[1])
 reader.Update()
 back = octree_from_htg(reader.GetOutput())
 a, b = tree.leaves(), back.leaves()
+
+
+def amr_two_levels():
+    """Level 0: 8^3 cells over the unit box; level 1 refines level-0 cells [2, 5]^3."""
+    from vtkmodules import vtkCommonDataModel as dm
+    from vtkmodules.util.numpy_support import numpy_to_vtk
+
+    amr = dm.vtkOverlappingAMR()
+    amr.Initialize(2, [1, 1])
+    amr.SetOrigin([0.0, 0.0, 0.0])
+    for level, (lo, hi, h) in enumerate((((0, 0, 0), (7, 7, 7), 1 / 8), ((4, 4, 4), (11, 11, 11), 1 / 16))):
+        n = np.array(hi) - np.array(lo) + 1
+        g = dm.vtkUniformGrid()
+        g.SetOrigin(*(np.array(lo) * h))
+        g.SetSpacing(h, h, h)
+        g.SetDimensions(*(n + 1))
+        arr = numpy_to_vtk(np.linspace(1.0, 2.0, int(n.prod())), deep=1)
+        arr.SetName("density")
+        g.GetCellData().AddArray(arr)
+        amr.SetSpacing(level, [h] * 3)
+        amr.SetAMRBox(level, 0, dm.vtkAMRBox(list(lo), list(hi)))
+        amr.SetDataSet(level, 0, g)
+    amr.SetRefinementRatio(0, 2)
+    return amr
+
+
+from nebula_rt.filters.adaptive import octree_from_amr  # noqa: E402
+from vtkmodules.vtkIOXML import vtkXMLUniformGridAMRReader, vtkXMLUniformGridAMRWriter  # noqa: E402
+
+amr = amr_two_levels()
+aw = vtkXMLUniformGridAMRWriter()
+aw.SetInputData(amr)
+aw.SetFileName(sys.argv[2])
+aw.Write()
+ar = vtkXMLUniformGridAMRReader()
+ar.SetFileName(sys.argv[2])
+ar.SetMaximumLevelsToReadByDefault(0)  # every level
+ar.Update()
 _common.result(vtk=vtkVersion.GetVTKVersion(), leaves=[tree.n_leaves, back.n_leaves], depth=[tree.depth(), back.depth()],
-               same=bool(np.array_equal(box_averages(*a, rho.shape), box_averages(*b, rho.shape))))
+               same=bool(np.array_equal(box_averages(*a, rho.shape), box_averages(*b, rho.shape))),
+               amr=[octree_from_amr(amr).n_leaves, octree_from_amr(ar.GetOutput()).n_leaves])

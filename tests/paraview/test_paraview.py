@@ -810,7 +810,10 @@ def test_what_auto_chose_is_a_property_to_read(pv_env, xdisplay, tmp_path):
 def test_an_octree_goes_through_paraviews_hyper_tree_grid(pv_env, xdisplay, tmp_path):
     """ParaView 5.11's VTK (9.2, not the library environment's): an octree of a clumpy density
     written as a vtkHyperTreeGrid to an .htg file by ParaView's writer and read back by its
-    reader is the same tree (leaves, depth) and the same field (equal voxel averages)."""
-    r, _ = run_pv(pv_env, xdisplay, "adaptive_htg.py", tmp_path / "tree.htg")
+    reader is the same tree (leaves, depth) and the same field (equal voxel averages); a
+    two-level AMR hierarchy through a .vthb file, read with every level, is the octree of its
+    960 visible cells (512 - 64 + 512)."""
+    r, _ = run_pv(pv_env, xdisplay, "adaptive_htg.py", tmp_path / "tree.htg", tmp_path / "amr.vthb")
+    assert r["amr"] == [960, 960], r["amr"]
     assert r["vtk"].startswith("9.2"), r["vtk"]
     assert r["leaves"][0] == r["leaves"][1] > 16 and r["depth"] == [3, 3] and r["same"], r
