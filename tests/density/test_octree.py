@@ -146,3 +146,16 @@ def test_boxes_that_are_not_a_tiling_are_refused():
         v[4] = bad
         with pytest.raises(ValueError, match="box 4: density"):
             from_boxes(lo, hi, v, roots)
+
+
+def test_every_point_is_found_in_the_leaf_that_holds_it():
+    lo, hi = _random_boxes(11)
+    tree = from_boxes(lo, hi, np.arange(len(lo), dtype=float), (3, 3, 3))
+    pts = np.random.default_rng(12).random((5000, 3))
+    pts[:3] = [[0.0, 0.0, 0.0], [1.0, 1.0, 1.0], [1 / 3, 0.5, 2 / 3]]  # corners and root faces
+    got = tree.locate(pts)
+    inside = np.all((pts[:, None, :] >= lo[None]) & (pts[:, None, :] < hi[None]), axis=2)
+    inside[1, np.argmax(np.all(np.isclose(hi, 1.0), axis=1))] = True  # the high corner: the last cell
+    want = inside.argmax(axis=1)
+    assert (inside.sum(axis=1) >= 1).all()
+    np.testing.assert_array_equal(got, want)

@@ -2,7 +2,8 @@
 ``kernels/density.cl``: turbulence, uniform, each star's bump) or read from a file
 (:mod:`~nebula_rt.density.generate`); the voxel averages of a field given on boxes, an
 adaptive grid's leaves (:mod:`~nebula_rt.density.resample`); an adaptive density as a forest of
-octrees in flat arrays (:mod:`~nebula_rt.density.octree`; docs/adaptive_grids.md)."""
+octrees in flat arrays (:mod:`~nebula_rt.density.octree`; docs/adaptive_grids.md), and particle
+snapshots deposited on one (:mod:`~nebula_rt.density.particles`)."""
 
 from .generate import check_density_file, file_digest, generate_density, load_density_file
 from .octree import Octree, coarsen, from_boxes

@@ -73,6 +73,25 @@ class Octree:
             level = np.repeat(level[inner] + 1, 8)
         return np.concatenate(out_n), np.concatenate(out_c), np.concatenate(out_l)
 
+    def locate(self, points) -> np.ndarray:
+        """The leaf index of each point (n, 3) of the unit box (a point on a face belongs to
+        the cell above it; the box's high faces to the last cell). Vectorised descent: one
+        step per level for all points together."""
+        p = np.clip(np.asarray(points, np.float64).reshape(-1, 3), 0.0, 1.0)
+        r = np.asarray(self.roots, np.int64)
+        cell = np.minimum(np.floor(p * r).astype(np.int64), r - 1)
+        node = cell[:, 0] + r[0] * (cell[:, 1] + r[1] * cell[:, 2])
+        scale = r.astype(np.float64)
+        c = self.child[node].astype(np.int64)
+        inner = c >= 0
+        while inner.any():
+            scale = scale * 2.0
+            sub = np.minimum(np.floor(p[inner] * scale).astype(np.int64), (scale - 1).astype(np.int64)) & 1
+            node[inner] = c[inner] + sub[:, 0] + 2 * sub[:, 1] + 4 * sub[:, 2]
+            c[inner] = self.child[node[inner]]
+            inner = c >= 0
+        return -1 - c
+
     def leaves(self):
         """(lo (n, 3), hi (n, 3), density (n,)) of every leaf, in leaf-index order (box units)."""
         nodes, corner, level = self._walk()
@@ -155,7 +174,7 @@ def from_boxes(lo, hi, values, roots) -> Octree:
         ks, ids = leaves[L]
         k = key(L, cells)
         pos = np.searchsorted(ks, k)
-        is_leaf = (pos < len(ks)) & (ks[np.minimum(pos, len(ks) - 1)] == k)
+        is_leaf = (pos < len(ks)) & (ks[np.minimum(pos, len(ks) - 1)] == k) if len(ks) else np.zeros(len(k), bool)
         c = np.empty(len(cells), np.int64)
         c[is_leaf] = -1 - ids[pos[is_leaf]]
         inner = np.flatnonzero(~is_leaf)
