@@ -92,11 +92,7 @@ def test_negative_or_nan_density_is_refused():
 
 
 def _random_boxes(seed):
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).parent))
-    from test_box_averages import random_octree
+    from test_box_averages import random_octree  # (tests/density is on the test path)
 
     return random_octree(seed, roots=3, depth=3)
 
