@@ -107,3 +107,31 @@ def test_the_light_on_a_tree_goes_to_paraview_and_onto_a_grid(backend):
     np.testing.assert_allclose(box_averages(lo, hi, tl.J[0], (8, 8, 8)), grid.J[0], rtol=1e-5)
     coarse = box_averages(lo, hi, tl.J[0], (4, 4, 4))
     assert coarse.sum() / 64 == pytest.approx(grid.J[0].sum() / 512, rel=1e-6)
+
+
+def test_a_sphere_on_a_tree_refined_at_its_surface_lets_out_p0_and_p0_plus_p1(backend):
+    """A uniform sphere (tau_R = 1, albedo 0.6, g 0.6) as a tree: the partial-volume sphere on
+    96^3 voxels, merged wherever the voxels agree (inside and outside), so that only its
+    surface stays refined. max_scatterings 0: the escaped fraction is P0, 1: P0 + P1
+    (REFERENCES.md's values, as tests/transport/test_transport_physics.py), within 5 binomial
+    sigma plus the partial-volume surface's own error, measured by an independent ray march
+    of the 96^3 voxels (twice for P0 + P1: before and after the scattering)."""
+    from test_transport_physics import P0_TAU1, P1_TAU1_G06, numpy_escape_probability, partial_volume_sphere
+
+    rho = partial_volume_sphere((96, 96, 96), 0.5)
+    tree = coarsen(rho, (3, 3, 3))
+    assert tree.n_leaves < 96 ** 3 / 4 and tree.depth() == 5  # refined only where it must be
+    kappa, n = 2.0, 300_000
+    vox_err = abs(numpy_escape_probability(rho.astype(np.float64), kappa, n_dirs=2000) - P0_TAU1)
+    assert vox_err < 2e-3
+    esc = []
+    for ms, seed in ((0, 3), (1, 4)):
+        tl = trace_tree(tree, one_band(0.6, 0.6), centre_star(), tau=kappa, photons=n, seed=seed,
+                        max_scatterings=ms, backend=backend)
+        assert tl.counts[0, 1:].sum() == n
+        esc.append(tl.counts[0, 2] / n)
+    s0 = math.sqrt(P0_TAU1 * (1 - P0_TAU1) / n)
+    p01 = P0_TAU1 + P1_TAU1_G06
+    s1 = math.sqrt(p01 * (1 - p01) / n)
+    assert abs(esc[0] - P0_TAU1) < 5 * s0 + vox_err + 5e-4, (esc[0], P0_TAU1)
+    assert abs(esc[1] - p01) < 5 * s1 + 2 * vox_err + 5e-4, (esc[1], p01)
