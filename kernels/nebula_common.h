@@ -293,6 +293,68 @@ NRT_DEVICE void nrt_sample_isotropic(nrt_rng *r, float *d)
 }
 
 /* ------------------------------------------------------------------------------------------ */
+/* Peel-off images: the phase function, the pixel, the stochastic rounding of a deposit        */
+/* (transport.cl and tree.cl)                                                                   */
+/* ------------------------------------------------------------------------------------------ */
+NRT_DEVICE float nrt_hg_phase(float g, float mu)
+{
+    g = fmin(fmax(g, -NRT_G_LIMIT), NRT_G_LIMIT); /* as the sampling clamps it */
+    float gg = g * g;
+    float den = 1.0f + gg - 2.0f * g * mu;
+    /* 1 - g^2 as (1 - |g|)(1 + |g|): no cancellation as |g| -> 1 */
+    return ((1.0f - fabs(g)) * (1.0f + fabs(g))) / (4.0f * NRT_PI_F * den * sqrt(den));
+}
+
+/* The pixel (p H + q) of a peel-off image that point x projects to; 0 where it falls outside.
+   peel[15]: direction to the observer o (3), image axes u and v (3 + 3), centre of pixel
+   (0, 0) (3), pixel size, W, H. */
+NRT_DEVICE int nrt_peel_pixel(const NRT_GLOBAL float *peel, const float *x, nrt_u64 *pixel)
+{
+    float rx = x[0] - peel[9], ry = x[1] - peel[10], rz = x[2] - peel[11];
+    float a = (rx * peel[3] + ry * peel[4] + rz * peel[5]) / peel[12];
+    float b = (rx * peel[6] + ry * peel[7] + rz * peel[8]) / peel[12];
+    int pi = (int)floor(a + 0.5f), qi = (int)floor(b + 0.5f);
+    int w = (int)peel[13], h = (int)peel[14];
+    if (pi < 0 || pi >= w || qi < 0 || qi >= h)
+        return 0;
+    *pixel = (nrt_u64)pi * (nrt_u64)h + (nrt_u64)qi;
+    return 1;
+}
+
+/*
+ * Fixed-point units of a peel-off weight, rounded stochastically: floor(x) + 1 with
+ * probability frac(x), x = wgt * scale, so the expected deposit is x (to 2^-64 units) however
+ * faint the weight. Rounding to nearest dropped every weight below half a unit, 2^-25 of the
+ * forward phase-function peak (with g 0.9: beyond tau about 8.5 towards the observer); the
+ * sums stay exact integers. The uniform comes from a Philox block of its own, counter
+ * (photon, event, 1, branch) under the packet's key (seed, band): the packet's streams use
+ * counters (photon, block, 0, stream), so its random numbers, and everything else it tallies,
+ * are untouched, and the image is the same bits on any device and thread order (branch: the
+ * split copy of a weighted packet, 0 for every analog one).
+ */
+NRT_DEVICE nrt_u64 nrt_fixed_stochastic(float wgt, float scale, nrt_u64 seed, nrt_u64 band,
+                                        nrt_u64 photon, nrt_u64 event, nrt_u64 branch)
+{
+    float x = NRT_FMAF(wgt, scale, 0.0f);
+    float whole = floor(x);
+    float frac = x - whole; /* exact for x >= 0 */
+    nrt_u64 n = (nrt_u64)whole;
+    if (frac > 0.0f) {
+        nrt_u64x4 c;
+        c.v[0] = photon;
+        c.v[1] = event;
+        c.v[2] = 1;
+        c.v[3] = branch;
+        nrt_u64x4 r = nrt_philox4x64_10(c, seed, band);
+        /* P(r < T) = T 2^-64 with T = floor(frac 2^64): frac 2^64 < 2^64 is a float whose
+           conversion truncates only below 2^24, i.e. loses less than 2^-40 of frac */
+        nrt_u64 threshold = (nrt_u64)(frac * 18446744073709551616.0f);
+        n += (r.v[0] < threshold) ? 1UL : 0UL;
+    }
+    return n;
+}
+
+/* ------------------------------------------------------------------------------------------ */
 /* Simplex noise (Gustavson 2005, "Simplex noise demystified"), turbulence, cubic bump         */
 /* ------------------------------------------------------------------------------------------ */
 NRT_CONSTANT int nrt_grad3[12][3] = {{1, 1, 0}, {-1, 1, 0}, {1, -1, 0}, {-1, -1, 0},

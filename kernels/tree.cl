@@ -64,13 +64,57 @@ NRT_DEVICE int nrt_tree_locate(const NRT_GLOBAL int *child, int rx, int ry, int 
     return -1; /* deeper than NRT_TREE_MAX_DEPTH: not a tree the host made */
 }
 
-/* Track lengths per leaf of one band's cells (leaves), tallies[4 band + t]. */
+#ifndef NRT_PEEL
+#define NRT_PEEL 0
+#endif
+
+#if NRT_PEEL
+/* Optical depth from x along o to the box's edge, leaf by leaf (the walk's steps). */
+NRT_DEVICE float nrt_tree_tau_to_edge(const NRT_GLOBAL int *child, const NRT_GLOBAL float *leaf_density, int rx,
+                                      int ry, int rz, float sig_b, const float *x, const float *o)
+{
+    float p[3] = {x[0], x[1], x[2]};
+    float lo[3], h[3], tau = 0.0f;
+    int c[3], n[3];
+    int leaf = nrt_tree_locate(child, rx, ry, rz, p, o, c, n, lo, h);
+    while (leaf >= 0) {
+        float t_exit = NRT_INF_TREE;
+        int ax = 0;
+        for (int a = 0; a < 3; ++a) {
+            float t = o[a] > 0.0f ? ((float)(c[a] + 1) * h[a] - p[a]) / o[a]
+                    : (o[a] < 0.0f ? (lo[a] - p[a]) / o[a] : NRT_INF_TREE);
+            t = fmax(t, 0.0f);
+            if (t < t_exit) {
+                t_exit = t;
+                ax = a;
+            }
+        }
+        tau += sig_b * leaf_density[leaf] * t_exit;
+        int up = o[ax] > 0.0f;
+        if ((up && c[ax] + 1 == n[ax]) || (!up && c[ax] == 0))
+            break;
+        for (int a = 0; a < 3; ++a)
+            p[a] = p[a] + o[a] * t_exit;
+        p[ax] = (float)(c[ax] + up) * h[ax];
+        leaf = nrt_tree_locate(child, rx, ry, rz, p, o, c, n, lo, h);
+    }
+    return tau;
+}
+#endif
+
+/* Track lengths per leaf of one band's cells (leaves), tallies[4 band + t]; NRT_PEEL: the
+   peel-off image per band (W x H fixed-point units, rounded stochastically as transport.cl's
+   analog packets round theirs: the same draws). */
 NRT_KERNEL void trace_tree(const NRT_GLOBAL int *child, const NRT_GLOBAL float *leaf_density, int rx, int ry, int rz,
                            const NRT_GLOBAL float *optics, /* per band: tau k_b, albedo, g, 0 */
                            const NRT_GLOBAL float *stars, const NRT_GLOBAL float *star_cdf, int n_stars,
                            nrt_u64 seed, nrt_u64 photon_start, nrt_u64 count, int n_bands, int max_scatterings,
-                           float track_scale, nrt_u64 n_leaves, NRT_GLOBAL nrt_u64 *acc, NRT_GLOBAL nrt_u64 *tallies)
+                           float track_scale, nrt_u64 n_leaves, NRT_GLOBAL nrt_u64 *acc, NRT_GLOBAL nrt_u64 *tallies,
+                           const NRT_GLOBAL float *peel, float peel_scale, NRT_GLOBAL nrt_u64 *image)
 {
+#if !NRT_PEEL
+    (void)peel, (void)peel_scale, (void)image;
+#endif
     nrt_u64 total = count * (nrt_u64)n_bands;
     for (nrt_u64 it = NRT_GLOBAL_ID(); it < total; it += NRT_GLOBAL_SIZE()) {
         int band = (int)(it / count);
@@ -130,6 +174,21 @@ NRT_KERNEL void trace_tree(const NRT_GLOBAL int *child, const NRT_GLOBAL float *
                     break;
                 }
                 ++scatterings;
+#if NRT_PEEL
+                {
+                    nrt_u64 pixel;
+                    if (nrt_peel_pixel(peel, p, &pixel)) {
+                        const float o[3] = {peel[0], peel[1], peel[2]};
+                        float mu_o = d[0] * o[0] + d[1] * o[1] + d[2] * o[2];
+                        float wgt = nrt_hg_phase(g_b, mu_o) *
+                                    exp(-nrt_tree_tau_to_edge(child, leaf_density, rx, ry, rz, sig_b, p, o));
+                        nrt_u64 v = nrt_fixed_stochastic(wgt, peel_scale, seed, (nrt_u64)band, photon,
+                                                         (nrt_u64)scatterings, 0);
+                        if (v)
+                            NRT_ATOMIC_ADD_U64(&image[(nrt_u64)band * (nrt_u64)peel[13] * (nrt_u64)peel[14] + pixel], v);
+                    }
+                }
+#endif
                 float mu, sin_theta;
                 nrt_sample_hg(g_b, nrt_rng_uniform(&rng), &mu, &sin_theta);
                 nrt_rotate(d, mu, sin_theta, 2.0f * NRT_PI_F * nrt_rng_uniform(&rng));

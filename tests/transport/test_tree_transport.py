@@ -135,3 +135,57 @@ def test_a_sphere_on_a_tree_refined_at_its_surface_lets_out_p0_and_p0_plus_p1(ba
     s1 = math.sqrt(p01 * (1 - p01) / n)
     assert abs(esc[0] - P0_TAU1) < 5 * s0 + vox_err + 5e-4, (esc[0], P0_TAU1)
     assert abs(esc[1] - p01) < 5 * s1 + 2 * vox_err + 5e-4, (esc[1], p01)
+
+
+@pytest.mark.parametrize("direction", [(0.0, 0.0, -1.0), (0.3, -0.5, 0.8)])
+def test_a_tree_of_voxels_peels_off_the_grids_image(backend, direction):
+    """The peel-off image on a tree of a grid's voxels: the same scatterings and the same
+    stochastic rounding draws as the grid's analog packets, the optical depths to the edge
+    marched leaf by leaf instead of voxel by voxel (or read from the columns along an axis):
+    the images agree to float32 rounding (totals within 1e-5), along an axis and obliquely."""
+    from nebula_rt.observe.sky import Camera
+
+    rho = (np.random.default_rng(5).random((8, 8, 8)) + 0.2).astype(np.float32)
+    tree = coarsen(rho, (1, 1, 1))
+    cam = Camera(direction=direction, size=(16, 12), center=(0.5, 0.5, 0.5))
+    kw = dict(tau=3.0, photons=20_000, seed=7)
+    tl = trace_tree(tree, one_band(0.6, 0.5), centre_star(), backend=backend, peel=cam, **kw)
+    grid = trace(rho, one_band(0.6, 0.5), centre_star(), backend=backend, method="analog", batch_size=20_000,
+                 peel=cam, light_field=False, **kw)
+    assert tl.peel_image.sum() > 0
+    np.testing.assert_allclose(tl.peel_image.sum(), grid.peel_image.sum(), rtol=1e-5)
+    np.testing.assert_allclose(tl.peel_image, grid.peel_image, rtol=1e-4, atol=1e-4 * grid.peel_image.max())
+
+
+def test_a_thin_sphere_on_a_tree_peels_off_its_single_scattering_image(backend):
+    """The thin sphere of tests/observe/test_sky_physics.py (tau_R 0.05, albedo 0.5, g 0.6,
+    at most one scattering) as a tree refined at its surface: the image in three rings of
+    projected offset against the single-scattering integral with the phase function
+    (test_sky_physics.single_scattering_hg), within 5 standard errors of 3 seeds' mean plus
+    1.5 % for the partial-volume surface."""
+    from test_sky_physics import L, N, R, single_scattering_hg
+    from test_transport_physics import partial_volume_sphere
+
+    from nebula_rt.observe.sky import Camera
+
+    g, omega, tau_r = 0.6, 0.5, 0.05
+    kappa = tau_r / R
+    rho = partial_volume_sphere((N, N, N), R)
+    tree = coarsen(rho, (N // 16,) * 3)
+    assert tree.n_leaves < N ** 3 / 3
+    cam = Camera(direction=(0.0, 0.0, -1.0), size=(64, 64), extent=1.0)
+    images = [trace_tree(tree, one_band(albedo=omega, g=g), centre_star(L), tau=kappa, photons=600_000, seed=s,
+                         max_scatterings=1, peel=cam, backend=backend).peel_image[0] for s in (1, 2, 3)]
+    p = np.arange(64)
+    P, Q = np.meshgrid(p, p, indexing="ij")
+    px = cam.pixel_size
+    origin = cam.origin()
+    b = np.hypot(origin[0] + px * P - 0.5, origin[1] + px * Q - 0.5)
+    want_px = single_scattering_hg(b, kappa, g, omega)
+    for lo, hi in ((0.1, 0.175), (0.175, 0.25), (0.25, 0.35)):
+        m = (b >= lo) & (b < hi)
+        got = np.array([im[m].mean() for im in images])
+        want = want_px[m].mean()
+        se = got.std(ddof=1) / math.sqrt(len(got))
+        assert abs(got.mean() / want - 1) < 5 * se / want + 0.015, (lo, got.mean() / want, se / want)
+        assert se / want < 0.03
