@@ -142,3 +142,27 @@ def test_what_an_octree_cannot_hold_is_refused():
     with pytest.raises(ValueError, match="holes"):  # level 0's two blocks leave a gap at i = 4
         octree_from_amr(_amr(level0=(((0, 0, 0), (3, 7, 7)), ((5, 0, 0), (7, 7, 7)))))
     assert octree_from_amr(_amr(level0=(((0, 0, 0), (3, 7, 7)), ((4, 0, 0), (7, 7, 7))))).n_leaves == 960
+
+
+def test_the_light_on_a_tree_goes_to_paraview_and_onto_a_grid(backend):
+    """J per leaf as cell data of a vtkHyperTreeGrid (a refined cell holds its children's
+    mean) and, by exact overlap volume, on a uniform grid: for a tree of a grid's voxels that
+    grid's J (the energy sum J x volume kept whatever grid is chosen)."""
+    from conftest import centre_star, one_band
+    from vtkmodules.util.numpy_support import vtk_to_numpy
+
+    from nebula_rt.transport import trace
+    from nebula_rt.transport.tree import trace_tree
+
+    rho = (np.random.default_rng(8).random((8, 8, 8)) + 0.2).astype(np.float32)
+    tree = coarsen(rho, (1, 1, 1))
+    kw = dict(tau=3.0, photons=10_000, seed=6)
+    tl = trace_tree(tree, one_band(0.6, 0.5), centre_star(), backend=backend, **kw)
+    grid = trace(rho, one_band(0.6, 0.5), centre_star(), backend=backend, method="analog", batch_size=10_000, **kw)
+    htg = octree_to_htg(tree, {"J_V": tl.J[0], "density": tree.density})
+    j_cells = vtk_to_numpy(htg.GetCellData().GetArray("J_V"))
+    assert htg.GetNumberOfLeaves() == tree.n_leaves and j_cells.max() == pytest.approx(tl.J[0].max())
+    lo, hi, _ = tree.leaves()
+    np.testing.assert_allclose(box_averages(lo, hi, tl.J[0], (8, 8, 8)), grid.J[0], rtol=1e-5)
+    coarse = box_averages(lo, hi, tl.J[0], (4, 4, 4))
+    assert coarse.sum() / 64 == pytest.approx(grid.J[0].sum() / 512, rel=1e-6)

@@ -86,29 +86,6 @@ def test_bad_arguments_are_refused(backend):
         trace_tree(tree, one_band(), centre_star(), tau=1.0, photons=0, backend=backend)
 
 
-def test_the_light_on_a_tree_goes_to_paraview_and_onto_a_grid(backend):
-    """J per leaf as cell data of a vtkHyperTreeGrid (a refined cell holds its children's
-    mean) and, by exact overlap volume, on a uniform grid: for a tree of a grid's voxels that
-    grid's J (the energy sum J x volume kept whatever grid is chosen)."""
-    from vtkmodules.util.numpy_support import vtk_to_numpy
-
-    from nebula_rt.density.resample import box_averages
-    from nebula_rt.filters.adaptive import octree_to_htg
-
-    rho = (np.random.default_rng(8).random((8, 8, 8)) + 0.2).astype(np.float32)
-    tree = coarsen(rho, (1, 1, 1))
-    kw = dict(tau=3.0, photons=10_000, seed=6)
-    tl = trace_tree(tree, one_band(0.6, 0.5), centre_star(), backend=backend, **kw)
-    grid = trace(rho, one_band(0.6, 0.5), centre_star(), backend=backend, method="analog", batch_size=10_000, **kw)
-    htg = octree_to_htg(tree, {"J_V": tl.J[0], "density": tree.density})
-    j_cells = vtk_to_numpy(htg.GetCellData().GetArray("J_V"))
-    assert htg.GetNumberOfLeaves() == tree.n_leaves and j_cells.max() == pytest.approx(tl.J[0].max())
-    lo, hi, _ = tree.leaves()
-    np.testing.assert_allclose(box_averages(lo, hi, tl.J[0], (8, 8, 8)), grid.J[0], rtol=1e-5)
-    coarse = box_averages(lo, hi, tl.J[0], (4, 4, 4))
-    assert coarse.sum() / 64 == pytest.approx(grid.J[0].sum() / 512, rel=1e-6)
-
-
 def test_a_sphere_on_a_tree_refined_at_its_surface_lets_out_p0_and_p0_plus_p1(backend):
     """A uniform sphere (tau_R = 1, albedo 0.6, g 0.6) as a tree: the partial-volume sphere on
     96^3 voxels, merged wherever the voxels agree (inside and outside), so that only its
