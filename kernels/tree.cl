@@ -64,6 +64,25 @@ NRT_DEVICE int nrt_tree_locate(const NRT_GLOBAL int *child, int rx, int ry, int 
     return -1; /* deeper than NRT_TREE_MAX_DEPTH: not a tree the host made */
 }
 
+/* Distance from p along d to the nearest far face of the leaf (corner c, low corner lo, size
+   h), formed as locate forms faces; its axis goes to ax. */
+NRT_DEVICE float nrt_tree_exit(const float *p, const float *d, const int *c, const float *lo, const float *h,
+                               int *ax)
+{
+    float t_exit = NRT_INF_TREE;
+    *ax = 0;
+    for (int a = 0; a < 3; ++a) {
+        float t = d[a] > 0.0f ? ((float)(c[a] + 1) * h[a] - p[a]) / d[a]
+                : (d[a] < 0.0f ? (lo[a] - p[a]) / d[a] : NRT_INF_TREE);
+        t = fmax(t, 0.0f);
+        if (t < t_exit) {
+            t_exit = t;
+            *ax = a;
+        }
+    }
+    return t_exit;
+}
+
 #ifndef NRT_PEEL
 #define NRT_PEEL 0
 #endif
@@ -78,17 +97,8 @@ NRT_DEVICE float nrt_tree_tau_to_edge(const NRT_GLOBAL int *child, const NRT_GLO
     int c[3], n[3];
     int leaf = nrt_tree_locate(child, rx, ry, rz, p, o, c, n, lo, h);
     while (leaf >= 0) {
-        float t_exit = NRT_INF_TREE;
-        int ax = 0;
-        for (int a = 0; a < 3; ++a) {
-            float t = o[a] > 0.0f ? ((float)(c[a] + 1) * h[a] - p[a]) / o[a]
-                    : (o[a] < 0.0f ? (lo[a] - p[a]) / o[a] : NRT_INF_TREE);
-            t = fmax(t, 0.0f);
-            if (t < t_exit) {
-                t_exit = t;
-                ax = a;
-            }
-        }
+        int ax;
+        float t_exit = nrt_tree_exit(p, o, c, lo, h, &ax);
         tau += sig_b * leaf_density[leaf] * t_exit;
         int up = o[ax] > 0.0f;
         if ((up && c[ax] + 1 == n[ax]) || (!up && c[ax] == 0))
@@ -146,18 +156,8 @@ NRT_KERNEL void trace_tree(const NRT_GLOBAL int *child, const NRT_GLOBAL float *
                 NRT_ATOMIC_ADD_U64(&tally[3], 1UL);
                 break;
             }
-            /* the nearest far face of the leaf */
-            float t_exit = NRT_INF_TREE;
-            int ax = 0;
-            for (int a = 0; a < 3; ++a) {
-                float t = d[a] > 0.0f ? ((float)(c[a] + 1) * h[a] - p[a]) / d[a]
-                        : (d[a] < 0.0f ? (lo[a] - p[a]) / d[a] : NRT_INF_TREE);
-                t = fmax(t, 0.0f);
-                if (t < t_exit) {
-                    t_exit = t;
-                    ax = a;
-                }
-            }
+            int ax;
+            float t_exit = nrt_tree_exit(p, d, c, lo, h, &ax);
             float sigma = sig_b * leaf_density[leaf];
             float tau_seg = sigma * t_exit;
             if (sigma > 0.0f && tau_seg >= tau) {
