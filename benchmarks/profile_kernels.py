@@ -31,7 +31,7 @@ HERE = Path(__file__).resolve().parent
 
 
 def profile(n: int, photons: int, tuning: dict, program: str = "", free_running: bool = False,
-            error_estimate: str = "batches") -> dict:
+            error_estimate: str = "batches", scene_file: str = "") -> dict:
     import cupy as cp
     import numpy as np
 
@@ -45,7 +45,8 @@ def profile(n: int, photons: int, tuning: dict, program: str = "", free_running:
         be.transport_program = program
     bands = [Band(name="V", wavelength=550.0, extinction=1.0, albedo=0.6, g=0.6)]
     stars = [Star(position=(0.5, 0.5, 0.5), luminosity=1.0, temperature=None, bump_radius=0.0)]
-    trace(np.ones((16, 16, 16), np.float32), bands, stars, tau=2.0, photons=10_000, backend=be)  # compile
+    if not scene_file:  # (a scene is traced once untimed below, on its own grid)
+        trace(np.ones((16, 16, 16), np.float32), bands, stars, tau=2.0, photons=10_000, backend=be)  # compile
 
     times: dict = collections.defaultdict(float)
     idle: dict = collections.defaultdict(float)
@@ -80,9 +81,25 @@ def profile(n: int, photons: int, tuning: dict, program: str = "", free_running:
     be.fill_zero = timed(lambda a: "fill_zero", be.fill_zero)
     be.to_host = timed(lambda a: "to_host", be.to_host)
     be.upload = timed(lambda a: "upload", be.upload)
-    rho = np.ones((n, n, n), np.float32)
-    t0 = time.perf_counter()
-    res = trace(rho, bands, stars, tau=2.0, photons=photons, backend=be, error_estimate=error_estimate)
+    if scene_file:
+        # a scene's own transport (as the pipeline runs it: the sums stay on the device), traced
+        # once untimed so that every kernel it needs is built
+        from nebula_rt.density import generate_density
+        from nebula_rt.scene import Scene
+        from nebula_rt.transport.request import TransportRequest
+
+        scene = Scene.load(scene_file).with_overrides([f"grid.shape=[{n},{n},{n}]", f"transport.photons={photons}"])
+        rho = generate_density(scene, be)
+        request = TransportRequest.from_scene(scene)
+        request.trace(rho, be, on_device=True)
+        cp.cuda.Device().synchronize()
+        times.clear(), idle.clear(), calls.clear(), marks.clear(), trace_packets.clear()
+        t0 = time.perf_counter()
+        res = request.trace(rho, be, on_device=True)
+    else:
+        rho = np.ones((n, n, n), np.float32)
+        t0 = time.perf_counter()
+        res = trace(rho, bands, stars, tau=2.0, photons=photons, backend=be, error_estimate=error_estimate)
     cp.cuda.Device().synchronize()
     wall = time.perf_counter() - t0
     span = 0.0
@@ -93,14 +110,14 @@ def profile(n: int, photons: int, tuning: dict, program: str = "", free_running:
     if marks:
         span = cp.cuda.get_elapsed_time(marks[0][1], marks[-1][2]) / 1e3
     t_trace = times.get("trace_photons", 0.0)
-    return {"grid": n, "photons": photons, "tuning": tuning, "error_estimate": error_estimate, "program": be.transport_program, "wall_s": wall,
+    return {"grid": n, "photons": photons, "scene": scene_file, "tuning": tuning, "error_estimate": error_estimate, "program": be.transport_program, "wall_s": wall,
             "kernel_s": float(res.timings["kernel_s"]), "batches": int(res.batches),
             "absorbed_fraction": float(res.counts[0, 1] / res.counts[0, 0]),
             "device_s": dict(sorted(times.items(), key=lambda kv: -kv[1])), "calls": dict(calls),
             "free_running": free_running, "span_s": span,
             "idle_before_s": dict(sorted(idle.items(), key=lambda kv: -kv[1])),
             "trace_launches": len(trace_packets), "trace_packets": trace_packets[:64],
-            "trace_packets_per_ms": photons / (t_trace * 1e3) if t_trace else None}
+            "trace_packets_per_ms": res.counts[:, 0].sum() / (t_trace * 1e3) if t_trace else None}
 
 
 def main(argv=None) -> int:
@@ -110,6 +127,8 @@ def main(argv=None) -> int:
     ap.add_argument("--tuning", nargs="*", default=[""])
     ap.add_argument("--variant", nargs="*", default=[], help="other transport sources in kernels/")
     ap.add_argument("--error-estimate", default="batches", choices=["auto", "batches", "packets"])
+    ap.add_argument("--scene", default="", help="a scene file traced instead of the neb medium (its grid set to each "
+                    "of --grids, its photons per band to --photons)")
     ap.add_argument("--free-running", action="store_true", help="no synchronisation: idle gaps between calls")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
@@ -118,7 +137,8 @@ def main(argv=None) -> int:
         tuning = {k: int(v) for k, v in (item.split("=", 1) for item in text.split())}
         for n in args.grids:
             for program in [""] + list(args.variant):
-                rec = profile(n, int(args.photons), tuning, program, args.free_running, args.error_estimate)
+                rec = profile(n, int(args.photons), tuning, program, args.free_running, args.error_estimate,
+                              args.scene)
                 records.append(rec)
                 top = ", ".join(f"{k} {v:.3f} s/{rec['calls'][k]}" for k, v in list(rec["device_s"].items())[:5])
                 print(f"{n}^3 {rec['program']:<20} {text or 'defaults':<30} kernel {rec['kernel_s']:.3f} s  trace "

@@ -8,7 +8,7 @@
 # colour-science, tomli-w; pmcx for the MCX comparison), fetched elsewhere with
 # `pip download --only-binary=:all: --python-version 3.12 ...`.
 # STEPS (default "tests bench neb128 compare profile"; also "tests-cuda", "thick", "thick-grid", "trust", "scaling", "large", "regions", "regcaps", "profile-regions", "layout", "sorted", "probe", "ranks", "ranks-thesis", "ranks-weak", "tests-mpi", "e2e1e9", "biasing", "fit", "fitprof", "tune",
-# "stages", "trade", "presets", "empty", "fft") selects what runs. Everything printed
+# "stages", "kernel-probes", "ncu-thesis", "trade", "presets", "empty", "fft") selects what runs. Everything printed
 # goes to OUTDIR/log.txt as well; JSON and .npz results beside it.
 set -uo pipefail
 out="${1:?output folder}"
@@ -234,6 +234,35 @@ if [[ " $steps " == *" compare "* ]]; then
     echo "== same seed on CUDA and NVIDIA OpenCL, biased transport"
     python3 benchmarks/compare_backends.py --run cuda: --run opencl:NVIDIA --set 'transport.method="biased"' \
         --save-dir "$out" --out "$out/compare-biased.json" | grep -E '"(a|b|max_count|median|z_std)'
+fi
+if [[ " $steps " == *" kernel-probes "* ]]; then
+    # where the thesis headline's kernel time goes: the probes of kernels/transport.cl (no
+    # deposits, 32-bit deposits, no density traffic, no deposits near the star) and register
+    # caps, on the thesis scene at 128^3 and the neb medium at 128^3 and 256^3
+    hot="NRT_PROBE_HOT_X=64 NRT_PROBE_HOT_Y=64 NRT_PROBE_HOT_Z=64"
+    echo "== transport kernel probes, thesis 128^3, CUDA"
+    python3 benchmarks/profile_kernels.py --scene examples/scenes/thesis-default.toml --grids 128 --photons 2.1e6 \
+        --tuning "" "NRT_PROBE_DEPOSIT=1" "NRT_PROBE_DEPOSIT=2" "NRT_PROBE_UNIFORM=1" "NRT_PROBE_DEPOSIT=1 NRT_PROBE_UNIFORM=1" \
+        "NRT_PROBE_HOT_HALF=-1 $hot" "NRT_PROBE_HOT_HALF=1 $hot" "NRT_PROBE_HOT_HALF=3 $hot" "NRT_PROBE_HOT_HALF=8 $hot" \
+        "NRT_GROUP_TALLY=0" "max_registers=64" "max_registers=96" "max_registers=0" \
+        "NRT_HOT_HALF=0" "NRT_HOT_HALF=1" "NRT_HOT_HALF=3" "NRT_HOT_HALF=4" --out "$out/thesis-probes.json" 2>&1 | grep -v Warning
+    python3 benchmarks/profile_kernels.py --scene examples/scenes/thesis-default.toml --grids 128 --photons 2.1e6 \
+        --free-running --out "$out/thesis-free-running.json" 2>&1 | tail -n 2
+    # 4x the packets in one launch: what does not grow with them (the launch's tail) shows
+    python3 benchmarks/profile_kernels.py --scene examples/scenes/thesis-default.toml --grids 128 --photons 8.4e6 \
+        --out "$out/thesis-probes-8.4e6.json" 2>&1 | grep -v Warning
+    echo "== transport kernel probes, neb medium, CUDA"
+    python3 benchmarks/profile_kernels.py --grids 64 128 --photons 2.1e7 --tuning "" "NRT_PROBE_DEPOSIT=1" \
+        "NRT_HOT_HALF=0" "NRT_HOT_HALF=1" "NRT_HOT_HALF=3" --out "$out/neb-probes.json" 2>&1 | grep -v Warning
+fi
+if [[ " $steps " == *" ncu-thesis "* ]] && command -v ncu >/dev/null; then
+    echo "== ncu: transport kernel, thesis 128^3 (its first launch)"
+    ncu --target-processes all -k regex:trace_photons -s 0 -c 1 --section SpeedOfLight --section Occupancy \
+        --section LaunchStats --section MemoryWorkloadAnalysis --section WarpStateStats --section SchedulerStats \
+        --section SourceCounters --section ComputeWorkloadAnalysis --section InstructionStats \
+        python3 benchmarks/profile_kernels.py --scene examples/scenes/thesis-default.toml --grids 128 --photons 2.1e6 \
+        > "$out/ncu-thesis.txt" 2>&1
+    grep -v "^==PROF==" "$out/ncu-thesis.txt" | tail -n 150
 fi
 if [[ " $steps " == *" profile "* ]] && command -v ncu >/dev/null; then
     echo "== ncu: transport kernel, neb128 2.1M photons (one batch)"

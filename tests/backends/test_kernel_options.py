@@ -169,6 +169,34 @@ def test_groups_split_into_short_launches_give_the_same_bits(cloud, monkeypatch)
             np.testing.assert_array_equal(many.peel_image, one.peel_image)
 
 
+@pytest.mark.parametrize("error_estimate", ["batches", "packets"])
+def test_star_blocks_of_every_size_give_the_same_bits(cloud, error_estimate):
+    """The work-group sums of the voxels around each star (NRT_HOT_HALF: blocks of 1, 3^3, 5^3
+    and 7^3 voxels) against no work-group sums: the same batch sums, squares (per-packet visit
+    squares too) and counts. The stars test the blocks' edges: one in a corner (its block
+    mostly outside the grid), one on a face, two whose blocks overlap, and a fifth star beyond
+    the NRT_HOT_STARS that get a block."""
+    stars = [Star(position=(0.01, 0.02, 0.99), luminosity=1.0, temperature=None, bump_radius=0.0),
+             Star(position=(0.5, 0.5, 0.5), luminosity=0.8, temperature=None, bump_radius=0.0),
+             Star(position=(0.55, 0.5, 0.45), luminosity=0.6, temperature=None, bump_radius=0.0),
+             Star(position=(0.25, 0.625, 0.0), luminosity=0.5, temperature=None, bump_radius=0.0),
+             Star(position=(0.8, 0.3, 0.6), luminosity=0.7, temperature=None, bump_radius=0.0)]
+    runs = []
+    for options in ({"NRT_GROUP_TALLY": 0}, {"NRT_GROUP_TALLY": 1, "NRT_HOT_HALF": 0},
+                    {"NRT_GROUP_TALLY": 1, "NRT_HOT_HALF": 1}, {"NRT_GROUP_TALLY": 1},
+                    {"NRT_GROUP_TALLY": 1, "NRT_HOT_HALF": 3}):
+        be = _backend(options)
+        batches = {"batch_size": 1500} if error_estimate == "batches" else {}
+        runs.append(trace(cloud, _bands(), stars, tau=25.0, photons=6000, seed=9, backend=be,
+                          error_estimate=error_estimate, **batches))
+    ref = runs[0]
+    assert ref.counts[:, 0].tolist() == [6000, 6000]
+    for res in runs[1:]:
+        np.testing.assert_array_equal(res.counts, ref.counts)
+        np.testing.assert_array_equal(res.raw_sum, ref.raw_sum)
+        np.testing.assert_array_equal(res.raw_m2, ref.raw_m2)
+
+
 @pytest.mark.parametrize("estimator", ["track-length", "collision-filter"])
 def test_sorted_packet_order_gives_the_same_bits(cloud, estimator):
     """NRT_SORTED (packets traced in the order of cell, star and first direction, a counting

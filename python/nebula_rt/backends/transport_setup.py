@@ -143,6 +143,10 @@ class TransportSetup:
 #: ``transport_tuning`` overrides them (the tuning benchmark switches them one by one).
 TRANSPORT_TUNING = {"NRT_ACC_RED": 1, "NRT_PREFETCH": 1, "NRT_GROUP_TALLY": 1, "NRT_SORTED": 0}
 
+#: Tuning keys that are sizes, not switches: 0 is a value to pass (NRT_HOT_HALF 0: a star block
+#: of its voxel alone), not "off".
+SIZE_TUNING = frozenset({"NRT_HOT_HALF"})
+
 #: NVIDIA GPUs (CUDA, NVIDIA OpenCL): registers per thread of the analog transport kernel
 #: without and with regions. The compiler's own choice (112; 120 by regions) allows 4 blocks
 #: of 128 threads per SM (25 % occupancy), too few warps to hide the latency of the density
@@ -178,7 +182,7 @@ def transport_defines(setup: TransportSetup, tuning: dict | None = None) -> dict
         defines["NRT_TAIL_CLASSES"] = int(setup.tail_classes)
     if int(np.prod(setup.density.shape)) < 2**32:
         opts.setdefault("NRT_IDX32", 1)
-    defines.update({k: int(v) for k, v in opts.items() if v and k.startswith("NRT_")})
+    defines.update({k: int(v) for k, v in opts.items() if k.startswith("NRT_") and (v or k in SIZE_TUNING)})
     return defines
 
 
