@@ -261,8 +261,8 @@ if [[ " $steps " == *" ncu-thesis "* ]] && command -v ncu >/dev/null; then
         --section LaunchStats --section MemoryWorkloadAnalysis --section WarpStateStats --section SchedulerStats \
         --section SourceCounters --section ComputeWorkloadAnalysis --section InstructionStats \
         python3 benchmarks/profile_kernels.py --scene examples/scenes/thesis-default.toml --grids 128 --photons 2.1e6 \
-        > "$out/ncu-thesis.txt" 2>&1
-    grep -v "^==PROF==" "$out/ncu-thesis.txt" | tail -n 150
+        --tuning "${NCU_TUNING:-}" > "$out/ncu-thesis${NCU_TUNING:+-${NCU_TUNING// /-}}.txt" 2>&1
+    grep -v "^==PROF==" "$out/ncu-thesis${NCU_TUNING:+-${NCU_TUNING// /-}}.txt" | tail -n 150
 fi
 if [[ " $steps " == *" profile "* ]] && command -v ncu >/dev/null; then
     echo "== ncu: transport kernel, neb128 2.1M photons (one batch)"
