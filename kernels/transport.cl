@@ -615,6 +615,15 @@ NRT_DEVICE int nrt_pass_item(nrt_u64 it, const NRT_GLOBAL nrt_u64 *order, const 
 }
 #endif
 
+#ifndef NRT_TREE
+#define NRT_TREE 0
+#endif
+#if NRT_TREE
+#if NRT_REGIONS || NRT_BIASED || NRT_SORTED || (defined(NRT_PEEL_AXIS) && NRT_PEEL_AXIS >= 0)
+#error "a tree is traced without regions, weighted packets, sorted emission or peel-off columns"
+#endif
+#include "tree.cl"
+#else
 /*
  * Trace one packet of one band to its end, or (NRT_REGIONS) until it steps into another
  * region: then its state goes to *save and the function returns 1 (else 0). resume: the
@@ -631,8 +640,10 @@ NRT_DEVICE int nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, fl
                                 NRT_GLOBAL nrt_u32 *overflow, const NRT_GLOBAL float *peel,
                                 float peel_scale, NRT_GLOBAL nrt_u64 *band_image,
                                 const NRT_GLOBAL nrt_packet *resume, NRT_GLOBAL nrt_packet *save,
-                                int region_shift, nrt_u64 item, NRT_GLOBAL nrt_u64 *band_sq, int sq_shift)
+                                int region_shift, nrt_u64 item, NRT_GLOBAL nrt_u64 *band_sq, int sq_shift,
+                                nrt_u64 cells)
 {
+    (void)cells; /* (NRT_TREE's walk: where the tree's nodes start in the density buffer) */
     nrt_u64 peel_score = 0; /* NRT_PEEL: the packet's peel-off units (heavy-tail diagnostic) */
 #if NRT_PACKET_SQ
     nrt_u64 run = 0; /* the packet's deposits during the visit of its voxel under way */
@@ -806,6 +817,8 @@ NRT_DEVICE int nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, fl
 #endif
     }
 }
+
+#endif /* NRT_TREE */
 
 #if NRT_BIASED
 /*
@@ -1601,7 +1614,7 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
     const int sq_shift = prm->sq_shift;
     const float track_scale = prm->track_scale, peel_scale = prm->peel_scale;
     const NRT_GLOBAL float *peel = prm->peel;
-    nrt_u64 nvox = (nrt_u64)nx * (nrt_u64)ny * (nrt_u64)nz;
+    nrt_u64 nvox = prm->cells; /* nx ny nz voxels, or (NRT_TREE) the tree's leaves */
 #if NRT_REGIONS
     /* a pass (nrt_pass_item): the stopped packets, the chunk's new ones, free slots passed on */
     nrt_u64 total = n_resume + (n_fresh > n_free ? n_fresh : n_free);
@@ -1693,7 +1706,8 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
                                        max_scatterings, track_scale, acc + cell * nvox, &sink,
                                        overflow + slot, peel, peel_scale, image + cell * pixels,
                                        fresh ? 0 : states + sl, states + sl, region_shift,
-                                       photon | ((nrt_u64)lband << NRT_ITEM_BAND_SHIFT), sq + cell * nvox, sq_shift);
+                                       photon | ((nrt_u64)lband << NRT_ITEM_BAND_SHIFT), sq + cell * nvox, sq_shift,
+                                       nvox);
         if (stopped) {
             const NRT_GLOBAL nrt_packet *q = states + sl;
             keys_out[it] = ((nrt_u64)nrt_region_bin(cell, q->ix, q->iy, q->iz, nx, ny, nz, region_shift) << 32) | sl;
@@ -1706,7 +1720,7 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
                          star_cdf + band * n_stars, nx, ny, nz, n_stars, seed, band, photon,
                          max_scatterings, track_scale, acc + cell * nvox, &sink,
                          overflow + slot, peel, peel_scale, image + cell * pixels, 0, 0, NRT_NO_REGIONS, 0,
-                         sq + cell * nvox, sq_shift);
+                         sq + cell * nvox, sq_shift, nvox);
 #endif
 #endif
     }

@@ -1,20 +1,21 @@
 /*
- * tree.cl -- Monte Carlo transport through an adaptive density: a forest of octrees in flat
+ * tree.cl -- the walk of a packet through an adaptive density: a forest of octrees in flat
  * arrays (nebula_rt.density.octree: child[node] >= 0 the first of 8 children, octant
  * c = ix + 2 iy + 4 iz; < 0 a leaf, its density at leaf_density[-1 - child]; the first
- * rx ry rz nodes the root cells, x fastest).
+ * rx ry rz nodes the root cells, x fastest). Included by transport.cl in place of the grid's
+ * walk where the run is on a tree (NRT_TREE): the kernel around it (trace_photons: the
+ * launch's packets, batch slots of one cell per leaf, tallies, work-group sums, images) and
+ * the fold are the grid's.
  *
- * One work item traces one analog packet of one band, drawing its random numbers in the order
- * of transport.cl's analog packets (the star, the direction, each flight's optical depth, the
- * absorption test, the scattering angle and azimuth), so on a tree whose leaves are a uniform
- * grid's voxels a packet flies the path it flies there. The walk steps from leaf to leaf: the
- * leaf holding a point is found from the root grid down, a point on a cell's face going to
- * the side the packet moves to, and each leaf's exit is the nearest of its three far faces.
- * The track-length estimator adds each segment's length (box units) x track_scale to the leaf's
- * 64-bit fixed-point cell (integer atomics: exact, any thread order); per band the tallies
- * count emitted, absorbed, escaped and terminated packets.
+ * The density buffer holds the leaves' densities, then the nodes' child entries (int32). A
+ * packet draws its random numbers in the order of the grid's analog packets (the star, the
+ * direction, each flight's optical depth, the absorption test, the scattering angle and
+ * azimuth), so on a tree whose leaves are a uniform grid's voxels it flies the path it flies
+ * there. The walk steps from leaf to leaf: the leaf holding a point is found from the root
+ * grid down, a point on a cell's face going to the side the packet moves to, and each leaf's
+ * exit is the nearest of its three far faces. The estimators deposit into the leaf's cell as
+ * the grid's walk does into a voxel's.
  */
-#include "nebula_common.h"
 
 #ifndef NRT_TREE_MAX_DEPTH
 #define NRT_TREE_MAX_DEPTH 20
@@ -83,9 +84,6 @@ NRT_DEVICE float nrt_tree_exit(const float *p, const float *d, const int *c, con
     return t_exit;
 }
 
-#ifndef NRT_PEEL
-#define NRT_PEEL 0
-#endif
 
 #if NRT_PEEL
 /* Optical depth from x along o to the box's edge, leaf by leaf (the walk's steps). */
@@ -112,105 +110,139 @@ NRT_DEVICE float nrt_tree_tau_to_edge(const NRT_GLOBAL int *child, const NRT_GLO
 }
 #endif
 
-/* Track lengths per leaf of one band's cells (leaves), tallies[4 band + t]; NRT_PEEL: the
-   peel-off image per band (W x H fixed-point units, rounded stochastically as transport.cl's
-   analog packets round theirs: the same draws). */
-NRT_KERNEL void trace_tree(const NRT_GLOBAL int *child, const NRT_GLOBAL float *leaf_density, int rx, int ry, int rz,
-                           const NRT_GLOBAL float *optics, /* per band: tau k_b, albedo, g, 0 */
-                           const NRT_GLOBAL float *stars, const NRT_GLOBAL float *star_cdf, int n_stars,
-                           nrt_u64 seed, nrt_u64 photon_start, nrt_u64 count, int n_bands, int max_scatterings,
-                           float track_scale, nrt_u64 n_leaves, NRT_GLOBAL nrt_u64 *acc, NRT_GLOBAL nrt_u64 *tallies,
-                           const NRT_GLOBAL float *peel, float peel_scale, NRT_GLOBAL nrt_u64 *image)
-{
-#if !NRT_PEEL
-    (void)peel, (void)peel_scale, (void)image;
-#endif
-    nrt_u64 total = count * (nrt_u64)n_bands;
-    for (nrt_u64 it = NRT_GLOBAL_ID(); it < total; it += NRT_GLOBAL_SIZE()) {
-        int band = (int)(it / count);
-        nrt_u64 photon = photon_start + it % count;
-        float sig_b = optics[4 * band], alb_b = optics[4 * band + 1], g_b = optics[4 * band + 2];
-        NRT_GLOBAL nrt_u64 *band_acc = acc + (nrt_u64)band * n_leaves;
-        NRT_GLOBAL nrt_u64 *tally = tallies + 4 * band;
-        nrt_rng rng;
-        nrt_rng_init(&rng, seed, (nrt_u64)band, photon);
-        /* the emitting star: one uniform, only with several stars (as transport.cl) */
-        const NRT_GLOBAL float *cdf = star_cdf + band * n_stars;
-        int s = 0;
-        if (n_stars > 1) {
-            float u = nrt_rng_uniform(&rng);
-            while (s < n_stars - 1 && u >= cdf[s])
-                ++s;
-        }
-        float p[3] = {stars[4 * s], stars[4 * s + 1], stars[4 * s + 2]};
-        float d[3];
-        nrt_sample_isotropic(&rng, d);
-        NRT_ATOMIC_ADD_U64(&tally[0], 1UL);
-        int scatterings = 0;
-        float tau = nrt_sample_tau(&rng);
-        float lo[3], h[3];
-        int c[3], n[3];
-        int leaf = nrt_tree_locate(child, rx, ry, rz, p, d, c, n, lo, h);
-        for (;;) {
-            if (leaf < 0) { /* (a malformed tree) */
-                NRT_ATOMIC_ADD_U64(&tally[3], 1UL);
-                break;
-            }
-            int ax;
-            float t_exit = nrt_tree_exit(p, d, c, lo, h, &ax);
-            float sigma = sig_b * leaf_density[leaf];
-            float tau_seg = sigma * t_exit;
-            if (sigma > 0.0f && tau_seg >= tau) {
-                float t = tau / sigma;
-                NRT_ATOMIC_ADD_U64(&band_acc[leaf], (nrt_u64)NRT_FMAF(t, track_scale, 0.5f));
-                for (int a = 0; a < 3; ++a)
-                    p[a] = fmin(fmax(p[a] + d[a] * t, lo[a]), lo[a] + h[a]);
-                if (nrt_rng_uniform(&rng) >= alb_b) {
-                    NRT_ATOMIC_ADD_U64(&tally[1], 1UL);
-                    break;
-                }
-                if (scatterings >= max_scatterings) {
-                    NRT_ATOMIC_ADD_U64(&tally[3], 1UL);
-                    break;
-                }
-                ++scatterings;
 #if NRT_PEEL
-                {
-                    nrt_u64 pixel;
-                    if (nrt_peel_pixel(peel, p, &pixel)) {
-                        const float o[3] = {peel[0], peel[1], peel[2]};
-                        float mu_o = d[0] * o[0] + d[1] * o[1] + d[2] * o[2];
-                        float wgt = nrt_hg_phase(g_b, mu_o) *
-                                    exp(-nrt_tree_tau_to_edge(child, leaf_density, rx, ry, rz, sig_b, p, o));
-                        nrt_u64 v = nrt_fixed_stochastic(wgt, peel_scale, seed, (nrt_u64)band, photon,
-                                                         (nrt_u64)scatterings, 0);
-                        if (v)
-                            NRT_ATOMIC_ADD_U64(&image[(nrt_u64)band * (nrt_u64)peel[13] * (nrt_u64)peel[14] + pixel], v);
-                    }
-                }
+/* Peel-off of an analog packet scattering at p (incoming direction d; as transport.cl's
+   nrt_peel, the optical depth to the edge marched leaf by leaf); returns the units added. */
+NRT_DEVICE nrt_u64 nrt_tree_peel(const NRT_GLOBAL int *child, const NRT_GLOBAL float *leaf_density, int rx, int ry,
+                                 int rz, float sig_b, float g_b, const NRT_GLOBAL float *peel, float peel_scale,
+                                 const float *p, const float *d, NRT_GLOBAL nrt_u64 *band_image,
+                                 NRT_GLOBAL nrt_u32 *overflow, nrt_u64 seed, int band, nrt_u64 photon, int event)
+{
+    nrt_u64 pixel;
+    if (!nrt_peel_pixel(peel, p, &pixel))
+        return 0;
+    const float o[3] = {peel[0], peel[1], peel[2]};
+    float mu = d[0] * o[0] + d[1] * o[1] + d[2] * o[2];
+    float wgt = nrt_hg_phase(g_b, mu) * exp(-nrt_tree_tau_to_edge(child, leaf_density, rx, ry, rz, sig_b, p, o));
+    nrt_u64 v = nrt_fixed_stochastic(wgt, peel_scale, seed, (nrt_u64)band, photon, (nrt_u64)event, 0);
+    nrt_acc_add_checked(&band_image[pixel], v, overflow);
+    return v;
+}
 #endif
-                float mu, sin_theta;
-                nrt_sample_hg(g_b, nrt_rng_uniform(&rng), &mu, &sin_theta);
-                nrt_rotate(d, mu, sin_theta, 2.0f * NRT_PI_F * nrt_rng_uniform(&rng));
-                tau = nrt_sample_tau(&rng);
-                /* the point stays in this leaf (d only changed): locate again for the new d's
-                   tie-breaks on a face */
-                leaf = nrt_tree_locate(child, rx, ry, rz, p, d, c, n, lo, h);
-                continue;
-            }
-            NRT_ATOMIC_ADD_U64(&band_acc[leaf], (nrt_u64)NRT_FMAF(t_exit, track_scale, 0.5f));
-            tau -= tau_seg;
-            for (int a = 0; a < 3; ++a)
-                p[a] = p[a] + d[a] * t_exit;
-            /* on the exit face exactly (formed as locate forms faces), so the next leaf is the
-               one beyond it; a face of the box: the packet escapes */
-            int up = d[ax] > 0.0f;
-            if ((up && c[ax] + 1 == n[ax]) || (!up && c[ax] == 0)) {
-                NRT_ATOMIC_ADD_U64(&tally[2], 1UL);
-                break;
-            }
-            p[ax] = (float)(c[ax] + up) * h[ax];
-            leaf = nrt_tree_locate(child, rx, ry, rz, p, d, c, n, lo, h);
+
+/*
+ * Trace one packet of one band through the tree to its end (transport.cl's nrt_trace_packet
+ * for a tree: the same arguments; nx, ny, nz the root cells, cells the leaves, no regions).
+ * The deposit macros' voxel coordinates (ix, iy, iz) stay 0: a leaf is in no star block, so
+ * every deposit goes to the leaf's cell in the batch slot.
+ */
+NRT_DEVICE int nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, float alb_b,
+                                float g_b, const NRT_GLOBAL float *stars,
+                                const NRT_GLOBAL float *cdf, int nx, int ny, int nz,
+                                int n_stars, nrt_u64 seed, int band, nrt_u64 photon,
+                                int max_scatterings, float track_scale,
+                                NRT_GLOBAL nrt_u64 *band_acc, nrt_sink *sink,
+                                NRT_GLOBAL nrt_u32 *overflow, const NRT_GLOBAL float *peel,
+                                float peel_scale, NRT_GLOBAL nrt_u64 *band_image,
+                                const NRT_GLOBAL nrt_packet *resume, NRT_GLOBAL nrt_packet *save,
+                                int region_shift, nrt_u64 item, NRT_GLOBAL nrt_u64 *band_sq, int sq_shift,
+                                nrt_u64 cells)
+{
+    (void)resume, (void)save, (void)region_shift, (void)item, (void)track_scale;
+#if !NRT_PEEL
+    (void)peel, (void)peel_scale, (void)band_image, (void)g_b;
+#endif
+    const NRT_GLOBAL float *leaf_density = density;
+    const NRT_GLOBAL int *child = (const NRT_GLOBAL int *)(density + cells);
+    nrt_u64 peel_score = 0; /* NRT_PEEL: the packet's peel-off units (heavy-tail diagnostic) */
+#if NRT_PACKET_SQ
+    nrt_u64 run = 0; /* the packet's deposits during the visit of its leaf under way */
+#else
+    (void)band_sq;
+    (void)sq_shift;
+#endif
+    const int ix = 0, iy = 0, iz = 0;
+    nrt_rng rng;
+    nrt_rng_init(&rng, seed, (nrt_u64)band, photon);
+    int s = nrt_choose_star(&rng, cdf, n_stars);
+    float p[3] = {stars[4 * s], stars[4 * s + 1], stars[4 * s + 2]};
+    float d[3];
+    nrt_sample_isotropic(&rng, d);
+    int scatterings = 0;
+    float tau = nrt_sample_tau(&rng);
+    float lo[3], h[3];
+    int c[3], n[3];
+    int leaf = nrt_tree_locate(child, nx, ny, nz, p, d, c, n, lo, h);
+    nrt_idx idx = (nrt_idx)(leaf < 0 ? 0 : leaf);
+    for (;;) {
+        if (leaf < 0) { /* (deeper than NRT_TREE_MAX_DEPTH: a tree the host does not make) */
+            NRT_VISIT_END();
+            nrt_count(sink, 3);
+            NRT_TAIL_END();
+            return 0;
         }
+        int ax;
+        float t_exit = nrt_tree_exit(p, d, c, lo, h, &ax);
+        float sigma = sig_b * leaf_density[leaf];
+        float tau_seg = sigma * t_exit;
+        if (sigma > 0.0f && tau_seg >= tau) {
+            /* the interaction happens inside this leaf */
+            float t = tau / sigma;
+#if NRT_TRACK_LENGTH
+            NRT_SCORE(idx, nrt_fixed(t, track_scale));
+#endif
+#if NRT_COLLISION
+            NRT_SCORE(idx, 1UL);
+#endif
+            for (int a = 0; a < 3; ++a)
+                p[a] = fmin(fmax(p[a] + d[a] * t, lo[a]), lo[a] + h[a]);
+            if (nrt_rng_uniform(&rng) >= alb_b) {
+                NRT_VISIT_END();
+                nrt_count(sink, 1);
+                NRT_TAIL_END();
+                return 0;
+            }
+            if (scatterings >= max_scatterings) {
+                NRT_VISIT_END();
+                nrt_count(sink, 3);
+                NRT_TAIL_END();
+                return 0;
+            }
+            ++scatterings;
+#if NRT_PEEL
+            peel_score += nrt_tree_peel(child, leaf_density, nx, ny, nz, sig_b, g_b, peel, peel_scale, p, d,
+                                        band_image, overflow, seed, band, photon, scatterings);
+#endif
+            float mu, sin_theta;
+            nrt_sample_hg(g_b, nrt_rng_uniform(&rng), &mu, &sin_theta);
+            nrt_rotate(d, mu, sin_theta, 2.0f * NRT_PI_F * nrt_rng_uniform(&rng));
+            tau = nrt_sample_tau(&rng);
+            /* the point stays in this leaf (d only changed): located again for the new d's
+               tie-breaks on a face, which may put it in the neighbour (another visit) */
+            int next = nrt_tree_locate(child, nx, ny, nz, p, d, c, n, lo, h);
+            if (next != leaf)
+                NRT_VISIT_END();
+            leaf = next;
+            idx = (nrt_idx)(leaf < 0 ? 0 : leaf);
+            continue;
+        }
+#if NRT_TRACK_LENGTH
+        NRT_SCORE(idx, nrt_fixed(t_exit, track_scale));
+#endif
+        tau -= tau_seg;
+        for (int a = 0; a < 3; ++a)
+            p[a] = p[a] + d[a] * t_exit;
+        /* on the exit face exactly (formed as locate forms faces), so the next leaf is the
+           one beyond it; a face of the box: the packet escapes */
+        int up = d[ax] > 0.0f;
+        NRT_VISIT_END();
+        if ((up && c[ax] + 1 == n[ax]) || (!up && c[ax] == 0)) {
+            nrt_count(sink, 2);
+            NRT_TAIL_END();
+            return 0;
+        }
+        p[ax] = (float)(c[ax] + up) * h[ax];
+        leaf = nrt_tree_locate(child, nx, ny, nz, p, d, c, n, lo, h);
+        idx = (nrt_idx)(leaf < 0 ? 0 : leaf);
     }
 }

@@ -167,6 +167,7 @@ def check_transport(
     track_scale: float,
     seed: int = 0,
     extremes: tuple[float, float] | None = None,
+    cell_shapes=None,
 ) -> float:
     """Check, before the first launch, that what the transport forms on the device fits float32.
 
@@ -198,6 +199,10 @@ def check_transport(
     extremes : (float, float), optional
         The density's (min, max) where already reduced (on the device:
         ``Backend.density_extremes``); else reduced here.
+    cell_shapes : (shape, shape), optional
+        Cells of several sizes (a tree's leaves; ``density`` then holds one value per cell):
+        the grids of the smallest and of the largest cells, each checked as V and h above.
+        Default: the density's own shape for both.
 
     Returns
     -------
@@ -212,6 +217,9 @@ def check_transport(
     """
     import numpy as np
 
+    from .scene.sections import MAX_PHOTONS
+
+    check_int_range("transport.photons", int(photons), 1, MAX_PHOTONS, "an integer (packets per band)")
     check_int_range("transport.max_scatterings", int(max_scatterings), 0, INT32_MAX, "an integer (int32)")
     check_int_range("transport.seed", int(seed), 0, SEED_LIMIT - 1, "an integer (uint64)")
     rho = np.asarray(density)
@@ -241,8 +249,9 @@ def check_transport(
         _check_extinction(tau, k, rho_max, rho_min, track_scale, track)
     sigma_max = tau * k * rho_max  # per band
     sigma_min = tau * k * rho_min
-    _check_tallies(bands, stars, slum, band_lum, photons, max_scatterings, tau, sigma_max, sigma_min, alb,
-                   track, dusty, track_scale, shape)
+    for cells in (cell_shapes if cell_shapes is not None else (shape,)):
+        _check_tallies(bands, stars, slum, band_lum, photons, max_scatterings, tau, sigma_max, sigma_min, alb,
+                       track, dusty, track_scale, tuple(int(n) for n in cells))
     return rho_max
 
 

@@ -152,12 +152,11 @@ def test_the_light_on_a_tree_goes_to_paraview_and_onto_a_grid(backend):
     from vtkmodules.util.numpy_support import vtk_to_numpy
 
     from nebula_rt.transport import trace
-    from nebula_rt.transport.tree import trace_tree
 
     rho = (np.random.default_rng(8).random((8, 8, 8)) + 0.2).astype(np.float32)
     tree = coarsen(rho, (1, 1, 1))
     kw = dict(tau=3.0, photons=10_000, seed=6)
-    tl = trace_tree(tree, one_band(0.6, 0.5), centre_star(), backend=backend, **kw)
+    tl = trace(tree, one_band(0.6, 0.5), centre_star(), backend=backend, method="analog", **kw)
     grid = trace(rho, one_band(0.6, 0.5), centre_star(), backend=backend, method="analog", batch_size=10_000, **kw)
     htg = octree_to_htg(tree, {"J_V": tl.J[0], "density": tree.density})
     j_cells = vtk_to_numpy(htg.GetCellData().GetArray("J_V"))

@@ -26,6 +26,7 @@ TRACE_PARAMS = (
     ("seed", "u64", 1, "Philox key word 0"),
     ("batch_base", "u64", 1, "packets per batch (the first batch_extra batches hold one more)"),
     ("batch_extra", "u64", 1, "batches holding batch_base + 1 packets"),
+    ("cells", "u64", 1, "cells per band of a batch slot: the grid's voxels, or a tree's leaves (NRT_TREE)"),
     ("nx", "i32", 1, "grid size along x (voxels)"),
     ("ny", "i32", 1, "grid size along y"),
     ("nz", "i32", 1, "grid size along z"),

@@ -76,7 +76,11 @@ class DeviceTransport(TransportSession):
         self.slot_cells = self.bands_per_launch * self.nvox if setup.light_field else 0
         self.words = setup.cell_words  # 64-bit words per cell (2: 128-bit, weighted packets)
         self.tally_words = setup.tally_words
-        if setup.peel_columns is not None:  # the densities, then their columns (NRT_PEEL_AXIS)
+        if setup.tree is not None:  # the leaves' densities, then the nodes (kernels/tree.cl)
+            from ..transport.tree import device_layout
+
+            self.d_density = be.to_device(device_layout(setup.tree))
+        elif setup.peel_columns is not None:  # the densities, then their columns (NRT_PEEL_AXIS)
             self.d_density = be.density_with_columns(setup.density, setup.peel_columns)
         else:
             resident = be.resident_density(setup.density)
@@ -97,9 +101,10 @@ class DeviceTransport(TransportSession):
         stars4[:setup.stars.shape[0], :3] = setup.stars
         self.d_stars = be.to_device(stars4)
         self.d_cdf = be.to_device(np.ascontiguousarray(setup.star_cdf, np.float32))
-        nx, ny, nz = self.shape
+        # (a tree: its root cells; the cells of a slot are its leaves)
+        nx, ny, nz = self.shape if setup.tree is None else setup.tree.roots
         self.params = kernel_params.pack(
-            seed=setup.seed, batch_base=0, batch_extra=0, nx=nx, ny=ny, nz=nz, n_bands=nb,
+            seed=setup.seed, batch_base=0, batch_extra=0, cells=self.nvox, nx=nx, ny=ny, nz=nz, n_bands=nb,
             n_stars=setup.stars.shape[0], max_scatterings=setup.max_scatterings, sq_shift=setup.sq_shift,
             window_shape=(1, 1, 1) if setup.window is None else np.shape(setup.window),
             track_scale=setup.track_scale, peel_scale=setup.peel_scale, collision_scale=setup.collision_scale,
@@ -125,7 +130,9 @@ class DeviceTransport(TransportSession):
         self.d_image = be.device_zeros(max(1, self.slots * self.bands_per_launch * self.pixels * self.words),
                                        np.uint64)
         tuning = dict(be.transport_tuning)
-        if "NRT_SORTED" not in tuning and self.nvox >= getattr(be, "sort_min_voxels", 0) > 0:
+        if setup.tree is not None:
+            tuning["NRT_SORTED"] = 0  # (the emission order's keys are a grid's)
+        elif "NRT_SORTED" not in tuning and self.nvox >= getattr(be, "sort_min_voxels", 0) > 0:
             tuning["NRT_SORTED"] = 1  # large grids: a warp's first flights side by side
         # (regions keep the deposits of a pass in cache: without deposits, none)
         self.region_shift = region_shift_of(be, setup, tuning) if setup.light_field else 0

@@ -23,7 +23,8 @@ class TransportSetup:
     Attributes
     ----------
     density : ndarray, float32, shape (nx, ny, nz)
-        Dust density per voxel (index [i, j, k] = x, y, z).
+        Dust density per voxel (index [i, j, k] = x, y, z); on a tree (``tree``), per leaf,
+        shape (n_leaves, 1, 1): the cells of a run are then the leaves.
     sigma_scale, albedo, g : ndarray, float32, shape (n_bands,)
         Extinction per box unit at density 1 (tau * k_b), albedo, HG asymmetry per band.
     stars : ndarray, float32, shape (n_stars, 3)
@@ -95,6 +96,9 @@ class TransportSetup:
     #: units (float32, (n_bands, tail_classes - 1)), uploaded after the map
     tail_classes: int = 0
     tail_edges: object = None
+    #: an adaptive density (nebula_rt.density.octree.Octree): the packets walk its leaves
+    #: (kernels/tree.cl, NRT_TREE), whose densities ``density`` holds
+    tree: object = None
 
     @property
     def light_field(self) -> bool:
@@ -166,6 +170,8 @@ def transport_defines(setup: TransportSetup, tuning: dict | None = None) -> dict
     defines = dict(defines)
     if setup.acc_limit_bits != 63:
         defines["NRT_ACC_LIMIT_BITS"] = int(setup.acc_limit_bits)
+    if setup.tree is not None:
+        defines["NRT_TREE"] = 1
     if setup.peel is not None:
         defines["NRT_PEEL"] = 1
         if setup.peel_columns is not None:

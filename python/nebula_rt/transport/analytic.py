@@ -19,17 +19,26 @@ def voxel_average_point_source(shape, star, kappa, luminosity, mask, order=6):
     Returns a 1-D array over ``mask``'s voxels. Voxels holding or touching the source are
     poorly integrated (a 1/r^2 singularity): mask them out.
     """
-    nodes, weights = np.polynomial.legendre.leggauss(order)
     h = 1.0 / np.asarray(shape, float)
     X, Y, Z = voxel_centres(shape)
-    cx, cy, cz = X[mask], Y[mask], Z[mask]
-    total = np.zeros(cx.size)
+    lo = np.stack([X[mask], Y[mask], Z[mask]], axis=1) - 0.5 * h
+    return box_average_point_source(lo, lo + h, star, kappa, luminosity, order)
+
+
+def box_average_point_source(lo, hi, star, kappa, luminosity, order=6):
+    """Averages of the pure absorber's J(r) (as :func:`voxel_average_point_source`) over boxes
+    [lo, hi) ((n, 3) box units each, e.g. a tree's leaves): a 1-D array of n. Boxes holding or
+    touching the source are poorly integrated: leave them out."""
+    nodes, weights = np.polynomial.legendre.leggauss(order)
+    lo, hi = np.asarray(lo, float).reshape(-1, 3), np.asarray(hi, float).reshape(-1, 3)
+    c, h = 0.5 * (lo + hi), hi - lo
+    total = np.zeros(len(lo))
     for a, wa in zip(nodes, weights):
         for b, wb in zip(nodes, weights):
-            for c, wc in zip(nodes, weights):
-                dx = cx + 0.5 * a * h[0] - star[0]
-                dy = cy + 0.5 * b * h[1] - star[1]
-                dz = cz + 0.5 * c * h[2] - star[2]
+            for k, wc in zip(nodes, weights):
+                dx = c[:, 0] + 0.5 * a * h[:, 0] - star[0]
+                dy = c[:, 1] + 0.5 * b * h[:, 1] - star[1]
+                dz = c[:, 2] + 0.5 * k * h[:, 2] - star[2]
                 r = np.sqrt(dx * dx + dy * dy + dz * dz)
                 total += wa * wb * wc * luminosity * np.exp(-kappa * r) / (16 * np.pi**2 * r * r)
     return total / 8.0

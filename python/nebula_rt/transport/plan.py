@@ -15,6 +15,8 @@ from ..optics import colour_convert
 from .. import limits
 from ..backends import Backend, TransportSetup
 from ..backends.regions import region_capacity
+from ..density.octree import Octree
+from . import tree as tree_run
 from ..errors import NebulaWarning, SceneError, user_stacklevel
 from .importance import depth_map, observer_depth_map, resolve_importance, window_rates
 from .line_of_sight import density_column, peel_axis, peel_columns
@@ -89,7 +91,7 @@ AUTO_PACKETS_MAX_SCATTER_DEPTH = 0.025
 MIN_PACKET_TRACK_BITS = 12
 
 
-def packet_scales(photons: int, max_scatterings: int, shape, estimator: str):
+def packet_scales(photons: int, max_scatterings: int, shape, estimator: str, cell_shapes=None):
     """(track bits k, square shift j) of the error estimate by packets, or None where k would
     fall below MIN_PACKET_TRACK_BITS.
 
@@ -99,11 +101,14 @@ def packet_scales(photons: int, max_scatterings: int, shape, estimator: str):
     collision); k, the fixed-point bits per crossing of the smallest voxel (at most
     FIXED_POINT_BITS), is the largest that keeps N such packets below 2^63. A packet's
     squares per cell add up to at most the square of its total there, so the squares, in
-    units of 2^j, stay below 2^63 too (with one unit of rounding per visit)."""
+    units of 2^j, stay below 2^63 too (with one unit of rounding per visit). ``cell_shapes``
+    (finest, coarsest): cells of several sizes (a tree's leaves): k counts crossings of the
+    finest, the bound takes the coarsest's diagonal."""
     n, ms = int(photons), int(max_scatterings) + 1
+    fine, bound = cell_shapes if cell_shapes is not None else (shape, shape)
 
     def per_deposit(bits):
-        return _max_deposit(estimator, float(2.0**bits * max(shape)), shape)
+        return _max_deposit(estimator, float(2.0**bits * max(fine)), bound)
 
     k = FIXED_POINT_BITS
     while estimator == "track-length" and k >= MIN_PACKET_TRACK_BITS and n * ms * per_deposit(k) >= 2.0**63:
@@ -316,11 +321,12 @@ class LaunchPlan:
 def plan_launches(photons: int, batch_size: int, targeted: bool, shape, n_bands: int, backend,
                   cell_bytes: int = 8, *, error_estimate: str = "batches", peel=None, time_limit: float = 0.0,
                   max_scatterings: int = 1000, estimator: str = "track-length",
-                  scatter_depth: float = 0.0) -> LaunchPlan:
+                  scatter_depth: float = 0.0, cell_shapes=None) -> LaunchPlan:
     """The :class:`LaunchPlan` of a run of ``photons`` packets per band on a grid of ``shape``
     (checks the batch count against the limits first); ``error_estimate`` and the arguments
     after it as :func:`resolve_error_estimate` takes them (``cell_bytes`` 16: weighted
-    packets)."""
+    packets; ``cell_shapes``: (finest, coarsest) cells per axis where the cells differ in size,
+    a tree's, else ``shape`` for both)."""
     nvox = int(np.prod([int(n) for n in shape]))
     size = planned_batch_size(photons, batch_size, targeted, nvox)
     limits.check_batch_count(batch_count(photons, size, nvox), size)
@@ -337,7 +343,7 @@ def plan_launches(photons: int, batch_size: int, targeted: bool, shape, n_bands:
         return LaunchPlan(plan, size, int(n_bands), int(max(1, min(32, len(plan),
                                                                    backend.slot_memory_budget // per_image))),
                           int(n_bands))
-    scales = packet_scales(photons, max_scatterings, shape, estimator)
+    scales = packet_scales(photons, max_scatterings, shape, estimator, cell_shapes)
 
     if resolve_error_estimate(error_estimate, biased=cell_bytes == 16, peel=peel, targeted=targeted,
                               time_limit=time_limit, batch_size=batch_size, launches=launches, scales=scales,
@@ -468,33 +474,46 @@ def plan_transport(density, request, backend: Backend, *, checked_adds: bool = F
         if target_error > 0.0:
             raise SceneError("transport.target_error", target_error,
                              "must be 0 for a run without the light field (it is the error of J)")
-    density = np.asarray(density, dtype=np.float32)
+    tree = density if isinstance(density, Octree) else None
+    if tree is not None:
+        # the cells are the leaves (shape (n_leaves, 1, 1)); the smallest leaf sets the track
+        # resolution and the largest J, a root cell the largest deposit of a flight into one
+        tree_run.check_tree_run(method)
+        density = np.asarray(tree.density, dtype=np.float32).reshape(-1, 1, 1)
+        fine, bound = tree_run.finest_shape(tree), tree_run.coarsest_shape(tree)
+    else:
+        density = np.asarray(density, dtype=np.float32)
+        fine = bound = density.shape
     shape = density.shape
     wl = np.array([b.wavelength for b in bands], dtype=np.float64)
     slum = star_band_luminosities(stars, wl)
     band_lum = slum.sum(axis=0)
-    biased = resolve_method(method, density, tau, stars, peel) == "biased"
+    biased = tree is None and resolve_method(method, density, tau, stars, peel) == "biased"
     importance = resolve_importance(request.importance, peel)
-    track_scale = float(2.0**FIXED_POINT_BITS * max(shape))
+    track_scale = float(2.0**FIXED_POINT_BITS * max(fine))
     # what the device forms from these inputs must fit float32/int32: checked before any work
     rho_max = limits.check_transport(density, bands, stars, slum, tau=tau, photons=photons, max_scatterings=max_scatterings,
                                      estimator=estimator, track_scale=track_scale, seed=seed,
-                                     extremes=backend.density_extremes(density))
+                                     extremes=None if tree is not None else backend.density_extremes(density),
+                                     cell_shapes=(fine, bound))
     backend.check_grid_fits(shape, len(bands))
     cdf = np.cumsum(slum, axis=0) / band_lum[None, :]
     cdf[-1, :] = 1.0
     sigma_scale = np.array([tau * b.extinction for b in bands], dtype=np.float64)
     albedo = np.array([b.albedo for b in bands], dtype=np.float64)
     # albedo x optical depth of the longest voxel edge at the densest voxel, the largest over the bands
-    scatter_depth = float(np.max(sigma_scale * albedo)) * rho_max / min(shape)
+    dense_edge = (rho_max / min(shape) if tree is None else
+                  float(np.max(np.asarray(tree.density, np.float64) * tree_run.leaf_edges(tree))))
+    scatter_depth = float(np.max(sigma_scale * albedo)) * dense_edge
     if not request.light_field:
         estimator = "none"  # (checked above as the scene's, which the image does not use)
     launches = plan_launches(photons, batch_size, target_error > 0.0, shape, len(bands), backend,
                              16 if biased else 8, error_estimate=error_estimate, peel=peel, time_limit=time_limit,
-                             max_scatterings=max_scatterings, estimator=estimator, scatter_depth=scatter_depth)
+                             max_scatterings=max_scatterings, estimator=estimator, scatter_depth=scatter_depth,
+                             cell_shapes=(fine, bound))
     packets = launches.packet_scales is not None
     if packets:  # the fixed point the one batch's bound allows (packet_scales)
-        track_scale = float(2.0**launches.packet_scales[0] * max(shape))
+        track_scale = float(2.0**launches.packet_scales[0] * max(fine))
     base = launches.batches.base
     setup = TransportSetup(
         density=density,
@@ -509,11 +528,12 @@ def plan_transport(density, request, backend: Backend, *, checked_adds: bool = F
         track_scale=track_scale * (WIDE_SCALE if biased else 1.0),
         acc_limit_bits=int(acc_limit_bits),
         unchecked_adds=(not biased and not checked_adds and request.light_field
-                        and (packets or _no_wrap(base + 1, max_scatterings, estimator, track_scale, shape))),
+                        and (packets or _no_wrap(base + 1, max_scatterings, estimator, track_scale, bound))),
         biased=biased,
         collision_scale=float(2.0**FIXED_POINT_BITS * WIDE_SCALE) if biased else 1.0,
         packet_sq=packets,
         sq_shift=launches.packet_scales[1] if packets else 0,
+        tree=tree,
     )
     if biased:
         extinction = [b.extinction for b in bands]
@@ -530,11 +550,13 @@ def plan_transport(density, request, backend: Backend, *, checked_adds: bool = F
                                     peel_scale=_peel_scale([b.g for b in bands]) * (WIDE_SCALE if biased else 1.0))
         # an observer along a grid axis: the peel-offs read the density columns (4 bytes a
         # voxel) instead of marching to the edge (tuning key "peel_columns" 0: always march)
-        axis = peel_axis(setup.peel[:3])
+        axis = peel_axis(setup.peel[:3]) if tree is None else None
         if axis is not None and getattr(backend, "transport_tuning", {}).get("peel_columns", 1):
             setup = dataclasses.replace(setup, peel_axis=axis, peel_columns=peel_columns(density, *axis))
     return TransportPlan(setup=setup, launches=launches, photons=int(photons),
                          band_names=tuple(b.name for b in bands), band_luminosity=band_lum,
                          star_band_luminosity=slum, sigma_scale=sigma_scale, albedo=albedo,
-                         nvox_inv=1.0 / float(np.prod(shape)), target_error=float(target_error),
+                         # (a tree's J per leaf is divided by each leaf's volume: estimate_light)
+                         nvox_inv=1.0 / float(np.prod(shape)) if tree is None else 1.0,
+                         target_error=float(target_error),
                          time_limit=float(time_limit), peel=peel, peel_bins=peel_bins)

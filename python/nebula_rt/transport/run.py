@@ -46,6 +46,7 @@ from .tails import (
 from .plan import BIASED_TALLY_NAMES, MIN_BATCHES, Tallies, TransportPlan, WEIGHT_UNIT, plan_transport
 from .result import TransportResult, exact_packet_energy, terminated_bias, warn_if_heavy_tailed, warn_if_terminated
 from .estimate import _PeelSums, _current_error, _j_scale, light_from_sums
+from . import tree as tree_run
 
 
 #: A launch lasts at most about this long (sized by the speed measured on the run's earlier
@@ -356,6 +357,8 @@ def estimate_light(plan: TransportPlan, tallies: Tallies, backend: Backend, *, o
               else None)
     if not plan.setup.light_field:  # a peel-off image alone: no J was deposited
         device_sums = J = rel = s1 = s2 = None
+    elif on_device and plan.setup.tree is not None:
+        raise ValueError("a run on a tree estimates J on the host (on_device=False)")
     elif on_device:
         s1, s2, d_rho = session.release_sums()
         device_sums = DeviceSums(backend, shape, nb, s1, s2, d_rho)
@@ -364,6 +367,9 @@ def estimate_light(plan: TransportPlan, tallies: Tallies, backend: Backend, *, o
         device_sums = None
         s1, s2 = session.sums()
         J, rel = light_from_sums(s1, s2, folded, estimator, j_scale, plan.sigma_scale, plan.setup.density)
+        if plan.setup.tree is not None:  # per leaf (n_bands, n_leaves), J over each leaf's volume
+            J, rel, s1, s2 = (a.reshape(nb, -1) for a in (J, rel, s1, s2))
+            J = J / tree_run.leaf_volumes(plan.setup.tree)[None, :]
     return TransportResult(
         J=J,
         rel_error=rel,
