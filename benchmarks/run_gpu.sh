@@ -8,7 +8,7 @@
 # colour-science, tomli-w; pmcx for the MCX comparison), fetched elsewhere with
 # `pip download --only-binary=:all: --python-version 3.12 ...`.
 # STEPS (default "tests bench neb128 compare profile"; also "tests-cuda", "thick", "thick-grid", "trust", "scaling", "large", "regions", "regcaps", "profile-regions", "layout", "sorted", "probe", "ranks", "ranks-thesis", "ranks-weak", "tests-mpi", "e2e1e9", "biasing", "fit", "fitprof", "tune",
-# "stages", "kernel-probes", "ncu-thesis", "trade", "presets", "empty", "fft") selects what runs. Everything printed
+# "stages", "kernel-probes", "ncu-thesis", "tree", "trade", "presets", "empty", "fft") selects what runs. Everything printed
 # goes to OUTDIR/log.txt as well; JSON and .npz results beside it.
 set -uo pipefail
 out="${1:?output folder}"
@@ -254,6 +254,16 @@ if [[ " $steps " == *" kernel-probes "* ]]; then
     echo "== transport kernel probes, neb medium, CUDA"
     python3 benchmarks/profile_kernels.py --grids 64 128 --photons 2.1e7 --tuning "" "NRT_PROBE_DEPOSIT=1" \
         "NRT_HOT_HALF=0" "NRT_HOT_HALF=1" "NRT_HOT_HALF=3" --out "$out/neb-probes.json" 2>&1 | grep -v Warning
+fi
+if [[ " $steps " == *" tree "* ]]; then
+    # the transport on octrees made from the thesis density against that grid, CUDA and NVIDIA OpenCL
+    echo "== trees against their grid, CUDA"
+    python3 benchmarks/bench_tree.py --backend cuda --grid 128 --photons 2.1e6 --out "$out/tree-128-cuda.json" 2>&1 | grep -v Warning
+    python3 benchmarks/bench_tree.py --backend cuda --grid 256 --photons 1e7 --roots 16 --tolerances 0 0.2 1 \
+        --out "$out/tree-256-cuda.json" 2>&1 | grep -v Warning
+    echo "== trees against their grid, NVIDIA OpenCL"
+    python3 benchmarks/bench_tree.py --backend opencl --device NVIDIA --grid 128 --photons 2.1e6 \
+        --out "$out/tree-128-nvidia-opencl.json" 2>&1 | grep -v Warning
 fi
 if [[ " $steps " == *" ncu-thesis "* ]] && command -v ncu >/dev/null; then
     echo "== ncu: transport kernel, thesis 128^3 (its first launch)"
