@@ -19,6 +19,8 @@ density, for :func:`nebula_rt.density.resample.box_averages` and for tests.
 
 from __future__ import annotations
 
+import functools
+
 from dataclasses import dataclass
 
 import numpy as np
@@ -38,6 +40,9 @@ class Octree:
         Per node: the first child's index, or -1 - leaf index for a leaf.
     density : ndarray float32 (n_leaves,)
         Per leaf.
+
+    The arrays are not to be changed in place: the leaves' boxes are found once per tree
+    (a walk of every node) and kept.
     """
 
     roots: tuple
@@ -50,7 +55,21 @@ class Octree:
 
     def depth(self) -> int:
         """Levels below the roots of the deepest leaf (0: the root grid itself)."""
-        return int(self._walk()[2].max(initial=0))
+        return int(self._boxes[2].max(initial=0))
+
+    @functools.cached_property
+    def _boxes(self):
+        """(lo (n, 3), hi (n, 3), level (n,)) of every leaf in leaf-index order (a run on the
+        tree asks for them several times: its plan, its J per leaf)."""
+        nodes, corner, level = self._walk()
+        ids = -1 - self.child[nodes].astype(np.int64)
+        size = 1.0 / (np.asarray(self.roots, np.float64)[None, :] * (2.0 ** level)[:, None])
+        order = np.argsort(ids)
+        lo, hi = corner * size, (corner + 1) * size
+        out = lo[order], hi[order], level[order]
+        for a in out:  # shared by every caller: read-only
+            a.setflags(write=False)
+        return out
 
     def _walk(self):
         """(node, integer corner at its level (n, 3), level) of every leaf, by levels."""
@@ -94,12 +113,8 @@ class Octree:
 
     def leaves(self):
         """(lo (n, 3), hi (n, 3), density (n,)) of every leaf, in leaf-index order (box units)."""
-        nodes, corner, level = self._walk()
-        ids = -1 - self.child[nodes].astype(np.int64)
-        size = 1.0 / (np.asarray(self.roots, np.float64)[None, :] * (2.0 ** level)[:, None])
-        order = np.argsort(ids)
-        lo, hi = corner * size, (corner + 1) * size
-        return lo[order], hi[order], self.density[ids[order]]
+        lo, hi, _ = self._boxes
+        return lo, hi, self.density
 
 
 def from_boxes(lo, hi, values, roots) -> Octree:
