@@ -14,9 +14,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from nebula_rt.density.generate import ADAPTIVE_SUFFIXES
 from nebula_rt.density.octree import Octree, from_boxes
 
-__all__ = ["octree_from_amr", "octree_from_htg", "octree_to_htg"]
+__all__ = ["ADAPTIVE_SUFFIXES", "octree_from_amr", "octree_from_htg", "octree_to_htg", "read_adaptive_density"]
 
 
 def _uniform(coords, axis: str) -> tuple[float, float, int]:
@@ -201,3 +202,40 @@ def octree_from_amr(amr, array: str = "density") -> Octree:
             out_v.append(values[keep])
     return from_boxes(np.concatenate(out_lo), np.concatenate(out_hi), np.concatenate(out_v),
                       tuple(int(r) for r in roots))
+
+
+
+def read_adaptive_density(path, array: str = "density") -> Octree:
+    """The octree of an adaptive density file: a ``vtkHyperTreeGrid`` (``.htg``, VTK's
+    ``vtkXMLHyperTreeGridReader``) or a ``vtkOverlappingAMR`` (``.vthb``,
+    ``vtkXMLUniformGridAMRReader``), its cell array ``array`` the density
+    (:func:`octree_from_htg`, :func:`octree_from_amr`). Raises ValueError saying why a file
+    cannot be one (the reader's own errors included)."""
+    from pathlib import Path
+
+    from vtkmodules import vtkIOXML
+
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in ADAPTIVE_SUFFIXES:
+        raise ValueError(f"an adaptive density file is {' or '.join(ADAPTIVE_SUFFIXES)}, not {suffix or 'no suffix'}")
+    reader = (vtkIOXML.vtkXMLHyperTreeGridReader() if suffix == ".htg" else vtkIOXML.vtkXMLUniformGridAMRReader())
+    from vtkmodules.vtkCommonCore import vtkCommand
+
+    errors = []
+    reader.AddObserver(vtkCommand.ErrorEvent, lambda obj, ev: errors.append(ev))
+    reader.GetExecutive().AddObserver(vtkCommand.ErrorEvent, lambda obj, ev: errors.append(ev))
+    reader.SetFileName(str(path))
+    if suffix == ".vthb":
+        reader.SetMaximumLevelsToReadByDefault(0)  # every level
+    reader.Update()
+    out = reader.GetOutputDataObject(0)
+    if errors or out is None:
+        raise ValueError(f"VTK's {type(reader).__name__} could not read it")
+    if suffix == ".htg":
+        if out.GetNumberOfCells() == 0:
+            raise ValueError("it holds no hyper tree grid")
+        return octree_from_htg(out, array)
+    if out.GetNumberOfLevels() == 0:
+        raise ValueError("it holds no AMR hierarchy")
+    return octree_from_amr(out, array)

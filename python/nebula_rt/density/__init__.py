@@ -5,9 +5,10 @@ adaptive grid's leaves (:mod:`~nebula_rt.density.resample`); an adaptive density
 octrees in flat arrays (:mod:`~nebula_rt.density.octree`; docs/adaptive_grids.md), and particle
 snapshots deposited on one (:mod:`~nebula_rt.density.particles`)."""
 
-from .generate import check_density_file, file_digest, generate_density, load_density_file
+from .generate import (check_density_file, file_digest, generate_density, is_adaptive_file, load_density_file,
+                       load_tree, scene_density)
 from .octree import Octree, coarsen, from_boxes
 from .resample import box_averages
 
 __all__ = ["Octree", "box_averages", "check_density_file", "coarsen", "file_digest", "from_boxes", "generate_density",
-           "load_density_file"]
+           "is_adaptive_file", "load_density_file", "load_tree", "scene_density"]

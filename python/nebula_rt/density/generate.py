@@ -51,7 +51,16 @@ def file_digest(path: Path) -> str:
 
 
 #: what ``dust.file`` must be, for the refusals
-DENSITY_FILE = "an existing .npy or .vti file"
+DENSITY_FILE = "an existing .npy, .vti, .htg or .vthb file"
+
+#: adaptive densities (VTK's XML hyper tree grid and overlapping AMR files), read into an
+#: :class:`~nebula_rt.density.octree.Octree` (nebula_rt.filters.adaptive)
+ADAPTIVE_SUFFIXES = (".htg", ".vthb")
+
+
+def is_adaptive_file(path) -> bool:
+    """Whether a ``dust.file`` holds an adaptive density (by its suffix)."""
+    return Path(path).suffix.lower() in ADAPTIVE_SUFFIXES
 
 
 def _npy_header_shape(fh, path: Path, shape: tuple[int, int, int]) -> np.dtype:
@@ -124,8 +133,8 @@ def check_density_file(path: Path, array: str, shape: tuple[int, int, int]) -> N
             raise SceneError("dust.file", str(path), f"{st.st_size} bytes, more than the {most} its header's {arrays} "
                                                      f"array(s) of {math.prod(points)} points can take up: a damaged "
                                                      "file")
-    else:
-        raise SceneError("dust.file", str(path), "must be a .npy or .vti file")
+    elif suffix not in ADAPTIVE_SUFFIXES:  # (an adaptive file is checked as it is read: load_tree)
+        raise SceneError("dust.file", str(path), "must be a .npy, .vti, .htg or .vthb file")
 
 
 def load_density_file(path: Path, array: str, shape: tuple[int, int, int]) -> np.ndarray:
@@ -155,7 +164,8 @@ def load_density_file(path: Path, array: str, shape: tuple[int, int, int]) -> np
                                                          "pip install 'nebula-rt[io]', or give a .npy file") from None
             data = read_density_array(path, array, expected_shape=shape)
         else:
-            raise SceneError("dust.file", str(path), "must be a .npy or .vti file")
+            raise SceneError("dust.file", str(path), "must be a .npy or .vti file (an adaptive .htg or "
+                                                     ".vthb density is read by load_tree)")
     except SceneError:
         raise
     except Exception as exc:  # unreadable file: say which and why
@@ -200,11 +210,82 @@ def _check_generated(scene, rho: np.ndarray, backend: Backend) -> np.ndarray:
                                                    f"allowed density <= {limits.fmt(limits.FLOAT32_MAX - n)}")
 
 
+def load_tree(scene):
+    """The adaptive density of ``scene`` (``dust.file`` a ``.htg`` or ``.vthb``, its cell array
+    ``dust.array``): an :class:`~nebula_rt.density.octree.Octree` over the unit box, each leaf at
+    least ``dust.floor``.
+
+    Raises
+    ------
+    SceneError
+        ``dust.file`` unreadable, not a hyper tree grid or AMR hierarchy an octree can hold
+        (nebula_rt.filters.adaptive says why), or with values float32 cannot hold.
+    """
+    from .octree import Octree
+
+    path = Path(scene.dust_file_path())
+    check_input_file("dust.file", path, DENSITY_FILE)
+    try:  # the VTK layer: VTK's own XML readers (the io extra, or ParaView's VTK)
+        from ..filters.adaptive import read_adaptive_density
+    except ImportError as exc:
+        raise SceneError("dust.file", str(path), f"an adaptive density needs {(exc.name or 'vtk').split('.')[0]}: "
+                                                 "pip install 'nebula-rt[io]'") from None
+    try:
+        tree = read_adaptive_density(path, scene.dust.array)
+    except ValueError as exc:
+        raise SceneError("dust.file", str(path), f"could not be read as an adaptive density: {exc}") from None
+    lo, hi, _ = tree.leaves()
+    rho = np.asarray(tree.density, np.float64) + leaf_bumps(lo, hi, _stars_array(scene.stars))
+    rho = np.maximum(rho, scene.dust.floor)
+    if not rho.max(initial=0.0) <= limits.FLOAT32_MAX:
+        raise SceneError("dust.file", str(path), f"density values must stay within float32 (at most "
+                                                 f"{limits.fmt(limits.FLOAT32_MAX)}; found {limits.fmt(float(rho.max()))})")
+    return Octree(tree.roots, tree.child, rho.astype(np.float32))
+
+
+def leaf_bumps(lo, hi, stars, subsamples: int = BUMP_SUBSAMPLES) -> np.ndarray:
+    """The stars' cubic bumps (1 - d^2 / r^2)^3 (thesis Eq. 3.3) averaged over boxes [lo, hi)
+    (a tree's leaves) with ``subsamples``^3 midpoint samples, as ``kernels/density.cl``
+    averages them over voxels (here in float64); boxes the bump cannot reach stay 0.
+    ``stars``: (n, 4) x, y, z, radius."""
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    out = np.zeros(len(lo))
+    t = (np.arange(subsamples) + 0.5) / subsamples
+    for sx, sy, sz, r in np.asarray(stars, np.float64).reshape(-1, 4):
+        if not r > 0:
+            continue
+        s = np.array([sx, sy, sz])
+        near = np.sum((np.clip(s, lo, hi) - s) ** 2, axis=1) < r * r
+        for i in np.flatnonzero(near):
+            axes = [lo[i, a] + t * (hi[i, a] - lo[i, a]) - s[a] for a in range(3)]
+            d2 = axes[0][:, None, None] ** 2 + axes[1][None, :, None] ** 2 + axes[2][None, None, :] ** 2
+            out[i] += np.mean(np.where(d2 < r * r, (1.0 - d2 / (r * r)) ** 3, 0.0))
+    return out
+
+
+def scene_density(scene, backend: Backend):
+    """The density a scene is traced through: an :class:`~nebula_rt.density.octree.Octree`
+    for an adaptive ``dust.file`` (:func:`load_tree`), else the grid of
+    :func:`generate_density`."""
+    if scene.dust.model == "file" and is_adaptive_file(scene.dust_file_path()):
+        return load_tree(scene)
+    return generate_density(scene, backend)
+
+
 def generate_density(scene, backend: Backend) -> np.ndarray:
-    """Density of ``scene`` on its grid, float32 (nx, ny, nz) (index [i, j, k] = x, y, z)."""
+    """Density of ``scene`` on its grid, float32 (nx, ny, nz) (index [i, j, k] = x, y, z).
+
+    An adaptive ``dust.file`` is refused here: the pipeline traces it as a tree
+    (:func:`scene_density`); what needs a grid (sky images, comparisons, fits, the Dust
+    Density source) takes a uniform one so far."""
     dust = scene.dust
     shape = tuple(scene.grid.shape)
     stars = _stars_array(scene.stars)
+    if dust.model == "file" and is_adaptive_file(scene.dust_file_path()):
+        raise SceneError("dust.file", str(scene.dust_file_path()),
+                         "an adaptive density (.htg, .vthb) is traced by the light field (nebula-rt render, "
+                         "the Light Field filter) only; sky images, comparisons, fits and the Dust Density "
+                         "source need a uniform grid (.npy or .vti) so far")
     if dust.model == "file":
         data = load_density_file(scene.dust_file_path(), dust.array, shape)
         if np.any(stars[:, 3] > 0):

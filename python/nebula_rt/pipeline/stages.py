@@ -20,7 +20,10 @@ from . import output_contract as contract
 from ..array_api import array_module, to_numpy
 from ..backends import Backend
 from ..optics.bands import Band, reference_band_index
-from ..density.generate import check_density_file, file_digest, generate_density
+from ..density.generate import check_density_file, file_digest, scene_density
+from ..density.octree import Octree
+from ..density.resample import box_averages
+from ..errors import SceneError
 from ..transport.tails import DEPTH_CLASS_NAMES, figures
 from ..transport.result import TransportResult
 from ..transport.estimate import batch_standard_error, light_from_sums
@@ -212,10 +215,12 @@ class Pipeline:
         return value
 
     # --- stages -----------------------------------------------------------------------------
-    def density(self, scene, key: Optional[str] = None) -> np.ndarray:
-        """Stage 1: the dust density (float32, (nx, ny, nz)); ``key``: its density_key if known."""
+    def density(self, scene, key: Optional[str] = None):
+        """Stage 1: the dust density (float32, (nx, ny, nz)), or an
+        :class:`~nebula_rt.density.octree.Octree` for an adaptive ``dust.file``; ``key``: its
+        density_key if known."""
         key = key if key is not None else self.density_key(scene)
-        return self._cached("density", key, lambda: generate_density(scene, self.backend_for(scene)))
+        return self._cached("density", key, lambda: scene_density(scene, self.backend_for(scene)))
 
     def light(self, scene, progress=None, cancel=None,
               density_key: Optional[str] = None) -> tuple[TransportResult, np.ndarray, np.ndarray]:
@@ -290,6 +295,11 @@ def compute_light(scene, density: np.ndarray, backend: Backend, progress=None, c
 
     t = scene.transport
     resources.check(scene, backend)
+    if isinstance(density, Octree):  # J per leaf, estimated on the host (finish_tree_light_field)
+        if t.estimator == "collision-filter":
+            raise SceneError("transport.estimator", t.estimator,
+                             '"track-length" on an adaptive density (the collision filter smooths a uniform grid)')
+        on_device = False
     res = TransportRequest.from_scene(scene).trace(density, backend, progress=progress, cancel=cancel,
                                                   on_device=on_device, comm=comm)
     if t.estimator == "collision-filter":
@@ -329,6 +339,8 @@ def finish_light_field(scene, rho, res: TransportResult, J=None, rel=None, colou
     ``J``, ``rel``: the (filtered) light from :func:`compute_light`, or None to take it from the
     device sums.
     """
+    if isinstance(rho, Octree):
+        return finish_tree_light_field(scene, rho, res, colour)
     bands = scene.bands.resolve()
     ds = res.device_sums
     if ds is None:
@@ -384,6 +396,50 @@ def finish_light_field(scene, rho, res: TransportResult, J=None, rel=None, colou
         rho_h = np.asarray(rho, np.float64)
         light.rgba, light.exposure = colour_rgba(scene, bands, rho_h, light.emissivity.astype(np.float64), res)
         light.opacity_scale = scene_opacity_factor(scene, bands, rho_h)
+    return light
+
+
+def finish_tree_light_field(scene, tree: Octree, res: TransportResult, colour: bool = True) -> LightField:
+    """The light field of a run on a tree, on the uniform grid of ``grid.shape`` (the output
+    contract's ``vtkImageData``): each voxel the average of the leaves it overlaps, by exact
+    overlap volume (:func:`nebula_rt.density.resample.box_averages`), of the density, J and the
+    emissivity (formed per leaf, alb x sigma x rho x J, so that its voxel averages keep the
+    scattered energy). A voxel inside one leaf has that leaf's values and relative error; over
+    several leaves its error is the overlap average of their errors (as if their errors moved
+    together: an upper bound, since the leaves' errors are partly independent). Colour on the
+    host, as for a transport finished there."""
+    bands = scene.bands.resolve()
+    shape = tuple(int(n) for n in scene.grid.shape)
+    lo, hi, dens = tree.leaves()
+    dens = np.asarray(dens, np.float64)
+    sig = np.array([scene.dust.tau * b.extinction for b in bands], np.float64)
+    alb = np.array([b.albedo for b in bands], np.float64)
+    nb = len(bands)
+    J = np.empty((nb,) + shape)
+    sd = np.empty((nb,) + shape)
+    emissivity = np.empty((nb,) + shape)
+    for b in range(nb):
+        J[b] = box_averages(lo, hi, res.J[b], shape)
+        sd[b] = box_averages(lo, hi, res.J[b] * res.rel_error[b], shape)
+        emissivity[b] = box_averages(lo, hi, alb[b] * sig[b] * dens * res.J[b], shape)
+    rel = np.where(J > 0, sd / np.where(J > 0, J, 1.0), 1.0)
+    rho_x = box_averages(lo, hi, dens, shape)
+    light = LightField(
+        scene=scene,
+        bands=bands,
+        density=rho_x.astype(np.float32),
+        J=J.astype(np.float32),
+        rel_error=rel.astype(np.float32),
+        emissivity=emissivity.astype(np.float32),
+        rgba=None,
+        transport=res,
+        exposure=float("nan"),
+        reference_band=reference_band_index(bands),
+    )
+    if colour:
+        light.rgba, light.exposure = colour_rgba(scene, bands, rho_x, emissivity, res)
+        light.opacity_scale = scene_opacity_factor(scene, bands, rho_x)
+    light.memory = _memory(res, 0)
     return light
 
 

@@ -224,7 +224,7 @@ class Scene:
             If ``dust.file`` is empty.
         """
         if not self.dust.file:
-            raise SceneError("dust.file", self.dust.file, "must name a .npy or .vti file")
+            raise SceneError("dust.file", self.dust.file, "must name a .npy, .vti, .htg or .vthb file")
         p = Path(self.dust.file).expanduser()
         if not p.is_absolute() and self.base_dir is not None:
             p = Path(self.base_dir) / p
@@ -244,11 +244,11 @@ class Scene:
         if self.dust.model == "file":
             if not self.dust.file:
                 raise SceneError(
-                    "dust.file", self.dust.file, "must name a .npy or .vti file when dust.model = 'file'"
+                    "dust.file", self.dust.file, "must name a .npy, .vti, .htg or .vthb file when dust.model = 'file'"
                 )
-            if self.dust.file.lower().endswith(".vti") and not self.dust.array:
+            if self.dust.file.lower().endswith((".vti", ".htg", ".vthb")) and not self.dust.array:
                 raise SceneError(
-                    "dust.array", self.dust.array, "must name the density array of the .vti file"
+                    "dust.array", self.dust.array, "must name the density array of the .vti, .htg or .vthb file"
                 )
         if not isinstance(self.stars, list) or len(self.stars) == 0:
             raise SceneError("stars", self.stars, "must contain at least one [[stars]] table")

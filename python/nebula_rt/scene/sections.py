@@ -124,10 +124,12 @@ class Dust:
             "box at density 1)")
     file: str = param(
         "", type="str", group=G_DUST,
-        doc="\"file\": a .npy array in (x, y, z) order or a .vti image; a relative path is relative to "
-            "the scene file's folder")
+        doc="\"file\": a .npy array in (x, y, z) order or a .vti image on grid.shape, or an adaptive "
+            "density: a hyper tree grid (.htg) or an overlapping AMR hierarchy (.vthb), traced leaf by leaf "
+            "(docs/adaptive_grids.md); a relative path is relative to the scene file's folder")
     array: str = param("density", type="str", group=G_DUST,
-                       doc="\"file\" with .vti: the name of the point-data array to read")
+                       doc="\"file\" with .vti: the name of the point-data array to read; with .htg or "
+                           ".vthb: the cell-data array")
     scale: float = param(
         0.15, type="float", lo=0.0, group=G_DUST,
         float32=True,
