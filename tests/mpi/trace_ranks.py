@@ -10,7 +10,8 @@ an MPI job's start-up costs more than a run).
 MODE: ``plain``, ``checked`` (headroom lowered: batches overflow and are re-traced), ``biased``
 (weighted packets, 128-bit cells), ``regions`` (the transport by regions, each group streamed
 through launches of about 300 packets) or ``packets`` (the error estimate by packets: one batch,
-its squares summed over the ranks too, no peel-off image), joined by ``+`` with ``copied``: the slots are summed in a
+its squares summed over the ranks too, no peel-off image) or ``tree`` (an octree of the cloud:
+the packets walk its leaves), joined by ``+`` with ``copied``: the slots are summed in a
 host copy, as on a GPU, instead of in the mapped device memory of PoCL (``Backend.map_host``).
 With ``NEBULA_RT_TEST_BACKEND=cuda`` the ranks trace on CUDA (a GPU per local rank where there
 are enough) and add their slots on the device (``nebula_rt.backends.parallel.device_reducer``); the
@@ -68,8 +69,13 @@ def run_case(out: str, estimator: str, mode: str, device: str, comm) -> None:
     if "regions" in parts:  # by regions of 4 voxels, each group in launches of about 300 packets
         backend.transport_tuning.update({"NRT_REGIONS": 2, "region_tail": 50})
         transport_mod._Launcher._budget = lambda self, nb: 600  # packets (all bands) per launch
+    medium = cloud
+    if "tree" in parts:  # an octree of the cloud (roots of 4^3 voxels, blocks within 30 % merged)
+        from nebula_rt.density.octree import coarsen
+
+        medium = coarsen(cloud, (5, 4, 3), 0.3)
     try:
-        res = trace(cloud, bands, stars, comm=comm, **kw)
+        res = trace(medium, bands, stars, comm=comm, **kw)
     finally:
         transport_mod._Launcher._budget = budget
     if comm.rank == 0:
