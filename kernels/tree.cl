@@ -22,13 +22,42 @@
 #endif
 #define NRT_INF_TREE 3.0e38f
 
-/* The leaf holding p (moving along d: a coordinate on a face goes to the side d points to);
-   its integer corner and cells per axis at its level go to c, n, its box's low corner and
-   size to lo, h. A face is formed as (index) x (1 / cells) at every level, the same float
-   whichever level forms it (1 / (r 2^L) is 1 / r scaled by a power of 2), so a point put on a
-   leaf's face compares equal to its ancestors' midplanes there. */
+/* From node (integer corner c, cells per axis n and cell size h at its level) down to the
+   leaf holding p (moving along d: a coordinate on a face goes to the side d points to); the
+   leaf's corner, cells per axis, low corner and size go to c, n, lo, h, its node to *node.
+   A face is formed as (index) x (1 / cells) at every level, the same float whichever level
+   forms it (1 / (r 2^L) is 1 / r scaled by a power of 2), so a point put on a leaf's face
+   compares equal to its ancestors' midplanes there. The cell size of a level is the root
+   cell's halved level by level: the same floats as dividing at every level (a scaling by
+   2^-L is exact), without three divisions per level. */
+NRT_DEVICE int nrt_tree_descend(const NRT_GLOBAL int *child, int *node, const float *p, const float *d, int *c,
+                                int *n, float *lo, float *h)
+{
+    for (int level = 0; level <= NRT_TREE_MAX_DEPTH; ++level) {
+        int k = child[*node];
+        if (k < 0) {
+            for (int a = 0; a < 3; ++a)
+                lo[a] = (float)c[a] * h[a];
+            return -1 - k;
+        }
+        int oct = 0;
+        for (int a = 0; a < 3; ++a) {
+            /* the children's shared face, as the children's faces are formed: (2 c + 1) / (2 n) */
+            h[a] *= 0.5f;
+            float mid = (float)(2 * c[a] + 1) * h[a];
+            int up = p[a] > mid || (p[a] == mid && d[a] > 0.0f);
+            c[a] = 2 * c[a] + up;
+            n[a] *= 2;
+            oct += up << a;
+        }
+        *node = k + oct;
+    }
+    return -1; /* deeper than NRT_TREE_MAX_DEPTH: not a tree the host made */
+}
+
+/* The leaf holding p, from the root grid down (nrt_tree_descend). */
 NRT_DEVICE int nrt_tree_locate(const NRT_GLOBAL int *child, int rx, int ry, int rz, const float *p,
-                               const float *d, int *c, int *n, float *lo, float *h)
+                               const float *d, int *c, int *n, float *lo, float *h, int *node)
 {
     int r[3] = {rx, ry, rz};
     for (int a = 0; a < 3; ++a) {
@@ -38,43 +67,41 @@ NRT_DEVICE int nrt_tree_locate(const NRT_GLOBAL int *child, int rx, int ry, int 
         if ((float)i == x && d[a] < 0.0f)
             i -= 1;
         c[a] = min(max(i, 0), r[a] - 1);
+        n[a] = r[a];
+        h[a] = 1.0f / (float)r[a];
     }
-    int node = c[0] + rx * (c[1] + ry * c[2]);
-    int *scale = n;
-    scale[0] = rx, scale[1] = ry, scale[2] = rz;
-    for (int level = 0; level <= NRT_TREE_MAX_DEPTH; ++level) {
-        int k = child[node];
-        if (k < 0) {
-            for (int a = 0; a < 3; ++a) {
-                h[a] = 1.0f / (float)scale[a];
-                lo[a] = (float)c[a] * h[a];
-            }
-            return -1 - k;
-        }
-        int oct = 0;
-        for (int a = 0; a < 3; ++a) {
-            /* the children's shared face, as the children's faces are formed: (2 c + 1) / (2 scale) */
-            float mid = (float)(2 * c[a] + 1) * (1.0f / (float)(2 * scale[a]));
-            int up = p[a] > mid || (p[a] == mid && d[a] > 0.0f);
-            c[a] = 2 * c[a] + up;
-            scale[a] *= 2;
-            oct += up << a;
-        }
-        node = k + oct;
-    }
-    return -1; /* deeper than NRT_TREE_MAX_DEPTH: not a tree the host made */
+    *node = c[0] + rx * (c[1] + ry * c[2]);
+    return nrt_tree_descend(child, node, p, d, c, n, lo, h);
 }
 
-/* Distance from p along d to the nearest far face of the leaf (corner c, low corner lo, size
-   h), formed as locate forms faces; its axis goes to ax. */
-NRT_DEVICE float nrt_tree_exit(const float *p, const float *d, const int *c, const float *lo, const float *h,
-                               int *ax)
+/* The leaf beyond the face of axis ax the point p lies on (up: the far face), for a packet
+   moving along d out of the leaf (node, corner c, ...): where the cell across shares the
+   leaf's parent (half the crossings) it is the leaf's sibling, 8 children being stored
+   together (octant bit ax flipped), and the walk goes down from there; else from the root
+   grid. The same leaf either way (the same comparisons at every level below). */
+NRT_DEVICE int nrt_tree_next(const NRT_GLOBAL int *child, int rx, int ry, int rz, const float *p, const float *d,
+                             int ax, int up, int *c, int *n, float *lo, float *h, int *node)
+{
+    int r_ax = ax == 0 ? rx : (ax == 1 ? ry : rz);
+    if (n[ax] > r_ax && (c[ax] & 1) == (up ? 0 : 1)) {
+        c[ax] += up ? 1 : -1;
+        *node += up ? (1 << ax) : -(1 << ax);
+        return nrt_tree_descend(child, node, p, d, c, n, lo, h);
+    }
+    return nrt_tree_locate(child, rx, ry, rz, p, d, c, n, lo, h, node);
+}
+
+/* Distance from p along d (1 / d: inv_d) to the nearest far face of the leaf (corner c, low
+   corner lo, size h), formed as locate forms faces; its axis goes to ax. Times 1 / d, as the
+   grid's walk forms its face distances (nrt_face_distance). */
+NRT_DEVICE float nrt_tree_exit(const float *p, const float *d, const float *inv_d, const int *c, const float *lo,
+                               const float *h, int *ax)
 {
     float t_exit = NRT_INF_TREE;
     *ax = 0;
     for (int a = 0; a < 3; ++a) {
-        float t = d[a] > 0.0f ? ((float)(c[a] + 1) * h[a] - p[a]) / d[a]
-                : (d[a] < 0.0f ? (lo[a] - p[a]) / d[a] : NRT_INF_TREE);
+        float t = d[a] > 0.0f ? ((float)(c[a] + 1) * h[a] - p[a]) * inv_d[a]
+                : (d[a] < 0.0f ? (lo[a] - p[a]) * inv_d[a] : NRT_INF_TREE);
         t = fmax(t, 0.0f);
         if (t < t_exit) {
             t_exit = t;
@@ -91,12 +118,13 @@ NRT_DEVICE float nrt_tree_tau_to_edge(const NRT_GLOBAL int *child, const NRT_GLO
                                       int ry, int rz, float sig_b, const float *x, const float *o)
 {
     float p[3] = {x[0], x[1], x[2]};
+    const float inv_o[3] = {1.0f / o[0], 1.0f / o[1], 1.0f / o[2]};
     float lo[3], h[3], tau = 0.0f;
-    int c[3], n[3];
-    int leaf = nrt_tree_locate(child, rx, ry, rz, p, o, c, n, lo, h);
+    int c[3], n[3], node;
+    int leaf = nrt_tree_locate(child, rx, ry, rz, p, o, c, n, lo, h, &node);
     while (leaf >= 0) {
         int ax;
-        float t_exit = nrt_tree_exit(p, o, c, lo, h, &ax);
+        float t_exit = nrt_tree_exit(p, o, inv_o, c, lo, h, &ax);
         tau += sig_b * leaf_density[leaf] * t_exit;
         int up = o[ax] > 0.0f;
         if ((up && c[ax] + 1 == n[ax]) || (!up && c[ax] == 0))
@@ -104,7 +132,7 @@ NRT_DEVICE float nrt_tree_tau_to_edge(const NRT_GLOBAL int *child, const NRT_GLO
         for (int a = 0; a < 3; ++a)
             p[a] = p[a] + o[a] * t_exit;
         p[ax] = (float)(c[ax] + up) * h[ax];
-        leaf = nrt_tree_locate(child, rx, ry, rz, p, o, c, n, lo, h);
+        leaf = nrt_tree_next(child, rx, ry, rz, p, o, ax, up, c, n, lo, h, &node);
     }
     return tau;
 }
@@ -166,13 +194,14 @@ NRT_DEVICE int nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, fl
     nrt_rng_init(&rng, seed, (nrt_u64)band, photon);
     int s = nrt_choose_star(&rng, cdf, n_stars);
     float p[3] = {stars[4 * s], stars[4 * s + 1], stars[4 * s + 2]};
-    float d[3];
+    float d[3], inv_d[3];
     nrt_sample_isotropic(&rng, d);
+    inv_d[0] = 1.0f / d[0], inv_d[1] = 1.0f / d[1], inv_d[2] = 1.0f / d[2];
     int scatterings = 0;
     float tau = nrt_sample_tau(&rng);
     float lo[3], h[3];
-    int c[3], n[3];
-    int leaf = nrt_tree_locate(child, nx, ny, nz, p, d, c, n, lo, h);
+    int c[3], n[3], node;
+    int leaf = nrt_tree_locate(child, nx, ny, nz, p, d, c, n, lo, h, &node);
     nrt_idx idx = (nrt_idx)(leaf < 0 ? 0 : leaf);
     for (;;) {
         if (leaf < 0) { /* (deeper than NRT_TREE_MAX_DEPTH: a tree the host does not make) */
@@ -182,7 +211,7 @@ NRT_DEVICE int nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, fl
             return 0;
         }
         int ax;
-        float t_exit = nrt_tree_exit(p, d, c, lo, h, &ax);
+        float t_exit = nrt_tree_exit(p, d, inv_d, c, lo, h, &ax);
         float sigma = sig_b * leaf_density[leaf];
         float tau_seg = sigma * t_exit;
         if (sigma > 0.0f && tau_seg >= tau) {
@@ -216,10 +245,11 @@ NRT_DEVICE int nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, fl
             float mu, sin_theta;
             nrt_sample_hg(g_b, nrt_rng_uniform(&rng), &mu, &sin_theta);
             nrt_rotate(d, mu, sin_theta, 2.0f * NRT_PI_F * nrt_rng_uniform(&rng));
+            inv_d[0] = 1.0f / d[0], inv_d[1] = 1.0f / d[1], inv_d[2] = 1.0f / d[2];
             tau = nrt_sample_tau(&rng);
             /* the point stays in this leaf (d only changed): located again for the new d's
                tie-breaks on a face, which may put it in the neighbour (another visit) */
-            int next = nrt_tree_locate(child, nx, ny, nz, p, d, c, n, lo, h);
+            int next = nrt_tree_locate(child, nx, ny, nz, p, d, c, n, lo, h, &node);
             if (next != leaf)
                 NRT_VISIT_END();
             leaf = next;
@@ -242,7 +272,7 @@ NRT_DEVICE int nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, fl
             return 0;
         }
         p[ax] = (float)(c[ax] + up) * h[ax];
-        leaf = nrt_tree_locate(child, nx, ny, nz, p, d, c, n, lo, h);
+        leaf = nrt_tree_next(child, nx, ny, nz, p, d, ax, up, c, n, lo, h, &node);
         idx = (nrt_idx)(leaf < 0 ? 0 : leaf);
     }
 }
