@@ -85,13 +85,28 @@ def _arrays_mtime(data) -> int:
     only re-negotiates its extent)."""
     if data is None:
         return 0
+    if not hasattr(data, "GetCellData"):  # a composite dataset (an AMR hierarchy): its own time
+        return int(data.GetMTime())
     times = [0]
-    for attrs in (data.GetPointData(), data.GetCellData()):
+    # (a hyper tree grid has cell data only)
+    for attrs in (getattr(data, "GetPointData", lambda: None)(), data.GetCellData()):
+        if attrs is None:
+            continue
         for i in range(attrs.GetNumberOfArrays()):
             arr = attrs.GetAbstractArray(i)
             if arr is not None:
                 times.append(arr.GetMTime())
     return max(times)
+
+
+def _empty(data) -> bool:
+    """Whether an input holds nothing to work on: no points (a dataset), no cells (a hyper
+    tree grid, an AMR hierarchy)."""
+    if data is None:
+        return True
+    if hasattr(data, "GetNumberOfPoints") and not data.IsA("vtkHyperTreeGrid"):
+        return data.GetNumberOfPoints() == 0
+    return data.GetNumberOfCells() == 0
 
 
 def default_star_row() -> list:
@@ -213,7 +228,7 @@ class NebulaAlgorithm(VTKPythonAlgorithmBase):
         self.last_error = None
         self.last_warnings = []
         if self.GetNumberOfInputPorts() > 0:
-            if inp is None or inp.GetNumberOfPoints() == 0:
+            if _empty(inp):
                 # an upstream NebulaRT filter that failed said why: pass the emptiness on
                 # instead of leaving a stale result downstream; an empty input nothing
                 # explained (a reader's empty image, an empty source) is reported here

@@ -1,4 +1,5 @@
-"""Nebula Light Field: photon transport through any vtkImageData's density array."""
+"""Nebula Light Field: photon transport through any vtkImageData's density array, or through
+an adaptive density (a vtkHyperTreeGrid or vtkOverlappingAMR cell array, traced leaf by leaf)."""
 
 from __future__ import annotations
 
@@ -58,6 +59,12 @@ class NebulaLightField(NebulaAlgorithm):
     per voxel. Its grid spans the box [0, 1]^3 (box units) whatever its spacing: star positions
     and the filter radius are in box units. A cell-data array gives voxels = cells.
 
+    Or an adaptive density: a vtkHyperTreeGrid or a vtkOverlappingAMR (refining by 2) whose
+    cell array (default ``density``) holds it; its bounds are the box. The packets walk its
+    leaves (docs/adaptive_grids.md) and port 0 is the light field on a uniform grid of
+    ``SetResolution`` voxels over the bounds (each voxel the exact-overlap average of the leaves
+    it covers), the contract's arrays as for an image input.
+
     The setters (``SetTau``, ``SetPhotons``, ... : :data:`LIGHT_FIELD_PROPERTIES`) set scene keys, with the
     scene's defaults: the filter with no property set traces what a scene file with no keys
     would. Albedo and G apply with ``SetOverrideOptics(1)`` only (else each band's own).
@@ -75,9 +82,14 @@ class NebulaLightField(NebulaAlgorithm):
     distributed = True
     #: what names the parameters no bound property sets, in messages
     PROPERTIES = {"grid.shape": "input extent", "density": "density array"}
+    #: the input types: a uniform density, or an adaptive one traced leaf by leaf
+    INPUT_TYPES = ("vtkImageData", "vtkHyperTreeGrid", "vtkOverlappingAMR")
+    #: voxels per axis of port 0 for an adaptive input (SetResolution)
+    DEFAULT_RESOLUTION = (64, 64, 64)
 
     def __init__(self):
-        super().__init__(nInputPorts=1, nOutputPorts=2, inputType="vtkImageData", outputType="vtkImageData")
+        super().__init__(nInputPorts=1, nOutputPorts=2, inputType="vtkDataObject", outputType="vtkImageData")
+        self._resolution = self.DEFAULT_RESOLUTION
         init_values(self)
         self._stars = default_star_row()
         # the panel's values of Albedo and G until set (the default preset's reference band)
@@ -93,6 +105,33 @@ class NebulaLightField(NebulaAlgorithm):
         self.last_light = None
 
     # -- the filter's own properties -----------------------------------------------------------
+    def SetResolution(self, *values):
+        """Voxels per axis of the light field on port 0 for an adaptive input (its bounds cut
+        into nx x ny x nz voxels; an image input's own grid is used otherwise)."""
+        values = tuple(values[0]) if len(values) == 1 and hasattr(values[0], "__len__") else tuple(values)
+        if values != self._resolution:
+            self._resolution = values
+            self.Modified()
+
+    def GetResolution(self) -> tuple:
+        return tuple(self._resolution)
+
+    def _checked_resolution(self) -> tuple[int, int, int]:
+        from nebula_rt.limits import INT32_MAX
+
+        r = self._resolution
+        ok = len(r) == 3 and all(isinstance(v, (int, np.integer)) or (isinstance(v, float) and v.is_integer())
+                                 for v in r)
+        if not ok or not all(2 <= int(v) <= INT32_MAX for v in r):
+            raise SceneError("Resolution", list(r), f"must be 3 whole numbers of voxels, each in [2, {INT32_MAX}]")
+        return tuple(int(v) for v in r)
+
+    def FillInputPortInformation(self, port, info):
+        info.Remove(vtkAlgorithm.INPUT_REQUIRED_DATA_TYPE())
+        for name in self.INPUT_TYPES:
+            info.Append(vtkAlgorithm.INPUT_REQUIRED_DATA_TYPE(), name)
+        return 1
+
     def SetStars(self, *values):
         """Flat list, 6 numbers per star: x, y, z (box units), luminosity, temperature (K, 0 =
         flat spectrum), bump radius (ignored here: the density comes from the input)."""
@@ -147,11 +186,17 @@ class NebulaLightField(NebulaAlgorithm):
             self.Modified()
 
     def inert_messages(self) -> list:
-        """SpectralCalibration without SpectralTypes sets nothing."""
+        """SpectralCalibration without SpectralTypes sets nothing; nor does Resolution for an
+        image input (its own grid is the light field's)."""
+        out = []
         if self._spectral_calibration != SPECTRAL_CALIBRATIONS[0] and not str(self._spectral_types).strip():
-            return [f"SpectralCalibration = {self._spectral_calibration!r} has no effect: no star has a spectral type "
-                    "(SpectralTypes is empty)"]
-        return []
+            out.append(f"SpectralCalibration = {self._spectral_calibration!r} has no effect: no star has a spectral "
+                       "type (SpectralTypes is empty)")
+        inp = self.GetInputDataObject(0, 0) if self.GetNumberOfInputConnections(0) else None
+        if tuple(self._resolution) != self.DEFAULT_RESOLUTION and isinstance(inp, vtkImageData):
+            out.append(f"Resolution = {list(self._resolution)} has no effect: the input is an image, whose own grid "
+                       "the light field takes (Resolution is for a hyper tree grid or AMR input)")
+        return out
 
     def GetOverrideOptics(self) -> int:
         return int(self._override_optics)
@@ -207,8 +252,18 @@ class NebulaLightField(NebulaAlgorithm):
     def RequestInformation(self, request, inInfo, outInfo):
         src = inInfo[0].GetInformationObject(0)
         dst = outInfo.GetInformationObject(0)
-        if src is None or not src.Has(vtkStreamingDemandDrivenPipeline.WHOLE_EXTENT()):
+        if src is None:
             return 1  # no input information: RequestData reports the missing input
+        if not isinstance(src.Get(vtkDataObject.DATA_OBJECT()), vtkImageData):
+            # an adaptive input: the grid of Resolution (its spacing and origin, from the
+            # input's bounds, are set in RequestData)
+            try:
+                shape = self._checked_resolution()
+            except SceneError:
+                return 1  # RequestData reports it
+            dst.Set(vtkStreamingDemandDrivenPipeline.WHOLE_EXTENT(), 0, shape[0] - 1, 0, shape[1] - 1, 0, shape[2] - 1)
+            dst.Set(vtkAlgorithm.CAN_PRODUCE_SUB_EXTENT(), 1)
+            return 1
         ext = list(src.Get(vtkStreamingDemandDrivenPipeline.WHOLE_EXTENT()))
         spacing = list(src.Get(vtkImageData.SPACING()) or (1.0, 1.0, 1.0))
         origin = list(src.Get(vtkImageData.ORIGIN()) or (0.0, 0.0, 0.0))
@@ -229,6 +284,9 @@ class NebulaLightField(NebulaAlgorithm):
     def _execute(self, request, inInfo, outInfo):
         inp = vtkImageData.GetData(inInfo[0])
         out = vtkImageData.GetData(outInfo)
+        if inp is None:
+            return self._execute_adaptive(request, inInfo[0].GetInformationObject(0).Get(vtkDataObject.DATA_OBJECT()),
+                                          out, outInfo)
         name, assoc = self._selected_array()
         cells = assoc == vtkDataObject.FIELD_ASSOCIATION_CELLS
         try:
@@ -281,6 +339,46 @@ class NebulaLightField(NebulaAlgorithm):
         if name != contract.DENSITY.name() or cells:
             arrays.pop(contract.DENSITY.name())  # the input's own array carries it
         add_point_arrays(out, arrays)
+        add_field_data(out, light.field_data())
+        active = contract.RGBA.name() if light.rgba is not None else contract.J.name(light.bands[light.reference_band].name)
+        out.GetPointData().SetActiveScalars(active)
+        self._stars_output(request, outInfo, light, out)
+        self.last_light = light
+
+    def _execute_adaptive(self, request, inp, out, outInfo):
+        """An adaptive input: its octree traced leaf by leaf, the light field on the grid of
+        Resolution over the input's bounds."""
+        from nebula_rt.filters.adaptive import octree_from_amr, octree_from_htg
+
+        name, _ = self._selected_array()
+        kind = inp.GetClassName() if inp is not None else "nothing"
+        shape = self._checked_resolution()
+        try:
+            if kind == "vtkHyperTreeGrid":
+                tree = octree_from_htg(inp, name)
+            elif kind == "vtkOverlappingAMR":
+                tree = octree_from_amr(inp, name)
+            else:
+                raise SceneError("Input", kind, "must be a vtkImageData, vtkHyperTreeGrid or vtkOverlappingAMR")
+        except ValueError as exc:
+            raise SceneError("density array", name, f"the adaptive input cannot be traced: {exc}") from None
+        fd = field_data_dict(inp) if kind == "vtkHyperTreeGrid" else {}
+        self._input_stars = contract.DensityData.from_field_data(fd).stars if "stars" in fd else None
+        scene = self.scene(shape)
+        backend = scene_backend(scene)
+        self._report(0.0, "NebulaRT: tracing")
+        res, J, rel = compute_light(scene, tree, backend, progress=self._progress_callback("traced"),
+                                    cancel=self._abort_requested, comm=vtk_world())
+        lum = np.asarray(res.band_luminosity, np.float64)
+        colour = len(scene.bands.resolve()) > 1 and bool(np.all(np.isfinite(lum) & (lum > 0)))
+        light = finish_light_field(scene, tree, res, colour=colour)
+        b = [0.0] * 6
+        inp.GetBounds(b)  # (an AMR hierarchy's GetBounds fills an array)
+        spacing = [(b[2 * a + 1] - b[2 * a]) / shape[a] for a in range(3)]
+        out.SetDimensions(*shape)
+        out.SetSpacing(*spacing)
+        out.SetOrigin(*(b[2 * a] + 0.5 * spacing[a] for a in range(3)))  # points at the voxels' centres
+        add_point_arrays(out, light.point_arrays())
         add_field_data(out, light.field_data())
         active = contract.RGBA.name() if light.rgba is not None else contract.J.name(light.bands[light.reference_band].name)
         out.GetPointData().SetActiveScalars(active)

@@ -54,16 +54,26 @@ SPECTRAL_TYPES = """
 </StringVectorProperty>""" % ('<StringListDomain name="list">%s</StringListDomain>'
                               % "".join('<String value="%s"/>' % c for c in SPECTRAL_CALIBRATIONS))
 
+RESOLUTION = """
+<IntVectorProperty name="Resolution" label="Resolution" command="SetResolution"
+    number_of_elements="3" default_values="%d %d %d">
+  <IntRangeDomain name="range" min="2 2 2"/>
+  <Documentation>For an adaptive input (a hyper tree grid or an AMR hierarchy): voxels per axis
+    of the light field's image over the input's bounds (each voxel the exact-overlap average of
+    the leaves it covers). An image input keeps its own grid.</Documentation>
+</IntVectorProperty>""" % _base.NebulaLightField.DEFAULT_RESOLUTION
+
 PANEL = _xml.panel(
     _base.LIGHT_FIELD_PROPERTIES,
     defaults={"bands.albedo": _REF.albedo, "bands.g": _REF.g},
-    head=[_xml.DENSITY_ARRAY],
+    head=[_xml.DENSITY_ARRAY, RESOLUTION],
     extra={"<Albedo": OVERRIDE_OPTICS,
            "<Estimator": _xml.STARS_FROM_INPUT + _xml.stars_property(default_star_row(), ("StarsFromInput", 0)),
            "<BoxLength": LUMINOSITY_UNIT + SPECTRAL_TYPES},
     # the filter's own properties: the density array, the optics switch, the stars and their units
     own_groups={"DensityArray": G_DUST, "OverrideOptics": G_OPTICS, "StarsFromInput": G_STARS, "Stars": G_STARS,
-                "LuminosityUnit": G_UNITS, "SpectralTypes": G_UNITS, "SpectralCalibration": G_UNITS})
+                "LuminosityUnit": G_UNITS, "SpectralTypes": G_UNITS, "SpectralCalibration": G_UNITS,
+                "Resolution": G_DUST})
 
 
 @smproxy.filter(name="NebulaLightField", label="Nebula Light Field", support_reload=False)
@@ -74,8 +84,9 @@ PANEL = _xml.panel(
 @smproperty.xml(PANEL)
 @smproperty.xml(ADDRESS_PROPERTY)
 @smproperty.input(name="Input", port_index=0)
-@smdomain.datatype(dataTypes=["vtkImageData"], composite_data_supported=False)
-@_xml.doc("The vtkImageData holding the dust density (e.g. Nebula Dust Density, or a .vti file).")
+@smdomain.datatype(dataTypes=list(_base.NebulaLightField.INPUT_TYPES), composite_data_supported=True)
+@_xml.doc("The dust density: a vtkImageData (e.g. Nebula Dust Density, or a .vti file), or an adaptive "
+          "vtkHyperTreeGrid (.htg) or vtkOverlappingAMR (.vthb) traced leaf by leaf.")
 @_xml.input_with_array_domain()
 class NebulaLightField(Addressed, _base.NebulaLightField):
     """Traces photon packets from the stars through the input's dust density; adds per band

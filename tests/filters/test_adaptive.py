@@ -291,3 +291,60 @@ def test_what_an_adaptive_scene_cannot_do_is_refused_by_name(tmp_path):
     with pytest.raises(SceneError) as e:
         Pipeline().run(_adaptive_scene(htg, **{"dust.array": '"rho"'}))
     assert e.value.parameter == "dust.file" and "rho" in str(e.value)
+
+
+def test_the_light_field_filter_traces_an_adaptive_input_as_the_image_it_resolves(tmp_path):
+    """Nebula Light Field with a vtkHyperTreeGrid input whose leaves are a grid's voxels (all
+    values differ: nothing merges), against the same density as a vtkImageData cell array:
+    port 0 on Resolution = the grid has the image's geometry, the same packet counts and J to
+    float32 rounding of the two walks' faces; an AMR input runs too; a bad Resolution and a
+    missing array are refused by name with an empty output."""
+    from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
+    from vtkmodules.vtkCommonDataModel import vtkImageData
+
+    from nebula_rt.filters import NebulaLightField
+
+    n = 8
+    rho = (np.random.default_rng(4).random((n, n, n)) + 0.5).astype(np.float32)
+    tree = coarsen(rho, (1, 1, 1))
+    assert tree.n_leaves == n**3
+    htg = octree_to_htg(tree, {"density": tree.density}, bounds=(0.0, 2.0, 0.0, 2.0, 0.0, 2.0))
+    img = vtkImageData()
+    img.SetDimensions(n + 1, n + 1, n + 1)
+    img.SetSpacing(0.25, 0.25, 0.25)
+    arr = numpy_to_vtk(np.ravel(rho, order="F"), deep=1)
+    arr.SetName("density")
+    img.GetCellData().AddArray(arr)
+
+    def run(inp, cells=False, **props):
+        f = NebulaLightField()
+        f.SetInputDataObject(inp)
+        if cells:
+            f.SetInputArrayToProcess(0, 0, 0, 1, "density")  # the cell array
+        f.SetPhotons(20000)
+        f.SetTau(3.0)
+        for k, v in props.items():
+            getattr(f, "Set" + k)(*v) if isinstance(v, tuple) else getattr(f, "Set" + k)(v)
+        f.Update()
+        return f
+
+    a = run(htg, Resolution=(n, n, n))
+    b = run(img, cells=True)
+    assert a.last_error is None and b.last_error is None, (a.last_error, b.last_error)
+    oa, ob = a.GetOutputDataObject(0), b.GetOutputDataObject(0)
+    assert oa.GetDimensions() == ob.GetDimensions() == (n, n, n)
+    np.testing.assert_allclose(oa.GetSpacing(), ob.GetSpacing())
+    np.testing.assert_allclose(oa.GetOrigin(), ob.GetOrigin())
+    np.testing.assert_array_equal(a.last_light.transport.counts, b.last_light.transport.counts)
+    for name in ("J_G", "density"):
+        np.testing.assert_allclose(vtk_to_numpy(oa.GetPointData().GetArray(name)),
+                                   vtk_to_numpy(ob.GetPointData().GetArray(name)), rtol=2e-5)
+    inert = run(img, cells=True, Resolution=(4, 4, 4))  # an image keeps its grid, and says so
+    assert inert.GetOutputDataObject(0).GetDimensions() == (n, n, n)
+    assert any("Resolution" in str(w) for w in inert.last_warnings), inert.last_warnings
+    c = run(_amr(), Resolution=(8, 8, 8))
+    assert c.last_error is None and c.GetOutputDataObject(0).GetNumberOfPoints() == 512
+    d = run(htg, Resolution=(0, 8, 8))
+    assert "Resolution" in d.last_error and d.GetOutputDataObject(0).GetNumberOfPoints() == 0
+    e = run(htg, DensityArrayName="rho")
+    assert "no cell array 'rho'" in e.last_error

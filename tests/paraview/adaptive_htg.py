@@ -6,7 +6,10 @@ level (the reader's default in ParaView 5.11 is level 0 only).
     pvpython adaptive_htg.py OUT.htg OUT.vthb
 
 RESULT: the VTK version, the leaves and depth of the tree and of the one read back, whether the
-voxel averages of the two (16 x 8 x 16) are equal, and the AMR's leaves as built and as read.
+voxel averages of the two (16 x 8 x 16) are equal, and the AMR's leaves as built and as read;
+then the .htg read by ParaView's XMLHyperTreeGridReader into the Nebula Light Field proxy
+(Resolution 16 x 8 x 16): its output's points, dimensions, bounds, arrays, error and the
+leaves it traced.
 """
 
 import sys
@@ -72,6 +75,22 @@ ar = vtkXMLUniformGridAMRReader()
 ar.SetFileName(sys.argv[2])
 ar.SetMaximumLevelsToReadByDefault(0)  # every level
 ar.Update()
+# the .htg through ParaView's own reader into the Light Field proxy (an adaptive input)
+from paraview import simple  # noqa: E402
+from nebula_rt_paraview.view import load_plugin  # noqa: E402
+
+load_plugin()
+htg_reader = simple.OpenDataFile(sys.argv[1])  # (ParaView picks its .htg reader)
+light = simple.NebulaLightField(htg_reader, Photons=20000, Resolution=[16, 8, 16], Device=_common.TEST_DEVICE)
+light.DensityArray = ["CELLS", "density"]
+light.UpdatePipeline()
+info = light.GetDataInformation()
+alg = light.GetClientSideObject()
+out = alg.GetOutputDataObject(0)
 _common.result(vtk=vtkVersion.GetVTKVersion(), leaves=[tree.n_leaves, back.n_leaves], depth=[tree.depth(), back.depth()],
                same=bool(np.array_equal(box_averages(*a, rho.shape), box_averages(*b, rho.shape))),
-               amr=[octree_from_amr(amr).n_leaves, octree_from_amr(ar.GetOutput()).n_leaves])
+               amr=[octree_from_amr(amr).n_leaves, octree_from_amr(ar.GetOutput()).n_leaves],
+               light_points=int(info.GetNumberOfPoints()), light_dims=list(out.GetDimensions()),
+               light_bounds=list(out.GetBounds()), light_error=alg.last_error,
+               light_arrays=sorted(out.GetPointData().GetArrayName(i) for i in range(out.GetPointData().GetNumberOfArrays())),
+               light_leaves=int(alg.last_light.transport.J.shape[1]) if alg.last_light is not None else 0)

@@ -812,8 +812,15 @@ def test_an_octree_goes_through_paraviews_hyper_tree_grid(pv_env, xdisplay, tmp_
     written as a vtkHyperTreeGrid to an .htg file by ParaView's writer and read back by its
     reader is the same tree (leaves, depth) and the same field (equal voxel averages); a
     two-level AMR hierarchy through a .vthb file, read with every level, is the octree of its
-    960 visible cells (512 - 64 + 512)."""
+    960 visible cells (512 - 64 + 512). The .htg read by ParaView's reader goes into the Nebula
+    Light Field proxy, which traces its leaves and gives the image of its Resolution."""
     r, _ = run_pv(pv_env, xdisplay, "adaptive_htg.py", tmp_path / "tree.htg", tmp_path / "amr.vthb")
     assert r["amr"] == [960, 960], r["amr"]
     assert r["vtk"].startswith("9.2"), r["vtk"]
     assert r["leaves"][0] == r["leaves"][1] > 16 and r["depth"] == [3, 3] and r["same"], r
+    # the Light Field proxy takes the hyper tree grid ParaView's reader made: its leaves
+    # traced, the image of Resolution over the grid's bounds
+    assert r["light_error"] is None and r["light_leaves"] == r["leaves"][0], r
+    assert r["light_dims"] == [16, 8, 16] and r["light_points"] == 16 * 8 * 16, r
+    assert r["light_bounds"] == pytest.approx([0.0625, 1.9375, -0.9375, -0.0625, 5.0625, 6.9375]), r
+    assert {"J_G", "rel_error_G", "emissivity_G", "rgba", "density"} <= set(r["light_arrays"]), r
