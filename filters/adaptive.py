@@ -17,7 +17,8 @@ import numpy as np
 from nebula_rt.density.generate import ADAPTIVE_SUFFIXES
 from nebula_rt.density.octree import Octree, from_boxes
 
-__all__ = ["ADAPTIVE_SUFFIXES", "octree_from_amr", "octree_from_htg", "octree_to_htg", "read_adaptive_density"]
+__all__ = ["ADAPTIVE_SUFFIXES", "octree_from_amr", "octree_from_htg", "octree_to_htg", "read_adaptive_density",
+           "read_particles"]
 
 
 def _uniform(coords, axis: str) -> tuple[float, float, int]:
@@ -217,8 +218,8 @@ def read_adaptive_density(path, array: str = "density") -> Octree:
 
     path = Path(path)
     suffix = path.suffix.lower()
-    if suffix not in ADAPTIVE_SUFFIXES:
-        raise ValueError(f"an adaptive density file is {' or '.join(ADAPTIVE_SUFFIXES)}, not {suffix or 'no suffix'}")
+    if suffix not in (".htg", ".vthb"):
+        raise ValueError(f"a hyper tree grid or AMR file is .htg or .vthb, not {suffix or 'no suffix'}")
     reader = (vtkIOXML.vtkXMLHyperTreeGridReader() if suffix == ".htg" else vtkIOXML.vtkXMLUniformGridAMRReader())
     from vtkmodules.vtkCommonCore import vtkCommand
 
@@ -239,3 +240,34 @@ def read_adaptive_density(path, array: str = "density") -> Octree:
     if out.GetNumberOfLevels() == 0:
         raise ValueError("it holds no AMR hierarchy")
     return octree_from_amr(out, array)
+
+
+def read_particles(path, mass: str = "mass", smoothing: str = "smoothing_length"):
+    """An SPH particle snapshot from a ``.vtp`` (VTK's XML poly data: one point per particle,
+    its ``mass`` and ``smoothing`` point-data arrays): (positions (n, 3), masses (n,),
+    smoothing lengths (n,)), float64, in the file's coordinates. VTK's own format because every
+    tool that converts simulation snapshots for ParaView (yt, pyvista, ParaView's own readers
+    of Gadget and Phantom files) can write it; Gadget/Phantom's native files need those
+    readers first. Raises ValueError saying what is missing."""
+    from vtkmodules.util.numpy_support import vtk_to_numpy
+    from vtkmodules.vtkCommonCore import vtkCommand
+    from vtkmodules.vtkIOXML import vtkXMLPolyDataReader
+
+    reader = vtkXMLPolyDataReader()
+    errors = []
+    reader.AddObserver(vtkCommand.ErrorEvent, lambda obj, ev: errors.append(ev))
+    reader.GetExecutive().AddObserver(vtkCommand.ErrorEvent, lambda obj, ev: errors.append(ev))
+    reader.SetFileName(str(path))
+    reader.Update()
+    poly = reader.GetOutput()
+    if errors or poly is None or poly.GetPoints() is None or poly.GetNumberOfPoints() == 0:
+        raise ValueError("VTK's vtkXMLPolyDataReader found no particles in it")
+    pd = poly.GetPointData()
+    names = [pd.GetArrayName(i) for i in range(pd.GetNumberOfArrays())]
+    out = [vtk_to_numpy(poly.GetPoints().GetData()).astype(np.float64).reshape(-1, 3)]
+    for what, name in (("mass", mass), ("smoothing length", smoothing)):
+        arr = pd.GetArray(name) if name else None
+        if arr is None or arr.GetNumberOfComponents() != 1:
+            raise ValueError(f"it has no one-component point array {name!r} for the particles' {what}; it has {names}")
+        out.append(vtk_to_numpy(arr).astype(np.float64).reshape(-1))
+    return tuple(out)

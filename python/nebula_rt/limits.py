@@ -119,6 +119,14 @@ def check_float32_array(parameter: str, value: object, data, what: str = "values
                                            "set them to 0 or scale the data")
 
 
+#: levels of an octree below its roots at most (a particle snapshot's dust.tree_depth; the
+#: tree walk's NRT_TREE_MAX_DEPTH, kernels/tree.cl)
+MAX_TREE_DEPTH = 20
+#: a particle snapshot's coordinates (dust.particle_origin, grid.unit): finite float64 values
+#: whose box-unit positions keep float64's precision
+PARTICLE_COORDINATE_MAX = 1e30
+
+
 def check_int_range(parameter: str, value: int, lo: int, hi: int, what: str = "an integer") -> None:
     """Raise SceneError unless lo <= value <= hi."""
     if not lo <= value <= hi:

@@ -348,3 +348,62 @@ def test_the_light_field_filter_traces_an_adaptive_input_as_the_image_it_resolve
     assert "Resolution" in d.last_error and d.GetOutputDataObject(0).GetNumberOfPoints() == 0
     e = run(htg, DensityArrayName="rho")
     assert "no cell array 'rho'" in e.last_error
+
+
+def _write_particles(path, points, masses, h, names=("mass", "smoothing_length")):
+    from vtkmodules.util.numpy_support import numpy_to_vtk
+    from vtkmodules.vtkCommonCore import vtkPoints
+    from vtkmodules.vtkCommonDataModel import vtkPolyData
+    from vtkmodules.vtkIOXML import vtkXMLPolyDataWriter
+
+    poly = vtkPolyData()
+    pts = vtkPoints()
+    pts.SetData(numpy_to_vtk(np.ascontiguousarray(points, np.float64), deep=1))
+    poly.SetPoints(pts)
+    for name, values in zip(names, (masses, h)):
+        arr = numpy_to_vtk(np.ascontiguousarray(values, np.float64), deep=1)
+        arr.SetName(name)
+        poly.GetPointData().AddArray(arr)
+    w = vtkXMLPolyDataWriter()
+    w.SetInputData(poly)
+    w.SetFileName(str(path))
+    assert w.Write() == 1
+    return path
+
+
+def test_a_scene_deposits_a_particle_snapshot_on_a_tree_and_traces_it(tmp_path):
+    """dust.file a .vtp SPH snapshot in pc (a box of 10 pc from (-5, -5, -5)): the particles are
+    deposited on an octree refined by count (dust.leaf_particles, dust.tree_depth) with their
+    mass kept (the light field's density, mass per box volume, averages to the total mass), the
+    clump refined deepest, and the tree traced; a particle outside the box and a missing array
+    are refused by name."""
+    from nebula_rt.errors import SceneError
+    from nebula_rt.pipeline import Pipeline
+
+    rng = np.random.default_rng(3)
+    pts = np.concatenate([rng.uniform(-4.9, 4.9, (2000, 3)), rng.normal(1.0, 0.4, (3000, 3))])
+    masses = rng.uniform(0.5, 1.5, len(pts)) * 1e-3
+    h = np.full(len(pts), 0.3)
+    snap = _write_particles(tmp_path / "snap.vtp", pts, masses, h)
+    keys = {"grid.length": 10.0, "dust.particle_origin": "[-5.0,-5.0,-5.0]", "dust.leaf_particles": 16,
+            "dust.tree_depth": 5, "dust.tau": 20.0}
+    pipeline = Pipeline()
+    scene = _adaptive_scene(snap, **keys)
+    light = pipeline.run(scene)
+    tree = pipeline.density(scene)
+    assert 100 < tree.n_leaves and tree.depth() == 5
+    lo, hi, rho = tree.leaves()
+    np.testing.assert_allclose((rho.astype(np.float64) * np.prod(hi - lo, axis=1)).sum(), masses.sum(), rtol=1e-6)
+    np.testing.assert_allclose(light.density.astype(np.float64).mean(), masses.sum(), rtol=1e-5)
+    # the deepest leaves are where the clump is (1 pc from the centre: box (0.6, 0.6, 0.6))
+    deep = np.prod(hi - lo, axis=1) == np.prod(hi - lo, axis=1).min()
+    assert np.linalg.norm(0.5 * (lo + hi)[deep].mean(axis=0) - 0.6) < 0.1
+    assert light.J.shape == (3, 16, 16, 16) and light.J.max() > 0 and light.transport.J.shape[1] == tree.n_leaves
+    far = _write_particles(tmp_path / "far.vtp", np.concatenate([pts, [[6.0, 0.0, 0.0]]]), np.append(masses, 1e-3),
+                           np.append(h, 0.3))
+    with pytest.raises(SceneError) as e:
+        Pipeline().run(_adaptive_scene(far, **keys))
+    assert e.value.parameter == "dust.file" and "particle 5000" in str(e.value) and "outside" in str(e.value)
+    with pytest.raises(SceneError) as e:
+        Pipeline().run(_adaptive_scene(snap, **dict(keys, **{"dust.particle_mass": '"m"'})))
+    assert e.value.parameter == "dust.file" and "'m'" in str(e.value)

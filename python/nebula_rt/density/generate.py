@@ -51,11 +51,12 @@ def file_digest(path: Path) -> str:
 
 
 #: what ``dust.file`` must be, for the refusals
-DENSITY_FILE = "an existing .npy, .vti, .htg or .vthb file"
+DENSITY_FILE = "an existing .npy, .vti, .htg, .vthb or .vtp file"
 
-#: adaptive densities (VTK's XML hyper tree grid and overlapping AMR files), read into an
-#: :class:`~nebula_rt.density.octree.Octree` (nebula_rt.filters.adaptive)
-ADAPTIVE_SUFFIXES = (".htg", ".vthb")
+#: adaptive densities (VTK's XML hyper tree grid and overlapping AMR files, and SPH particle
+#: snapshots as XML poly data), made into an :class:`~nebula_rt.density.octree.Octree`
+#: (nebula_rt.filters.adaptive reads them)
+ADAPTIVE_SUFFIXES = (".htg", ".vthb", ".vtp")
 
 
 def is_adaptive_file(path) -> bool:
@@ -134,7 +135,7 @@ def check_density_file(path: Path, array: str, shape: tuple[int, int, int]) -> N
                                                      f"array(s) of {math.prod(points)} points can take up: a damaged "
                                                      "file")
     elif suffix not in ADAPTIVE_SUFFIXES:  # (an adaptive file is checked as it is read: load_tree)
-        raise SceneError("dust.file", str(path), "must be a .npy, .vti, .htg or .vthb file")
+        raise SceneError("dust.file", str(path), "must be a .npy, .vti, .htg, .vthb or .vtp file")
 
 
 def load_density_file(path: Path, array: str, shape: tuple[int, int, int]) -> np.ndarray:
@@ -211,9 +212,10 @@ def _check_generated(scene, rho: np.ndarray, backend: Backend) -> np.ndarray:
 
 
 def load_tree(scene):
-    """The adaptive density of ``scene`` (``dust.file`` a ``.htg`` or ``.vthb``, its cell array
-    ``dust.array``): an :class:`~nebula_rt.density.octree.Octree` over the unit box, each leaf at
-    least ``dust.floor``.
+    """The adaptive density of ``scene``: an :class:`~nebula_rt.density.octree.Octree` over the
+    unit box, the stars' bumps added and each leaf at least ``dust.floor``. ``dust.file`` a
+    ``.htg`` or ``.vthb`` (its cell array ``dust.array``), or a ``.vtp`` particle snapshot
+    (:func:`particle_tree`).
 
     Raises
     ------
@@ -226,12 +228,15 @@ def load_tree(scene):
     path = Path(scene.dust_file_path())
     check_input_file("dust.file", path, DENSITY_FILE)
     try:  # the VTK layer: VTK's own XML readers (the io extra, or ParaView's VTK)
-        from ..filters.adaptive import read_adaptive_density
+        from ..filters.adaptive import read_adaptive_density, read_particles
     except ImportError as exc:
         raise SceneError("dust.file", str(path), f"an adaptive density needs {(exc.name or 'vtk').split('.')[0]}: "
                                                  "pip install 'nebula-rt[io]'") from None
     try:
-        tree = read_adaptive_density(path, scene.dust.array)
+        if path.suffix.lower() == ".vtp":
+            tree = particle_tree(scene, *read_particles(path, scene.dust.particle_mass, scene.dust.particle_smoothing))
+        else:
+            tree = read_adaptive_density(path, scene.dust.array)
     except ValueError as exc:
         raise SceneError("dust.file", str(path), f"could not be read as an adaptive density: {exc}") from None
     lo, hi, _ = tree.leaves()
@@ -240,6 +245,32 @@ def load_tree(scene):
     if not rho.max(initial=0.0) <= limits.FLOAT32_MAX:
         raise SceneError("dust.file", str(path), f"density values must stay within float32 (at most "
                                                  f"{limits.fmt(limits.FLOAT32_MAX)}; found {limits.fmt(float(rho.max()))})")
+    return Octree(tree.roots, tree.child, rho.astype(np.float32))
+
+
+def particle_tree(scene, positions, masses, smoothing):
+    """The octree of a particle snapshot (:mod:`nebula_rt.density.particles`): positions and
+    smoothing lengths (the snapshot's coordinates, grid.unit) into box units by the box of edge
+    ``grid.length`` from ``dust.particle_origin``; cells split while they hold more than
+    ``dust.leaf_particles`` particles, down to ``dust.tree_depth`` levels; each leaf's density
+    its deposited mass over its volume (box units). ValueError names a particle outside the
+    box, or a non-finite or negative value."""
+    from .octree import Octree
+    from .particles import deposit, refine_by_count
+    from ..scene.units import length_metres
+
+    grid, dust = scene.grid, scene.dust
+    edge = length_metres(grid.length, grid.unit) / length_metres(1.0, grid.unit)  # in grid.unit
+    p = (np.asarray(positions, np.float64) - np.asarray(dust.particle_origin, np.float64)[None, :]) / edge
+    h = np.asarray(smoothing, np.float64) / edge
+    outside = np.flatnonzero(~np.all((p >= 0.0) & (p <= 1.0), axis=1))
+    if outside.size:
+        i = outside[0]
+        raise ValueError(f"particle {i} at {np.asarray(positions)[i].tolist()} ({grid.unit}) lies outside the box "
+                         f"of edge {edge:g} {grid.unit} from dust.particle_origin {list(dust.particle_origin)} "
+                         f"({outside.size} of {len(p)} particles do)")
+    tree = refine_by_count(p, (1, 1, 1), dust.leaf_particles, dust.tree_depth)
+    _, rho = deposit(tree, p, masses, h)
     return Octree(tree.roots, tree.child, rho.astype(np.float32))
 
 
@@ -283,7 +314,7 @@ def generate_density(scene, backend: Backend) -> np.ndarray:
     stars = _stars_array(scene.stars)
     if dust.model == "file" and is_adaptive_file(scene.dust_file_path()):
         raise SceneError("dust.file", str(scene.dust_file_path()),
-                         "an adaptive density (.htg, .vthb) is traced by the light field (nebula-rt render, "
+                         "an adaptive density (.htg, .vthb, .vtp) is traced by the light field (nebula-rt render, "
                          "the Light Field filter) only; sky images, comparisons, fits and the Dust Density "
                          "source need a uniform grid (.npy or .vti) so far")
     if dust.model == "file":

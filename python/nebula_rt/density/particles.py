@@ -25,6 +25,7 @@ import math
 
 import numpy as np
 
+from ..limits import MAX_TREE_DEPTH
 from .octree import Octree, from_boxes
 
 __all__ = ["cubic_spline", "deposit", "refine_by_count"]
@@ -69,8 +70,8 @@ def refine_by_count(positions, roots, max_per_leaf: int = 8, max_depth: int = 10
     ``max_per_leaf`` particles, down to ``max_depth`` levels below ``roots`` root cells."""
     p = np.asarray(positions, np.float64).reshape(-1, 3)
     r = np.array([int(x) for x in roots], np.int64)
-    if r.size != 3 or r.min() < 1 or int(max_per_leaf) < 1 or not 0 <= int(max_depth) <= 20:
-        raise ValueError(f"roots must be 3 positive counts, max_per_leaf >= 1 and max_depth in [0, 20]; got "
+    if r.size != 3 or r.min() < 1 or int(max_per_leaf) < 1 or not 0 <= int(max_depth) <= MAX_TREE_DEPTH:
+        raise ValueError(f"roots must be 3 positive counts, max_per_leaf >= 1 and max_depth in [0, {MAX_TREE_DEPTH}]; got "
                          f"{roots}, {max_per_leaf}, {max_depth}")
     _check(p, np.zeros(len(p)), 1.0)
     fine = np.minimum(np.floor(p * r * 2.0 ** max_depth).astype(np.int64), r * (1 << max_depth) - 1)

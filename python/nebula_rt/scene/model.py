@@ -224,7 +224,7 @@ class Scene:
             If ``dust.file`` is empty.
         """
         if not self.dust.file:
-            raise SceneError("dust.file", self.dust.file, "must name a .npy, .vti, .htg or .vthb file")
+            raise SceneError("dust.file", self.dust.file, "must name a .npy, .vti, .htg, .vthb or .vtp file")
         p = Path(self.dust.file).expanduser()
         if not p.is_absolute() and self.base_dir is not None:
             p = Path(self.base_dir) / p
@@ -244,7 +244,7 @@ class Scene:
         if self.dust.model == "file":
             if not self.dust.file:
                 raise SceneError(
-                    "dust.file", self.dust.file, "must name a .npy, .vti, .htg or .vthb file when dust.model = 'file'"
+                    "dust.file", self.dust.file, "must name a .npy, .vti, .htg, .vthb or .vtp file when dust.model = 'file'"
                 )
             if self.dust.file.lower().endswith((".vti", ".htg", ".vthb")) and not self.dust.array:
                 raise SceneError(

@@ -11,7 +11,7 @@ import math
 from dataclasses import dataclass
 from typing import Any, Dict, List, Optional, Tuple, Union
 
-from ..limits import INT32_MAX, MAX_OFFSET, TEMPERATURE_RANGE
+from ..limits import INT32_MAX, MAX_OFFSET, MAX_TREE_DEPTH, PARTICLE_COORDINATE_MAX, TEMPERATURE_RANGE
 from ..optics.bands import ALBEDO_RANGE, G_RANGE, PRESETS, Band, resolve_bands
 from . import schema, units, values
 from .schema import document, param
@@ -125,11 +125,33 @@ class Dust:
     file: str = param(
         "", type="str", group=G_DUST,
         doc="\"file\": a .npy array in (x, y, z) order or a .vti image on grid.shape, or an adaptive "
-            "density: a hyper tree grid (.htg) or an overlapping AMR hierarchy (.vthb), traced leaf by leaf "
-            "(docs/adaptive_grids.md); a relative path is relative to the scene file's folder")
+            "density: a hyper tree grid (.htg), an overlapping AMR hierarchy (.vthb) or an SPH particle "
+            "snapshot (.vtp, deposited on an octree), traced leaf by leaf (docs/adaptive_grids.md); a "
+            "relative path is relative to the scene file's folder")
     array: str = param("density", type="str", group=G_DUST,
                        doc="\"file\" with .vti: the name of the point-data array to read; with .htg or "
                            ".vthb: the cell-data array")
+    particle_mass: str = param(
+        "mass", type="str", group=G_DUST, advanced=True,
+        doc="\"file\" with a .vtp particle snapshot (SPH: points with per-particle arrays): the point-data "
+            "array of the masses; the density is mass per box volume (box edge 1), in the masses' unit")
+    particle_smoothing: str = param(
+        "smoothing_length", type="str", group=G_DUST, advanced=True,
+        doc="\"file\" with a .vtp particle snapshot: the point-data array of the smoothing lengths h, in "
+            "grid.unit as the positions (the cubic spline kernel reaches r < h; Gadget-2's convention)")
+    particle_origin: Vec3 = param(
+        (0.0, 0.0, 0.0), type="tuple of 3 float", lo=-PARTICLE_COORDINATE_MAX, hi=PARTICLE_COORDINATE_MAX,
+        unit="grid.unit", group=G_DUST, advanced=True,
+        doc="\"file\" with a .vtp particle snapshot: the box's low corner in the snapshot's coordinates "
+            "(grid.unit); the box is a cube of edge grid.length, and a particle outside it is refused")
+    leaf_particles: int = param(
+        8, type="int", lo=1, hi=INT32_MAX, group=G_DUST, advanced=True,
+        doc="\"file\" with a .vtp particle snapshot: a cell of the octree the particles are deposited on is "
+            "split while it holds more particles than this (down to tree_depth)")
+    tree_depth: int = param(
+        8, type="int", lo=0, hi=MAX_TREE_DEPTH, group=G_DUST, advanced=True,
+        doc="\"file\" with a .vtp particle snapshot: levels of refinement at most (2^tree_depth cells per "
+            "box edge where the particles are densest)")
     scale: float = param(
         0.15, type="float", lo=0.0, group=G_DUST,
         float32=True,
