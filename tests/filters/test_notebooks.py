@@ -111,3 +111,16 @@ def test_vtk_filters(kernel_dir, tmp_path, monkeypatch):
     esc = summary["escape_fraction_G"]
     assert esc["0.3"] < esc["0.6"]  # less scattering, more absorption, fewer escape
     assert png_outputs(nb) >= 2
+
+
+def test_adaptive_densities(kernel_dir, tmp_path, monkeypatch):
+    nb, summary = run_notebook("adaptive_densities.ipynb", kernel_dir, tmp_path, monkeypatch)
+    expect_test_device(summary["device"])
+    assert summary["grid"] == [48, 48, 48]
+    assert summary["energy_balance_exact"] == {"R": True, "G": True, "B": True}
+    assert 0 < summary["leaves"] < summary["voxels"] / 4  # the background merged
+    assert summary["snapshot_leaves"] > 100
+    got, want = summary["snapshot_mass"]
+    assert got == pytest.approx(want, rel=1e-6)  # the particles' mass kept on the leaves
+    assert summary["lit_fraction"] > 0.9
+    assert png_outputs(nb) >= 2
