@@ -14,6 +14,15 @@ one shared fixed exposure so brightness can be compared across the series):
 - fig4_4_nebula_offset_a.pvsm      turbulence, scale 0.15, tau 128, noise offset (0.5, 0.5, 0.5)
 - fig4_5_nebula_offset_b.pvsm      the same with noise offset (3.5, 1.5, 0.5)  -- Figs. 4.4/4.5
 
+One for an adaptive density:
+
+- adaptive_cloud.pvsm              a clumpy cloud as a hyper tree grid (examples/data/clumpy_cloud.htg,
+                                   written here: three Gaussian clumps on 64^3 voxels, 2^3 blocks
+                                   within 10 % merged) opened by ParaView's .htg reader into Nebula
+                                   Light Field (Resolution 48^3, its leaves traced) and Nebula
+                                   Colour, shown as an rgba volume with its star. Its FileName is
+                                   relative to the repository, as fit_result's.
+
 And one for a fit's result:
 
 - fit_result.pvsm                  the worked example's fit (examples/observations/fit-result.json,
@@ -200,6 +209,77 @@ def build_fit_result():
     return view, reader
 
 
+ADAPTIVE_DATA = os.path.join("examples", "data", "clumpy_cloud.htg")
+ADAPTIVE_SIZE = [700, 700]
+
+
+def write_clumpy_cloud(path):
+    """The adaptive example's density (the notebook examples/notebooks/adaptive_densities.ipynb
+    makes the same cloud): three Gaussian clumps on a thin background, 64^3 voxels merged into
+    an octree where 2^3 blocks agree within 10 %, written as a .htg."""
+    import numpy as np
+    from vtkmodules.vtkIOXML import vtkXMLHyperTreeGridWriter
+
+    from nebula_rt.density import coarsen
+    from nebula_rt.filters.adaptive import octree_to_htg
+
+    n = 64
+    x = (np.arange(n) + 0.5) / n
+    X, Y, Z = np.meshgrid(x, x, x, indexing="ij")
+    rho = np.full((n, n, n), 0.5)
+    for (cx, cy, cz), w, amp in (((0.35, 0.55, 0.5), 0.06, 40.0), ((0.65, 0.4, 0.55), 0.04, 60.0),
+                                 ((0.5, 0.7, 0.35), 0.08, 20.0)):
+        rho += amp * np.exp(-((X - cx) ** 2 + (Y - cy) ** 2 + (Z - cz) ** 2) / (2 * w * w))
+    tree = coarsen(rho, (4, 4, 4), tolerance=0.1)
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    writer = vtkXMLHyperTreeGridWriter()
+    writer.SetInputData(octree_to_htg(tree, {"density": tree.density}))
+    writer.SetFileName(path)
+    if writer.Write() != 1:
+        raise SystemExit(f"could not write {path}")
+    return tree
+
+
+def build_adaptive(photons, device):
+    """The adaptive example's pipeline: the .htg (FileName relative to the repository, made
+    from there) -> Nebula Light Field (Resolution 48^3) -> Nebula Colour, an rgba volume with
+    its star, looked at down -z."""
+    reset_session()
+    view = simple.CreateView("RenderView")
+    layout = simple.GetLayout(view) or simple.CreateLayout("adaptive_cloud")
+    if simple.GetLayout(view) is None:
+        simple.AssignViewToLayout(view=view, layout=layout, hint=0)
+    layout.PreviewMode = ADAPTIVE_SIZE
+    view.ViewSize = ADAPTIVE_SIZE
+    view.OrientationAxesVisibility = 0
+    if "UseColorPaletteForBackground" in view.ListProperties():
+        view.UseColorPaletteForBackground = 0
+    view.Background = [0.0, 0.0, 0.0]
+    cloud = simple.OpenDataFile(ADAPTIVE_DATA, registrationName="clumpy_cloud.htg")
+    light = simple.NebulaLightField(cloud, registrationName="Light field (adaptive)")
+    light.DensityArray = ["CELLS", "density"]
+    light.Resolution = [48, 48, 48]
+    light.Stars = [0.5, 0.5, 0.5, 1.0, 15000.0, 0.0]
+    light.Tau = 4.0
+    light.Photons = photons
+    light.Device = device
+    colour = simple.NebulaColour(light, registrationName="Colour (adaptive)")
+    show_rgba_volume(colour, view)
+    show_stars(light, view)
+    simple.Render(view)
+    view.CameraParallelProjection = 1
+    view.CameraFocalPoint = [0.5, 0.5, 0.5]
+    view.CameraPosition = [0.5, 0.5, 6.0]
+    view.CameraViewUp = [0.0, 1.0, 0.0]
+    view.CameraParallelScale = 0.6
+    for other in list(simple.GetLayouts().values()):
+        if other is not layout:
+            simple.RemoveLayout(other)
+    simple.SetActiveView(view)
+    simple.SetActiveSource(colour)
+    return view, light, colour
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--grid", type=int, default=48, help="voxels per axis (default 48; thesis 128)")
@@ -213,6 +293,25 @@ def main(argv=None):
 
     load_plugin()
     os.makedirs(args.out, exist_ok=True)
+    if not args.only or "adaptive_cloud" in args.only:
+        cwd = os.getcwd()
+        os.chdir(os.path.dirname(HERE))  # (the reader's relative FileName)
+        try:
+            write_clumpy_cloud(ADAPTIVE_DATA)
+            view, light, colour = build_adaptive(args.photons, args.device)
+            simple.Render(view)
+            if colour.GetClientSideObject().last_error or light.GetClientSideObject().last_error:
+                raise SystemExit(f"adaptive_cloud: {light.GetClientSideObject().last_error}")
+            path = os.path.join(os.path.abspath(os.path.join(cwd, args.out)), "adaptive_cloud.pvsm")
+            simple.SaveState(path)
+            print(f"wrote {path}")
+            if args.screenshots:
+                png = os.path.join(os.path.abspath(os.path.join(cwd, args.screenshots)), "paraview-adaptive_cloud.png")
+                os.makedirs(os.path.dirname(png), exist_ok=True)
+                simple.SaveScreenshot(png, view, ImageResolution=ADAPTIVE_SIZE)
+                print(f"wrote {png}")
+        finally:
+            os.chdir(cwd)
     if not args.only or "fit_result" in args.only:
         cwd = os.getcwd()
         os.chdir(os.path.dirname(HERE))  # (the reader's relative FileName)

@@ -731,6 +731,22 @@ def test_fit_result_state_opens_the_fit_layout(pv_env, xdisplay, tmp_path):
     assert rows[0] > 0.005 and rows[1] > 0.001 and rows[2] > 0.001, rows
 
 
+def test_the_adaptive_example_state_loads_and_renders(pv_env, xdisplay, tmp_path):
+    """state_files/adaptive_cloud.pvsm from another folder, the data directory the repository:
+    ParaView's reader gives the hyper tree grid of examples/data/clumpy_cloud.htg, Nebula Light
+    Field traces its leaves onto 48^3 voxels, and the rgba volume shows a lit nebula around the
+    star, bluer than red there (thesis-rgb: blue scatters more)."""
+    png = tmp_path / "adaptive.png"
+    r, _ = run_pv(pv_env, xdisplay, "adaptive_state.py", REPO / "state_files" / "adaptive_cloud.pvsm", png)
+    assert r["file"].endswith("examples/data/clumpy_cloud.htg") and r["data_type"] == "vtkHyperTreeGrid", r
+    assert r["errors"] == [None, None] and r["points"] == 48**3 and r["leaves"] > 1000, r
+    im = read_png(png)
+    assert list(im.shape[1::-1]) == r["size"] == [700, 700]
+    centre = im[250:450, 250:450].reshape(-1, 3).astype(float)
+    assert centre.mean() > 60, centre.mean()  # not blank: the lit nebula around the star
+    assert centre[:, 2].mean() > centre[:, 0].mean() + 20, centre.mean(axis=0)
+
+
 def _pvserver(pv_env, display, ranks, log=None):
     """``mpiexec -n RANKS pvserver`` on a free port of localhost, with the environment of
     scripts/pv-env.sh (so each rank loads the plugin from PV_PLUGIN_PATH); returns (process,
