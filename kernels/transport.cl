@@ -615,6 +615,15 @@ NRT_DEVICE int nrt_pass_item(nrt_u64 it, const NRT_GLOBAL nrt_u64 *order, const 
 }
 #endif
 
+/* The walk's arguments, the grid's (below) and the tree's (tree.cl) alike. */
+#define NRT_TRACE_PACKET_PARAMS                                                                         \
+    const NRT_GLOBAL float *density, float sig_b, float alb_b, float g_b, const NRT_GLOBAL float *stars, \
+        const NRT_GLOBAL float *cdf, int nx, int ny, int nz, int n_stars, nrt_u64 seed, int band,        \
+        nrt_u64 photon, int max_scatterings, float track_scale, NRT_GLOBAL nrt_u64 *band_acc,            \
+        nrt_sink *sink, NRT_GLOBAL nrt_u32 *overflow, const NRT_GLOBAL float *peel, float peel_scale,    \
+        NRT_GLOBAL nrt_u64 *band_image, const NRT_GLOBAL nrt_packet *resume, NRT_GLOBAL nrt_packet *save, \
+        int region_shift, nrt_u64 item, NRT_GLOBAL nrt_u64 *band_sq, int sq_shift, nrt_u64 cells
+
 #ifndef NRT_TREE
 #define NRT_TREE 0
 #endif
@@ -631,17 +640,7 @@ NRT_DEVICE int nrt_pass_item(nrt_u64 it, const NRT_GLOBAL nrt_u64 *order, const 
  * batch's slot, this band), the outcome to tally 1..3 of the sink (emitted is counted by the
  * caller).
  */
-NRT_DEVICE int nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, float alb_b,
-                                float g_b, const NRT_GLOBAL float *stars,
-                                const NRT_GLOBAL float *cdf, int nx, int ny, int nz,
-                                int n_stars, nrt_u64 seed, int band, nrt_u64 photon,
-                                int max_scatterings, float track_scale,
-                                NRT_GLOBAL nrt_u64 *band_acc, nrt_sink *sink,
-                                NRT_GLOBAL nrt_u32 *overflow, const NRT_GLOBAL float *peel,
-                                float peel_scale, NRT_GLOBAL nrt_u64 *band_image,
-                                const NRT_GLOBAL nrt_packet *resume, NRT_GLOBAL nrt_packet *save,
-                                int region_shift, nrt_u64 item, NRT_GLOBAL nrt_u64 *band_sq, int sq_shift,
-                                nrt_u64 cells)
+NRT_DEVICE int nrt_trace_packet(NRT_TRACE_PACKET_PARAMS)
 {
     (void)cells; /* (NRT_TREE's walk: where the tree's nodes start in the density buffer) */
     nrt_u64 peel_score = 0; /* NRT_PEEL: the packet's peel-off units (heavy-tail diagnostic) */

@@ -164,17 +164,7 @@ NRT_DEVICE nrt_u64 nrt_tree_peel(const NRT_GLOBAL int *child, const NRT_GLOBAL f
  * The deposit macros' voxel coordinates (ix, iy, iz) stay 0: a leaf is in no star block, so
  * every deposit goes to the leaf's cell in the batch slot.
  */
-NRT_DEVICE int nrt_trace_packet(const NRT_GLOBAL float *density, float sig_b, float alb_b,
-                                float g_b, const NRT_GLOBAL float *stars,
-                                const NRT_GLOBAL float *cdf, int nx, int ny, int nz,
-                                int n_stars, nrt_u64 seed, int band, nrt_u64 photon,
-                                int max_scatterings, float track_scale,
-                                NRT_GLOBAL nrt_u64 *band_acc, nrt_sink *sink,
-                                NRT_GLOBAL nrt_u32 *overflow, const NRT_GLOBAL float *peel,
-                                float peel_scale, NRT_GLOBAL nrt_u64 *band_image,
-                                const NRT_GLOBAL nrt_packet *resume, NRT_GLOBAL nrt_packet *save,
-                                int region_shift, nrt_u64 item, NRT_GLOBAL nrt_u64 *band_sq, int sq_shift,
-                                nrt_u64 cells)
+NRT_DEVICE int nrt_trace_packet(NRT_TRACE_PACKET_PARAMS)
 {
     (void)resume, (void)save, (void)region_shift, (void)item, (void)track_scale;
 #if !NRT_PEEL

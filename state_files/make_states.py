@@ -280,6 +280,20 @@ def build_adaptive(photons, device):
     return view, light, colour
 
 
+def save_state(view, name, size, out, screenshots=None):
+    """Write ``out``/``name``.pvsm and, with ``screenshots``, paraview-``name``.png there at
+    ``size`` (the folders taken as given, made absolute first: the caller may have changed
+    directory to the repository)."""
+    path = os.path.join(os.path.abspath(out), f"{name}.pvsm")
+    simple.SaveState(path)
+    print(f"wrote {path}")
+    if screenshots:
+        png = os.path.join(os.path.abspath(screenshots), f"paraview-{name}.png")
+        os.makedirs(os.path.dirname(png), exist_ok=True)
+        simple.SaveScreenshot(png, view, ImageResolution=size)
+        print(f"wrote {png}")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--grid", type=int, default=48, help="voxels per axis (default 48; thesis 128)")
@@ -302,14 +316,8 @@ def main(argv=None):
             simple.Render(view)
             if colour.GetClientSideObject().last_error or light.GetClientSideObject().last_error:
                 raise SystemExit(f"adaptive_cloud: {light.GetClientSideObject().last_error}")
-            path = os.path.join(os.path.abspath(os.path.join(cwd, args.out)), "adaptive_cloud.pvsm")
-            simple.SaveState(path)
-            print(f"wrote {path}")
-            if args.screenshots:
-                png = os.path.join(os.path.abspath(os.path.join(cwd, args.screenshots)), "paraview-adaptive_cloud.png")
-                os.makedirs(os.path.dirname(png), exist_ok=True)
-                simple.SaveScreenshot(png, view, ImageResolution=ADAPTIVE_SIZE)
-                print(f"wrote {png}")
+            save_state(view, "adaptive_cloud", ADAPTIVE_SIZE, os.path.join(cwd, args.out),
+                       args.screenshots and os.path.join(cwd, args.screenshots))
         finally:
             os.chdir(cwd)
     if not args.only or "fit_result" in args.only:
@@ -320,14 +328,8 @@ def main(argv=None):
             simple.Render(view)
             if reader.GetClientSideObject().last_error:
                 raise SystemExit(f"fit_result: {reader.GetClientSideObject().last_error}")
-            path = os.path.join(os.path.abspath(os.path.join(cwd, args.out)), "fit_result.pvsm")
-            simple.SaveState(path)
-            print(f"wrote {path}")
-            if args.screenshots:
-                png = os.path.join(os.path.abspath(os.path.join(cwd, args.screenshots)), "paraview-fit_result.png")
-                os.makedirs(os.path.dirname(png), exist_ok=True)
-                simple.SaveScreenshot(png, view, ImageResolution=FIT_SIZE)
-                print(f"wrote {png}")
+            save_state(view, "fit_result", FIT_SIZE, os.path.join(cwd, args.out),
+                       args.screenshots and os.path.join(cwd, args.screenshots))
         finally:
             os.chdir(cwd)
     for name, spec in FIGURES.items():
