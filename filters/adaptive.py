@@ -14,10 +14,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from nebula_rt.density.generate import ADAPTIVE_SUFFIXES
 from nebula_rt.density.octree import Octree, from_boxes
 
-__all__ = ["ADAPTIVE_SUFFIXES", "octree_from_amr", "octree_from_htg", "octree_to_htg", "read_adaptive_density",
+__all__ = ["octree_from_amr", "octree_from_htg", "octree_to_htg", "read_adaptive_density",
            "read_particles"]
 
 

@@ -119,6 +119,9 @@ def check_float32_array(parameter: str, value: object, data, what: str = "values
                                            "set them to 0 or scale the data")
 
 
+#: packets per band at most (transport.photons): an exact integer in float64, the photon
+#: numbers the kernels take as 64-bit integers
+MAX_PHOTONS = 2**53
 #: levels of an octree below its roots at most (a particle snapshot's dust.tree_depth; the
 #: tree walk's NRT_TREE_MAX_DEPTH, kernels/tree.cl)
 MAX_TREE_DEPTH = 20
@@ -224,8 +227,6 @@ def check_transport(
         ``stars[i].spectrum``, with the value and the allowed range for this scene.
     """
     import numpy as np
-
-    from .scene.sections import MAX_PHOTONS
 
     check_int_range("transport.photons", int(photons), 1, MAX_PHOTONS, "an integer (packets per band)")
     check_int_range("transport.max_scatterings", int(max_scatterings), 0, INT32_MAX, "an integer (int32)")

@@ -183,7 +183,7 @@ def test_paraview_proxy_is_the_schema_and_gives_the_same_bits(pv_env, xdisplay, 
         # every property of the panel is a bound one (or its check box), bar the filters' own
         # (and the information property that carries a pvserver's abort port)
         own = {"Input", "DensityArray", "OverrideOptics", "StarsFromInput", "Stars", "LuminosityUnit", "SpectralTypes",
-               "Units", "AbortAddress", "SpectralCalibration"}
+               "Units", "AbortAddress", "SpectralCalibration", "Resolution"}
         # (and, after an "auto or number" property, the information property of what it chose)
         assert set(order) - own == ({x.name for x in bound} | {x.flag for x in bound if x.flag}
                                     | {x.name + "Chosen" for x in bound if x.widget == "auto"}), order

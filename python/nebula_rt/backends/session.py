@@ -77,9 +77,7 @@ class DeviceTransport(TransportSession):
         self.words = setup.cell_words  # 64-bit words per cell (2: 128-bit, weighted packets)
         self.tally_words = setup.tally_words
         if setup.tree is not None:  # the leaves' densities, then the nodes (kernels/tree.cl)
-            from ..transport.tree import device_layout
-
-            self.d_density = be.to_device(device_layout(setup.tree))
+            self.d_density = be.to_device(setup.tree_buffer)
         elif setup.peel_columns is not None:  # the densities, then their columns (NRT_PEEL_AXIS)
             self.d_density = be.density_with_columns(setup.density, setup.peel_columns)
         else:

@@ -97,8 +97,11 @@ class TransportSetup:
     tail_classes: int = 0
     tail_edges: object = None
     #: an adaptive density (nebula_rt.density.octree.Octree): the packets walk its leaves
-    #: (kernels/tree.cl, NRT_TREE), whose densities ``density`` holds
+    #: (kernels/tree.cl, NRT_TREE), whose densities ``density`` holds; ``tree_buffer`` is its
+    #: device layout (float32: the leaves' densities, then the nodes' child entries as int32
+    #: bits; nebula_rt.transport.tree.device_layout)
     tree: object = None
+    tree_buffer: object = None
 
     @property
     def light_field(self) -> bool:

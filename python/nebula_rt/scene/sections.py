@@ -11,7 +11,7 @@ import math
 from dataclasses import dataclass
 from typing import Any, Dict, List, Optional, Tuple, Union
 
-from ..limits import INT32_MAX, MAX_OFFSET, MAX_TREE_DEPTH, PARTICLE_COORDINATE_MAX, TEMPERATURE_RANGE
+from ..limits import INT32_MAX, MAX_OFFSET, MAX_PHOTONS, MAX_TREE_DEPTH, PARTICLE_COORDINATE_MAX, TEMPERATURE_RANGE
 from ..optics.bands import ALBEDO_RANGE, G_RANGE, PRESETS, Band, resolve_bands
 from . import schema, units, values
 from .schema import document, param
@@ -42,7 +42,6 @@ MAG_SYSTEMS = ("AB", "Vega", "Vega-Blanton2007")
 #: The widest PSF (arcsec): 180 deg, the widest angle on the sky. Wider ones are no blur but a
 #: number: 1e308 arcsec spread every star and pixel over 1e305 pixels, an image of zeros.
 MAX_PSF_FWHM = 180.0 * 3600.0
-MAX_PHOTONS = 2**53
 #: The smallest error a run can target: the error falls as c / sqrt(packets), c the relative
 #: scatter of one packet's tally, of order 1 or more in the lit region (most packets miss most
 #: voxels), so the largest budget, MAX_PHOTONS packets per band, reaches about 1 / sqrt(2**53) =

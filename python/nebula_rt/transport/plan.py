@@ -534,6 +534,7 @@ def plan_transport(density, request, backend: Backend, *, checked_adds: bool = F
         packet_sq=packets,
         sq_shift=launches.packet_scales[1] if packets else 0,
         tree=tree,
+        tree_buffer=None if tree is None else tree_run.device_layout(tree),
     )
     if biased:
         extinction = [b.extinction for b in bands]
