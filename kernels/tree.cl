@@ -237,13 +237,20 @@ NRT_DEVICE int nrt_trace_packet(NRT_TRACE_PACKET_PARAMS)
             nrt_rotate(d, mu, sin_theta, 2.0f * NRT_PI_F * nrt_rng_uniform(&rng));
             inv_d[0] = 1.0f / d[0], inv_d[1] = 1.0f / d[1], inv_d[2] = 1.0f / d[2];
             tau = nrt_sample_tau(&rng);
-            /* the point stays in this leaf (d only changed): located again for the new d's
-               tie-breaks on a face, which may put it in the neighbour (another visit) */
-            int next = nrt_tree_locate(child, nx, ny, nz, p, d, c, n, lo, h, &node);
-            if (next != leaf)
-                NRT_VISIT_END();
-            leaf = next;
-            idx = (nrt_idx)(leaf < 0 ? 0 : leaf);
+            /* the point stays in this leaf (d only changed). Only on one of its faces can the
+               new d's tie-break put it in the neighbour (another visit): then it is located
+               again; strictly inside (faces formed as locate forms them) it is this leaf's,
+               which spares a walk from the root at every scattering */
+            int on_face = 0;
+            for (int a = 0; a < 3; ++a)
+                on_face |= !(p[a] > lo[a] && p[a] < (float)(c[a] + 1) * h[a]);
+            if (on_face) {
+                int next = nrt_tree_locate(child, nx, ny, nz, p, d, c, n, lo, h, &node);
+                if (next != leaf)
+                    NRT_VISIT_END();
+                leaf = next;
+                idx = (nrt_idx)(leaf < 0 ? 0 : leaf);
+            }
             continue;
         }
 #if NRT_TRACK_LENGTH
