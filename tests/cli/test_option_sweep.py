@@ -118,7 +118,7 @@ def sweep_actions():
 KIND = {
     "scene": "path-in", "--table": "path-in", "--image": "path-in",
     "--output": "path-out", "--png": "path-out", "--json": "path-out", "--fits": "path-out",
-    "--scene-out": "path-out",
+    "--scene-out": "path-out", "--tree": "path-out",
     "--photons": "number", "--target-error": "number",
     "--direction": "triple", "--annulus": "pair",
     "--set": "override", "--free": "free", "--image-error": "image-error",
@@ -170,7 +170,7 @@ HOSTILE = {
 }
 #: What a path option reads or writes.
 SUFFIX = {"scene": ".toml", "--table": ".csv", "--image": ".fits", "--output": ".vti", "--png": ".png",
-          "--json": ".json", "--fits": ".fits", "--scene-out": ".toml"}
+          "--json": ".json", "--fits": ".fits", "--scene-out": ".toml", "--tree": ".htg"}
 #: The scene key an option sets (its message may name either).
 SCENE_KEY = {"--photons": "transport.photons", "--target-error": "transport.target_error",
              "--quality": "transport.quality", "--backend": "transport.backend", "--device": "transport.device",

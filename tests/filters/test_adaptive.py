@@ -407,3 +407,42 @@ def test_a_scene_deposits_a_particle_snapshot_on_a_tree_and_traces_it(tmp_path):
     with pytest.raises(SceneError) as e:
         Pipeline().run(_adaptive_scene(snap, **dict(keys, **{"dust.particle_mass": '"m"'})))
     assert e.value.parameter == "dust.file" and "'m'" in str(e.value)
+
+
+def test_render_writes_the_light_per_leaf_as_a_hyper_tree_grid(tmp_path):
+    """`nebula-rt render --tree OUT.htg` on an adaptive scene: the .htg read back holds, per
+    leaf, the J the run found (float32) and the density; for a scene on a uniform grid --tree
+    is refused by name before anything is traced or written."""
+    import subprocess
+    import sys
+
+    from conftest import TEST_DEVICE
+    from vtkmodules.vtkIOXML import vtkXMLHyperTreeGridReader
+
+    tree = coarsen(clumpy(16).astype(np.float32), (2, 2, 2))
+    _write_htg(tree, tmp_path / "cloud.htg")
+    scene = tmp_path / "scene.toml"
+    scene.write_text('[grid]\nshape = [16, 16, 16]\n[dust]\nmodel = "file"\nfile = "cloud.htg"\ntau = 4.0\n'
+                     'floor = 0.0\n[[stars]]\nbump_radius = 0.0\n[transport]\nphotons = 20000\n'
+                     f'device = "{TEST_DEVICE}"\n')
+    run = [sys.executable, "-m", "nebula_rt.cli", "render", str(scene), "-o", str(tmp_path / "out.vti"), "-q"]
+    r = subprocess.run(run + ["--tree", str(tmp_path / "light.htg")], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    reader = vtkXMLHyperTreeGridReader()
+    reader.SetFileName(str(tmp_path / "light.htg"))
+    reader.Update()
+    back_j = octree_from_htg(reader.GetOutput(), "J_G")
+    back_rho = octree_from_htg(reader.GetOutput(), "density")
+    assert back_j.n_leaves == tree.n_leaves
+    lo, hi, j = back_j.leaves()
+    # the same field as the run's J per leaf: its voxel averages are the .vti's J_G
+    from nebula_rt.filters.vti import read_vti
+
+    arrays, *_ = read_vti(tmp_path / "out.vti")
+    np.testing.assert_allclose(box_averages(lo, hi, j, (16, 16, 16)), arrays["J_G"], rtol=1e-5, atol=1e-30)
+    np.testing.assert_allclose(box_averages(*back_rho.leaves(), (16, 16, 16)), arrays["density"], rtol=1e-6)
+    np.save(tmp_path / "cloud.npy", clumpy(16).astype(np.float32))
+    scene.write_text(scene.read_text().replace("cloud.htg", "cloud.npy"))
+    r = subprocess.run(run + ["--tree", str(tmp_path / "grid.htg")], capture_output=True, text=True, timeout=300)
+    assert r.returncode != 0 and "--tree" in r.stderr and "adaptive" in r.stderr, r.stderr
+    assert not (tmp_path / "grid.htg").exists()

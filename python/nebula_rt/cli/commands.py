@@ -76,6 +76,16 @@ def _vti_bytes(scene) -> int:
     return nvox * (4 + 12 * nb + (4 if nb > 1 else 0)) + (64 << 10)
 
 
+def _tree_bytes(scene) -> int:
+    """Upper bound of the ``--tree`` .htg: a leaf per byte of the density file at most (each
+    leaf takes more than a byte there), times its arrays (float32 J, error and emissivity per
+    band, the density) and the tree's own bits, plus headers."""
+    nb = len(scene.bands.resolve())
+    path = scene.dust_file_path()
+    leaves = path.stat().st_size if path.is_file() else 0  # (a missing file is refused as an input)
+    return leaves * (4 + 12 * nb + 2) + (64 << 10)
+
+
 def _require_io(option: str, path, png: bool = False) -> None:
     """The VTK layer's writers (the ``io`` extra: VTK, pyvista) must import before a trace
     whose output needs them."""
@@ -164,6 +174,14 @@ def _render(args, cancel) -> int:
         if args.png:
             outputs.append(Output("--png", Path(args.png), ".png", PNG_BYTES))
             _require_io("--png", args.png, png=True)
+        if args.tree:
+            from ..density import is_adaptive_file
+
+            if not (scene.dust.model == "file" and is_adaptive_file(scene.dust_file_path())):
+                raise SceneError("--tree", args.tree, "needs an adaptive dust.file (.htg, .vthb or .vtp): the light "
+                                                      "of a uniform grid is the .vti")
+            outputs.append(Output("--tree", Path(args.tree), ".htg", _tree_bytes(scene)))
+            _require_io("--tree", args.tree)
         backend = _backend_for(scene, comm)
         resources.check(scene, backend)  # memory first: an impossible run is refused as such
         check_outputs(outputs, _inputs(args, scene))
@@ -186,6 +204,11 @@ def _render(args, cancel) -> int:
         with Publication() as pub:
             write_vti(pub.stage(out), light.point_arrays(), light.field_data(), light.spacing, light.origin)
             cancel.check("run")
+            if args.tree:
+                from ..filters.adaptive import write_tree_light
+
+                write_tree_light(pub.stage(args.tree), pipe.density(scene), light)
+                cancel.check("run")
             if args.png:
                 import numpy as np
 
@@ -489,6 +512,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("scene", type=file_name, help="scene file (TOML)")
     r.add_argument("-o", "--output", type=file_name, default="nebula.vti", help="output .vti file (default nebula.vti)")
     r.add_argument("--png", type=file_name, default=None, help="also write a volume rendering of rgba to this PNG")
+    r.add_argument("--tree", type=file_name, default=None,
+                   help="an adaptive dust.file only: also write the light per leaf (J, rel_error, emissivity, density) "
+                        "as cell data of a vtkHyperTreeGrid to this .htg")
     r.add_argument("--stretch", default=None, choices=_choices("colour.stretch"),
                    help="shorthand for --set colour.stretch=S: " + _scene.declaration("colour.stretch").doc)
     r.add_argument("-q", "--quiet", action="store_true", help="no progress bar or summary")
