@@ -524,6 +524,25 @@ NRT_DEVICE void nrt_square(const nrt_sink *k, NRT_GLOBAL nrt_u64 *band_sq, nrt_i
 #define NRT_SCORE(i_, v_) nrt_deposit(sink, band_acc, (i_), nrt_hot_cell(sink, ix, iy, iz), (v_), overflow)
 #define NRT_VISIT_END() ((void)0)
 #endif
+/* An analog packet's interaction: absorbed with probability 1 - albedo, or terminated past
+   max_scatterings (each ends the walk, counted), else it scatters once more (the grid's walk
+   and the tree's, kernels/tree.cl). */
+#define NRT_SCATTER_OR_END()                                                     \
+    do {                                                                         \
+        if (nrt_rng_uniform(&rng) >= alb_b) {                                    \
+            NRT_VISIT_END();                                                     \
+            nrt_count(sink, 1);                                                  \
+            NRT_TAIL_END();                                                      \
+            return 0;                                                            \
+        }                                                                        \
+        if (scatterings >= max_scatterings) {                                    \
+            NRT_VISIT_END();                                                     \
+            nrt_count(sink, 3);                                                  \
+            NRT_TAIL_END();                                                      \
+            return 0;                                                            \
+        }                                                                        \
+        ++scatterings;                                                           \
+    } while (0)
 /* an analog packet ends: its peel-off score into the image's heavy-tail histogram */
 #if NRT_PEEL
 #define NRT_TAIL_END() nrt_tail_add(NRT_TAIL_OF(sink->tally), peel_score, 0UL)
@@ -746,19 +765,7 @@ NRT_DEVICE int nrt_trace_packet(NRT_TRACE_PACKET_PARAMS)
             p0[1] = p0[1] + d[1] * t_int;
             p0[2] = p0[2] + d[2] * t_int;
             /* scatter with probability albedo (analog Russian roulette), else absorbed */
-            if (nrt_rng_uniform(&rng) >= alb_b) {
-                NRT_VISIT_END();
-                nrt_count(sink, 1);
-                NRT_TAIL_END();
-                return 0;
-            }
-            if (scatterings >= max_scatterings) {
-                NRT_VISIT_END();
-                nrt_count(sink, 3);
-                NRT_TAIL_END();
-                return 0;
-            }
-            ++scatterings;
+            NRT_SCATTER_OR_END();
 #if NRT_PEEL
             peel_score += nrt_peel(density, sig_b, g_b, peel, peel_scale, p0, d, ix, iy, iz, nx, ny, nz,
                                    band_image, overflow, seed, band, photon, scatterings);

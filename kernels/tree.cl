@@ -215,19 +215,7 @@ NRT_DEVICE int nrt_trace_packet(NRT_TRACE_PACKET_PARAMS)
 #endif
             for (int a = 0; a < 3; ++a)
                 p[a] = fmin(fmax(p[a] + d[a] * t, lo[a]), lo[a] + h[a]);
-            if (nrt_rng_uniform(&rng) >= alb_b) {
-                NRT_VISIT_END();
-                nrt_count(sink, 1);
-                NRT_TAIL_END();
-                return 0;
-            }
-            if (scatterings >= max_scatterings) {
-                NRT_VISIT_END();
-                nrt_count(sink, 3);
-                NRT_TAIL_END();
-                return 0;
-            }
-            ++scatterings;
+            NRT_SCATTER_OR_END();
 #if NRT_PEEL
             peel_score += nrt_tree_peel(child, leaf_density, nx, ny, nz, sig_b, g_b, peel, peel_scale, p, d,
                                         band_image, overflow, seed, band, photon, scatterings);

@@ -107,21 +107,27 @@ def reset_session():
         simple.RemoveLayout(layout)
 
 
-def build(name, spec, grid, photons, tau, device):
-    """The pipeline and view of one figure; returns (view, colour proxies)."""
+def new_view(name, size):
+    """A fresh session's render view in its own tab ``name``, at the figure's ``size`` (the
+    GUI shows the layout at this aspect ratio, scaled to fit), black, without axes."""
     reset_session()
     view = simple.CreateView("RenderView")
     layout = simple.GetLayout(view) or simple.CreateLayout(name)
     if simple.GetLayout(view) is None:
         simple.AssignViewToLayout(view=view, layout=layout, hint=0)
     simple.RenameLayout(name, layout)
-    # the figure's size: the GUI shows the layout at this aspect ratio (scaled to fit)
-    layout.PreviewMode = SIZE
-    view.ViewSize = SIZE
+    layout.PreviewMode = size
+    view.ViewSize = size
     view.OrientationAxesVisibility = 0
     if "UseColorPaletteForBackground" in view.ListProperties():
         view.UseColorPaletteForBackground = 0
     view.Background = [0.0, 0.0, 0.0]
+    return view, layout
+
+
+def build(name, spec, grid, photons, tau, device):
+    """The pipeline and view of one figure; returns (view, colour proxies)."""
+    view, layout = new_view(name, SIZE)
 
     dust = simple.NebulaDustDensity(registrationName="Dust density", GridShape=[grid] * 3, Stars=STAR,
                                     Device=device, **spec["density"])
@@ -244,17 +250,7 @@ def build_adaptive(photons, device):
     """The adaptive example's pipeline: the .htg (FileName relative to the repository, made
     from there) -> Nebula Light Field (Resolution 48^3) -> Nebula Colour, an rgba volume with
     its star, looked at down -z."""
-    reset_session()
-    view = simple.CreateView("RenderView")
-    layout = simple.GetLayout(view) or simple.CreateLayout("adaptive_cloud")
-    if simple.GetLayout(view) is None:
-        simple.AssignViewToLayout(view=view, layout=layout, hint=0)
-    layout.PreviewMode = ADAPTIVE_SIZE
-    view.ViewSize = ADAPTIVE_SIZE
-    view.OrientationAxesVisibility = 0
-    if "UseColorPaletteForBackground" in view.ListProperties():
-        view.UseColorPaletteForBackground = 0
-    view.Background = [0.0, 0.0, 0.0]
+    view, layout = new_view("adaptive_cloud", ADAPTIVE_SIZE)
     cloud = simple.OpenDataFile(ADAPTIVE_DATA, registrationName="clumpy_cloud.htg")
     light = simple.NebulaLightField(cloud, registrationName="Light field (adaptive)")
     light.DensityArray = ["CELLS", "density"]
