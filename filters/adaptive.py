@@ -16,7 +16,7 @@ import numpy as np
 
 from nebula_rt.density.octree import Octree, from_boxes
 
-__all__ = ["write_tree_light", "octree_from_amr", "octree_from_htg", "octree_to_htg", "read_adaptive_density",
+__all__ = ["octree_from_amr", "octree_from_htg", "octree_to_htg", "read_adaptive_density",
            "read_particles"]
 
 
@@ -271,28 +271,3 @@ def read_particles(path, mass: str = "mass", smoothing: str = "smoothing_length"
         out.append(vtk_to_numpy(arr).astype(np.float64).reshape(-1))
     return tuple(out)
 
-
-def write_tree_light(path, tree: Octree, light) -> None:
-    """Write the light per leaf of a run on ``tree`` (``light``: its
-    :class:`~nebula_rt.pipeline.stages.LightField`, whose transport holds J and the relative
-    error per leaf) as cell data of a vtkHyperTreeGrid over the unit box to ``path`` (.htg):
-    per band ``J_<band>``, ``rel_error_<band>`` and ``emissivity_<band>`` (alb x sigma x rho x
-    J, formed per leaf), and ``density``; a refined cell holds its children's mean
-    (:func:`octree_to_htg`). The names are the output contract's."""
-    from vtkmodules.vtkIOXML import vtkXMLHyperTreeGridWriter
-
-    from nebula_rt.pipeline import output_contract as contract
-
-    res = light.transport
-    rho = np.asarray(tree.density, np.float64)
-    arrays = {contract.DENSITY.name(): tree.density}
-    for b, band in enumerate(light.bands):
-        sigma = light.scene.dust.tau * band.extinction
-        arrays[contract.J.name(band.name)] = res.J[b].astype(np.float32)
-        arrays[contract.REL_ERROR.name(band.name)] = res.rel_error[b].astype(np.float32)
-        arrays[contract.EMISSIVITY.name(band.name)] = (band.albedo * sigma * rho * res.J[b]).astype(np.float32)
-    writer = vtkXMLHyperTreeGridWriter()
-    writer.SetInputData(octree_to_htg(tree, arrays))
-    writer.SetFileName(str(path))
-    if writer.Write() != 1:
-        raise OSError(f"VTK's vtkXMLHyperTreeGridWriter could not write {path}")

@@ -205,7 +205,7 @@ def _render(args, cancel) -> int:
             write_vti(pub.stage(out), light.point_arrays(), light.field_data(), light.spacing, light.origin)
             cancel.check("run")
             if args.tree:
-                from ..filters.adaptive import write_tree_light
+                from ..filters.tree_light import write_tree_light
 
                 write_tree_light(pub.stage(args.tree), pipe.density(scene), light)
                 cancel.check("run")
