@@ -28,6 +28,7 @@ def main() -> None:
 
     from nebula_rt.density import generate_density
     from nebula_rt.pipeline import stages as pl
+    from nebula_rt.pipeline.rgba import mean_optical_depth, mean_optical_depth_soon
     from nebula_rt.backends import get_backend
     from nebula_rt.scene import Scene
 
@@ -50,9 +51,10 @@ def main() -> None:
         light = None  # free the previous run's host buffers (pinned memory goes back to the pool)
         t0 = time.perf_counter()
         rho = step("density", lambda: generate_density(scene, backend))
+        mean = mean_optical_depth_soon(rho)  # as the pipeline does: summed while the device traces
         res, J, rel = step("transport", lambda: pl.compute_light(scene, rho, backend, on_device=True))
         light = step("finish on the device (+ arrays to the host)",
-                     lambda: pl.finish_light_field(scene, rho, res, J, rel, colour=True))
+                     lambda: pl.finish_light_field(scene, rho, res, J, rel, colour=True, mean_density=mean))
         total = (time.perf_counter() - t0) * 1e3
         print(f"run {rep}: total {total:.1f} ms, kernels {res.timings['kernel_s'] * 1e3:.1f} ms, "
               f"transport set-up {res.timings['setup_s'] * 1e3:.1f} ms")
@@ -87,6 +89,7 @@ def main() -> None:
         ("one float32 band to pinned host memory (8 MiB)",
          lambda: backend.to_host(cp.zeros(nvox, cp.float32), backend.host_empty(nvox, np.float32))),
         ("one float32 band to pageable host memory (8 MiB)", lambda: cp.zeros(nvox, cp.float32).get()),
+        ("the density's mean on the host (overlapped in the pipeline)", lambda: mean_optical_depth(rho)),
         ("auto exposure radix select",
          lambda: pp.auto_exposure_on_device(backend, cp.random.random(nvox, dtype=cp.float32), nvox, 95.0)),
     ]:

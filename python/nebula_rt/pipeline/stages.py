@@ -29,7 +29,7 @@ from ..transport.result import TransportResult
 from ..transport.estimate import batch_standard_error, light_from_sums
 from ..transport.request import TransportRequest, scene_backend
 
-from .rgba import AUTO_EXPOSURE_MIN_ALPHA, AUTO_EXPOSURE_PERCENTILE, _dominant_source, _dominant_temperature, _voxel_edge, colour_matrix, colour_rgba, scene_opacity_factor
+from .rgba import AUTO_EXPOSURE_MIN_ALPHA, AUTO_EXPOSURE_PERCENTILE, _dominant_source, _dominant_temperature, _voxel_edge, colour_matrix, colour_rgba, mean_optical_depth_soon, scene_opacity_factor
 
 
 @dataclass
@@ -250,15 +250,18 @@ class Pipeline:
         dkey = self.density_key(scene, digest)
         rho = self.density(scene, dkey)
         t1 = time.perf_counter()
-        res, J, rel = self.light(scene, progress, cancel, dkey)
-        t2 = time.perf_counter()
         # one band has no colour to show: no colour stage, no rgba (render the emissivity
         # with a colour map, or ask for colour explicitly, as the CLI does for a PNG)
         colour = colour and len(scene.bands.resolve()) > 1
         ckey = _key([self.transport_key(scene, dkey), scene.to_dict().get("colour", {})])
         hit = self._cache.get("colour")
         need_colour = colour and not (hit is not None and hit[0] == ckey)
-        light = finish_light_field(scene, rho, res, J, rel, colour=need_colour)
+        mean_density = None
+        if need_colour and scene.colour.opacity_scale == "auto" and not isinstance(rho, Octree):
+            mean_density = mean_optical_depth_soon(rho)  # summed on the host while the device traces
+        res, J, rel = self.light(scene, progress, cancel, dkey)
+        t2 = time.perf_counter()
+        light = finish_light_field(scene, rho, res, J, rel, colour=need_colour, mean_density=mean_density)
         if need_colour:
             self.executions["colour"] += 1
             self._cache["colour"] = (ckey, (light.rgba, light.exposure, light.opacity_scale))
@@ -332,12 +335,14 @@ def _opencl_fft(backend) -> bool:
     return filtering_opencl.available()
 
 
-def finish_light_field(scene, rho, res: TransportResult, J=None, rel=None, colour: bool = True) -> LightField:
+def finish_light_field(scene, rho, res: TransportResult, J=None, rel=None, colour: bool = True,
+                       mean_density=None) -> LightField:
     """The light field of a transport result: on the device when the sums are there
     (:func:`nebula_rt.transport.finish.finish`), else with the NumPy reference functions.
 
     ``J``, ``rel``: the (filtered) light from :func:`compute_light`, or None to take it from the
-    device sums.
+    device sums. ``mean_density``: the density's mean already summed, or its future
+    (:func:`~nebula_rt.pipeline.rgba.mean_optical_depth_soon`), for the auto opacity.
     """
     if isinstance(rho, Octree):
         return finish_tree_light_field(scene, rho, res, colour)
@@ -364,7 +369,7 @@ def finish_light_field(scene, rho, res: TransportResult, J=None, rel=None, colou
                                  _dominant_source(scene.stars), cfg.white_point),
             sigma_ref_scale=sigma_ref_scale,
             voxel_edge=_voxel_edge(ds.shape),
-            opacity_scale=scene_opacity_factor(scene, bands, rho),
+            opacity_scale=scene_opacity_factor(scene, bands, rho, mean_density),
             exposure=cfg.exposure,
             percentile=AUTO_EXPOSURE_PERCENTILE,
             min_alpha=AUTO_EXPOSURE_MIN_ALPHA,
