@@ -44,6 +44,20 @@ NRT_DEVICE float nrt_bump_average(int i, int j, int k, float hx, float hy, float
     return sum * inv * inv * inv;
 }
 
+/* The base density (no bumps, no floor) at the centre of cell (i, j, k) of an n x n x n grid
+ * ((i + 0.5) h + offset, h = 1 / n): generate_density's voxels and density_cells' octree cells
+ * share it, so a tree's finest cells have the uniform grid's bits. */
+NRT_DEVICE float nrt_base_density(int i, int j, int k, float hx, float hy, float hz, int model,
+                                  float ox, float oy, float oz, float scale, float uniform_density)
+{
+    if (model != NRT_MODEL_TURBULENCE)
+        return uniform_density;
+    float x = ((float)i + 0.5f) * hx + ox;
+    float y = ((float)j + 0.5f) * hy + oy;
+    float z = ((float)k + 0.5f) * hz + oz;
+    return scale * fmax(0.0f, nrt_turbulence(x, y, z));
+}
+
 NRT_KERNEL void generate_density(NRT_GLOBAL float *out, int nx, int ny, int nz, int model,
                                  float ox, float oy, float oz, float scale,
                                  float uniform_density, float floor_density,
@@ -58,21 +72,27 @@ NRT_KERNEL void generate_density(NRT_GLOBAL float *out, int nx, int ny, int nz, 
     int j = (int)((gid / (nrt_u64)nx) % (nrt_u64)ny);
     int k = (int)(gid / ((nrt_u64)nx * (nrt_u64)ny));
     float hx = 1.0f / (float)nx, hy = 1.0f / (float)ny, hz = 1.0f / (float)nz;
-    float base;
-    if (model == NRT_MODEL_TURBULENCE) {
-        float x = ((float)i + 0.5f) * hx + ox;
-        float y = ((float)j + 0.5f) * hy + oy;
-        float z = ((float)k + 0.5f) * hz + oz;
-        base = scale * fmax(0.0f, nrt_turbulence(x, y, z));
-    } else {
-        base = uniform_density;
-    }
+    float base = nrt_base_density(i, j, k, hx, hy, hz, model, ox, oy, oz, scale, uniform_density);
     float bump = 0.0f;
     for (int s = 0; s < n_stars; ++s) {
         bump += nrt_bump_average(i, j, k, hx, hy, hz, stars[4 * s], stars[4 * s + 1],
                                  stars[4 * s + 2], stars[4 * s + 3], subsamples);
     }
     out[gid] = fmax(floor_density, bump + base);
+}
+
+/* The base density of octree cells: cell c is (ijk[3c], ijk[3c + 1], ijk[3c + 2]) of the
+ * n x n x n grid of its level (density.octree_density refines a tree by these values). */
+NRT_KERNEL void density_cells(const NRT_GLOBAL int *ijk, nrt_u64 n_cells, int n, int model,
+                              float ox, float oy, float oz, float scale, float uniform_density,
+                              NRT_GLOBAL float *out)
+{
+    nrt_u64 gid = NRT_GLOBAL_ID();
+    if (gid >= n_cells)
+        return;
+    float h = 1.0f / (float)n;
+    out[gid] = nrt_base_density(ijk[3 * gid], ijk[3 * gid + 1], ijk[3 * gid + 2], h, h, h, model,
+                                ox, oy, oz, scale, uniform_density);
 }
 
 /* Simplex noise and turbulence at given points (used by the tests against the NumPy oracle). */

@@ -93,6 +93,7 @@ RANGES = {
     "dust.array": "string", "dust.scale": FLOAT32_RANGE_TEXT, "dust.offset": "[-10000, 10000]",
     "dust.particle_mass": "string", "dust.particle_smoothing": "string", "dust.particle_origin": "[-1e+30, 1e+30]",
     "dust.leaf_particles": "[1, 2147483647]", "dust.tree_depth": "[0, 20]",
+    "dust.octree": "true or false", "dust.cell_tau": "> 0", "dust.cell_contrast": ">= 0",
     "dust.floor": FLOAT32_RANGE_TEXT, "dust.tau": FLOAT32_RANGE_TEXT,
     # the key's own rule, or the range of the dust.tau it converts to
     "dust.hydrogen_density": ("H nuclei per cm^3 >= 0", "gives dust.tau"),
@@ -164,6 +165,7 @@ def strings(key, bad_choices=(), allowed=None, runtime=None):
 
 LABEL = "host float64, never on the device (used by the physical keys and calibrated images only)"
 SKY = "host float64: used by calibrated sky images only"
+TREE = "host float64: an octree's refinement test only (dust.octree)"
 TABLE = [
     *ints("grid.shape", vector=(None, 8, 8)),
     *floats("grid.length", {"huge": LABEL, "beyond-float32": LABEL, "below-float32": LABEL}),
@@ -183,6 +185,12 @@ TABLE = [
             vector=(None, 0.0, 0.0)),
     *ints("dust.leaf_particles"),
     *ints("dust.tree_depth", {"zero": "not run"}),
+    Row("dust.octree", "type", '"yes"'),
+    Row("dust.octree", "number", "2"),
+    Row("dust.octree", "on", "true", ALLOWED, "the procedural density on an octree (its own tests)", run=False),
+    *floats("dust.cell_tau", {"huge": TREE, "beyond-float32": TREE, "below-float32": TREE}),
+    *floats("dust.cell_contrast", {"zero": "split wherever the density varies", "huge": TREE,
+                                   "beyond-float32": TREE, "below-float32": TREE}),
     *floats("dust.scale", {"zero": "no turbulence: the floor and the bumps"}),
     *floats("dust.offset", {"negative": "any offset in [-1e4, 1e4]", "zero": "any offset in [-1e4, 1e4]",
                             "below-float32": "rounded to float32: moves the nebula by < 1e-38 box units"},

@@ -88,6 +88,21 @@ class Backend(abc.ABC):
         self.to_host(out, host.reshape(-1))
         return self._keep_resident(host.transpose(2, 1, 0), out)
 
+    def density_cells(self, cells: np.ndarray, n: int, model: int, offset, scale: float,
+                      uniform_density: float) -> np.ndarray:
+        """The base density (no bumps, no floor; float32) at the centres of ``cells`` (m, 3)
+        int32 (i, j, k) of the n x n x n grid of one octree level, with the arithmetic of
+        :meth:`generate_density`'s voxels (``kernels/density.cl``: ``nrt_base_density``)."""
+        cells = np.ascontiguousarray(cells, np.int32).reshape(-1, 3)
+        m = len(cells)
+        if m == 0:
+            return np.zeros(0, np.float32)
+        out = self.device_zeros(m, np.float32)
+        self.launch("density.cl", "density_cells", m, self.to_device(cells.reshape(-1)), np.uint64(m),
+                    np.int32(n), np.int32(model), np.float32(offset[0]), np.float32(offset[1]),
+                    np.float32(offset[2]), np.float32(scale), np.float32(uniform_density), out)
+        return self.to_host(out)
+
     def transport_session(self, setup: TransportSetup, slots: int, bands_per_launch: int = 0) -> TransportSession:
         """Allocate the device state for a transport run with ``slots`` batch slots of
         ``bands_per_launch`` bands each (0: all)."""

@@ -78,11 +78,14 @@ def _vti_bytes(scene) -> int:
 
 def _tree_bytes(scene) -> int:
     """Upper bound of the ``--tree`` .htg: a leaf per byte of the density file at most (each
-    leaf takes more than a byte there), times its arrays (float32 J, error and emissivity per
+    leaf takes more than a byte there) or 8^tree_depth for ``dust.octree``, times its arrays (float32 J, error and emissivity per
     band, the density) and the tree's own bits, plus headers."""
     nb = len(scene.bands.resolve())
-    path = scene.dust_file_path()
-    leaves = path.stat().st_size if path.is_file() else 0  # (a missing file is refused as an input)
+    if scene.dust.model != "file":  # dust.octree: 8^tree_depth leaves at most (int32 node indices)
+        leaves = min(8 ** int(scene.dust.tree_depth), 2**31 // 8 * 7)
+    else:
+        path = scene.dust_file_path()
+        leaves = path.stat().st_size if path.is_file() else 0  # (a missing file is refused as an input)
     return leaves * (4 + 12 * nb + 2) + (64 << 10)
 
 
@@ -175,11 +178,11 @@ def _render(args, cancel) -> int:
             outputs.append(Output("--png", Path(args.png), ".png", PNG_BYTES))
             _require_io("--png", args.png, png=True)
         if args.tree:
-            from ..density import is_adaptive_file
+            from ..density.generate import traced_on_tree
 
-            if not (scene.dust.model == "file" and is_adaptive_file(scene.dust_file_path())):
-                raise SceneError("--tree", args.tree, "needs an adaptive dust.file (.htg, .vthb or .vtp): the light "
-                                                      "of a uniform grid is the .vti")
+            if not traced_on_tree(scene):
+                raise SceneError("--tree", args.tree, "needs an adaptive density (dust.file .htg, .vthb or .vtp, or "
+                                                      "dust.octree = true): the light of a uniform grid is the .vti")
             outputs.append(Output("--tree", Path(args.tree), ".htg", _tree_bytes(scene)))
             _require_io("--tree", args.tree)
         backend = _backend_for(scene, comm)

@@ -24,14 +24,8 @@ from ..backends import Backend
 from ..backends.base import MODEL_TURBULENCE, MODEL_UNIFORM
 from ..errors import SceneError
 from ..input_files import check_input_file, open_input
-
-#: Midpoint samples per axis used to average a star's bump over a voxel.
-BUMP_SUBSAMPLES = 8
-
-
-def _stars_array(stars) -> np.ndarray:
-    return np.array([[*s.position, s.bump_radius] for s in stars], dtype=np.float32).reshape(-1, 4)
-
+from .bumps import BUMP_SUBSAMPLES, leaf_bumps, stars_array as _stars_array
+from .procedural_tree import procedural_tree
 
 def file_digest(path: Path) -> str:
     """SHA-256 (hex) of a file's bytes: identifies a density file by its content (a file
@@ -274,32 +268,22 @@ def particle_tree(scene, positions, masses, smoothing):
     return Octree(tree.roots, tree.child, rho.astype(np.float32))
 
 
-def leaf_bumps(lo, hi, stars, subsamples: int = BUMP_SUBSAMPLES) -> np.ndarray:
-    """The stars' cubic bumps (1 - d^2 / r^2)^3 (thesis Eq. 3.3) averaged over boxes [lo, hi)
-    (a tree's leaves) with ``subsamples``^3 midpoint samples, as ``kernels/density.cl``
-    averages them over voxels (here in float64); boxes the bump cannot reach stay 0.
-    ``stars``: (n, 4) x, y, z, radius."""
-    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
-    out = np.zeros(len(lo))
-    t = (np.arange(subsamples) + 0.5) / subsamples
-    for sx, sy, sz, r in np.asarray(stars, np.float64).reshape(-1, 4):
-        if not r > 0:
-            continue
-        s = np.array([sx, sy, sz])
-        near = np.sum((np.clip(s, lo, hi) - s) ** 2, axis=1) < r * r
-        for i in np.flatnonzero(near):
-            axes = [lo[i, a] + t * (hi[i, a] - lo[i, a]) - s[a] for a in range(3)]
-            d2 = axes[0][:, None, None] ** 2 + axes[1][None, :, None] ** 2 + axes[2][None, None, :] ** 2
-            out[i] += np.mean(np.where(d2 < r * r, (1.0 - d2 / (r * r)) ** 3, 0.0))
-    return out
+def traced_on_tree(scene) -> bool:
+    """Whether ``scene``'s density is an octree: an adaptive ``dust.file`` or ``dust.octree``."""
+    if scene.dust.model == "file":
+        return is_adaptive_file(scene.dust_file_path())
+    return bool(scene.dust.octree)
 
 
 def scene_density(scene, backend: Backend):
     """The density a scene is traced through: an :class:`~nebula_rt.density.octree.Octree`
-    for an adaptive ``dust.file`` (:func:`load_tree`), else the grid of
+    for an adaptive ``dust.file`` (:func:`load_tree`) or with ``dust.octree``
+    (:func:`~nebula_rt.density.procedural_tree.procedural_tree`), else the grid of
     :func:`generate_density`."""
     if scene.dust.model == "file" and is_adaptive_file(scene.dust_file_path()):
         return load_tree(scene)
+    if scene.dust.octree:
+        return procedural_tree(scene, backend)
     return generate_density(scene, backend)
 
 
@@ -317,6 +301,11 @@ def generate_density(scene, backend: Backend) -> np.ndarray:
                          "an adaptive density (.htg, .vthb, .vtp) is traced by the light field (nebula-rt render, "
                          "the Light Field filter) only; sky images, comparisons, fits and the Dust Density "
                          "source need a uniform grid (.npy or .vti) so far")
+    if dust.octree:
+        raise SceneError("dust.octree", True,
+                         "an octree density is traced by the light field (nebula-rt render, the Light Field "
+                         "filter) only; sky images, comparisons, fits and the Dust Density source need the "
+                         "uniform grid (dust.octree = false) so far")
     if dust.model == "file":
         data = load_density_file(scene.dust_file_path(), dust.array, shape)
         if np.any(stars[:, 3] > 0):

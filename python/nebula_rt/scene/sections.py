@@ -149,8 +149,21 @@ class Dust:
             "split while it holds more particles than this (down to tree_depth)")
     tree_depth: int = param(
         8, type="int", lo=0, hi=MAX_TREE_DEPTH, group=G_DUST, advanced=True,
-        doc="\"file\" with a .vtp particle snapshot: levels of refinement at most (2^tree_depth cells per "
-            "box edge where the particles are densest)")
+        doc="An octree's levels of refinement at most (2^tree_depth cells per box edge where the dust "
+            "needs them): a .vtp particle snapshot's, or the procedural density's with `octree`")
+    octree: bool = param(
+        False, type="bool", group=G_DUST, advanced=True,
+        doc="\"turbulence\" or \"uniform\": make the density on an adaptive octree refined where the dust "
+            "needs it (`cell_tau`, `cell_contrast`, down to `tree_depth`) and trace it leaf by leaf, instead "
+            "of on grid.shape; grid.shape stays the light field's output grid (docs/adaptive_grids.md)")
+    cell_tau: float = param(
+        0.1, type="float", lo=0.0, lo_open=True, group=G_DUST, advanced=True,
+        doc="`octree`: a cell is split while its optical depth across one edge (reference band) exceeds "
+            "this (SKIRT's maximum optical depth per cell)")
+    cell_contrast: float = param(
+        0.1, type="float", lo=0.0, group=G_DUST, advanced=True,
+        doc="`octree`: a cell is also split while the spread (max - min) of its 8 octants' densities "
+            "exceeds this fraction of their mean (0: wherever the density varies)")
     scale: float = param(
         0.15, type="float", lo=0.0, group=G_DUST,
         float32=True,

@@ -20,6 +20,15 @@ def to_float(v: Any) -> float:
     return float(v)  # may raise OverflowError for huge ints
 
 
+def to_bool(v: Any) -> bool:
+    """TOML's true and false (a panel's checkbox, 0 or 1, too); nothing else is a switch."""
+    if isinstance(v, bool):
+        return v
+    if isinstance(v, numbers.Integral) and int(v) in (0, 1):
+        return bool(v)
+    raise TypeError
+
+
 def to_int(v: Any) -> int:
     if isinstance(v, bool):
         raise TypeError
@@ -115,6 +124,7 @@ CONVERT = {
     "tuple of 3 float": to_vec3,
     "tuple of 3 int": to_ivec3,
     "\"auto\" or float": to_auto_or_float,
+    "bool": to_bool,
 }
 
 #: How a refusal names a value of each declared type (``Param.what`` where it says more)
@@ -122,4 +132,5 @@ WHAT = {
     "float": "a number", "float or None": "a number", "int": "an integer", "str": "a string",
     "str or None": "a string", "tuple of 3 float": "a list of 3 numbers",
     "tuple of 3 int": "a list of 3 integers, each", "\"auto\" or float": "a number",
+    "bool": "true or false",
 }
