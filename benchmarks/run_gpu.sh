@@ -8,7 +8,7 @@
 # colour-science, tomli-w; pmcx for the MCX comparison), fetched elsewhere with
 # `pip download --only-binary=:all: --python-version 3.12 ...`.
 # STEPS (default "tests bench neb128 compare profile"; also "tests-cuda", "thick", "thick-grid", "trust", "scaling", "large", "regions", "regcaps", "profile-regions", "layout", "sorted", "probe", "ranks", "ranks-thesis", "ranks-weak", "tests-mpi", "e2e1e9", "biasing", "fit", "fitprof", "tune",
-# "stages", "kernel-probes", "ncu-thesis", "tree", "trade", "presets", "empty", "fft") selects what runs. Everything printed
+# "stages", "kernel-probes", "ncu-thesis", "tree", "tree-targets", "trade", "presets", "empty", "fft") selects what runs. Everything printed
 # goes to OUTDIR/log.txt as well; JSON and .npz results beside it.
 set -uo pipefail
 out="${1:?output folder}"
@@ -264,6 +264,13 @@ if [[ " $steps " == *" tree "* ]]; then
     echo "== trees against their grid, NVIDIA OpenCL"
     python3 benchmarks/bench_tree.py --backend opencl --device NVIDIA --grid 128 --photons 2.1e6 \
         --out "$out/tree-128-nvidia-opencl.json" 2>&1 | grep -v Warning
+fi
+if [[ " $steps " == *" tree-targets "* ]]; then
+    # #33's targets: the thesis's turbulence on an octree of 2^10 effective resolution where the
+    # dust is dense (<= 50M leaves) against the uniform 512^3 (speed) and 1024^3 (the light) grids
+    echo "== tree targets, CUDA"
+    python3 benchmarks/bench_tree_targets.py --backend cuda --depth ${TREE_DEPTH:-10} --photons ${TREE_PHOTONS:-1e8} \
+        --out "$out/tree-targets-cuda.json" 2>&1 | grep -v Warning
 fi
 if [[ " $steps " == *" ncu-thesis "* ]] && command -v ncu >/dev/null; then
     echo "== ncu: transport kernel, thesis 128^3 (its first launch)"

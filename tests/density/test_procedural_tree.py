@@ -4,7 +4,7 @@ grid's density kernel, which the tree builder does not use for its voxels:
 - a leaf at the deepest level has the bits of the 2^depth grid's voxel there, and a leaf one
   level up the float64 mean of the grid's 8 voxels it covers (both made with the floor);
 - every leaf above the deepest level passed the refinement tests it was declared with (optical
-  depth per cell, contrast, the stars' bumps, the top levels);
+  depth per cell, its octants' spread in optical depth, the stars' bumps, the top levels);
 - a uniform density stops at the top levels; the leaves tile the box;
 - a tree refined wherever the density varies traces as the grid: the packets' fates agree to a
   few packets (the two walks form their faces with different float32 rounding);
@@ -18,7 +18,7 @@ import pytest
 from conftest import TEST_BACKEND, TEST_DEVICE
 
 from nebula_rt import limits
-from nebula_rt.density import procedural_tree as pt
+from nebula_rt.density.procedural_tree import MIN_LEVEL
 from nebula_rt.density.generate import generate_density, scene_density
 from nebula_rt.errors import SceneError
 from nebula_rt.scene import Scene
@@ -63,7 +63,7 @@ def leaf_levels(tree):
 
 
 def test_deepest_leaves_are_the_grid_and_the_next_level_its_means(backend):
-    sc = scene("dust.cell_contrast=0.3")
+    sc = scene("dust.cell_tau_spread=0.05")
     tree = scene_density(sc, backend)
     lo, level, d = leaf_levels(tree)
     g = grid_of(sc, 32)
@@ -79,29 +79,30 @@ def test_deepest_leaves_are_the_grid_and_the_next_level_its_means(backend):
 
 
 def test_every_coarse_leaf_passed_the_refinement_tests(backend):
-    sc = scene("dust.cell_tau=0.2", "dust.cell_contrast=0.5")
+    sc = scene("dust.cell_tau=0.2", "dust.cell_tau_spread=0.1")
     tree = scene_density(sc, backend)
     lo, level, d = leaf_levels(tree)
-    assert level.min() >= pt.MIN_LEVEL
+    assert level.min() >= MIN_LEVEL
     coarse = level < 5
     assert coarse.any() and (~coarse).any()
     edge = 0.5 ** level[coarse]
     # the reference band's extinction is 1: a cell's optical depth is tau x density x edge
     assert np.all(40.0 * d[coarse].astype(np.float64) * edge <= 0.2 * (1 + 1e-6))
     # and its octants' values (the grid's voxels one level down, when that level is the
-    # deepest) spread by at most the contrast
+    # deepest) spread in optical depth across the cell by at most cell_tau_spread
     g = grid_of(sc, 32)
     at4 = level == 4
     i = np.rint(lo[at4] * 32).astype(int)
     blocks = np.stack([g[i[:, 0] + a, i[:, 1] + b, i[:, 2] + c] for a in (0, 1) for b in (0, 1) for c in (0, 1)])
-    assert np.all(blocks.max(0) - blocks.min(0) <= 0.5 * blocks.astype(np.float64).mean(0) * (1 + 1e-6))
+    spread = blocks.max(0).astype(np.float64) - blocks.min(0)
+    assert np.all(40.0 * spread / 16 <= 0.1 * (1 + 1e-6))
     # the leaves tile the box
     np.testing.assert_allclose(np.sum(0.125 ** level), 1.0, rtol=1e-12)
 
 
 def test_a_uniform_density_stops_at_the_top_levels(backend):
     tree = scene_density(scene('dust.model="uniform"', "dust.density=2.0", "dust.tau=0.2"), backend)
-    assert tree.n_leaves == 8 ** pt.MIN_LEVEL
+    assert tree.n_leaves == 8 ** MIN_LEVEL
     np.testing.assert_array_equal(tree.density, np.float32(2.0))
     # (0.2 x 2 / 8 = 0.05 per cell at level 3); at tau 40, 40 x 1 / 16 = 2.5 > 0.1: split to the deepest level
     deep = scene_density(scene('dust.model="uniform"', "dust.tree_depth=4"), backend)
@@ -124,7 +125,7 @@ def test_a_star_bump_is_refined_to_its_radius(backend):
 def test_a_tree_refined_wherever_the_density_varies_traces_as_the_grid(backend):
     from nebula_rt.pipeline import Pipeline
 
-    sc = scene("dust.cell_contrast=0.0", "dust.cell_tau=1e-6", "dust.tree_depth=4", "grid.shape=[16,16,16]",
+    sc = scene("dust.cell_tau_spread=0.0", "dust.cell_tau=1e-6", "dust.tree_depth=4", "grid.shape=[16,16,16]",
                "transport.estimator=\"track-length\"", 'transport.method="analog"', "transport.batch_size=10000")
     tree = scene_density(sc, backend)
     lo, level, d = leaf_levels(tree)
@@ -153,7 +154,7 @@ def test_refusals_name_the_key(backend, monkeypatch):
     with pytest.raises(SceneError) as e:
         scene_density(scene(), backend)
     assert e.value.parameter == "dust.cell_tau" and "1000 nodes" in str(e.value)
-    for bad in ("dust.octree=2", 'dust.octree="yes"', "dust.cell_tau=0.0", "dust.cell_contrast=-1.0"):
+    for bad in ("dust.octree=2", 'dust.octree="yes"', "dust.cell_tau=0.0", "dust.cell_tau_spread=-1.0"):
         with pytest.raises(SceneError) as e:
             scene(bad)
         assert e.value.parameter == bad.split("=")[0]

@@ -93,7 +93,7 @@ RANGES = {
     "dust.array": "string", "dust.scale": FLOAT32_RANGE_TEXT, "dust.offset": "[-10000, 10000]",
     "dust.particle_mass": "string", "dust.particle_smoothing": "string", "dust.particle_origin": "[-1e+30, 1e+30]",
     "dust.leaf_particles": "[1, 2147483647]", "dust.tree_depth": "[0, 20]",
-    "dust.octree": "true or false", "dust.cell_tau": "> 0", "dust.cell_contrast": ">= 0",
+    "dust.octree": "true or false", "dust.cell_tau": "> 0", "dust.cell_tau_spread": ">= 0",
     "dust.floor": FLOAT32_RANGE_TEXT, "dust.tau": FLOAT32_RANGE_TEXT,
     # the key's own rule, or the range of the dust.tau it converts to
     "dust.hydrogen_density": ("H nuclei per cm^3 >= 0", "gives dust.tau"),
@@ -189,7 +189,7 @@ TABLE = [
     Row("dust.octree", "number", "2"),
     Row("dust.octree", "on", "true", ALLOWED, "the procedural density on an octree (its own tests)", run=False),
     *floats("dust.cell_tau", {"huge": TREE, "beyond-float32": TREE, "below-float32": TREE}),
-    *floats("dust.cell_contrast", {"zero": "split wherever the density varies", "huge": TREE,
+    *floats("dust.cell_tau_spread", {"zero": "split wherever the density varies", "huge": TREE,
                                    "beyond-float32": TREE, "below-float32": TREE}),
     *floats("dust.scale", {"zero": "no turbulence: the floor and the bumps"}),
     *floats("dust.offset", {"negative": "any offset in [-1e4, 1e4]", "zero": "any offset in [-1e4, 1e4]",

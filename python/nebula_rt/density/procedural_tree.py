@@ -6,8 +6,10 @@ into its 8 octants while
 
 - its optical depth across one edge in the reference band (``dust.tau`` x extinction x its
   mean density x its edge) exceeds ``dust.cell_tau`` (SKIRT's maximum optical depth per cell),
-- or the spread (max - min) of its octants' densities exceeds ``dust.cell_contrast`` x their
-  mean (structure the cell would smear),
+- or its octants' optical depths across that edge spread (max - min) by more than
+  ``dust.cell_tau_spread`` (structure the cell would smear where it matters to the light: a
+  relative contrast would split thin fluff down to the deepest level, since the turbulence has
+  structure on every scale),
 - or a star's bump (``bump_radius``) reaches into it and its edge is longer than the radius,
 - or it lies above level :data:`MIN_LEVEL`,
 
@@ -58,7 +60,7 @@ def procedural_tree(scene, backend):
     ------
     SceneError
         ``dust.model`` not procedural, a tree that would pass the int32 node indices of the
-        device walk (``dust.cell_tau``, ``dust.cell_contrast`` or ``dust.tree_depth`` to
+        device walk (``dust.cell_tau``, ``dust.cell_tau_spread`` or ``dust.tree_depth`` to
         change), or a density float32 cannot hold.
     """
     from ..optics.bands import reference_band_index
@@ -95,7 +97,8 @@ def procedural_tree(scene, backend):
             floored = np.maximum(s, np.float32(dust.floor))
             vals = floored.mean(axis=1, dtype=np.float64)
             split = (level < MIN_LEVEL) | (sigma * vals * edge > dust.cell_tau)
-            split |= (floored.max(axis=1).astype(np.float64) - floored.min(axis=1)) > dust.cell_contrast * vals
+            spread = floored.max(axis=1).astype(np.float64) - floored.min(axis=1)
+            split |= sigma * spread * edge > dust.cell_tau_spread
             split |= _near_bumps(cells, edge, stars)
         c = np.empty(n_cells, np.int64)
         leaf = ~split
@@ -109,7 +112,7 @@ def procedural_tree(scene, backend):
         if next_node + 8 * inner.size > limits.INT32_MAX:
             raise SceneError("dust.cell_tau", dust.cell_tau,
                              f"the octree would pass {limits.INT32_MAX} nodes (the device walk's int32 indices) "
-                             f"at level {level + 1}: raise dust.cell_tau or dust.cell_contrast, or lower "
+                             f"at level {level + 1}: raise dust.cell_tau or dust.cell_tau_spread, or lower "
                              f"dust.tree_depth ({depth})")
         c[inner] = next_node + 8 * np.arange(inner.size)
         next_node += 8 * inner.size

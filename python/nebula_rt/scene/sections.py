@@ -154,16 +154,16 @@ class Dust:
     octree: bool = param(
         False, type="bool", group=G_DUST, advanced=True,
         doc="\"turbulence\" or \"uniform\": make the density on an adaptive octree refined where the dust "
-            "needs it (`cell_tau`, `cell_contrast`, down to `tree_depth`) and trace it leaf by leaf, instead "
+            "needs it (`cell_tau`, `cell_tau_spread`, down to `tree_depth`) and trace it leaf by leaf, instead "
             "of on grid.shape; grid.shape stays the light field's output grid (docs/adaptive_grids.md)")
     cell_tau: float = param(
         0.1, type="float", lo=0.0, lo_open=True, group=G_DUST, advanced=True,
         doc="`octree`: a cell is split while its optical depth across one edge (reference band) exceeds "
             "this (SKIRT's maximum optical depth per cell)")
-    cell_contrast: float = param(
-        0.1, type="float", lo=0.0, group=G_DUST, advanced=True,
-        doc="`octree`: a cell is also split while the spread (max - min) of its 8 octants' densities "
-            "exceeds this fraction of their mean (0: wherever the density varies)")
+    cell_tau_spread: float = param(
+        0.02, type="float", lo=0.0, group=G_DUST, advanced=True,
+        doc="`octree`: a cell is also split while its 8 octants' optical depths across its edge spread "
+            "(max - min) by more than this (0: wherever the density varies)")
     scale: float = param(
         0.15, type="float", lo=0.0, group=G_DUST,
         float32=True,
