@@ -290,22 +290,21 @@ def scene_density(scene, backend: Backend):
 def generate_density(scene, backend: Backend) -> np.ndarray:
     """Density of ``scene`` on its grid, float32 (nx, ny, nz) (index [i, j, k] = x, y, z).
 
-    An adaptive ``dust.file`` is refused here: the pipeline traces it as a tree
-    (:func:`scene_density`); what needs a grid (sky images, comparisons, fits, the Dust
-    Density source) takes a uniform one so far."""
+    An adaptive ``dust.file`` or ``dust.octree`` is refused here: everything that traces takes
+    the tree from :func:`scene_density`; the Dust Density source, which shows the grid, only a
+    uniform one."""
     dust = scene.dust
     shape = tuple(scene.grid.shape)
     stars = _stars_array(scene.stars)
     if dust.model == "file" and is_adaptive_file(scene.dust_file_path()):
         raise SceneError("dust.file", str(scene.dust_file_path()),
-                         "an adaptive density (.htg, .vthb, .vtp) is traced by the light field (nebula-rt render, "
-                         "the Light Field filter) only; sky images, comparisons, fits and the Dust Density "
-                         "source need a uniform grid (.npy or .vti) so far")
+                         "an adaptive density (.htg, .vthb, .vtp) is an octree, traced leaf by leaf "
+                         "(scene_density); the Dust Density source makes a uniform grid (.npy or .vti) only: "
+                         "open the file with ParaView's reader instead")
     if dust.octree:
         raise SceneError("dust.octree", True,
-                         "an octree density is traced by the light field (nebula-rt render, the Light Field "
-                         "filter) only; sky images, comparisons, fits and the Dust Density source need the "
-                         "uniform grid (dust.octree = false) so far")
+                         "an octree density is traced leaf by leaf (scene_density); the Dust Density source "
+                         "makes a uniform grid only (dust.octree = false)")
     if dust.model == "file":
         data = load_density_file(scene.dust_file_path(), dust.array, shape)
         if np.any(stars[:, 3] > 0):

@@ -52,9 +52,10 @@ from ..optics import colour_convert
 from ..scene import units
 from ..optics.colour_convert import band_edges, hat_basis
 from ..optics.blackbody import planck_lambda, stefan_boltzmann
-from ..density.generate import generate_density
+from ..density.generate import scene_density
+from ..density.octree import Octree
 from ..errors import SceneError
-from ..transport.line_of_sight import line_of_sight_tau
+from ..transport.line_of_sight import density_column, line_of_sight_tau
 from ..pipeline.rgba import _dominant_source
 from .colours import star_transmission
 from .sky import Camera, sky_image
@@ -511,7 +512,7 @@ def peel_off_sky(scene, camera, backend=None, progress=None, cancel=None, pixel_
     check_scene(scene)
     backend = backend or scene_backend(scene)
     bands = scene.bands.resolve()
-    rho = generate_density(scene, backend)
+    rho = scene_density(scene, backend)  # a grid, or an octree traced leaf by leaf
     bins = (np.arange(camera.size[0] * camera.size[1], dtype=np.int64).reshape(camera.size) if pixel_batches
             else np.zeros(camera.size, np.int64))
     request = TransportRequest.from_scene(scene, peel=camera, peel_bins=bins, light_field=False)
@@ -525,11 +526,15 @@ def peel_off_sky(scene, camera, backend=None, progress=None, cancel=None, pixel_
 
 def star_tau(scene, bands, rho, camera) -> np.ndarray:
     """(n_stars, n_bands) optical depth from each star to the observer of ``camera`` (the exact
-    march of :func:`nebula_rt.transport.line_of_sight.line_of_sight_tau` through ``rho``)."""
+    march of :func:`nebula_rt.transport.line_of_sight.line_of_sight_tau` through ``rho``, or the
+    exact sum over an octree's leaves, :func:`~nebula_rt.transport.line_of_sight.density_column`)."""
 
+    d = camera.basis()[0]
+    if isinstance(rho, Octree):  # the exact sum over the leaves the ray crosses
+        k = np.array([scene.dust.tau * b.extinction for b in bands], np.float64)
+        return np.array([k * density_column(rho, s.position, -d) for s in scene.stars])
     sigma = np.array([scene.dust.tau * b.extinction for b in bands])[:, None, None, None] * \
         np.asarray(rho, np.float64)[None]
-    d = camera.basis()[0]
     return np.array([line_of_sight_tau(sigma, s.position, -d) for s in scene.stars])
 
 

@@ -44,9 +44,10 @@ import numpy as np
 
 from ..scene import units
 from ..optics.colour_convert import hat_basis, star_spectrum
-from ..density.generate import generate_density
+from ..density.generate import scene_density
+from ..density.octree import Octree
 from ..errors import SceneError
-from ..transport.line_of_sight import line_of_sight_tau
+from ..transport.line_of_sight import density_column, line_of_sight_tau
 from ..pipeline.outputs import Publication
 from ..pipeline.rgba import _dominant_source
 from .sky import Camera, sky_image
@@ -320,12 +321,16 @@ def observe_scene(scene, direction=(0.0, 0.0, -1.0), size: int = COMPARISON_SIZE
     d, u, v = cam.basis()
     e = _edges(edges)
     labels = _labels(_offsets(cam.origin(), cam.pixel_size, u, v, cam.size, star.position, direction), e)
-    rho = generate_density(scene, backend)
+    rho = scene_density(scene, backend)  # a grid, or an octree traced leaf by leaf
     res = TransportRequest.from_scene(scene, peel=cam, peel_bins=labels, light_field=False).trace(
         rho, backend, progress=progress, cancel=cancel, comm=comm)
-    sigma = np.array([scene.dust.tau * b.extinction for b in bands])[:, None, None, None] * \
-        np.asarray(rho, np.float64)[None]
-    tau_star = line_of_sight_tau(sigma, star.position, -np.asarray(direction, float))
+    if isinstance(rho, Octree):  # the exact sum over the leaves the ray crosses
+        tau_star = np.array([scene.dust.tau * b.extinction for b in bands]) * density_column(
+            rho, star.position, -np.asarray(direction, float))
+    else:
+        sigma = np.array([scene.dust.tau * b.extinction for b in bands])[:, None, None, None] * \
+            np.asarray(rho, np.float64)[None]
+        tau_star = line_of_sight_tau(sigma, star.position, -np.asarray(direction, float))
     prof = _annuli(res.peel_image, labels, e, res.band_luminosity, wl, _dominant_source(scene.stars), tau_star,
                    reference, res.peel_bin_batches, rv=units.dust_model(scene.bands)[0])
     return prof, res

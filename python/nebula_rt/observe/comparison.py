@@ -30,7 +30,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from ..optics.colour_convert import hat_basis
-from ..density.generate import generate_density
+from ..density.generate import scene_density
 from ..errors import SceneError
 from ..scene import units
 from .colours import (
@@ -178,7 +178,7 @@ def trace_rings(scene, edges, *, direction=(0.0, 0.0, -1.0), size: int = DEFAULT
     star = max(scene.stars, key=lambda s: s.luminosity)
     e = np.asarray(edges, np.float64)
     cam, labels, pixels = ring_pixels(star.position, direction, size, e)
-    rho = generate_density(scene, backend) if density is None else density
+    rho = scene_density(scene, backend) if density is None else density  # a grid or an octree
     # only the peel-off image's ring sums are used: no J
     res = TransportRequest.from_scene(scene, peel=cam, peel_bins=labels, light_field=False).trace(
         rho, backend, progress=progress, cancel=cancel, comm=comm)

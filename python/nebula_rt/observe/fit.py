@@ -70,7 +70,7 @@ import numpy as np
 
 from .comparison import (
     Comparison, DEFAULT_SIZE, check_tables_against_scene, compare_tables, ring_edges, trace_rings)
-from ..density.generate import generate_density
+from ..density.generate import scene_density
 from ..errors import CancelledError, NebulaWarning, SceneError
 from .colours import _check_reference
 from .fit_parameters import FreeParameter, current_value, parse_free, scene_with
@@ -200,7 +200,7 @@ class _Objective:
                           [(s.get("position"), s.get("bump_radius")) for s in d["stars"]]], sort_keys=True)
         if key not in self.density_cache:
             self.density_cache.clear()  # keep one: a free dust key makes a new one per trial
-            self.density_cache[key] = generate_density(scene, self.backend)
+            self.density_cache[key] = scene_density(scene, self.backend)  # a grid or an octree
         return self.density_cache[key]
 
     def _trace(self, values):

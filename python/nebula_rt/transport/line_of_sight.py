@@ -67,7 +67,8 @@ _MAX_COLUMNS = 32
 
 def density_column(density, start, toward) -> float:
     """The density integrated along a ray from ``start`` towards ``toward`` to the box's edge
-    (box units): :func:`line_of_sight_tau` of the density alone, which is linear in sigma, so
+    (box units): :func:`line_of_sight_tau` of the density alone (a grid) or the exact sum over
+    an octree's leaves (:func:`_leaves_column`), which is linear in sigma, so
     a band's optical depth is its extinction coefficient per unit density times this. Kept for
     the last few (density, start, direction): a fit or a run's method choice asks for the same
     ones at every trial (a read-only density array is known by its identity while it lives)."""
@@ -77,12 +78,44 @@ def density_column(density, start, toward) -> float:
     hit = _COLUMNS.get(key)
     if hit is not None and hit[0]() is density:
         return hit[1]
+    if hasattr(density, "leaves"):  # an octree (nebula_rt.density.octree.Octree: immutable)
+        col = _leaves_column(*density.leaves(), start, toward)
+        if len(_COLUMNS) >= _MAX_COLUMNS:
+            _COLUMNS.pop(next(iter(_COLUMNS)))
+        _COLUMNS[key] = (weakref.ref(density), col)
+        return col
     col = float(line_of_sight_tau(np.asarray(density, np.float64)[None], start, toward)[0])
     if isinstance(density, np.ndarray) and not density.flags.writeable:
         if len(_COLUMNS) >= _MAX_COLUMNS:
             _COLUMNS.pop(next(iter(_COLUMNS)))
         _COLUMNS[key] = (weakref.ref(density), col)
     return col
+
+
+def _leaves_column(lo, hi, values, start, toward, chunk: int = 1 << 22) -> float:
+    """The column of a field given on boxes that tile the unit box (a tree's leaves: ``lo``,
+    ``hi`` (n, 3), ``values`` (n,)) along the ray from ``start`` towards ``toward`` to the box's
+    edge: each box adds its value times the length of the ray inside it (the slab test, exact).
+    A ray along a face belongs to the boxes on its high side, [lo, hi) as the grid's march
+    takes voxels (the top face of the box to the boxes below it). In chunks of boxes, so memory
+    stays bounded for tens of millions of leaves."""
+    p = np.asarray(start, np.float64)
+    o = np.asarray(toward, np.float64)
+    o = o / np.linalg.norm(o)
+    moving = o != 0.0
+    inv = np.where(moving, 1.0 / np.where(moving, o, 1.0), 0.0)
+    total = 0.0
+    for a in range(0, len(values), chunk):
+        b0, b1 = np.asarray(lo[a:a + chunk], np.float64), np.asarray(hi[a:a + chunk], np.float64)
+        t0, t1 = (b0 - p) * inv, (b1 - p) * inv
+        tmin = np.where(moving, np.minimum(t0, t1), -np.inf).max(axis=1)
+        tmax = np.where(moving, np.maximum(t0, t1), np.inf).min(axis=1)
+        # on the axes the ray does not move along, the box must hold the start's coordinate
+        holds = (b0 <= p) & ((p < b1) | ((b1 >= 1.0) & (p <= b1)))
+        inside = np.all(holds | moving, axis=1)
+        length = np.where(inside, np.maximum(tmax - np.maximum(tmin, 0.0), 0.0), 0.0)
+        total += float(np.dot(np.asarray(values[a:a + chunk], np.float64), length))
+    return total
 
 
 def peel_axis(toward):
