@@ -261,6 +261,17 @@ def read_particles(path, mass: str = "mass", smoothing: str = "smoothing_length"
     poly = reader.GetOutput()
     if errors or poly is None or poly.GetPoints() is None or poly.GetNumberOfPoints() == 0:
         raise ValueError("VTK's vtkXMLPolyDataReader found no particles in it")
+    return particles_of_polydata(poly, mass, smoothing)
+
+
+def particles_of_polydata(poly, mass: str = "mass", smoothing: str = "smoothing_length"):
+    """(positions (n, 3), masses (n,), smoothing lengths (n,)), float64, of a vtkPolyData's
+    points and its ``mass`` and ``smoothing`` point arrays (:func:`read_particles`; the Light
+    Field filter's particle input). Raises ValueError saying what is missing."""
+    from vtkmodules.util.numpy_support import vtk_to_numpy
+
+    if poly is None or poly.GetPoints() is None or poly.GetNumberOfPoints() == 0:
+        raise ValueError("it holds no particles (points)")
     pd = poly.GetPointData()
     names = [pd.GetArrayName(i) for i in range(pd.GetNumberOfArrays())]
     out = [vtk_to_numpy(poly.GetPoints().GetData()).astype(np.float64).reshape(-1, 3)]

@@ -44,6 +44,10 @@ LIGHT_FIELD_PROPERTIES = (
     Property("Device", "transport.device"),
     Property("BatchSize", "transport.batch_size"),
     Property("BoxLength", "grid.length"),
+    Property("ParticleMass", "dust.particle_mass"),
+    Property("ParticleSmoothing", "dust.particle_smoothing"),
+    Property("LeafParticles", "dust.leaf_particles"),
+    Property("TreeDepth", "dust.tree_depth"),
 )
 #: What the Stars' luminosity column is (the filter's LuminosityUnit): the scene's luminosity, or
 #: the bolometric luminosity in L_sun (stars.luminosity_lsun; needs each star's temperature)
@@ -60,10 +64,18 @@ class NebulaLightField(NebulaAlgorithm):
     and the filter radius are in box units. A cell-data array gives voxels = cells.
 
     Or an adaptive density: a vtkHyperTreeGrid or a vtkOverlappingAMR (refining by 2) whose
-    cell array (default ``density``) holds it; its bounds are the box. The packets walk its
-    leaves (docs/adaptive_grids.md) and port 0 is the light field on a uniform grid of
+    cell array (default ``density``) holds it; its bounds are the box. Or SPH particles: a
+    vtkPolyData whose points carry the point arrays ``ParticleMass`` and ``ParticleSmoothing``
+    (scene keys dust.particle_mass and dust.particle_smoothing, default ``mass`` and
+    ``smoothing_length``), deposited on an octree over the cube of the points' bounds (its edge
+    their largest extent), split while a cell holds more than ``LeafParticles`` particles down to
+    ``TreeDepth`` levels (docs/adaptive_grids.md): the density is mass per box volume (box edge
+    1). The packets walk the leaves and port 0 is the light field on a uniform grid of
     ``SetResolution`` voxels over the bounds (each voxel the exact-overlap average of the leaves
-    it covers), the contract's arrays as for an image input.
+    it covers), the contract's arrays as for an image input; port 2 (``Light per Leaf``) is
+    the light on the tree itself, a vtkHyperTreeGrid over the same bounds with per leaf
+    ``J_<band>``, ``rel_error_<band>``, ``emissivity_<band>`` and ``density`` (empty for an
+    image input).
 
     The setters (``SetTau``, ``SetPhotons``, ... : :data:`LIGHT_FIELD_PROPERTIES`) set scene keys, with the
     scene's defaults: the filter with no property set traces what a scene file with no keys
@@ -83,12 +95,14 @@ class NebulaLightField(NebulaAlgorithm):
     #: what names the parameters no bound property sets, in messages
     PROPERTIES = {"grid.shape": "input extent", "density": "density array"}
     #: the input types: a uniform density, or an adaptive one traced leaf by leaf
-    INPUT_TYPES = ("vtkImageData", "vtkHyperTreeGrid", "vtkOverlappingAMR")
+    INPUT_TYPES = ("vtkImageData", "vtkHyperTreeGrid", "vtkOverlappingAMR", "vtkPolyData")
+    #: the scene keys that apply to a particle input only
+    PARTICLE_KEYS = ("dust.particle_mass", "dust.particle_smoothing", "dust.leaf_particles", "dust.tree_depth")
     #: voxels per axis of port 0 for an adaptive input (SetResolution)
     DEFAULT_RESOLUTION = (64, 64, 64)
 
     def __init__(self):
-        super().__init__(nInputPorts=1, nOutputPorts=2, inputType="vtkDataObject", outputType="vtkImageData")
+        super().__init__(nInputPorts=1, nOutputPorts=3, inputType="vtkDataObject", outputType="vtkImageData")
         self._resolution = self.DEFAULT_RESOLUTION
         init_values(self)
         self._stars = default_star_row()
@@ -187,7 +201,8 @@ class NebulaLightField(NebulaAlgorithm):
 
     def inert_messages(self) -> list:
         """SpectralCalibration without SpectralTypes sets nothing; nor does Resolution for an
-        image input (its own grid is the light field's)."""
+        image input (its own grid is the light field's), nor do the particle properties for an
+        input that is not particles."""
         out = []
         if self._spectral_calibration != SPECTRAL_CALIBRATIONS[0] and not str(self._spectral_types).strip():
             out.append(f"SpectralCalibration = {self._spectral_calibration!r} has no effect: no star has a spectral "
@@ -195,7 +210,13 @@ class NebulaLightField(NebulaAlgorithm):
         inp = self.GetInputDataObject(0, 0) if self.GetNumberOfInputConnections(0) else None
         if tuple(self._resolution) != self.DEFAULT_RESOLUTION and isinstance(inp, vtkImageData):
             out.append(f"Resolution = {list(self._resolution)} has no effect: the input is an image, whose own grid "
-                       "the light field takes (Resolution is for a hyper tree grid or AMR input)")
+                       "the light field takes (Resolution is for a hyper tree grid, AMR or particle input)")
+        if inp is not None and not inp.IsA("vtkPolyData"):
+            initial = getattr(self, "_initial_values", {})
+            for prop in self.BOUND_PROPERTIES:
+                if prop.key in self.PARTICLE_KEYS and prop.key in initial and self._values[prop.key] != initial[prop.key]:
+                    out.append(f"{prop.name} = {self._values[prop.key]!r} has no effect: the input is a "
+                               f"{inp.GetClassName()}, not particles (a vtkPolyData)")
         return out
 
     def GetOverrideOptics(self) -> int:
@@ -250,6 +271,9 @@ class NebulaLightField(NebulaAlgorithm):
 
     # -- pipeline ------------------------------------------------------------------------------
     def RequestInformation(self, request, inInfo, outInfo):
+        # port 2 (a hyper tree grid) has no extent to stream: with the image's extent copied to
+        # it, a request of port 2 alone (ParaView's data information) ran the trace again
+        outInfo.GetInformationObject(2).Set(vtkStreamingDemandDrivenPipeline.WHOLE_EXTENT(), 0, -1, 0, -1, 0, -1)
         src = inInfo[0].GetInformationObject(0)
         dst = outInfo.GetInformationObject(0)
         if src is None:
@@ -343,28 +367,35 @@ class NebulaLightField(NebulaAlgorithm):
         active = contract.RGBA.name() if light.rgba is not None else contract.J.name(light.bands[light.reference_band].name)
         out.GetPointData().SetActiveScalars(active)
         self._stars_output(request, outInfo, light, out)
+        self._tree_output(request, outInfo, None, None, None)
         self.last_light = light
 
     def _execute_adaptive(self, request, inp, out, outInfo):
         """An adaptive input: its octree traced leaf by leaf, the light field on the grid of
-        Resolution over the input's bounds."""
+        Resolution over the input's bounds, and on the tree itself on port 2."""
         from nebula_rt.filters.adaptive import octree_from_amr, octree_from_htg
 
         name, _ = self._selected_array()
         kind = inp.GetClassName() if inp is not None else "nothing"
         shape = self._checked_resolution()
-        try:
-            if kind == "vtkHyperTreeGrid":
-                tree = octree_from_htg(inp, name)
-            elif kind == "vtkOverlappingAMR":
-                tree = octree_from_amr(inp, name)
-            else:
-                raise SceneError("Input", kind, "must be a vtkImageData, vtkHyperTreeGrid or vtkOverlappingAMR")
-        except ValueError as exc:
-            raise SceneError("density array", name, f"the adaptive input cannot be traced: {exc}") from None
         fd = field_data_dict(inp) if kind == "vtkHyperTreeGrid" else {}
         self._input_stars = contract.DensityData.from_field_data(fd).stars if "stars" in fd else None
         scene = self.scene(shape)
+        b = [0.0] * 6
+        if kind == "vtkPolyData":
+            tree, b = self._particle_tree(inp, scene)
+        else:
+            try:
+                if kind == "vtkHyperTreeGrid":
+                    tree = octree_from_htg(inp, name)
+                elif kind == "vtkOverlappingAMR":
+                    tree = octree_from_amr(inp, name)
+                else:
+                    raise SceneError("Input", kind, "must be a vtkImageData, vtkHyperTreeGrid, vtkOverlappingAMR or "
+                                                    "vtkPolyData (particles)")
+            except ValueError as exc:
+                raise SceneError("density array", name, f"the adaptive input cannot be traced: {exc}") from None
+            inp.GetBounds(b)  # (an AMR hierarchy's GetBounds fills an array)
         backend = scene_backend(scene)
         self._report(0.0, "NebulaRT: tracing")
         res, J, rel = compute_light(scene, tree, backend, progress=self._progress_callback("traced"),
@@ -372,8 +403,6 @@ class NebulaLightField(NebulaAlgorithm):
         lum = np.asarray(res.band_luminosity, np.float64)
         colour = len(scene.bands.resolve()) > 1 and bool(np.all(np.isfinite(lum) & (lum > 0)))
         light = finish_light_field(scene, tree, res, colour=colour)
-        b = [0.0] * 6
-        inp.GetBounds(b)  # (an AMR hierarchy's GetBounds fills an array)
         spacing = [(b[2 * a + 1] - b[2 * a]) / shape[a] for a in range(3)]
         out.SetDimensions(*shape)
         out.SetSpacing(*spacing)
@@ -383,12 +412,57 @@ class NebulaLightField(NebulaAlgorithm):
         active = contract.RGBA.name() if light.rgba is not None else contract.J.name(light.bands[light.reference_band].name)
         out.GetPointData().SetActiveScalars(active)
         self._stars_output(request, outInfo, light, out)
+        self._tree_output(request, outInfo, tree, light, b)
         self.last_light = light
 
-    # -- the Stars port ------------------------------------------------------------------------
+    def _particle_tree(self, poly, scene):
+        """(octree, bounds) of a particle input: its points and their ParticleMass and
+        ParticleSmoothing arrays, over the cube of the points' bounds (from their low corner, of
+        edge their largest extent), deposited by
+        :func:`nebula_rt.density.particles.particles_on_tree`."""
+        from nebula_rt.density.particles import particles_on_tree
+        from nebula_rt.filters.adaptive import particles_of_polydata
+
+        dust = scene.dust
+        try:
+            pos, mass, h = particles_of_polydata(poly, dust.particle_mass, dust.particle_smoothing)
+        except ValueError as exc:
+            raise SceneError("Input", "vtkPolyData", f"the particles cannot be read: {exc}") from None
+        lo = pos.min(axis=0)
+        edge = float((pos.max(axis=0) - lo).max())
+        if not (np.isfinite(edge) and edge > 0.0):
+            raise SceneError("Input", "vtkPolyData", f"the particles' positions must be finite and span a box "
+                                                     f"(their extent is {edge!r})")
+        try:
+            tree = particles_on_tree((pos - lo) / edge, mass, h / edge, dust.leaf_particles, dust.tree_depth)
+        except ValueError as exc:
+            raise SceneError("Input", "vtkPolyData", f"the particles cannot be deposited: {exc}") from None
+        return tree, [lo[0], lo[0] + edge, lo[1], lo[1] + edge, lo[2], lo[2] + edge]
+
+    # -- the Stars and Light per Leaf ports ------------------------------------------------------
     def FillOutputPortInformation(self, port, info):
-        info.Set(vtkDataObject.DATA_TYPE_NAME(), "vtkPolyData" if port == 1 else "vtkImageData")
+        info.Set(vtkDataObject.DATA_TYPE_NAME(), ("vtkImageData", "vtkPolyData", "vtkHyperTreeGrid")[port])
         return 1
+
+    @staticmethod
+    def _tree_output(request, outInfo, tree, light, bounds) -> None:
+        """Port 2: the light on the tree (:func:`nebula_rt.filters.tree_light.tree_light_htg`,
+        over the input's bounds) on piece 0 only, as the stars; empty for an image input."""
+        from vtkmodules.vtkCommonDataModel import vtkHyperTreeGrid
+
+        from .controller import vtk_world
+        from .tree_light import tree_light_htg
+
+        target = vtkHyperTreeGrid.GetData(outInfo.GetInformationObject(2))
+        if target is None:
+            return
+        info = outInfo.GetInformationObject(2)
+        key = vtkStreamingDemandDrivenPipeline.UPDATE_PIECE_NUMBER()
+        piece = info.Get(key) if info.Has(key) else vtk_world().rank
+        if tree is None or piece:
+            target.Initialize()
+            return
+        target.ShallowCopy(tree_light_htg(tree, light, tuple(float(x) for x in bounds)))
 
     @staticmethod
     def _stars_output(request, outInfo, light, image) -> None:

@@ -17,7 +17,8 @@ VOLUME = '<RepresentationType view="RenderView" type="Volume" />'
 #: hints are read in order, port-specific first); nebula_rt_paraview.display sets the colours
 LIGHT_FIELD_DISPLAY = '<RepresentationType view="RenderView" type="Points" port="1" />' + VOLUME
 #: the names of Nebula Light Field's output ports (the pipeline browser shows them)
-LIGHT_FIELD_PORTS = '<OutputPort name="Light Field" index="0" /><OutputPort name="Stars" index="1" />'
+LIGHT_FIELD_PORTS = ('<OutputPort name="Light Field" index="0" /><OutputPort name="Stars" index="1" />'
+                     '<OutputPort name="Light per Leaf" index="2" />')
 #: proxy hints of Nebula Sky Image: its own 2D view (nebula_rt_paraview.views), as a slice
 SKY_IMAGE_DISPLAY = ('<View type="NebulaSkyView" />'
                      '<RepresentationType view="NebulaSkyView" type="Slice" />'

@@ -58,7 +58,7 @@ RESOLUTION = """
 <IntVectorProperty name="Resolution" label="Resolution" command="SetResolution"
     number_of_elements="3" default_values="%d %d %d">
   <IntRangeDomain name="range" min="2 2 2"/>
-  <Documentation>For an adaptive input (a hyper tree grid or an AMR hierarchy): voxels per axis
+  <Documentation>For an adaptive input (a hyper tree grid, an AMR hierarchy or particles): voxels per axis
     of the light field's image over the input's bounds (each voxel the exact-overlap average of
     the leaves it covers). An image input keeps its own grid.</Documentation>
 </IntVectorProperty>""" % _base.NebulaLightField.DEFAULT_RESOLUTION
@@ -85,8 +85,9 @@ PANEL = _xml.panel(
 @smproperty.xml(ADDRESS_PROPERTY)
 @smproperty.input(name="Input", port_index=0)
 @smdomain.datatype(dataTypes=list(_base.NebulaLightField.INPUT_TYPES), composite_data_supported=True)
-@_xml.doc("The dust density: a vtkImageData (e.g. Nebula Dust Density, or a .vti file), or an adaptive "
-          "vtkHyperTreeGrid (.htg) or vtkOverlappingAMR (.vthb) traced leaf by leaf.")
+@_xml.doc("The dust density: a vtkImageData (e.g. Nebula Dust Density, or a .vti file), an adaptive "
+          "vtkHyperTreeGrid (.htg) or vtkOverlappingAMR (.vthb) traced leaf by leaf, or SPH particles (a "
+          "vtkPolyData with mass and smoothing-length point arrays) deposited on an octree.")
 @_xml.input_with_array_domain()
 class NebulaLightField(Addressed, _base.NebulaLightField):
     """Traces photon packets from the stars through the input's dust density; adds per band

@@ -411,6 +411,76 @@ def test_a_scene_deposits_a_particle_snapshot_on_a_tree_and_traces_it(tmp_path):
     assert e.value.parameter == "dust.file" and "'m'" in str(e.value)
 
 
+def test_the_light_field_filter_takes_particles_and_gives_the_light_per_leaf(tmp_path):
+    """Nebula Light Field with a vtkPolyData of SPH particles: deposited over the cube of the
+    points' bounds as the scene path deposits a .vtp snapshot in the same box, so the same
+    tree and the same packets' fates; port 2 holds the light per leaf as a vtkHyperTreeGrid
+    over those bounds (J per leaf the run's, the density the tree's), empty for an image input;
+    particles without their arrays are refused by name with empty outputs."""
+    from vtkmodules.util.numpy_support import vtk_to_numpy
+    from vtkmodules.vtkIOXML import vtkXMLPolyDataReader
+
+    from nebula_rt.filters import NebulaLightField
+    from nebula_rt.pipeline import Pipeline
+
+    rng = np.random.default_rng(5)
+    pts = np.concatenate([rng.normal(6.0, 1.0, (3000, 3)).clip(0.5, 9.5), [[0.0, 0.0, 0.0], [10.0, 10.0, 10.0]]])
+    masses = rng.uniform(0.5, 1.5, len(pts)) * 1e-3
+    h = np.full(len(pts), 0.4)
+    snap = _write_particles(tmp_path / "snap.vtp", pts, masses, h)
+    keys = {"grid.length": 10.0, "dust.leaf_particles": 16, "dust.tree_depth": 4, "dust.tau": 20.0,
+            "transport.seed": 1}
+    scene = _adaptive_scene(snap, **keys)
+    pipeline = Pipeline()
+    light = pipeline.run(scene)
+    tree = pipeline.density(scene)
+    reader = vtkXMLPolyDataReader()
+    reader.SetFileName(str(snap))
+    reader.Update()
+
+    def run(inp, **props):
+        f = NebulaLightField()
+        f.SetInputDataObject(inp)
+        for k, v in dict(Photons=20000, Tau=20.0, Method="analog", LeafParticles=16, TreeDepth=4, BoxLength=10.0,
+                         Seed=1, Resolution=(16, 16, 16), **props).items():
+            getattr(f, "Set" + k)(*v) if isinstance(v, tuple) else getattr(f, "Set" + k)(v)
+        f.SetStars(0.5, 0.5, 0.5, 1.0, 20000.0, 0.0)
+        f.Update()
+        return f
+
+    f = run(reader.GetOutput())
+    assert f.last_error is None, f.last_error
+    assert f.last_light.transport.J.shape[1] == tree.n_leaves
+    np.testing.assert_array_equal(f.last_light.transport.counts, light.transport.counts)
+    htg = f.GetOutputDataObject(2)
+    assert htg.GetClassName() == "vtkHyperTreeGrid" and htg.GetNumberOfLeaves() == tree.n_leaves
+    np.testing.assert_allclose(htg.GetBounds(), (0.0, 10.0) * 3, atol=1e-12)
+    back = octree_from_htg(htg, "J_G")
+    _, _, j = back.leaves()
+    np.testing.assert_allclose(np.sort(j), np.sort(f.last_light.transport.J[1].astype(np.float32)), rtol=1e-6)
+    _, _, d = octree_from_htg(htg, "density").leaves()
+    np.testing.assert_allclose(np.sort(d), np.sort(tree.density), rtol=1e-6)
+    mass = vtk_to_numpy(f.GetOutputDataObject(0).GetPointData().GetArray("density")).astype(np.float64).mean()
+    np.testing.assert_allclose(mass, masses.sum(), rtol=1e-5)
+    bad = run(reader.GetOutput(), ParticleMass="m")
+    assert "Input" in bad.last_error and "'m'" in bad.last_error
+    assert bad.GetOutputDataObject(0).GetNumberOfPoints() == 0 and bad.GetOutputDataObject(2).GetNumberOfLeaves() == 0
+    img = run(_image_of(np.ones((4, 4, 4), np.float32)))
+    assert img.last_error is None and img.GetOutputDataObject(2).GetNumberOfLeaves() == 0
+
+
+def _image_of(rho):
+    from vtkmodules.util.numpy_support import numpy_to_vtk
+    from vtkmodules.vtkCommonDataModel import vtkImageData
+
+    img = vtkImageData()
+    img.SetDimensions(*rho.shape)
+    arr = numpy_to_vtk(np.ravel(rho, order="F"), deep=1)
+    arr.SetName("density")
+    img.GetPointData().AddArray(arr)
+    return img
+
+
 def test_render_writes_the_light_per_leaf_as_a_hyper_tree_grid(tmp_path):
     """`nebula-rt render --tree OUT.htg` on an adaptive scene: the .htg read back holds, per
     leaf, the J the run found (float32) and the density; for a scene on a uniform grid --tree

@@ -37,7 +37,8 @@ UNCHANGED = {
                       "albedo 0.6 and g 0.6): overriding them with themselves changes nothing",
 }
 #: values whose valid range depends on other properties (PHOTONS), or that are text
-SPECIFIC = {"BatchSize": 1000, "Distance": "140 pc", "BoxLength": "1 pc", "Offset": (0.5, 0.25, 0.0)}
+SPECIFIC = {"BatchSize": 1000, "Distance": "140 pc", "BoxLength": "1 pc", "Offset": (0.5, 0.25, 0.0),
+            "ParticleMass": "m", "ParticleSmoothing": "h"}
 #: field data that names the run rather than its result
 VOLATILE = {"scene", "device_memory_peak_bytes", "device", "timings"}
 PHOTONS = 5000

@@ -167,7 +167,7 @@ def test_stars_output_marks_each_star_in_world_coordinates():
     lf.SetDevice(TEST_DEVICE)
     lf.Update()
     assert lf.last_error is None, lf.last_error
-    assert lf.GetNumberOfOutputPorts() == 2
+    assert lf.GetNumberOfOutputPorts() == 3  # the light field, the stars, the light per leaf (adaptive inputs)
     stars = lf.GetOutputDataObject(1)
     assert stars.GetClassName() == "vtkPolyData"
     assert stars.GetNumberOfPoints() == 2 and stars.GetNumberOfVerts() == 2

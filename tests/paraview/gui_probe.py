@@ -134,6 +134,11 @@ try:
             for key in ("exposure", "opacity_scale"):
                 arr = fd.GetArray(key)
                 entry[key] = float(arr.GetValue(0)) if arr is not None else None
+        if px.GetXMLName() == "NebulaLightField" and algorithm is not None:
+            tree = algorithm.GetOutputDataObject(2)  # the light per leaf
+            cd = tree.GetCellData()
+            entry["port2"] = {"class": tree.GetClassName(), "leaves": int(tree.GetNumberOfLeaves()),
+                              "arrays": [cd.GetArrayName(i) for i in range(cd.GetNumberOfArrays())]}
         record["proxies"][name] = entry
     # ParaView's Abort button: where it is on the screen (for the test's real mouse click) and,
     # as the plugin heard it, when the last execution saw it pressed and when it ended

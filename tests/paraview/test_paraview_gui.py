@@ -544,3 +544,26 @@ def test_opening_the_command_lines_file_shows_its_true_colour(pv_env, xdisplay, 
     assert lit.mean() > 0.1 and np.percentile(m[lit], 99) > 160, (lit.mean(), np.percentile(m[lit], 99))
     mean = srgb_to_linear(im[lit]).mean(axis=0)
     assert mean[2] / mean[0] > 1.5, mean
+
+
+def test_a_hyper_tree_grid_opened_and_traced_shows_its_light_and_the_tree(pv_env, xdisplay, tmp_path):
+    """File > Open of an ``.htg`` (``paraview --data=FILE``), Apply, Filters > Nebula Light
+    Field, Apply: the light field's rgba volume is shown as for an image input (a bright,
+    lit nebula), with no error; the third port (Light per Leaf, the light on the tree) carries
+    the tree's leaves and arrays, and whatever ParaView shows of it leaves the volume in view."""
+    data = REPO / "examples" / "data" / "clumpy_cloud.htg"
+    events = (apply() + menu("menuFilters", "NebulaRT", "NebulaLightField") + apply() + probe("tree", grab=True))
+    out = run_gui(pv_env, xdisplay, tmp_path, events, args=(f"--data={data}",),
+                  light_field={"Photons": 100000, "Resolution": [32, 32, 32]})
+    r = step_record(out, "tree")
+    (light,) = [p for p in r["proxies"].values() if p["xml"] == "NebulaLightField"]
+    assert light["last_error"] is None, light
+    leaf = light.get("port2")
+    assert leaf is not None and leaf["class"] == "vtkHyperTreeGrid" and leaf["leaves"] > 1000, leaf
+    assert {"J_G", "rel_error_G", "emissivity_G", "density"} <= set(leaf["arrays"]), leaf
+    (view,) = r["views"]
+    (vol,) = [x for x in reps_of(view, "NebulaLightField", 0)]
+    assert vol["visible"] and vol["representation"] == "Volume" and vol["color"] == ["POINTS", "rgba"], vol
+    im = read_png(view["png"])
+    lit, m = lit_stats(im)
+    assert lit.mean() > 0.05 and np.percentile(m[lit], 99) > 120, (lit.mean(), np.percentile(m[lit], 99))

@@ -249,8 +249,7 @@ def particle_tree(scene, positions, masses, smoothing):
     ``dust.leaf_particles`` particles, down to ``dust.tree_depth`` levels; each leaf's density
     its deposited mass over its volume (box units). ValueError names a particle outside the
     box, or a non-finite or negative value."""
-    from .octree import Octree
-    from .particles import deposit, refine_by_count
+    from .particles import particles_on_tree
     from ..scene.units import length_metres
 
     grid, dust = scene.grid, scene.dust
@@ -263,9 +262,7 @@ def particle_tree(scene, positions, masses, smoothing):
         raise ValueError(f"particle {i} at {np.asarray(positions)[i].tolist()} ({grid.unit}) lies outside the box "
                          f"of edge {edge:g} {grid.unit} from dust.particle_origin {list(dust.particle_origin)} "
                          f"({outside.size} of {len(p)} particles do)")
-    tree = refine_by_count(p, (1, 1, 1), dust.leaf_particles, dust.tree_depth)
-    _, rho = deposit(tree, p, masses, h)
-    return Octree(tree.roots, tree.child, rho.astype(np.float32))
+    return particles_on_tree(p, masses, h, dust.leaf_particles, dust.tree_depth)
 
 
 def traced_on_tree(scene) -> bool:

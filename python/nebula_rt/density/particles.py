@@ -28,7 +28,7 @@ import numpy as np
 from ..limits import MAX_TREE_DEPTH
 from .octree import Octree, from_boxes
 
-__all__ = ["cubic_spline", "deposit", "refine_by_count"]
+__all__ = ["cubic_spline", "deposit", "particles_on_tree", "refine_by_count"]
 
 #: lattice points per axis of a particle's support cube in :func:`deposit`
 DEFAULT_SAMPLES = 8
@@ -128,3 +128,14 @@ def deposit(tree: Octree, positions, masses, h, samples: int = DEFAULT_SAMPLES, 
             out += np.bincount(tree.locate(pp[lost]), weights=mm[lost], minlength=tree.n_leaves)
     lo, hi, _ = tree.leaves()
     return out, out / np.prod(hi - lo, axis=1)
+
+
+def particles_on_tree(positions, masses, h, max_per_leaf: int, max_depth: int) -> Octree:
+    """The octree of particles in box units (positions in [0, 1]^3, smoothing lengths ``h``):
+    one root cell split while a cell holds more than ``max_per_leaf`` particles, down to
+    ``max_depth`` levels (:func:`refine_by_count`), each leaf's density its deposited mass over
+    its volume (:func:`deposit`), float32. ValueError names a particle outside the box or a bad
+    value."""
+    tree = refine_by_count(positions, (1, 1, 1), max_per_leaf, max_depth)
+    _, rho = deposit(tree, positions, masses, h)
+    return Octree(tree.roots, tree.child, np.asarray(rho).astype(np.float32))

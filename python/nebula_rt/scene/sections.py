@@ -131,11 +131,11 @@ class Dust:
                        doc="\"file\" with .vti: the name of the point-data array to read; with .htg or "
                            ".vthb: the cell-data array")
     particle_mass: str = param(
-        "mass", type="str", group=G_DUST, advanced=True,
+        "mass", type="str", label="Particle Mass", group=G_DUST, advanced=True,
         doc="\"file\" with a .vtp particle snapshot (SPH: points with per-particle arrays): the point-data "
             "array of the masses; the density is mass per box volume (box edge 1), in the masses' unit")
     particle_smoothing: str = param(
-        "smoothing_length", type="str", group=G_DUST, advanced=True,
+        "smoothing_length", type="str", label="Particle Smoothing", group=G_DUST, advanced=True,
         doc="\"file\" with a .vtp particle snapshot: the point-data array of the smoothing lengths h, in "
             "grid.unit as the positions (the cubic spline kernel reaches r < h; Gadget-2's convention)")
     particle_origin: Vec3 = param(
@@ -144,11 +144,11 @@ class Dust:
         doc="\"file\" with a .vtp particle snapshot: the box's low corner in the snapshot's coordinates "
             "(grid.unit); the box is a cube of edge grid.length, and a particle outside it is refused")
     leaf_particles: int = param(
-        8, type="int", lo=1, hi=INT32_MAX, group=G_DUST, advanced=True,
+        8, type="int", lo=1, hi=INT32_MAX, label="Leaf Particles", group=G_DUST, advanced=True,
         doc="\"file\" with a .vtp particle snapshot: a cell of the octree the particles are deposited on is "
             "split while it holds more particles than this (down to tree_depth)")
     tree_depth: int = param(
-        8, type="int", lo=0, hi=MAX_TREE_DEPTH, group=G_DUST, advanced=True,
+        8, type="int", lo=0, hi=MAX_TREE_DEPTH, label="Tree Depth", group=G_DUST, advanced=True,
         doc="An octree's levels of refinement at most (2^tree_depth cells per box edge where the dust "
             "needs them): a .vtp particle snapshot's, or the procedural density's with `octree`")
     octree: bool = param(
