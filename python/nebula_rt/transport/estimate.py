@@ -40,8 +40,12 @@ def batch_standard_error(s1, m2, m):
     xp = array_module(s1)
     mm = np.asarray(m, dtype=np.float64)
     if mm.ndim:
-        mm = xp.asarray(mm.reshape((-1,) + (1,) * (s1.ndim - 1)))
-        return xp.where(mm < 2, xp.abs(s1), xp.sqrt(xp.maximum(m2 * (mm / xp.maximum(mm - 1.0, 1.0)), 0.0)))
+        # band by band, in place: one temporary of a band (the whole-array expression made six
+        # of every band at once, 1.5 s for 3 x 5.6M leaves on 2 CPU cores)
+        out = xp.empty(s1.shape, dtype=xp.result_type(s1, m2, np.float64))
+        for b, k in enumerate(mm.reshape(-1)):
+            out[b] = batch_standard_error(s1[b], m2[b], int(k))
+        return out
     if mm < 2:
         return xp.abs(s1)  # one batch: no spread to measure, report 100 %
     return xp.sqrt(xp.maximum(m2 * (float(mm) / (float(mm) - 1.0)), 0.0))
