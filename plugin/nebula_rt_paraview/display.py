@@ -13,7 +13,9 @@ what hints cannot, before the render that first shows a new representation:
   on the colour palette's background turns black (emission against the sky);
 - the stars: discs of a few pixels in each star's own colour, drawn over the volume as markers
   (:func:`nebula_rt_paraview.view.set_points_on_top`);
-- a sky image: its ``rgb`` as it is, filling its view (a sky view's camera reset fills it too).
+- a sky image: its ``rgb`` as it is, filling its view (a sky view's camera reset fills it too);
+- the light field's light per leaf (port 2), shown by Apply with the volume: hidden, so that
+  the volume is seen (a script's ``Show`` of that port keeps it shown).
 
 Representations made by a state file keep what the state says, its camera included (a loaded
 state stops paraview.simple's camera reset at a session's first Render); a new one is set up
@@ -171,6 +173,9 @@ class _Behaviour:
         from . import view as helpers
 
         pending = self.pending[_key(pxm)]
+        # light fields whose volume is shown for the first time in this pass (Apply shows all
+        # of a filter's ports at once; a script shows the port it names)
+        new_volumes = {_gid(src) for kind, rep, src, port in reps if kind == "rgba" and _gid(rep) in pending}
         if any(kind == "rgba" for kind, *_ in reps):
             view.Update()  # the data a render would show, before its ranges are read
         pyview = servermanager._getPyProxy(view)
@@ -205,6 +210,11 @@ class _Behaviour:
                     overlay.follow(display)
             elif kind == "sky" and new:
                 helpers.configure_sky_image(display, pyview, fit_camera=self._alone(view, rep))
+            elif kind == "tree" and new and _gid(src) in new_volumes:
+                # shown with the volume (Apply shows every port): the light per leaf starts
+                # hidden, its eye in the pipeline browser shows it; its surface hid the volume
+                rep.GetProperty("Visibility").SetElement(0, 0)
+                rep.UpdateVTKObjects()
             lut = rep.GetProperty("LookupTable")
             if lut is not None and lut.GetNumberOfProxies() and lut.GetProxy(0) is not None:
                 luts.add(_gid(lut.GetProxy(0)))
@@ -286,6 +296,8 @@ class _Behaviour:
             name = src.GetXMLName()
             if name == "NebulaLightField" and port == 1:
                 out.append(("stars", rep, src, port))
+            elif name == "NebulaLightField" and port == 2:
+                out.append(("tree", rep, src, port))
             elif name == "NebulaSkyImage":
                 out.append(("sky", rep, src, port))
             elif _carries_rgba(src, port, name in RGBA_PRODUCERS):

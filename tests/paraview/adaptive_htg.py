@@ -9,7 +9,8 @@ RESULT: the VTK version, the leaves and depth of the tree and of the one read ba
 voxel averages of the two (16 x 8 x 16) are equal, and the AMR's leaves as built and as read;
 then the .htg read by ParaView's XMLHyperTreeGridReader into the Nebula Light Field proxy
 (Resolution 16 x 8 x 16): its output's points, dimensions, bounds, arrays, error and the
-leaves it traced.
+leaves it traced; its third port (the light per leaf) shown by a script: whether it stays
+visible, its cells and class, and how many times the proxy executed.
 """
 
 import sys
@@ -87,7 +88,15 @@ light.UpdatePipeline()
 info = light.GetDataInformation()
 alg = light.GetClientSideObject()
 out = alg.GetOutputDataObject(0)
-_common.result(vtk=vtkVersion.GetVTKVersion(), leaves=[tree.n_leaves, back.n_leaves], depth=[tree.depth(), back.depth()],
+# a script's Show of the light per leaf (port 2) keeps it shown (Apply in the GUI, which shows
+# every port with the volume, hides it)
+leaf_view = simple.CreateRenderView()
+leaf_display = simple.Show(simple.OutputPort(light, 2), leaf_view)
+simple.Render(leaf_view)
+leaf_info = light.GetDataInformation(2)
+_common.result(leaf_shown=int(leaf_display.Visibility), leaf_cells=int(leaf_info.GetNumberOfCells()),
+               leaf_class=leaf_info.GetDataClassName(),
+               executions=alg.execution_count,vtk=vtkVersion.GetVTKVersion(), leaves=[tree.n_leaves, back.n_leaves], depth=[tree.depth(), back.depth()],
                same=bool(np.array_equal(box_averages(*a, rho.shape), box_averages(*b, rho.shape))),
                amr=[octree_from_amr(amr).n_leaves, octree_from_amr(ar.GetOutput()).n_leaves],
                light_points=int(info.GetNumberOfPoints()), light_dims=list(out.GetDimensions()),

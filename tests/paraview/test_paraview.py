@@ -840,3 +840,6 @@ def test_an_octree_goes_through_paraviews_hyper_tree_grid(pv_env, xdisplay, tmp_
     assert r["light_dims"] == [16, 8, 16] and r["light_points"] == 16 * 8 * 16, r
     assert r["light_bounds"] == pytest.approx([0.0625, 1.9375, -0.9375, -0.0625, 5.0625, 6.9375]), r
     assert {"J_G", "rel_error_G", "emissivity_G", "rgba", "density"} <= set(r["light_arrays"]), r
+    # the light per leaf on port 2: a hyper tree grid a script can show, fetched without a new trace
+    assert r["leaf_class"] == "vtkHyperTreeGrid" and r["leaf_cells"] >= r["leaves"][0] and r["leaf_shown"] == 1, r
+    assert r["executions"] == 1, r
