@@ -647,8 +647,8 @@ NRT_DEVICE int nrt_pass_item(nrt_u64 it, const NRT_GLOBAL nrt_u64 *order, const 
 #define NRT_TREE 0
 #endif
 #if NRT_TREE
-#if NRT_REGIONS || NRT_BIASED || NRT_SORTED || (defined(NRT_PEEL_AXIS) && NRT_PEEL_AXIS >= 0)
-#error "a tree is traced without regions, weighted packets, sorted emission or peel-off columns"
+#if NRT_REGIONS || NRT_SORTED || (defined(NRT_PEEL_AXIS) && NRT_PEEL_AXIS >= 0)
+#error "a tree is traced without regions, sorted emission or peel-off columns"
 #endif
 #include "tree.cl"
 #else
@@ -1091,6 +1091,7 @@ NRT_DEVICE void nrt_deposit_wide(NRT_GLOBAL nrt_u64 *band_acc, nrt_idx idx, floa
 #endif
 typedef struct {
     const NRT_GLOBAL float *window, *cx; /* the map; its cells per x layer (y and z follow) */
+    const NRT_GLOBAL int *wn;            /* (NRT_TREE) the map's cells per axis */
     float e0, e1, e2;
     float j0, j1, j2, j3;
 } nrt_jtail;
@@ -1112,6 +1113,28 @@ NRT_DEVICE void nrt_jtail_add(nrt_jtail *t, int ix, int iy, int iz, int nx, int 
         t->j3 += x;
 #else
     (void)t, (void)ix, (void)iy, (void)iz, (void)nx, (void)ny, (void)x;
+#endif
+}
+
+/* Add a deposit of x units into the leaf of box [lo, lo + h) (NRT_TREE) to the score of the
+   class of the map's cell that holds the leaf's centre (the grid's rule for a voxel). */
+NRT_DEVICE void nrt_jtail_add_box(nrt_jtail *t, const float *lo, const float *h, float x)
+{
+#if NRT_TAIL_CLASSES
+    int i[3];
+    for (int a = 0; a < 3; ++a)
+        i[a] = min((int)((lo[a] + 0.5f * h[a]) * (float)t->wn[a]), t->wn[a] - 1);
+    float depth = t->window[(nrt_u64)i[0] + (nrt_u64)t->wn[0] * ((nrt_u64)i[1] + (nrt_u64)t->wn[1] * (nrt_u64)i[2])];
+    if (depth < t->e0)
+        t->j0 += x;
+    else if (depth < t->e1)
+        t->j1 += x;
+    else if (depth < t->e2)
+        t->j2 += x;
+    else
+        t->j3 += x;
+#else
+    (void)t, (void)lo, (void)h, (void)x;
 #endif
 }
 
@@ -1225,6 +1248,151 @@ NRT_DEVICE int nrt_ray_advance(nrt_ray *r, int nx, int ny, int nz)
     return 1;
 }
 
+/* What a weighted packet walks: the grid's voxels (nx ny nz), or (NRT_TREE) the leaves of a
+   tree over nx ny nz root cells, its nodes' child entries after the leaves' densities. */
+typedef struct {
+    int nx, ny, nz;
+#if NRT_TREE
+    const NRT_GLOBAL int *child;
+#endif
+} nrt_medium;
+
+/* Where a weighted packet is: its voxel, or its leaf (as the tree walk keeps it). */
+typedef struct {
+#if NRT_TREE
+    int c[3], n[3], node, leaf;
+    float lo[3], h[3];
+#else
+    int ix, iy, iz;
+#endif
+} nrt_place;
+
+/* The voxel or leaf holding p (a point on a leaf's face: the one d moves into). */
+NRT_DEVICE void nrt_place_of(const nrt_medium *m, const float *p, const float *d, nrt_place *q)
+{
+#if NRT_TREE
+    q->leaf = nrt_tree_locate(m->child, m->nx, m->ny, m->nz, p, d, q->c, q->n, q->lo, q->h, &q->node);
+#else
+    (void)d;
+    nrt_voxel_of(p, m->nx, m->ny, m->nz, &q->ix, &q->iy, &q->iz);
+#endif
+}
+
+/* The cell of a place: its voxel's or its leaf's index. */
+NRT_DEVICE nrt_idx nrt_place_index(const nrt_medium *m, const nrt_place *q)
+{
+#if NRT_TREE
+    (void)m;
+    return (nrt_idx)(q->leaf < 0 ? 0 : q->leaf);
+#else
+    return nrt_voxel_index(q->ix, q->iy, q->iz, m->nx, m->ny);
+#endif
+}
+
+#if NRT_TREE
+/* A straight ray through the tree, leaf by leaf (the analog walk's steps): q the point where
+   the current leaf was entered, t_cur its distance from the ray's start, seg the length
+   inside the leaf, ax the axis of its exit face. */
+typedef struct {
+    float q[3], d[3], inv_d[3];
+    float t_cur, seg;
+    int ax;
+    nrt_place at;
+    nrt_idx idx;
+} nrt_mray;
+
+NRT_DEVICE void nrt_mray_start(nrt_mray *r, const nrt_medium *m, const float *p, const float *d, const nrt_place *q)
+{
+    for (int k = 0; k < 3; ++k) {
+        r->q[k] = p[k];
+        r->d[k] = d[k];
+        r->inv_d[k] = 1.0f / d[k];
+    }
+    r->at = *q;
+    /* a point on one of its leaf's faces (where it scattered): the leaf d moves into */
+    int on_face = 0;
+    for (int a = 0; a < 3; ++a)
+        on_face |= !(p[a] > q->lo[a] && p[a] < (float)(q->c[a] + 1) * q->h[a]);
+    if (on_face)
+        nrt_place_of(m, p, d, &r->at);
+    r->t_cur = 0.0f;
+    r->seg = r->at.leaf < 0 ? 0.0f : nrt_tree_exit(r->q, r->d, r->inv_d, r->at.c, r->at.lo, r->at.h, &r->ax);
+    r->idx = nrt_place_index(m, &r->at);
+}
+
+NRT_DEVICE float nrt_mray_segment(const nrt_mray *r)
+{
+    return r->seg;
+}
+
+/* Step into the next leaf; 0 if the ray leaves the box instead. */
+NRT_DEVICE int nrt_mray_advance(nrt_mray *r, const nrt_medium *m)
+{
+    nrt_place *a = &r->at;
+    int ax = r->ax, up = r->d[ax] > 0.0f;
+    if (a->leaf < 0 || (up && a->c[ax] + 1 == a->n[ax]) || (!up && a->c[ax] == 0))
+        return 0;
+    for (int k = 0; k < 3; ++k)
+        r->q[k] = r->q[k] + r->d[k] * r->seg;
+    r->q[ax] = (float)(a->c[ax] + up) * a->h[ax];
+    r->t_cur += r->seg;
+    a->leaf = nrt_tree_next(m->child, m->nx, m->ny, m->nz, r->q, r->d, ax, up, a->c, a->n, a->lo, a->h, &a->node);
+    if (a->leaf < 0)
+        return 0; /* (deeper than NRT_TREE_MAX_DEPTH: a tree the host does not make) */
+    r->seg = nrt_tree_exit(r->q, r->d, r->inv_d, a->c, a->lo, a->h, &r->ax);
+    r->idx = (nrt_idx)a->leaf;
+    return 1;
+}
+
+/* The point at length t into the current leaf, kept inside its box; and the leaf. */
+NRT_DEVICE void nrt_mray_stop(const nrt_mray *r, float t, float *p, nrt_place *q)
+{
+    for (int k = 0; k < 3; ++k)
+        p[k] = fmin(fmax(r->q[k] + r->d[k] * t, r->at.lo[k]), r->at.lo[k] + r->at.h[k]);
+    *q = r->at;
+}
+
+NRT_DEVICE void nrt_mray_jtail(nrt_jtail *jt, const nrt_mray *r, const nrt_medium *m, float x)
+{
+    (void)m;
+    nrt_jtail_add_box(jt, r->at.lo, r->at.h, x);
+}
+#else
+typedef nrt_ray nrt_mray;
+
+NRT_DEVICE void nrt_mray_start(nrt_mray *r, const nrt_medium *m, const float *p, const float *d, const nrt_place *q)
+{
+    nrt_ray_start(r, p, d, q->ix, q->iy, q->iz, m->nx, m->ny, m->nz);
+}
+
+NRT_DEVICE float nrt_mray_segment(const nrt_mray *r)
+{
+    return nrt_ray_segment(r);
+}
+
+NRT_DEVICE int nrt_mray_advance(nrt_mray *r, const nrt_medium *m)
+{
+    return nrt_ray_advance(r, m->nx, m->ny, m->nz);
+}
+
+/* The point at length t into the current voxel (p the ray's start, moved there); and the voxel. */
+NRT_DEVICE void nrt_mray_stop(const nrt_mray *r, float t, float *p, nrt_place *q)
+{
+    float s = r->t_cur + t;
+    p[0] = p[0] + r->d[0] * s;
+    p[1] = p[1] + r->d[1] * s;
+    p[2] = p[2] + r->d[2] * s;
+    q->ix = r->ix;
+    q->iy = r->iy;
+    q->iz = r->iz;
+}
+
+NRT_DEVICE void nrt_mray_jtail(nrt_jtail *jt, const nrt_mray *r, const nrt_medium *m, float x)
+{
+    nrt_jtail_add(jt, r->ix, r->iy, r->iz, m->nx, m->ny, x);
+}
+#endif
+
 /*
  * The forced flight's first walk, to the box's edge: returns tau_p, *edge 1 where the walk
  * reached the edge. Past NRT_TAU_CUT it stops (*edge 0) where the flight's remaining weight
@@ -1235,17 +1403,17 @@ NRT_DEVICE int nrt_ray_advance(nrt_ray *r, int nx, int ny, int nz)
  * w e^-tau(s) over every voxel it crosses (w: the relative weight; scale: units per box unit).
  */
 NRT_DEVICE float nrt_forced_walk(const NRT_GLOBAL float *density, float sig_b, const float *p, const float *d,
-                                 int ix, int iy, int iz, int nx, int ny, int nz, float w, float scale,
+                                 const nrt_medium *m, const nrt_place *at, float w, float scale,
                                  NRT_GLOBAL nrt_u64 *band_acc, NRT_GLOBAL nrt_u32 *overflow,
                                  const NRT_GLOBAL float *window, const NRT_GLOBAL int *wn, float rate, float d0,
                                  int *edge, nrt_jtail *jt)
 {
-    nrt_ray r;
-    nrt_ray_start(&r, p, d, ix, iy, iz, nx, ny, nz);
+    nrt_mray r;
+    nrt_mray_start(&r, m, p, d, at);
     float tau = 0.0f, att = w * scale;
     const float log_w = log(w);
     for (;;) {
-        float seg = nrt_ray_segment(&r);
+        float seg = nrt_mray_segment(&r);
         float sigma = sig_b * density[r.idx];
         float ts = sigma * seg;
         float em = expm1(-ts); /* e^-ts - 1, accurate for thin voxels */
@@ -1255,7 +1423,7 @@ NRT_DEVICE float nrt_forced_walk(const NRT_GLOBAL float *density, float sig_b, c
         {
             float x = att * len;
             nrt_deposit_wide(band_acc, r.idx, x, overflow);
-            nrt_jtail_add(jt, r.ix, r.iy, r.iz, nx, ny, x);
+            nrt_mray_jtail(jt, &r, m, x);
         }
 #else
         (void)jt;
@@ -1272,7 +1440,7 @@ NRT_DEVICE float nrt_forced_walk(const NRT_GLOBAL float *density, float sig_b, c
                 return tau;
             }
         }
-        if (!nrt_ray_advance(&r, nx, ny, nz)) {
+        if (!nrt_mray_advance(&r, m)) {
             *edge = 1;
             return tau;
         }
@@ -1285,13 +1453,13 @@ NRT_DEVICE float nrt_forced_walk(const NRT_GLOBAL float *density, float sig_b, c
  * track-length estimator): every voxel crossed gets scale x the length travelled in it.
  */
 NRT_DEVICE int nrt_walk_to(const NRT_GLOBAL float *density, float sig_b, float *p, const float *d,
-                           int *ix, int *iy, int *iz, int nx, int ny, int nz, float tau_i, float scale,
+                           const nrt_medium *m, nrt_place *at, float tau_i, float scale,
                            NRT_GLOBAL nrt_u64 *band_acc, NRT_GLOBAL nrt_u32 *overflow, nrt_jtail *jt)
 {
-    nrt_ray r;
-    nrt_ray_start(&r, p, d, *ix, *iy, *iz, nx, ny, nz);
+    nrt_mray r;
+    nrt_mray_start(&r, m, p, d, at);
     for (;;) {
-        float seg = nrt_ray_segment(&r);
+        float seg = nrt_mray_segment(&r);
         float sigma = sig_b * density[r.idx];
         float ts = sigma * seg;
         if (sigma > 0.0f && ts >= tau_i) {
@@ -1299,24 +1467,18 @@ NRT_DEVICE int nrt_walk_to(const NRT_GLOBAL float *density, float sig_b, float *
             if (scale > 0.0f)
             {
                 nrt_deposit_wide(band_acc, r.idx, scale * t_in, overflow);
-                nrt_jtail_add(jt, r.ix, r.iy, r.iz, nx, ny, scale * t_in);
+                nrt_mray_jtail(jt, &r, m, scale * t_in);
             }
-            float t = r.t_cur + t_in;
-            p[0] = p[0] + d[0] * t;
-            p[1] = p[1] + d[1] * t;
-            p[2] = p[2] + d[2] * t;
-            *ix = r.ix;
-            *iy = r.iy;
-            *iz = r.iz;
+            nrt_mray_stop(&r, t_in, p, at);
             return 1;
         }
         if (scale > 0.0f)
         {
             nrt_deposit_wide(band_acc, r.idx, scale * seg, overflow);
-            nrt_jtail_add(jt, r.ix, r.iy, r.iz, nx, ny, scale * seg);
+            nrt_mray_jtail(jt, &r, m, scale * seg);
         }
         tau_i -= ts;
-        if (!nrt_ray_advance(&r, nx, ny, nz))
+        if (!nrt_mray_advance(&r, m))
             return 0;
     }
 }
@@ -1326,12 +1488,22 @@ NRT_DEVICE int nrt_walk_to(const NRT_GLOBAL float *density, float sig_b, float *
    128-bit image; returns the units added. */
 NRT_DEVICE nrt_u128 nrt_peel_wide(const NRT_GLOBAL float *density, float sig_b, float g_b,
                               const NRT_GLOBAL float *peel, float peel_scale, const float *x,
-                              const float *d, int ix, int iy, int iz, int nx, int ny, int nz,
+                              const float *d, const nrt_medium *m, const nrt_place *at,
                               NRT_GLOBAL nrt_u64 *band_image, NRT_GLOBAL nrt_u32 *overflow,
                               nrt_u64 seed, int band, nrt_u64 photon, int event, nrt_u64 branch, float w)
 {
     nrt_u64 pixel;
-    float wgt = nrt_peel_weight(density, sig_b, g_b, peel, x, d, ix, iy, iz, nx, ny, nz, &pixel);
+#if NRT_TREE
+    (void)at;
+    float wgt = -1.0f;
+    if (nrt_peel_pixel(peel, x, &pixel)) {
+        const float o[3] = {peel[0], peel[1], peel[2]};
+        float mu = d[0] * o[0] + d[1] * o[1] + d[2] * o[2];
+        wgt = nrt_hg_phase(g_b, mu) * exp(-nrt_tree_tau_to_edge(m->child, density, m->nx, m->ny, m->nz, sig_b, x, o));
+    }
+#else
+    float wgt = nrt_peel_weight(density, sig_b, g_b, peel, x, d, at->ix, at->iy, at->iz, m->nx, m->ny, m->nz, &pixel);
+#endif
     if (!(wgt >= 0.0f))
         return nrt_u128_of(0, 0); /* outside the image */
     float xw = NRT_FMAF(wgt * w, peel_scale, 0.0f);
@@ -1348,7 +1520,10 @@ NRT_DEVICE nrt_u128 nrt_peel_wide(const NRT_GLOBAL float *density, float sig_b, 
    left and the stream of the first of them (the next copy to run takes first + left - 1). */
 typedef struct {
     float p[3], d[3];
-    int ix, iy, iz, scatterings;
+#if !NRT_TREE
+    int ix, iy, iz; /* (a tree's leaf is found again from p and d: 12 words a level fewer) */
+#endif
+    int scatterings;
     nrt_u128 w;
     nrt_u64 first;
     nrt_u32 left;
@@ -1360,7 +1535,7 @@ NRT_DEVICE void nrt_trace_packet_biased(const NRT_GLOBAL float *density, float s
                                         float g_b, float rate, const NRT_GLOBAL float *window,
                                         const NRT_GLOBAL int *window_shape,
                                         const NRT_GLOBAL float *stars,
-                                        const NRT_GLOBAL float *cdf, int nx, int ny, int nz,
+                                        const NRT_GLOBAL float *cdf, const nrt_medium *m,
                                         int n_stars, nrt_u64 seed, int band, nrt_u64 photon,
                                         int max_scatterings, float track_scale, float collision_scale,
                                         NRT_GLOBAL nrt_u64 *band_acc, NRT_GLOBAL nrt_u64 *tally,
@@ -1372,10 +1547,10 @@ NRT_DEVICE void nrt_trace_packet_biased(const NRT_GLOBAL float *density, float s
     /* the emitting star and first direction: the same draws as the analog packet */
     int s = nrt_choose_star(&rng, cdf, n_stars);
     float p[3] = {stars[4 * s], stars[4 * s + 1], stars[4 * s + 2]};
-    int ix, iy, iz;
-    nrt_voxel_of(p, nx, ny, nz, &ix, &iy, &iz);
     float d[3];
     nrt_sample_isotropic(&rng, d);
+    nrt_place at;
+    nrt_place_of(m, p, d, &at);
 
     nrt_u128 w = nrt_u128_of(0, NRT_W0_HI);
     nrt_count_wide(tally, 0, w);
@@ -1390,11 +1565,14 @@ NRT_DEVICE void nrt_trace_packet_biased(const NRT_GLOBAL float *density, float s
     nrt_u128 img_score = nrt_u128_of(0, 0);
     nrt_jtail jt;
     jt.window = window;
+    jt.wn = window_shape;
     jt.j0 = jt.j1 = jt.j2 = jt.j3 = 0.0f;
 #if NRT_TAIL_CLASSES
     jt.cx = window + (nrt_u64)window_shape[0] * (nrt_u64)window_shape[1] * (nrt_u64)window_shape[2];
     {
-        const NRT_GLOBAL float *edges = jt.cx + nx + ny + nz + (nrt_u64)band * (NRT_TAIL_CLASSES - 1);
+        /* (a tree's leaves are classed by their centres: no cells per voxel layer) */
+        const NRT_GLOBAL float *edges = jt.cx + (NRT_TREE ? 0 : m->nx + m->ny + m->nz)
+                                        + (nrt_u64)band * (NRT_TAIL_CLASSES - 1);
         jt.e0 = edges[0], jt.e1 = edges[1], jt.e2 = edges[2];
     }
 #else
@@ -1407,7 +1585,7 @@ NRT_DEVICE void nrt_trace_packet_biased(const NRT_GLOBAL float *density, float s
            +-NRT_STRETCH_MAX, and l = 1 - s: the window's angular factor and the flight's
            stretch (below) */
         float depth = nrt_window_depth(window, window_shape, p, grad);
-        float sig_here = sig_b * density[nrt_voxel_index(ix, iy, iz, nx, ny)];
+        float sig_here = sig_b * density[nrt_place_index(m, &at)];
         float slope = sig_here > 0.0f ? rate * (grad[0] * d[0] + grad[1] * d[1] + grad[2] * d[2]) / sig_here : 0.0f;
         float lam = 1.0f - fmin(fmax(slope, -NRT_STRETCH_MAX), NRT_STRETCH_MAX);
         {
@@ -1423,9 +1601,11 @@ NRT_DEVICE void nrt_trace_packet_biased(const NRT_GLOBAL float *density, float s
                     q->p[k] = p[k];
                     q->d[k] = d[k];
                 }
-                q->ix = ix;
-                q->iy = iy;
-                q->iz = iz;
+#if !NRT_TREE
+                q->ix = at.ix;
+                q->iy = at.iy;
+                q->iz = at.iz;
+#endif
                 q->scatterings = scatterings;
                 q->w = each;
                 q->first = streams + 1;
@@ -1449,7 +1629,7 @@ NRT_DEVICE void nrt_trace_packet_biased(const NRT_GLOBAL float *density, float s
         float wr = nrt_weight_rel(w);
         if (alive && forced) {
             int edge;
-            float tau_p = nrt_forced_walk(density, sig_b, p, d, ix, iy, iz, nx, ny, nz, wr, track_scale,
+            float tau_p = nrt_forced_walk(density, sig_b, p, d, m, &at, wr, track_scale,
                                           band_acc, overflow, window, window_shape, rate, d0, &edge, &jt);
             /* forced scattering: the part that would leave, exactly (or fly past the cut) */
             nrt_u128 out = (tau_p > 1.0e-30f) ? nrt_u128_times_dither(w, exp(-tau_p), nrt_rng_u32(&rng)) : w;
@@ -1484,8 +1664,7 @@ NRT_DEVICE void nrt_trace_packet_biased(const NRT_GLOBAL float *density, float s
                 w = wf;
                 if (nrt_u128_is_zero(w)) {
                     alive = 0;
-                } else if (!nrt_walk_to(density, sig_b, p, d, &ix, &iy, &iz, nx, ny, nz, tau_i, 0.0f, band_acc,
-                                        overflow, &jt)) {
+                } else if (!nrt_walk_to(density, sig_b, p, d, m, &at, tau_i, 0.0f, band_acc, overflow, &jt)) {
                     nrt_count_wide(tally, 2, w); /* rounding put the point past the edge */
                     alive = 0;
                 }
@@ -1493,7 +1672,7 @@ NRT_DEVICE void nrt_trace_packet_biased(const NRT_GLOBAL float *density, float s
         } else if (alive) {
             /* an analog flight of weight w: the track-length deposits along the path */
             float tau_i = nrt_sample_tau(&rng);
-            if (!nrt_walk_to(density, sig_b, p, d, &ix, &iy, &iz, nx, ny, nz, tau_i,
+            if (!nrt_walk_to(density, sig_b, p, d, m, &at, tau_i,
                              NRT_TRACK_LENGTH ? wr * track_scale : 0.0f, band_acc, overflow, &jt)) {
                 nrt_count_wide(tally, 2, w);
                 alive = 0;
@@ -1501,8 +1680,7 @@ NRT_DEVICE void nrt_trace_packet_biased(const NRT_GLOBAL float *density, float s
         }
         if (alive) {
 #if NRT_COLLISION
-            nrt_deposit_wide(band_acc, nrt_voxel_index(ix, iy, iz, nx, ny), nrt_weight_rel(w) * collision_scale,
-                             overflow);
+            nrt_deposit_wide(band_acc, nrt_place_index(m, &at), nrt_weight_rel(w) * collision_scale, overflow);
 #endif
             if (forced) {
                 /* implicit capture: the absorbed part of the weight, exactly */
@@ -1522,8 +1700,8 @@ NRT_DEVICE void nrt_trace_packet_biased(const NRT_GLOBAL float *density, float s
         if (alive) {
             ++scatterings;
 #if NRT_PEEL
-            img_score = nrt_u128_add(img_score, nrt_peel_wide(density, sig_b, g_b, peel, peel_scale, p, d, ix, iy, iz,
-                                                              nx, ny, nz, band_image, overflow, seed, band, photon,
+            img_score = nrt_u128_add(img_score, nrt_peel_wide(density, sig_b, g_b, peel, peel_scale, p, d, m, &at,
+                                                              band_image, overflow, seed, band, photon,
                                                               scatterings, branch, nrt_weight_rel(w)));
 #endif
             float mu, sin_theta;
@@ -1540,9 +1718,13 @@ NRT_DEVICE void nrt_trace_packet_biased(const NRT_GLOBAL float *density, float s
             p[k] = q->p[k];
             d[k] = q->d[k];
         }
-        ix = q->ix;
-        iy = q->iy;
-        iz = q->iz;
+#if NRT_TREE
+        nrt_place_of(m, p, d, &at);
+#else
+        at.ix = q->ix;
+        at.iy = q->iy;
+        at.iz = q->iz;
+#endif
         scatterings = q->scatterings;
         w = q->w;
         if (--q->left == 0u)
@@ -1621,6 +1803,13 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
     const float track_scale = prm->track_scale, peel_scale = prm->peel_scale;
     const NRT_GLOBAL float *peel = prm->peel;
     nrt_u64 nvox = prm->cells; /* nx ny nz voxels, or (NRT_TREE) the tree's leaves */
+#if NRT_BIASED
+    nrt_medium medium;
+    medium.nx = nx, medium.ny = ny, medium.nz = nz;
+#if NRT_TREE
+    medium.child = (const NRT_GLOBAL int *)(density + nvox);
+#endif
+#endif
 #if NRT_REGIONS
     /* a pass (nrt_pass_item): the stopped packets, the chunk's new ones, free slots passed on */
     nrt_u64 total = n_resume + (n_fresh > n_free ? n_fresh : n_free);
@@ -1690,7 +1879,7 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
 #if NRT_BIASED
         nrt_trace_packet_biased(density, optics[4 * band], optics[4 * band + 1], optics[4 * band + 2],
                                 optics[4 * band + 3], window, prm->window_shape, stars,
-                                star_cdf + band * n_stars, nx, ny, nz, n_stars, seed, band, photon,
+                                star_cdf + band * n_stars, &medium, n_stars, seed, band, photon,
                                 max_scatterings, track_scale, prm->collision_scale, acc + 2 * cell * nvox,
                                 tallies + NRT_TALLY_WORDS * cell, overflow + slot, peel, peel_scale,
                                 image + 2 * cell * pixels);

@@ -54,7 +54,8 @@ CASES = [("track-length", "plain"), ("collision-filter", "plain"),
          ("track-length", "checked"), ("track-length", "checked+copied"),
          ("track-length", "biased+checked"), ("collision-filter", "biased+copied"),
          ("track-length", "regions+checked"), ("track-length", "packets+regions"),
-         ("collision-filter", "packets+copied"), ("track-length", "tree"), ("collision-filter", "tree+copied")]
+         ("collision-filter", "packets+copied"), ("track-length", "tree"), ("collision-filter", "tree+copied"),
+         ("track-length", "tree+biased")]
 
 
 @pytest.fixture(scope="module")
@@ -74,7 +75,7 @@ def test_trace_is_the_same_bits_on_1_2_3_ranks(rank_runs, case):
     ranks add limb by limb; 'regions': by regions of 4 voxels, each rank's share of a group
     streamed through launches of about 300 packets and drained at the group's last;
     'packets': the error estimate by packets, the ranks' squares added as well; 'tree': an
-    octree of the cloud, its leaves the cells)."""
+    octree of the cloud, its leaves the cells, with weighted packets too)."""
     estimator, mode = case
     runs = {n: rank_runs[n][case] for n in (1, 2, 3)}
     one = runs[1]

@@ -34,7 +34,8 @@ M2_SCALE = 2.0**64
 
 def tail_tables(window_shape, grid_shape, edges) -> np.ndarray:
     """What the kernel reads after the depth map to class J's deposits (kernels/transport.cl,
-    nrt_jtail; part of the device's layout, so it lives beside the session): per axis the map cell of each voxel layer, the one holding the layer's centre,
+    nrt_jtail; part of the device's layout, so it lives beside the session): per axis the map cell of each voxel layer, the one holding the layer's centre
+    (none for a tree, whose leaves the kernel classes by their centres: ``grid_shape`` (0, 0, 0)),
     premultiplied by the map's strides (x fastest), then each band's class edges (float32; the
     cells are integers below 2^24)."""
     w = [int(n) for n in window_shape]
@@ -94,7 +95,8 @@ class DeviceTransport(TransportSession):
         self.d_window = be.to_device(np.zeros(1, np.float32) if setup.window is None else np.concatenate(
             [np.ravel(np.asarray(setup.window, np.float32), order="F"),
              np.zeros(0, np.float32) if not setup.tail_classes else
-             tail_tables(np.shape(setup.window), self.shape, setup.tail_edges)]))
+             tail_tables(np.shape(setup.window), (0, 0, 0) if setup.tree is not None else self.shape,
+                         setup.tail_edges)]))
         stars4 = np.zeros((max(1, setup.stars.shape[0]), 4), np.float32)
         stars4[:setup.stars.shape[0], :3] = setup.stars
         self.d_stars = be.to_device(stars4)

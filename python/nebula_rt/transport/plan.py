@@ -478,7 +478,6 @@ def plan_transport(density, request, backend: Backend, *, checked_adds: bool = F
     if tree is not None:
         # the cells are the leaves (shape (n_leaves, 1, 1)); the smallest leaf sets the track
         # resolution and the largest J, a root cell the largest deposit of a flight into one
-        tree_run.check_tree_run(method)
         density = np.asarray(tree.density, dtype=np.float32).reshape(-1, 1, 1)
         fine, bound = tree_run.finest_shape(tree), tree_run.coarsest_shape(tree)
     else:
@@ -488,7 +487,7 @@ def plan_transport(density, request, backend: Backend, *, checked_adds: bool = F
     wl = np.array([b.wavelength for b in bands], dtype=np.float64)
     slum = star_band_luminosities(stars, wl)
     band_lum = slum.sum(axis=0)
-    biased = tree is None and resolve_method(method, density, tau, stars, peel) == "biased"
+    biased = resolve_method(method, density if tree is None else tree, tau, stars, peel) == "biased"
     importance = resolve_importance(request.importance, peel)
     track_scale = float(2.0**FIXED_POINT_BITS * max(fine))
     # what the device forms from these inputs must fit float32/int32: checked before any work
@@ -538,10 +537,13 @@ def plan_transport(density, request, backend: Backend, *, checked_adds: bool = F
     )
     if biased:
         extinction = [b.extinction for b in bands]
+        # the windows' maps are made on a grid: a tree's, its leaves' exact-overlap averages
+        # on the grid of its deepest level, at most the maps' own resolution
+        medium = density if tree is None else tree_run.map_grid(tree)
         if importance == "observer":  # the image's windows; J is not this run's product
-            window = observer_depth_map(tau * density, -np.asarray(peel.basis()[0], np.float64))
+            window = observer_depth_map(tau * medium, -np.asarray(peel.basis()[0], np.float64))
         else:
-            window = depth_map(tau * density, setup.stars)
+            window = depth_map(tau * medium, setup.stars)
         setup = dataclasses.replace(setup, window=window, window_rate=window_rates(albedo, setup.g, extinction),
                                     importance=importance)
         if estimator == "track-length" and importance == "stars":  # J's heavy-tail histograms by depth

@@ -6,7 +6,8 @@ folds and estimates as a uniform grid (:func:`nebula_rt.transport.trace` takes o
 of the density array); the cells of a run are then the tree's leaves. The packets walk from
 leaf to leaf (``kernels/tree.cl``, in place of the grid's walk) and draw their random numbers
 as the grid's analog packets do, so on a tree whose leaves are a grid's voxels they fly the
-same paths (``tests/transport/test_tree_transport.py``). docs/adaptive_grids.md.
+same paths (``tests/transport/test_tree_transport.py``); weighted packets walk the leaves too,
+their windows' maps made on :func:`map_grid`. docs/adaptive_grids.md.
 """
 
 from __future__ import annotations
@@ -14,9 +15,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..density.octree import Octree
-from ..errors import SceneError
 
-__all__ = ["device_layout", "leaf_volumes", "leaf_edges", "finest_shape", "coarsest_shape", "check_tree_run"]
+__all__ = ["device_layout", "leaf_volumes", "leaf_edges", "finest_shape", "coarsest_shape", "map_grid"]
 
 
 def device_layout(tree: Octree) -> np.ndarray:
@@ -59,10 +59,15 @@ def coarsest_shape(tree: Octree) -> tuple[int, int, int]:
     return tuple(int(r) for r in tree.roots)
 
 
-def check_tree_run(method: str) -> None:
-    """What a run on a tree cannot do yet, refused by name before any work:
-    ``transport.method = "biased"`` (weighted packets walk a grid's rays)."""
-    if method == "biased":
-        raise SceneError("transport.method", method,
-                         '"analog" or "auto" on an adaptive density (weighted packets on trees are not '
-                         "implemented yet)")
+def map_grid(tree: Octree) -> np.ndarray:
+    """The tree's density on a uniform grid for the weighted packets' window maps
+    (:mod:`nebula_rt.transport.importance`): the leaves' exact-overlap averages
+    (:func:`~nebula_rt.density.resample.box_averages`) on the grid of the tree's deepest level,
+    at most ``importance.MAX_CELLS`` cells a side (the maps' own resolution: a finer grid would
+    be averaged down to it there)."""
+    from ..density.resample import box_averages
+    from .importance import MAX_CELLS
+
+    lo, hi, rho = tree.leaves()
+    shape = tuple(min(int(n), MAX_CELLS) for n in finest_shape(tree))
+    return box_averages(lo, hi, np.asarray(rho, np.float64), shape)
