@@ -205,21 +205,37 @@ def octree_from_amr(amr, array: str = "density") -> Octree:
 
 
 
+#: VTKHDF files (one HDF5 file for any VTK data type): read where the VTK in use reads hyper
+#: tree grids and AMR hierarchies from them (VTK 9.7 both; ParaView 5.11's 9.2 AMR only)
+VTKHDF_SUFFIXES = (".vtkhdf", ".hdf")
+
+
 def read_adaptive_density(path, array: str = "density") -> Octree:
     """The octree of an adaptive density file: a ``vtkHyperTreeGrid`` (``.htg``, VTK's
-    ``vtkXMLHyperTreeGridReader``) or a ``vtkOverlappingAMR`` (``.vthb``,
-    ``vtkXMLUniformGridAMRReader``), its cell array ``array`` the density
-    (:func:`octree_from_htg`, :func:`octree_from_amr`). Raises ValueError saying why a file
-    cannot be one (the reader's own errors included)."""
+    ``vtkXMLHyperTreeGridReader``), a ``vtkOverlappingAMR`` (``.vthb``,
+    ``vtkXMLUniformGridAMRReader``), or either in a VTKHDF file (``.vtkhdf``, ``.hdf``:
+    ``vtkHDFReader``), its cell array ``array`` the density (:func:`octree_from_htg`,
+    :func:`octree_from_amr`). Raises ValueError saying why a file cannot be one (the reader's
+    own errors included)."""
     from pathlib import Path
 
     from vtkmodules import vtkIOXML
 
     path = Path(path)
     suffix = path.suffix.lower()
-    if suffix not in (".htg", ".vthb"):
-        raise ValueError(f"a hyper tree grid or AMR file is .htg or .vthb, not {suffix or 'no suffix'}")
-    reader = (vtkIOXML.vtkXMLHyperTreeGridReader() if suffix == ".htg" else vtkIOXML.vtkXMLUniformGridAMRReader())
+    if suffix not in (".htg", ".vthb") + VTKHDF_SUFFIXES:
+        raise ValueError(f"a hyper tree grid or AMR file is .htg, .vthb or VTKHDF (.vtkhdf, .hdf), "
+                         f"not {suffix or 'no suffix'}")
+    if suffix in VTKHDF_SUFFIXES:
+        try:
+            from vtkmodules.vtkIOHDF import vtkHDFReader
+        except ImportError:
+            raise ValueError("this VTK has no VTKHDF reader (vtkIOHDF)") from None
+        reader = vtkHDFReader()
+        if hasattr(reader, "SetMaximumLevelsToReadByDefaultForAMR"):
+            reader.SetMaximumLevelsToReadByDefaultForAMR(0)  # every level of an AMR hierarchy
+    else:
+        reader = (vtkIOXML.vtkXMLHyperTreeGridReader() if suffix == ".htg" else vtkIOXML.vtkXMLUniformGridAMRReader())
     from vtkmodules.vtkCommonCore import vtkCommand
 
     errors = []
@@ -232,6 +248,14 @@ def read_adaptive_density(path, array: str = "density") -> Octree:
     out = reader.GetOutputDataObject(0)
     if errors or out is None:
         raise ValueError(f"VTK's {type(reader).__name__} could not read it")
+    if suffix in VTKHDF_SUFFIXES:
+        kind = out.GetClassName()
+        if out.IsA("vtkHyperTreeGrid"):
+            return octree_from_htg(out, array)
+        if out.IsA("vtkOverlappingAMR"):
+            return octree_from_amr(out, array)
+        raise ValueError(f"it holds a {kind}, not a hyper tree grid or an overlapping AMR hierarchy (a uniform "
+                         f"density: .npy or .vti)")
     if suffix == ".htg":
         if out.GetNumberOfCells() == 0:
             raise ValueError("it holds no hyper tree grid")

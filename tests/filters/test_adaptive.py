@@ -559,3 +559,36 @@ def test_the_thesis_octree_example_renders_with_its_tree(tmp_path):
     lo, hi, j = octree_from_htg(reader.GetOutput(), "J_G").leaves()
     arrays, *_ = read_vti(tmp_path / "out.vti")
     np.testing.assert_allclose(box_averages(lo, hi, j, (16, 16, 16)), arrays["J_G"], rtol=1e-5, atol=1e-30)
+
+
+def test_a_vtkhdf_hyper_tree_grid_is_read_as_its_htg(tmp_path):
+    """dust.file a VTKHDF file (.vtkhdf) holding a hyper tree grid, written by VTK's own
+    vtkHDFWriter: the scene traces the same tree as from the .htg of it (the same leaves and
+    densities, the same packets' fates); a VTKHDF file of another data type is refused by name."""
+    pytest.importorskip("vtkmodules.vtkIOHDF", reason="a VTK without VTKHDF (ParaView 5.11's reads AMR only)")
+    from vtkmodules.vtkIOHDF import vtkHDFWriter
+
+    from nebula_rt.errors import SceneError
+    from nebula_rt.filters.vti import to_image_data
+    from nebula_rt.pipeline import Pipeline
+
+    tree = coarsen(clumpy(16).astype(np.float32), (2, 2, 2))
+    htg = _write_htg(tree, tmp_path / "cloud.htg")
+    writer = vtkHDFWriter()
+    writer.SetInputData(octree_to_htg(tree, {"density": tree.density}))
+    writer.SetFileName(str(tmp_path / "cloud.vtkhdf"))
+    assert writer.Write() == 1
+    a, b = Pipeline(), Pipeline()
+    la = a.run(_adaptive_scene(htg))
+    lb = b.run(_adaptive_scene(tmp_path / "cloud.vtkhdf"))
+    ta, tb = a.density(_adaptive_scene(htg)), b.density(_adaptive_scene(tmp_path / "cloud.vtkhdf"))
+    for x, y in zip(ta.leaves(), tb.leaves()):
+        np.testing.assert_array_equal(x, y)
+    np.testing.assert_array_equal(la.transport.counts, lb.transport.counts)
+    image = vtkHDFWriter()
+    image.SetInputData(to_image_data({"density": np.ones((4, 4, 4), np.float32)}, {}, (0.25,) * 3, (0.0,) * 3))
+    image.SetFileName(str(tmp_path / "image.vtkhdf"))
+    assert image.Write() == 1
+    with pytest.raises(SceneError) as e:
+        Pipeline().run(_adaptive_scene(tmp_path / "image.vtkhdf"))
+    assert e.value.parameter == "dust.file" and "vtkImageData" in str(e.value), str(e.value)

@@ -50,7 +50,7 @@ DENSITY_FILE = "an existing .npy, .vti, .htg, .vthb or .vtp file"
 #: adaptive densities (VTK's XML hyper tree grid and overlapping AMR files, and SPH particle
 #: snapshots as XML poly data), made into an :class:`~nebula_rt.density.octree.Octree`
 #: (nebula_rt.filters.adaptive reads them)
-ADAPTIVE_SUFFIXES = (".htg", ".vthb", ".vtp")
+ADAPTIVE_SUFFIXES = (".htg", ".vthb", ".vtkhdf", ".hdf", ".vtp")
 
 
 def is_adaptive_file(path) -> bool:
@@ -129,7 +129,7 @@ def check_density_file(path: Path, array: str, shape: tuple[int, int, int]) -> N
                                                      f"array(s) of {math.prod(points)} points can take up: a damaged "
                                                      "file")
     elif suffix not in ADAPTIVE_SUFFIXES:  # (an adaptive file is checked as it is read: load_tree)
-        raise SceneError("dust.file", str(path), "must be a .npy, .vti, .htg, .vthb or .vtp file")
+        raise SceneError("dust.file", str(path), "must be a .npy, .vti, .htg, .vthb, .vtkhdf, .hdf or .vtp file")
 
 
 def load_density_file(path: Path, array: str, shape: tuple[int, int, int]) -> np.ndarray:

@@ -124,12 +124,13 @@ class Dust:
     file: str = param(
         "", type="str", group=G_DUST,
         doc="\"file\": a .npy array in (x, y, z) order or a .vti image on grid.shape, or an adaptive "
-            "density: a hyper tree grid (.htg), an overlapping AMR hierarchy (.vthb) or an SPH particle "
-            "snapshot (.vtp, deposited on an octree), traced leaf by leaf (docs/adaptive_grids.md); a "
+            "density: a hyper tree grid (.htg), an overlapping AMR hierarchy (.vthb), either in a VTKHDF file "
+            "(.vtkhdf, .hdf) where the VTK in use reads it, or an SPH particle snapshot (.vtp, deposited on an "
+            "octree), traced leaf by leaf (docs/adaptive_grids.md); a "
             "relative path is relative to the scene file's folder")
     array: str = param("density", type="str", group=G_DUST,
-                       doc="\"file\" with .vti: the name of the point-data array to read; with .htg or "
-                           ".vthb: the cell-data array")
+                       doc="\"file\" with .vti: the name of the point-data array to read; with .htg, "
+                           ".vthb or VTKHDF: the cell-data array")
     particle_mass: str = param(
         "mass", type="str", label="Particle Mass", group=G_DUST, advanced=True,
         doc="\"file\" with a .vtp particle snapshot (SPH: points with per-particle arrays): the point-data "
