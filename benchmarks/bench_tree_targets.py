@@ -78,6 +78,8 @@ def main(argv=None) -> int:
     ap.add_argument("--photons", type=float, default=1e8)
     ap.add_argument("--max-leaves", type=float, default=5e7, help="the target's leaf count at most")
     ap.add_argument("--skip-fine-grid", action="store_true", help="no uniform 2^depth run (memory)")
+    ap.add_argument("--tuning", nargs="*", default=[], metavar="KEY=VALUE",
+                    help="transport kernel options (e.g. NRT_TREE_ASCEND=1), as backend.transport_tuning")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
 
@@ -87,6 +89,8 @@ def main(argv=None) -> int:
     from nebula_rt.transport.request import TransportRequest
 
     be = get_backend(args.backend, args.device)
+    be.transport_tuning = dict(getattr(be, "transport_tuning", {}) or {},
+                               **{k: int(v) for k, v in (t.split("=", 1) for t in args.tuning)})
     scene = Scene.loads(SCENE.format(depth=args.depth, cell_tau=args.cell_tau, cell_tau_spread=args.cell_tau_spread,
                                      photons=int(args.photons)))
     request = TransportRequest.from_scene(scene)

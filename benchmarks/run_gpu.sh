@@ -8,7 +8,7 @@
 # colour-science, tomli-w; pmcx for the MCX comparison), fetched elsewhere with
 # `pip download --only-binary=:all: --python-version 3.12 ...`.
 # STEPS (default "tests bench neb128 compare profile"; also "tests-cuda", "thick", "thick-grid", "trust", "scaling", "large", "regions", "regcaps", "profile-regions", "layout", "sorted", "probe", "ranks", "ranks-thesis", "ranks-weak", "tests-mpi", "e2e1e9", "biasing", "fit", "fitprof", "tune",
-# "stages", "kernel-probes", "ncu-thesis", "tree", "tree-targets", "trade", "presets", "empty", "fft") selects what runs. Everything printed
+# "stages", "kernel-probes", "ncu-thesis", "tree", "tree-targets", "tree-ascend", "trade", "presets", "empty", "fft") selects what runs. Everything printed
 # goes to OUTDIR/log.txt as well; JSON and .npz results beside it.
 set -uo pipefail
 out="${1:?output folder}"
@@ -271,6 +271,20 @@ if [[ " $steps " == *" tree-targets "* ]]; then
     echo "== tree targets, CUDA"
     python3 benchmarks/bench_tree_targets.py --backend cuda --depth ${TREE_DEPTH:-10} --photons ${TREE_PHOTONS:-1e8} \
         --out "$out/tree-targets-cuda.json" 2>&1 | grep -v Warning
+fi
+if [[ " $steps " == *" tree-ascend "* ]]; then
+    # the tree walk's next leaf from the root grid (NRT_TREE_ASCEND=0) or from the lowest shared
+    # ancestor (1), side by side: trees of the thesis density at 128^3, and the 2^10 target tree
+    for a in 0 1; do
+        echo "== trees against their grid, CUDA, NRT_TREE_ASCEND=$a"
+        python3 benchmarks/bench_tree.py --backend cuda --grid 128 --photons 2.1e6 --tuning NRT_TREE_ASCEND=$a \
+            --out "$out/tree-128-cuda-ascend$a.json" 2>&1 | grep -v Warning
+    done
+    for a in 0 1; do
+        echo "== tree targets (no 1024^3 grid), CUDA, NRT_TREE_ASCEND=$a"
+        python3 benchmarks/bench_tree_targets.py --backend cuda --depth 10 --photons 1e8 --skip-fine-grid \
+            --tuning NRT_TREE_ASCEND=$a --out "$out/tree-targets-cuda-ascend$a.json" 2>&1 | grep -v Warning
+    done
 fi
 if [[ " $steps " == *" ncu-thesis "* ]] && command -v ncu >/dev/null; then
     echo "== ncu: transport kernel, thesis 128^3 (its first launch)"

@@ -1271,7 +1271,7 @@ typedef struct {
 NRT_DEVICE void nrt_place_of(const nrt_medium *m, const float *p, const float *d, nrt_place *q)
 {
 #if NRT_TREE
-    q->leaf = nrt_tree_locate(m->child, m->nx, m->ny, m->nz, p, d, q->c, q->n, q->lo, q->h, &q->node);
+    q->leaf = nrt_tree_locate(m->child, m->nx, m->ny, m->nz, p, d, q->c, q->n, q->lo, q->h, &q->node, 0, 0);
 #else
     (void)d;
     nrt_voxel_of(p, m->nx, m->ny, m->nz, &q->ix, &q->iy, &q->iz);
@@ -1336,7 +1336,8 @@ NRT_DEVICE int nrt_mray_advance(nrt_mray *r, const nrt_medium *m)
         r->q[k] = r->q[k] + r->d[k] * r->seg;
     r->q[ax] = (float)(a->c[ax] + up) * a->h[ax];
     r->t_cur += r->seg;
-    a->leaf = nrt_tree_next(m->child, m->nx, m->ny, m->nz, r->q, r->d, ax, up, a->c, a->n, a->lo, a->h, &a->node);
+    a->leaf = nrt_tree_next(m->child, m->nx, m->ny, m->nz, r->q, r->d, ax, up, a->c, a->n, a->lo, a->h, &a->node,
+                            0, 0);
     if (a->leaf < 0)
         return 0; /* (deeper than NRT_TREE_MAX_DEPTH: a tree the host does not make) */
     r->seg = nrt_tree_exit(r->q, r->d, r->inv_d, a->c, a->lo, a->h, &r->ax);

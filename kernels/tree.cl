@@ -20,6 +20,14 @@
 #ifndef NRT_TREE_MAX_DEPTH
 #define NRT_TREE_MAX_DEPTH 20
 #endif
+/* NRT_TREE_ASCEND: the analog walk keeps the nodes of its leaf's ancestors (a stack of
+   NRT_TREE_MAX_DEPTH + 1 ints), and the next leaf is found from the lowest ancestor the two
+   cells share instead of from the root grid (the neighbour search of SOC's hierarchical grids
+   and of VTK's hyper tree grid cursors, with no memory beyond the walk's). The same leaves,
+   the same bits; what it costs and saves: docs/adaptive_grids.md. */
+#ifndef NRT_TREE_ASCEND
+#define NRT_TREE_ASCEND 0
+#endif
 #define NRT_INF_TREE 3.0e38f
 
 /* From node (integer corner c, cells per axis n and cell size h at its level) down to the
@@ -31,8 +39,9 @@
    cell's halved level by level: the same floats as dividing at every level (a scaling by
    2^-L is exact), without three divisions per level. */
 NRT_DEVICE int nrt_tree_descend(const NRT_GLOBAL int *child, int *node, const float *p, const float *d, int *c,
-                                int *n, float *lo, float *h)
+                                int *n, float *lo, float *h, int *anc, int *lev)
 {
+    (void)anc, (void)lev;
     for (int level = 0; level <= NRT_TREE_MAX_DEPTH; ++level) {
         int k = child[*node];
         if (k < 0) {
@@ -51,13 +60,18 @@ NRT_DEVICE int nrt_tree_descend(const NRT_GLOBAL int *child, int *node, const fl
             oct += up << a;
         }
         *node = k + oct;
+#if NRT_TREE_ASCEND
+        if (anc != 0 && *lev < NRT_TREE_MAX_DEPTH)
+            anc[++*lev] = *node;
+#endif
     }
     return -1; /* deeper than NRT_TREE_MAX_DEPTH: not a tree the host made */
 }
 
-/* The leaf holding p, from the root grid down (nrt_tree_descend). */
+/* The leaf holding p, from the root grid down (nrt_tree_descend). anc, lev (NRT_TREE_ASCEND,
+   or 0): the nodes from the root cell down to the leaf's, and the leaf's level. */
 NRT_DEVICE int nrt_tree_locate(const NRT_GLOBAL int *child, int rx, int ry, int rz, const float *p,
-                               const float *d, int *c, int *n, float *lo, float *h, int *node)
+                               const float *d, int *c, int *n, float *lo, float *h, int *node, int *anc, int *lev)
 {
     int r[3] = {rx, ry, rz};
     for (int a = 0; a < 3; ++a) {
@@ -71,7 +85,13 @@ NRT_DEVICE int nrt_tree_locate(const NRT_GLOBAL int *child, int rx, int ry, int 
         h[a] = 1.0f / (float)r[a];
     }
     *node = c[0] + rx * (c[1] + ry * c[2]);
-    return nrt_tree_descend(child, node, p, d, c, n, lo, h);
+#if NRT_TREE_ASCEND
+    if (anc != 0) {
+        *lev = 0;
+        anc[0] = *node;
+    }
+#endif
+    return nrt_tree_descend(child, node, p, d, c, n, lo, h, anc, lev);
 }
 
 /* The leaf beyond the face of axis ax the point p lies on (up: the far face), for a packet
@@ -80,15 +100,40 @@ NRT_DEVICE int nrt_tree_locate(const NRT_GLOBAL int *child, int rx, int ry, int 
    together (octant bit ax flipped), and the walk goes down from there; else from the root
    grid. The same leaf either way (the same comparisons at every level below). */
 NRT_DEVICE int nrt_tree_next(const NRT_GLOBAL int *child, int rx, int ry, int rz, const float *p, const float *d,
-                             int ax, int up, int *c, int *n, float *lo, float *h, int *node)
+                             int ax, int up, int *c, int *n, float *lo, float *h, int *node, int *anc, int *lev)
 {
     int r_ax = ax == 0 ? rx : (ax == 1 ? ry : rz);
     if (n[ax] > r_ax && (c[ax] & 1) == (up ? 0 : 1)) {
         c[ax] += up ? 1 : -1;
         *node += up ? (1 << ax) : -(1 << ax);
-        return nrt_tree_descend(child, node, p, d, c, n, lo, h);
+#if NRT_TREE_ASCEND
+        if (anc != 0)
+            anc[*lev] = *node;
+#endif
+        return nrt_tree_descend(child, node, p, d, c, n, lo, h, anc, lev);
     }
-    return nrt_tree_locate(child, rx, ry, rz, p, d, c, n, lo, h, node);
+#if NRT_TREE_ASCEND
+    if (anc != 0) {
+        /* the cells on the two sides of the face share their ancestors above level L - s, s
+           one more than the low bits of c[ax] that a step up (down) carries through (ones,
+           or zeros); below the roots, the walk goes down from that ancestor */
+        int bit = up ? 1 : 0, s = 1;
+        while (s <= *lev && ((c[ax] >> (s - 1)) & 1) == bit)
+            ++s;
+        if (s <= *lev) {
+            float scale = (float)(1 << s); /* exact: the ancestor's cell size */
+            for (int a = 0; a < 3; ++a) {
+                c[a] >>= s;
+                n[a] >>= s;
+                h[a] *= scale;
+            }
+            *lev -= s;
+            *node = anc[*lev];
+            return nrt_tree_descend(child, node, p, d, c, n, lo, h, anc, lev);
+        }
+    }
+#endif
+    return nrt_tree_locate(child, rx, ry, rz, p, d, c, n, lo, h, node, anc, lev);
 }
 
 /* Distance from p along d (1 / d: inv_d) to the nearest far face of the leaf (corner c, low
@@ -121,7 +166,7 @@ NRT_DEVICE float nrt_tree_tau_to_edge(const NRT_GLOBAL int *child, const NRT_GLO
     const float inv_o[3] = {1.0f / o[0], 1.0f / o[1], 1.0f / o[2]};
     float lo[3], h[3], tau = 0.0f;
     int c[3], n[3], node;
-    int leaf = nrt_tree_locate(child, rx, ry, rz, p, o, c, n, lo, h, &node);
+    int leaf = nrt_tree_locate(child, rx, ry, rz, p, o, c, n, lo, h, &node, 0, 0);
     while (leaf >= 0) {
         int ax;
         float t_exit = nrt_tree_exit(p, o, inv_o, c, lo, h, &ax);
@@ -132,7 +177,7 @@ NRT_DEVICE float nrt_tree_tau_to_edge(const NRT_GLOBAL int *child, const NRT_GLO
         for (int a = 0; a < 3; ++a)
             p[a] = p[a] + o[a] * t_exit;
         p[ax] = (float)(c[ax] + up) * h[ax];
-        leaf = nrt_tree_next(child, rx, ry, rz, p, o, ax, up, c, n, lo, h, &node);
+        leaf = nrt_tree_next(child, rx, ry, rz, p, o, ax, up, c, n, lo, h, &node, 0, 0);
     }
     return tau;
 }
@@ -190,8 +235,14 @@ NRT_DEVICE int nrt_trace_packet(NRT_TRACE_PACKET_PARAMS)
     int scatterings = 0;
     float tau = nrt_sample_tau(&rng);
     float lo[3], h[3];
-    int c[3], n[3], node;
-    int leaf = nrt_tree_locate(child, nx, ny, nz, p, d, c, n, lo, h, &node);
+    int c[3], n[3], node, lev = 0;
+#if NRT_TREE_ASCEND
+    int anc_nodes[NRT_TREE_MAX_DEPTH + 1];
+    int *anc = anc_nodes;
+#else
+    int *anc = 0;
+#endif
+    int leaf = nrt_tree_locate(child, nx, ny, nz, p, d, c, n, lo, h, &node, anc, &lev);
     nrt_idx idx = (nrt_idx)(leaf < 0 ? 0 : leaf);
     for (;;) {
         if (leaf < 0) { /* (deeper than NRT_TREE_MAX_DEPTH: a tree the host does not make) */
@@ -233,7 +284,7 @@ NRT_DEVICE int nrt_trace_packet(NRT_TRACE_PACKET_PARAMS)
             for (int a = 0; a < 3; ++a)
                 on_face |= !(p[a] > lo[a] && p[a] < (float)(c[a] + 1) * h[a]);
             if (on_face) {
-                int next = nrt_tree_locate(child, nx, ny, nz, p, d, c, n, lo, h, &node);
+                int next = nrt_tree_locate(child, nx, ny, nz, p, d, c, n, lo, h, &node, anc, &lev);
                 if (next != leaf)
                     NRT_VISIT_END();
                 leaf = next;
@@ -257,7 +308,7 @@ NRT_DEVICE int nrt_trace_packet(NRT_TRACE_PACKET_PARAMS)
             return 0;
         }
         p[ax] = (float)(c[ax] + up) * h[ax];
-        leaf = nrt_tree_next(child, nx, ny, nz, p, d, ax, up, c, n, lo, h, &node);
+        leaf = nrt_tree_next(child, nx, ny, nz, p, d, ax, up, c, n, lo, h, &node, anc, &lev);
         idx = (nrt_idx)(leaf < 0 ? 0 : leaf);
     }
 }

@@ -321,7 +321,9 @@ def test_weighted_packets_on_a_tree_give_the_same_bits_whatever_the_launches(bac
 
 def test_a_tree_of_voxels_gives_the_same_bits_whatever_the_kernel_path(backend):
     """A tree's run through the grid's machinery: its batch sums, squares, counts and image do
-    not depend on the work-group sums or on how the batches are cut into launches."""
+    not depend on the work-group sums, on how the batches are cut into launches, or on how the
+    walk finds the next leaf (from the root grid, or from the lowest shared ancestor:
+    NRT_TREE_ASCEND)."""
     from conftest import tuned_backend
 
     from nebula_rt.observe.sky import Camera
@@ -331,7 +333,8 @@ def test_a_tree_of_voxels_gives_the_same_bits_whatever_the_kernel_path(backend):
     cam = Camera(direction=(0.2, 0.3, -0.9), size=(12, 10))
     runs = []
     for tuning, launch in (({"NRT_GROUP_TALLY": 0}, 1 << 30), ({"NRT_GROUP_TALLY": 1}, 1 << 30),
-                           ({"NRT_GROUP_TALLY": 1}, 3 * 1500)):
+                           ({"NRT_GROUP_TALLY": 1}, 3 * 1500), ({"NRT_TREE_ASCEND": 1}, 1 << 30),
+                           ({"NRT_TREE_ASCEND": 0}, 1 << 30)):
         be = tuned_backend(tuning)
         be.launch_packets = launch
         runs.append(trace_tree(tree, one_band(0.7, 0.4), centre_star(), tau=6.0, photons=12_000,

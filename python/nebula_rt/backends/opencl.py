@@ -263,7 +263,10 @@ class OpenCLBackend(Backend):
             self.trace_registers = NVIDIA_TRACE_REGISTERS
         # On a CPU the work-group tallies cost more (barriers split PoCL's work-item loops) than
         # the contention they save: neb128 2e5 packets, 2-core PoCL, 665 vs 567 ms.
-        self.transport_tuning = {} if self.is_gpu else {"NRT_GROUP_TALLY": 0}
+        # on a CPU: no work-group sums; and a tree's walk finds the next leaf from the lowest
+        # shared ancestor (PoCL, 2 cores: 1.3-1.55x the walk from the root grid; on an H200
+        # 0.58-0.91x, so GPUs keep that: benchmarks/results/pocl-2026-12-04c/, h200-2026-12-04g/)
+        self.transport_tuning = {} if self.is_gpu else {"NRT_GROUP_TALLY": 0, "NRT_TREE_ASCEND": 1}
         self.transport_tuning.update(transport_tuning or {})
         mem = int(self.device.global_mem_size)
         # a GPU launch should hold millions of packets; a CPU launch ~2M (a few seconds on PoCL,
