@@ -481,6 +481,42 @@ def _image_of(rho):
     return img
 
 
+def test_a_particle_snapshot_is_refined_by_optical_depth_with_dust_octree(tmp_path):
+    """dust.octree with a .vtp snapshot: its cells are split by the particles' optical depth
+    (dust.cell_tau, on the masses whose centres a cell holds) as well as by their count. A few
+    heavy particles in a clump, too few for the count to split their cells: without it their
+    leaves are coarse; with it every leaf above the deepest level holds an optical depth of at
+    most cell_tau, the clump's leaves are finer, and the deposited mass is the particles'. An
+    .htg with dust.octree is refused by name."""
+    from nebula_rt.errors import SceneError
+    from nebula_rt.pipeline import Pipeline
+    from nebula_rt.transport.tree import leaf_edges
+
+    rng = np.random.default_rng(9)
+    pts = np.concatenate([rng.uniform(0.2, 9.8, (600, 3)), rng.normal(3.0, 0.3, (12, 3))])
+    masses = np.concatenate([np.full(600, 1e-4), np.full(12, 0.05)])
+    snap = _write_particles(tmp_path / "snap.vtp", pts, masses, np.full(len(pts), 0.3))
+    keys = {"grid.length": 10.0, "dust.leaf_particles": 32, "dust.tree_depth": 6, "dust.tau": 40.0}
+    plain = Pipeline().density(_adaptive_scene(snap, **keys))
+    scene = _adaptive_scene(snap, **dict(keys, **{"dust.octree": "true", "dust.cell_tau": 0.5}))
+    tree = Pipeline().density(scene)
+    assert tree.n_leaves > plain.n_leaves
+    # the criterion on the point masses, per leaf (their centres binned into the leaves)
+    held = np.bincount(tree.locate(pts / 10.0), weights=masses, minlength=tree.n_leaves)
+    edge = leaf_edges(tree)
+    tau = 40.0 * held / edge**3 * edge
+    coarse = edge > edge.min()
+    assert np.all(tau[coarse] <= 0.5 * (1 + 1e-9)), tau[coarse].max()
+    clump = tree.locate(np.array([[0.3, 0.3, 0.3]]))[0]
+    assert edge[clump] < leaf_edges(plain)[plain.locate(np.array([[0.3, 0.3, 0.3]]))[0]]
+    lo, hi, rho = tree.leaves()
+    np.testing.assert_allclose((rho.astype(np.float64) * np.prod(hi - lo, axis=1)).sum(), masses.sum(), rtol=1e-6)
+    htg = _write_htg(coarsen(clumpy(8).astype(np.float32), (1, 1, 1)), tmp_path / "cloud.htg")
+    with pytest.raises(SceneError) as e:
+        Pipeline().density(_adaptive_scene(htg, **{"dust.octree": "true"}))
+    assert e.value.parameter == "dust.octree" and "cloud.htg" in str(e.value)
+
+
 def test_render_writes_the_light_per_leaf_as_a_hyper_tree_grid(tmp_path):
     """`nebula-rt render --tree OUT.htg` on an adaptive scene: the .htg read back holds, per
     leaf, the J the run found (float32) and the density; for a scene on a uniform grid --tree

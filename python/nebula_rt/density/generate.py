@@ -221,6 +221,9 @@ def load_tree(scene):
 
     path = Path(scene.dust_file_path())
     check_input_file("dust.file", path, DENSITY_FILE)
+    if scene.dust.octree and path.suffix.lower() != ".vtp":
+        raise SceneError("dust.octree", True, f"refines the procedural models and particle snapshots (.vtp); "
+                                              f"{path.name} is a tree already, refined as it was written")
     try:  # the VTK layer: VTK's own XML readers (the io extra, or ParaView's VTK)
         from ..filters.adaptive import read_adaptive_density, read_particles
     except ImportError as exc:
@@ -246,7 +249,8 @@ def particle_tree(scene, positions, masses, smoothing):
     """The octree of a particle snapshot (:mod:`nebula_rt.density.particles`): positions and
     smoothing lengths (the snapshot's coordinates, grid.unit) into box units by the box of edge
     ``grid.length`` from ``dust.particle_origin``; cells split while they hold more than
-    ``dust.leaf_particles`` particles, down to ``dust.tree_depth`` levels; each leaf's density
+    ``dust.leaf_particles`` particles (and, with ``dust.octree``, while their optical depth
+    across it exceeds ``dust.cell_tau``), down to ``dust.tree_depth`` levels; each leaf's density
     its deposited mass over its volume (box units). ValueError names a particle outside the
     box, or a non-finite or negative value."""
     from .particles import particles_on_tree
@@ -262,6 +266,12 @@ def particle_tree(scene, positions, masses, smoothing):
         raise ValueError(f"particle {i} at {np.asarray(positions)[i].tolist()} ({grid.unit}) lies outside the box "
                          f"of edge {edge:g} {grid.unit} from dust.particle_origin {list(dust.particle_origin)} "
                          f"({outside.size} of {len(p)} particles do)")
+    if dust.octree:  # also split by the particles' optical depth per cell (dust.cell_tau)
+        from ..optics.bands import reference_band_index
+
+        bands = scene.bands.resolve()
+        sigma = float(dust.tau) * float(bands[reference_band_index(bands)].extinction)
+        return particles_on_tree(p, masses, h, dust.leaf_particles, dust.tree_depth, sigma, dust.cell_tau)
     return particles_on_tree(p, masses, h, dust.leaf_particles, dust.tree_depth)
 
 

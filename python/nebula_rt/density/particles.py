@@ -65,9 +65,13 @@ def _check(positions, masses, h):
     return p, m, hh
 
 
-def refine_by_count(positions, roots, max_per_leaf: int = 8, max_depth: int = 10) -> Octree:
+def refine_by_count(positions, roots, max_per_leaf: int = 8, max_depth: int = 10, masses=None,
+                    sigma: float = 0.0, max_tau: float = math.inf) -> Octree:
     """The tree (leaf densities 0) whose cells are split while they hold more than
-    ``max_per_leaf`` particles, down to ``max_depth`` levels below ``roots`` root cells."""
+    ``max_per_leaf`` particles, down to ``max_depth`` levels below ``roots`` root cells; with
+    ``masses``, also while the optical depth across a cell's longest edge of the mass whose
+    particles' centres it holds, ``sigma`` x mass / volume x edge, exceeds ``max_tau`` (SKIRT's
+    maximum optical depth per cell, on the particles' masses before they are spread)."""
     p = np.asarray(positions, np.float64).reshape(-1, 3)
     r = np.array([int(x) for x in roots], np.int64)
     if r.size != 3 or r.min() < 1 or int(max_per_leaf) < 1 or not 0 <= int(max_depth) <= MAX_TREE_DEPTH:
@@ -83,11 +87,17 @@ def refine_by_count(positions, roots, max_per_leaf: int = 8, max_depth: int = 10
         size = r * (1 << level)
         key = lambda c: c[:, 0] + size[0] * (c[:, 1] + size[1] * c[:, 2])  # noqa: E731
         held = fine >> (int(max_depth) - level)
-        ks, counts = np.unique(key(held), return_counts=True)
+        ks, inverse, counts = np.unique(key(held), return_inverse=True, return_counts=True)
         pos = np.searchsorted(ks, key(cells))
-        n = np.where((pos < len(ks)) & (ks[np.minimum(pos, len(ks) - 1)] == key(cells)),
-                     counts[np.minimum(pos, len(ks) - 1)], 0)
-        split = (n > int(max_per_leaf)) & (level < int(max_depth))
+        found = (pos < len(ks)) & (ks[np.minimum(pos, len(ks) - 1)] == key(cells))
+        n = np.where(found, counts[np.minimum(pos, len(ks) - 1)], 0)
+        split = n > int(max_per_leaf)
+        if masses is not None and sigma > 0.0:
+            cell_mass = np.bincount(inverse.reshape(-1), weights=np.asarray(masses, np.float64), minlength=len(ks))
+            m = np.where(found, cell_mass[np.minimum(pos, len(ks) - 1)], 0.0)
+            edge = 1.0 / size  # per axis
+            split |= sigma * m / float(np.prod(edge)) * float(edge.max()) > max_tau
+        split &= level < int(max_depth)
         lo.append(cells[~split] / size)
         hi.append((cells[~split] + 1) / size)
         cells = (2 * cells[split][:, None, :] + octants[None, :, :]).reshape(-1, 3)
@@ -130,12 +140,13 @@ def deposit(tree: Octree, positions, masses, h, samples: int = DEFAULT_SAMPLES, 
     return out, out / np.prod(hi - lo, axis=1)
 
 
-def particles_on_tree(positions, masses, h, max_per_leaf: int, max_depth: int) -> Octree:
+def particles_on_tree(positions, masses, h, max_per_leaf: int, max_depth: int, sigma: float = 0.0,
+                      max_tau: float = math.inf) -> Octree:
     """The octree of particles in box units (positions in [0, 1]^3, smoothing lengths ``h``):
-    one root cell split while a cell holds more than ``max_per_leaf`` particles, down to
-    ``max_depth`` levels (:func:`refine_by_count`), each leaf's density its deposited mass over
-    its volume (:func:`deposit`), float32. ValueError names a particle outside the box or a bad
-    value."""
-    tree = refine_by_count(positions, (1, 1, 1), max_per_leaf, max_depth)
+    one root cell split while a cell holds more than ``max_per_leaf`` particles (or, with
+    ``sigma`` > 0, while its particles' optical depth exceeds ``max_tau``), down to ``max_depth``
+    levels (:func:`refine_by_count`), each leaf's density its deposited mass over its volume
+    (:func:`deposit`), float32. ValueError names a particle outside the box or a bad value."""
+    tree = refine_by_count(positions, (1, 1, 1), max_per_leaf, max_depth, masses, sigma, max_tau)
     _, rho = deposit(tree, positions, masses, h)
     return Octree(tree.roots, tree.child, np.asarray(rho).astype(np.float32))

@@ -69,8 +69,9 @@ def procedural_tree(scene, backend):
     dust = scene.dust
     if dust.model not in ("turbulence", "uniform"):
         raise SceneError("dust.octree", dust.octree,
-                         f'true only with dust.model "turbulence" or "uniform" (an adaptive dust.file is a tree '
-                         f'already; a uniform one is traced on its grid): dust.model is "{dust.model}"')
+                         f'true only with dust.model "turbulence" or "uniform", or a .vtp particle snapshot (an '
+                         f'adaptive dust.file is a tree already; a uniform one is traced on its grid): dust.model '
+                         f'is "{dust.model}"')
     bands = scene.bands.resolve()
     sigma = float(dust.tau) * float(bands[reference_band_index(bands)].extinction)
     model = MODEL_TURBULENCE if dust.model == "turbulence" else MODEL_UNIFORM

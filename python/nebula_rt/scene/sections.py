@@ -156,7 +156,9 @@ class Dust:
         False, type="bool", group=G_DUST, advanced=True,
         doc="\"turbulence\" or \"uniform\": make the density on an adaptive octree refined where the dust "
             "needs it (`cell_tau`, `cell_tau_spread`, down to `tree_depth`) and trace it leaf by leaf, instead "
-            "of on grid.shape; grid.shape stays the light field's output grid (docs/adaptive_grids.md)")
+            "of on grid.shape; grid.shape stays the light field's output grid (docs/adaptive_grids.md). With a "
+            ".vtp particle snapshot: split its cells by the particles' optical depth (`cell_tau`) as well as "
+            "by their count")
     cell_tau: float = param(
         0.1, type="float", lo=0.0, lo_open=True, group=G_DUST, advanced=True,
         doc="`octree`: a cell is split while its optical depth across one edge (reference band) exceeds "
