@@ -1096,13 +1096,9 @@ typedef struct {
     float j0, j1, j2, j3;
 } nrt_jtail;
 
-/* Add a deposit of x units into voxel (ix, iy, iz) to the score of the class of the map's cell
-   that holds the voxel's centre. */
-NRT_DEVICE void nrt_jtail_add(nrt_jtail *t, int ix, int iy, int iz, int nx, int ny, float x)
+/* Add a deposit of x units to the score of the class of a map cell of depth ``depth``. */
+NRT_DEVICE void nrt_jtail_score(nrt_jtail *t, float depth, float x)
 {
-#if NRT_TAIL_CLASSES
-    const NRT_GLOBAL float *cy = t->cx + nx;
-    float depth = t->window[(nrt_u32)t->cx[ix] + (nrt_u32)cy[iy] + (nrt_u32)cy[ny + iz]];
     if (depth < t->e0)
         t->j0 += x;
     else if (depth < t->e1)
@@ -1111,6 +1107,15 @@ NRT_DEVICE void nrt_jtail_add(nrt_jtail *t, int ix, int iy, int iz, int nx, int 
         t->j2 += x;
     else
         t->j3 += x;
+}
+
+/* Add a deposit of x units into voxel (ix, iy, iz) to the score of the class of the map's cell
+   that holds the voxel's centre. */
+NRT_DEVICE void nrt_jtail_add(nrt_jtail *t, int ix, int iy, int iz, int nx, int ny, float x)
+{
+#if NRT_TAIL_CLASSES
+    const NRT_GLOBAL float *cy = t->cx + nx;
+    nrt_jtail_score(t, t->window[(nrt_u32)t->cx[ix] + (nrt_u32)cy[iy] + (nrt_u32)cy[ny + iz]], x);
 #else
     (void)t, (void)ix, (void)iy, (void)iz, (void)nx, (void)ny, (void)x;
 #endif
@@ -1124,15 +1129,8 @@ NRT_DEVICE void nrt_jtail_add_box(nrt_jtail *t, const float *lo, const float *h,
     int i[3];
     for (int a = 0; a < 3; ++a)
         i[a] = min((int)((lo[a] + 0.5f * h[a]) * (float)t->wn[a]), t->wn[a] - 1);
-    float depth = t->window[(nrt_u64)i[0] + (nrt_u64)t->wn[0] * ((nrt_u64)i[1] + (nrt_u64)t->wn[1] * (nrt_u64)i[2])];
-    if (depth < t->e0)
-        t->j0 += x;
-    else if (depth < t->e1)
-        t->j1 += x;
-    else if (depth < t->e2)
-        t->j2 += x;
-    else
-        t->j3 += x;
+    nrt_jtail_score(t, t->window[(nrt_u64)i[0] + (nrt_u64)t->wn[0] * ((nrt_u64)i[1] + (nrt_u64)t->wn[1] * (nrt_u64)i[2])],
+                    x);
 #else
     (void)t, (void)lo, (void)h, (void)x;
 #endif
