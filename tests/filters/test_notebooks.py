@@ -123,4 +123,7 @@ def test_adaptive_densities(kernel_dir, tmp_path, monkeypatch):
     got, want = summary["snapshot_mass"]
     assert got == pytest.approx(want, rel=1e-6)  # the particles' mass kept on the leaves
     assert summary["lit_fraction"] > 0.9
-    assert png_outputs(nb) >= 2
+    # the light per leaf drawn by pyvista: every leaf a cell, a picture with something in it
+    shown, leaves = summary["pyvista_leaves"]
+    assert shown == leaves > 100 and summary["pyvista_image_mean"] > 1.0
+    assert png_outputs(nb) >= 3
