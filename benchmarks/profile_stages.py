@@ -82,7 +82,7 @@ def main() -> None:
     ds = res.device_sums
     bands = light.bands
     params = np.stack([res.j_scale, res.sigma_scale, [b.albedo for b in bands]], axis=1)
-    nb, nvox = ds.n_bands, ds.nvox
+    nvox = ds.nvox
     for name, fn in [
         ("finish without colour (3 float32 arrays to host)",
          lambda: pp.finish(ds, params, batches=res.batches, collision=False)),

@@ -272,7 +272,6 @@ def read_particles(path, mass: str = "mass", smoothing: str = "smoothing_length"
     tool that converts simulation snapshots for ParaView (yt, pyvista, ParaView's own readers
     of Gadget and Phantom files) can write it; Gadget/Phantom's native files need those
     readers first. Raises ValueError saying what is missing."""
-    from vtkmodules.util.numpy_support import vtk_to_numpy
     from vtkmodules.vtkCommonCore import vtkCommand
     from vtkmodules.vtkIOXML import vtkXMLPolyDataReader
 
