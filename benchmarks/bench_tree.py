@@ -24,6 +24,8 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from tuning import add_tuning_argument, apply_tuning  # noqa: E402  (benchmarks/tuning.py, beside this script)
 
 
 def main(argv=None) -> int:
@@ -34,8 +36,7 @@ def main(argv=None) -> int:
     ap.add_argument("--photons", type=float, default=2.1e6)
     ap.add_argument("--tolerances", type=float, nargs="+", default=[0.0, 0.05, 0.2])
     ap.add_argument("--roots", type=int, default=8, help="root cells per axis")
-    ap.add_argument("--tuning", nargs="*", default=[], metavar="KEY=VALUE",
-                    help="transport kernel options (e.g. NRT_TREE_ASCEND=1), as backend.transport_tuning")
+    add_tuning_argument(ap)
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
 
@@ -46,8 +47,7 @@ def main(argv=None) -> int:
     from nebula_rt.transport.request import TransportRequest
 
     be = get_backend(args.backend, args.device)
-    be.transport_tuning = dict(getattr(be, "transport_tuning", {}) or {},
-                               **{k: int(v) for k, v in (t.split("=", 1) for t in args.tuning)})
+    apply_tuning(be, args.tuning)
     n = args.grid
     scene = Scene.load(ROOT / "examples/scenes/thesis-default.toml").with_overrides(
         [f"grid.shape=[{n},{n},{n}]", f"transport.photons={int(args.photons)}", 'transport.method="analog"'])

@@ -37,6 +37,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from provenance import provenance  # noqa: E402  (benchmarks/provenance.py, beside this script)
+from tuning import add_tuning_argument, apply_tuning  # noqa: E402
 
 SCENE = """
 [grid]
@@ -78,8 +79,7 @@ def main(argv=None) -> int:
     ap.add_argument("--photons", type=float, default=1e8)
     ap.add_argument("--max-leaves", type=float, default=5e7, help="the target's leaf count at most")
     ap.add_argument("--skip-fine-grid", action="store_true", help="no uniform 2^depth run (memory)")
-    ap.add_argument("--tuning", nargs="*", default=[], metavar="KEY=VALUE",
-                    help="transport kernel options (e.g. NRT_TREE_ASCEND=1), as backend.transport_tuning")
+    add_tuning_argument(ap)
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
 
@@ -89,8 +89,7 @@ def main(argv=None) -> int:
     from nebula_rt.transport.request import TransportRequest
 
     be = get_backend(args.backend, args.device)
-    be.transport_tuning = dict(getattr(be, "transport_tuning", {}) or {},
-                               **{k: int(v) for k, v in (t.split("=", 1) for t in args.tuning)})
+    apply_tuning(be, args.tuning)
     scene = Scene.loads(SCENE.format(depth=args.depth, cell_tau=args.cell_tau, cell_tau_spread=args.cell_tau_spread,
                                      photons=int(args.photons)))
     request = TransportRequest.from_scene(scene)
