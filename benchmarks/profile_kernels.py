@@ -13,7 +13,8 @@ stream stood idle before a call (``idle_before_s``: the host had not yet issued 
 waited for a copy and did the Python work of the next pass) is reported beside the device times. Per configuration: the time per kernel name
 and calls, launches of the transport kernel with their packets, and the packets per ms of the
 transport kernel alone. Each ``--tuning`` entry is one configuration (space-separated
-KEY=VALUE options of the transport kernel, "" for the backend's defaults), run with the
+KEY=VALUE options of the transport kernel, ``trace_block=N`` its threads per block, "" for the
+backend's defaults), run with the
 transport source as built and with each ``--variant`` (another transport source in kernels/,
 e.g. an older version kept aside for comparison).
 """
@@ -40,7 +41,10 @@ def profile(n: int, photons: int, tuning: dict, program: str = "", free_running:
     from nebula_rt.scene import Star
     from nebula_rt.transport import trace
 
-    be = CUDABackend("", transport_tuning=tuning)
+    from nebula_rt.backends.cuda import TRACE_BLOCK
+
+    tuning = dict(tuning)
+    be = CUDABackend("", transport_tuning=tuning, trace_block=int(tuning.pop("trace_block", TRACE_BLOCK)))
     if program:
         be.transport_program = program
     bands = [Band(name="V", wavelength=550.0, extinction=1.0, albedo=0.6, g=0.6)]
