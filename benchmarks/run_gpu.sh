@@ -8,7 +8,7 @@
 # colour-science, tomli-w; pmcx for the MCX comparison), fetched elsewhere with
 # `pip download --only-binary=:all: --python-version 3.12 ...`.
 # STEPS (default "tests bench neb128 compare profile"; also "tests-cuda", "thick", "thick-grid", "trust", "scaling", "large", "regions", "regcaps", "profile-regions", "layout", "sorted", "probe", "ranks", "ranks-thesis", "ranks-weak", "tests-mpi", "e2e1e9", "biasing", "fit", "fitprof", "tune",
-# "stages", "kernel-probes", "defer", "ncu-thesis", "tree", "tree-targets", "tree-ascend", "trade", "presets", "empty", "fft") selects what runs. Everything printed
+# "stages", "kernel-probes", "ncu-thesis", "tree", "tree-targets", "tree-ascend", "trade", "presets", "empty", "fft") selects what runs. Everything printed
 # goes to OUTDIR/log.txt as well; JSON and .npz results beside it.
 set -uo pipefail
 out="${1:?output folder}"
@@ -254,28 +254,6 @@ if [[ " $steps " == *" kernel-probes "* ]]; then
     echo "== transport kernel probes, neb medium, CUDA"
     python3 benchmarks/profile_kernels.py --grids 64 128 --photons 2.1e7 --tuning "" "NRT_PROBE_DEPOSIT=1" \
         "NRT_HOT_HALF=0" "NRT_HOT_HALF=1" "NRT_HOT_HALF=3" --out "$out/neb-probes.json" 2>&1 | grep -v Warning
-fi
-if [[ " $steps " == *" defer "* ]]; then
-    # deferred interactions (NRT_DEFER: a packet's interaction waits until that share of its
-    # warp's lanes waits too): the same bits on CUDA, and the kernel's packets per ms against
-    # the share, on the thesis scene and the neb medium; the former commit's kernel beside them
-    # where a copy of its python/ lies in .former/
-    echo "== deferred interactions, same bits, CUDA"
-    NEBULA_RT_TEST_BACKEND=cuda python3 -m pytest -q -p no:cacheprovider tests/backends/test_kernel_options.py 2>&1 | tail -n 3
-    shares="${DEFER_SHARES:-NRT_DEFER=0 NRT_DEFER=25 NRT_DEFER=50 NRT_DEFER=75 NRT_DEFER=100}"
-    echo "== deferred interactions, thesis 128^3, CUDA"
-    python3 benchmarks/profile_kernels.py --scene examples/scenes/thesis-default.toml --grids 128 --photons 2.1e6 \
-        --tuning $shares --out "$out/thesis-defer.json" 2>&1 | grep -v Warning
-    echo "== deferred interactions, neb medium, CUDA"
-    python3 benchmarks/profile_kernels.py --grids 64 128 256 --photons 2.1e7 --tuning $shares \
-        --out "$out/neb-defer.json" 2>&1 | grep -v Warning
-    if [[ -d .former/python ]]; then
-        echo "== former kernel, thesis 128^3 and neb medium, CUDA"
-        PYTHONPATH=.former/python:$PYTHONPATH python3 benchmarks/profile_kernels.py --scene examples/scenes/thesis-default.toml \
-            --grids 128 --photons 2.1e6 --out "$out/thesis-former.json" 2>&1 | grep -v Warning
-        PYTHONPATH=.former/python:$PYTHONPATH python3 benchmarks/profile_kernels.py --grids 64 128 256 --photons 2.1e7 \
-            --out "$out/neb-former.json" 2>&1 | grep -v Warning
-    fi
 fi
 if [[ " $steps " == *" tree "* ]]; then
     # the transport on octrees made from the thesis density against that grid, CUDA and NVIDIA OpenCL

@@ -101,21 +101,6 @@ typedef unsigned char nrt_u8;
 #error "nebula_common.h needs OpenCL C or CUDA C"
 #endif
 
-/* Warp votes (the transport's deferred interactions, NRT_DEFER in transport.cl): whether
-   at least `percent` % of the lanes executing this call together hold pred. CUDA has the votes;
-   OpenCL C has none that every device offers (NRT_HAS_VOTE 0). */
-#if defined(__CUDACC__) || defined(__CUDACC_RTC__)
-#define NRT_HAS_VOTE 1
-NRT_DEVICE int nrt_vote_share(int pred, int percent)
-{
-    unsigned int lanes = __activemask();
-    unsigned int holding = __ballot_sync(lanes, pred);
-    return __popc(holding) * 100 >= __popc(lanes) * percent;
-}
-#else
-#define NRT_HAS_VOTE 0
-#endif
-
 #define NRT_PI_F 3.14159265358979323846f
 
 /* ------------------------------------------------------------------------------------------ */

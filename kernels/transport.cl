@@ -74,17 +74,6 @@
  *                    packets of a warp then fly their first flight side by side, so their
  *                    deposits and density loads share cache sectors instead of scattering
  *                    over the grid (integer deposits: the order changes no bit).
- *   NRT_DEFER        deferred interactions (percent, 0: off): a packet whose flight ends in
- *                    its voxel waits, without stepping, until at least NRT_DEFER % of its
- *                    warp's lanes still tracing wait too, and then they all scatter (or are
- *                    absorbed) together. Scattering is a long stretch of code (a Philox block
- *                    every second interaction, a logarithm, a rotation, three divisions);
- *                    run the moment one lane needs it, the warp's other lanes idle through it,
- *                    and a warp of 32 packets meets an interaction every few voxel steps. A
- *                    packet's own operations and random numbers are the same whenever its
- *                    interaction runs, so the bits are too. Needs warp votes (NRT_HAS_VOTE);
- *                    without them (OpenCL) a test mode defers each interaction by
- *                    photon % 3 loop iterations, to check those same bits on any device.
  */
 #ifndef NRT_ACC_RED
 #define NRT_ACC_RED 0
@@ -94,9 +83,6 @@
 #endif
 #ifndef NRT_GROUP_TALLY
 #define NRT_GROUP_TALLY 0
-#endif
-#ifndef NRT_DEFER
-#define NRT_DEFER 0
 #endif
 #ifndef NRT_IDX32
 #define NRT_IDX32 0
@@ -748,46 +734,7 @@ NRT_DEVICE int nrt_trace_packet(NRT_TRACE_PACKET_PARAMS)
         ty = nrt_face_distance(p0[1], d[1], inv_d[1], iy, hy);
         tz = nrt_face_distance(p0[2], d[2], inv_d[2], iz, hz);
     }
-    /* a flight ended in the current voxel at p0 and its interaction has not run yet */
-    int pending = 0;
-#if NRT_DEFER && !NRT_HAS_VOTE
-    int waited = 0; /* (the test mode's loop iterations waited) */
-#endif
     for (;;) {
-#if NRT_DEFER && NRT_HAS_VOTE
-        /* (every lane still in the loop votes, waiting or not) */
-        int interact = nrt_vote_share(pending, NRT_DEFER) && pending;
-#elif NRT_DEFER
-        int interact = pending && ++waited > (int)(photon % 3UL);
-#else
-        int interact = pending;
-#endif
-        if (interact) {
-            pending = 0;
-#if NRT_DEFER && !NRT_HAS_VOTE
-            waited = 0;
-#endif
-            /* scatter with probability albedo (analog Russian roulette), else absorbed */
-            NRT_SCATTER_OR_END();
-#if NRT_PEEL
-            peel_score += nrt_peel(density, sig_b, g_b, peel, peel_scale, p0, d, ix, iy, iz, nx, ny, nz,
-                                   band_image, overflow, seed, band, photon, scatterings);
-#endif
-            float mu, sin_theta;
-            nrt_sample_hg(g_b, nrt_rng_uniform(&rng), &mu, &sin_theta);
-            nrt_rotate(d, mu, sin_theta, 2.0f * NRT_PI_F * nrt_rng_uniform(&rng));
-            /* the next flight starts here, in the same voxel */
-            tau = nrt_sample_tau(&rng);
-            inv_d[0] = 1.0f / d[0];
-            inv_d[1] = 1.0f / d[1];
-            inv_d[2] = 1.0f / d[2];
-            t_cur = 0.0f;
-            tx = nrt_face_distance(p0[0], d[0], inv_d[0], ix, hx);
-            ty = nrt_face_distance(p0[1], d[1], inv_d[1], iy, hy);
-            tz = nrt_face_distance(p0[2], d[2], inv_d[2], iz, hz);
-        } else if (pending) {
-            continue; /* (NRT_DEFER) waits for more of its warp */
-        }
         float t_next = fmin(tx, fmin(ty, tz));
         float seg = fmax(0.0f, t_next - t_cur);
         /* the neighbour across the nearest face (ties: x, then y), by selects rather than
@@ -817,7 +764,24 @@ NRT_DEVICE int nrt_trace_packet(NRT_TRACE_PACKET_PARAMS)
             p0[0] = p0[0] + d[0] * t_int;
             p0[1] = p0[1] + d[1] * t_int;
             p0[2] = p0[2] + d[2] * t_int;
-            pending = 1; /* the interaction: at the loop's head */
+            /* scatter with probability albedo (analog Russian roulette), else absorbed */
+            NRT_SCATTER_OR_END();
+#if NRT_PEEL
+            peel_score += nrt_peel(density, sig_b, g_b, peel, peel_scale, p0, d, ix, iy, iz, nx, ny, nz,
+                                   band_image, overflow, seed, band, photon, scatterings);
+#endif
+            float mu, sin_theta;
+            nrt_sample_hg(g_b, nrt_rng_uniform(&rng), &mu, &sin_theta);
+            nrt_rotate(d, mu, sin_theta, 2.0f * NRT_PI_F * nrt_rng_uniform(&rng));
+            /* the next flight starts here, in the same voxel */
+            tau = nrt_sample_tau(&rng);
+            inv_d[0] = 1.0f / d[0];
+            inv_d[1] = 1.0f / d[1];
+            inv_d[2] = 1.0f / d[2];
+            t_cur = 0.0f;
+            tx = nrt_face_distance(p0[0], d[0], inv_d[0], ix, hx);
+            ty = nrt_face_distance(p0[1], d[1], inv_d[1], iy, hy);
+            tz = nrt_face_distance(p0[2], d[2], inv_d[2], iz, hz);
             continue;
         }
 #if NRT_TRACK_LENGTH

@@ -170,34 +170,6 @@ def test_groups_split_into_short_launches_give_the_same_bits(cloud, monkeypatch)
 
 
 @pytest.mark.parametrize("error_estimate", ["batches", "packets"])
-@pytest.mark.parametrize("regions", [0, 2])
-def test_deferred_interactions_give_the_same_bits(cloud, error_estimate, regions):
-    """NRT_DEFER (a packet's interaction waits until enough of its warp's lanes wait too; on
-    a device without warp votes, the test mode: each interaction waits photon % 3 loop
-    iterations) against interactions at once: the same batch sums, squares, counts and peel-off
-    image, with and without the transport by regions (whose passes stop packets between
-    interactions) and with the error estimate by packets (visit squares)."""
-    camera = sky.Camera(direction=(0.0, 0.0, -1.0), size=(12, 10))
-    runs = []
-    for defer in (0, 25, 100):
-        be = _backend({"NRT_DEFER": defer, "NRT_REGIONS": regions} if regions else {"NRT_DEFER": defer})
-        kw = ({"batch_size": 1500, "peel": camera} if error_estimate == "batches" else {})
-        runs.append(trace(cloud, _bands(), _stars(), tau=25.0, photons=6000, seed=8, backend=be,
-                          error_estimate=error_estimate, **kw))
-    ref = runs[0]
-    assert ref.counts[:, 0].tolist() == [6000, 6000]
-    assert np.all(ref.counts[:, 1] > 1000)  # many interactions deferred: most packets are absorbed
-    for res in runs[1:]:
-        np.testing.assert_array_equal(res.counts, ref.counts)
-        np.testing.assert_array_equal(res.raw_sum, ref.raw_sum)
-        np.testing.assert_array_equal(res.raw_m2, ref.raw_m2)
-        if ref.peel_image is not None and (TEST_BACKEND == "cuda" or "Portable" in be.device_name):
-            np.testing.assert_array_equal(res.peel_image, ref.peel_image)
-        elif ref.peel_image is not None:  # (NVIDIA's OpenCL contracts builds apart, see above)
-            np.testing.assert_allclose(res.peel_image.sum(axis=(1, 2)), ref.peel_image.sum(axis=(1, 2)), rtol=1e-6)
-
-
-@pytest.mark.parametrize("error_estimate", ["batches", "packets"])
 def test_star_blocks_of_every_size_give_the_same_bits(cloud, error_estimate):
     """The work-group sums of the voxels around each star (NRT_HOT_HALF: blocks of 1, 3^3, 5^3
     and 7^3 voxels) against no work-group sums: the same batch sums, squares (per-packet visit
