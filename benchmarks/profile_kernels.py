@@ -44,7 +44,8 @@ def profile(n: int, photons: int, tuning: dict, program: str = "", free_running:
     from nebula_rt.backends.cuda import TRACE_BLOCK
 
     tuning = dict(tuning)
-    be = CUDABackend("", transport_tuning=tuning, trace_block=int(tuning.pop("trace_block", TRACE_BLOCK)))
+    block = int(tuning.pop("trace_block", TRACE_BLOCK))
+    be = CUDABackend("", transport_tuning=tuning, trace_block=block)
     if program:
         be.transport_program = program
     bands = [Band(name="V", wavelength=550.0, extinction=1.0, albedo=0.6, g=0.6)]
@@ -114,7 +115,7 @@ def profile(n: int, photons: int, tuning: dict, program: str = "", free_running:
     if marks:
         span = cp.cuda.get_elapsed_time(marks[0][1], marks[-1][2]) / 1e3
     t_trace = times.get("trace_photons", 0.0)
-    return {"grid": n, "photons": photons, "scene": scene_file, "tuning": tuning, "error_estimate": error_estimate, "program": be.transport_program, "wall_s": wall,
+    return {"grid": n, "photons": photons, "scene": scene_file, "tuning": tuning, "trace_block": block, "error_estimate": error_estimate, "program": be.transport_program, "wall_s": wall,
             "kernel_s": float(res.timings["kernel_s"]), "batches": int(res.batches),
             "absorbed_fraction": float(res.counts[0, 1] / res.counts[0, 0]),
             "device_s": dict(sorted(times.items(), key=lambda kv: -kv[1])), "calls": dict(calls),
