@@ -332,26 +332,39 @@ NRT_DEVICE int nrt_peel_pixel(const NRT_GLOBAL float *peel, const float *x, nrt_
  * are untouched, and the image is the same bits on any device and thread order (branch: the
  * split copy of a weighted packet, 0 for every analog one).
  */
-NRT_DEVICE nrt_u64 nrt_fixed_stochastic(float wgt, float scale, nrt_u64 seed, nrt_u64 band,
-                                        nrt_u64 photon, nrt_u64 event, nrt_u64 branch)
+NRT_DEVICE nrt_u64 nrt_round_word(nrt_u64 seed, nrt_u64 band, nrt_u64 photon, nrt_u64 event, nrt_u64 branch)
+{
+    nrt_u64x4 c;
+    c.v[0] = photon;
+    c.v[1] = event;
+    c.v[2] = 1;
+    c.v[3] = branch;
+    return nrt_philox4x64_10(c, seed, band).v[0];
+}
+
+/* wgt x scale rounded down or up by the random word r: up with probability the fraction.
+   Monotone in wgt for a given r, so deposits rounded with one r keep their order (a Stokes
+   component |Q| <= I stays at most I's units, kernels/polarization.cl). */
+NRT_DEVICE nrt_u64 nrt_fixed_round(float wgt, float scale, nrt_u64 r)
 {
     float x = NRT_FMAF(wgt, scale, 0.0f);
     float whole = floor(x);
     float frac = x - whole; /* exact for x >= 0 */
     nrt_u64 n = (nrt_u64)whole;
-    if (frac > 0.0f) {
-        nrt_u64x4 c;
-        c.v[0] = photon;
-        c.v[1] = event;
-        c.v[2] = 1;
-        c.v[3] = branch;
-        nrt_u64x4 r = nrt_philox4x64_10(c, seed, band);
-        /* P(r < T) = T 2^-64 with T = floor(frac 2^64): frac 2^64 < 2^64 is a float whose
-           conversion truncates only below 2^24, i.e. loses less than 2^-40 of frac */
-        nrt_u64 threshold = (nrt_u64)(frac * 18446744073709551616.0f);
-        n += (r.v[0] < threshold) ? 1UL : 0UL;
-    }
+    /* P(r < T) = T 2^-64 with T = floor(frac 2^64): frac 2^64 < 2^64 is a float whose
+       conversion truncates only below 2^24, i.e. loses less than 2^-40 of frac */
+    if (frac > 0.0f)
+        n += (r < (nrt_u64)(frac * 18446744073709551616.0f)) ? 1UL : 0UL;
     return n;
+}
+
+NRT_DEVICE nrt_u64 nrt_fixed_stochastic(float wgt, float scale, nrt_u64 seed, nrt_u64 band,
+                                        nrt_u64 photon, nrt_u64 event, nrt_u64 branch)
+{
+    float x = NRT_FMAF(wgt, scale, 0.0f);
+    if (x == floor(x)) /* (no random bits needed: the Philox block only where a fraction is left) */
+        return (nrt_u64)x;
+    return nrt_fixed_round(wgt, scale, nrt_round_word(seed, band, photon, event, branch));
 }
 
 /* ------------------------------------------------------------------------------------------ */

@@ -3,6 +3,7 @@
  * tests check the very code the transport kernel runs (Philox bits against numpy, HG moments).
  */
 #include "nebula_common.h"
+#include "polarization.cl"
 
 /* out[4 i .. 4 i + 3] = Philox4x64-10(counter = (c0 + i, c1, c2, c3), key = (k0, k1)) */
 NRT_KERNEL void philox_blocks(NRT_GLOBAL nrt_u64 *out, nrt_u64 k0, nrt_u64 k1, nrt_u64 c0,
@@ -77,6 +78,78 @@ NRT_KERNEL void sample_tau_at(NRT_GLOBAL float *tau, const NRT_GLOBAL float *xi,
     if (i >= n)
         return;
     tau[i] = nrt_tau_of_xi(xi[i]);
+}
+
+/* nrt_mueller of kind `kind` at given mu: out[4 i .. 4 i + 3] = S11, S12 / S11, S33 / S11,
+   S34 / S11 (pol: the band's parameters, kernels/polarization.cl). */
+NRT_KERNEL void mueller_at(NRT_GLOBAL float *out, const NRT_GLOBAL float *mu, const NRT_GLOBAL float *pol,
+                           int kind, float g, nrt_u64 n)
+{
+    nrt_u64 i = NRT_GLOBAL_ID();
+    if (i >= n)
+        return;
+    float m[4];
+    nrt_mueller(kind, g, pol, mu[i], m);
+    for (int k = 0; k < 4; ++k)
+        out[4 * i + k] = m[k];
+}
+
+/* nrt_rayleigh_mu at given xi. */
+NRT_KERNEL void rayleigh_mu_at(NRT_GLOBAL float *mu, const NRT_GLOBAL float *xi, nrt_u64 n)
+{
+    nrt_u64 i = NRT_GLOBAL_ID();
+    if (i >= n)
+        return;
+    mu[i] = nrt_rayleigh_mu(xi[i]);
+}
+
+/*
+ * One polarized scattering as the transport does it (nrt_scatter_polarized), of light along
+ * +z with the Stokes state (q, u, 0) referred to e = +x: out[8 i ..] = the new direction (3),
+ * the new reference e' (3) and the new q, u, each from photon i's own stream.
+ */
+NRT_KERNEL void scatter_polarized_from(NRT_GLOBAL float *out, int kind, float g, const NRT_GLOBAL float *pol,
+                                       float q, float u, nrt_u64 seed, nrt_u64 n)
+{
+    nrt_u64 i = NRT_GLOBAL_ID();
+    if (i >= n)
+        return;
+    nrt_rng r;
+    nrt_rng_init(&r, seed, 0, i);
+    float d[3] = {0.0f, 0.0f, 1.0f};
+    nrt_stokes s;
+    s.e[0] = 1.0f, s.e[1] = 0.0f, s.e[2] = 0.0f;
+    s.q = q, s.u = u, s.v = 0.0f;
+    nrt_scatter_polarized(&r, kind, g, pol, d, &s);
+    for (int k = 0; k < 3; ++k) {
+        out[8 * i + k] = d[k];
+        out[8 * i + 3 + k] = s.e[k];
+    }
+    out[8 * i + 6] = s.q;
+    out[8 * i + 7] = s.u;
+}
+
+/* nrt_peel_stokes towards o of light along d with the state (q, u, 0) referred to e:
+   out[4 i ..] = I, Q, U, V per sr in the frame whose reference is `north` (all float3 as 3
+   floats per item: d, e, o, north at 12 i ..). */
+NRT_KERNEL void peel_stokes_at(NRT_GLOBAL float *out, const NRT_GLOBAL float *vec, const NRT_GLOBAL float *qu,
+                               int kind, float g, const NRT_GLOBAL float *pol, nrt_u64 n)
+{
+    nrt_u64 i = NRT_GLOBAL_ID();
+    if (i >= n)
+        return;
+    float d[3], o[3], north[3], iquv[4];
+    nrt_stokes s;
+    for (int k = 0; k < 3; ++k) {
+        d[k] = vec[12 * i + k];
+        s.e[k] = vec[12 * i + 3 + k];
+        o[k] = vec[12 * i + 6 + k];
+        north[k] = vec[12 * i + 9 + k];
+    }
+    s.q = qu[2 * i], s.u = qu[2 * i + 1], s.v = 0.0f;
+    nrt_peel_stokes(kind, g, pol, o, north, d, &s, iquv);
+    for (int k = 0; k < 4; ++k)
+        out[4 * i + k] = iquv[k];
 }
 
 /* How the device lays out the parameter structs (offsets and sizes; tests compare them with

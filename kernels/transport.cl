@@ -277,6 +277,29 @@ NRT_DEVICE void nrt_cross_face(int ax, int i_next, const float *p, float d_ax, c
     *tz = ax == 2 ? t_ax : *tz;
 }
 
+#ifndef NRT_POLAR
+#define NRT_POLAR 0
+#endif
+#if NRT_POLAR && (NRT_BIASED || NRT_REGIONS)
+#error "polarized packets are analog and traced without regions"
+#endif
+/* images per band of a batch slot: I, or I, Q and U (no kind yet gives V: S34 = 0) */
+#define NRT_STOKES_IMAGES (NRT_POLAR ? 3 : 1)
+#include "polarization.cl"
+/* A scattering's new direction (and, with NRT_POLAR, the packet's new Stokes state) */
+#if NRT_POLAR
+#define NRT_NEW_DIRECTION() nrt_scatter_polarized(&rng, NRT_POLAR, g_b, pol, d, &stokes)
+#define NRT_STOKES_STATE (&stokes)
+#else
+#define NRT_STOKES_STATE 0
+#define NRT_NEW_DIRECTION()                                                      \
+    do {                                                                         \
+        float mu_, sin_theta_;                                                   \
+        nrt_sample_hg(g_b, nrt_rng_uniform(&rng), &mu_, &sin_theta_);           \
+        nrt_rotate(d, mu_, sin_theta_, 2.0f * NRT_PI_F * nrt_rng_uniform(&rng)); \
+    } while (0)
+#endif
+
 #if NRT_PEEL
 /*
  * Peel-off images (Yusef-Zadeh, Morris & White 1984, ApJ 278, 186): at every scattering the
@@ -364,20 +387,67 @@ NRT_DEVICE float nrt_peel_weight(const NRT_GLOBAL float *density, float sig_b, f
     return nrt_hg_phase(g_b, mu) * exp(-nrt_tau_to_edge(density, sig_b, x, o, ix, iy, iz, nx, ny, nz));
 }
 
-/* Peel-off of an analog packet; returns the units added (the packet's score, nrt_tail_add). */
-NRT_DEVICE nrt_u64 nrt_peel(const NRT_GLOBAL float *density, float sig_b, float g_b,
-                            const NRT_GLOBAL float *peel, float peel_scale, const float *x,
-                            const float *d, int ix, int iy, int iz, int nx, int ny, int nz,
-                            NRT_GLOBAL nrt_u64 *band_image, NRT_GLOBAL nrt_u32 *overflow,
-                            nrt_u64 seed, int band, nrt_u64 photon, int event)
+/*
+ * An analog packet's peel-off into pixel `pixel`, its light attenuated by atten = exp(-tau) to
+ * the box's edge: the phase function's weight into the band's image or, with NRT_POLAR, the
+ * light's I, Q and U (nrt_peel_stokes) into the band's NRT_STOKES_IMAGES images (I, then Q,
+ * then U, each of W x H pixels). I's deposits are checked adds; Q and U are signed, added as 64-bit two's
+ * complement (integer addition modulo 2^64 is exact and associative, so their sums are exact
+ * and the same bits in any order). Each is rounded with I's random word, so |its units| <= I's
+ * units deposit by deposit, and every partial sum of it lies within +-I's partial sum, which the
+ * checked adds keep below 2^63: read as signed 64-bit integers, the sums are exact. Returns the
+ * units added to I (the packet's score, nrt_tail_add).
+ */
+NRT_DEVICE nrt_u64 nrt_peel_deposit(float atten, float g_b, const NRT_GLOBAL float *pol,
+                                    const NRT_GLOBAL float *peel, float peel_scale, const float *d,
+                                    const nrt_stokes *st, nrt_u64 pixel, NRT_GLOBAL nrt_u64 *band_image,
+                                    NRT_GLOBAL nrt_u32 *overflow, nrt_u64 seed, int band, nrt_u64 photon,
+                                    int event)
 {
-    nrt_u64 pixel;
-    float wgt = nrt_peel_weight(density, sig_b, g_b, peel, x, d, ix, iy, iz, nx, ny, nz, &pixel);
+    const float o[3] = {peel[0], peel[1], peel[2]};
+#if NRT_POLAR
+    const float north[3] = {peel[6], peel[7], peel[8]};
+    float iquv[4];
+    nrt_peel_stokes(NRT_POLAR, g_b, pol, o, north, d, st, iquv);
+    const float wgt = iquv[0] * atten;
+    if (!(wgt >= 0.0f))
+        return 0;
+    const nrt_u64 r = nrt_round_word(seed, (nrt_u64)band, photon, (nrt_u64)event, 0);
+    const nrt_u64 v = nrt_fixed_round(wgt, peel_scale, r);
+    nrt_acc_add_checked(&band_image[pixel], v, overflow);
+    const nrt_u64 pixels = (nrt_u64)peel[13] * (nrt_u64)peel[14];
+    for (int k = 1; k < NRT_STOKES_IMAGES; ++k) {
+        nrt_u64 n = nrt_fixed_round(fabs(iquv[k]) * atten, peel_scale, r);
+        if (n != 0)
+            NRT_ATOMIC_ADD_U64(&band_image[(nrt_u64)k * pixels + pixel], iquv[k] < 0.0f ? (nrt_u64)0 - n : n);
+    }
+    return v;
+#else
+    (void)pol, (void)st;
+    float mu = d[0] * o[0] + d[1] * o[1] + d[2] * o[2];
+    float wgt = nrt_hg_phase(g_b, mu) * atten;
     if (!(wgt >= 0.0f))
         return 0;
     nrt_u64 v = nrt_fixed_stochastic(wgt, peel_scale, seed, (nrt_u64)band, photon, (nrt_u64)event, 0);
     nrt_acc_add_checked(&band_image[pixel], v, overflow);
     return v;
+#endif
+}
+
+/* Peel-off of an analog packet at x in voxel (ix, iy, iz) (nrt_peel_deposit). */
+NRT_DEVICE nrt_u64 nrt_peel(const NRT_GLOBAL float *density, float sig_b, float g_b,
+                            const NRT_GLOBAL float *pol, const NRT_GLOBAL float *peel, float peel_scale,
+                            const float *x, const float *d, const nrt_stokes *st, int ix, int iy, int iz,
+                            int nx, int ny, int nz, NRT_GLOBAL nrt_u64 *band_image,
+                            NRT_GLOBAL nrt_u32 *overflow, nrt_u64 seed, int band, nrt_u64 photon, int event)
+{
+    nrt_u64 pixel;
+    if (!nrt_peel_pixel(peel, x, &pixel))
+        return 0;
+    const float o[3] = {peel[0], peel[1], peel[2]};
+    float atten = exp(-nrt_tau_to_edge(density, sig_b, x, o, ix, iy, iz, nx, ny, nz));
+    return nrt_peel_deposit(atten, g_b, pol, peel, peel_scale, d, st, pixel, band_image, overflow, seed, band,
+                            photon, event);
 }
 #endif
 
@@ -641,7 +711,8 @@ NRT_DEVICE int nrt_pass_item(nrt_u64 it, const NRT_GLOBAL nrt_u64 *order, const 
         nrt_u64 photon, int max_scatterings, float track_scale, NRT_GLOBAL nrt_u64 *band_acc,            \
         nrt_sink *sink, NRT_GLOBAL nrt_u32 *overflow, const NRT_GLOBAL float *peel, float peel_scale,    \
         NRT_GLOBAL nrt_u64 *band_image, const NRT_GLOBAL nrt_packet *resume, NRT_GLOBAL nrt_packet *save, \
-        int region_shift, nrt_u64 item, NRT_GLOBAL nrt_u64 *band_sq, int sq_shift, nrt_u64 cells
+        int region_shift, nrt_u64 item, NRT_GLOBAL nrt_u64 *band_sq, int sq_shift, nrt_u64 cells,           \
+        const NRT_GLOBAL float *pol
 
 #ifndef NRT_TREE
 #define NRT_TREE 0
@@ -670,6 +741,11 @@ NRT_DEVICE int nrt_trace_packet(NRT_TRACE_PACKET_PARAMS)
     (void)sq_shift;
 #endif
     nrt_rng rng;
+#if NRT_POLAR
+    nrt_stokes stokes; /* the packet's polarization */
+#else
+    (void)pol;
+#endif
     const float hx = 1.0f / (float)nx, hy = 1.0f / (float)ny, hz = 1.0f / (float)nz;
     const nrt_idx stride_y = (nrt_idx)nx, stride_z = (nrt_idx)nx * (nrt_idx)ny;
     int ix, iy, iz, scatterings;
@@ -710,6 +786,9 @@ NRT_DEVICE int nrt_trace_packet(NRT_TRACE_PACKET_PARAMS)
         }
 #endif
         nrt_sample_isotropic(&rng, d);
+#if NRT_POLAR
+        nrt_stokes_unpolarized(d, &stokes);
+#endif
 
         scatterings = 0;
         /* One loop, one voxel step per iteration; an interaction ends a flight and starts the next
@@ -767,12 +846,10 @@ NRT_DEVICE int nrt_trace_packet(NRT_TRACE_PACKET_PARAMS)
             /* scatter with probability albedo (analog Russian roulette), else absorbed */
             NRT_SCATTER_OR_END();
 #if NRT_PEEL
-            peel_score += nrt_peel(density, sig_b, g_b, peel, peel_scale, p0, d, ix, iy, iz, nx, ny, nz,
-                                   band_image, overflow, seed, band, photon, scatterings);
+            peel_score += nrt_peel(density, sig_b, g_b, pol, peel, peel_scale, p0, d, NRT_STOKES_STATE,
+                                   ix, iy, iz, nx, ny, nz, band_image, overflow, seed, band, photon, scatterings);
 #endif
-            float mu, sin_theta;
-            nrt_sample_hg(g_b, nrt_rng_uniform(&rng), &mu, &sin_theta);
-            nrt_rotate(d, mu, sin_theta, 2.0f * NRT_PI_F * nrt_rng_uniform(&rng));
+            NRT_NEW_DIRECTION();
             /* the next flight starts here, in the same voxel */
             tau = nrt_sample_tau(&rng);
             inv_d[0] = 1.0f / d[0];
@@ -1898,10 +1975,10 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
         int stopped = nrt_trace_packet(density, optics[4 * band], optics[4 * band + 1], optics[4 * band + 2], stars,
                                        star_cdf + band * n_stars, nx, ny, nz, n_stars, seed, band, photon,
                                        max_scatterings, track_scale, acc + cell * nvox, &sink,
-                                       overflow + slot, peel, peel_scale, image + cell * pixels,
+                                       overflow + slot, peel, peel_scale, image + cell * pixels * NRT_STOKES_IMAGES,
                                        fresh ? 0 : states + sl, states + sl, region_shift,
                                        photon | ((nrt_u64)lband << NRT_ITEM_BAND_SHIFT), sq + cell * nvox, sq_shift,
-                                       nvox);
+                                       nvox, optics + 4 * prm->n_bands + 4 * band);
         if (stopped) {
             const NRT_GLOBAL nrt_packet *q = states + sl;
             keys_out[it] = ((nrt_u64)nrt_region_bin(cell, q->ix, q->iy, q->iz, nx, ny, nz, region_shift) << 32) | sl;
@@ -1913,8 +1990,8 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
         nrt_trace_packet(density, optics[4 * band], optics[4 * band + 1], optics[4 * band + 2], stars,
                          star_cdf + band * n_stars, nx, ny, nz, n_stars, seed, band, photon,
                          max_scatterings, track_scale, acc + cell * nvox, &sink,
-                         overflow + slot, peel, peel_scale, image + cell * pixels, 0, 0, NRT_NO_REGIONS, 0,
-                         sq + cell * nvox, sq_shift, nvox);
+                         overflow + slot, peel, peel_scale, image + cell * pixels * NRT_STOKES_IMAGES, 0, 0,
+                         NRT_NO_REGIONS, 0, sq + cell * nvox, sq_shift, nvox, optics + 4 * prm->n_bands + 4 * band);
 #endif
 #endif
     }

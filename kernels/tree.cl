@@ -187,19 +187,18 @@ NRT_DEVICE float nrt_tree_tau_to_edge(const NRT_GLOBAL int *child, const NRT_GLO
 /* Peel-off of an analog packet scattering at p (incoming direction d; as transport.cl's
    nrt_peel, the optical depth to the edge marched leaf by leaf); returns the units added. */
 NRT_DEVICE nrt_u64 nrt_tree_peel(const NRT_GLOBAL int *child, const NRT_GLOBAL float *leaf_density, int rx, int ry,
-                                 int rz, float sig_b, float g_b, const NRT_GLOBAL float *peel, float peel_scale,
-                                 const float *p, const float *d, NRT_GLOBAL nrt_u64 *band_image,
+                                 int rz, float sig_b, float g_b, const NRT_GLOBAL float *pol,
+                                 const NRT_GLOBAL float *peel, float peel_scale, const float *p, const float *d,
+                                 const nrt_stokes *st, NRT_GLOBAL nrt_u64 *band_image,
                                  NRT_GLOBAL nrt_u32 *overflow, nrt_u64 seed, int band, nrt_u64 photon, int event)
 {
     nrt_u64 pixel;
     if (!nrt_peel_pixel(peel, p, &pixel))
         return 0;
     const float o[3] = {peel[0], peel[1], peel[2]};
-    float mu = d[0] * o[0] + d[1] * o[1] + d[2] * o[2];
-    float wgt = nrt_hg_phase(g_b, mu) * exp(-nrt_tree_tau_to_edge(child, leaf_density, rx, ry, rz, sig_b, p, o));
-    nrt_u64 v = nrt_fixed_stochastic(wgt, peel_scale, seed, (nrt_u64)band, photon, (nrt_u64)event, 0);
-    nrt_acc_add_checked(&band_image[pixel], v, overflow);
-    return v;
+    float atten = exp(-nrt_tree_tau_to_edge(child, leaf_density, rx, ry, rz, sig_b, p, o));
+    return nrt_peel_deposit(atten, g_b, pol, peel, peel_scale, d, st, pixel, band_image, overflow, seed, band,
+                            photon, event);
 }
 #endif
 
@@ -231,6 +230,12 @@ NRT_DEVICE int nrt_trace_packet(NRT_TRACE_PACKET_PARAMS)
     float p[3] = {stars[4 * s], stars[4 * s + 1], stars[4 * s + 2]};
     float d[3], inv_d[3];
     nrt_sample_isotropic(&rng, d);
+#if NRT_POLAR
+    nrt_stokes stokes; /* the packet's polarization */
+    nrt_stokes_unpolarized(d, &stokes);
+#else
+    (void)pol;
+#endif
     inv_d[0] = 1.0f / d[0], inv_d[1] = 1.0f / d[1], inv_d[2] = 1.0f / d[2];
     int scatterings = 0;
     float tau = nrt_sample_tau(&rng);
@@ -268,12 +273,10 @@ NRT_DEVICE int nrt_trace_packet(NRT_TRACE_PACKET_PARAMS)
                 p[a] = fmin(fmax(p[a] + d[a] * t, lo[a]), lo[a] + h[a]);
             NRT_SCATTER_OR_END();
 #if NRT_PEEL
-            peel_score += nrt_tree_peel(child, leaf_density, nx, ny, nz, sig_b, g_b, peel, peel_scale, p, d,
-                                        band_image, overflow, seed, band, photon, scatterings);
+            peel_score += nrt_tree_peel(child, leaf_density, nx, ny, nz, sig_b, g_b, pol, peel, peel_scale, p, d,
+                                        NRT_STOKES_STATE, band_image, overflow, seed, band, photon, scatterings);
 #endif
-            float mu, sin_theta;
-            nrt_sample_hg(g_b, nrt_rng_uniform(&rng), &mu, &sin_theta);
-            nrt_rotate(d, mu, sin_theta, 2.0f * NRT_PI_F * nrt_rng_uniform(&rng));
+            NRT_NEW_DIRECTION();
             inv_d[0] = 1.0f / d[0], inv_d[1] = 1.0f / d[1], inv_d[2] = 1.0f / d[2];
             tau = nrt_sample_tau(&rng);
             /* the point stays in this leaf (d only changed). Only on one of its faces can the

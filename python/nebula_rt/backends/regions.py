@@ -40,8 +40,8 @@ def region_shift_of(backend, setup: TransportSetup, tuning: dict) -> int:
     """Side of the regions (as log2 voxels) of the transport by regions, 0 for none: the
     tuning's ``NRT_REGIONS`` where given, else the backend's ``region_shifts`` entry for the
     grid's size ((least voxels, shift) pairs, ascending; none: never). Weighted packets walk
-    whole rays for the forced flights and have no region path; nor has a tree's walk."""
-    if setup.tree is not None:
+    whole rays for the forced flights and have no region path; nor have a tree's walk and polarized packets."""
+    if setup.tree is not None or setup.polar:  # (a polarized packet's state is not saved by regions)
         return 0
     return region_shift_for(backend, int(np.prod(setup.density.shape)), setup.biased, tuning)
 

@@ -85,10 +85,14 @@ class DeviceTransport(TransportSession):
             resident = be.resident_density(setup.density)
             self.d_density = (resident if resident is not None else
                               be.to_device(np.ravel(np.asarray(setup.density, np.float32), order="F")))
-        optics = np.zeros((nb, 4), np.float32)
-        optics[:, 0], optics[:, 1], optics[:, 2] = setup.sigma_scale, setup.albedo, setup.g
+        # per band: extinction scale, albedo, g, windows' rate; then per band the polarization's
+        # parameters (kernels/transport.cl reads them at optics + 4 n_bands + 4 band)
+        optics = np.zeros((2, nb, 4), np.float32)
+        optics[0, :, 0], optics[0, :, 1], optics[0, :, 2] = setup.sigma_scale, setup.albedo, setup.g
         if setup.window_rate is not None:
-            optics[:, 3] = setup.window_rate
+            optics[0, :, 3] = setup.window_rate
+        if setup.polar_params is not None:
+            optics[1] = setup.polar_params
         self.d_optics = be.to_device(optics)
         # weighted packets read the windows' depth map (none given: depth 0, windows at W0)
         # (and, J's heavy-tail classes, the kernel's tables of them after it: nebula_rt.transport.tails)
@@ -126,7 +130,7 @@ class DeviceTransport(TransportSession):
         self.d_tallies = be.device_zeros(self.slots * self.bands_per_launch * self.tally_words, np.uint64)
         self.d_overflow = be.device_zeros(self.slots, np.uint32)
         self.d_seen = be.device_zeros(1, np.uint32)
-        self.pixels = setup.peel_pixels
+        self.pixels = setup.peel_pixels * setup.stokes_images  # (a band's I, Q and U images)
         self.d_image = be.device_zeros(max(1, self.slots * self.bands_per_launch * self.pixels * self.words),
                                        np.uint64)
         tuning = dict(be.transport_tuning)
@@ -556,9 +560,13 @@ class DeviceTransport(TransportSession):
         if s.peel is None:
             return np.zeros((n_slots, n_lb, 0, 0), np.uint64)
         w, h = int(s.peel[13]), int(s.peel[14])
-        out = self.backend.to_host(self.d_image).reshape(self.slots, self.bands_per_launch, w, h, self.words)
+        out = self.backend.to_host(self.d_image).reshape(self.slots, self.bands_per_launch, s.stokes_images, w, h,
+                                                         self.words)
         self.backend.fill_zero(self.d_image)
         out = out[:n_slots, :n_lb]
+        if s.stokes_images > 1:  # (n, bands, [I, Q, U], W, H): Q and U as the signed sums they are
+            return out[..., 0]
+        out = out[:, :, 0]
         if self.words == 1:
             return out[..., 0]
         # 128-bit pixels as float64 (the image statistics are float64 anyway)

@@ -102,6 +102,11 @@ class TransportSetup:
     #: bits; nebula_rt.transport.tree.device_layout)
     tree: object = None
     tree_buffer: object = None
+    #: polarized packets (kernels/polarization.cl, NRT_POLAR: 1 Rayleigh, 2 White's
+    #: approximation; 0 intensity alone) and their parameters per band (float32, (n_bands, 4),
+    #: nebula_rt.optics.polarization.Polarization.kernel_params), uploaded after the bands' optics
+    polar: int = 0
+    polar_params: object = None
 
     @property
     def light_field(self) -> bool:
@@ -134,6 +139,12 @@ class TransportSetup:
         """64-bit words of one (batch, band) tally block: the energy tallies, then the heavy-tail
         histograms' counts."""
         return self.tally_base + self.tail_hists * CONSTANT["NRT_TAIL_BINS"]
+
+    @property
+    def stokes_images(self) -> int:
+        """Peel-off images per band: I, or (polarized) I, Q and U (kernels/transport.cl,
+        NRT_STOKES_IMAGES)."""
+        return 3 if self.polar else 1
 
     @property
     def peel_pixels(self) -> int:
@@ -175,6 +186,8 @@ def transport_defines(setup: TransportSetup, tuning: dict | None = None) -> dict
         defines["NRT_ACC_LIMIT_BITS"] = int(setup.acc_limit_bits)
     if setup.tree is not None:
         defines["NRT_TREE"] = 1
+    if setup.polar:
+        defines["NRT_POLAR"] = int(setup.polar)
     if setup.peel is not None:
         defines["NRT_PEEL"] = 1
         if setup.peel_columns is not None:
@@ -249,7 +262,8 @@ class TransportSession(abc.ABC):
     @abc.abstractmethod
     def take_images(self, n_slots: int, bands: tuple[int, int] | None = None) -> np.ndarray:
         """The peel-off images of slots 0..n_slots-1 (uint64 fixed point, (n_slots, group
-        bands, W, H)), clearing them; an empty array without a peel-off camera."""
+        bands, W, H); polarized: (n_slots, group bands, 3, W, H), I, then Q and U as 64-bit
+        two's complement), clearing them; an empty array without a peel-off camera."""
 
     @abc.abstractmethod
     def release_sums(self) -> tuple:

@@ -259,6 +259,7 @@ class Scene:
         for key, rule in BANDS_RULES.items():
             rule.coerce(f"bands.{key}", getattr(self.bands, key))
         bands = self.bands.resolve()
+        self._check_polarization(bands)
         self._apply_units()
         _check_dataclass("transport", self.transport, TRANSPORT_RULES)
         _check_dataclass("colour", self.colour, COLOUR_RULES)
@@ -267,6 +268,17 @@ class Scene:
         _check_dataclass("observer", self.observer, OBSERVER_RULES)
         self._check_batches()
         _check_star_spectra(self.stars, bands)
+
+    def _check_polarization(self, bands) -> None:
+        """bands.peak_polarization holds one value per band where it is a list, and a scene that
+        scatters by Rayleigh's phase function gives no bands.g (which it would not use)."""
+        from ..optics.polarization import OWN_PHASE_FUNCTION, polarization_of
+
+        pol = polarization_of(self)
+        pol.peaks(len(bands))
+        if pol.kind in OWN_PHASE_FUNCTION and self.bands.g is not None:
+            raise SceneError("bands.g", self.bands.g, f"must be omitted with bands.polarization = '{pol.kind}' "
+                             "(that phase function has no asymmetry parameter)")
 
     def _apply_units(self, given_tau: Optional[float] = None, given_luminosity: Optional[Mapping[int, float]] = None,
                      given_temperature: Optional[Mapping[int, float]] = None) -> None:

@@ -13,6 +13,7 @@ from typing import Any, Dict, List, Optional, Tuple, Union
 
 from ..limits import INT32_MAX, MAX_OFFSET, MAX_PHOTONS, MAX_TREE_DEPTH, PARTICLE_COORDINATE_MAX, TEMPERATURE_RANGE
 from ..optics.bands import ALBEDO_RANGE, G_RANGE, PRESETS, Band, resolve_bands
+from ..optics.polarization import DEFAULT_PEAK as DEFAULT_PEAK_POLARIZATION, KINDS as POLARIZATION_KINDS
 from . import schema, units, values
 from .schema import document, param
 
@@ -280,6 +281,18 @@ class BandsConfig:
     g: Optional[float] = param(
         None, type="float or None", lo=G_RANGE[0], hi=G_RANGE[1], label="G", group=G_OPTICS,
         doc="If given, the Henyey-Greenstein asymmetry parameter of every band (else each band's own)")
+    polarization: str = param(
+        "none", type="str", choices=POLARIZATION_KINDS, group=G_OPTICS,
+        doc="Polarized scattering: none (intensity alone), rayleigh (dipole scattering: phase "
+            "function 3 (1 + cos^2) / (16 pi), polarization sin^2 / (1 + cos^2) of the scattering "
+            "angle; the bands' g plays no part) or white (each band's Henyey-Greenstein phase function "
+            "with White's 1979 approximation of the linear polarization, peak_polarization at 90 "
+            "degrees). Packets then carry Stokes I, Q, U, and peel-off images gain Q and U "
+            "(docs/physics.md)")
+    peak_polarization: Union[float, Tuple[float, ...]] = param(
+        DEFAULT_PEAK_POLARIZATION, type="float or list of float", lo=0.0, hi=1.0, group=G_OPTICS, advanced=True,
+        doc="polarization = \"white\": the linear polarization of unpolarized light scattered through "
+            "90 degrees (White's p_l), one number for every band or a list of one per band")
     list: Optional[List[Dict[str, Any]]] = param(
         None, type="list of dict or None", group=G_OPTICS,
         doc="Explicit bands, [[bands.list]] tables with keys name, wavelength (nm), extinction "

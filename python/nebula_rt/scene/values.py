@@ -113,6 +113,15 @@ def to_auto_or_float(v: Any) -> Union[float, str]:
     return to_float(v)
 
 
+def to_float_or_floats(v: Any) -> Union[float, Tuple[float, ...]]:
+    """One number, or a non-empty list of numbers (one per band) as a tuple."""
+    if is_real(v):
+        return float(v)
+    if isinstance(v, (list, tuple)) and v and all(is_real(x) for x in v):
+        return tuple(float(x) for x in v)
+    raise TypeError
+
+
 #: The conversion of each declared type (``Param.type``); a declaration with a type not
 #: listed names its own (``Param.convert``).
 CONVERT = {
@@ -125,6 +134,7 @@ CONVERT = {
     "tuple of 3 int": to_ivec3,
     "\"auto\" or float": to_auto_or_float,
     "bool": to_bool,
+    "float or list of float": to_float_or_floats,
 }
 
 #: How a refusal names a value of each declared type (``Param.what`` where it says more)
@@ -133,4 +143,5 @@ WHAT = {
     "str or None": "a string", "tuple of 3 float": "a list of 3 numbers",
     "tuple of 3 int": "a list of 3 integers, each", "\"auto\" or float": "a number",
     "bool": "true or false",
+    "float or list of float": "a number or a list of numbers (one per band), each",
 }

@@ -321,12 +321,14 @@ class LaunchPlan:
 def plan_launches(photons: int, batch_size: int, targeted: bool, shape, n_bands: int, backend,
                   cell_bytes: int = 8, *, error_estimate: str = "batches", peel=None, time_limit: float = 0.0,
                   max_scatterings: int = 1000, estimator: str = "track-length",
-                  scatter_depth: float = 0.0, cell_shapes=None) -> LaunchPlan:
+                  scatter_depth: float = 0.0, cell_shapes=None, stokes: int = 1) -> LaunchPlan:
     """The :class:`LaunchPlan` of a run of ``photons`` packets per band on a grid of ``shape``
     (checks the batch count against the limits first); ``error_estimate`` and the arguments
     after it as :func:`resolve_error_estimate` takes them (``cell_bytes`` 16: weighted
     packets; ``cell_shapes``: (finest, coarsest) cells per axis where the cells differ in size,
-    a tree's, else ``shape`` for both)."""
+    a tree's, else ``shape`` for both; ``stokes``: images per band, 3 for polarized packets,
+    which are traced without regions)."""
+    no_regions = cell_bytes == 16 or stokes > 1
     nvox = int(np.prod([int(n) for n in shape]))
     size = planned_batch_size(photons, batch_size, targeted, nvox)
     limits.check_batch_count(batch_count(photons, size, nvox), size)
@@ -339,7 +341,7 @@ def plan_launches(photons: int, batch_size: int, targeted: bool, shape, n_bands:
         resolve_error_estimate(error_estimate, biased=cell_bytes == 16, peel=peel, targeted=targeted,
                                time_limit=time_limit, batch_size=batch_size, launches=launches, scales=None,
                                nvox=nvox, in_flight=0)
-        per_image = max(1, cell_bytes * n_bands * (0 if peel is None else int(np.prod(peel.size))))
+        per_image = max(1, cell_bytes * n_bands * stokes * (0 if peel is None else int(np.prod(peel.size))))
         return LaunchPlan(plan, size, int(n_bands), int(max(1, min(32, len(plan),
                                                                    backend.slot_memory_budget // per_image))),
                           int(n_bands))
@@ -347,7 +349,7 @@ def plan_launches(photons: int, batch_size: int, targeted: bool, shape, n_bands:
 
     if resolve_error_estimate(error_estimate, biased=cell_bytes == 16, peel=peel, targeted=targeted,
                               time_limit=time_limit, batch_size=batch_size, launches=launches, scales=scales,
-                              nvox=nvox, in_flight=region_capacity(backend, nvox, cell_bytes == 16),
+                              nvox=nvox, in_flight=region_capacity(backend, nvox, no_regions),
                               scatter_depth=scatter_depth,
                               fraction=getattr(backend, "auto_packets_fraction", AUTO_PACKETS_BATCH_FRACTION)):
         return LaunchPlan(BatchPlan(int(photons), 1), 0, int(n_bands), 1, int(n_bands), scales)
@@ -428,6 +430,8 @@ class Tallies:
     folded, band_done : ndarray int64 (n_bands,)
         Batches and packets folded per band.
     peel_sums : _PeelSums or None
+    stokes_sums : _PeelSums or None
+        A polarized run's Q and U images (as 2 n_bands images: band b's Q, then its U).
     achieved_error : float
         The last lit-region error checked (error-targeted runs; NaN otherwise).
     device_bytes : int
@@ -439,6 +443,7 @@ class Tallies:
     folded: np.ndarray
     band_done: np.ndarray
     peel_sums: object = None
+    stokes_sums: object = None
     achieved_error: float = float("nan")
     device_bytes: int = 0
     setup_s: float = 0.0
@@ -487,7 +492,12 @@ def plan_transport(density, request, backend: Backend, *, checked_adds: bool = F
     wl = np.array([b.wavelength for b in bands], dtype=np.float64)
     slum = star_band_luminosities(stars, wl)
     band_lum = slum.sum(axis=0)
-    biased = resolve_method(method, density if tree is None else tree, tau, stars, peel) == "biased"
+    polarization = request.polarization
+    if polarization.enabled and method == "biased":
+        raise SceneError("transport.method", method, f'must be "analog" or "auto" with bands.polarization = '
+                                                     f'"{polarization.kind}" (polarized packets are analog)')
+    biased = (not polarization.enabled
+              and resolve_method(method, density if tree is None else tree, tau, stars, peel) == "biased")
     importance = resolve_importance(request.importance, peel)
     track_scale = float(2.0**FIXED_POINT_BITS * max(fine))
     # what the device forms from these inputs must fit float32/int32: checked before any work
@@ -509,7 +519,7 @@ def plan_transport(density, request, backend: Backend, *, checked_adds: bool = F
     launches = plan_launches(photons, batch_size, target_error > 0.0, shape, len(bands), backend,
                              16 if biased else 8, error_estimate=error_estimate, peel=peel, time_limit=time_limit,
                              max_scatterings=max_scatterings, estimator=estimator, scatter_depth=scatter_depth,
-                             cell_shapes=(fine, bound))
+                             cell_shapes=(fine, bound), stokes=3 if polarization.enabled else 1)
     packets = launches.packet_scales is not None
     if packets:  # the fixed point the one batch's bound allows (packet_scales)
         track_scale = float(2.0**launches.packet_scales[0] * max(fine))
@@ -534,6 +544,8 @@ def plan_transport(density, request, backend: Backend, *, checked_adds: bool = F
         sq_shift=launches.packet_scales[1] if packets else 0,
         tree=tree,
         tree_buffer=None if tree is None else tree_run.device_layout(tree),
+        polar=polarization.kernel_kind,
+        polar_params=polarization.kernel_params(len(bands)) if polarization.enabled else None,
     )
     if biased:
         extinction = [b.extinction for b in bands]
@@ -550,7 +562,8 @@ def plan_transport(density, request, backend: Backend, *, checked_adds: bool = F
             setup = dataclasses.replace(setup, tail_classes=len(DEPTH_CLASS_NAMES), tail_edges=class_edges(extinction))
     if peel is not None:
         setup = dataclasses.replace(setup, peel=_peel_camera(peel),
-                                    peel_scale=_peel_scale([b.g for b in bands]) * (WIDE_SCALE if biased else 1.0))
+                                    peel_scale=_peel_scale([b.g for b in bands], polarization)
+                                    * (WIDE_SCALE if biased else 1.0))
         # an observer along a grid axis: the peel-offs read the density columns (4 bytes a
         # voxel) instead of marching to the edge (tuning key "peel_columns" 0: always march)
         axis = peel_axis(setup.peel[:3]) if tree is None else None

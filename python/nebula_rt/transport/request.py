@@ -23,6 +23,7 @@ import numpy as np
 
 from ..backends import Backend, get_backend
 from ..scene.sections import default as _declared
+from ..optics.polarization import NONE as NO_POLARIZATION, Polarization, polarization_of
 from .result import TransportResult
 from .run import trace_request
 
@@ -70,6 +71,8 @@ class TransportRequest:
         With ``peel``: the pixel groups whose batch sums the run keeps.
     light_field : bool
         False: the peel-off image alone, no J.
+    polarization : nebula_rt.optics.polarization.Polarization
+        The dust's polarized scattering (``bands.polarization``); the default traces intensity alone.
     """
 
     bands: tuple
@@ -88,6 +91,7 @@ class TransportRequest:
     peel_bins: Any = None
     importance: str = "auto"
     light_field: bool = True
+    polarization: Polarization = NO_POLARIZATION
 
     @classmethod
     def from_scene(cls, scene, peel=None, peel_bins=None, light_field: bool = True) -> "TransportRequest":
@@ -99,7 +103,8 @@ class TransportRequest:
                    photons=int(photons), target_error=float(target_error), time_limit=float(t.time_limit),
                    estimator=t.estimator, method=t.method, error_estimate=t.error_estimate,
                    max_scatterings=int(t.max_scatterings), seed=int(t.seed), batch_size=int(t.batch_size),
-                   peel=peel, peel_bins=peel_bins, light_field=bool(light_field))
+                   peel=peel, peel_bins=peel_bins, light_field=bool(light_field),
+                   polarization=polarization_of(scene))
 
     def trace(self, density, backend: Backend, *, progress: Optional[Callable[[int, int], None]] = None,
               cancel: Optional[Callable[[], bool]] = None, on_device: bool = False, comm=None,
@@ -136,6 +141,7 @@ def trace(
     error_estimate: str = _declared("transport.error_estimate"),
     importance: str = "auto",
     light_field: bool = True,
+    polarization: Polarization = NO_POLARIZATION,
 ) -> TransportResult:
     """Trace ``photons`` packets per band through ``density`` and estimate J: the keyword
     form of ``TransportRequest(...).trace(density, backend, ...)``.
@@ -217,11 +223,18 @@ def trace(
         where J was most of the work (on an H200 about half a fit trial's time; see
         benchmarks/profile_fit_trace.py). Needs ``peel`` and no ``target_error`` (which is
         J's error).
+    polarization : nebula_rt.optics.polarization.Polarization
+        Packets carry a Stokes vector and scatter by this Mueller matrix (Rayleigh, or the
+        bands' Henyey-Greenstein phase function with White's linear polarization; analog
+        packets, without the transport by regions). With ``peel``: ``result.peel_stokes``,
+        the Q and U images (n_bands, 2, W, H) in the units of ``peel_image``, IAU convention
+        (the camera's up axis as north, east = the direction to the observer x north: to the
+        image's left), and ``result.peel_stokes_error`` their batch-means standard errors.
     """
     request = TransportRequest(
         bands=tuple(bands), stars=tuple(stars), tau=tau, photons=photons, target_error=target_error,
         time_limit=time_limit, estimator=estimator, method=method, error_estimate=error_estimate,
         max_scatterings=max_scatterings, seed=seed, batch_size=batch_size, peel=peel, peel_bins=peel_bins,
-        importance=importance, light_field=light_field)
+        importance=importance, light_field=light_field, polarization=polarization)
     return request.trace(density, backend, progress=progress, cancel=cancel, on_device=on_device, comm=comm,
                          _acc_limit_bits=_acc_limit_bits, _checked_adds=_checked_adds)

@@ -98,6 +98,13 @@ class TransportResult:
     peel_image: Optional[np.ndarray] = None
     peel_error: Optional[np.ndarray] = None
     peel_bin_batches: Optional[np.ndarray] = None
+    #: polarized runs with a peel-off image (``trace(polarization=...)``): Stokes Q and U,
+    #: (n_bands, 2, W, H) in the units of ``peel_image`` (IAU convention in the camera's frame:
+    #: its up axis north, east to the image's left), their batch-means standard errors, and with
+    #: ``peel_bins`` every batch's Q and U summed over each group, (batches, n_bands, 2, n_groups)
+    peel_stokes: Optional[np.ndarray] = None
+    peel_stokes_error: Optional[np.ndarray] = None
+    peel_stokes_bin_batches: Optional[np.ndarray] = None
     device: str = ""
     ranks: int = 1  # processes that traced it together (nebula_rt.backends.parallel)
     reduce_path: str = ""  # how the ranks' slots were added (Tallies.reduce_path)

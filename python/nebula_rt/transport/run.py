@@ -175,11 +175,14 @@ def run_transport(plan: TransportPlan, backend: Backend, *, progress=None, cance
     targeted = plan.target_error > 0.0
     track_scale = setup.track_scale
     peel_sums = None if plan.peel is None else _PeelSums(nb, plan.peel.size, plan.peel_bins)
+    stokes_sums = (None if plan.peel is None or setup.stokes_images == 1 else
+                   _PeelSums(nb * (setup.stokes_images - 1), plan.peel.size, plan.peel_bins))
     # python ints: exact whatever the photon count (and 128-bit weight sums)
     counts = np.zeros((nb, len(BIASED_TALLY_NAMES) if setup.biased else 4), dtype=object)
     session = backend.transport_session(setup, slots, launches.bands_per_launch)
     out = Tallies(session=session, counts=np.zeros((nb, 4), np.int64), folded=np.zeros(nb, np.int64),
-                  band_done=np.zeros(nb, np.int64), peel_sums=peel_sums, device_bytes=session.device_bytes(),
+                  band_done=np.zeros(nb, np.int64), peel_sums=peel_sums, stokes_sums=stokes_sums,
+                  device_bytes=session.device_bytes(),
                   setup_s=time.perf_counter() - t0,
                   tail_hist=np.zeros((nb, setup.tail_hists, TAIL_BINS), np.uint64))
     folded, band_done = out.folded, out.band_done
@@ -224,7 +227,13 @@ def run_transport(plan: TransportPlan, backend: Backend, *, progress=None, cance
         b0, nlb = group
         kept = [k for k in range(len(ranges)) if not overflow[k]]
         if images is not None and kept:  # (in batch order, as one add per batch)
-            peel_sums.add_batches(images[kept], b0)
+            images = images[kept]
+            if images.ndim == 5:  # polarized: I, then Q and U, signed sums in two's complement
+                m, _, k, w, h = images.shape
+                stokes_sums.add_batches(images[:, :, 1:].view(np.int64).reshape(m, nlb * (k - 1), w, h),
+                                        b0 * (k - 1))
+                images = images[:, :, 0]
+            peel_sums.add_batches(images, b0)
         for k, (b_start, b_count) in enumerate(ranges):
             if overflow[k]:
                 redo.append((b_start, b_count, group))
@@ -334,10 +343,17 @@ def estimate_light(plan: TransportPlan, tallies: Tallies, backend: Backend, *, o
     if plan.setup.packet_sq:  # the error estimate by packets: batches of one packet
         folded = band_done.copy()
     j_scale = _j_scale(q, estimator, plan.setup.track_scale * fs, plan.nvox_inv, plan.setup.collision_scale * fs)
-    peel_image = peel_error = peel_groups = None
+    peel_image = peel_error = peel_groups = stokes = stokes_error = stokes_groups = None
     if plan.peel is not None:  # packet energy x (phase x attenuation) per pixel area
         peel_image, peel_error, peel_groups = tallies.peel_sums.finish(
             q / (plan.setup.peel_scale * plan.peel.pixel_size**2))
+    if tallies.stokes_sums is not None:  # Q and U of each band, in the units of its image
+        k = plan.setup.stokes_images - 1
+        stokes, stokes_error, stokes_groups = tallies.stokes_sums.finish(
+            np.repeat(q / (plan.setup.peel_scale * plan.peel.pixel_size**2), k))
+        stokes, stokes_error = (a.reshape((nb, k) + a.shape[1:]) for a in (stokes, stokes_error))
+        if stokes_groups is not None:
+            stokes_groups = stokes_groups.reshape(stokes_groups.shape[0], nb, k, -1)
     achieved = float("nan")
     if plan.target_error > 0.0:
         achieved = _current_error(backend, session.device_arrays(), shape, folded, estimator, plan.band_luminosity,
@@ -392,6 +408,9 @@ def estimate_light(plan: TransportPlan, tallies: Tallies, backend: Backend, *, o
         peel_image=peel_image,
         peel_error=peel_error,
         peel_bin_batches=peel_groups,
+        peel_stokes=stokes,
+        peel_stokes_error=stokes_error,
+        peel_stokes_bin_batches=stokes_groups,
         device=backend.device_name,
         timings={"setup_s": tallies.setup_s, "kernel_s": tallies.kernel_s, "reduce_s": tallies.reduce_s},
         reduce_path=tallies.reduce_path,
