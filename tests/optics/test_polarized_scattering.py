@@ -105,6 +105,16 @@ def test_rayleigh_scattering_of_polarized_light(backend, q, u):
     if q == u == 0.0:
         np.testing.assert_allclose(out[:, 6], -(1 - mu**2) / (1 + mu**2), atol=2e-6)
         np.testing.assert_allclose(out[:, 7], 0.0, atol=2e-6)
+    elif q * q + u * u == 1.0:  # fully polarized: a dipole's field is E's part perpendicular to d'
+        chi_in = 0.5 * np.arctan2(u, q)
+        field = np.array([np.cos(chi_in), np.sin(chi_in), 0.0])
+        perp = field[None, :] - (d @ field)[:, None] * d
+        k = perp / np.linalg.norm(perp, axis=1, keepdims=True)
+        chi = np.arctan2(np.sum(k * np.cross(d, e), axis=1), np.sum(k * e, axis=1))
+        # (along E itself the angle is undefined, and no light goes there; near it float32 loses digits)
+        keep = np.linalg.norm(perp, axis=1) > 0.05
+        np.testing.assert_allclose(out[keep, 6], np.cos(2 * chi[keep]), atol=2e-5)
+        np.testing.assert_allclose(out[keep, 7], np.sin(2 * chi[keep]), atol=2e-5)
 
 
 def test_white_scattering_follows_hg_and_its_polarization(backend):
@@ -167,3 +177,28 @@ def test_peel_off_stokes_in_the_observers_frame(backend):
     np.testing.assert_allclose(out3[:, 0], 3 / (16 * np.pi) * ((1 + mu**2) - (1 - mu**2) * np.cos(2 * phi)),
                                atol=2e-6)
     assert np.all(np.hypot(out3[:, 1], out3[:, 2]) <= out3[:, 0] * (1 + 1e-5) + 1e-7)
+
+
+def test_peel_off_of_polarized_light_is_dipole_radiation(backend):
+    """Fully linearly polarized light (electric vector E along angle chi from the reference e
+    towards d x e: q = cos 2chi, u = sin 2chi) scattered by a dipole towards o: the scattered
+    field is E's part perpendicular to o, so the intensity is 3 / (8 pi) (1 - (E . o)^2) and the
+    light stays fully polarized along that part; its angle from north towards east gives Q and
+    U (the field built here as a vector, not through Stokes rotations)."""
+    rng = np.random.default_rng(8)
+    n = 2000
+    d = _unit(rng.normal(size=(n, 3)))
+    o = _unit(rng.normal(size=(n, 3)))
+    north = _unit(np.cross(o, _unit(rng.normal(size=(n, 3)))))
+    e = _unit(np.cross(d, _unit(rng.normal(size=(n, 3)))))
+    chi_in = rng.uniform(0, np.pi, n)
+    field = np.cos(chi_in)[:, None] * e + np.sin(chi_in)[:, None] * np.cross(d, e)
+    qu = np.stack([np.cos(2 * chi_in), np.sin(2 * chi_in)], axis=1)
+    out = probes.peel_stokes_at(backend, RAYLEIGH, d, e, o, north, qu).astype(np.float64)
+    perp = field - np.sum(field * o, axis=1)[:, None] * o
+    intensity = 3 / (8 * np.pi) * np.sum(perp * perp, axis=1)
+    k = _unit(perp)
+    chi = np.arctan2(np.sum(k * np.cross(o, north), axis=1), np.sum(k * north, axis=1))
+    np.testing.assert_allclose(out[:, 0], intensity, atol=3e-6)
+    np.testing.assert_allclose(out[:, 1], intensity * np.cos(2 * chi), atol=3e-6)
+    np.testing.assert_allclose(out[:, 2], intensity * np.sin(2 * chi), atol=3e-6)

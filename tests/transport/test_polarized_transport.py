@@ -1,0 +1,242 @@
+"""Polarized transport (``trace(polarization=...)``) against answers the kernel did not make.
+
+- Single scattering (``max_scatterings = 1``: the second interaction terminates a packet
+  before it peels off) of a central star's light in a uniform box, Rayleigh scattering: the
+  images of I, Q and U are line-of-sight integrals computed here in NumPy (Gauss-Legendre over
+  each pixel and along the line of sight): the light scattered at r from the star, attenuated
+  exp(-sigma r) on the way in and exp(-sigma (1 - z)) on the way out, by S11 (I) and, for Q and
+  U, by the polarized part -S12 (3 (1 - mu^2) / (16 pi)) with its electric vector perpendicular
+  to the scattering plane (tangential about the star). Every pixel is its own group of the run's
+  batch sums (``peel_bins``), so the errors of any linear statistic are the batch means' own;
+  tolerances are 4.5 of them, and the z-scores' spread (their honesty) is checked too.
+- The degree of polarization against projected offset (annuli) against the same integrals.
+- Multiple scattering (White's approximation): Q = U = 0 in total about a central star, and the
+  pattern is centrosymmetric (no radial component in any annulus, a tangential one in every one).
+- Turning the camera about the line of sight turns the angles: the same packets peel off the
+  same light, so the image totals of Q + iU turn by exp(-2 i alpha) to rounding.
+- Energy is conserved, launches give the same bits, and what polarization cannot combine with
+  is refused by name.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from conftest import centre_star, one_band
+
+from nebula_rt.errors import SceneError
+from nebula_rt.observe.sky import Camera
+from nebula_rt.optics.polarization import Polarization
+from nebula_rt.transport import trace
+
+RAYLEIGH = Polarization("rayleigh")
+N_PIX = 24
+SIGMA = 0.2  # extinction per box unit: optical depth 0.1 from the star to a face
+
+
+def _batch_stat(batches, weights):
+    """Total and batch-means standard error of sum(weights x pixel) from per-pixel batch sums
+    (batches, pixels)."""
+    x = batches @ weights
+    m = x.size
+    return x.sum(), math.sqrt(m * x.var(ddof=1))
+
+
+def _single_scattering_oracle(cam, sigma, nodes=4, n_alpha=64):
+    """(I, Q, U) images (W, H) of the single scattering of a unit-luminosity star at the box
+    centre, observer along +z, Rayleigh scattering, per pixel area (the pixel means of the
+    line-of-sight integrals). Along the line of sight at offset b the angle alpha from the star's
+    plane (z - 1/2 = b tan alpha) makes dz / r^2 = dalpha / b and mu = sin alpha."""
+    w, h = cam.size
+    ps = cam.pixel_size
+    origin = cam.origin()
+    xg, wg = np.polynomial.legendre.leggauss(nodes)
+    ag, wa = np.polynomial.legendre.leggauss(n_alpha)
+    p = np.arange(w)[:, None, None, None] + 0.5 * xg[None, None, :, None]
+    q = np.arange(h)[None, :, None, None] + 0.5 * xg[None, None, None, :]
+    x = origin[0] + p * ps - 0.5
+    y = origin[1] + q * ps - 0.5
+    b = np.hypot(x, y)
+    lo, hi = np.arctan(-0.5 / b), np.arctan(0.5 / b)
+    alpha = 0.5 * (hi - lo)[..., None] * ag + 0.5 * (hi + lo)[..., None]
+    da = 0.5 * (hi - lo)[..., None] * wa
+    mu = np.sin(alpha)
+    r = b[..., None] / np.cos(alpha)
+    z_out = 0.5 - b[..., None] * np.tan(alpha)  # distance from the point to the face z = 1
+    kern = sigma * np.exp(-sigma * r - sigma * z_out) / (4 * np.pi * b[..., None]) * da
+    i_pt = np.sum(kern * 3 * (1 + mu**2) / (16 * np.pi), axis=-1)
+    t_pt = np.sum(kern * 3 * (1 - mu**2) / (16 * np.pi), axis=-1)
+    psi = np.arctan2(y, x)
+    wts = np.outer(wg, wg) / 4.0
+    mean = lambda a: np.einsum("pqij,ij->pq", a, wts)  # noqa: E731
+    return mean(i_pt), mean(t_pt * np.cos(2 * psi)), mean(t_pt * np.sin(2 * psi))
+
+
+def _pixel_groups(cam):
+    w, h = cam.size
+    return np.arange(w * h).reshape(w, h)
+
+
+def _offsets(cam):
+    """Per pixel (flattened as the groups): projected offset from the box centre in pixels and
+    the position angle psi of the pixel centre (from +x towards +y)."""
+    w, h = cam.size
+    p, q = np.meshgrid(np.arange(w), np.arange(h), indexing="ij")
+    x = cam.origin()[0] + p * cam.pixel_size - 0.5
+    y = cam.origin()[1] + q * cam.pixel_size - 0.5
+    return (np.hypot(x, y) / cam.pixel_size).ravel(), np.arctan2(y, x).ravel()
+
+
+@pytest.fixture(scope="module")
+def single(backend):
+    cam = Camera(direction=(0.0, 0.0, -1.0), size=(N_PIX, N_PIX), extent=1.0)
+    rho = np.ones((16, 16, 16), np.float32)
+    with pytest.warns(UserWarning, match="max_scatterings = 1"):  # (the second scatterings are cut on purpose)
+        res = trace(rho, one_band(albedo=1.0, g=0.0), centre_star(), tau=SIGMA, photons=2_000_000, seed=21,
+                    max_scatterings=1, backend=backend, peel=cam, peel_bins=_pixel_groups(cam),
+                    polarization=RAYLEIGH, light_field=False, batch_size=62_500)
+    return cam, res, _single_scattering_oracle(cam, SIGMA)
+
+
+def test_single_scattering_images_are_the_line_of_sight_integrals(single):
+    """I, Q and U summed over (annulus, sector) groups against the integrals, within 4.5 batch
+    standard errors each, and the z-scores spread as the errors say."""
+    cam, res, (oi, oq, ou) = single
+    assert res.counts[0, 1] == 0 and res.counts[0].sum() - res.counts[0, 0] == res.counts[0, 0]
+    assert res.peel_stokes.shape == (1, 2, N_PIX, N_PIX)
+    bi = res.peel_bin_batches[:, 0, :]
+    bq, bu = res.peel_stokes_bin_batches[:, 0, 0, :], res.peel_stokes_bin_batches[:, 0, 1, :]
+    off, psi = _offsets(cam)
+    edges = [2.0, 3.0, 4.0, 5.5, 7.0, 9.0, 12.0]
+    sector = np.floor(np.mod(psi, 2 * np.pi) / (np.pi / 4)).astype(int)
+    z = []
+    for a, b in zip(edges[:-1], edges[1:]):
+        for s in range(8):
+            sel = ((off >= a) & (off < b) & (sector == s)).astype(np.float64)
+            for batches, oracle in ((bi, oi), (bq, oq), (bu, ou)):
+                total, se = _batch_stat(batches, sel)
+                expect = float(oracle.ravel() @ sel)
+                z.append((total - expect) / se)
+    z = np.array(z)
+    assert np.all(np.abs(z) < 4.5), np.round(z, 2)
+    assert 0.7 < z.std() < 1.35, z.std()
+    assert abs(z.mean()) < 4.5 / math.sqrt(z.size), z.mean()
+
+
+def test_degree_of_polarization_against_offset(single):
+    """P(b) = tangential Q over I in annuli about the star against the integrals' ratio, the
+    error propagated from the batch sums (first order); Rayleigh light is strongly polarized
+    far from the star and less near it, where the line of sight holds forward and backward
+    scatterings."""
+    cam, res, (oi, oq, ou) = single
+    off, psi = _offsets(cam)
+    c2, s2 = np.cos(2 * psi), np.sin(2 * psi)
+    bi = res.peel_bin_batches[:, 0, :]
+    bt = res.peel_stokes_bin_batches[:, 0, 0, :] * c2 + res.peel_stokes_bin_batches[:, 0, 1, :] * s2
+    ot = oq.ravel() * c2 + ou.ravel() * s2
+    ps = []
+    for a, b in [(2, 4), (4, 6), (6, 8), (8, 10), (10, 12)]:
+        sel = ((off >= a) & (off < b)).astype(np.float64)
+        xi, xt = bi @ sel, bt @ sel
+        m = xi.size
+        p = xt.sum() / xi.sum()
+        # the ratio's batch-means error: the spread of each batch's linearised contribution
+        lin = (xt - p * xi) / xi.mean()
+        se = math.sqrt(lin.var(ddof=1) / m)
+        expect = float(ot @ sel) / float(oi.ravel() @ sel)
+        assert abs(p - expect) < 4.5 * se, (a, b, p, expect, se)
+        ps.append(expect)
+    assert ps[0] < ps[-1] and ps[-1] > 0.5
+
+
+@pytest.fixture(scope="module")
+def symmetric(backend):
+    cam = Camera(direction=(0.0, 0.0, -1.0), size=(20, 20), extent=1.0)
+    rho = np.ones((16, 16, 16), np.float32)
+    return cam, trace(rho, one_band(albedo=0.7, g=0.4), centre_star(), tau=2.0, photons=600_000, seed=5,
+                      backend=backend, peel=cam, peel_bins=_pixel_groups(cam), batch_size=37_500,
+                      polarization=Polarization("white", peak=0.5), light_field=False)
+
+
+def test_symmetric_nebula_has_no_net_polarization_and_a_centrosymmetric_pattern(symmetric):
+    cam, res = symmetric
+    assert res.counts[0, 3] == 0 or res.counts[0, 3] < 10
+    bq, bu = res.peel_stokes_bin_batches[:, 0, 0, :], res.peel_stokes_bin_batches[:, 0, 1, :]
+    ones = np.ones(bq.shape[1])
+    for b in (bq, bu):
+        total, se = _batch_stat(b, ones)
+        assert abs(total) < 4.5 * se, (total, se)
+    off, psi = _offsets(cam)
+    c2, s2 = np.cos(2 * psi), np.sin(2 * psi)
+    for a, b in [(1.5, 3), (3, 5), (5, 7), (7, 10)]:
+        sel = ((off >= a) & (off < b)).astype(np.float64)
+        tangential, se_t = _batch_stat(bq * c2 + bu * s2, sel)   # Q in each pixel's radial frame
+        radial, se_r = _batch_stat(-bq * s2 + bu * c2, sel)      # U in that frame: 0 by symmetry
+        assert tangential > 10 * se_t, (a, b, tangential, se_t)
+        assert abs(radial) < 4.5 * se_r, (a, b, radial, se_r)
+
+
+def test_turning_the_camera_turns_the_polarization_angles(backend):
+    """The same seed seen with the camera's up turned about the line of sight: every deposit
+    has the same weight and rounding draw, so the I totals are the same integers' sums and the
+    totals of Q + iU turn by exp(-2 i alpha), alpha the angle from the old north to the new
+    one towards east."""
+    rho = np.zeros((12, 12, 12), np.float32)
+    rho[8:, 2:10, 3:9] = np.random.default_rng(2).random((4, 8, 6)) + 0.5  # a cloud beside the star
+    star = centre_star(position=(0.3, 0.5, 0.45))
+    direction = (0.2, -0.3, -0.93)
+    runs = []
+    for up in ((0.0, 1.0, 0.0), (0.7, 0.4, 0.2)):
+        cam = Camera(direction=direction, up=up, size=(40, 40), extent=1.8)
+        runs.append((cam, trace(rho, one_band(0.6, 0.5), star, tau=1.5, photons=40_000, seed=8, backend=backend,
+                                peel=cam, polarization=Polarization("white", peak=0.4), light_field=False)))
+    (c0, r0), (c1, r1) = runs
+    d, _, n0 = c0.basis()
+    _, _, n1 = c1.basis()
+    east0 = np.cross(-d, n0)
+    alpha = math.atan2(float(n1 @ east0), float(n1 @ n0))
+    assert abs(alpha) > 0.2
+    i0, i1 = r0.peel_image.sum(), r1.peel_image.sum()
+    assert i1 == pytest.approx(i0, rel=1e-12)
+    s0 = complex(r0.peel_stokes[0, 0].sum(), r0.peel_stokes[0, 1].sum())
+    s1 = complex(r1.peel_stokes[0, 0].sum(), r1.peel_stokes[0, 1].sum())
+    assert abs(s0) > 0.01 * i0  # an off-centre star: a net polarization to turn
+    assert abs(s1 - s0 * complex(math.cos(2 * alpha), -math.sin(2 * alpha))) < 2e-5 * i0
+
+
+def test_polarized_runs_conserve_energy_and_keep_their_bits_over_launches(backend, monkeypatch):
+    from nebula_rt.transport import run as transport
+
+    rho = (np.random.default_rng(4).random((10, 8, 6)) ** 2).astype(np.float32)
+    cam = Camera(direction=(0.3, 0.2, -0.9), size=(10, 8))
+    kw = dict(tau=6.0, photons=9000, batch_size=1500, seed=3, peel=cam, polarization=RAYLEIGH)
+    one = trace(rho, one_band(0.7, 0.0), centre_star(), backend=backend, **kw)
+    backend.first_launch_packets = 997
+    monkeypatch.setattr(transport, "LAUNCH_SECONDS", 1e-4)
+    try:
+        many = trace(rho, one_band(0.7, 0.0), centre_star(), backend=backend, **kw)
+    finally:
+        del backend.first_launch_packets
+    c = one.counts[0]
+    assert c[0] == 9000 and c[0] == c[1] + c[2] + c[3]
+    for a, b in ((one.counts, many.counts), (one.raw_sum, many.raw_sum), (one.peel_image, many.peel_image),
+                 (one.peel_stokes, many.peel_stokes)):
+        np.testing.assert_array_equal(a, b)
+    assert np.all(np.abs(one.peel_stokes[0]) <= one.peel_image[0][None] * (1 + 1e-12))
+
+
+def test_polarization_is_refused_where_it_cannot_run(backend):
+    rho = np.ones((4, 4, 4), np.float32)
+    cam = Camera(size=(4, 4))
+    with pytest.raises(SceneError, match="transport.method"):
+        trace(rho, one_band(), centre_star(), tau=1.0, photons=100, backend=backend, peel=cam, method="biased",
+              polarization=RAYLEIGH)
+    with pytest.raises(SceneError, match="bands.peak_polarization"):
+        trace(rho, one_band(), centre_star(), tau=1.0, photons=100, backend=backend,
+              polarization=Polarization("white", peak=[0.3, 0.4]))
+    with pytest.raises(SceneError, match="bands.peak_polarization"):
+        Polarization("white", peak=1.2)
+    with pytest.raises(SceneError, match="bands.polarization"):
+        Polarization("mie")
