@@ -396,6 +396,22 @@ def _devices(args, cancel) -> int:
     return 0
 
 
+def _with_vectors(rgb8, cal, scene):
+    """The picture with the reference band's polarization vectors, one per block of about a
+    24th of the image, where P is at least 3 of its errors (nebula_rt.observe.polarimetry)."""
+    from ..observe.polarimetry import overlay_vectors, vector_field
+    from ..optics.bands import reference_band_index
+
+    b = reference_band_index(scene.bands.resolve())
+    step = max(2, rgb8.shape[0] // 24)
+    err = cal.stokes_error
+    centres, p, chi, keep = vector_field(cal.scattered[b], cal.stokes[b, 0], cal.stokes[b, 1],
+                                         None if cal.scattered_error is None else cal.scattered_error[b],
+                                         None if err is None else err[b, 0], None if err is None else err[b, 1],
+                                         step=step)
+    return overlay_vectors(rgb8, centres, p, chi, keep, length=2.0 * step)
+
+
 def _sky(args, cancel) -> int:
     """A calibrated sky image of a scene (nebula_rt.observe.calibrate): FITS in MJy/sr and mag/arcsec^2
     with a celestial WCS, and a true-colour PNG. Under mpiexec the ranks share the trace and
@@ -414,8 +430,14 @@ def _sky(args, cancel) -> int:
         calibrate.check_scene(scene)
         npix = args.size * args.size
         nb = len(scene.bands.resolve())
+        polarized = scene.bands.polarization != "none"
+        if polarized and args.method != "peel-off":
+            raise SceneError("--method", args.method, f"must be 'peel-off' with bands.polarization = "
+                             f"'{scene.bands.polarization}' (the ray march has no Stokes Q and U)")
+        if args.vectors and not polarized:
+            raise SceneError("--vectors", True, "needs a scene with bands.polarization (it has none)")
         outputs = [Output("--fits", Path(args.fits), ".fits",
-                          (nb + len(calibrate.PASSBANDS)) * npix * 4 + (256 << 10))]
+                          (nb * (3 if polarized else 1) + len(calibrate.PASSBANDS)) * npix * 4 + (256 << 10))]
         if args.png:
             outputs.append(Output("--png", Path(args.png), ".png", npix * 4 + 65536))
         if args.json:
@@ -451,12 +473,21 @@ def _sky(args, cancel) -> int:
         "faintest_lit_mag_arcsec2": {n: None if not (cal.mag[x] == cal.mag[x]).any() else
                                      round(float(np.nanmax(cal.mag[x])), 3) for x, n in enumerate(cal.passbands)},
     }
+    if cal.stokes is not None:  # the whole image's polarization per band (its scattered light)
+        from ..observe.polarimetry import polarization_maps
+
+        p, _, chi, _ = polarization_maps(cal.scattered.sum(axis=(1, 2)), cal.stokes[:, 0].sum(axis=(1, 2)),
+                                         cal.stokes[:, 1].sum(axis=(1, 2)))
+        summary["net_polarization"] = {n: {"p": float(p[b]), "angle_deg_east_of_north": float(chi[b])}
+                                       for b, n in enumerate(cal.band_names)}
 
     def publish():
         with Publication() as pub:  # the FITS, the PNG and the JSON: all or none
             calibrate.write_fits(pub.stage(args.fits), cal, scene)
             if args.png:
                 rgb8, exposure = calibrate.picture(cal, scene, scene.colour.exposure)
+                if args.vectors:
+                    rgb8 = _with_vectors(rgb8, cal, scene)
                 calibrate.write_png(pub.stage(args.png), rgb8)
                 summary["exposure"] = exposure
             if args.json:
@@ -535,6 +566,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="pixels per side ({}-{})".format(*_size_range()))
     k.add_argument("--stretch", default=None, choices=_choices("colour.stretch"),
                    help="the picture's tone curve (shorthand for --set colour.stretch=S)")
+    k.add_argument("--vectors", action="store_true",
+                   help="a polarized scene (bands.polarization): draw the reference band's polarization "
+                        "vectors over the picture (length P, angle east of north; where P >= 3 errors)")
     k.add_argument("-q", "--quiet", action="store_true", help="no summary")
     k.set_defaults(func=_sky)
     c = sub.add_parser("compare", parents=[run, view, reference],

@@ -37,7 +37,10 @@ With the stars' luminosities in L_sun (``stars.luminosity_lsun`` or ``absolute_m
 FITS (:func:`write_fits`): an empty primary HDU with the run's description, then one image HDU
 per band (``SB_<band>``, MJy/sr) and per passband (``MAG_BESSELL_B``, ``_V``, ``_R``,
 ``MAG_SDSS_G``, ``_R``, ``_I``: mag/arcsec^2, AB), each with the celestial WCS, and a table
-``STARS`` (FITS pixel, RA, Dec, flux densities in Jy, AB magnitudes).
+``STARS`` (FITS pixel, RA, Dec, flux densities in Jy, AB magnitudes). A polarized scene
+(``bands.polarization``) adds, after the bands, ``Q_<band>`` and ``U_<band>``: Stokes Q and U
+of the scattered light in MJy/sr with the same WCS, ``POLCONV = 'IAU'`` (the angle from north
+through east; :mod:`nebula_rt.observe.polarimetry`).
 """
 
 from __future__ import annotations
@@ -58,6 +61,7 @@ from ..errors import SceneError
 from ..transport.line_of_sight import density_column, line_of_sight_tau
 from ..pipeline.rgba import _dominant_source
 from .colours import star_transmission
+from .polarimetry import convolve_psf_error, errors_to_celestial, stokes_hdus, to_celestial
 from .sky import Camera, sky_image
 from ..transport.tails import fits_cards
 from ..transport.request import TransportRequest, scene_backend
@@ -269,6 +273,12 @@ class CalibratedSky:
         FITS header cards of the primary HDU.
     mag_system : str
         "AB" or "Vega" (``observer.magnitude_system``).
+    scattered_error : ndarray (nb, W, H) or None
+        The batch-means standard error of ``scattered`` (peel-off images), MJy/sr.
+    stokes, stokes_error : ndarray (nb, 2, W, H) or None
+        A polarized scene's peel-off: Stokes Q and U of the scattered light, PSF-convolved,
+        MJy/sr, IAU convention (angle from north through east; :mod:`nebula_rt.observe.polarimetry`),
+        and their standard errors.
     """
 
     band_names: list
@@ -292,6 +302,21 @@ class CalibratedSky:
     method: str
     meta: dict = field(default_factory=dict)
     mag_system: str = "AB"
+    scattered_error: Optional[np.ndarray] = None
+    stokes: Optional[np.ndarray] = None
+    stokes_error: Optional[np.ndarray] = None
+
+    def polarization(self):
+        """(P, P error, chi, chi error), each (nb, W, H): the degree of linear polarization of
+        the scattered light and its angle east of north in degrees
+        (:func:`nebula_rt.observe.polarimetry.polarization_maps`); None for an unpolarized scene."""
+        if self.stokes is None:
+            return None
+        from .polarimetry import polarization_maps
+
+        err = self.stokes_error
+        return polarization_maps(self.scattered, self.stokes[:, 0], self.stokes[:, 1], self.scattered_error,
+                                 None if err is None else err[:, 0], None if err is None else err[:, 1])
 
     def total_flux_jy(self) -> np.ndarray:
         """(nb,) the image's flux density, Jy: the sum of the pixels times their solid angle."""
@@ -299,7 +324,7 @@ class CalibratedSky:
 
 
 def calibrate(scene, camera, scattered, star_band_luminosity, tau_star, method: str = "peel-off",
-              meta: Optional[dict] = None) -> CalibratedSky:
+              meta: Optional[dict] = None, scattered_error=None, stokes=None, stokes_error=None) -> CalibratedSky:
     """Calibrate a box-unit sky image of ``scene`` seen by ``camera`` (module docstring).
 
     Parameters
@@ -315,6 +340,11 @@ def calibrate(scene, camera, scattered, star_band_luminosity, tau_star, method: 
         Optical depth from each star to the observer.
     method : str
         How ``scattered`` was made (one of :data:`METHODS`), for the header.
+    scattered_error : ndarray (nb, W, H), optional
+        Its standard error (same units).
+    stokes, stokes_error : ndarray (nb, 2, W, H), optional
+        Stokes Q and U of ``scattered`` in the camera's frame (``result.peel_stokes``) and their
+        errors: calibrated as the intensity, in the IAU convention.
     """
     check_scene(scene)
     bands = scene.bands.resolve()
@@ -376,6 +406,14 @@ def calibrate(scene, camera, scattered, star_band_luminosity, tau_star, method: 
         offset = np.array([vega[name] for name in pb])
         mag = mag - offset[:, None, None]
         star_mag = star_mag - offset[None, :]
+    scat_err = stokes_mjy = stokes_err = None
+    if scattered_error is not None:
+        scat_err = convolve_psf_error(scattered_error, sigma_pix) * to_mjy
+    if stokes is not None:  # the image's up axis at observer.position_angle east of north
+        pa = scene.observer.position_angle
+        stokes_mjy = convolve_psf(to_celestial(stokes, pa), sigma_pix) * to_mjy[:, None]
+        if stokes_error is not None:
+            stokes_err = convolve_psf_error(errors_to_celestial(stokes_error, pa), sigma_pix) * to_mjy[:, None]
     info = {"METHOD": method, "DISTANCE": (dist_m / units._pc_metres(), "distance to the box centre, pc"),
             "BOXEDGE": (box_m / units._pc_metres(), "box edge, pc"),
             "PIXSCALE": (scale_arcsec, "pixel side, arcsec"), "PSFFWHM": (scene.observer.psf_fwhm, "arcsec"),
@@ -386,7 +424,8 @@ def calibrate(scene, camera, scattered, star_band_luminosity, tau_star, method: 
         scattered=scat_psf * to_mjy, passbands=pb, passband_sb=psb, mag=mag, star_pixel=star_pixel,
         star_flux_jy=star_flux, star_mag=star_mag, intensity_box=box_total, scattered_box=scat_psf, band_luminosity=band_lum,
         wcs=celestial_wcs(scene, camera), pixel_scale_arcsec=scale_arcsec, pixel_solid_angle_sr=omega,
-        psf_fwhm_arcsec=float(scene.observer.psf_fwhm), method=method, meta=info, mag_system=system)
+        psf_fwhm_arcsec=float(scene.observer.psf_fwhm), method=method, meta=info, mag_system=system,
+        scattered_error=scat_err, stokes=stokes_mjy, stokes_error=stokes_err)
 
 
 def passband_header(hh, name: str, system: str) -> None:
@@ -399,7 +438,8 @@ def passband_header(hh, name: str, system: str) -> None:
         hh["ABVEGA"] = (units.ab_minus_vega(system)[name], ABVEGA_COMMENT[system])
 
 
-def sky_hdus(primary: dict, wcs_header, band_images, passband_images, mag_system: str, comments=(), stars=None):
+def sky_hdus(primary: dict, wcs_header, band_images, passband_images, mag_system: str, comments=(), stars=None,
+             stokes=None):
     """The calibrated sky image as FITS (the layout of the module docstring), for every writer
     of it (:func:`write_fits`; Nebula Sky FITS Writer, ``nebula_rt.filters.sky_image``).
 
@@ -417,6 +457,9 @@ def sky_hdus(primary: dict, wcs_header, band_images, passband_images, mag_system
         Comment lines of the primary header (the scene's TOML).
     stars : astropy.io.fits.BinTableHDU, optional
         The stars' table (``STARS``), last.
+    stokes : ndarray (n_bands, 2, W, H), optional
+        A polarized scene's Stokes Q and U (MJy/sr, IAU): HDUs ``Q_<name>`` and ``U_<name>``
+        after the bands (:func:`nebula_rt.observe.polarimetry.stokes_hdus`).
     """
     from astropy.io import fits
 
@@ -434,6 +477,8 @@ def sky_hdus(primary: dict, wcs_header, band_images, passband_images, mag_system
         for k, val in cards.items():
             hh[k] = val
         hdus.append(fits.ImageHDU(np.ascontiguousarray(np.asarray(image).T, np.float32), header=hh, name=f"SB_{name}"))
+    if stokes is not None:
+        hdus.extend(stokes_hdus(wcs_header, [name for name, _, _ in band_images], stokes))
     for name, image in passband_images:
         hh = wcs_header.copy()
         passband_header(hh, name, mag_system)
@@ -467,7 +512,8 @@ def write_fits(path, cal: CalibratedSky, scene=None) -> None:
     thdu.name = "STARS"
     hdus = sky_hdus({"BUNIT": "", **cal.meta}, cal.wcs.to_header(), bands,
                     [(name, cal.mag[x]) for x, name in enumerate(cal.passbands)], cal.mag_system,
-                    comments=scene.to_toml().splitlines() if scene is not None else (), stars=thdu)
+                    comments=scene.to_toml().splitlines() if scene is not None else (), stars=thdu,
+                    stokes=cal.stokes)
     hdus.writeto(path, overwrite=True)
 
 
@@ -520,7 +566,8 @@ def peel_off_sky(scene, camera, backend=None, progress=None, cancel=None, pixel_
     tau = star_tau(scene, bands, rho, camera)
     meta = {"NPHOTON": (int(res.photons), "packets per band"), "SEED": str(request.seed)}
     meta.update(fits_cards(res.tail_image, [b.name for b in bands]))  # the heavy-tail checks
-    cal = calibrate(scene, camera, res.peel_image, res.star_band_luminosity, tau, "peel-off", meta)
+    cal = calibrate(scene, camera, res.peel_image, res.star_band_luminosity, tau, "peel-off", meta,
+                    scattered_error=res.peel_error, stokes=res.peel_stokes, stokes_error=res.peel_stokes_error)
     return cal, res
 
 

@@ -1,0 +1,132 @@
+"""Polarization maps of calibrated sky images (nebula_rt.observe.polarimetry) and their FITS.
+
+- The errors of P and chi against the scatter of P and chi over simulated Gaussian noise of
+  I, Q and U (the formulas are first order; the simulation is not).
+- The IAU convention on the sky: the same packets seen with the image's up axis at position
+  angle 0 and 90 degrees give Q and U of opposite signs (an angle turned by 90 degrees doubles
+  to 180), and a pixel east of a central star in a Rayleigh nebula is polarized north-south
+  (Q > 0), one north of it east-west (Q < 0).
+- ``nebula-rt sky`` writes ``Q_<band>`` and ``U_<band>`` with the intensity's WCS and units and
+  ``POLCONV = 'IAU'``; the vectors need a polarized scene and the ray march refuses one.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from conftest import TEST_BACKEND, TEST_DEVICE
+
+from nebula_rt.observe import calibrate
+from nebula_rt.observe.polarimetry import polarization_maps, vector_field, overlay_vectors
+from nebula_rt.scene import Scene
+
+
+def test_polarization_errors_follow_the_scatter_of_simulated_noise():
+    rng = np.random.default_rng(1)
+    n = 200_000
+    i0, p0, chi0 = 100.0, 0.3, np.radians(35.0)
+    q0, u0 = i0 * p0 * np.cos(2 * chi0), i0 * p0 * np.sin(2 * chi0)
+    si, sq, su = 1.0, 0.6, 0.9
+    i = i0 + si * rng.normal(size=n)
+    q = q0 + sq * rng.normal(size=n)
+    u = u0 + su * rng.normal(size=n)
+    p, p_err, chi, chi_err = polarization_maps(np.full(1, i0), np.full(1, q0), np.full(1, u0),
+                                               np.full(1, si), np.full(1, sq), np.full(1, su))
+    p_sim, _, chi_sim, _ = polarization_maps(i, q, u)
+    assert p[0] == pytest.approx(p0, rel=1e-12) and chi[0] == pytest.approx(35.0, abs=1e-9)
+    assert p_err[0] == pytest.approx(np.std(p_sim), rel=0.03)
+    assert chi_err[0] == pytest.approx(np.std(chi_sim), rel=0.03)
+    # angles in [0, 180) east of north
+    _, _, a, _ = polarization_maps(np.ones(4), np.array([1.0, 0.0, -1.0, 0.0]), np.array([0.0, 1.0, 0.0, -1.0]))
+    np.testing.assert_allclose(a, [0.0, 45.0, 90.0, 135.0])
+
+
+def test_vectors_are_block_sums_and_lines_along_their_angle():
+    i = np.ones((8, 8))
+    q = np.zeros((8, 8))
+    u = np.zeros((8, 8))
+    q[:4, :4] = 0.5            # block (0, 0): north-south, P = 0.5
+    u[4:, 4:] = -0.5           # block (1, 1): chi = 135 degrees east of north
+    centres, p, chi, keep = vector_field(i, q, u, 0.01 * i, 0.01 * i, 0.01 * i, step=4)
+    np.testing.assert_allclose(centres, [[1.5, 1.5], [1.5, 5.5], [5.5, 1.5], [5.5, 5.5]])
+    np.testing.assert_allclose(p, [0.5, 0.0, 0.0, 0.5], atol=1e-12)
+    assert keep.tolist() == [True, False, False, True]
+    assert chi[0] == pytest.approx(0.0) and chi[3] == pytest.approx(135.0)
+    rgb = overlay_vectors(np.zeros((8, 8, 3), np.uint8), centres, p, chi, keep, length=4.0)
+    lit = np.argwhere(rgb[..., 0] == 255)
+    # the north-south one: one column (p), rows (q) around its centre
+    first = lit[(lit[:, 0] < 4) & (lit[:, 1] < 4)]
+    assert len(set(first[:, 0])) == 1 and len(set(first[:, 1])) >= 2
+    # 135 degrees east of north: the south-east, -p and -q (east is -p): a line of slope +1
+    last = lit[(lit[:, 0] >= 4) & (lit[:, 1] >= 4)]
+    d = np.polyfit(last[:, 0], last[:, 1], 1)[0]
+    assert d == pytest.approx(1.0, abs=0.3)
+
+
+def _scene(pa=0.0, **bands):
+    return Scene.from_dict({
+        "grid": {"shape": [16, 16, 16], "length": "0.2 pc"},
+        "dust": {"model": "uniform", "hydrogen_density": 400.0, "floor": 0.0},
+        "stars": [{"position": [0.5, 0.5, 0.5], "luminosity_lsun": 100.0, "temperature": 9000.0}],
+        "bands": {"preset": "thesis-rgb", "polarization": "rayleigh", **bands},
+        "transport": {"photons": 60_000, "seed": 4, "backend": TEST_BACKEND, "device": TEST_DEVICE},
+        "observer": {"distance": "50 pc", "psf_fwhm": 0.0, "position_angle": pa}})
+
+
+def test_stokes_images_on_the_sky_follow_the_iau_convention(backend):
+    cals = []
+    for pa in (0.0, 90.0):
+        s = _scene(pa)
+        cam = calibrate.camera_for(s, (0.0, 0.0, -1.0), 12, extent=1.0)
+        cal, res = calibrate.peel_off_sky(s, cam, backend)
+        cals.append(cal)
+    a, b = cals
+    assert a.stokes.shape == (3, 2, 12, 12)
+    np.testing.assert_array_equal(a.scattered, b.scattered)
+    np.testing.assert_allclose(b.stokes, -a.stokes, atol=1e-12 * np.abs(a.stokes).max())
+    # position angle 0: north up, east to the left (image p decreasing); a Rayleigh nebula about
+    # a central star is polarized tangentially
+    g = 1  # band G
+    east, west = a.stokes[g, 0, 1:4, 4:8].sum(), a.stokes[g, 0, 8:11, 4:8].sum()
+    north, south = a.stokes[g, 0, 4:8, 8:11].sum(), a.stokes[g, 0, 4:8, 1:4].sum()
+    assert east > 0 and west > 0 and north < 0 and south < 0
+    p, p_err, chi, chi_err = a.polarization()
+    assert np.nanmax(p) < 1.0 and np.all(p_err[np.isfinite(p)] > 0)
+    assert chi[g, 2, 6] == pytest.approx(0.0, abs=20.0) or chi[g, 2, 6] == pytest.approx(180.0, abs=20.0)
+    assert chi[g, 6, 9] == pytest.approx(90.0, abs=20.0)
+
+
+def test_cli_sky_writes_stokes_extensions_and_vectors(tmp_path, capsys):
+    from astropy.io import fits
+    from astropy.wcs import WCS
+
+    from nebula_rt.cli import commands as cli
+
+    s = _scene()
+    (tmp_path / "s.toml").write_text(s.to_toml())
+    out = tmp_path / "out"
+    out.mkdir()
+    status = cli.main(["sky", str(tmp_path / "s.toml"), "--fits", str(out / "sky.fits"), "--png", str(out / "sky.png"),
+                       "--json", str(out / "sky.json"), "--size", "24", "--vectors", "-q"])
+    assert status == 0, capsys.readouterr().err
+    with fits.open(out / "sky.fits") as hdul:
+        names = [h.name for h in hdul]
+        for band in ("R", "G", "B"):
+            q, u, sb = hdul[f"Q_{band}"], hdul[f"U_{band}"], hdul[f"SB_{band}"]
+            assert q.header["POLCONV"] == "IAU" and q.header["BUNIT"] == "MJy/sr" and q.header["STOKES"] == "Q"
+            assert u.header["STOKES"] == "U" and q.data.shape == sb.data.shape
+            assert WCS(q.header).to_header() == WCS(sb.header).to_header()
+            assert np.all(np.hypot(q.data, u.data) <= sb.data * (1 + 1e-5) + 1e-30)
+        assert names.index("Q_R") > names.index("SB_B")
+    summary = json.loads((out / "sky.json").read_text())
+    assert set(summary["net_polarization"]) == {"R", "G", "B"}
+    # refused before tracing, naming the option
+    status = cli.main(["sky", str(tmp_path / "s.toml"), "--fits", str(out / "rm.fits"), "--method", "ray-march", "-q"])
+    assert status == 2 and "--method" in capsys.readouterr().err
+    plain = _scene(polarization="none")
+    (tmp_path / "p.toml").write_text(plain.to_toml())
+    status = cli.main(["sky", str(tmp_path / "p.toml"), "--fits", str(out / "p.fits"), "--vectors", "-q"])
+    assert status == 2 and "--vectors" in capsys.readouterr().err
+    assert not (out / "rm.fits").exists() and not (out / "p.fits").exists()
