@@ -8,7 +8,7 @@
 # colour-science, tomli-w; pmcx for the MCX comparison), fetched elsewhere with
 # `pip download --only-binary=:all: --python-version 3.12 ...`.
 # STEPS (default "tests bench neb128 compare profile"; also "tests-cuda", "thick", "thick-grid", "trust", "scaling", "large", "regions", "regcaps", "profile-regions", "layout", "sorted", "probe", "ranks", "ranks-thesis", "ranks-weak", "tests-mpi", "e2e1e9", "biasing", "fit", "fitprof", "tune",
-# "stages", "kernel-probes", "ncu-thesis", "tree", "tree-targets", "tree-ascend", "trade", "presets", "empty", "fft") selects what runs. Everything printed
+# "stages", "kernel-probes", "polarization", "ncu-thesis", "tree", "tree-targets", "tree-ascend", "trade", "presets", "empty", "fft") selects what runs. Everything printed
 # goes to OUTDIR/log.txt as well; JSON and .npz results beside it.
 set -uo pipefail
 out="${1:?output folder}"
@@ -254,6 +254,29 @@ if [[ " $steps " == *" kernel-probes "* ]]; then
     echo "== transport kernel probes, neb medium, CUDA"
     python3 benchmarks/profile_kernels.py --grids 64 128 --photons 2.1e7 --tuning "" "NRT_PROBE_DEPOSIT=1" \
         "NRT_HOT_HALF=0" "NRT_HOT_HALF=1" "NRT_HOT_HALF=3" --out "$out/neb-probes.json" 2>&1 | grep -v Warning
+fi
+if [[ " $steps " == *" polarization "* ]]; then
+    # polarized packets (bands.polarization): their tests on CUDA and NVIDIA OpenCL, their cost
+    # against intensity alone, and the unpolarized kernel against the former commit's (a copy of
+    # its python/ in .former/) on the neb medium and the thesis scene
+    pol_tests="tests/optics/test_polarized_scattering.py tests/transport/test_polarized_transport.py tests/backends/test_kernel_options.py"
+    echo "== polarization tests, CUDA"; NEBULA_RT_TEST_BACKEND=cuda python3 -m pytest -q -p no:cacheprovider $pol_tests 2>&1 | tail -n 4
+    echo "== polarization tests, NVIDIA OpenCL"; NEBULA_RT_TEST_DEVICE=NVIDIA python3 -m pytest -q -p no:cacheprovider $pol_tests 2>&1 | tail -n 4
+    echo "== cost of polarization, CUDA"
+    python3 benchmarks/bench_polarization.py --backend cuda --grid 64 128 256 --photons 2.1e7 --out "$out/polarization-cuda.json"
+    echo "== cost of polarization, NVIDIA OpenCL"
+    python3 benchmarks/bench_polarization.py --backend opencl --device NVIDIA --grid 128 --photons 2.1e7 \
+        --out "$out/polarization-nvidia-opencl.json"
+    if [[ -d .former/python ]]; then
+        for v in "" former; do
+            echo "== unpolarized kernel ${v:-as built}: thesis 128^3 and the neb medium, CUDA"
+            pp=${v:+.former/python:}
+            PYTHONPATH=$pp$PYTHONPATH python3 benchmarks/profile_kernels.py --scene examples/scenes/thesis-default.toml \
+                --grids 128 --photons 2.1e6 --out "$out/thesis-${v:-built}.json" 2>&1 | grep -v Warning
+            PYTHONPATH=$pp$PYTHONPATH python3 benchmarks/profile_kernels.py --grids 64 128 256 --photons 2.1e7 \
+                --out "$out/neb-${v:-built}.json" 2>&1 | grep -v Warning
+        done
+    fi
 fi
 if [[ " $steps " == *" tree "* ]]; then
     # the transport on octrees made from the thesis density against that grid, CUDA and NVIDIA OpenCL
