@@ -6,6 +6,8 @@ through the thin wrappers of ``plugin/``, ParaView.
 - :class:`NebulaColour`       filter  light field -> ``rgba`` (+ ``rgb_linear``), no re-trace
 - :class:`NebulaSkyImage`     filter  light field -> 2D image of what a telescope sees
   (with Units "MJy/sr" also calibrated: surface brightness, magnitudes, a celestial WCS)
+- :class:`NebulaPolarizationVectors` filter  polarized sky image -> points with polarization vectors
+  (to glyph: the pattern about the star)
 - :class:`NebulaSkyFitsWriter` writer  calibrated sky image -> FITS
 - :class:`NebulaFitResultReader` reader  `nebula-rt fit --json` -> parameters and comparison tables
 
@@ -32,7 +34,8 @@ from .colour import NebulaColour
 from .dust_density import NebulaDustDensity
 from .fit_result import NebulaFitResultReader
 from .light_field import NebulaLightField
+from .polarization_vectors import NebulaPolarizationVectors
 from .sky_image import NebulaSkyFitsWriter, NebulaSkyImage
 
-__all__ = ["NebulaColour", "NebulaDustDensity", "NebulaFitResultReader", "NebulaLightField", "NebulaSkyFitsWriter",
-           "NebulaSkyImage"]
+__all__ = ["NebulaColour", "NebulaDustDensity", "NebulaFitResultReader", "NebulaLightField",
+           "NebulaPolarizationVectors", "NebulaSkyFitsWriter", "NebulaSkyImage"]

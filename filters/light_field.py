@@ -30,6 +30,8 @@ LIGHT_FIELD_PROPERTIES = (
     Property("BandPreset", "bands.preset"),
     Property("Albedo", "bands.albedo", enabled_by=("OverrideOptics", 1)),
     Property("G", "bands.g", enabled_by=("OverrideOptics", 1)),
+    Property("Polarization", "bands.polarization", widget="enum"),
+    Property("PeakPolarization", "bands.peak_polarization", enabled_by=("Polarization", 2)),
     Property("Estimator", "transport.estimator", widget="enum"),
     Property("Method", "transport.method", widget="enum"),
     Property("ErrorEstimate", "transport.error_estimate", widget="enum"),

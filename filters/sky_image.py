@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 import re
+import warnings
 
 import numpy as np
 from vtkmodules.util.vtkAlgorithm import VTKPythonAlgorithmBase
@@ -11,7 +13,7 @@ from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
 
 from nebula_rt.optics import colour_convert
 from nebula_rt.pipeline import output_contract as contract
-from nebula_rt.errors import SceneError
+from nebula_rt.errors import NebulaWarning, SceneError
 from nebula_rt.limits import check_float32_array
 from nebula_rt.scene.sky_schema import G_PICTURE
 from nebula_rt.pipeline.rgba import colour_source_from_field_data
@@ -31,6 +33,7 @@ from .properties import Property, bind, init_values, scene_values
 #: the scene is on the sky, bound to the [observer] keys, used by a calibrated image (enabled by
 #: Units, the filter's own property, which the panel shows right before them)
 SKY_IMAGE_PROPERTIES = (
+    Property("Method", "sky.method", widget="enum"),
     Property("ViewDirection", "sky.direction"),
     Property("ViewUp", "sky.up"),
     Property("ImageSize", "sky.size"),
@@ -198,10 +201,20 @@ class NebulaSkyImage(NebulaAlgorithm):
                              f"{_numbers(drawn)} differ from the light field's {_numbers(traced)}")
         stars = [s.position for s in scene.stars] if include_stars else []
         slum = star_band_luminosities(scene.stars, wl) if include_stars else None
-        self._report(0.1, "NebulaRT: ray marching the sky image")
+        method = self._values["sky.method"]
+        peel = None
+        if method == "peel-off":  # the scene traced again with the camera (its density: the input's)
+            peel = self._peel_off(scene, rho, cam)
+            emissivity = np.zeros_like(emissivity)  # (the march below adds the stars alone)
+        elif scene.bands.polarization != "none":
+            warnings.warn(f"Method ray-march has no Stokes Q and U: the scene's bands.polarization = "
+                          f"'{scene.bands.polarization}' needs Method peel-off for them", NebulaWarning)
+        self._report(0.9 if peel else 0.1, "NebulaRT: ray marching the sky image")
         img = sky_image(emissivity, sigma, cam, stars=stars, star_band_luminosity=slum, cancel=self._abort_requested,
                         progress=lambda done, total: self._report(0.1 + 0.8 * done / max(total, 1),
                                                                   "NebulaRT: ray marching the sky image"))
+        if peel is not None:  # the peel-off's scattered light, the march's stars
+            img = dataclasses.replace(img, scattered=peel.peel_image, intensity=img.direct + peel.peel_image)
         band_lum = star_band_luminosities(scene.stars, wl).sum(axis=0)
         m = colour_convert.band_to_xyz_matrix(wl, colour_source_from_field_data(fd))
         rgb8, exposure = colour_convert.sky_picture(  # (W, H, 3)
@@ -224,6 +237,17 @@ class NebulaSkyImage(NebulaAlgorithm):
             arrays[contract.SKY_RELATIVE.name(n)] = (
                 (img.intensity[b] * (4.0 * np.pi / band_lum[b]))[:, :, None].astype(np.float32))
         arrays[contract.SKY_RGB.name()] = rgb8[:, :, None, :]
+        polconv = None
+        if peel is not None:
+            for b, n in enumerate(names):
+                arrays[contract.SKY_SCATTERED_ERROR.name(n)] = peel.peel_error[b][:, :, None].astype(np.float32)
+            if peel.peel_stokes is not None:
+                polconv = "IAU"
+                for b, n in enumerate(names):
+                    for k, (val, err) in enumerate(((contract.SKY_Q, contract.SKY_Q_ERROR),
+                                                    (contract.SKY_U, contract.SKY_U_ERROR))):
+                        arrays[val.name(n)] = peel.peel_stokes[b, k][:, :, None].astype(np.float32)
+                        arrays[err.name(n)] = peel.peel_stokes_error[b, k][:, :, None].astype(np.float32)
         calibrated = {}
         if self._units == "MJy/sr":
             from nebula_rt.observe import calibrate
@@ -231,11 +255,18 @@ class NebulaSkyImage(NebulaAlgorithm):
             sky_scene = self._observer(scene)
             calibrate.check_scene(sky_scene)
             cal = calibrate.calibrate(sky_scene, cam, img.scattered, star_band_luminosities(scene.stars, wl),
-                                      calibrate.star_tau(scene, scene.bands.resolve(), rho, cam), "ray-march")
+                                      calibrate.star_tau(scene, scene.bands.resolve(), rho, cam), method,
+                                      scattered_error=None if peel is None else peel.peel_error,
+                                      stokes=None if peel is None else peel.peel_stokes,
+                                      stokes_error=None if peel is None else peel.peel_stokes_error)
             for b, n in enumerate(names):
                 arrays[contract.SKY_SURFACE_BRIGHTNESS.name(n)] = cal.surface_brightness[b][:, :, None].astype(np.float32)
             for x, n in enumerate(cal.passbands):
                 arrays[contract.SKY_MAG.name(n)] = cal.mag[x][:, :, None].astype(np.float32)
+            if cal.stokes is not None:  # on the sky: MJy/sr, north the celestial one
+                for b, n in enumerate(names):
+                    arrays[contract.SKY_SB_Q.name(n)] = cal.stokes[b, 0][:, :, None].astype(np.float32)
+                    arrays[contract.SKY_SB_U.name(n)] = cal.stokes[b, 1][:, :, None].astype(np.float32)
             calibrated = dict(sky_units="MJy/sr", wcs_header=cal.wcs.to_header().tostring(),
                               pixel_scale_arcsec=cal.pixel_scale_arcsec, psf_fwhm_arcsec=cal.psf_fwhm_arcsec,
                               passband_names=",".join(cal.passbands), mag_system=cal.mag_system)
@@ -244,8 +275,23 @@ class NebulaSkyImage(NebulaAlgorithm):
         add_field_data(out, contract.SkyImageData(
             band_names=names, band_luminosity=band_lum, view_direction=cam.basis()[0], view_up=img.v_axis,
             pixel_size=img.pixel_size, exposure=exposure,
-            tau_star=img.tau_star[0] if len(img.tau_star) else None, **calibrated).to_field_data())
+            tau_star=img.tau_star[0] if len(img.tau_star) else None, sky_method=method, polconv=polconv,
+            **calibrated).to_field_data())
         out.GetPointData().SetActiveScalars(contract.SKY_RGB.name())
+
+
+    def _peel_off(self, scene, rho, cam):
+        """The peel-off image of ``scene`` through the light field's density ``rho`` seen by
+        ``cam`` (the transport again, without J: :func:`nebula_rt.transport.trace`), with the
+        panel's progress and Abort."""
+        from nebula_rt.transport.request import TransportRequest, scene_backend
+
+        request = TransportRequest.from_scene(scene, peel=cam, light_field=False)
+        self._report(0.05, "NebulaRT: tracing the sky image (peel-off)")
+        return request.trace(np.asarray(rho, np.float32), scene_backend(scene),
+                             progress=lambda done, total: self._report(0.05 + 0.8 * done / max(total, 1),
+                                                                       "NebulaRT: tracing the sky image (peel-off)"),
+                             cancel=self._abort_requested)
 
 
 def _numbers(values) -> str:

@@ -8,6 +8,8 @@ this level). It adds the NebulaRT menu (Filters > NebulaRT and Sources > NebulaR
 - Nebula Light Field (filter)         proxy name ``NebulaLightField``
 - Nebula Colour (filter)              proxy name ``NebulaColour``
 - Nebula Sky Image (filter)           proxy name ``NebulaSkyImage``
+- Nebula Polarization Vectors (filter) proxy name ``NebulaPolarizationVectors`` (a polarized
+  sky image's vectors, drawn as glyphs over it)
 - Nebula Sky View (view)              proxy name ``NebulaSkyView`` (where sky images open)
 - a writer of calibrated sky images   proxy name ``NebulaSkyFitsWriter`` (File > Save Data, .fits)
 - a reader of fit results             proxy name ``NebulaFitResultReader`` (File > Open, the
@@ -38,6 +40,7 @@ from nebula_rt_paraview import (  # noqa: E402,F401
     NebulaDustDensity,
     NebulaFitResultReader,
     NebulaLightField,
+    NebulaPolarizationVectors,
     NebulaSkyFitsWriter,
     NebulaSkyImage,
     NebulaSkyView,

@@ -23,6 +23,7 @@ from .colour import NebulaColour
 from .dust_density import NebulaDustDensity
 from .fit_result import NebulaFitResultReader
 from .light_field import NebulaLightField
+from .polarization_vectors import NebulaPolarizationVectors
 from .sky_fits_writer import NebulaSkyFitsWriter
 from .sky_image import NebulaSkyImage
 from .views import NebulaSkyView
@@ -30,5 +31,5 @@ from .views import NebulaSkyView
 #: proxy names (group "sources" for the dust density, "filters" for the others)
 PROXY_NAMES = ("NebulaDustDensity", "NebulaLightField", "NebulaColour", "NebulaSkyImage")
 
-__all__ = ["NebulaColour", "NebulaDustDensity", "NebulaFitResultReader", "NebulaLightField", "NebulaSkyFitsWriter",
-           "NebulaSkyImage", "NebulaSkyView", "PROXY_NAMES"]
+__all__ = ["NebulaColour", "NebulaDustDensity", "NebulaFitResultReader", "NebulaLightField",
+           "NebulaPolarizationVectors", "NebulaSkyFitsWriter", "NebulaSkyImage", "NebulaSkyView", "PROXY_NAMES"]

@@ -25,6 +25,12 @@ SKY_IMAGE_DISPLAY = ('<View type="NebulaSkyView" />'
                      '<RepresentationType view="RenderView" type="Slice" />'
                      '<PipelineIcon name="GEOMETRY" />')  # (the icon would be the view's, which has none)
 
+#: proxy hints of Nebula Polarization Vectors: its line segments in the sky image's view, over
+#: the picture (nebula_rt_paraview.display draws them white)
+POLARIZATION_VECTORS_DISPLAY = ('<View type="NebulaSkyView" />'
+                                '<RepresentationType view="NebulaSkyView" type="Surface" />'
+                                '<RepresentationType view="RenderView" type="Surface" />')
+
 
 def help_text(cls):
     """(short help, description) of a proxy from its VTK algorithm's docstring (the one place

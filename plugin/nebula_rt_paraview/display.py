@@ -14,6 +14,7 @@ what hints cannot, before the render that first shows a new representation:
 - the stars: discs of a few pixels in each star's own colour, drawn over the volume as markers
   (:func:`nebula_rt_paraview.view.set_points_on_top`);
 - a sky image: its ``rgb`` as it is, filling its view (a sky view's camera reset fills it too);
+- polarization vectors: their line segments white over the sky image;
 - the light field's light per leaf (port 2), shown by Apply with the volume: hidden, so that
   the volume is seen (a script's ``Show`` of that port keeps it shown).
 
@@ -210,6 +211,8 @@ class _Behaviour:
                     overlay.follow(display)
             elif kind == "sky" and new:
                 helpers.configure_sky_image(display, pyview, fit_camera=self._alone(view, rep))
+            elif kind == "vectors" and new:
+                helpers.configure_polarization_vectors(display, pyview)
             elif kind == "tree" and new and _gid(src) in new_volumes:
                 # shown with the volume (Apply shows every port): the light per leaf starts
                 # hidden, its eye in the pipeline browser shows it; its surface hid the volume
@@ -300,6 +303,8 @@ class _Behaviour:
                 out.append(("tree", rep, src, port))
             elif name == "NebulaSkyImage":
                 out.append(("sky", rep, src, port))
+            elif name == "NebulaPolarizationVectors":
+                out.append(("vectors", rep, src, port))
             elif _carries_rgba(src, port, name in RGBA_PRODUCERS):
                 out.append(("rgba", rep, src, port))
         return out

@@ -239,6 +239,16 @@ def configure_sky_image(display, view, array: str = "rgb", fit_camera: bool = Tr
     return display
 
 
+def configure_polarization_vectors(display, view=None):
+    """Make an existing representation of Nebula Polarization Vectors draw its line segments
+    white over the sky image."""
+    display.SetRepresentationType("Surface")
+    simple.ColorBy(display, None)
+    display.AmbientColor = display.DiffuseColor = [1.0, 1.0, 1.0]
+    display.LineWidth = 2.0
+    return display
+
+
 def sky_parallel_scale(src, port, view_size) -> float:
     """The parallel scale (half the height seen) at which a 2D image fills a view of
     ``view_size`` pixels: its width or its height, whichever the aspect ratio lets (pixel

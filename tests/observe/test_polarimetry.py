@@ -49,7 +49,7 @@ def test_vectors_are_block_sums_and_lines_along_their_angle():
     u = np.zeros((8, 8))
     q[:4, :4] = 0.5            # block (0, 0): north-south, P = 0.5
     u[4:, 4:] = -0.5           # block (1, 1): chi = 135 degrees east of north
-    centres, p, chi, keep = vector_field(i, q, u, 0.01 * i, 0.01 * i, 0.01 * i, step=4)
+    centres, p, p_err, chi, keep = vector_field(i, q, u, 0.01 * i, 0.01 * i, 0.01 * i, step=4)
     np.testing.assert_allclose(centres, [[1.5, 1.5], [1.5, 5.5], [5.5, 1.5], [5.5, 5.5]])
     np.testing.assert_allclose(p, [0.5, 0.0, 0.0, 0.5], atol=1e-12)
     assert keep.tolist() == [True, False, False, True]

@@ -260,6 +260,30 @@ def test_paraview_proxy_is_the_schema_and_gives_the_same_bits(pv_env, xdisplay, 
 
 
 
+def test_polarization_pattern_from_the_plugin(pv_env, xdisplay, tmp_path):
+    """A polarized nebula through the plugin's proxies (tests/paraview/polarization.py):
+    Polarization white on the light field, Method peel-off on the sky image (Q_ and U_ arrays,
+    POLCONV IAU), Nebula Polarization Vectors shown white over it in the sky view. The pattern
+    is centrosymmetric about the star (every vector within 15 degrees of tangential: its block's
+    angle error at P / sigma >= 3 is below 10 degrees) and each segment lies along its angle; the
+    screenshot holds the white segments over the dark sky."""
+    png = tmp_path / "polarization.png"
+    r, _ = run_pv(pv_env, xdisplay, "polarization.py", png, 200_000, timeout=300)
+    assert r["last_errors"] == {"light": None, "sky": None, "vectors": None}, r["last_errors"]
+    assert {"Q_G", "U_G", "Q_error_G", "U_error_G", "scattered_error_G"} <= set(r["arrays"])
+    assert {"sky_method", "polconv"} <= set(r["field_data"])
+    assert r["cells"] >= 100 and r["vectors"] == 2 * r["cells"]
+    assert set(r["vector_arrays"]) == {"polarization", "P", "P_error", "angle"}
+    assert max(r["tangential_deviation_deg"]) < 15.0
+    assert r["segment_vs_angle_deg"] < 1e-3
+    assert r["display"]["DiffuseColor"] == [1.0, 1.0, 1.0] and "Surface" in r["display"]["Representation"]
+    from PIL import Image
+
+    rgb = np.asarray(Image.open(png).convert("RGB")).astype(int)
+    white = (rgb.min(axis=2) > 240).mean()
+    assert 0.002 < white < 0.2, white  # the segments (0.7 % of the pixels), not a white screen
+
+
 def test_calibrated_sky_image_and_fits_from_the_plugin(pv_env, xdisplay, tmp_path):
     """Luminosity Unit L_sun, Spectral Types and Box Length on the light field, Units MJy/sr and the observer
     on the sky image, SaveData(.fits) through the plugin's writer: the calibrated arrays, the

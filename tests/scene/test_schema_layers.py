@@ -232,7 +232,12 @@ def test_sky_image_defaults_are_the_declared_defaults():
             assert getattr(s, "Get" + prop.name)() == SKY_PANEL_DEFAULTS.get(prop.key, want), prop.name
     keys = [p.key for p in SKY_IMAGE_PROPERTIES]
     assert len(set(keys)) == len(keys)
-    assert {k for k in keys if k.startswith("sky.")} == {k for k, _, _ in sky_schema.parameters()}
+    # the sky.vector_* keys are Nebula Polarization Vectors' (its own properties, bound the same way)
+    from nebula_rt.filters.polarization_vectors import POLARIZATION_VECTOR_PROPERTIES
+
+    vector_keys = {p.key for p in POLARIZATION_VECTOR_PROPERTIES}
+    assert {k for k in keys if k.startswith("sky.")} == {k for k, _, _ in sky_schema.parameters()} - vector_keys
+    assert vector_keys == {k for k, _, _ in sky_schema.parameters() if k.startswith("sky.vector_")}
     assert {k for k in keys if not k.startswith("sky.")} == {"colour.stretch", "colour.asinh_q"} | {
         k for k, _, _ in sc.parameters() if k.startswith("observer.")}
     # the panel's empty Distance is the scene's None: the rest is a scene file's defaults

@@ -405,7 +405,7 @@ def _with_vectors(rgb8, cal, scene):
     b = reference_band_index(scene.bands.resolve())
     step = max(2, rgb8.shape[0] // 24)
     err = cal.stokes_error
-    centres, p, chi, keep = vector_field(cal.scattered[b], cal.stokes[b, 0], cal.stokes[b, 1],
+    centres, p, _, chi, keep = vector_field(cal.scattered[b], cal.stokes[b, 0], cal.stokes[b, 1],
                                          None if cal.scattered_error is None else cal.scattered_error[b],
                                          None if err is None else err[b, 0], None if err is None else err[b, 1],
                                          step=step)

@@ -61,7 +61,8 @@ from ..errors import SceneError
 from ..transport.line_of_sight import density_column, line_of_sight_tau
 from ..pipeline.rgba import _dominant_source
 from .colours import star_transmission
-from .polarimetry import convolve_psf_error, errors_to_celestial, stokes_hdus, to_celestial
+from .polarimetry import errors_to_celestial, stokes_hdus, to_celestial
+from .psf import convolve_psf, convolve_psf_error, psf_weights
 from .sky import Camera, sky_image
 from ..transport.tails import fits_cards
 from ..transport.request import TransportRequest, scene_backend
@@ -161,42 +162,6 @@ def passband_mean(wl, response, spectrum) -> float:
     spectrum's units x m per Hz (as :func:`passband_weights`)."""
     lam = np.asarray(wl, np.float64) * 1e-9
     return float(np.trapezoid(spectrum * response * lam, lam) / np.trapezoid(C_LIGHT / lam**2 * response * lam, lam))
-
-
-def _ndtr(x):
-    from scipy.special import ndtr
-
-    return ndtr(x)
-
-
-def psf_weights(n: int, centre: float, sigma: float) -> np.ndarray:
-    """The 1D Gaussian of ``sigma`` (pixels) centred at ``centre`` (pixel coordinates, pixel k
-    spans [k - 1/2, k + 1/2)) integrated over each of n pixels; sigma 0: 1 in the pixel
-    holding the centre."""
-    k = np.arange(n, dtype=np.float64)
-    if sigma == 0.0:
-        w = np.zeros(n)
-        j = int(math.floor(centre + 0.5))
-        if 0 <= j < n:
-            w[j] = 1.0
-        return w
-    return _ndtr((k + 0.5 - centre) / sigma) - _ndtr((k - 0.5 - centre) / sigma)
-
-
-def convolve_psf(image, sigma: float) -> np.ndarray:
-    """``image`` (..., W, H) convolved with the pixel-integrated Gaussian of ``sigma`` pixels;
-    light carried beyond the image is lost (the kernel reaches 8 sigma, where the Gaussian's
-    tail is 1e-15, and is not renormalised)."""
-    from scipy.ndimage import convolve1d
-
-    img = np.asarray(image, np.float64)
-    if sigma == 0.0:
-        return img.copy()
-    w, h = img.shape[-2:]
-    radius = int(min(math.ceil(8.0 * sigma) + 1, max(w, h)))
-    kernel = psf_weights(2 * radius + 1, float(radius), sigma)
-    out = convolve1d(img, kernel, axis=-2, mode="constant", cval=0.0)
-    return convolve1d(out, kernel, axis=-1, mode="constant", cval=0.0)
 
 
 def pixel_angle(scene, camera) -> float:

@@ -48,24 +48,6 @@ def errors_to_celestial(errors, position_angle_deg: float) -> np.ndarray:
     return np.sqrt(out)
 
 
-def convolve_psf_error(error, sigma: float) -> np.ndarray:
-    """Standard errors (..., W, H) of an image convolved with the PSF of ``sigma`` pixels
-    (:func:`nebula_rt.observe.calibrate.convolve_psf`): the variances convolved with the squared
-    kernel, the pixels' errors independent."""
-    from scipy.ndimage import convolve1d
-
-    from .calibrate import psf_weights
-
-    var = np.asarray(error, np.float64) ** 2
-    if sigma == 0.0:
-        return np.sqrt(var)
-    w, h = var.shape[-2:]
-    radius = int(min(math.ceil(8.0 * sigma) + 1, max(w, h)))
-    k2 = psf_weights(2 * radius + 1, float(radius), sigma) ** 2
-    out = convolve1d(var, k2, axis=-2, mode="constant", cval=0.0)
-    return np.sqrt(convolve1d(out, k2, axis=-1, mode="constant", cval=0.0))
-
-
 def polarization_maps(i, q, u, i_err=None, q_err=None, u_err=None):
     """Degree and angle of linear polarization with first-order errors.
 
@@ -126,8 +108,8 @@ def vector_field(i, q, u, i_err=None, q_err=None, u_err=None, step: int = 8, snr
     -------
     centres : ndarray (n, 2)
         Each block's centre in pixel coordinates (p, q).
-    p, chi_deg : ndarray (n,)
-        Degree and angle (east of north for IAU Q and U) of each block.
+    p, p_err, chi_deg : ndarray (n,)
+        Degree of polarization, its error and angle (east of north for IAU Q and U) of each block.
     keep : ndarray bool (n,)
         P >= snr x its error (and I > 0).
     """
@@ -147,7 +129,7 @@ def vector_field(i, q, u, i_err=None, q_err=None, u_err=None, step: int = 8, snr
     p, p_err, chi, _ = polarization_maps(bi, bq, bu, ei, eq, eu)
     pc, qc = np.meshgrid((np.arange(nw) + 0.5) * step - 0.5, (np.arange(nh) + 0.5) * step - 0.5, indexing="ij")
     keep = (bi > 0) & np.isfinite(p) & np.isfinite(chi) & (p >= snr * p_err)
-    return np.stack([pc.ravel(), qc.ravel()], axis=1), p.ravel(), chi.ravel(), keep.ravel()
+    return np.stack([pc.ravel(), qc.ravel()], axis=1), p.ravel(), p_err.ravel(), chi.ravel(), keep.ravel()
 
 
 def overlay_vectors(rgb8, centres, p, chi_deg, keep, length: float, colour=(255, 255, 255)):

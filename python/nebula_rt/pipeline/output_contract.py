@@ -39,6 +39,9 @@ from ..transport.plan import TALLY_NAMES
 __all__ = [
     "DENSITY", "EMISSIVITY", "J", "REL_ERROR", "RGBA", "RGB_LINEAR", "LIGHT_FIELD_ARRAYS",
     "SKY_INTENSITY", "SKY_SCATTERED", "SKY_RELATIVE", "SKY_RGB", "SKY_IMAGE_ARRAYS",
+    "SKY_SCATTERED_ERROR", "SKY_Q", "SKY_U", "SKY_Q_ERROR", "SKY_U_ERROR", "PEEL_SKY_ARRAYS",
+    "POLARIZATION_VECTOR", "POLARIZATION_DEGREE", "POLARIZATION_DEGREE_ERROR", "POLARIZATION_ANGLE",
+    "POLARIZATION_ARRAYS",
     "STAR_ARRAYS", "STAR_LUMINOSITY", "STAR_RGB",
     "FieldSpec", "LightFieldData", "PointArray", "SkyImageData", "field_specs",
 ]
@@ -102,12 +105,34 @@ SKY_RELATIVE = PointArray("relative_{band}", "float32", 1, "surface brightness r
 SKY_RGB = PointArray("rgb", "uint8", 3, "sRGB of the sky image")
 #: the arrays of a sky image (Nebula Sky Image)
 SKY_IMAGE_ARRAYS = (SKY_INTENSITY, SKY_SCATTERED, SKY_RELATIVE, SKY_RGB)
+SKY_SCATTERED_ERROR = PointArray("scattered_error_{band}", "float32", 1,
+                                 "peel-off: the batch-means standard error of scattered_{band}")
+SKY_Q = PointArray("Q_{band}", "float32", 1, "peel-off of a polarized scene: Stokes Q of the scattered light, "
+                   "the unit of scattered_; IAU convention with the image's up axis as north (east to its left)")
+SKY_U = PointArray("U_{band}", "float32", 1, "peel-off of a polarized scene: Stokes U, as Q_")
+SKY_Q_ERROR = PointArray("Q_error_{band}", "float32", 1, "the standard error of Q_{band}")
+SKY_U_ERROR = PointArray("U_error_{band}", "float32", 1, "the standard error of U_{band}")
+#: the arrays a peel-off sky image adds (its errors; a polarized scene's Stokes Q and U)
+PEEL_SKY_ARRAYS = (SKY_SCATTERED_ERROR, SKY_Q, SKY_U, SKY_Q_ERROR, SKY_U_ERROR)
+#: a polarization vector field of a sky image (Nebula Polarization Vectors: cell data of one line
+#: segment per block)
+POLARIZATION_VECTOR = PointArray("polarization", "float32", 3, "P times the unit vector along the polarization "
+                                 "angle in the image plane (north = +y, east = -x); a headless glyph's direction")
+POLARIZATION_DEGREE = PointArray("P", "float32", 1, "degree of linear polarization of the block's scattered light")
+POLARIZATION_DEGREE_ERROR = PointArray("P_error", "float32", 1, "its first-order standard error")
+POLARIZATION_ANGLE = PointArray("angle", "float32", 1, "polarization angle, degrees from north (+y) through "
+                                "east (-x), in [0, 180)")
+POLARIZATION_ARRAYS = (POLARIZATION_VECTOR, POLARIZATION_DEGREE, POLARIZATION_DEGREE_ERROR, POLARIZATION_ANGLE)
 SKY_SURFACE_BRIGHTNESS = PointArray("sb_{band}", "float32", 1, "calibrated surface brightness (scattered light "
                                     "and the stars, PSF-convolved), MJy/sr, band-averaged per unit frequency")
 SKY_MAG = PointArray("mag_{band}", "float32", 1, "AB surface brightness through a passband (B, V, R: Bessell; "
                      "g, r, i: SDSS), mag/arcsec^2; NaN without light")
-#: the arrays a calibrated sky image adds (Nebula Sky Image with Units MJy/sr; per band, per passband)
-CALIBRATED_SKY_ARRAYS = (SKY_SURFACE_BRIGHTNESS, SKY_MAG)
+SKY_SB_Q = PointArray("sb_Q_{band}", "float32", 1, "calibrated Stokes Q of the scattered light (PSF-convolved), "
+                      "MJy/sr, IAU convention on the sky (celestial north)")
+SKY_SB_U = PointArray("sb_U_{band}", "float32", 1, "calibrated Stokes U, as sb_Q_")
+#: the arrays a calibrated sky image adds (Nebula Sky Image with Units MJy/sr; per band, per
+#: passband; a polarized peel-off's Stokes)
+CALIBRATED_SKY_ARRAYS = (SKY_SURFACE_BRIGHTNESS, SKY_MAG, SKY_SB_Q, SKY_SB_U)
 
 
 # --------------------------------------------------------------------------- field data
@@ -420,3 +445,7 @@ class SkyImageData(ContractData):
                                            "(calibrated images)", optional=True)
     mag_system: Optional[str] = _field("str", "magnitude system of the mag_ arrays, AB or Vega (calibrated images)",
                                        optional=True)
+    sky_method: Optional[str] = _field("str", "how the scattered light was made: ray-march or peel-off",
+                                       optional=True)
+    polconv: Optional[str] = _field("str", "the convention of the Q_ and U_ arrays (IAU; absent: unpolarized)",
+                                    optional=True)

@@ -290,7 +290,8 @@ class BandsConfig:
             "degrees). Packets then carry Stokes I, Q, U, and peel-off images gain Q and U "
             "(docs/physics.md)")
     peak_polarization: Union[float, Tuple[float, ...]] = param(
-        DEFAULT_PEAK_POLARIZATION, type="float or list of float", lo=0.0, hi=1.0, group=G_OPTICS, advanced=True,
+        DEFAULT_PEAK_POLARIZATION, type="float or list of float", lo=0.0, hi=1.0, label="Peak Polarization",
+        group=G_OPTICS, advanced=True,
         doc="polarization = \"white\": the linear polarization of unpolarized light scattered through "
             "90 degrees (White's p_l), one number for every band or a list of one per band")
     list: Optional[List[Dict[str, Any]]] = param(

@@ -22,7 +22,7 @@ from .schema import document, param
 __all__ = ["SkyImageParameters", "SECTIONS", "parameters", "declaration", "default", "validate_exposure",
            "valid_direction"]
 
-G_CAMERA, G_PICTURE = "Camera", "Picture"
+G_CAMERA, G_PICTURE, G_VECTORS = "Camera", "Picture", "Polarization vectors"
 #: The largest side of a sky image (pixels): a 16384^2 image of 3 bands is 6 GiB of float64
 #: sums on the device, about what one GPU gives a peel-off image beside its grid
 MAX_SKY_SIZE = 16384
@@ -77,6 +77,12 @@ class SkyImageParameters:
     extent: float = param(
         0.0, type="float", lo=0.0, unit="box units", group=G_CAMERA,
         doc="Width of the field of view; 0 fits the whole box whatever the direction (sqrt(3))")
+    method: str = param(
+        "ray-march", type="str", choices=("ray-march", "peel-off"), label="Method", group=G_CAMERA,
+        doc="ray-march: integrate the light field's emissivity along each pixel's ray (isotropic per "
+            "voxel; fast, from the finished light field); peel-off: trace the light field's scene "
+            "again with the camera, every scattering sending its phase function's share to the image "
+            "(exact for any g; with bands.polarization also Stokes Q and U)")
     include_stars: bool = param(
         True, type="bool", label="Include Stars", group=G_PICTURE,
         doc="Add each star's attenuated direct light to the pixel it falls in")
@@ -85,6 +91,23 @@ class SkyImageParameters:
         doc="Factor applied to the linear colour before the sRGB curve; \"auto\": the one that maps the "
             "99th percentile of the scattered light's brightest colour component to full scale (the stars "
             "saturate)")
+
+
+    vector_band: str = param(
+        "", type="str", label="Band", group=G_VECTORS,
+        doc="Nebula Polarization Vectors: the band whose vectors are drawn (empty: the image's first band)")
+    vector_block: int = param(
+        8, type="int", lo=1, hi=MAX_SKY_SIZE, unit="pixels", label="Block Size", group=G_VECTORS,
+        doc="Nebula Polarization Vectors: one vector per block of this many pixels a side, from the "
+            "block's summed I, Q and U")
+    vector_scale: float = param(
+        1.0, type="float", lo=0.0, lo_open=True, label="Vector Scale", group=G_VECTORS,
+        doc="Nebula Polarization Vectors: a vector's length at P = 1, in blocks (its length is P times "
+            "this times the block's side)")
+    vector_snr: float = param(
+        3.0, type="float", lo=0.0, label="Min Signal To Noise", group=G_VECTORS,
+        doc="Nebula Polarization Vectors: a block's vector is drawn where its degree of polarization is "
+            "at least this many of its standard errors")
 
 
 #: The declared tables (one: ``sky``), as :data:`nebula_rt.scene.SECTIONS`.
