@@ -23,6 +23,13 @@ One for an adaptive density:
                                    Colour, shown as an rgba volume with its star. Its FileName is
                                    relative to the repository, as fit_result's.
 
+One for polarization:
+
+- polarized_nebula.pvsm            turbulent dust around a central star scattering by White's
+                                   approximation (Nebula Light Field's Polarization), its sky image
+                                   traced with Method peel-off, and Nebula Polarization Vectors over
+                                   it in the sky view: the centrosymmetric pattern about the star.
+
 And one for a fit's result:
 
 - fit_result.pvsm                  the worked example's fit (examples/observations/fit-result.json,
@@ -276,6 +283,42 @@ def build_adaptive(photons, device):
     return view, light, colour
 
 
+POLARIZED_SIZE = [700, 700]
+
+
+def build_polarized(photons, device):
+    """The polarized nebula: turbulent dust (48^3, the thesis's noise, tau 6) around a central
+    15 000 K star, scattering by White's approximation (p_l 0.5) -> Nebula Sky Image (peel-off,
+    96^2 pixels over the box) -> Nebula Polarization Vectors (blocks of 6 pixels, P >= 3 errors),
+    the picture and its vectors in the sky image's own view."""
+    reset_session()
+    star = [0.5, 0.5, 0.5, 1.0, 15000.0, 0.0]
+    dust = simple.NebulaDustDensity(registrationName="Dust (polarized)", GridShape=[48, 48, 48], Stars=star,
+                                    Device=device)
+    light = simple.NebulaLightField(dust, registrationName="Light field (polarized)", Tau=6.0,
+                                    Photons=photons, Device=device, Polarization="white", PeakPolarization=0.5)
+    light.DensityArray = ["POINTS", "density"]
+    sky = simple.NebulaSkyImage(light, registrationName="Sky image (peel-off)", ImageSize=[96, 96], Extent=1.0,
+                                Method="peel-off")
+    vectors = simple.NebulaPolarizationVectors(sky, registrationName="Polarization vectors", BlockSize=6,
+                                               MinSignalToNoise=3.0, VectorScale=1.5)
+    view = simple.CreateView("NebulaSkyView")
+    simple.AssignViewToLayout(view)
+    layout = simple.GetLayout(view)
+    simple.RenameLayout("polarized_nebula", layout)
+    layout.PreviewMode = POLARIZED_SIZE
+    view.ViewSize = POLARIZED_SIZE
+    simple.Show(sky, view)
+    simple.Show(vectors, view)
+    simple.Render(view)
+    for other in list(simple.GetLayouts().values()):
+        if other is not layout:
+            simple.RemoveLayout(other)
+    simple.SetActiveView(view)
+    simple.SetActiveSource(vectors)
+    return view, (light, sky, vectors)
+
+
 def save_state(view, name, size, out, screenshots=None):
     """Write ``out``/``name``.pvsm and, with ``screenshots``, paraview-``name``.png there at
     ``size`` (the folders taken as given, made absolute first: the caller may have changed
@@ -328,6 +371,13 @@ def main(argv=None):
                        args.screenshots and os.path.join(cwd, args.screenshots))
         finally:
             os.chdir(cwd)
+    if not args.only or "polarized_nebula" in args.only:
+        view, algs = build_polarized(args.photons, args.device)
+        simple.Render(view)
+        errors = [a.GetClientSideObject().last_error for a in algs]
+        if any(errors):
+            raise SystemExit(f"polarized_nebula: {errors}")
+        save_state(view, "polarized_nebula", POLARIZED_SIZE, args.out, args.screenshots)
     for name, spec in FIGURES.items():
         if args.only and name not in args.only:
             continue

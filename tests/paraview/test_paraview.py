@@ -771,6 +771,23 @@ def test_the_adaptive_example_state_loads_and_renders(pv_env, xdisplay, tmp_path
     assert centre[:, 2].mean() > centre[:, 0].mean() + 20, centre.mean(axis=0)
 
 
+def test_the_polarization_example_state_loads_and_renders(pv_env, xdisplay, tmp_path):
+    """state_files/polarized_nebula.pvsm from another folder: the polarized light field, its
+    peel-off sky image with Stokes Q and U, and the vectors over it in the sky view, tangential
+    about the star (median deviation below 10 degrees); the picture is not blank and carries
+    the white segments."""
+    png = tmp_path / "polarized.png"
+    r, _ = run_pv(pv_env, xdisplay, "polarized_state.py", REPO / "state_files" / "polarized_nebula.pvsm", png,
+                  timeout=300)
+    assert r["errors"] == [None, None, None] and r["view"] == "NebulaSkyView", r
+    assert r["stokes"] == ["Q_G", "U_G"] and r["segments"] >= 50, r
+    assert r["median_deviation_deg"] < 10.0, r
+    im = read_png(png)
+    assert list(im.shape[1::-1]) == r["size"] == [700, 700]
+    assert im.mean() > 10  # the nebula
+    assert 0.002 < (im.min(axis=2) > 240).mean() < 0.2  # the segments
+
+
 def _pvserver(pv_env, display, ranks, log=None):
     """``mpiexec -n RANKS pvserver`` on a free port of localhost, with the environment of
     scripts/pv-env.sh (so each rank loads the plugin from PV_PLUGIN_PATH); returns (process,
