@@ -301,9 +301,10 @@ def _numbers(values) -> str:
 
 def write_fits(image, path) -> None:
     """Write a calibrated sky image (Nebula Sky Image's output with Units "MJy/sr") as FITS:
-    one image HDU per band (``SB_<band>``, MJy/sr) and per passband (``MAG_BESSELL_B`` ...,
-    mag/arcsec^2 in the image's magnitude system), each with the celestial WCS, as :func:`nebula_rt.observe.calibrate.write_fits`
-    names them (without its table of stars).
+    one image HDU per band (``SB_<band>``, MJy/sr), a polarized peel-off's ``Q_<band>`` and
+    ``U_<band>`` (MJy/sr, IAU), and one per passband (``MAG_BESSELL_B`` ..., mag/arcsec^2 in the
+    image's magnitude system), each with the celestial WCS, as
+    :func:`nebula_rt.observe.calibrate.write_fits` names them (without its table of stars).
 
     Raises
     ------
@@ -318,11 +319,16 @@ def write_fits(image, path) -> None:
     if fd.sky_units != "MJy/sr" or not fd.wcs_header:
         raise SceneError("Units", "box units", "a FITS sky image needs the calibrated image: set Units to MJy/sr")
     system = fd.mag_system or "AB"
-    primary = {"METHOD": "ray-march", "PIXSCALE": (fd.pixel_scale_arcsec, "pixel side, arcsec"),
+    primary = {"METHOD": fd.sky_method or "ray-march", "PIXSCALE": (fd.pixel_scale_arcsec, "pixel side, arcsec"),
                "PSFFWHM": (fd.psf_fwhm_arcsec, "arcsec"), "MAGSYS": (system, MAGSYS_COMMENT[system])}
     bands = [(n, point_array(image, contract.SKY_SURFACE_BRIGHTNESS.name(n))[:, :, 0], {}) for n in fd.band_names]
     passbands = [(n, point_array(image, contract.SKY_MAG.name(n))[:, :, 0]) for n in fd.passband_names.split(",")]
-    sky_hdus(primary, fits.Header.fromstring(fd.wcs_header), bands, passbands, system).writeto(path, overwrite=True)
+    stokes = None
+    if fd.polconv and image.GetPointData().HasArray(contract.SKY_SB_Q.name(fd.band_names[0])):
+        stokes = np.stack([[point_array(image, spec.name(n))[:, :, 0] for spec in (contract.SKY_SB_Q, contract.SKY_SB_U)]
+                           for n in fd.band_names])
+    sky_hdus(primary, fits.Header.fromstring(fd.wcs_header), bands, passbands, system,
+             stokes=stokes).writeto(path, overwrite=True)
 
 
 class NebulaSkyFitsWriter(VTKPythonAlgorithmBase):
