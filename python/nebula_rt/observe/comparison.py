@@ -78,6 +78,10 @@ class RingSums:
         Pixels of each ring whose central ray crosses the box (:func:`ring_pixels`): a ring
         without any holds no light of the model but what pixelisation carries in. None: not
         counted (ring sums made elsewhere).
+    tangential, tangential_batches : ndarray (n_bands, n_rings), (M, n_bands, n_rings) or None
+        A polarized scene's (``trace_rings(stokes=True)``): the tangential Stokes
+        Q cos 2psi + U sin 2psi of the ring's pixels summed (psi each pixel's position angle
+        about the star in the image's frame), in the units of ``sums``, and per batch.
     """
 
     edges: np.ndarray
@@ -91,6 +95,8 @@ class RingSums:
     photons: int = 0
     pixels: Optional[np.ndarray] = None
     rv: str = units.DEFAULT_RV
+    tangential: Optional[np.ndarray] = None
+    tangential_batches: Optional[np.ndarray] = None
 
 
 def ring_edges(tables: Sequence[ObservedTable]) -> np.ndarray:
@@ -161,15 +167,29 @@ def _ring_pixels(star_position, direction, size, edges):
     return cam, labels, pixels
 
 
+def _position_angles(cam, star_position) -> np.ndarray:
+    """(W, H) position angle psi of every pixel centre about the star's projection, from the
+    image's u axis towards its v axis (radians): the frame in which a pattern tangential about
+    the star has Q = P I cos 2psi, U = P I sin 2psi."""
+    _, u, v = cam.basis()
+    w, h = cam.size
+    P, Q = np.meshgrid(np.arange(w), np.arange(h), indexing="ij")
+    rel = cam.origin()[None, None, :] + cam.pixel_size * (P[..., None] * u + Q[..., None] * v) \
+        - np.asarray(star_position, np.float64)
+    return np.arctan2(rel @ v, rel @ u)
+
+
 def trace_rings(scene, edges, *, direction=(0.0, 0.0, -1.0), size: int = DEFAULT_SIZE, backend=None,
-                progress=None, cancel=None, density=None, comm=None) -> RingSums:
+                progress=None, cancel=None, density=None, comm=None, stokes: bool = False) -> RingSums:
     """Trace ``scene`` with a peel-off image along ``direction`` centred on its most luminous
     star and sum it over the rings between consecutive ``edges`` (box units).
 
     ``density`` (nx, ny, nz) skips making the density (a fit reuses it while no dust key
     changes). The scene's error target and time limit apply (a fit refuses both: its trials
     trace a fixed number of packets with one seed). ``comm``: the ranks that share the trace
-    (:mod:`nebula_rt.backends.parallel`); every rank gets the same sums.
+    (:mod:`nebula_rt.backends.parallel`); every rank gets the same sums. ``stokes``: also the
+    rings' tangential Stokes (a polarized scene: ``RingSums.tangential``), from every pixel's
+    batch sums (each pixel its own group), so that each pixel's Q and U turn by its own angle.
     """
 
     backend = backend or scene_backend(scene)
@@ -180,17 +200,32 @@ def trace_rings(scene, edges, *, direction=(0.0, 0.0, -1.0), size: int = DEFAULT
     cam, labels, pixels = ring_pixels(star.position, direction, size, e)
     rho = scene_density(scene, backend) if density is None else density  # a grid or an octree
     # only the peel-off image's ring sums are used: no J
-    res = TransportRequest.from_scene(scene, peel=cam, peel_bins=labels, light_field=False).trace(
+    if stokes and scene.bands.polarization == "none":
+        raise SceneError("bands.polarization", "none", "must be 'rayleigh' or 'white' to compare the degree of "
+                                                       "polarization (the scene traces intensity alone)")
+    nr = len(e) - 1
+    bins = labels if not stokes else np.arange(labels.size, dtype=np.int64).reshape(labels.shape)
+    res = TransportRequest.from_scene(scene, peel=cam, peel_bins=bins, light_field=False).trace(
         rho, backend, progress=progress, cancel=cancel, comm=comm)
     tau_star = np.array([scene.dust.tau * b.extinction for b in bands]) * density_column(
         rho, star.position, -np.asarray(direction, float))
     xb = np.asarray(res.peel_bin_batches, np.float64)
-    if xb.shape[2] < len(e) - 1:  # the outermost rings hold no pixel centre (finer than a pixel)
-        xb = np.concatenate([xb, np.zeros(xb.shape[:2] + (len(e) - 1 - xb.shape[2],))], axis=2)
+    tb = None
+    if stokes:  # every pixel's batch sums: the rings' intensity, and their tangential Stokes
+        flat = labels.reshape(-1)
+        ring = np.zeros((flat.size, nr))
+        ring[np.flatnonzero(flat >= 0), flat[flat >= 0]] = 1.0
+        psi = _position_angles(cam, star.position).reshape(-1)
+        qu = np.asarray(res.peel_stokes_bin_batches, np.float64)  # (M, n_bands, 2, pixels)
+        xb = xb[..., :flat.size] @ ring
+        tb = (qu[:, :, 0, :flat.size] * np.cos(2 * psi) + qu[:, :, 1, :flat.size] * np.sin(2 * psi)) @ ring
+    if xb.shape[2] < nr:  # the outermost rings hold no pixel centre (finer than a pixel)
+        xb = np.concatenate([xb, np.zeros(xb.shape[:2] + (nr - xb.shape[2],))], axis=2)
     return RingSums(edges=e, sums=xb.sum(axis=0), batches=xb, band_luminosity=np.asarray(res.band_luminosity,
                     np.float64), wavelength_nm=wl, pixel_area=cam.pixel_size ** 2, star_tau=tau_star,
                     source=_dominant_source(scene.stars), photons=int(res.photons), pixels=pixels,
-                    rv=units.dust_model(scene.bands)[0])
+                    rv=units.dust_model(scene.bands)[0], tangential=None if tb is None else tb.sum(axis=0),
+                    tangential_batches=tb)
 
 
 def _rings_of(edges, lo, hi) -> np.ndarray:
@@ -214,7 +249,9 @@ def model_values(rings: RingSums, table: ObservedTable, reference: str = "observ
     """The model's value of every row of ``table`` and its Monte Carlo error (1 sigma).
 
     Colour rows: Delta(B-V) of the annulus against ``reference`` (the star as seen through the
-    dust in front of it, or its intrinsic light). Ratio rows: nebula flux in the annulus over
+    dust in front of it, or its intrinsic light). Polarization rows: the tangential degree of
+    polarization of the annulus's light, sum T / sum I at the row's wavelength (linear between
+    band centres; ``reference`` plays no part). Ratio rows: nebula flux in the annulus over
     the star's flux (as seen, or intrinsic), at the row's wavelength: sum over the annulus of
     the intensity times the pixel area (luminosity per sr towards the observer) over the
     star's L_b exp(-tau_b) / (4 pi), linear between band centres. Returns (model, error).
@@ -239,6 +276,20 @@ def model_values(rings: RingSums, table: ObservedTable, reference: str = "observ
         err = np.where(np.isfinite(model), _batch_error(y), np.nan)
         return model, err
 
+    if table.kind == "polarization":
+        if rings.tangential is None:
+            raise SceneError("tables", table.path, "a polarization table needs the rings' Stokes sums "
+                                                   "(trace_rings(..., stokes=True) of a polarized scene)")
+        # P_t = sum_b h_b T_b / sum_b h_b S_b at the row's wavelength (linear between band
+        # centres), linearised per batch: dP = (h . dT - P h . dS) / (h . S)
+        h = hat_basis(wl, table.wavelength)  # (n_bands, n)
+        T = rings.tangential @ W.T
+        XT = np.einsum("mbr,nr->mbn", rings.tangential_batches, W)
+        num, den = (h * T).sum(axis=0), (h * S).sum(axis=0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            model = np.where(den > 0, num / den, np.nan)
+            y = (np.einsum("bn,mbn->mn", h, XT) - np.nan_to_num(model) * np.einsum("bn,mbn->mn", h, X)) / den
+        return model, np.where(np.isfinite(model), _batch_error(np.nan_to_num(y)), np.nan)
     seen = np.exp(-rings.star_tau) if reference == "observed" else np.ones(len(wl))
     h = hat_basis(wl, table.x)  # (n_bands, n)
     c = 4.0 * math.pi * rings.pixel_area * h / (L * seen)[:, None]
@@ -287,12 +338,14 @@ class TableResult:
         def lst(a):
             return [finite_or_none(x) for x in a]
 
-        d = {"table": t.path, "kind": t.kind, "x": lst(t.x), "x_unit": "box units" if t.kind == "colour" else "nm",
+        d = {"table": t.path, "kind": t.kind, "x": lst(t.x), "x_unit": "nm" if t.kind == "ratio" else "box units",
              "offset_lo": lst(t.lo), "offset_hi": lst(t.hi), "data": lst(t.value), "data_err": lst(t.error),
              "model": lst(self.model), "model_err": lst(self.model_err), "residual": lst(self.residual),
              "pull": lst(self.pull), "chi2": finite_or_none(self.chi2), "dof": self.dof}
         if t.kind == "ratio":
             d["normalisation"] = t.normalisation
+        if t.kind == "polarization":
+            d["wavelength_nm"] = lst(t.wavelength)
         if self.scale is not None:
             d["scale"] = lst(self.scale)
         return d
@@ -397,8 +450,14 @@ def compare(scene, tables: Sequence[ObservedTable], *, direction=(0.0, 0.0, -1.0
     _check_reference(reference)
     check_tables_against_scene(scene, tables, direction=direction, size=size)
     rings = trace_rings(scene, ring_edges(tables), direction=direction, size=size, backend=backend,
-                        progress=progress, cancel=cancel, comm=comm)
+                        progress=progress, cancel=cancel, comm=comm, stokes=needs_stokes(tables))
     return compare_tables(rings, tables, reference)
+
+
+def needs_stokes(tables) -> bool:
+    """Whether any table compares the degree of polarization (the trace then keeps every
+    pixel's Stokes batch sums)."""
+    return any(t.kind == "polarization" for t in tables)
 
 
 def check_tables_against_scene(scene, tables: Sequence[ObservedTable], direction=None, size: int = DEFAULT_SIZE,
@@ -417,7 +476,17 @@ def check_tables_against_scene(scene, tables: Sequence[ObservedTable], direction
     wl = sorted(b.wavelength for b in scene.bands.resolve())
     for t in tables:
         where = f"{option} {t.path!r}"
-        if t.kind == "ratio":
+        if t.kind == "polarization":
+            if scene.bands.polarization == "none":
+                raise SceneError("bands.polarization", "none", f"{where} holds the degree of polarization: the scene "
+                                 "needs bands.polarization = 'rayleigh' or 'white'")
+            out = (t.wavelength < wl[0] - 1e-9) | (t.wavelength > wl[-1] + 1e-9)
+            if out.any():
+                i = int(np.flatnonzero(out)[0])
+                raise SceneError(f"{where}, column 'wavelength', row {i + 1}", float(t.wavelength[i]),
+                                 f"must lie within the scene's bands, {wl[0]:g} to {wl[-1]:g} nm (the model is "
+                                 "interpolated between band centres, not extrapolated)")
+        elif t.kind == "ratio":
             out = (t.x < wl[0] - 1e-9) | (t.x > wl[-1] + 1e-9)
             if out.any():
                 i = int(np.flatnonzero(out)[0])
@@ -478,6 +547,8 @@ def plot(comp: Comparison, path, title: str = "", dust=None) -> None:
         x = t.x[order]
         if t.kind == "colour":
             xlabel, ylabel = "projected offset from the star (box units)", f"Delta(B-V) nebula - {ref} (mag)"
+        elif t.kind == "polarization":
+            xlabel, ylabel = "projected offset from the star (box units)", "degree of polarization (tangential)"
         else:
             xlabel = "wavelength (nm)"
             ylabel = "nebula / star flux" + (" (model scaled per annulus)" if t.normalisation == "free" else "")

@@ -69,7 +69,7 @@ from typing import Callable, Optional, Sequence
 import numpy as np
 
 from .comparison import (
-    Comparison, DEFAULT_SIZE, check_tables_against_scene, compare_tables, ring_edges, trace_rings)
+    Comparison, DEFAULT_SIZE, check_tables_against_scene, compare_tables, needs_stokes, ring_edges, trace_rings)
 from ..density.generate import scene_density
 from ..errors import CancelledError, NebulaWarning, SceneError
 from .colours import _check_reference
@@ -206,7 +206,8 @@ class _Objective:
     def _trace(self, values):
         scene = scene_with(self.base, self.params, values, self.direction)
         return trace_rings(scene, self.edges, direction=self.direction, size=self.size, backend=self.backend,
-                           cancel=self.cancel, density=self._density(scene), comm=self.comm)
+                           cancel=self.cancel, density=self._density(scene), comm=self.comm,
+                           stokes=needs_stokes(self.tables))
 
     def comparison(self, z, own_errors: bool = False) -> Comparison:
         """The comparison at unit-cube point z (traced if new), with the fixed or its own errors."""

@@ -1,11 +1,18 @@
 """The user's own observations of a reflection nebula, as tables (CSV or ECSV).
 
-Two kinds of table, told apart by their columns (one kind per file):
+Three kinds of table, told apart by their columns (one kind per file):
 
 - **colour**: Delta(B-V) = (B-V)_nebula - (B-V)_star versus projected offset from the star,
   columns ``offset``, ``delta_bv``, ``delta_bv_err`` (mag, 1 sigma);
 - **ratio**: the nebula/star flux ratio versus wavelength, columns ``wavelength``, ``ratio``,
-  ``ratio_err`` (1 sigma).
+  ``ratio_err`` (1 sigma);
+- **polarization**: the degree of linear polarization of the nebula's light versus projected
+  offset, at a wavelength, columns ``offset``, ``wavelength``, ``polarization``,
+  ``polarization_err`` (a fraction, or with the unit ``%``): the tangential (centrosymmetric)
+  degree, (Q cos 2psi + U sin 2psi) / I in the frame of each point's position angle psi about
+  the star, which is P where the pattern is centrosymmetric, as about a reflection nebula's
+  star, and negative where the light is polarized radially. Needs a scene with
+  ``bands.polarization``.
 
 Either may also have ``offset_lo`` and ``offset_hi``: the annulus of projected offset each
 row was measured in. Without them a colour table's annuli reach halfway to the neighbouring
@@ -45,11 +52,13 @@ import numpy as np
 from ..errors import SceneError
 from ..input_files import MAX_TABLE_BYTES, check_input_file, read_input_text
 
-KINDS = ("colour", "ratio")
-#: Columns of each kind: the required ones; ``offset_lo`` and ``offset_hi`` are optional for both.
+KINDS = ("colour", "ratio", "polarization")
+#: Columns of each kind: the required ones (the second names the kind); ``offset_lo`` and
+#: ``offset_hi`` are optional for all.
 REQUIRED = {
     "colour": ("offset", "delta_bv", "delta_bv_err"),
     "ratio": ("wavelength", "ratio", "ratio_err"),
+    "polarization": ("offset", "polarization", "polarization_err", "wavelength"),
 }
 OPTIONAL = ("offset_lo", "offset_hi")
 NORMALISATIONS = ("free", "absolute")
@@ -113,13 +122,16 @@ class ObservedTable:
 
     Attributes
     ----------
-    kind : {"colour", "ratio"}
+    kind : {"colour", "ratio", "polarization"}
     path : str
         Where it was read from (or a label).
     x : ndarray (n,)
-        Offset (box units) for a colour table, wavelength (nm) for a ratio table.
+        Offset (box units) for a colour or polarization table, wavelength (nm) for a ratio table.
     value, error : ndarray (n,)
-        Delta(B-V) (mag) or the ratio, and its 1-sigma error (> 0).
+        Delta(B-V) (mag), the ratio or the degree of polarization (a fraction), and its 1-sigma
+        error (> 0).
+    wavelength : ndarray (n,) or None
+        A polarization table's wavelengths (nm).
     lo, hi : ndarray (n,)
         The annulus of each row, box units.
     x_display, x_unit : ndarray, str
@@ -139,6 +151,7 @@ class ObservedTable:
     x_unit: str = ""
     normalisation: str = "free"
     meta: dict = field(default_factory=dict)
+    wavelength: Optional[np.ndarray] = None
 
     def __len__(self) -> int:
         return len(self.x)
@@ -394,8 +407,10 @@ def read_table(source: Union[str, Path, "object"], *, scale: Optional[OffsetScal
         have = ", ".join(cols) or "none"
         raise SceneError(f"{where}, columns", have,
                          "a colour table has columns offset, delta_bv, delta_bv_err; a ratio table wavelength, "
-                         "ratio, ratio_err (either may add offset_lo, offset_hi)" +
-                         ("; this one has both delta_bv and ratio: one kind per file" if len(kinds) > 1 else ""))
+                         "ratio, ratio_err; a polarization table offset, wavelength, polarization, "
+                         "polarization_err (each may add offset_lo, offset_hi)" +
+                         ("; this one has more than one of delta_bv, ratio and polarization: one kind per file"
+                          if len(kinds) > 1 else ""))
     kind = kinds[0]
     allowed = set(REQUIRED[kind]) | set(OPTIONAL)
     for c in cols:
@@ -425,6 +440,41 @@ def read_table(source: Union[str, Path, "object"], *, scale: Optional[OffsetScal
 
     mag_text = "must be in mag (or have no unit)"
     meta = dict(getattr(table, "meta", {}) or {})
+    wavelength = None
+    if kind == "polarization":
+        x, x_disp, x_unit = offsets("offset")
+        if np.any(x < 0):
+            i = int(np.flatnonzero(x < 0)[0])
+            raise SceneError(f"{where}, column 'offset', row {i + 1}", float(x_disp[i]), "must be >= 0")
+        wavelength = _wavelengths(cols["wavelength"], where)
+        text = "must be a fraction (no unit) or in %"
+        factor = []
+        for c in ("polarization", "polarization_err"):
+            _check_unit(cols[c][1], c, where, [u.dimensionless_unscaled, u.percent], text)
+            unit = cols[c][1]
+            factor.append(0.01 if unit is not None and unit == u.percent else 1.0)
+        value = _values(cols["polarization"][0], "polarization", where) * factor[0]
+        error = _values(cols["polarization_err"][0], "polarization_err", where) * factor[1]
+        if np.any(np.abs(value) > 1.0):
+            i = int(np.flatnonzero(np.abs(value) > 1.0)[0])
+            raise SceneError(f"{where}, column 'polarization', row {i + 1}", float(value[i] / factor[0]),
+                             "must be a degree of polarization in [-1, 1] (or [-100, 100] %)")
+        _positive(error, "polarization_err", where)
+        _bounded(error, "polarization_err", where, MIN_ERROR)
+        if "offset_lo" in cols:
+            lo, hi = offsets("offset_lo")[0], offsets("offset_hi")[0]
+            _check_annuli(lo, hi, where, shared=True)
+        else:  # (each distinct offset's annulus: a table may give several wavelengths at one offset)
+            ux = np.unique(x)
+            ulo, uhi = _annuli_from_offsets(ux, where)
+            k = np.searchsorted(ux, x)
+            lo, hi = ulo[k], uhi[k]
+            _check_annuli(lo, hi, where, shared=True)
+        return ObservedTable(kind=kind, path=label, x=np.asarray(x, np.float64), value=value, error=error,
+                             lo=np.asarray(lo, np.float64), hi=np.asarray(hi, np.float64),
+                             x_display=np.asarray(x_disp, np.float64),
+                             x_unit="box units" if x_unit is None else str(x_unit), meta=meta,
+                             wavelength=np.asarray(wavelength, np.float64))
     if kind == "colour":
         x, x_disp, x_unit = offsets("offset")
         if np.any(x < 0):
@@ -451,17 +501,8 @@ def read_table(source: Union[str, Path, "object"], *, scale: Optional[OffsetScal
             _check_annuli(lo, hi, where, shared=False)
         norm = "free"
     else:
-        col, unit = cols["wavelength"]
-        wl_disp = _values(col, "wavelength", where)
-        if unit is None or not unit.is_equivalent(u.nm, equivalencies=u.spectral()):
-            raise SceneError(f"{where}, column 'wavelength'", None if unit is None else str(unit),
-                             "needs a unit of wavelength (nm, Angstrom, um) or frequency: in the ECSV header, "
-                             "or in a CSV header as 'wavelength [nm]'")
-        x = (wl_disp * unit).to_value(u.nm, equivalencies=u.spectral())
-        x_disp, x_unit = wl_disp, unit
-        if np.any(x <= 0):
-            i = int(np.flatnonzero(x <= 0)[0])
-            raise SceneError(f"{where}, column 'wavelength', row {i + 1}", float(wl_disp[i]), "must be > 0")
+        x = _wavelengths(cols["wavelength"], where)
+        x_disp, x_unit = _values(cols["wavelength"][0], "wavelength", where), cols["wavelength"][1]
         text = "must have no unit (a ratio of fluxes)"
         for c in ("ratio", "ratio_err"):
             _check_unit(cols[c][1], c, where, [u.dimensionless_unscaled], text)
@@ -489,6 +530,24 @@ def read_table(source: Union[str, Path, "object"], *, scale: Optional[OffsetScal
                          str(x_unit), normalisation=norm, meta=meta)
 
 
+def _wavelengths(column, where: str) -> np.ndarray:
+    """A wavelength column (values, unit) in nm: a unit of wavelength or frequency is needed,
+    every value > 0."""
+    import astropy.units as u
+
+    col, unit = column
+    wl_disp = _values(col, "wavelength", where)
+    if unit is None or not unit.is_equivalent(u.nm, equivalencies=u.spectral()):
+        raise SceneError(f"{where}, column 'wavelength'", None if unit is None else str(unit),
+                         "needs a unit of wavelength (nm, Angstrom, um) or frequency: in the ECSV header, "
+                         "or in a CSV header as 'wavelength [nm]'")
+    x = (wl_disp * unit).to_value(u.nm, equivalencies=u.spectral())
+    if np.any(x <= 0):
+        i = int(np.flatnonzero(x <= 0)[0])
+        raise SceneError(f"{where}, column 'wavelength', row {i + 1}", float(wl_disp[i]), "must be > 0")
+    return x
+
+
 def write_table(table: ObservedTable, path: Union[str, Path], meta: Optional[dict] = None) -> None:
     """Write an :class:`ObservedTable` as ECSV with units (offsets in box units), e.g. a
     synthetic observation to fit."""
@@ -501,6 +560,12 @@ def write_table(table: ObservedTable, path: Union[str, Path], meta: Optional[dic
         t["offset_lo"], t["offset_hi"] = table.lo, table.hi
         t["delta_bv"] = table.value * u.mag
         t["delta_bv_err"] = table.error * u.mag
+    elif table.kind == "polarization":
+        t["offset"] = table.x
+        t["offset_lo"], t["offset_hi"] = table.lo, table.hi
+        t["wavelength"] = table.wavelength * u.nm
+        t["polarization"] = table.value
+        t["polarization_err"] = table.error
     else:
         t["wavelength"] = table.x * u.nm
         t["ratio"] = table.value
