@@ -283,8 +283,8 @@ NRT_DEVICE void nrt_cross_face(int ax, int i_next, const float *p, float d_ax, c
 #if NRT_POLAR && (NRT_BIASED || NRT_REGIONS)
 #error "polarized packets are analog and traced without regions"
 #endif
-/* images per band of a batch slot: I, or I, Q and U (no kind yet gives V: S34 = 0) */
-#define NRT_STOKES_IMAGES (NRT_POLAR ? 3 : 1)
+/* Stokes images per band of a batch slot besides I: Q and U (no kind yet gives V: S34 = 0) */
+#define NRT_STOKES_IMAGES (NRT_POLAR ? 2 : 0)
 #include "polarization.cl"
 /* A scattering's new direction (and, with NRT_POLAR, the packet's new Stokes state) */
 #if NRT_POLAR
@@ -390,8 +390,9 @@ NRT_DEVICE float nrt_peel_weight(const NRT_GLOBAL float *density, float sig_b, f
 /*
  * An analog packet's peel-off into pixel `pixel`, its light attenuated by atten = exp(-tau) to
  * the box's edge: the phase function's weight into the band's image or, with NRT_POLAR, the
- * light's I, Q and U (nrt_peel_stokes) into the band's NRT_STOKES_IMAGES images (I, then Q,
- * then U, each of W x H pixels). I's deposits are checked adds; Q and U are signed, added as 64-bit two's
+ * light's I, Q and U (nrt_peel_stokes): I into the band's image, Q and U into its two Stokes
+ * images (band_stokes: Q, then U, each of W x H pixels, kept apart from every cell's I image so
+ * that the intensities stay one checked block). I's deposits are checked adds; Q and U are signed, added as 64-bit two's
  * complement (integer addition modulo 2^64 is exact and associative, so their sums are exact
  * and the same bits in any order). Each is rounded with I's random word, so |its units| <= I's
  * units deposit by deposit, and every partial sum of it lies within +-I's partial sum, which the
@@ -401,8 +402,8 @@ NRT_DEVICE float nrt_peel_weight(const NRT_GLOBAL float *density, float sig_b, f
 NRT_DEVICE nrt_u64 nrt_peel_deposit(float atten, float g_b, const NRT_GLOBAL float *pol,
                                     const NRT_GLOBAL float *peel, float peel_scale, const float *d,
                                     const nrt_stokes *st, nrt_u64 pixel, NRT_GLOBAL nrt_u64 *band_image,
-                                    NRT_GLOBAL nrt_u32 *overflow, nrt_u64 seed, int band, nrt_u64 photon,
-                                    int event)
+                                    NRT_GLOBAL nrt_u64 *band_stokes, NRT_GLOBAL nrt_u32 *overflow, nrt_u64 seed,
+                                    int band, nrt_u64 photon, int event)
 {
     const float o[3] = {peel[0], peel[1], peel[2]};
 #if NRT_POLAR
@@ -416,14 +417,14 @@ NRT_DEVICE nrt_u64 nrt_peel_deposit(float atten, float g_b, const NRT_GLOBAL flo
     const nrt_u64 v = nrt_fixed_round(wgt, peel_scale, r);
     nrt_acc_add_checked(&band_image[pixel], v, overflow);
     const nrt_u64 pixels = (nrt_u64)peel[13] * (nrt_u64)peel[14];
-    for (int k = 1; k < NRT_STOKES_IMAGES; ++k) {
-        nrt_u64 n = nrt_fixed_round(fabs(iquv[k]) * atten, peel_scale, r);
+    for (int k = 0; k < NRT_STOKES_IMAGES; ++k) {
+        nrt_u64 n = nrt_fixed_round(fabs(iquv[k + 1]) * atten, peel_scale, r);
         if (n != 0)
-            NRT_ATOMIC_ADD_U64(&band_image[(nrt_u64)k * pixels + pixel], iquv[k] < 0.0f ? (nrt_u64)0 - n : n);
+            NRT_ATOMIC_ADD_U64(&band_stokes[(nrt_u64)k * pixels + pixel], iquv[k + 1] < 0.0f ? (nrt_u64)0 - n : n);
     }
     return v;
 #else
-    (void)pol, (void)st;
+    (void)pol, (void)st, (void)band_stokes;
     float mu = d[0] * o[0] + d[1] * o[1] + d[2] * o[2];
     float wgt = nrt_hg_phase(g_b, mu) * atten;
     if (!(wgt >= 0.0f))
@@ -438,7 +439,7 @@ NRT_DEVICE nrt_u64 nrt_peel_deposit(float atten, float g_b, const NRT_GLOBAL flo
 NRT_DEVICE nrt_u64 nrt_peel(const NRT_GLOBAL float *density, float sig_b, float g_b,
                             const NRT_GLOBAL float *pol, const NRT_GLOBAL float *peel, float peel_scale,
                             const float *x, const float *d, const nrt_stokes *st, int ix, int iy, int iz,
-                            int nx, int ny, int nz, NRT_GLOBAL nrt_u64 *band_image,
+                            int nx, int ny, int nz, NRT_GLOBAL nrt_u64 *band_image, NRT_GLOBAL nrt_u64 *band_stokes,
                             NRT_GLOBAL nrt_u32 *overflow, nrt_u64 seed, int band, nrt_u64 photon, int event)
 {
     nrt_u64 pixel;
@@ -446,8 +447,8 @@ NRT_DEVICE nrt_u64 nrt_peel(const NRT_GLOBAL float *density, float sig_b, float 
         return 0;
     const float o[3] = {peel[0], peel[1], peel[2]};
     float atten = exp(-nrt_tau_to_edge(density, sig_b, x, o, ix, iy, iz, nx, ny, nz));
-    return nrt_peel_deposit(atten, g_b, pol, peel, peel_scale, d, st, pixel, band_image, overflow, seed, band,
-                            photon, event);
+    return nrt_peel_deposit(atten, g_b, pol, peel, peel_scale, d, st, pixel, band_image, band_stokes, overflow, seed,
+                            band, photon, event);
 }
 #endif
 
@@ -712,7 +713,7 @@ NRT_DEVICE int nrt_pass_item(nrt_u64 it, const NRT_GLOBAL nrt_u64 *order, const 
         nrt_sink *sink, NRT_GLOBAL nrt_u32 *overflow, const NRT_GLOBAL float *peel, float peel_scale,    \
         NRT_GLOBAL nrt_u64 *band_image, const NRT_GLOBAL nrt_packet *resume, NRT_GLOBAL nrt_packet *save, \
         int region_shift, nrt_u64 item, NRT_GLOBAL nrt_u64 *band_sq, int sq_shift, nrt_u64 cells,           \
-        const NRT_GLOBAL float *pol
+        const NRT_GLOBAL float *pol, NRT_GLOBAL nrt_u64 *band_stokes
 
 #ifndef NRT_TREE
 #define NRT_TREE 0
@@ -746,6 +747,7 @@ NRT_DEVICE int nrt_trace_packet(NRT_TRACE_PACKET_PARAMS)
 #else
     (void)pol;
 #endif
+    (void)band_stokes; /* (NRT_PEEL with NRT_POLAR) */
     const float hx = 1.0f / (float)nx, hy = 1.0f / (float)ny, hz = 1.0f / (float)nz;
     const nrt_idx stride_y = (nrt_idx)nx, stride_z = (nrt_idx)nx * (nrt_idx)ny;
     int ix, iy, iz, scatterings;
@@ -847,7 +849,8 @@ NRT_DEVICE int nrt_trace_packet(NRT_TRACE_PACKET_PARAMS)
             NRT_SCATTER_OR_END();
 #if NRT_PEEL
             peel_score += nrt_peel(density, sig_b, g_b, pol, peel, peel_scale, p0, d, NRT_STOKES_STATE,
-                                   ix, iy, iz, nx, ny, nz, band_image, overflow, seed, band, photon, scatterings);
+                                   ix, iy, iz, nx, ny, nz, band_image, band_stokes, overflow, seed, band, photon,
+                                   scatterings);
 #endif
             NRT_NEW_DIRECTION();
             /* the next flight starts here, in the same voxel */
@@ -1975,10 +1978,11 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
         int stopped = nrt_trace_packet(density, optics[4 * band], optics[4 * band + 1], optics[4 * band + 2], stars,
                                        star_cdf + band * n_stars, nx, ny, nz, n_stars, seed, band, photon,
                                        max_scatterings, track_scale, acc + cell * nvox, &sink,
-                                       overflow + slot, peel, peel_scale, image + cell * pixels * NRT_STOKES_IMAGES,
+                                       overflow + slot, peel, peel_scale, image + cell * pixels,
                                        fresh ? 0 : states + sl, states + sl, region_shift,
                                        photon | ((nrt_u64)lband << NRT_ITEM_BAND_SHIFT), sq + cell * nvox, sq_shift,
-                                       nvox, optics + 4 * prm->n_bands + 4 * band);
+                                       nvox, optics + 4 * prm->n_bands + 4 * band,
+                                       image + prm->image_stokes + cell * pixels * NRT_STOKES_IMAGES);
         if (stopped) {
             const NRT_GLOBAL nrt_packet *q = states + sl;
             keys_out[it] = ((nrt_u64)nrt_region_bin(cell, q->ix, q->iy, q->iz, nx, ny, nz, region_shift) << 32) | sl;
@@ -1990,8 +1994,9 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
         nrt_trace_packet(density, optics[4 * band], optics[4 * band + 1], optics[4 * band + 2], stars,
                          star_cdf + band * n_stars, nx, ny, nz, n_stars, seed, band, photon,
                          max_scatterings, track_scale, acc + cell * nvox, &sink,
-                         overflow + slot, peel, peel_scale, image + cell * pixels * NRT_STOKES_IMAGES, 0, 0,
-                         NRT_NO_REGIONS, 0, sq + cell * nvox, sq_shift, nvox, optics + 4 * prm->n_bands + 4 * band);
+                         overflow + slot, peel, peel_scale, image + cell * pixels, 0, 0, NRT_NO_REGIONS, 0,
+                         sq + cell * nvox, sq_shift, nvox, optics + 4 * prm->n_bands + 4 * band,
+                         image + prm->image_stokes + cell * pixels * NRT_STOKES_IMAGES);
 #endif
 #endif
     }

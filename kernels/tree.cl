@@ -190,15 +190,16 @@ NRT_DEVICE nrt_u64 nrt_tree_peel(const NRT_GLOBAL int *child, const NRT_GLOBAL f
                                  int rz, float sig_b, float g_b, const NRT_GLOBAL float *pol,
                                  const NRT_GLOBAL float *peel, float peel_scale, const float *p, const float *d,
                                  const nrt_stokes *st, NRT_GLOBAL nrt_u64 *band_image,
-                                 NRT_GLOBAL nrt_u32 *overflow, nrt_u64 seed, int band, nrt_u64 photon, int event)
+                                 NRT_GLOBAL nrt_u64 *band_stokes, NRT_GLOBAL nrt_u32 *overflow, nrt_u64 seed,
+                                 int band, nrt_u64 photon, int event)
 {
     nrt_u64 pixel;
     if (!nrt_peel_pixel(peel, p, &pixel))
         return 0;
     const float o[3] = {peel[0], peel[1], peel[2]};
     float atten = exp(-nrt_tree_tau_to_edge(child, leaf_density, rx, ry, rz, sig_b, p, o));
-    return nrt_peel_deposit(atten, g_b, pol, peel, peel_scale, d, st, pixel, band_image, overflow, seed, band,
-                            photon, event);
+    return nrt_peel_deposit(atten, g_b, pol, peel, peel_scale, d, st, pixel, band_image, band_stokes, overflow, seed,
+                            band, photon, event);
 }
 #endif
 
@@ -210,7 +211,7 @@ NRT_DEVICE nrt_u64 nrt_tree_peel(const NRT_GLOBAL int *child, const NRT_GLOBAL f
  */
 NRT_DEVICE int nrt_trace_packet(NRT_TRACE_PACKET_PARAMS)
 {
-    (void)resume, (void)save, (void)region_shift, (void)item, (void)track_scale;
+    (void)resume, (void)save, (void)region_shift, (void)item, (void)track_scale, (void)band_stokes;
 #if !NRT_PEEL
     (void)peel, (void)peel_scale, (void)band_image, (void)g_b;
 #endif
@@ -274,7 +275,8 @@ NRT_DEVICE int nrt_trace_packet(NRT_TRACE_PACKET_PARAMS)
             NRT_SCATTER_OR_END();
 #if NRT_PEEL
             peel_score += nrt_tree_peel(child, leaf_density, nx, ny, nz, sig_b, g_b, pol, peel, peel_scale, p, d,
-                                        NRT_STOKES_STATE, band_image, overflow, seed, band, photon, scatterings);
+                                        NRT_STOKES_STATE, band_image, band_stokes, overflow, seed, band, photon,
+                                        scatterings);
 #endif
             NRT_NEW_DIRECTION();
             inv_d[0] = 1.0f / d[0], inv_d[1] = 1.0f / d[1], inv_d[2] = 1.0f / d[2];

@@ -55,7 +55,8 @@ CASES = [("track-length", "plain"), ("collision-filter", "plain"),
          ("track-length", "biased+checked"), ("collision-filter", "biased+copied"),
          ("track-length", "regions+checked"), ("track-length", "packets+regions"),
          ("collision-filter", "packets+copied"), ("track-length", "tree"), ("collision-filter", "tree+copied"),
-         ("track-length", "tree+biased")]
+         ("track-length", "tree+biased"), ("track-length", "polarized+checked"),
+         ("collision-filter", "polarized+copied")]
 
 
 @pytest.fixture(scope="module")
@@ -75,7 +76,8 @@ def test_trace_is_the_same_bits_on_1_2_3_ranks(rank_runs, case):
     ranks add limb by limb; 'regions': by regions of 4 voxels, each rank's share of a group
     streamed through launches of about 300 packets and drained at the group's last;
     'packets': the error estimate by packets, the ranks' squares added as well; 'tree': an
-    octree of the cloud, its leaves the cells, with weighted packets too)."""
+    octree of the cloud, its leaves the cells, with weighted packets too; 'polarized': Stokes
+    vectors, the Q and U images' two's-complement sums added over the ranks)."""
     estimator, mode = case
     runs = {n: rank_runs[n][case] for n in (1, 2, 3)}
     one = runs[1]
@@ -86,8 +88,10 @@ def test_trace_is_the_same_bits_on_1_2_3_ranks(rank_runs, case):
         assert one["band_batches"].tolist() == [9001, 9001]  # batches of one packet
     if "checked" in mode:
         assert one["band_batches"].min() > 7  # the overflow happened and batches were split
+    if "polarized" in mode:
+        assert one["stokes"].shape == (2, 2, 12, 10) and np.abs(one["stokes"]).sum() > 0
     for n in (2, 3):
-        for key in ("raw_sum", "raw_m2", "counts", "peel", "band_batches", "tail_hist"):
+        for key in ("raw_sum", "raw_m2", "counts", "peel", "band_batches", "tail_hist", "stokes"):
             assert runs[n][key].tobytes() == one[key].tobytes(), (n, key)
         # how the slots were added: on a GPU where they are (NCCL, or ranks sharing one GPU
         # through a host buffer), on PoCL in the mapped device memory unless told to copy

@@ -8,7 +8,8 @@ Each ESTIMATOR:MODE is one run, saved as OUTDIR/ESTIMATOR-MODE.npz (one process 
 an MPI job's start-up costs more than a run).
 
 MODE: ``plain``, ``checked`` (headroom lowered: batches overflow and are re-traced), ``biased``
-(weighted packets, 128-bit cells), ``regions`` (the transport by regions, each group streamed
+(weighted packets, 128-bit cells), ``polarized`` (Stokes vectors: the Q and U images' signed
+sums added over the ranks too), ``regions`` (the transport by regions, each group streamed
 through launches of about 300 packets) or ``packets`` (the error estimate by packets: one batch,
 its squares summed over the ranks too, no peel-off image) or ``tree`` (an octree of the cloud:
 the packets walk its leaves), joined by ``+`` with ``copied``: the slots are summed in a
@@ -62,6 +63,10 @@ def run_case(out: str, estimator: str, mode: str, device: str, comm) -> None:
         kw["_acc_limit_bits"] = 31 if biased else 36  # 128-bit cells: 2^95, 2^7 voxel crossings
     if biased:  # the stars' windows: J's depth-class histograms are added over the ranks too
         kw.update(method="biased", importance="stars")
+    if "polarized" in parts:  # Stokes vectors (White's approximation): Q and U images, signed sums
+        from nebula_rt.optics.polarization import Polarization
+
+        kw["polarization"] = Polarization("white", peak=0.5)
     if "packets" in parts:  # one batch of every packet, no peel-off image (it needs batches)
         kw.update(error_estimate="packets", batch_size=0, peel=None, tau=2.5)
     backend.launch_packets = 2 * 3 * 1500  # several launches, each of several batches
@@ -84,7 +89,7 @@ def run_case(out: str, estimator: str, mode: str, device: str, comm) -> None:
         np.savez(out, raw_sum=res.raw_sum, raw_m2=res.raw_m2, counts=counts,
                  peel=np.zeros(0) if res.peel_image is None else res.peel_image,
                  band_batches=res.band_batches, size=comm.size, reduce_path=res.reduce_path,
-                 tail_hist=res.tail_hist)
+                 tail_hist=res.tail_hist, stokes=np.zeros(0) if res.peel_stokes is None else res.peel_stokes)
 
 
 def main() -> int:

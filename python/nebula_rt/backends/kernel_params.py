@@ -27,6 +27,8 @@ TRACE_PARAMS = (
     ("batch_base", "u64", 1, "packets per batch (the first batch_extra batches hold one more)"),
     ("batch_extra", "u64", 1, "batches holding batch_base + 1 packets"),
     ("cells", "u64", 1, "cells per band of a batch slot: the grid's voxels, or a tree's leaves (NRT_TREE)"),
+    ("image_stokes", "u64", 1, "NRT_POLAR: where the Q and U images start in the image buffer, after every "
+                               "cell's intensity image (words)"),
     ("nx", "i32", 1, "grid size along x (voxels)"),
     ("ny", "i32", 1, "grid size along y"),
     ("nz", "i32", 1, "grid size along z"),

@@ -112,6 +112,7 @@ class DeviceTransport(TransportSession):
             n_stars=setup.stars.shape[0], max_scatterings=setup.max_scatterings, sq_shift=setup.sq_shift,
             window_shape=(1, 1, 1) if setup.window is None else np.shape(setup.window),
             track_scale=setup.track_scale, peel_scale=setup.peel_scale, collision_scale=setup.collision_scale,
+            image_stokes=max(1, self.slots * self.bands_per_launch) * setup.peel_pixels * setup.cell_words,
             peel=np.zeros(15, np.float32) if setup.peel is None else np.asarray(setup.peel, np.float32))
         self.d_params = be.to_device(self.params.view(np.uint8))
         self.d_acc = be.device_zeros(max(1, self.slot_cells * self.slots * self.words), np.uint64)
@@ -130,8 +131,12 @@ class DeviceTransport(TransportSession):
         self.d_tallies = be.device_zeros(self.slots * self.bands_per_launch * self.tally_words, np.uint64)
         self.d_overflow = be.device_zeros(self.slots, np.uint32)
         self.d_seen = be.device_zeros(1, np.uint32)
-        self.pixels = setup.peel_pixels * setup.stokes_images  # (a band's I, Q and U images)
-        self.d_image = be.device_zeros(max(1, self.slots * self.bands_per_launch * self.pixels * self.words),
+        self.pixels = setup.peel_pixels
+        # every cell's intensity image, then (polarized) every cell's Q and U images: the
+        # intensities stay one block of checked adds, Q and U a block of signed sums
+        self.image_stokes = self.slots * self.bands_per_launch * self.pixels * self.words
+        self.stokes_words = self.pixels * (setup.stokes_images - 1)  # per cell
+        self.d_image = be.device_zeros(max(1, self.image_stokes + self.slots * self.bands_per_launch * self.stokes_words),
                                        np.uint64)
         tuning = dict(be.transport_tuning)
         if setup.tree is not None:
@@ -491,6 +496,13 @@ class DeviceTransport(TransportSession):
             be.upload(self.d_acc, acc)
         if pix:
             be.upload(self.d_image, buf[cells:cells + pix])
+        if self.stokes_words:  # Q and U: signed sums in two's complement, exact modulo 2^64 (no check)
+            end = self.image_stokes + n_slots * n_lb * self.stokes_words
+            whole = np.ascontiguousarray(be.to_host(self.d_image)[:end])  # (the summed intensities first)
+            qu = np.ascontiguousarray(whole[self.image_stokes:])
+            comm.sum_u64(qu)
+            whole[self.image_stokes:] = qu
+            be.upload(self.d_image, whole)
         be.upload(self.d_overflow, flags.astype(np.uint32))
         return buf[cells + pix:cells + pix + nt].reshape(tallies.shape).copy(), flags
 
@@ -560,13 +572,12 @@ class DeviceTransport(TransportSession):
         if s.peel is None:
             return np.zeros((n_slots, n_lb, 0, 0), np.uint64)
         w, h = int(s.peel[13]), int(s.peel[14])
-        out = self.backend.to_host(self.d_image).reshape(self.slots, self.bands_per_launch, s.stokes_images, w, h,
-                                                         self.words)
+        whole = self.backend.to_host(self.d_image)
         self.backend.fill_zero(self.d_image)
-        out = out[:n_slots, :n_lb]
-        if s.stokes_images > 1:  # (n, bands, [I, Q, U], W, H): Q and U as the signed sums they are
-            return out[..., 0]
-        out = out[:, :, 0]
+        out = whole[:self.image_stokes].reshape(self.slots, self.bands_per_launch, w, h, self.words)[:n_slots, :n_lb]
+        if self.stokes_words:  # (n, bands, [I, Q, U], W, H): Q and U as the signed sums they are
+            qu = whole[self.image_stokes:].reshape(self.slots, self.bands_per_launch, s.stokes_images - 1, w, h)
+            return np.concatenate([out[..., 0][:, :, None], qu[:n_slots, :n_lb]], axis=2)
         if self.words == 1:
             return out[..., 0]
         # 128-bit pixels as float64 (the image statistics are float64 anyway)
@@ -591,7 +602,8 @@ class DeviceTransport(TransportSession):
         return (8 * self.words * self.slot_cells * self.slots + stats
                 + 4 * self.nvox * (1 if self.setup.peel_columns is None else 2)
                 + 8 * self.tally_words * self.bands_per_launch * self.slots + 4 * self.slots
-                + 8 * self.words * self.slots * self.bands_per_launch * self.pixels + regions)
+                + 8 * self.words * self.slots * self.bands_per_launch * self.pixels
+                + 8 * self.slots * self.bands_per_launch * self.stokes_words + regions)
 
     def close(self):
         for name in ("d_acc", "d_sq", "d_sum1", "d_m2", "d_density", "d_image", "d_keys", "_h_stage", "d_states",
