@@ -29,7 +29,8 @@ SKY_IMAGE_DISPLAY = ('<View type="NebulaSkyView" />'
 #: the picture (nebula_rt_paraview.display draws them white)
 POLARIZATION_VECTORS_DISPLAY = ('<View type="NebulaSkyView" />'
                                 '<RepresentationType view="NebulaSkyView" type="Surface" />'
-                                '<RepresentationType view="RenderView" type="Surface" />')
+                                '<RepresentationType view="RenderView" type="Surface" />'
+                                '<PipelineIcon name="GEOMETRY" />')  # (as the sky image's: the view has none)
 
 
 def help_text(cls):

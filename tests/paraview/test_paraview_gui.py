@@ -520,6 +520,27 @@ def test_state_file_in_the_gui_keeps_its_figure(pv_env, xdisplay, tmp_path, name
     assert sum("tau 128" in t and "albedo series" in t for t in texts) == 1, texts
 
 
+def test_the_polarization_state_in_the_gui_shows_the_vectors_over_the_picture(pv_env, xdisplay, tmp_path):
+    """``paraview --state=state_files/polarized_nebula.pvsm`` (Device pinned to the test device):
+    one sky view showing the peel-off sky image (Slice) and Nebula Polarization Vectors (their
+    segments, white, over it); the window's picture holds the lit nebula and the segments."""
+    text = (REPO / "state_files" / "polarized_nebula.pvsm").read_text()
+    pinned = re.sub(r'(<Property name="Device" id="[^"]+" number_of_elements="1">\s*<Element index="0" value=)""',
+                    lambda m: m.group(1) + quoteattr(pv_env["NEBULA_RT_TEST_DEVICE"]), text)
+    assert pinned.count(pv_env["NEBULA_RT_TEST_DEVICE"]) == 2
+    state = tmp_path / "polarized_nebula.pvsm"
+    state.write_text(pinned)
+    out = run_gui(pv_env, xdisplay, tmp_path, probe("state", grab=True), args=(f"--state={state}",))
+    r = step_record(out, "state")
+    (view,) = r["views"]
+    reps = {x["producer"]: x for x in view["representations"] if x["visible"]}
+    assert reps["NebulaSkyImage"]["representation"] == "Slice", reps
+    assert reps["NebulaPolarizationVectors"]["representation"] == "Surface", reps
+    im = read_png(view["png"])
+    assert im.mean() > 10  # the nebula
+    assert 0.001 < (im.min(axis=2) > 240).mean() < 0.2  # the white segments
+
+
 def test_opening_the_command_lines_file_shows_its_true_colour(pv_env, xdisplay, tmp_path):
     """File > Open of the command line's ``.vti`` (``paraview --data=FILE``), Apply: the
     reader's rgba shown the same way (a direct-RGBA volume, Map Scalars off, the per-voxel
