@@ -218,7 +218,7 @@ def test_paraview_proxy_is_the_schema_and_gives_the_same_bits(pv_env, xdisplay, 
                                    and p.hi - p.lo > 1e6) else p.hi
                 assert hi == want_hi, prop.name
     assert list(r["density_groups"]) == ["Dust", "Stars", "Compute device"]
-    assert r["sky_groups"] == {"Camera": ["ViewDirection", "ViewUp", "ImageSize", "Extent"],
+    assert r["sky_groups"] == {"Camera": ["Method", "ViewDirection", "ViewUp", "ImageSize", "Extent"],
                                "Picture": ["IncludeStars", "AutoExposure", "Exposure", "ExposureChosen", "Stretch",
                                            "AsinhQ"],
                                "Observer": ["Units", "Distance", "RA", "Dec", "PositionAngle", "PSFFWHM",

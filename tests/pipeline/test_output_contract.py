@@ -222,9 +222,11 @@ def test_the_vtk_algorithms_write_the_same_contract():
     assert {st.GetArrayName(i) for i in range(st.GetNumberOfArrays())} == {a.name() for a in contract.STAR_ARRAYS}
     # the executive passes the input's field data on; the sky image's own replace same names
     sky_fd = field_data_dict(sky.GetOutputDataObject(0))
-    # optional: the star's optical depth (there is a star); the calibrated image's entries only
-    # with Units "MJy/sr" (tests/observe/test_calibrate.py)
-    own = _expected_keys(contract.SkyImageData, names, lambda n: n == "tau_star")
+    # optional: the star's optical depth (there is a star) and the method (always written; absent
+    # from images made before it was); the calibrated image's entries only with Units "MJy/sr"
+    # (tests/observe/test_calibrate.py), the polarization convention only for a polarized peel-off
+    # (tests/filters/test_polarization_filters.py)
+    own = _expected_keys(contract.SkyImageData, names, lambda n: n in ("tau_star", "sky_method"))
     assert sorted(sky_fd) == sorted(set(own) | set(lf_fd))
     sky_data = contract.SkyImageData.from_field_data(sky_fd, need=("view_direction", "tau_star"))
     np.testing.assert_array_equal(sky_data.view_direction, [0.0, 0.0, -1.0])
