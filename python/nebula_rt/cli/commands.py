@@ -302,7 +302,7 @@ def _compare(args, cancel) -> int:
     if args.image:  # the user's observed image (nebula_rt.cli.image)
         return compare_image_command(args, ranks, scene, direction, lambda: _backend_for(scene, ranks.comm),
                                      _inputs(args, scene), _print_summary)
-    if args.table:  # the user's own observations (nebula_rt.cli.fit)
+    if args.table or args.stokes:  # the user's own observations (nebula_rt.cli.fit)
         from .fit import compare_tables_command
 
         return compare_tables_command(args, ranks, scene, direction, lambda: _backend_for(scene, ranks.comm),

@@ -34,6 +34,18 @@ def add_table_options(p) -> None:
                         "'absolute' (nebula flux in the annulus / star flux)")
     p.add_argument("--annulus", default="0,0.5",
                    help="ratio tables without offset columns: the annulus lo,hi (box units, default 0,0.5)")
+    p.add_argument("--stokes", type=file_name, default=None, metavar="FITS",
+                   help="observed Stokes images (I, Q, U; IAU): their tangential degree of polarization in "
+                        "annuli about the star becomes a polarization table (docs/observations.md); with "
+                        "--stokes-hdus, --stokes-wavelength, --stokes-annuli and --stokes-error")
+    p.add_argument("--stokes-hdus", default=None, metavar="I,Q,U",
+                   help="the HDUs of I, Q and U, by name or number (e.g. SB_G,Q_G,U_G, as nebula-rt sky writes them)")
+    p.add_argument("--stokes-wavelength", type=float, default=None, metavar="NM", help="the observation's wavelength, nm")
+    p.add_argument("--stokes-annuli", default=None, metavar="A,B,C,...", help="annulus edges, arcsec from the star")
+    p.add_argument("--stokes-error", action="append", default=[], metavar="HDU|X%%|VALUE UNIT",
+                   help="1-sigma error terms of I, Q and U (added in quadrature), as --image-error; repeatable")
+    p.add_argument("--stokes-mask", type=float, default=0.0, metavar="ARCSEC",
+                   help="leave out the pixels within this distance of a star (its unpolarized light)")
 
 
 def _quantity(option: str, text):
@@ -83,8 +95,34 @@ def read_tables(args, scene) -> list:
     except (ValueError, AssertionError):
         raise SceneError("--annulus", args.annulus, "must be lo,hi with 0 <= lo < hi (box units)") from None
     scale = OffsetScale(box_length=_box_length(args, scene), distance=_quantity("--distance", args.distance))
-    return [read_table(p, scale=scale, normalisation=args.normalisation, annulus=annulus, option="--table")
-            for p in args.table]
+    tables = [read_table(p, scale=scale, normalisation=args.normalisation, annulus=annulus, option="--table")
+              for p in args.table]
+    if getattr(args, "stokes", None):
+        tables.append(_stokes_table(args, scene))
+    return tables
+
+
+def _stokes_table(args, scene):
+    """``--stokes``: the observed Stokes images as a polarization table (nebula_rt.observe.observed_stokes)."""
+    from ..observe.observed_stokes import stokes_table
+
+    hdus = (args.stokes_hdus or "").split(",")
+    if len(hdus) != 3 or not all(h.strip() for h in hdus):
+        raise SceneError("--stokes-hdus", args.stokes_hdus, "must name the HDUs of I, Q and U: I,Q,U (names or numbers)")
+    hdus = [int(h) if h.strip().isdigit() else h.strip() for h in hdus]
+    if args.stokes_wavelength is None:
+        raise SceneError("--stokes-wavelength", None, "must give the observation's wavelength in nm with --stokes")
+    try:
+        edges = [float(x) for x in (args.stokes_annuli or "").split(",")]
+    except ValueError:
+        raise SceneError("--stokes-annuli", args.stokes_annuli, "must be annulus edges in arcsec, a,b,c,...") from None
+    if not args.stokes_error:
+        raise SceneError("--stokes-error", [], "must give the errors of I, Q and U (an HDU, X% or a surface brightness)")
+    if not (math.isfinite(args.stokes_mask) and args.stokes_mask >= 0):
+        raise SceneError("--stokes-mask", args.stokes_mask, "must be a radius in arcsec >= 0")
+    return stokes_table(scene, args.stokes, intensity=hdus[0], q=hdus[1], u=hdus[2], errors=args.stokes_error,
+                        wavelength_nm=args.stokes_wavelength, annuli_arcsec=edges, mask_arcsec=args.stokes_mask,
+                        option="--stokes")
 
 
 def _outputs(args, scene, inputs):
@@ -95,7 +133,8 @@ def _outputs(args, scene, inputs):
         outs.append(Output("--json", Path(args.json), ".json", 1 << 20))
     if getattr(args, "scene_out", None):
         outs.append(Output("--scene-out", Path(args.scene_out), ".toml", 1 << 20))
-    check_outputs(outs, inputs + [("--table", Path(t)) for t in args.table])
+    check_outputs(outs, inputs + [("--table", Path(t)) for t in args.table]
+                  + ([("--stokes", Path(args.stokes))] if getattr(args, "stokes", None) else []))
 
 
 def compare_tables_command(args, ranks, scene, direction, backend_of, inputs, print_summary) -> int:

@@ -59,8 +59,8 @@ def compare_image_command(args, ranks, scene, direction, backend_of, inputs, pri
 
     cancel = ranks.cancel
     with ranks.start():
-        if args.table:
-            raise SceneError("--image", args.image, "compare an image or tables (--table), not both in one run")
+        if args.table or args.stokes:
+            raise SceneError("--image", args.image, "compare an image or tables (--table, --stokes), not both in one run")
         if not (math.isfinite(args.mask_stars) and args.mask_stars >= 0):
             raise SceneError("--mask-stars", args.mask_stars, "must be a radius in arcsec >= 0")
         calibrate.check_scene(scene)
