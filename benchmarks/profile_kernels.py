@@ -45,7 +45,8 @@ def profile(n: int, photons: int, tuning: dict, program: str = "", free_running:
 
     tuning = dict(tuning)
     block = int(tuning.pop("trace_block", TRACE_BLOCK))
-    be = CUDABackend("", transport_tuning=tuning, trace_block=block)
+    be = CUDABackend("", transport_tuning=tuning, trace_block=block,
+                     compile_options=("-lineinfo",) if LINEINFO else ())
     if program:
         be.transport_program = program
     bands = [Band(name="V", wavelength=550.0, extinction=1.0, albedo=0.6, g=0.6)]
@@ -125,7 +126,12 @@ def profile(n: int, photons: int, tuning: dict, program: str = "", free_running:
             "trace_packets_per_ms": res.counts[:, 0].sum() / (t_trace * 1e3) if t_trace else None}
 
 
+#: compile with line information (``--lineinfo``: Nsight Compute maps its counters to source lines)
+LINEINFO = False
+
+
 def main(argv=None) -> int:
+    global LINEINFO
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--grids", type=int, nargs="+", default=[256, 512])
     ap.add_argument("--photons", type=float, default=1e8)
@@ -135,8 +141,10 @@ def main(argv=None) -> int:
     ap.add_argument("--scene", default="", help="a scene file traced instead of the neb medium (its grid set to each "
                     "of --grids, its photons per band to --photons)")
     ap.add_argument("--free-running", action="store_true", help="no synchronisation: idle gaps between calls")
+    ap.add_argument("--lineinfo", action="store_true", help="compile with -lineinfo (for ncu's source page)")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
+    LINEINFO = args.lineinfo
     records = []
     for text in args.tuning:
         tuning = {k: int(v) for k, v in (item.split("=", 1) for item in text.split())}
