@@ -280,8 +280,8 @@ NRT_DEVICE void nrt_cross_face(int ax, int i_next, const float *p, float d_ax, c
 #ifndef NRT_POLAR
 #define NRT_POLAR 0
 #endif
-#if NRT_POLAR && (NRT_BIASED || NRT_REGIONS)
-#error "polarized packets are analog and traced without regions"
+#if NRT_POLAR && NRT_REGIONS
+#error "polarized packets are traced without regions"
 #endif
 /* Stokes images per band of a batch slot besides I: Q and U (no kind yet gives V: S34 = 0) */
 #define NRT_STOKES_IMAGES (NRT_POLAR ? 2 : 0)
@@ -373,19 +373,6 @@ NRT_DEVICE float nrt_tau_to_edge(const NRT_GLOBAL float *density, float sig_b, c
     }
 }
 
-
-/* The peel-off weight phase x exp(-tau) of a scattering at x (incoming direction d) and its
-   pixel; -1 where x projects outside the image. */
-NRT_DEVICE float nrt_peel_weight(const NRT_GLOBAL float *density, float sig_b, float g_b,
-                                 const NRT_GLOBAL float *peel, const float *x, const float *d,
-                                 int ix, int iy, int iz, int nx, int ny, int nz, nrt_u64 *pixel)
-{
-    const float o[3] = {peel[0], peel[1], peel[2]};
-    if (!nrt_peel_pixel(peel, x, pixel))
-        return -1.0f;
-    float mu = d[0] * o[0] + d[1] * o[1] + d[2] * o[2];
-    return nrt_hg_phase(g_b, mu) * exp(-nrt_tau_to_edge(density, sig_b, x, o, ix, iy, iz, nx, ny, nz));
-}
 
 /*
  * An analog packet's peel-off into pixel `pixel`, its light attenuated by atten = exp(-tau) to
@@ -1569,28 +1556,54 @@ NRT_DEVICE nrt_u128 nrt_peel_wide(const NRT_GLOBAL float *density, float sig_b, 
                               const NRT_GLOBAL float *peel, float peel_scale, const float *x,
                               const float *d, const nrt_medium *m, const nrt_place *at,
                               NRT_GLOBAL nrt_u64 *band_image, NRT_GLOBAL nrt_u32 *overflow,
-                              nrt_u64 seed, int band, nrt_u64 photon, int event, nrt_u64 branch, float w)
+                              nrt_u64 seed, int band, nrt_u64 photon, int event, nrt_u64 branch, float w,
+                              const NRT_GLOBAL float *pol, const nrt_stokes *st, NRT_GLOBAL nrt_u64 *band_stokes)
 {
     nrt_u64 pixel;
+    if (!nrt_peel_pixel(peel, x, &pixel))
+        return nrt_u128_of(0, 0); /* outside the image */
+    const float o[3] = {peel[0], peel[1], peel[2]};
 #if NRT_TREE
     (void)at;
-    float wgt = -1.0f;
-    if (nrt_peel_pixel(peel, x, &pixel)) {
-        const float o[3] = {peel[0], peel[1], peel[2]};
-        float mu = d[0] * o[0] + d[1] * o[1] + d[2] * o[2];
-        wgt = nrt_hg_phase(g_b, mu) * exp(-nrt_tree_tau_to_edge(m->child, density, m->nx, m->ny, m->nz, sig_b, x, o));
-    }
+    float atten = exp(-nrt_tree_tau_to_edge(m->child, density, m->nx, m->ny, m->nz, sig_b, x, o));
 #else
-    float wgt = nrt_peel_weight(density, sig_b, g_b, peel, x, d, at->ix, at->iy, at->iz, m->nx, m->ny, m->nz, &pixel);
+    float atten = exp(-nrt_tau_to_edge(density, sig_b, x, o, at->ix, at->iy, at->iz, m->nx, m->ny, m->nz));
+#endif
+#if NRT_POLAR
+    const float north[3] = {peel[6], peel[7], peel[8]};
+    float iquv[4];
+    nrt_peel_stokes(NRT_POLAR, g_b, pol, o, north, d, st, iquv);
+    float wgt = iquv[0] * atten;
+#else
+    (void)pol, (void)st, (void)band_stokes;
+    float mu = d[0] * o[0] + d[1] * o[1] + d[2] * o[2];
+    float wgt = nrt_hg_phase(g_b, mu) * atten;
 #endif
     if (!(wgt >= 0.0f))
-        return nrt_u128_of(0, 0); /* outside the image */
+        return nrt_u128_of(0, 0);
     float xw = NRT_FMAF(wgt * w, peel_scale, 0.0f);
     nrt_u128 v = xw < 16777216.0f
         ? nrt_u128_of(nrt_fixed_stochastic(wgt * w, peel_scale, seed, (nrt_u64)band, photon, (nrt_u64)event, branch), 0)
         : nrt_u128_floor(xw);
     if (!nrt_u128_is_zero(v))
         nrt_add_wide(band_image + 2 * pixel, v, overflow, 1);
+#if NRT_POLAR
+    /* Q and U: rounded as I (the same random word below 2^24 units, else down), so their
+       units stay within I's, and added as 128-bit two's complement (unchecked: exact modulo
+       2^128, bounded by I's checked sums) */
+    const nrt_u64 pixels = (nrt_u64)peel[13] * (nrt_u64)peel[14];
+    const nrt_u64 r = nrt_round_word(seed, (nrt_u64)band, photon, (nrt_u64)event, branch);
+    for (int k = 0; k < NRT_STOKES_IMAGES; ++k) {
+        float a = fabs(iquv[k + 1]) * atten;
+        float xa = NRT_FMAF(a * w, peel_scale, 0.0f);
+        nrt_u128 u = xa < 16777216.0f ? nrt_u128_of(nrt_fixed_round(a * w, peel_scale, r), 0) : nrt_u128_floor(xa);
+        if (nrt_u128_is_zero(u))
+            continue;
+        if (iquv[k + 1] < 0.0f) /* -u modulo 2^128 */
+            u = nrt_u128_of(~u.lo + 1UL, ~u.hi + (u.lo == 0 ? 1UL : 0UL));
+        nrt_add_wide(band_stokes + 2 * ((nrt_u64)k * pixels + pixel), u, overflow, 0);
+    }
+#endif
     return v;
 }
 #endif
@@ -1606,6 +1619,9 @@ typedef struct {
     nrt_u128 w;
     nrt_u64 first;
     nrt_u32 left;
+#if NRT_POLAR
+    nrt_stokes st; /* the copies' polarization at the split */
+#endif
 } nrt_pending;
 
 /* Trace one weighted packet and its split copies (see above); tally: this cell's 5 128-bit
@@ -1619,7 +1635,8 @@ NRT_DEVICE void nrt_trace_packet_biased(const NRT_GLOBAL float *density, float s
                                         int max_scatterings, float track_scale, float collision_scale,
                                         NRT_GLOBAL nrt_u64 *band_acc, NRT_GLOBAL nrt_u64 *tally,
                                         NRT_GLOBAL nrt_u32 *overflow, const NRT_GLOBAL float *peel,
-                                        float peel_scale, NRT_GLOBAL nrt_u64 *band_image)
+                                        float peel_scale, NRT_GLOBAL nrt_u64 *band_image,
+                                        const NRT_GLOBAL float *pol, NRT_GLOBAL nrt_u64 *band_stokes)
 {
     nrt_rng rng;
     nrt_rng_init(&rng, seed, (nrt_u64)band, photon);
@@ -1628,6 +1645,12 @@ NRT_DEVICE void nrt_trace_packet_biased(const NRT_GLOBAL float *density, float s
     float p[3] = {stars[4 * s], stars[4 * s + 1], stars[4 * s + 2]};
     float d[3];
     nrt_sample_isotropic(&rng, d);
+#if NRT_POLAR
+    nrt_stokes stokes; /* the copy's polarization */
+    nrt_stokes_unpolarized(d, &stokes);
+#else
+    (void)pol, (void)band_stokes;
+#endif
     nrt_place at;
     nrt_place_of(m, p, d, &at);
 
@@ -1686,6 +1709,9 @@ NRT_DEVICE void nrt_trace_packet_biased(const NRT_GLOBAL float *density, float s
                 q->iz = at.iz;
 #endif
                 q->scatterings = scatterings;
+#if NRT_POLAR
+                q->st = stokes;
+#endif
                 q->w = each;
                 q->first = streams + 1;
                 q->left = n - 1;
@@ -1781,11 +1807,10 @@ NRT_DEVICE void nrt_trace_packet_biased(const NRT_GLOBAL float *density, float s
 #if NRT_PEEL
             img_score = nrt_u128_add(img_score, nrt_peel_wide(density, sig_b, g_b, peel, peel_scale, p, d, m, &at,
                                                               band_image, overflow, seed, band, photon,
-                                                              scatterings, branch, nrt_weight_rel(w)));
+                                                              scatterings, branch, nrt_weight_rel(w), pol,
+                                                              NRT_STOKES_STATE, band_stokes));
 #endif
-            float mu, sin_theta;
-            nrt_sample_hg(g_b, nrt_rng_uniform(&rng), &mu, &sin_theta);
-            nrt_rotate(d, mu, sin_theta, 2.0f * NRT_PI_F * nrt_rng_uniform(&rng));
+            NRT_NEW_DIRECTION();
             continue;
         }
         /* this copy has ended: the next one waiting, if any */
@@ -1805,6 +1830,9 @@ NRT_DEVICE void nrt_trace_packet_biased(const NRT_GLOBAL float *density, float s
         at.iz = q->iz;
 #endif
         scatterings = q->scatterings;
+#if NRT_POLAR
+        stokes = q->st;
+#endif
         w = q->w;
         if (--q->left == 0u)
             --top;
@@ -1961,7 +1989,8 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
                                 star_cdf + band * n_stars, &medium, n_stars, seed, band, photon,
                                 max_scatterings, track_scale, prm->collision_scale, acc + 2 * cell * nvox,
                                 tallies + NRT_TALLY_WORDS * cell, overflow + slot, peel, peel_scale,
-                                image + 2 * cell * pixels);
+                                image + 2 * cell * pixels, optics + 4 * prm->n_bands + 4 * band,
+                                image + prm->image_stokes + 2 * cell * pixels * NRT_STOKES_IMAGES);
 #else
         sink.tally = tallies + NRT_TALLY_WORDS * cell;
         sink.home = NRT_GROUP_TALLY && cell == home_cell;

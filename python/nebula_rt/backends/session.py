@@ -135,7 +135,7 @@ class DeviceTransport(TransportSession):
         # every cell's intensity image, then (polarized) every cell's Q and U images: the
         # intensities stay one block of checked adds, Q and U a block of signed sums
         self.image_stokes = self.slots * self.bands_per_launch * self.pixels * self.words
-        self.stokes_words = self.pixels * (setup.stokes_images - 1)  # per cell
+        self.stokes_words = self.pixels * (setup.stokes_images - 1) * self.words  # per cell
         self.d_image = be.device_zeros(max(1, self.image_stokes + self.slots * self.bands_per_launch * self.stokes_words),
                                        np.uint64)
         tuning = dict(be.transport_tuning)
@@ -496,11 +496,16 @@ class DeviceTransport(TransportSession):
             be.upload(self.d_acc, acc)
         if pix:
             be.upload(self.d_image, buf[cells:cells + pix])
-        if self.stokes_words:  # Q and U: signed sums in two's complement, exact modulo 2^64 (no check)
+        if self.stokes_words:  # Q and U: signed sums in two's complement, exact modulo 2^64 (2^128; no check)
+            from .parallel import sum_wide
+
             end = self.image_stokes + n_slots * n_lb * self.stokes_words
             whole = np.ascontiguousarray(be.to_host(self.d_image)[:end])  # (the summed intensities first)
             qu = np.ascontiguousarray(whole[self.image_stokes:])
-            comm.sum_u64(qu)
+            if self.words == 2:
+                sum_wide(comm, qu)
+            else:
+                comm.sum_u64(qu)
             whole[self.image_stokes:] = qu
             be.upload(self.d_image, whole)
         be.upload(self.d_overflow, flags.astype(np.uint32))
@@ -576,8 +581,14 @@ class DeviceTransport(TransportSession):
         self.backend.fill_zero(self.d_image)
         out = whole[:self.image_stokes].reshape(self.slots, self.bands_per_launch, w, h, self.words)[:n_slots, :n_lb]
         if self.stokes_words:  # (n, bands, [I, Q, U], W, H): Q and U as the signed sums they are
-            qu = whole[self.image_stokes:].reshape(self.slots, self.bands_per_launch, s.stokes_images - 1, w, h)
-            return np.concatenate([out[..., 0][:, :, None], qu[:n_slots, :n_lb]], axis=2)
+            qu = whole[self.image_stokes:].reshape(self.slots, self.bands_per_launch, s.stokes_images - 1, w, h,
+                                                   self.words)[:n_slots, :n_lb]
+            if self.words == 1:
+                return np.concatenate([out[..., 0][:, :, None], qu[..., 0]], axis=2)
+            # 128-bit: I as float64, Q and U as signed 128-bit integers (high word signed) in float64
+            i64 = out[..., 1].astype(np.float64) * 2.0**64 + out[..., 0].astype(np.float64)
+            q64 = qu[..., 1].view(np.int64).astype(np.float64) * 2.0**64 + qu[..., 0].astype(np.float64)
+            return np.concatenate([i64[:, :, None], q64], axis=2)
         if self.words == 1:
             return out[..., 0]
         # 128-bit pixels as float64 (the image statistics are float64 anyway)

@@ -493,11 +493,7 @@ def plan_transport(density, request, backend: Backend, *, checked_adds: bool = F
     slum = star_band_luminosities(stars, wl)
     band_lum = slum.sum(axis=0)
     polarization = request.polarization
-    if polarization.enabled and method == "biased":
-        raise SceneError("transport.method", method, f'must be "analog" or "auto" with bands.polarization = '
-                                                     f'"{polarization.kind}" (polarized packets are analog)')
-    biased = (not polarization.enabled
-              and resolve_method(method, density if tree is None else tree, tau, stars, peel) == "biased")
+    biased = resolve_method(method, density if tree is None else tree, tau, stars, peel) == "biased"
     importance = resolve_importance(request.importance, peel)
     track_scale = float(2.0**FIXED_POINT_BITS * max(fine))
     # what the device forms from these inputs must fit float32/int32: checked before any work

@@ -228,10 +228,11 @@ def run_transport(plan: TransportPlan, backend: Backend, *, progress=None, cance
         kept = [k for k in range(len(ranges)) if not overflow[k]]
         if images is not None and kept:  # (in batch order, as one add per batch)
             images = images[kept]
-            if images.ndim == 5:  # polarized: I, then Q and U, signed sums in two's complement
+            if images.ndim == 5:  # polarized: I, then Q and U, signed sums (64-bit: two's complement)
                 m, _, k, w, h = images.shape
-                stokes_sums.add_batches(images[:, :, 1:].view(np.int64).reshape(m, nlb * (k - 1), w, h),
-                                        b0 * (k - 1))
+                qu = images[:, :, 1:]
+                qu = qu.view(np.int64) if qu.dtype == np.uint64 else qu
+                stokes_sums.add_batches(qu.reshape(m, nlb * (k - 1), w, h), b0 * (k - 1))
                 images = images[:, :, 0]
             peel_sums.add_batches(images, b0)
         for k, (b_start, b_count) in enumerate(ranges):
