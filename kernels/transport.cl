@@ -280,9 +280,6 @@ NRT_DEVICE void nrt_cross_face(int ax, int i_next, const float *p, float d_ax, c
 #ifndef NRT_POLAR
 #define NRT_POLAR 0
 #endif
-#if NRT_POLAR && NRT_REGIONS
-#error "polarized packets are traced without regions"
-#endif
 /* Stokes images per band of a batch slot besides I: Q and U (no kind yet gives V: S34 = 0) */
 #define NRT_STOKES_IMAGES (NRT_POLAR ? 2 : 0)
 #include "polarization.cl"
@@ -700,7 +697,7 @@ NRT_DEVICE int nrt_pass_item(nrt_u64 it, const NRT_GLOBAL nrt_u64 *order, const 
         nrt_sink *sink, NRT_GLOBAL nrt_u32 *overflow, const NRT_GLOBAL float *peel, float peel_scale,    \
         NRT_GLOBAL nrt_u64 *band_image, const NRT_GLOBAL nrt_packet *resume, NRT_GLOBAL nrt_packet *save, \
         int region_shift, nrt_u64 item, NRT_GLOBAL nrt_u64 *band_sq, int sq_shift, nrt_u64 cells,           \
-        const NRT_GLOBAL float *pol, NRT_GLOBAL nrt_u64 *band_stokes
+        const NRT_GLOBAL float *pol, NRT_GLOBAL nrt_u64 *band_stokes, NRT_GLOBAL float *stokes_slot
 
 #ifndef NRT_TREE
 #define NRT_TREE 0
@@ -734,7 +731,7 @@ NRT_DEVICE int nrt_trace_packet(NRT_TRACE_PACKET_PARAMS)
 #else
     (void)pol;
 #endif
-    (void)band_stokes; /* (NRT_PEEL with NRT_POLAR) */
+    (void)band_stokes, (void)stokes_slot; /* (NRT_PEEL with NRT_POLAR; NRT_REGIONS with NRT_POLAR) */
     const float hx = 1.0f / (float)nx, hy = 1.0f / (float)ny, hz = 1.0f / (float)nz;
     const nrt_idx stride_y = (nrt_idx)nx, stride_z = (nrt_idx)nx * (nrt_idx)ny;
     int ix, iy, iz, scatterings;
@@ -749,6 +746,10 @@ NRT_DEVICE int nrt_trace_packet(NRT_TRACE_PACKET_PARAMS)
         t_cur = q.t_cur, tau = q.tau;
         ix = q.ix, iy = q.iy, iz = q.iz, scatterings = q.scatterings;
         peel_score = q.peel_score;
+#if NRT_POLAR
+        stokes.q = stokes_slot[0], stokes.u = stokes_slot[1], stokes.v = stokes_slot[2];
+        stokes.e[0] = stokes_slot[3], stokes.e[1] = stokes_slot[4], stokes.e[2] = stokes_slot[5];
+#endif
         /* 1 / d and the voxel's face distances by the expressions the walk formed them with
            (the same bits; 24 bytes less state per stopped packet) */
         inv_d[0] = 1.0f / d[0], inv_d[1] = 1.0f / d[1], inv_d[2] = 1.0f / d[2];
@@ -880,6 +881,10 @@ NRT_DEVICE int nrt_trace_packet(NRT_TRACE_PACKET_PARAMS)
             q.item = item;
             q.peel_score = peel_score;
             *save = q;
+#if NRT_POLAR
+            stokes_slot[0] = stokes.q, stokes_slot[1] = stokes.u, stokes_slot[2] = stokes.v;
+            stokes_slot[3] = stokes.e[0], stokes_slot[4] = stokes.e[1], stokes_slot[5] = stokes.e[2];
+#endif
             return 1;
         }
 #endif
@@ -2011,7 +2016,8 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
                                        fresh ? 0 : states + sl, states + sl, region_shift,
                                        photon | ((nrt_u64)lband << NRT_ITEM_BAND_SHIFT), sq + cell * nvox, sq_shift,
                                        nvox, optics + 4 * prm->n_bands + 4 * band,
-                                       image + prm->image_stokes + cell * pixels * NRT_STOKES_IMAGES);
+                                       image + prm->image_stokes + cell * pixels * NRT_STOKES_IMAGES,
+                                       NRT_POLAR ? (NRT_GLOBAL float *)(states + prm->state_slots) + 6 * sl : 0);
         if (stopped) {
             const NRT_GLOBAL nrt_packet *q = states + sl;
             keys_out[it] = ((nrt_u64)nrt_region_bin(cell, q->ix, q->iy, q->iz, nx, ny, nz, region_shift) << 32) | sl;
@@ -2025,7 +2031,7 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
                          max_scatterings, track_scale, acc + cell * nvox, &sink,
                          overflow + slot, peel, peel_scale, image + cell * pixels, 0, 0, NRT_NO_REGIONS, 0,
                          sq + cell * nvox, sq_shift, nvox, optics + 4 * prm->n_bands + 4 * band,
-                         image + prm->image_stokes + cell * pixels * NRT_STOKES_IMAGES);
+                         image + prm->image_stokes + cell * pixels * NRT_STOKES_IMAGES, 0);
 #endif
 #endif
     }

@@ -15,8 +15,8 @@
   pattern is centrosymmetric (no radial component in any annulus, a tangential one in every one).
 - Turning the camera about the line of sight turns the angles: the same packets peel off the
   same light, so the image totals of Q + iU turn by exp(-2 i alpha) to rounding.
-- Energy is conserved, launches give the same bits, and what polarization cannot take is
-  refused by name.
+- Energy is conserved, launches and the transport by regions give the same bits, and what
+  polarization cannot take is refused by name.
 """
 
 from __future__ import annotations
@@ -231,6 +231,23 @@ def test_polarized_runs_conserve_energy_and_keep_their_bits_over_launches(backen
                  (one.peel_stokes, many.peel_stokes)):
         np.testing.assert_array_equal(a, b)
     assert np.all(np.abs(one.peel_stokes[0]) <= one.peel_image[0][None] * (1 + 1e-12))
+
+
+@pytest.mark.parametrize("tuning", [{"NRT_REGIONS": 2}, {"NRT_REGIONS": 3, "region_tail": 50}])
+def test_polarized_packets_by_regions_keep_their_bits(tuning):
+    """The transport by regions stops packets at region faces and resumes them in later passes:
+    a polarized packet's Stokes state travels with it (beside its state slot), so the sums, the
+    counts and the I, Q and U images are the bits of the run without regions."""
+    from conftest import tuned_backend
+
+    rho = (np.random.default_rng(3).random((24, 20, 16)) ** 2).astype(np.float32)
+    cam = Camera(direction=(0.2, -0.3, -0.9), size=(12, 10))
+    kw = dict(tau=8.0, photons=12_000, seed=5, batch_size=3000, peel=cam, polarization=Polarization("white", peak=0.5))
+    plain = trace(rho, one_band(0.7, 0.5), centre_star(), backend=tuned_backend({}), **kw)
+    regions = trace(rho, one_band(0.7, 0.5), centre_star(), backend=tuned_backend(tuning), **kw)
+    for key in ("raw_sum", "raw_m2", "counts", "peel_image", "peel_stokes"):
+        np.testing.assert_array_equal(getattr(regions, key), getattr(plain, key), err_msg=key)
+    assert np.abs(plain.peel_stokes).sum() > 0
 
 
 def test_polarization_is_refused_where_it_cannot_run(backend):

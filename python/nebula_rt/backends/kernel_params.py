@@ -29,6 +29,8 @@ TRACE_PARAMS = (
     ("cells", "u64", 1, "cells per band of a batch slot: the grid's voxels, or a tree's leaves (NRT_TREE)"),
     ("image_stokes", "u64", 1, "NRT_POLAR: where the Q and U images start in the image buffer, after every "
                                "cell's intensity image (words)"),
+    ("state_slots", "u64", 1, "NRT_REGIONS: the state slots; with NRT_POLAR the slots' Stokes states (6 floats "
+                              "each) follow them in the same buffer"),
     ("nx", "i32", 1, "grid size along x (voxels)"),
     ("ny", "i32", 1, "grid size along y"),
     ("nz", "i32", 1, "grid size along z"),
@@ -82,6 +84,9 @@ LAUNCH = (
 )
 
 STRUCTS = {"nrt_trace_params": TRACE_PARAMS, "nrt_packet": PACKET_STATE, "nrt_launch": LAUNCH}
+#: bytes of a polarized packet's Stokes state beside its nrt_packet in the transport by regions
+#: (q, u, v and the reference direction: kernels/polarization.cl, nrt_stokes)
+STOKES_STATE_BYTES = 24
 
 #: Constants the kernels and the host share, pasted into the kernel sources as #defines.
 CONSTANTS = (

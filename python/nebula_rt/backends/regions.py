@@ -40,26 +40,33 @@ def region_shift_of(backend, setup: TransportSetup, tuning: dict) -> int:
     """Side of the regions (as log2 voxels) of the transport by regions, 0 for none: the
     tuning's ``NRT_REGIONS`` where given, else the backend's ``region_shifts`` entry for the
     grid's size ((least voxels, shift) pairs, ascending; none: never). Weighted packets walk
-    whole rays for the forced flights and have no region path; nor have a tree's walk and polarized packets."""
-    if setup.tree is not None or setup.polar:  # (a polarized packet's state is not saved by regions)
+    whole rays for the forced flights and have no region path; nor has a tree's walk."""
+    if setup.tree is not None:
         return 0
     return region_shift_for(backend, int(np.prod(setup.density.shape)), setup.biased, tuning)
 
 
-def region_state_bytes(nvox: int, tuning: dict | None = None) -> int:
+def packet_state_bytes(polar: bool = False) -> int:
+    """Device bytes of one stopped packet's state (nrt_packet, and a polarized packet's Stokes
+    state beside it) and keys in the transport by regions."""
+    return kernel_params.dtype("nrt_packet").itemsize + REGION_KEY_BYTES + (
+        kernel_params.STOKES_STATE_BYTES if polar else 0)
+
+
+def region_state_bytes(nvox: int, tuning: dict | None = None, polar: bool = False) -> int:
     """Device bytes of the stopped packets' states and keys of the transport by regions."""
     budget = int((tuning or {}).get("region_state_bytes", min(REGION_STATE_BYTES, REGION_STATE_PER_VOXEL * nvox)))
-    per = REGION_KEY_BYTES + kernel_params.dtype("nrt_packet").itemsize
+    per = packet_state_bytes(polar)
     return max(1024, budget // per) * per
 
 
-def region_capacity(backend, nvox: int, biased: bool = False) -> int:
+def region_capacity(backend, nvox: int, biased: bool = False, polar: bool = False) -> int:
     """Packets the transport by regions keeps in flight on a grid of ``nvox`` voxels (0: the
     backend traces this grid without regions)."""
     tuning = backend.transport_tuning
     if not region_shift_for(backend, nvox, biased, tuning):
         return 0
-    return region_state_bytes(nvox, tuning) // (kernel_params.dtype("nrt_packet").itemsize + REGION_KEY_BYTES)
+    return region_state_bytes(nvox, tuning, polar) // packet_state_bytes(polar)
 
 
 #: bytes of keys per packet in flight of the transport by regions: what a pass stopped, the

@@ -26,7 +26,8 @@ import numpy as np
 
 from . import kernel_params
 from ..array_api import to_numpy
-from .regions import NO_REGIONS, MAX_REGION_PASSES, LOCAL_SORT_BINS, EMISSION_MAX_BINS, region_shift_of, region_state_bytes, REGION_KEY_BYTES
+from .regions import (NO_REGIONS, MAX_REGION_PASSES, LOCAL_SORT_BINS, EMISSION_MAX_BINS, packet_state_bytes,
+                      region_shift_of, region_state_bytes)
 from .transport_setup import TransportSession, TransportSetup, transport_defines
 
 #: centred sums of squares are stored as float32 x 2^-64 (kernels/transport.cl)
@@ -113,6 +114,7 @@ class DeviceTransport(TransportSession):
             window_shape=(1, 1, 1) if setup.window is None else np.shape(setup.window),
             track_scale=setup.track_scale, peel_scale=setup.peel_scale, collision_scale=setup.collision_scale,
             image_stokes=max(1, self.slots * self.bands_per_launch) * setup.peel_pixels * setup.cell_words,
+            state_slots=0,
             peel=np.zeros(15, np.float32) if setup.peel is None else np.asarray(setup.peel, np.float32))
         self.d_params = be.to_device(self.params.view(np.uint8))
         self.d_acc = be.device_zeros(max(1, self.slot_cells * self.slots * self.words), np.uint64)
@@ -159,6 +161,9 @@ class DeviceTransport(TransportSession):
             self._setup_emission_sort()
         if self.region_shift:
             self._setup_regions(tuning)
+            if setup.polar:  # where the slots' Stokes states start (after their packets)
+                self.params["state_slots"] = self.region_capacity
+                self.d_params = be.to_device(self.params.view(np.uint8))
         self._plan = (0, 0)
         self._stream = None  # by regions: (group, packets in flight, free slots, slots used) between launches
         self._h_stage = None  # several ranks: the host buffer of reduce_group
@@ -200,12 +205,16 @@ class DeviceTransport(TransportSession):
         the free slots' bin last)."""
         be = self.backend
         state_bytes = kernel_params.dtype("nrt_packet").itemsize
-        self.region_capacity = region_state_bytes(self.nvox, tuning) // (state_bytes + REGION_KEY_BYTES)  # as region_capacity()
+        polar = bool(self.setup.polar)
+        self.region_capacity = region_state_bytes(self.nvox, tuning, polar) // packet_state_bytes(polar)  # as region_capacity()
         self.region_tail = int(tuning.get("region_tail", getattr(be, "region_tail", 0)))
         self.n_bins = self._region_bins(self.region_shift)
         if self.n_bins >= 0xFFFFFFFE:
             raise ValueError(f"{self.n_bins} region bins do not fit a 32-bit key")
-        self.d_states = be.device_zeros(self.region_capacity * state_bytes // 8, np.uint64)
+        # the slots' packets, then (polarized) their Stokes states: the kernel finds them after
+        # ``state_slots`` packets (kernels/transport.cl)
+        stokes = kernel_params.STOKES_STATE_BYTES if polar else 0
+        self.d_states = be.device_zeros(self.region_capacity * (state_bytes + stokes) // 8, np.uint64)
         self.d_stopped = be.device_zeros(self.region_capacity, np.uint64)
         self.d_keys = be.device_zeros(self.region_capacity, np.uint64)
         self.d_emit = be.device_zeros(self.region_capacity if self.sorted else 1, np.uint64)
@@ -605,7 +614,7 @@ class DeviceTransport(TransportSession):
     def device_bytes(self) -> int:
         """Device memory this run holds: the batch slots (8 B per slot cell), the statistics
         (12 B per cell), the density (4 B per voxel), the per-slot tallies and the images."""
-        regions = (self.region_capacity * (kernel_params.dtype("nrt_packet").itemsize + REGION_KEY_BYTES)
+        regions = (self.region_capacity * packet_state_bytes(bool(self.setup.polar))
                    + 4 * self.n_bins
                    if self.region_shift else 0)
         stats = 8 * self.ncell if self.packet_sq else 12 * self.ncell  # (packets: the squares' slot)

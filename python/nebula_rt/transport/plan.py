@@ -327,8 +327,7 @@ def plan_launches(photons: int, batch_size: int, targeted: bool, shape, n_bands:
     after it as :func:`resolve_error_estimate` takes them (``cell_bytes`` 16: weighted
     packets; ``cell_shapes``: (finest, coarsest) cells per axis where the cells differ in size,
     a tree's, else ``shape`` for both; ``stokes``: images per band, 3 for polarized packets,
-    which are traced without regions)."""
-    no_regions = cell_bytes == 16 or stokes > 1
+    whose stopped states are larger)."""
     nvox = int(np.prod([int(n) for n in shape]))
     size = planned_batch_size(photons, batch_size, targeted, nvox)
     limits.check_batch_count(batch_count(photons, size, nvox), size)
@@ -349,7 +348,7 @@ def plan_launches(photons: int, batch_size: int, targeted: bool, shape, n_bands:
 
     if resolve_error_estimate(error_estimate, biased=cell_bytes == 16, peel=peel, targeted=targeted,
                               time_limit=time_limit, batch_size=batch_size, launches=launches, scales=scales,
-                              nvox=nvox, in_flight=region_capacity(backend, nvox, no_regions),
+                              nvox=nvox, in_flight=region_capacity(backend, nvox, cell_bytes == 16, stokes > 1),
                               scatter_depth=scatter_depth,
                               fraction=getattr(backend, "auto_packets_fraction", AUTO_PACKETS_BATCH_FRACTION)):
         return LaunchPlan(BatchPlan(int(photons), 1), 0, int(n_bands), 1, int(n_bands), scales)

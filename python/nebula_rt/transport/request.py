@@ -226,7 +226,7 @@ def trace(
     polarization : nebula_rt.optics.polarization.Polarization
         Packets carry a Stokes vector and scatter by this Mueller matrix (Rayleigh, or the
         bands' Henyey-Greenstein phase function with White's linear polarization; analog or
-        weighted packets, without the transport by regions). With ``peel``: ``result.peel_stokes``,
+        weighted packets, by regions too). With ``peel``: ``result.peel_stokes``,
         the Q and U images (n_bands, 2, W, H) in the units of ``peel_image``, IAU convention
         (the camera's up axis as north, east = the direction to the observer x north: to the
         image's left), and ``result.peel_stokes_error`` their batch-means standard errors.
