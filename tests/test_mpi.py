@@ -56,7 +56,8 @@ CASES = [("track-length", "plain"), ("collision-filter", "plain"),
          ("track-length", "regions+checked"), ("track-length", "packets+regions"),
          ("collision-filter", "packets+copied"), ("track-length", "tree"), ("collision-filter", "tree+copied"),
          ("track-length", "tree+biased"), ("track-length", "polarized+checked"),
-         ("collision-filter", "polarized+copied"), ("track-length", "polarized+biased")]
+         ("collision-filter", "polarized+copied"), ("track-length", "polarized+biased"),
+         ("track-length", "polarized+regions")]
 
 
 @pytest.fixture(scope="module")
