@@ -124,6 +124,10 @@ KIND = {
     "--set": "override", "--free": "free", "--image-error": "image-error",
     "--distance": "length", "--box-length": "length",
     "--device": "text", "--image-hdu": "text", "--image-band": "text", "--image-unit": "text",
+    # observed Stokes images: swept without --stokes, where each of its options is refused (it
+    # would describe nothing); --stokes itself as a path read (tests/observe/test_polarization_compare.py
+    # runs it with its options)
+    "--stokes": "path-in", "--stokes-hdus": "text", "--stokes-annuli": "text", "--stokes-error": "image-error",
 }
 
 
@@ -169,7 +173,7 @@ HOSTILE = {
                     "0 MJy/sr", "-1 MJy/sr", "0.2 kg", "NOHDU", "99", "x" * 10_000],
 }
 #: What a path option reads or writes.
-SUFFIX = {"scene": ".toml", "--table": ".csv", "--image": ".fits", "--output": ".vti", "--png": ".png",
+SUFFIX = {"scene": ".toml", "--table": ".csv", "--image": ".fits", "--stokes": ".fits", "--output": ".vti", "--png": ".png",
           "--json": ".json", "--fits": ".fits", "--scene-out": ".toml", "--tree": ".htg"}
 #: The scene key an option sets (its message may name either).
 SCENE_KEY = {"--photons": "transport.photons", "--target-error": "transport.target_error",

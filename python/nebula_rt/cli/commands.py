@@ -296,9 +296,11 @@ def _compare(args, cancel) -> int:
         scene = _scene_from_args(args)
         direction = parse_direction(args.direction)
         check_size(args.size)
+        from .fit import check_stokes_options
         from .image import check_image_options, compare_image_command
 
         check_image_options(args)
+        check_stokes_options(args)
     if args.image:  # the user's observed image (nebula_rt.cli.image)
         return compare_image_command(args, ranks, scene, direction, lambda: _backend_for(scene, ranks.comm),
                                      _inputs(args, scene), _print_summary)

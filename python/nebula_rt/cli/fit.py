@@ -102,10 +102,30 @@ def read_tables(args, scene) -> list:
     return tables
 
 
+#: the options that describe ``--stokes`` and their defaults (given without it: refused, not ignored)
+STOKES_OPTIONS = {"--stokes-hdus": ("stokes_hdus", None), "--stokes-wavelength": ("stokes_wavelength", None),
+                  "--stokes-annuli": ("stokes_annuli", None), "--stokes-error": ("stokes_error", []),
+                  "--stokes-mask": ("stokes_mask", 0.0)}
+
+
+def check_stokes_options(args) -> None:
+    """An option of :data:`STOKES_OPTIONS` given without ``--stokes`` is refused by name (it
+    would act on nothing)."""
+    if getattr(args, "stokes", None):
+        return
+    for option, (dest, default) in STOKES_OPTIONS.items():
+        value = getattr(args, dest, default)
+        if value != default:  # (NaN too: it equals nothing)
+            raise SceneError(option, value if not isinstance(value, list) else value[0],
+                             "describes observed Stokes images: give them with --stokes FITS")
+
+
 def _stokes_table(args, scene):
     """``--stokes``: the observed Stokes images as a polarization table (nebula_rt.observe.observed_stokes)."""
+    from ..input_files import check_input_file
     from ..observe.observed_stokes import stokes_table
 
+    check_input_file("--stokes", args.stokes, "a readable FITS file")  # (the file first: its option named)
     hdus = (args.stokes_hdus or "").split(",")
     if len(hdus) != 3 or not all(h.strip() for h in hdus):
         raise SceneError("--stokes-hdus", args.stokes_hdus, "must name the HDUs of I, Q and U: I,Q,U (names or numbers)")
@@ -188,6 +208,7 @@ def fit_command(args, ranks, scene, direction, backend_of, inputs, print_summary
 
     cancel = ranks.cancel
     with ranks.start():
+        check_stokes_options(args)
         tables = read_tables(args, scene)
         free = [fit_parameters.parse_free(s, scene, direction) for s in args.free]
         if not free:
