@@ -94,6 +94,10 @@ def test_compare_and_fit_the_peak_polarization(backend):
                            backend=backend)
     best, err = float(fit.best[0]), float(max(fit.err_minus[0], fit.err_plus[0]))
     assert abs(best - 0.6) < max(4.0 * err, 0.05), (best, err)
+    # bounds that hold the truth out: the best fit sits on the upper bound, and says so
+    held = fit_observations(scene(photons=80_000, seed=3), [obs], ["bands.peak_polarization=0.1:0.4"], size=48,
+                            backend=backend)
+    assert float(held.best[0]) == pytest.approx(0.4) and held.at_bound[0][1] and held.err_plus[0] == 0.0
 
 
 def test_tables_are_read_with_units_and_refused_by_name(tmp_path, backend):

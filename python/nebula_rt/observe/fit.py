@@ -541,7 +541,9 @@ class FitRequest:
                 a = float((d * d * q).sum() / (d ** 4).sum()) if d.size else 0.0
                 err_z = 1.0 / math.sqrt(a) if a > 0 else (float(d.max()) if d.size else 0.0)
                 zc = z_best[i] + s * err_z
-                at_bound[i][0 if s < 0 else 1] = bool(zc < 0.0 or zc > 1.0)
+                # past the bound, or on it with no room for a step (the best fit sits on it)
+                on_it = not d.size and (z_best[i] >= 1.0 if s > 0 else z_best[i] <= 0.0)
+                at_bound[i][0 if s < 0 else 1] = bool(zc < 0.0 or zc > 1.0 or on_it)
                 zc = min(max(zc, 0.0), 1.0)
                 arr[i] = abs(params[i].from_unit(zc) - best[i])
                 checks[params[i].name + ("+" if s > 0 else "-")] = round(max(a, 0.0) * sd * sd, 3)
