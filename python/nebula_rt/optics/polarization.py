@@ -90,20 +90,6 @@ class Polarization:
             out[:, 0] = self.peaks(n_bands)
         return out
 
-    def matrix(self, mu, g: float = 0.0, band: int = 0, n_bands: int = 1) -> np.ndarray:
-        """(4, ...) S11 (per sr), S12 / S11, S33 / S11, S34 / S11 at scattering cosines ``mu``
-        (float64; what the kernel's nrt_mueller forms in float32)."""
-        mu = np.clip(np.asarray(mu, np.float64), -1.0, 1.0)
-        mm = mu * mu
-        if self.kind == "rayleigh":
-            s11 = 3.0 * (1.0 + mm) / (16.0 * math.pi)
-            p = 1.0
-        else:
-            gg = min(max(float(g), -(1.0 - 1.0e-4)), 1.0 - 1.0e-4)
-            s11 = (1.0 - gg * gg) / (4.0 * math.pi * (1.0 + gg * gg - 2.0 * gg * mu) ** 1.5)
-            p = float(self.peaks(n_bands)[band]) if self.kind == "white" else 0.0
-        return np.stack([s11, -p * (1.0 - mm) / (1.0 + mm), 2.0 * mu / (1.0 + mm), np.zeros_like(mu)])
-
 
 NONE = Polarization()
 
