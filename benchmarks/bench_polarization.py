@@ -36,12 +36,12 @@ from nebula_rt.transport import trace
 KINDS = {"none": Polarization(), "rayleigh": Polarization("rayleigh"), "white": Polarization("white", peak=0.5)}
 
 
-def measure(backend, n: int, photons: int, kind: str, image: int, repeat: int) -> dict:
+def measure(backend, n: int, photons: int, kind: str, image: int, repeat: int, method: str = "analog") -> dict:
     rho = np.ones((n, n, n), np.float32)
     bands = [Band(name="V", wavelength=550.0, extinction=1.0, albedo=0.6, g=0.6)]
     stars = [Star(position=(0.5, 0.5, 0.5), luminosity=1.0, temperature=None, bump_radius=0.0)]
     cam = Camera(direction=(0.0, 0.0, -1.0), size=(image, image)) if image else None
-    kw = dict(tau=2.0, photons=photons, backend=backend, peel=cam, polarization=KINDS[kind], method="analog",
+    kw = dict(tau=2.0, photons=photons, backend=backend, peel=cam, polarization=KINDS[kind], method=method,
               seed=1)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", NebulaWarning)
@@ -53,7 +53,7 @@ def measure(backend, n: int, photons: int, kind: str, image: int, repeat: int) -
             wall.append(time.perf_counter() - t0)
             kernel.append(float(res.timings["kernel_s"]))
     k = statistics.median(kernel)
-    return {"grid": n, "photons": photons, "polarization": kind, "image": image, "kernel_s": k,
+    return {"grid": n, "photons": photons, "polarization": kind, "method": method, "image": image, "kernel_s": k,
             "wall_s": statistics.median(wall), "kernel_packets_per_ms": photons / (k * 1e3),
             "absorbed_fraction": float(res.counts[0, 1] / res.counts[0, 0]),
             "net_q_over_i": None if res.peel_stokes is None else float(res.peel_stokes[0, 0].sum() / res.peel_image.sum())}
@@ -67,21 +67,22 @@ def main(argv=None) -> int:
     ap.add_argument("--photons", type=float, default=2.1e7)
     ap.add_argument("--image", type=int, default=64, help="peel-off image pixels a side (0: none)")
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--methods", nargs="+", default=["analog"], choices=["analog", "biased"],
+                    help="transport.method: analog packets, or weighted ones (biased)")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     backend = get_backend(args.backend, args.device)
     records = []
-    for n in args.grid:
-        for image in (0, args.image):
-            base = None
-            for kind in KINDS:
-                rec = measure(backend, n, int(args.photons), kind, image, args.repeat)
-                base = base or rec["kernel_packets_per_ms"]
-                rec["relative_to_unpolarized"] = rec["kernel_packets_per_ms"] / base
-                records.append(rec)
-                print(f"{n}^3 image {image:>4} {kind:<9} kernel {rec['kernel_s']:.4f} s  "
-                      f"{rec['kernel_packets_per_ms']:>12,.0f} pkt/ms  x{rec['relative_to_unpolarized']:.3f}  "
-                      f"absorbed {rec['absorbed_fraction']:.5f}", flush=True)
+    for n, method, image in ((n, m, i) for n in args.grid for m in args.methods for i in (0, args.image)):
+        base = None
+        for kind in KINDS:
+            rec = measure(backend, n, int(args.photons), kind, image, args.repeat, method)
+            base = base or rec["kernel_packets_per_ms"]
+            rec["relative_to_unpolarized"] = rec["kernel_packets_per_ms"] / base
+            records.append(rec)
+            print(f"{n}^3 {method} image {image:>4} {kind:<9} kernel {rec['kernel_s']:.4f} s  "
+                  f"{rec['kernel_packets_per_ms']:>12,.0f} pkt/ms  x{rec['relative_to_unpolarized']:.3f}  "
+                  f"absorbed {rec['absorbed_fraction']:.5f}", flush=True)
     if args.out:
         with open(args.out, "w") as f:
             json.dump({"benchmark": "bench_polarization", "date": time.strftime("%Y-%m-%d %H:%M:%S"),

@@ -8,7 +8,7 @@
 # colour-science, tomli-w; pmcx for the MCX comparison), fetched elsewhere with
 # `pip download --only-binary=:all: --python-version 3.12 ...`.
 # STEPS (default "tests bench neb128 compare profile"; also "tests-cuda", "thick", "thick-grid", "trust", "scaling", "large", "regions", "regcaps", "profile-regions", "layout", "sorted", "probe", "ranks", "ranks-thesis", "ranks-weak", "tests-mpi", "e2e1e9", "biasing", "fit", "fitprof", "tune",
-# "stages", "kernel-probes", "polarization", "ncu-thesis", "tree", "tree-targets", "tree-ascend", "trade", "presets", "empty", "fft") selects what runs. Everything printed
+# "stages", "kernel-probes", "polarization", "ncu-thesis", "ncu-source", "tree", "tree-targets", "tree-ascend", "trade", "presets", "empty", "fft") selects what runs. Everything printed
 # goes to OUTDIR/log.txt as well; JSON and .npz results beside it.
 set -uo pipefail
 out="${1:?output folder}"
@@ -264,6 +264,12 @@ if [[ " $steps " == *" polarization "* ]]; then
     echo "== polarization tests, NVIDIA OpenCL"; NEBULA_RT_TEST_DEVICE=NVIDIA python3 -m pytest -q -p no:cacheprovider $pol_tests 2>&1 | tail -n 4
     echo "== cost of polarization, CUDA"
     python3 benchmarks/bench_polarization.py --backend cuda --grid 64 128 256 --photons 2.1e7 --out "$out/polarization-cuda.json"
+    echo "== cost of polarization, weighted packets, CUDA"
+    python3 benchmarks/bench_polarization.py --backend cuda --grid 128 --photons 2.1e7 --methods biased \
+        --out "$out/polarization-biased-cuda.json"
+    echo "== cost of polarization, 512^3 (by regions), CUDA"
+    python3 benchmarks/bench_polarization.py --backend cuda --grid 512 --photons 1e8 --repeat 2 \
+        --out "$out/polarization-512-cuda.json"
     echo "== cost of polarization, NVIDIA OpenCL"
     python3 benchmarks/bench_polarization.py --backend opencl --device NVIDIA --grid 128 --photons 2.1e7 \
         --out "$out/polarization-nvidia-opencl.json"
@@ -317,6 +323,16 @@ if [[ " $steps " == *" ncu-thesis "* ]] && command -v ncu >/dev/null; then
         python3 benchmarks/profile_kernels.py --scene examples/scenes/thesis-default.toml --grids 128 --photons 2.1e6 \
         --tuning "${NCU_TUNING:-}" > "$out/ncu-thesis${NCU_TUNING:+-${NCU_TUNING// /-}}.txt" 2>&1
     grep -v "^==PROF==" "$out/ncu-thesis${NCU_TUNING:+-${NCU_TUNING// /-}}.txt" | tail -n 150
+fi
+if [[ " $steps " == *" ncu-source "* ]] && command -v ncu >/dev/null; then
+    # where the thesis kernel's instructions and stalls go, per SASS line (built with -lineinfo)
+    echo "== ncu source counters: transport kernel, thesis 128^3 (its first launch)"
+    ncu --target-processes all -k regex:trace_photons -s 0 -c 1 --section SourceCounters --section WarpStateStats \
+        --import-source yes -f -o "$out/ncu-source" \
+        python3 benchmarks/profile_kernels.py --scene examples/scenes/thesis-default.toml --grids 128 --photons 2.1e6 \
+        --lineinfo > "$out/ncu-source.log" 2>&1
+    ncu --import "$out/ncu-source.ncu-rep" --page source --csv --print-source sass > "$out/ncu-sass.csv" 2>"$out/ncu-sass.err"
+    python3 benchmarks/ncu_source_summary.py "$out/ncu-sass.csv" --top 40 --out "$out/ncu-source-summary.json"
 fi
 if [[ " $steps " == *" profile "* ]] && command -v ncu >/dev/null; then
     echo "== ncu: transport kernel, neb128 2.1M photons (one batch)"
