@@ -245,7 +245,8 @@ class NebulaSkyImage(NebulaAlgorithm):
                 polconv = "IAU"
                 for b, n in enumerate(names):
                     for k, (val, err) in enumerate(((contract.SKY_Q, contract.SKY_Q_ERROR),
-                                                    (contract.SKY_U, contract.SKY_U_ERROR))):
+                                                    (contract.SKY_U, contract.SKY_U_ERROR),
+                                                    (contract.SKY_V, contract.SKY_V_ERROR))[:peel.peel_stokes.shape[1]]):
                         arrays[val.name(n)] = peel.peel_stokes[b, k][:, :, None].astype(np.float32)
                         arrays[err.name(n)] = peel.peel_stokes_error[b, k][:, :, None].astype(np.float32)
         calibrated = {}
@@ -267,6 +268,8 @@ class NebulaSkyImage(NebulaAlgorithm):
                 for b, n in enumerate(names):
                     arrays[contract.SKY_SB_Q.name(n)] = cal.stokes[b, 0][:, :, None].astype(np.float32)
                     arrays[contract.SKY_SB_U.name(n)] = cal.stokes[b, 1][:, :, None].astype(np.float32)
+                    if cal.stokes.shape[1] > 2:
+                        arrays[contract.SKY_SB_V.name(n)] = cal.stokes[b, 2][:, :, None].astype(np.float32)
             calibrated = dict(sky_units="MJy/sr", wcs_header=cal.wcs.to_header().tostring(),
                               pixel_scale_arcsec=cal.pixel_scale_arcsec, psf_fwhm_arcsec=cal.psf_fwhm_arcsec,
                               passband_names=",".join(cal.passbands), mag_system=cal.mag_system)
@@ -325,8 +328,9 @@ def write_fits(image, path) -> None:
     passbands = [(n, point_array(image, contract.SKY_MAG.name(n))[:, :, 0]) for n in fd.passband_names.split(",")]
     stokes = None
     if fd.polconv and image.GetPointData().HasArray(contract.SKY_SB_Q.name(fd.band_names[0])):
-        stokes = np.stack([[point_array(image, spec.name(n))[:, :, 0] for spec in (contract.SKY_SB_Q, contract.SKY_SB_U)]
-                           for n in fd.band_names])
+        specs = (contract.SKY_SB_Q, contract.SKY_SB_U) + (
+            (contract.SKY_SB_V,) if image.GetPointData().HasArray(contract.SKY_SB_V.name(fd.band_names[0])) else ())
+        stokes = np.stack([[point_array(image, spec.name(n))[:, :, 0] for spec in specs] for n in fd.band_names])
     sky_hdus(primary, fits.Header.fromstring(fd.wcs_header), bands, passbands, system,
              stokes=stokes).writeto(path, overwrite=True)
 

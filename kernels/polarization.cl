@@ -24,8 +24,13 @@
  *      S12 = -p_l S11 (1 - mu^2) / (1 + mu^2), S33 = S11 2 mu / (1 + mu^2), S34 = 0 (White's
  *      circular term is not modelled); per band p_l, the linear polarization of unpolarized
  *      light scattered through 90 degrees (pol[0]).
- * Both keep S12^2 + S33^2 <= S11^2 (equality for Rayleigh, and for White at p_l = 1), so no
- * scattering makes light more than fully polarized.
+ *   3  spherical grains by Mie theory (nebula_rt.optics.mie): per band a table at pol + pol[0]
+ *      of pol[1] scattering angles (0 to 180 degrees in equal steps) with the rows mu, the
+ *      cumulative probability from mu = 1, p(mu) = 2 pi S11, S12 / S11, S33 / S11, S34 / S11,
+ *      all linear in mu between the nodes: theta is sampled exactly from that piecewise-linear
+ *      p (a binary search and the root of a quadratic), and S34 makes V.
+ * All keep S12^2 + S33^2 + S34^2 <= S11^2 (equality for Rayleigh, for White at p_l = 1 and for
+ * single Mie spheres), so no scattering makes light more than fully polarized.
  * Unpolarized light scattered through theta is polarized by -S12 / S11, perpendicular to the
  * scattering plane where S12 < 0 (Rayleigh: sin^2 theta / (1 + cos^2 theta)).
  *
@@ -41,6 +46,7 @@
 
 #define NRT_POLAR_RAYLEIGH 1
 #define NRT_POLAR_WHITE 2
+#define NRT_POLAR_MIE 3
 
 typedef struct {
     float q, u, v; /* Q / I, U / I, V / I */
@@ -55,11 +61,60 @@ NRT_DEVICE void nrt_stokes_unpolarized(const float *d, nrt_stokes *s)
     s->q = s->u = s->v = 0.0f;
 }
 
+/* A Mie table's interval [mu_i+1, mu_i] that holds mu (nodes equal in theta, so acos gives it
+   to within one; the stored nodes decide). */
+NRT_DEVICE int nrt_mie_interval(const NRT_GLOBAL float *t, int n, float mu)
+{
+    int i = (int)(acos(mu) * (float)(n - 1) * (1.0f / NRT_PI_F));
+    i = min(max(i, 0), n - 2);
+    if (i > 0 && mu > t[i])
+        --i;
+    else if (i < n - 2 && mu < t[i + 1])
+        ++i;
+    return i;
+}
+
+/* The scattering cosine of a Mie table from xi in [0, 1): the interval by a binary search of
+   the cumulative probabilities, then within it the root t of h (p0 t + (p1 - p0) t^2 / 2) =
+   xi - P_i (mu = mu_i - t h), formed as 2 c / (p0 + sqrt(p0^2 + 2 (p1 - p0) c)) (no
+   cancellation). */
+NRT_DEVICE float nrt_mie_mu(const NRT_GLOBAL float *t, int n, float xi)
+{
+    const NRT_GLOBAL float *cdf = t + n, *p = t + 2 * n;
+    int lo = 0, hi = n - 1; /* cdf[lo] <= xi < cdf[hi] */
+    while (hi - lo > 1) {
+        int mid = (lo + hi) >> 1;
+        if (cdf[mid] <= xi)
+            lo = mid;
+        else
+            hi = mid;
+    }
+    float h = t[lo] - t[lo + 1];
+    float c = (xi - cdf[lo]) / h;
+    float p0 = p[lo], p1 = p[lo + 1];
+    float den = p0 + sqrt(fmax(p0 * p0 + 2.0f * (p1 - p0) * c, 0.0f));
+    float s = den > 0.0f ? fmin(2.0f * c / den, 1.0f) : 0.5f;
+    return fmin(fmax(t[lo] - s * h, -1.0f), 1.0f);
+}
+
 /* The Mueller matrix at scattering cosine mu: m[0] = S11 (per sr), m[1..3] = S12, S33, S34
-   divided by S11. pol: the band's parameters (kind 2: p_l). */
+   divided by S11. pol: the band's parameters (kind 2: p_l; kind 3: its table). */
 NRT_DEVICE void nrt_mueller(int kind, float g, const NRT_GLOBAL float *pol, float mu, float *m)
 {
     mu = fmin(fmax(mu, -1.0f), 1.0f);
+    if (kind == NRT_POLAR_MIE) {
+        const int n = (int)pol[1];
+        const NRT_GLOBAL float *t = pol + (int)pol[0];
+        int i = nrt_mie_interval(t, n, mu);
+        float f = (t[i] - mu) / (t[i] - t[i + 1]);
+        f = fmin(fmax(f, 0.0f), 1.0f);
+        for (int k = 0; k < 4; ++k) {
+            const NRT_GLOBAL float *row = t + (2 + k) * n;
+            m[k] = row[i] + f * (row[i + 1] - row[i]);
+        }
+        m[0] *= 1.0f / (2.0f * NRT_PI_F);
+        return;
+    }
     float mm = mu * mu;
     float inv = 1.0f / (1.0f + mm);
     if (kind == NRT_POLAR_RAYLEIGH) {
@@ -103,6 +158,9 @@ NRT_DEVICE void nrt_scatter_polarized(nrt_rng *rng, int kind, float g, const NRT
     float mu, sin_theta;
     if (kind == NRT_POLAR_RAYLEIGH) {
         mu = nrt_rayleigh_mu(nrt_rng_uniform(rng));
+        sin_theta = sqrt(fmax(0.0f, (1.0f - mu) * (1.0f + mu)));
+    } else if (kind == NRT_POLAR_MIE) {
+        mu = nrt_mie_mu(pol + (int)pol[0], (int)pol[1], nrt_rng_uniform(rng));
         sin_theta = sqrt(fmax(0.0f, (1.0f - mu) * (1.0f + mu)));
     } else {
         nrt_sample_hg(g, nrt_rng_uniform(rng), &mu, &sin_theta);

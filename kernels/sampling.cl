@@ -105,11 +105,11 @@ NRT_KERNEL void rayleigh_mu_at(NRT_GLOBAL float *mu, const NRT_GLOBAL float *xi,
 
 /*
  * One polarized scattering as the transport does it (nrt_scatter_polarized), of light along
- * +z with the Stokes state (q, u, 0) referred to e = +x: out[8 i ..] = the new direction (3),
- * the new reference e' (3) and the new q, u, each from photon i's own stream.
+ * +z with the Stokes state (q, u, v) referred to e = +x: out[9 i ..] = the new direction (3),
+ * the new reference e' (3) and the new q, u, v, each from photon i's own stream.
  */
 NRT_KERNEL void scatter_polarized_from(NRT_GLOBAL float *out, int kind, float g, const NRT_GLOBAL float *pol,
-                                       float q, float u, nrt_u64 seed, nrt_u64 n)
+                                       float q, float u, float v, nrt_u64 seed, nrt_u64 n)
 {
     nrt_u64 i = NRT_GLOBAL_ID();
     if (i >= n)
@@ -119,20 +119,21 @@ NRT_KERNEL void scatter_polarized_from(NRT_GLOBAL float *out, int kind, float g,
     float d[3] = {0.0f, 0.0f, 1.0f};
     nrt_stokes s;
     s.e[0] = 1.0f, s.e[1] = 0.0f, s.e[2] = 0.0f;
-    s.q = q, s.u = u, s.v = 0.0f;
+    s.q = q, s.u = u, s.v = v;
     nrt_scatter_polarized(&r, kind, g, pol, d, &s);
     for (int k = 0; k < 3; ++k) {
-        out[8 * i + k] = d[k];
-        out[8 * i + 3 + k] = s.e[k];
+        out[9 * i + k] = d[k];
+        out[9 * i + 3 + k] = s.e[k];
     }
-    out[8 * i + 6] = s.q;
-    out[8 * i + 7] = s.u;
+    out[9 * i + 6] = s.q;
+    out[9 * i + 7] = s.u;
+    out[9 * i + 8] = s.v;
 }
 
-/* nrt_peel_stokes towards o of light along d with the state (q, u, 0) referred to e:
+/* nrt_peel_stokes towards o of light along d with the state (q, u, v) (quv[3 i ..]) referred to e:
    out[4 i ..] = I, Q, U, V per sr in the frame whose reference is `north` (all float3 as 3
    floats per item: d, e, o, north at 12 i ..). */
-NRT_KERNEL void peel_stokes_at(NRT_GLOBAL float *out, const NRT_GLOBAL float *vec, const NRT_GLOBAL float *qu,
+NRT_KERNEL void peel_stokes_at(NRT_GLOBAL float *out, const NRT_GLOBAL float *vec, const NRT_GLOBAL float *quv,
                                int kind, float g, const NRT_GLOBAL float *pol, nrt_u64 n)
 {
     nrt_u64 i = NRT_GLOBAL_ID();
@@ -146,7 +147,7 @@ NRT_KERNEL void peel_stokes_at(NRT_GLOBAL float *out, const NRT_GLOBAL float *ve
         o[k] = vec[12 * i + 6 + k];
         north[k] = vec[12 * i + 9 + k];
     }
-    s.q = qu[2 * i], s.u = qu[2 * i + 1], s.v = 0.0f;
+    s.q = quv[3 * i], s.u = quv[3 * i + 1], s.v = quv[3 * i + 2];
     nrt_peel_stokes(kind, g, pol, o, north, d, &s, iquv);
     for (int k = 0; k < 4; ++k)
         out[4 * i + k] = iquv[k];

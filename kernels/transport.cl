@@ -280,9 +280,10 @@ NRT_DEVICE void nrt_cross_face(int ax, int i_next, const float *p, float d_ax, c
 #ifndef NRT_POLAR
 #define NRT_POLAR 0
 #endif
-/* Stokes images per band of a batch slot besides I: Q and U (no kind yet gives V: S34 = 0) */
-#define NRT_STOKES_IMAGES (NRT_POLAR ? 2 : 0)
 #include "polarization.cl"
+/* Stokes images per band of a batch slot besides I: Q and U, and V where the matrix has
+   S34 != 0 (Mie) */
+#define NRT_STOKES_IMAGES (NRT_POLAR == NRT_POLAR_MIE ? 3 : NRT_POLAR ? 2 : 0)
 /* A scattering's new direction (and, with NRT_POLAR, the packet's new Stokes state) */
 #if NRT_POLAR
 #define NRT_NEW_DIRECTION() nrt_scatter_polarized(&rng, NRT_POLAR, g_b, pol, d, &stokes)

@@ -224,10 +224,11 @@ fi
 # instead of ParaView's VTK and crash); matplotlib >= 3.7 because Debian's 3.6
 # is built for numpy 1 and colour-science imports it (numpy 2 comes with
 # pyopencl); astropy and speclite for the physical units and the calibrated sky images
-# (FITS, WCS, passbands), PyAstronomy for a star's spectral type. plugin/site/sitecustomize.py,
+# (FITS, WCS, passbands), PyAstronomy for a star's spectral type, miepython for Mie grains.
+# plugin/site/sitecustomize.py,
 # through scripts/pv-env.sh, puts the venv's site-packages in front inside pvpython, pvbatch
 # and paraview.
-PV_REQS=(pyopencl colour-science scipy tqdm tomli-w "matplotlib>=3.7" dust_extinction astropy speclite PyAstronomy)
+PV_REQS=(pyopencl colour-science scipy tqdm tomli-w "matplotlib>=3.7" dust_extinction astropy speclite PyAstronomy "miepython>=3.3")
 pv_want="$( (sha256sum pyproject.toml | cut -d' ' -f1; printf '%s\n' "${PV_REQS[@]}"; "$PV_PYTHON" --version 2>&1) | sha256sum | cut -d' ' -f1)"
 
 setup_pv_venv() {  # (body not indented: it holds python -c code)

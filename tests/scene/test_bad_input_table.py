@@ -46,6 +46,8 @@ BASE = {
 }
 #: for dust.file: a density file (written beside the scene file by the CLI tests)
 BASE_FILE = {**BASE, "dust": {"model": "file", "file": "cloud.npy"}}
+#: for the grains' keys: Mie scattering (they are refused by name with any other polarization)
+BASE_MIE = {**BASE, "bands": {"polarization": "mie"}}
 #: for the [[bands.list]] keys: two explicit bands, a flat-spectrum star
 BASE_LIST = {
     "grid": {"shape": [8, 8, 8]},
@@ -83,6 +85,8 @@ class Row:
     def base(self) -> dict:
         if self.key.startswith("bands.list"):
             return BASE_LIST
+        if self.key.startswith("bands.grain_"):
+            return BASE_MIE
         return BASE_FILE if self.key == "dust.file" else BASE
 
 
@@ -107,7 +111,13 @@ RANGES = {
     # the pairs' own rule, or where a valid spectrum must have power
     "stars.0.spectrum": ("[wavelength nm, relative power] pairs", "inside 380-780 nm", "must give every band light"),
     "bands.preset": "preset", "bands.albedo": "[0, 1]", "bands.g": "[-1, 1]",
-    "bands.polarization": "'none', 'rayleigh', 'white'",
+    "bands.polarization": "'none', 'rayleigh', 'white', 'mie'",
+    "bands.grain_material": "'astronomical-silicate'",
+    "bands.grain_n": ("[0.01, 100]", "one value per band", "must be given with bands.grain_k"),
+    "bands.grain_k": ("[0, 100]", "one value per band", "must be given with bands.grain_n"),
+    "bands.grain_radius_min": ("[0.0001, 1000]", "at most"),
+    "bands.grain_radius_max": ("[0.0001, 1000]", "at least bands.grain_radius_min", "size parameter"),
+    "bands.grain_size_slope": "[-10, 10]",
     "bands.peak_polarization": ("[0, 1]", "one value per band"),
     "bands.list.0.name": "[A-Za-z0-9_-]", "bands.list.0.wavelength": "[1, 1e5]",
     "bands.list.0.extinction": FLOAT32_RANGE_TEXT, "bands.list.0.albedo": "[0, 1]", "bands.list.0.g": "[-1, 1]",
@@ -237,7 +247,19 @@ TABLE = [
     *strings("bands.preset", ["ultraviolet"]),
     *floats("bands.albedo", {"zero": "no scattering"}),
     *floats("bands.g", {"zero": "isotropic"}),
-    *strings("bands.polarization", ["mie", "White"], allowed={"white": "HG with White's polarization"}),
+    *strings("bands.polarization", ["Mie", "White"], allowed={"white": "HG with White's polarization",
+                                                             "mie": "Mie grains: MRN astronomical silicate"}),
+    *strings("bands.grain_material", ["silicate"]),
+    # the refractive index alone is refused (n without k); with its partner see tests/optics/test_mie.py
+    *[Row(f"bands.grain_{key}", kind, lit) for key in ("n", "k") for kind, lit in {
+        "type": '"x"', "nan": "nan", "inf": "inf", "negative": "-1.5", "huge": "1e300", "alone": "1.5"}.items()],
+    *floats("bands.grain_radius_min"),
+    *floats("bands.grain_radius_max"),
+    Row("bands.grain_radius_max", "below-radius_min", "0.001"),
+    Row("bands.grain_radius_max", "beyond-size-parameter", "900.0"),
+    Row("bands.grain_radius_max", "one-size", "0.005", ALLOWED, "grains of one size (0.005 micron)"),
+    *floats("bands.grain_size_slope", {"zero": "n(a) flat in a", "negative": "more large grains than small",
+                                       "below-float32": "as good as 0"}),
     *floats("bands.peak_polarization", {"zero": "unpolarized light stays so (White's p_l = 0)",
                                         "below-float32": "p_l 1e-40: as good as 0"}),
     Row("bands.peak_polarization", "list", "[0.3, 0.4, 0.5]", ALLOWED, "one per band (thesis-rgb: 3)"),

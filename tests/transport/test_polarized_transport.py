@@ -258,4 +258,4 @@ def test_polarization_is_refused_where_it_cannot_run(backend):
     with pytest.raises(SceneError, match="bands.peak_polarization"):
         Polarization("white", peak=1.2)
     with pytest.raises(SceneError, match="bands.polarization"):
-        Polarization("mie")
+        Polarization("Mie")

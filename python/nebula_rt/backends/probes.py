@@ -181,11 +181,12 @@ def sample_tau_at(backend: Backend, xi: np.ndarray) -> np.ndarray:
     return backend.to_host(d_tau)
 
 
-def _polar_params(pol) -> np.ndarray:
-    return np.zeros(4, np.float32) if pol is None else np.asarray(pol.kernel_params(1)[0], np.float32)
+def _polar_params(pol, wavelength: float = 550.0) -> np.ndarray:
+    """One band's parameters (and Mie table) at ``wavelength`` (nm)."""
+    return np.zeros(4, np.float32) if pol is None else np.asarray(pol.kernel_params(1, [wavelength]), np.float32)
 
 
-def mueller_at(backend: Backend, pol, mu: np.ndarray, g: float = 0.0) -> np.ndarray:
+def mueller_at(backend: Backend, pol, mu: np.ndarray, g: float = 0.0, wavelength: float = 550.0) -> np.ndarray:
     """The Mueller matrix ``nrt_mueller`` (kernels/polarization.cl) at given scattering cosines.
 
     Parameters
@@ -197,6 +198,8 @@ def mueller_at(backend: Backend, pol, mu: np.ndarray, g: float = 0.0) -> np.ndar
         Cosines of the scattering angle (flattened; float32).
     g : float
         The band's HG asymmetry parameter (kind "white").
+    wavelength : float
+        The band's wavelength, nm (kind "mie").
 
     Returns
     -------
@@ -206,7 +209,8 @@ def mueller_at(backend: Backend, pol, mu: np.ndarray, g: float = 0.0) -> np.ndar
     mu = np.ascontiguousarray(mu, np.float32).reshape(-1)
     n = mu.size
     d_out = backend.device_zeros(4 * n, np.float32)
-    backend.launch("sampling.cl", "mueller_at", n, d_out, backend.to_device(mu), backend.to_device(_polar_params(pol)),
+    backend.launch("sampling.cl", "mueller_at", n, d_out, backend.to_device(mu),
+                   backend.to_device(_polar_params(pol, wavelength)),
                    np.int32(pol.kernel_kind), np.float32(g), np.uint64(n))
     return backend.to_host(d_out).reshape(n, 4)
 
@@ -220,32 +224,36 @@ def rayleigh_mu_at(backend: Backend, xi: np.ndarray) -> np.ndarray:
 
 
 def scatter_polarized_from(backend: Backend, pol, q: float, u: float, seed: int, n: int,
-                           g: float = 0.0) -> np.ndarray:
+                           g: float = 0.0, v: float = 0.0, wavelength: float = 550.0) -> np.ndarray:
     """``n`` polarized scatterings (``nrt_scatter_polarized``) of light along +z whose Stokes
-    state (q, u) refers to +x, each from its own random stream (seed, band 0, photon i).
+    state (q, u, v) refers to +x, each from its own random stream (seed, band 0, photon i).
 
     Returns
     -------
-    ndarray, float32, shape (n, 8)
-        The new direction (3), the new reference direction (3), the new q and u.
+    ndarray, float32, shape (n, 9)
+        The new direction (3), the new reference direction (3), the new q, u and v.
     """
     n = int(n)
-    d_out = backend.device_zeros(8 * n, np.float32)
+    d_out = backend.device_zeros(9 * n, np.float32)
     backend.launch("sampling.cl", "scatter_polarized_from", n, d_out, np.int32(pol.kernel_kind), np.float32(g),
-                   backend.to_device(_polar_params(pol)), np.float32(q), np.float32(u), np.uint64(seed),
-                   np.uint64(n))
-    return backend.to_host(d_out).reshape(n, 8)
+                   backend.to_device(_polar_params(pol, wavelength)), np.float32(q), np.float32(u), np.float32(v),
+                   np.uint64(seed), np.uint64(n))
+    return backend.to_host(d_out).reshape(n, 9)
 
 
-def peel_stokes_at(backend: Backend, pol, d, e, o, north, qu, g: float = 0.0) -> np.ndarray:
+def peel_stokes_at(backend: Backend, pol, d, e, o, north, qu, g: float = 0.0, wavelength: float = 550.0) -> np.ndarray:
     """``nrt_peel_stokes``: the light that packets along ``d`` (n, 3) with Stokes states ``qu``
-    (n, 2) referred to ``e`` (n, 3) scatter towards ``o`` (n, 3), per sr, as (I, Q, U, V) in the
-    frame whose reference is ``north`` (n, 3); float32, shape (n, 4)."""
+    ((n, 2): q, u; or (n, 3): q, u, v) referred to ``e`` (n, 3) scatter towards ``o`` (n, 3), per
+    sr, as (I, Q, U, V) in the frame whose reference is ``north`` (n, 3); float32, shape (n, 4)."""
+    qu = np.asarray(qu, np.float32)
+    qu = qu.reshape(-1, qu.shape[-1]) if qu.ndim > 1 else qu.reshape(-1, 2)
+    if qu.shape[1] == 2:
+        qu = np.concatenate([qu, np.zeros((qu.shape[0], 1), np.float32)], axis=1)
     vec = np.ascontiguousarray(np.concatenate([np.asarray(a, np.float32).reshape(-1, 3) for a in (d, e, o, north)],
                                               axis=1), np.float32)
     n = vec.shape[0]
     d_out = backend.device_zeros(4 * n, np.float32)
     backend.launch("sampling.cl", "peel_stokes_at", n, d_out, backend.to_device(vec),
                    backend.to_device(np.ascontiguousarray(qu, np.float32).reshape(-1)), np.int32(pol.kernel_kind),
-                   np.float32(g), backend.to_device(_polar_params(pol)), np.uint64(n))
+                   np.float32(g), backend.to_device(_polar_params(pol, wavelength)), np.uint64(n))
     return backend.to_host(d_out).reshape(n, 4)

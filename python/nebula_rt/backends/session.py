@@ -87,14 +87,14 @@ class DeviceTransport(TransportSession):
             self.d_density = (resident if resident is not None else
                               be.to_device(np.ravel(np.asarray(setup.density, np.float32), order="F")))
         # per band: extinction scale, albedo, g, windows' rate; then per band the polarization's
-        # parameters (kernels/transport.cl reads them at optics + 4 n_bands + 4 band)
-        optics = np.zeros((2, nb, 4), np.float32)
-        optics[0, :, 0], optics[0, :, 1], optics[0, :, 2] = setup.sigma_scale, setup.albedo, setup.g
+        # parameters (kernels/transport.cl reads them at optics + 4 n_bands + 4 band), then
+        # Mie's tables
+        optics = np.zeros((nb, 4), np.float32)
+        optics[:, 0], optics[:, 1], optics[:, 2] = setup.sigma_scale, setup.albedo, setup.g
         if setup.window_rate is not None:
-            optics[0, :, 3] = setup.window_rate
-        if setup.polar_params is not None:
-            optics[1] = setup.polar_params
-        self.d_optics = be.to_device(optics)
+            optics[:, 3] = setup.window_rate
+        polar = np.zeros(4 * nb, np.float32) if setup.polar_params is None else setup.polar_params
+        self.d_optics = be.to_device(np.concatenate([optics.reshape(-1), np.asarray(polar, np.float32)]))
         # weighted packets read the windows' depth map (none given: depth 0, windows at W0)
         # (and, J's heavy-tail classes, the kernel's tables of them after it: nebula_rt.transport.tails)
         self.d_window = be.to_device(np.zeros(1, np.float32) if setup.window is None else np.concatenate(

@@ -103,8 +103,9 @@ class TransportSetup:
     tree: object = None
     tree_buffer: object = None
     #: polarized packets (kernels/polarization.cl, NRT_POLAR: 1 Rayleigh, 2 White's
-    #: approximation; 0 intensity alone) and their parameters per band (float32, (n_bands, 4),
-    #: nebula_rt.optics.polarization.Polarization.kernel_params), uploaded after the bands' optics
+    #: approximation, 3 Mie; 0 intensity alone) and their parameters (flat float32: 4 per band,
+    #: then Mie's tables; nebula_rt.optics.polarization.Polarization.kernel_params), uploaded
+    #: after the bands' optics
     polar: int = 0
     polar_params: object = None
 
@@ -142,9 +143,12 @@ class TransportSetup:
 
     @property
     def stokes_images(self) -> int:
-        """Peel-off images per band: I, or (polarized) I, Q and U (kernels/transport.cl,
-        NRT_STOKES_IMAGES)."""
-        return 3 if self.polar else 1
+        """Peel-off images per band: I, or (polarized) I, Q and U, and V where the matrix gives
+        it (Mie) (kernels/transport.cl, NRT_STOKES_IMAGES)."""
+        from ..optics.polarization import KERNEL_KIND, Polarization
+
+        kind = next(k for k, v in KERNEL_KIND.items() if v == self.polar)
+        return 1 + Polarization(kind).stokes
 
     @property
     def peel_pixels(self) -> int:
@@ -262,8 +266,8 @@ class TransportSession(abc.ABC):
     @abc.abstractmethod
     def take_images(self, n_slots: int, bands: tuple[int, int] | None = None) -> np.ndarray:
         """The peel-off images of slots 0..n_slots-1 (uint64 fixed point, (n_slots, group
-        bands, W, H); polarized: (n_slots, group bands, 3, W, H), I, then Q and U as 64-bit
-        two's complement), clearing them; an empty array without a peel-off camera."""
+        bands, W, H); polarized: (n_slots, group bands, 1 + Stokes, W, H), I, then Q, U (and V)
+        as 64-bit two's complement), clearing them; an empty array without a peel-off camera."""
 
     @abc.abstractmethod
     def release_sums(self) -> tuple:

@@ -27,22 +27,24 @@ POLCONV_COMMENT = "angle from north through east (IAU 1974)"
 
 def to_celestial(stokes, position_angle_deg: float) -> np.ndarray:
     """Q and U (..., 2, W, H) from the camera's frame (its up axis as north) to the sky's: the
-    up axis lies at ``position_angle_deg`` east of north, so chi_sky = chi + PA."""
+    up axis lies at ``position_angle_deg`` east of north, so chi_sky = chi + PA. A third
+    component, V (..., 3, W, H), does not depend on the frame and is kept."""
     s = np.asarray(stokes, np.float64)
     a = 2.0 * math.radians(position_angle_deg)
     c, sn = math.cos(a), math.sin(a)
-    out = np.empty_like(s)
+    out = s.copy()
     out[..., 0, :, :] = c * s[..., 0, :, :] - sn * s[..., 1, :, :]
     out[..., 1, :, :] = sn * s[..., 0, :, :] + c * s[..., 1, :, :]
     return out
 
 
 def errors_to_celestial(errors, position_angle_deg: float) -> np.ndarray:
-    """The errors of :func:`to_celestial`'s Q and U (independent errors of Q and U propagated)."""
+    """The errors of :func:`to_celestial`'s Q and U (independent errors of Q and U propagated;
+    V's kept)."""
     e2 = np.asarray(errors, np.float64) ** 2
     a = 2.0 * math.radians(position_angle_deg)
     c2, s2 = math.cos(a) ** 2, math.sin(a) ** 2
-    out = np.empty_like(e2)
+    out = e2.copy()
     out[..., 0, :, :] = c2 * e2[..., 0, :, :] + s2 * e2[..., 1, :, :]
     out[..., 1, :, :] = s2 * e2[..., 0, :, :] + c2 * e2[..., 1, :, :]
     return np.sqrt(out)
@@ -82,13 +84,14 @@ def polarization_maps(i, q, u, i_err=None, q_err=None, u_err=None):
 
 
 def stokes_hdus(wcs_header, names, stokes):
-    """FITS image HDUs ``Q_<band>`` and ``U_<band>`` (MJy/sr, the intensity's WCS) of ``stokes``
-    (n_bands, 2, W, H) in the IAU convention."""
+    """FITS image HDUs ``Q_<band>`` and ``U_<band>`` (and ``V_<band>`` where ``stokes`` holds V)
+    (MJy/sr, the intensity's WCS) of ``stokes`` (n_bands, 2 or 3, W, H) in the IAU convention
+    (V: Bohren & Huffman's sign, kernels/polarization.cl)."""
     from astropy.io import fits
 
     hdus = []
     for b, name in enumerate(names):
-        for k, which in enumerate("QU"):
+        for k, which in enumerate("QUV"[:np.shape(stokes)[1]]):
             hh = wcs_header.copy()
             hh["BUNIT"] = "MJy/sr"
             hh["BAND"] = name

@@ -39,7 +39,7 @@ from ..transport.plan import TALLY_NAMES
 __all__ = [
     "DENSITY", "EMISSIVITY", "J", "REL_ERROR", "RGBA", "RGB_LINEAR", "LIGHT_FIELD_ARRAYS",
     "SKY_INTENSITY", "SKY_SCATTERED", "SKY_RELATIVE", "SKY_RGB", "SKY_IMAGE_ARRAYS",
-    "SKY_SCATTERED_ERROR", "SKY_Q", "SKY_U", "SKY_Q_ERROR", "SKY_U_ERROR", "PEEL_SKY_ARRAYS",
+    "SKY_SCATTERED_ERROR", "SKY_Q", "SKY_U", "SKY_Q_ERROR", "SKY_U_ERROR", "SKY_V", "SKY_V_ERROR", "PEEL_SKY_ARRAYS",
     "POLARIZATION_VECTOR", "POLARIZATION_DEGREE", "POLARIZATION_DEGREE_ERROR", "POLARIZATION_ANGLE",
     "POLARIZATION_ARRAYS",
     "STAR_ARRAYS", "STAR_LUMINOSITY", "STAR_RGB",
@@ -112,8 +112,12 @@ SKY_Q = PointArray("Q_{band}", "float32", 1, "peel-off of a polarized scene: Sto
 SKY_U = PointArray("U_{band}", "float32", 1, "peel-off of a polarized scene: Stokes U, as Q_")
 SKY_Q_ERROR = PointArray("Q_error_{band}", "float32", 1, "the standard error of Q_{band}")
 SKY_U_ERROR = PointArray("U_error_{band}", "float32", 1, "the standard error of U_{band}")
-#: the arrays a peel-off sky image adds (its errors; a polarized scene's Stokes Q and U)
-PEEL_SKY_ARRAYS = (SKY_SCATTERED_ERROR, SKY_Q, SKY_U, SKY_Q_ERROR, SKY_U_ERROR)
+SKY_V = PointArray("V_{band}", "float32", 1, "peel-off of a scene whose grains make circular polarization "
+                   "(bands.polarization = \"mie\"): Stokes V, as Q_ (Bohren & Huffman's sign)")
+SKY_V_ERROR = PointArray("V_error_{band}", "float32", 1, "the standard error of V_{band}")
+#: the arrays a peel-off sky image adds (its errors; a polarized scene's Stokes Q and U, and V
+#: where the grains give it)
+PEEL_SKY_ARRAYS = (SKY_SCATTERED_ERROR, SKY_Q, SKY_U, SKY_Q_ERROR, SKY_U_ERROR, SKY_V, SKY_V_ERROR)
 #: a polarization vector field of a sky image (Nebula Polarization Vectors: cell data of one line
 #: segment per block)
 POLARIZATION_VECTOR = PointArray("polarization", "float32", 3, "P times the unit vector along the polarization "
@@ -130,9 +134,10 @@ SKY_MAG = PointArray("mag_{band}", "float32", 1, "AB surface brightness through 
 SKY_SB_Q = PointArray("sb_Q_{band}", "float32", 1, "calibrated Stokes Q of the scattered light (PSF-convolved), "
                       "MJy/sr, IAU convention on the sky (celestial north)")
 SKY_SB_U = PointArray("sb_U_{band}", "float32", 1, "calibrated Stokes U, as sb_Q_")
+SKY_SB_V = PointArray("sb_V_{band}", "float32", 1, "calibrated Stokes V (Mie grains), as sb_Q_")
 #: the arrays a calibrated sky image adds (Nebula Sky Image with Units MJy/sr; per band, per
 #: passband; a polarized peel-off's Stokes)
-CALIBRATED_SKY_ARRAYS = (SKY_SURFACE_BRIGHTNESS, SKY_MAG, SKY_SB_Q, SKY_SB_U)
+CALIBRATED_SKY_ARRAYS = (SKY_SURFACE_BRIGHTNESS, SKY_MAG, SKY_SB_Q, SKY_SB_U, SKY_SB_V)
 
 
 # --------------------------------------------------------------------------- field data

@@ -270,15 +270,37 @@ class Scene:
         _check_star_spectra(self.stars, bands)
 
     def _check_polarization(self, bands) -> None:
-        """bands.peak_polarization holds one value per band where it is a list, and a scene that
-        scatters by Rayleigh's phase function gives no bands.g (which it would not use)."""
-        from ..optics.polarization import OWN_PHASE_FUNCTION, polarization_of
+        """bands.peak_polarization holds one value per band where it is a list; a scene that
+        scatters by its own phase function (Rayleigh's, Mie's) gives no bands.g, nor bands.albedo
+        where the grains give it; the grains' keys are given only for Mie scattering, whose
+        optics need the optical depth in box units (dust.tau)."""
+        from ..optics import mie
+        from ..optics.polarization import OWN_OPTICS, OWN_PHASE_FUNCTION, polarization_of
 
         pol = polarization_of(self)
         pol.peaks(len(bands))
         if pol.kind in OWN_PHASE_FUNCTION and self.bands.g is not None:
             raise SceneError("bands.g", self.bands.g, f"must be omitted with bands.polarization = '{pol.kind}' "
                              "(that phase function has no asymmetry parameter)")
+        if pol.kind in OWN_OPTICS:
+            if self.bands.albedo is not None:
+                raise SceneError("bands.albedo", self.bands.albedo, f"must be omitted with bands.polarization = "
+                                 f"'{pol.kind}' (the grains' albedo is Mie theory's)")
+            key = units.physical_dust_key(self.dust)
+            if key is not None:
+                raise SceneError(f"dust.{key}", getattr(self.dust, key), "is not converted for Mie grains yet "
+                                 "(the conversion uses Draine's dust model): give dust.tau, the optical depth "
+                                 "across one box edge in the reference band")
+            pol.grains.refractive_index([b.wavelength for b in bands])  # one value per band
+            return
+        defaults = mie.Grains()
+        for key, default in (("material", defaults.material), ("n", None), ("k", None),
+                             ("radius_min", defaults.radius_min), ("radius_max", defaults.radius_max),
+                             ("size_slope", defaults.size_slope)):
+            value = getattr(self.bands, f"grain_{key}")
+            if value != default:
+                raise SceneError(f"bands.grain_{key}", value, "is used only with bands.polarization = 'mie' "
+                                 f"(here '{pol.kind}'): omit it")
 
     def _apply_units(self, given_tau: Optional[float] = None, given_luminosity: Optional[Mapping[int, float]] = None,
                      given_temperature: Optional[Mapping[int, float]] = None) -> None:

@@ -13,6 +13,7 @@ from typing import Any, Dict, List, Optional, Tuple, Union
 
 from ..limits import INT32_MAX, MAX_OFFSET, MAX_PHOTONS, MAX_TREE_DEPTH, PARTICLE_COORDINATE_MAX, TEMPERATURE_RANGE
 from ..optics.bands import ALBEDO_RANGE, G_RANGE, PRESETS, Band, resolve_bands
+from ..optics import mie
 from ..optics.polarization import DEFAULT_PEAK as DEFAULT_PEAK_POLARIZATION, KINDS as POLARIZATION_KINDS
 from . import schema, units, values
 from .schema import document, param
@@ -285,15 +286,44 @@ class BandsConfig:
         "none", type="str", choices=POLARIZATION_KINDS, group=G_OPTICS,
         doc="Polarized scattering: none (intensity alone), rayleigh (dipole scattering: phase "
             "function 3 (1 + cos^2) / (16 pi), polarization sin^2 / (1 + cos^2) of the scattering "
-            "angle; the bands' g plays no part) or white (each band's Henyey-Greenstein phase function "
+            "angle; the bands' g plays no part), white (each band's Henyey-Greenstein phase function "
             "with White's 1979 approximation of the linear polarization, peak_polarization at 90 "
-            "degrees). Packets then carry Stokes I, Q, U, and peel-off images gain Q and U "
-            "(docs/physics.md)")
+            "degrees) or mie (spherical grains, grain_*: their Mie matrix per band, and the bands' "
+            "albedo, g and extinction are the grains'). Packets then carry Stokes I, Q, U (and V: "
+            "mie), and peel-off images gain Q and U (and V) (docs/physics.md)")
     peak_polarization: Union[float, Tuple[float, ...]] = param(
         DEFAULT_PEAK_POLARIZATION, type="float or list of float", lo=0.0, hi=1.0, label="Peak Polarization",
         group=G_OPTICS, advanced=True,
         doc="polarization = \"white\": the linear polarization of unpolarized light scattered through "
             "90 degrees (White's p_l), one number for every band or a list of one per band")
+    grain_material: str = param(
+        "astronomical-silicate", type="str", choices=tuple(mie.MATERIALS), group=G_OPTICS, advanced=True,
+        doc="polarization = \"mie\": the grains' material, whose optical constants give the refractive "
+            "index at each band's wavelength (astronomical-silicate: Draine 2003); unused where "
+            "grain_n and grain_k are given")
+    grain_n: Optional[Union[float, Tuple[float, ...]]] = param(
+        None, type="float or list of float or None", lo=mie.N_RANGE[0], hi=mie.N_RANGE[1], label="Grain N",
+        group=G_OPTICS, advanced=True,
+        doc="polarization = \"mie\": the real part n of the grains' refractive index n + i k, one number "
+            "or one per band (with grain_k; else the material's)")
+    grain_k: Optional[Union[float, Tuple[float, ...]]] = param(
+        None, type="float or list of float or None", lo=mie.K_RANGE[0], hi=mie.K_RANGE[1], label="Grain K",
+        group=G_OPTICS, advanced=True,
+        doc="polarization = \"mie\": the imaginary part k of the grains' refractive index (>= 0: "
+            "absorbing), one number or one per band (with grain_n)")
+    grain_radius_min: float = param(
+        mie.DEFAULT_RADIUS_MIN_UM, type="float", lo=mie.RADIUS_RANGE_UM[0], hi=mie.RADIUS_RANGE_UM[1],
+        unit="micron", group=G_OPTICS, advanced=True,
+        doc="polarization = \"mie\": the smallest grain radius (Mathis, Rumpl & Nordsieck 1977: 0.005)")
+    grain_radius_max: float = param(
+        mie.DEFAULT_RADIUS_MAX_UM, type="float", lo=mie.RADIUS_RANGE_UM[0], hi=mie.RADIUS_RANGE_UM[1],
+        unit="micron", group=G_OPTICS, advanced=True,
+        doc="polarization = \"mie\": the largest grain radius (MRN: 0.25); equal to grain_radius_min "
+            "for grains of one size")
+    grain_size_slope: float = param(
+        mie.DEFAULT_SIZE_SLOPE, type="float", lo=mie.SIZE_SLOPE_RANGE[0], hi=mie.SIZE_SLOPE_RANGE[1],
+        group=G_OPTICS, advanced=True,
+        doc="polarization = \"mie\": q of the size distribution n(a) ~ a^-q between the radii (MRN: 3.5)")
     list: Optional[List[Dict[str, Any]]] = param(
         None, type="list of dict or None", group=G_OPTICS,
         doc="Explicit bands, [[bands.list]] tables with keys name, wavelength (nm), extinction "
@@ -304,8 +334,15 @@ class BandsConfig:
             self.preset = None
 
     def resolve(self) -> List[Band]:
-        """Return the validated bands (see :func:`nebula_rt.optics.bands.resolve_bands`)."""
-        return resolve_bands(self.preset, self.list, self.albedo, self.g)
+        """Return the validated bands (see :func:`nebula_rt.optics.bands.resolve_bands`); with
+        ``polarization = "mie"`` their albedo, g and extinction are the grains'
+        (:func:`nebula_rt.optics.mie.mie_bands`)."""
+        bands = resolve_bands(self.preset, self.list, self.albedo, self.g)
+        if self.polarization == "mie":
+            from ..optics.polarization import grains_of
+
+            return mie.mie_bands(bands, grains_of(self))
+        return bands
 
 
 @document

@@ -122,6 +122,10 @@ def to_float_or_floats(v: Any) -> Union[float, Tuple[float, ...]]:
     raise TypeError
 
 
+def to_opt_float_or_floats(v: Any) -> Optional[Union[float, Tuple[float, ...]]]:
+    return None if v is None else to_float_or_floats(v)
+
+
 #: The conversion of each declared type (``Param.type``); a declaration with a type not
 #: listed names its own (``Param.convert``).
 CONVERT = {
@@ -135,6 +139,7 @@ CONVERT = {
     "\"auto\" or float": to_auto_or_float,
     "bool": to_bool,
     "float or list of float": to_float_or_floats,
+    "float or list of float or None": to_opt_float_or_floats,
 }
 
 #: How a refusal names a value of each declared type (``Param.what`` where it says more)
@@ -144,4 +149,5 @@ WHAT = {
     "tuple of 3 int": "a list of 3 integers, each", "\"auto\" or float": "a number",
     "bool": "true or false",
     "float or list of float": "a number or a list of numbers (one per band), each",
+    "float or list of float or None": "a number or a list of numbers (one per band), each",
 }

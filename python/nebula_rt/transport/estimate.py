@@ -22,9 +22,10 @@ def _peel_camera(camera) -> np.ndarray:
     return np.concatenate([-d, u, v, camera.origin(), [camera.pixel_size, w, h]]).astype(np.float32)
 
 
-def _peel_scale(gs, polarization=None) -> float:
+def _peel_scale(gs, polarization=None, wavelengths=None) -> float:
     """Fixed-point units per 1/sr of a peel-off deposit: 2^24 at the largest phase function
-    value of the bands (forward, |g| clamped as the sampling does; Rayleigh's 3 / (8 pi)), so one
+    value of the bands (forward, |g| clamped as the sampling does; Rayleigh's 3 / (8 pi); the
+    largest S11 of Mie's tables at the bands' ``wavelengths``, nm), so one
     deposit is at most 2^24 + 1 units and a launch of 2^23 packets scattering up to 2^15 times
     each cannot reach 2^63. Polarized light's intensity towards the observer, S11 (1 + s12 q),
     is at most twice the phase function, so the scale halves. Deposits are rounded
@@ -33,7 +34,8 @@ def _peel_scale(gs, polarization=None) -> float:
     g = min(max(abs(float(x)) for x in gs), 1.0 - 1.0e-4)
     phi_max = (1.0 + g) / (4.0 * math.pi * (1.0 - g) ** 2)
     if polarization is not None and polarization.enabled:
-        phi_max = 2.0 * (3.0 / (8.0 * math.pi) if polarization.kind == "rayleigh" else phi_max)
+        own = polarization.phase_max(wavelengths)
+        phi_max = 2.0 * (phi_max if own is None else own)
     return float(2.0**24 / phi_max)
 
 

@@ -12,6 +12,8 @@ from typing import Optional
 import numpy as np
 
 from ..optics import colour_convert
+from ..optics.mie import mie_bands
+from ..optics.polarization import OWN_OPTICS
 from .. import limits
 from ..backends import Backend, TransportSetup
 from ..backends.regions import region_capacity
@@ -492,6 +494,13 @@ def plan_transport(density, request, backend: Backend, *, checked_adds: bool = F
     slum = star_band_luminosities(stars, wl)
     band_lum = slum.sum(axis=0)
     polarization = request.polarization
+    if polarization.kind in OWN_OPTICS:  # the bands must carry the grains' optics (as a scene's do)
+        own = mie_bands(bands, polarization.grains)
+        for b, m in zip(bands, own):
+            if not np.allclose([b.albedo, b.g, b.extinction], [m.albedo, m.g, m.extinction], rtol=1e-6, atol=0):
+                raise SceneError("bands", b.name, f"with polarization '{polarization.kind}' must carry the grains' "
+                                 f"albedo {m.albedo:.6g}, g {m.g:.6g} and extinction {m.extinction:.6g} "
+                                 f"(nebula_rt.optics.mie.mie_bands), not {b.albedo:.6g}, {b.g:.6g}, {b.extinction:.6g}")
     biased = resolve_method(method, density if tree is None else tree, tau, stars, peel) == "biased"
     importance = resolve_importance(request.importance, peel)
     track_scale = float(2.0**FIXED_POINT_BITS * max(fine))
@@ -514,7 +523,7 @@ def plan_transport(density, request, backend: Backend, *, checked_adds: bool = F
     launches = plan_launches(photons, batch_size, target_error > 0.0, shape, len(bands), backend,
                              16 if biased else 8, error_estimate=error_estimate, peel=peel, time_limit=time_limit,
                              max_scatterings=max_scatterings, estimator=estimator, scatter_depth=scatter_depth,
-                             cell_shapes=(fine, bound), stokes=3 if polarization.enabled else 1)
+                             cell_shapes=(fine, bound), stokes=1 + polarization.stokes)
     packets = launches.packet_scales is not None
     if packets:  # the fixed point the one batch's bound allows (packet_scales)
         track_scale = float(2.0**launches.packet_scales[0] * max(fine))
@@ -540,7 +549,8 @@ def plan_transport(density, request, backend: Backend, *, checked_adds: bool = F
         tree=tree,
         tree_buffer=None if tree is None else tree_run.device_layout(tree),
         polar=polarization.kernel_kind,
-        polar_params=polarization.kernel_params(len(bands)) if polarization.enabled else None,
+        polar_params=(polarization.kernel_params(len(bands), [b.wavelength for b in bands])
+                      if polarization.enabled else None),
     )
     if biased:
         extinction = [b.extinction for b in bands]
@@ -557,7 +567,7 @@ def plan_transport(density, request, backend: Backend, *, checked_adds: bool = F
             setup = dataclasses.replace(setup, tail_classes=len(DEPTH_CLASS_NAMES), tail_edges=class_edges(extinction))
     if peel is not None:
         setup = dataclasses.replace(setup, peel=_peel_camera(peel),
-                                    peel_scale=_peel_scale([b.g for b in bands], polarization)
+                                    peel_scale=_peel_scale([b.g for b in bands], polarization, wl)
                                     * (WIDE_SCALE if biased else 1.0))
         # an observer along a grid axis: the peel-offs read the density columns (4 bytes a
         # voxel) instead of marching to the edge (tuning key "peel_columns" 0: always march)

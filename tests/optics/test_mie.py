@@ -1,0 +1,214 @@
+"""Mie grains (``bands.polarization = "mie"``, nebula_rt.optics.mie and kernels/polarization.cl)
+against answers neither made:
+
+- the matrix of one sphere against Bohren & Huffman's published BHMIE example (1983, Appendix
+  A: m = 1.55, x = 5.213; S11 normalised forward, -S12 / S11, S33 / S11, S34 / S11 every 9
+  degrees, printed to 6 digits, as transcribed in miepython's tests/test_mie.py) and its
+  efficiencies (Q_sca = Q_ext = 3.10543, g = 0.63314);
+- a size distribution's albedo and g against scipy's adaptive quadrature of the efficiencies
+  over the power law (independent of the module's own nodes);
+- the kernel's table against the exact S11 between its nodes, and its normalisation;
+- the kernel's scattering angles against exact bin probabilities of the exact S11 (chi^2), the
+  azimuths of polarized light by 1 + s12 (q cos 2phi + u sin 2phi), and the new Stokes vector,
+  V included, against Bohren & Huffman's matrix product with the exact Mie elements.
+"""
+
+from __future__ import annotations
+
+import math
+
+import miepython
+import numpy as np
+import pytest
+from scipy import integrate, stats
+
+from nebula_rt.backends import probes
+from nebula_rt.errors import SceneError
+from nebula_rt.optics.mie import Grains, mie_bands, mie_optics
+from nebula_rt.optics.bands import Band
+from nebula_rt.optics.polarization import Polarization
+
+#: Bohren & Huffman (1983), Appendix A, the BHMIE example: angle, S11 / S11(0), -S12 / S11 (POL),
+#: S33 / S11, S34 / S11
+BH_TABLE = np.array([
+    [0.0, 1.0, 0.0, 1.0, 0.0],
+    [9.0, 0.785390, -0.459811e-02, 0.999400, 0.343261e-01],
+    [18.0, 0.356897, -0.458541e-01, 0.986022, 0.160184],
+    [27.0, 0.766119e-01, -0.364744, 0.843603, 0.394076],
+    [36.0, 0.355355e-01, -0.534997, 0.686967, -0.491787],
+    [45.0, 0.701845e-01, 0.959953e-02, 0.959825, -0.280434],
+    [54.0, 0.574313e-01, 0.477927e-01, 0.985371, 0.163584],
+    [63.0, 0.219660e-01, -0.440604, 0.648043, 0.621216],
+    [72.0, 0.125959e-01, -0.831996, 0.203255, -0.516208],
+    [81.0, 0.173750e-01, 0.341670e-01, 0.795354, -0.605182],
+    [90.0, 0.124601e-01, 0.230462, 0.937497, 0.260742],
+    [99.0, 0.679093e-02, -0.713472, -0.717397e-02, 0.700647],
+    [108.0, 0.954239e-02, -0.756255, -0.394748e-01, -0.653085],
+    [117.0, 0.863419e-02, -0.281215, 0.536251, -0.795835],
+    [126.0, 0.227421e-02, -0.239612, 0.967602, 0.795798e-01],
+    [135.0, 0.543998e-02, -0.850804, 0.187531, -0.490882],
+    [144.0, 0.160243e-01, -0.706334, 0.495254, -0.505781],
+    [153.0, 0.188852e-01, -0.891081, 0.453277, -0.226817e-01],
+    [162.0, 0.195254e-01, -0.783319, -0.391613, 0.482752],
+    [171.0, 0.301676e-01, -0.196194, -0.962069, 0.189556],
+    [180.0, 0.383189e-01, 0.0, -1.0, 0.0],
+])
+#: the example's sphere: radius 0.525 micron, m = 1.55, wavelength 0.6328 micron (x = 5.2128)
+WAVELENGTH = 632.8  # nm
+BH_GRAINS = Grains(n=1.55, k=0.0, radius_min=0.525, radius_max=0.525)
+
+
+def test_one_sphere_matches_bohren_and_huffman():
+    optics = mie_optics(BH_GRAINS, [WAVELENGTH])
+    t = optics.table[0]
+    i = (BH_TABLE[:, 0] * 4).astype(int)  # the table's nodes every 0.25 degree
+    np.testing.assert_allclose(np.degrees(np.arccos(np.clip(t[0, i], -1, 1))), BH_TABLE[:, 0], atol=1e-6)
+    # within the printed digits (6 significant)
+    np.testing.assert_allclose(t[2, i] / t[2, 0], BH_TABLE[:, 1], rtol=2e-6, atol=1e-7)
+    np.testing.assert_allclose(-t[3, i], BH_TABLE[:, 2], atol=2e-6)
+    np.testing.assert_allclose(t[4, i], BH_TABLE[:, 3], atol=2e-6)
+    np.testing.assert_allclose(t[5, i], BH_TABLE[:, 4], atol=2e-6)
+    a = BH_GRAINS.radius_min
+    assert optics.c_sca[0] / (math.pi * a * a) == pytest.approx(3.10543, abs=1e-5)
+    assert optics.c_ext[0] / (math.pi * a * a) == pytest.approx(3.10543, abs=1e-5)
+    assert optics.g[0] == pytest.approx(0.63314, abs=1e-5)
+    assert optics.albedo[0] == pytest.approx(1.0, abs=1e-12)
+
+
+@pytest.mark.parametrize("q", [3.5, 2.0])
+def test_size_distribution_against_adaptive_quadrature(q):
+    """C_ext, C_sca and g of a power law from scipy's quad of the efficiencies over a (the
+    module uses its own nodes in ln a): within 2e-4."""
+    grains = Grains(n=1.7, k=0.03, radius_min=0.01, radius_max=0.4, size_slope=q)
+    wl = 500.0
+    k = 2 * math.pi / (wl * 1e-3)
+    m = complex(1.7, -0.03)  # miepython's sign of k
+
+    def eff(a, which):
+        qe, qs, _, g = miepython.efficiencies_mx(m, k * a)
+        return {"ext": qe, "sca": qs, "gsca": qs * g}[which] * math.pi * a * a * a ** -q
+
+    norm = integrate.quad(lambda a: a ** -q, 0.01, 0.4)[0]
+    ext, sca, gsca = (integrate.quad(eff, 0.01, 0.4, args=(w,), limit=400, epsrel=1e-9)[0] / norm
+                      for w in ("ext", "sca", "gsca"))
+    o = mie_optics(grains, [wl])
+    assert o.c_ext[0] == pytest.approx(ext, rel=2e-4)
+    assert o.c_sca[0] == pytest.approx(sca, rel=2e-4)
+    assert o.albedo[0] == pytest.approx(sca / ext, rel=2e-4)
+    assert o.g[0] == pytest.approx(gsca / sca, rel=2e-4)
+    # the tabulated phase function's mean cosine is the grains' g (the table resolves S11)
+    t = o.table[0]
+    mean_cos = integrate.trapezoid(t[0] * t[2], t[0]) * -1.0
+    assert mean_cos == pytest.approx(o.g[0], abs=2e-4)
+
+
+def test_table_between_its_nodes_and_its_normalisation():
+    """p(mu) linear between the nodes against the exact S11 of one sphere at the midpoints
+    (x = 12, a strong forward peak and deep minima): within 0.6 % (the curvature between nodes
+    0.25 degree apart); the cumulative probability runs from 0 to 1, and p integrates to 1."""
+    lam = 0.5
+    a = 12.0 * lam / (2 * math.pi)
+    grains = Grains(n=1.5, k=0.01, radius_min=a, radius_max=a)
+    t = mie_optics(grains, [lam * 1e3]).table[0]
+    mid_theta = 0.5 * (np.arccos(np.clip(t[0, 1:], -1, 1)) + np.arccos(np.clip(t[0, :-1], -1, 1)))
+    mu = np.cos(mid_theta)
+    s1, s2 = miepython.S1_S2(complex(1.5, -0.01), 12.0, mu, norm="wiscombe")
+    qe, qs, _, _ = miepython.efficiencies_mx(complex(1.5, -0.01), 12.0)
+    exact = (np.abs(s1) ** 2 + np.abs(s2) ** 2) / 2 / (math.pi * 12.0**2 * qs) * 2 * math.pi  # p(mu), int = 1
+    frac = (mu - t[0, 1:]) / (t[0, :-1] - t[0, 1:])
+    linear = t[2, 1:] + frac * (t[2, :-1] - t[2, 1:])
+    np.testing.assert_allclose(linear, exact, rtol=6e-3)
+    assert t[1, 0] == 0.0 and t[1, -1] == 1.0 and np.all(np.diff(t[1]) >= 0)
+    assert integrate.trapezoid(t[2], t[0]) * -1.0 == pytest.approx(1.0, abs=1e-12)
+
+
+def _exact(grains, lam_nm, mu):
+    """S11 (per sr, over the sphere 1) and S12/S11, S33/S11, S34/S11 of one sphere from miepython
+    directly (Bohren & Huffman's signs: S34 from m = n - i k's S1 S2*)."""
+    a = grains.radius_min
+    x = 2 * math.pi * a / (lam_nm * 1e-3)
+    m = complex(grains.n, -grains.k)
+    s1, s2 = miepython.S1_S2(m, x, mu, norm="wiscombe")
+    _, qs, _, _ = miepython.efficiencies_mx(m, x)
+    s11 = (np.abs(s1) ** 2 + np.abs(s2) ** 2) / 2
+    c = s1 * np.conj(s2)
+    return s11 / (math.pi * x * x * qs), (np.abs(s2) ** 2 - np.abs(s1) ** 2) / 2 / s11, c.real / s11, c.imag / s11
+
+
+GRAINS = Grains(n=1.6, k=0.02, radius_min=0.3, radius_max=0.3)  # x = 3.4 at 550 nm
+MIE = Polarization("mie", grains=GRAINS)
+
+
+def test_kernel_matrix_is_the_exact_one(backend):
+    mu = np.linspace(-1, 1, 801)
+    m = probes.mueller_at(backend, MIE, mu, wavelength=550.0).astype(np.float64)
+    s11, r12, r33, r34 = _exact(GRAINS, 550.0, mu)
+    np.testing.assert_allclose(m[:, 0], s11, rtol=2e-3)
+    for k, r in ((1, r12), (2, r33), (3, r34)):
+        np.testing.assert_allclose(m[:, k], r, atol=2e-3)
+    assert np.all(m[:, 1] ** 2 + m[:, 2] ** 2 + m[:, 3] ** 2 <= 1 + 1e-5)
+
+
+@pytest.mark.parametrize("q, u", [(0.0, 0.0), (1.0, 0.0), (0.0, 1.0)])
+def test_kernel_scattering_follows_the_exact_matrix(backend, q, u):
+    """(mu, phi) of 400k scatterings against the exact bin probabilities of
+    S11 (1 + s12 (q cos 2phi + u sin 2phi)) (chi^2), phi from +x towards +y; the new Stokes
+    vector against Bohren & Huffman's product at each packet's own angles: in the scattering
+    plane's frame (q_r, u_r) = (q cos 2phi + u sin 2phi, -q sin 2phi + u cos 2phi) becomes
+    (s12 + q_r, s33 u_r, -s34 u_r) / (1 + s12 q_r) -- V from U through S34."""
+    n = 400_000
+    out = probes.scatter_polarized_from(backend, MIE, q, u, seed=11, n=n, wavelength=550.0).astype(np.float64)
+    d, e = out[:, :3], out[:, 3:6]
+    mu, phi = d[:, 2], np.mod(np.arctan2(d[:, 1], d[:, 0]), 2 * np.pi)
+    mu_edges = np.cos(np.radians(np.linspace(0, 180, 13)))[::-1]
+    phi_edges = np.linspace(0, 2 * np.pi, 9)
+    counts, _, _ = np.histogram2d(mu, phi, bins=[mu_edges, phi_edges])
+    fine = np.linspace(-1, 1, 200_001)
+    s11, r12, _, _ = _exact(GRAINS, 550.0, fine)
+    cum_i = integrate.cumulative_trapezoid(2 * math.pi * s11, fine, initial=0.0)
+    cum_p = integrate.cumulative_trapezoid(2 * math.pi * s11 * r12, fine, initial=0.0)
+    pi_mu = np.diff(np.interp(mu_edges, fine, cum_i))
+    pp_mu = np.diff(np.interp(mu_edges, fine, cum_p))
+    c2 = (np.sin(2 * phi_edges[1:]) - np.sin(2 * phi_edges[:-1])) / 2
+    s2 = -(np.cos(2 * phi_edges[1:]) - np.cos(2 * phi_edges[:-1])) / 2
+    p = (pi_mu[:, None] * np.diff(phi_edges)[None, :] + pp_mu[:, None] * (q * c2 + u * s2)[None, :]) / (2 * math.pi)
+    assert p.sum() == pytest.approx(1.0, abs=1e-6)
+    chi2, pval = stats.chisquare(counts.ravel(), n * p.ravel())
+    assert pval > 1e-4, (chi2, pval)
+    np.testing.assert_allclose(np.linalg.norm(e, axis=1), 1.0, atol=1e-5)
+    assert np.max(np.abs(np.sum(d * e, axis=1))) < 1e-5
+    # the new state, in the new frame (e' in the scattering plane: the product's own frame)
+    _, r12, r33, r34 = _exact(GRAINS, 550.0, mu)
+    qr = q * np.cos(2 * phi) + u * np.sin(2 * phi)
+    ur = -q * np.sin(2 * phi) + u * np.cos(2 * phi)
+    den = 1 + r12 * qr
+    keep = np.abs(mu) < 0.999  # (the azimuth of a packet along the axis is lost in float32)
+    for col, expect in ((6, (r12 + qr) / den), (7, r33 * ur / den), (8, -r34 * ur / den)):
+        err = np.abs(out[keep, col] - expect[keep])
+        assert np.max(err) < 1e-2 and np.median(err) < 5e-4, (col, np.max(err), np.median(err))
+    if u:
+        assert np.max(np.abs(out[:, 8])) > 0.3  # circular polarization made from linear
+    else:
+        assert np.all(out[:, 8] == 0.0) if q == 0 else True
+
+
+def test_refractive_index_from_the_shipped_table():
+    """astronomical silicate at its own tabulated wavelengths (Draine 2003 via optool)."""
+    m = Grains().refractive_index([550.0621, 999.871])
+    np.testing.assert_allclose(m.real, [1.6904, 1.6863], rtol=1e-6)
+    np.testing.assert_allclose(m.imag, [0.02986, 0.03077], rtol=1e-6)
+
+
+def test_mie_bands_and_refusals():
+    bands = [Band("B", 440.0, 1.3, 0.5, 0.5), Band("V", 550.0, 1.0, 0.5, 0.5)]
+    out = mie_bands(bands, Grains())
+    assert out[1].extinction == 1.0 and out[0].extinction > 1.0  # small grains: bluer extinction
+    assert all(0.5 < b.albedo < 1.0 and 0.3 < b.g < 0.8 for b in out)
+    with pytest.raises(SceneError, match="bands.grain_k"):
+        Grains(n=1.5, k=[0.1, 0.1]).refractive_index([440.0])  # a list of another length
+    with pytest.raises(SceneError, match="bands.grain_radius_max"):
+        Grains(radius_min=0.2, radius_max=0.1)
+    with pytest.raises(SceneError, match="bands.grain_material"):
+        Grains().refractive_index([0.01])  # below the table's 0.062 nm
+    with pytest.raises(SceneError, match="bands.grain_radius_max"):
+        mie_optics(Grains(radius_min=100.0, radius_max=900.0), [400.0])  # size parameter beyond 2000
