@@ -29,6 +29,7 @@ from conftest import centre_star, one_band
 
 from nebula_rt.errors import SceneError
 from nebula_rt.observe.sky import Camera
+from nebula_rt.optics.mie import Grains, mie_bands
 from nebula_rt.optics.polarization import Polarization
 from nebula_rt.transport import trace
 
@@ -45,11 +46,34 @@ def _batch_stat(batches, weights):
     return x.sum(), math.sqrt(m * x.var(ddof=1))
 
 
-def _single_scattering_oracle(cam, sigma, nodes=4, n_alpha=64):
+def _rayleigh(mu):
+    """S11 (per sr) and -S12 (the polarized part, tangential where positive) of dipole scattering."""
+    return 3 * (1 + mu**2) / (16 * np.pi), 3 * (1 - mu**2) / (16 * np.pi)
+
+
+#: one sphere for the Mie case: x = 2 pi a / lambda = 2.74 at 550 nm, m = 1.6 + 0.02 i
+MIE_GRAINS = Grains(n=1.6, k=0.02, radius_min=0.24, radius_max=0.24)
+
+
+def _mie_exact(mu):
+    """S11 (per sr) and -S12 of MIE_GRAINS from miepython's amplitudes directly (not the table)."""
+    import miepython
+
+    x = 2 * np.pi * MIE_GRAINS.radius_min / 0.55
+    m = complex(MIE_GRAINS.n, -MIE_GRAINS.k)
+    fine = np.linspace(-1.0, 1.0, 40_001)
+    s1, s2 = miepython.S1_S2(m, x, fine, norm="wiscombe")
+    a1, a2 = np.abs(s1) ** 2, np.abs(s2) ** 2
+    _, qs, _, _ = miepython.efficiencies_mx(m, x)
+    c = 1.0 / (2 * np.pi * x * x * qs)  # S11 = (|S1|^2 + |S2|^2) / (2 k^2 C_sca)
+    return np.interp(mu, fine, (a1 + a2) * c), np.interp(mu, fine, (a1 - a2) * c)
+
+
+def _single_scattering_oracle(cam, sigma, nodes=4, n_alpha=64, matrix=_rayleigh, albedo=1.0):
     """(I, Q, U) images (W, H) of the single scattering of a unit-luminosity star at the box
-    centre, observer along +z, Rayleigh scattering, per pixel area (the pixel means of the
-    line-of-sight integrals). Along the line of sight at offset b the angle alpha from the star's
-    plane (z - 1/2 = b tan alpha) makes dz / r^2 = dalpha / b and mu = sin alpha."""
+    centre, observer along +z, by ``matrix`` (S11 and -S12 of mu), per pixel area (the pixel
+    means of the line-of-sight integrals). Along the line of sight at offset b the angle alpha
+    from the star's plane (z - 1/2 = b tan alpha) makes dz / r^2 = dalpha / b and mu = sin alpha."""
     w, h = cam.size
     ps = cam.pixel_size
     origin = cam.origin()
@@ -66,9 +90,10 @@ def _single_scattering_oracle(cam, sigma, nodes=4, n_alpha=64):
     mu = np.sin(alpha)
     r = b[..., None] / np.cos(alpha)
     z_out = 0.5 - b[..., None] * np.tan(alpha)  # distance from the point to the face z = 1
-    kern = sigma * np.exp(-sigma * r - sigma * z_out) / (4 * np.pi * b[..., None]) * da
-    i_pt = np.sum(kern * 3 * (1 + mu**2) / (16 * np.pi), axis=-1)
-    t_pt = np.sum(kern * 3 * (1 - mu**2) / (16 * np.pi), axis=-1)
+    kern = albedo * sigma * np.exp(-sigma * r - sigma * z_out) / (4 * np.pi * b[..., None]) * da
+    s11, pol = matrix(mu)
+    i_pt = np.sum(kern * s11, axis=-1)
+    t_pt = np.sum(kern * pol, axis=-1)
     psi = np.arctan2(y, x)
     wts = np.outer(wg, wg) / 4.0
     mean = lambda a: np.einsum("pqij,ij->pq", a, wts)  # noqa: E731
@@ -90,19 +115,25 @@ def _offsets(cam):
     return (np.hypot(x, y) / cam.pixel_size).ravel(), np.arctan2(y, x).ravel()
 
 
-@pytest.fixture(scope="module", params=["analog", "biased"])
+@pytest.fixture(scope="module", params=["analog", "biased", "mie-analog"])
 def single(backend, request):
     """Analog packets, and weighted ones (forced scattering, 128-bit weights: Q and U as 128-bit
-    two's complement), fewer of them: each scatters inside the box once."""
+    two's complement), fewer of them: each scatters inside the box once; Rayleigh scattering,
+    and one Mie sphere (whose images hold V too)."""
     cam = Camera(direction=(0.0, 0.0, -1.0), size=(N_PIX, N_PIX), extent=1.0)
     rho = np.ones((16, 16, 16), np.float32)
-    photons = 2_000_000 if request.param == "analog" else 300_000
+    method = request.param.split("-")[-1]
+    photons = 2_000_000 if method == "analog" else 300_000
+    bands, pol, matrix = one_band(albedo=1.0, g=0.0), RAYLEIGH, _rayleigh
+    if request.param.startswith("mie"):
+        pol, matrix = Polarization("mie", grains=MIE_GRAINS), _mie_exact
+        bands = mie_bands(one_band(), MIE_GRAINS)
     with pytest.warns(UserWarning, match="max_scatterings = 1"):  # (the second scatterings are cut on purpose)
-        res = trace(rho, one_band(albedo=1.0, g=0.0), centre_star(), tau=SIGMA, photons=photons, seed=21,
+        res = trace(rho, bands, centre_star(), tau=SIGMA, photons=photons, seed=21,
                     max_scatterings=1, backend=backend, peel=cam, peel_bins=_pixel_groups(cam),
-                    polarization=RAYLEIGH, light_field=False, batch_size=photons // 32, method=request.param)
-    assert res.method == request.param
-    return cam, res, _single_scattering_oracle(cam, SIGMA)
+                    polarization=pol, light_field=False, batch_size=photons // 32, method=method)
+    assert res.method == method
+    return cam, res, _single_scattering_oracle(cam, SIGMA, matrix=matrix, albedo=bands[0].albedo)
 
 
 def test_single_scattering_images_are_the_line_of_sight_integrals(single):
@@ -110,8 +141,13 @@ def test_single_scattering_images_are_the_line_of_sight_integrals(single):
     standard errors each, and the z-scores spread as the errors say."""
     cam, res, (oi, oq, ou) = single
     c = [int(x) for x in res.counts[0]]
-    assert c[1] == 0 and c[0] == sum(c[1:])  # (weighted: emitted = absorbed + escaped + terminated + biasing)
-    assert res.peel_stokes.shape == (1, 2, N_PIX, N_PIX)
+    # (weighted: emitted = absorbed + escaped + terminated + biasing; Rayleigh's albedo is 1)
+    assert (c[1] == 0 or res.peel_stokes.shape[1] == 3) and c[0] == sum(c[1:])
+    assert res.peel_stokes.shape == (1, res.peel_stokes.shape[1], N_PIX, N_PIX)
+    if res.peel_stokes.shape[1] == 3:  # Mie: V, made only from polarized light, is 0 after one scattering
+        assert np.all(res.peel_stokes_bin_batches[:, 0, 2] == 0) and np.all(res.peel_stokes[0, 2] == 0)
+    else:
+        assert res.peel_stokes.shape[1] == 2
     bi = res.peel_bin_batches[:, 0, :]
     bq, bu = res.peel_stokes_bin_batches[:, 0, 0, :], res.peel_stokes_bin_batches[:, 0, 1, :]
     off, psi = _offsets(cam)
@@ -154,7 +190,8 @@ def test_degree_of_polarization_against_offset(single):
         expect = float(ot @ sel) / float(oi.ravel() @ sel)
         assert abs(p - expect) < 4.5 * se, (a, b, p, expect, se)
         ps.append(expect)
-    assert ps[0] < ps[-1] and ps[-1] > 0.5
+    if res.peel_stokes.shape[1] == 2:  # Rayleigh
+        assert ps[0] < ps[-1] and ps[-1] > 0.5
 
 
 @pytest.fixture(scope="module")
@@ -250,6 +287,37 @@ def test_polarized_packets_by_regions_keep_their_bits(tuning):
     assert np.abs(plain.peel_stokes).sum() > 0
 
 
+def test_mie_packets_keep_their_bits_by_regions_and_over_launches(backend, monkeypatch):
+    """Mie grains (Q, U and V images): the transport by regions and more launches give the bits
+    of one launch; |Q|, |U|, |V| <= I pixel by pixel; the packets are all accounted for; and
+    light scattered more than once is circularly polarized (V != 0 somewhere)."""
+    from conftest import tuned_backend
+
+    from nebula_rt.transport import run as transport
+
+    rho = (np.random.default_rng(6).random((20, 16, 12)) ** 2).astype(np.float32)
+    cam = Camera(direction=(0.2, -0.3, -0.9), size=(12, 10))
+    grains = Grains(n=1.6, k=0.02, radius_min=0.3, radius_max=0.3)
+    bands = mie_bands(one_band(), grains)
+    kw = dict(tau=8.0, photons=12_000, seed=5, batch_size=3000, peel=cam, polarization=Polarization("mie", grains=grains))
+    plain = trace(rho, bands, centre_star(), backend=tuned_backend({}), **kw)
+    regions = trace(rho, bands, centre_star(), backend=tuned_backend({"NRT_REGIONS": 2}), **kw)
+    backend.first_launch_packets = 997
+    monkeypatch.setattr(transport, "LAUNCH_SECONDS", 1e-4)
+    try:
+        many = trace(rho, bands, centre_star(), backend=backend, **kw)
+    finally:
+        del backend.first_launch_packets
+    for other in (regions, many):
+        for key in ("raw_sum", "counts", "peel_image", "peel_stokes"):
+            np.testing.assert_array_equal(getattr(other, key), getattr(plain, key), err_msg=key)
+    c = plain.counts[0]
+    assert c[0] == 12_000 and c[0] == c[1] + c[2] + c[3]
+    assert plain.peel_stokes.shape == (1, 3) + cam.size
+    assert np.all(np.abs(plain.peel_stokes[0]) <= plain.peel_image[0][None] * (1 + 1e-12))
+    assert np.abs(plain.peel_stokes[0, 2]).max() > 0
+
+
 def test_polarization_is_refused_where_it_cannot_run(backend):
     rho = np.ones((4, 4, 4), np.float32)
     with pytest.raises(SceneError, match="bands.peak_polarization"):
@@ -259,3 +327,5 @@ def test_polarization_is_refused_where_it_cannot_run(backend):
         Polarization("white", peak=1.2)
     with pytest.raises(SceneError, match="bands.polarization"):
         Polarization("Mie")
+    with pytest.raises(SceneError, match="the grains' albedo"):  # bands without the grains' optics
+        trace(rho, one_band(), centre_star(), tau=1.0, photons=100, backend=backend, polarization=Polarization("mie"))
