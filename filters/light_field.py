@@ -32,6 +32,11 @@ LIGHT_FIELD_PROPERTIES = (
     Property("G", "bands.g", enabled_by=("OverrideOptics", 1)),
     Property("Polarization", "bands.polarization", widget="enum"),
     Property("PeakPolarization", "bands.peak_polarization", enabled_by=("Polarization", 2)),
+    # Mie grains of a material (a scene file may give the refractive index itself: grain_n, grain_k)
+    Property("GrainMaterial", "bands.grain_material", enabled_by=("Polarization", 3)),
+    Property("GrainRadiusMin", "bands.grain_radius_min", enabled_by=("Polarization", 3)),
+    Property("GrainRadiusMax", "bands.grain_radius_max", enabled_by=("Polarization", 3)),
+    Property("GrainSizeSlope", "bands.grain_size_slope", enabled_by=("Polarization", 3)),
     Property("Estimator", "transport.estimator", widget="enum"),
     Property("Method", "transport.method", widget="enum"),
     Property("ErrorEstimate", "transport.error_estimate", widget="enum"),
@@ -250,6 +255,9 @@ class NebulaLightField(NebulaAlgorithm):
         if not self._override_optics:
             values.pop("bands.albedo")
             values.pop("bands.g")
+        if values.get("bands.polarization") != "mie":  # (greyed out then; inert_properties says so)
+            for key in [k for k in values if k.startswith("bands.grain_")]:
+                values.pop(key)
         stars = stars_from_flat(self.stars())
         if self._luminosity_unit not in LUMINOSITY_UNITS:
             raise SceneError("LuminosityUnit", self._luminosity_unit, "must be one of " +

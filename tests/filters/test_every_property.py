@@ -35,6 +35,7 @@ UNCHANGED = {
                  "'scene'), from which the calibrated sky image downstream takes it",
     "OverrideOptics": "the panel's Albedo and G are the default preset's own (every thesis-rgb band has "
                       "albedo 0.6 and g 0.6): overriding them with themselves changes nothing",
+    "GrainMaterial": "one material is shipped (astronomical-silicate): there is no other to choose",
 }
 #: values whose valid range depends on other properties (PHOTONS), or that are text
 SPECIFIC = {"BatchSize": 1000, "Distance": "140 pc", "BoxLength": "1 pc", "Offset": (0.5, 0.25, 0.0),
@@ -125,6 +126,7 @@ def _cases():
 
 OWN_VALUES = {
     ("NebulaLightField", "OverrideOptics"): 1,  # with Albedo and G at the panel's values: the bands' own differ
+    ("NebulaLightField", "GrainMaterial"): "astronomical-silicate",
     ("NebulaLightField", "StarsFromInput"): 0,  # the Stars property's star (a luminosity of 1 here too) ...
     ("NebulaLightField", "Stars"): [0.3, 0.5, 0.5, 1.0, 0.0, 0.0],
     ("NebulaLightField", "LuminosityUnit"): 1,

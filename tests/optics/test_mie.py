@@ -259,3 +259,17 @@ def test_a_scene_with_mie_grains():
         Scene.from_dict({**base, "bands": {**base["bands"], "grain_n": [1.6, 1.6]}})
     with pytest.raises(SceneError, match="bands.grain_radius_max"):  # grains without Mie scattering
         Scene.from_dict({"bands": {"polarization": "white", "grain_radius_max": 1.0}})
+
+
+def test_series_sum_is_miepythons_own():
+    """The amplitudes summed here as matrix products are miepython's S1_S2, to rounding."""
+    from nebula_rt.optics.mie import _amplitudes, _pi_tau
+
+    mu = np.cos(np.linspace(0, np.pi, 181))
+    for m, x in ((complex(1.7, -0.03), 0.05), (complex(1.33, -1e-8), 7.3), (complex(1.5, -1.0), 40.0)):
+        an, bn = miepython.coefficients(m, x)
+        pi_n, tau_n = _pi_tau(mu, len(an) + 5)
+        s1, s2 = _amplitudes(an, bn, pi_n, tau_n)
+        r1, r2 = miepython.S1_S2(m, x, mu, norm="wiscombe")
+        np.testing.assert_allclose(s1, r1, rtol=1e-10, atol=1e-12 * np.abs(r1).max())
+        np.testing.assert_allclose(s2, r2, rtol=1e-10, atol=1e-12 * np.abs(r2).max())

@@ -20,6 +20,7 @@ from nebula_rt import scene as sc
 from nebula_rt.filters.colour import COLOUR_PROPERTIES, NebulaColour
 from nebula_rt.filters.dust_density import DUST_DENSITY_PROPERTIES, NebulaDustDensity
 from nebula_rt.filters.light_field import LIGHT_FIELD_PROPERTIES, NebulaLightField
+from nebula_rt.scene.values import is_real
 
 from conftest import TEST_DEVICE
 
@@ -110,16 +111,29 @@ def test_choices_of_the_schema_are_what_the_scene_accepts():
             sc.Scene.from_dict({table: {name: "no-such-choice"}})
 
 
+#: the grains' keys apply to Mie scattering (refused by name otherwise), n and k come together, and
+#: the size distribution is checked whole (the smallest radius at most the largest)
+GRAIN_PARTNERS = {"grain_n": {"grain_k": 0.0}, "grain_k": {"grain_n": 1.5},
+                  "grain_radius_min": {"grain_radius_max": 1e-4}, "grain_radius_max": {"grain_radius_min": 1e-4}}
+
+
 def _scene_with(key: str, value):
     table, name = key.split(".")
     if table == "stars":
         return sc.Scene.from_dict({"stars": [{"position": [0.5, 0.5, 0.5], name: value}]})
+    if name.startswith("grain_"):
+        partner = dict(GRAIN_PARTNERS.get(name, {}))
+        if name == "grain_radius_min" and is_real(value) and value > 1e-4:
+            partner["grain_radius_max"] = value  # (grains of one size)
+        return sc.Scene.from_dict({table: {"polarization": "mie", name: value, **partner}})
     return sc.Scene.from_dict({table: {name: value}})
 
 
 #: bounds a scene refuses for a reason of another key: 2**53 packets per batch exceed the
 #: default 2.1M photons (transport.batch_size must be below transport.photons)
-OTHER_KEYS = {("transport.batch_size", "hi")}
+OTHER_KEYS = {("transport.batch_size", "hi"),
+              # 1 mm grains scatter the thesis bands' light with a size parameter beyond what is traced
+              ("bands.grain_radius_min", "hi"), ("bands.grain_radius_max", "hi")}
 
 
 def test_numeric_bounds_of_the_schema_are_what_the_scene_accepts():

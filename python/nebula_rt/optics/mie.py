@@ -1,8 +1,10 @@
 """Mie scattering by spherical grains with a size distribution: the dust's Mueller matrix,
 albedo, asymmetry and extinction per band (``bands.polarization = "mie"``).
 
-The amplitudes come from miepython (S. Prahl; MIT; validated against Wiscombe's MIEV0 and
-Bohren & Huffman's BHMIE test cases), in its pure-NumPy form (no JIT compiler needed). It was
+The Mie coefficients a_n, b_n come from miepython (S. Prahl; MIT; validated against Wiscombe's
+MIEV0 and Bohren & Huffman's BHMIE test cases), in its pure-NumPy form (no JIT compiler
+needed); the series over the angles is summed here as one matrix product per grain size
+(tests/optics/test_mie.py holds it to miepython's own S1_S2). It was
 chosen over PyMieScatt (unmaintained since 2018) and scattnlay (compiled, for layered spheres)
 as the well-kept library that does exactly homogeneous spheres.
 
@@ -208,6 +210,32 @@ class MieOptics:
     table: np.ndarray
 
 
+def _pi_tau(mu: np.ndarray, n_terms: int):
+    """pi_n(mu) and tau_n(mu), n = 1..n_terms, (n_terms, mu.size): the angular functions of the
+    Mie series by their upward recurrences (Bohren & Huffman 4.47), the same for every size."""
+    pi = np.zeros((n_terms, mu.size))
+    tau = np.zeros((n_terms, mu.size))
+    pi[0] = 1.0
+    before = np.zeros(mu.size)
+    for n in range(1, n_terms):
+        tau[n - 1] = n * mu * pi[n - 1] - (n + 1) * before
+        pi[n] = ((2 * n + 1) * mu * pi[n - 1] - (n + 1) * before) / n
+        before = pi[n - 1]
+    tau[n_terms - 1] = n_terms * mu * pi[n_terms - 1] - (n_terms + 1) * before
+    return pi, tau
+
+
+def _amplitudes(an, bn, pi_n, tau_n):
+    """S1 and S2 (miepython's convention and normalisation, as its S1_S2 with norm "wiscombe")
+    from miepython's coefficients a_n, b_n: the series sum (2n+1)/(n(n+1)) (a_n pi_n + b_n tau_n)
+    as one matrix product for all angles (miepython sums angle by angle in Python)."""
+    n = np.arange(1, len(an) + 1)
+    scale = (2 * n + 1) / (n * (n + 1.0))
+    sa, sb = scale * an, scale * bn
+    p, t = pi_n[:len(an)], tau_n[:len(an)]
+    return np.conj(sa @ p + sb @ t), np.conj(sa @ t + sb @ p)
+
+
 def _band_optics(m: complex, wavelength_nm: float, grains: Grains, mu: np.ndarray):
     import miepython
 
@@ -229,8 +257,10 @@ def _band_optics(m: complex, wavelength_nm: float, grains: Grains, mu: np.ndarra
     s12 = np.zeros(mu.size)
     s33 = np.zeros(mu.size)
     s34 = np.zeros(mu.size)
-    for aj, wj in zip(a, w):
-        s1, s2 = miepython.S1_S2(m_mp, k * aj, mu, norm="wiscombe")
+    coefficients = [miepython.coefficients(m_mp, k * aj) for aj in a]
+    pi_n, tau_n = _pi_tau(mu, max(len(c[0]) for c in coefficients))
+    for (an, bn), wj in zip(coefficients, w):
+        s1, s2 = _amplitudes(an, bn, pi_n, tau_n)
         a1, a2 = np.abs(s1) ** 2, np.abs(s2) ** 2
         c = s1 * np.conj(s2)
         s11 += wj * 0.5 * (a1 + a2)
