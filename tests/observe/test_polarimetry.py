@@ -130,3 +130,34 @@ def test_cli_sky_writes_stokes_extensions_and_vectors(tmp_path, capsys):
     status = cli.main(["sky", str(tmp_path / "p.toml"), "--fits", str(out / "p.fits"), "--vectors", "-q"])
     assert status == 2 and "--vectors" in capsys.readouterr().err
     assert not (out / "rm.fits").exists() and not (out / "p.fits").exists()
+
+
+def test_cli_sky_writes_circular_polarization_of_mie_grains(tmp_path, capsys):
+    """Mie grains: ``V_<band>`` after Q and U, the same units and WCS, |V| within the intensity;
+    V does not turn with the position angle (only Q and U do)."""
+    from astropy.io import fits
+
+    from nebula_rt.cli import commands as cli
+
+    heads = {}
+    for pa in (0.0, 90.0):
+        s = Scene.from_dict({
+            "grid": {"shape": [16, 16, 16], "length": "0.2 pc"},
+            "dust": {"model": "uniform", "tau": 3.0, "floor": 0.0},
+            "stars": [{"position": [0.35, 0.5, 0.45], "luminosity_lsun": 100.0, "temperature": 9000.0}],
+            "bands": {"preset": "thesis-rgb", "polarization": "mie", "grain_radius_min": 0.2, "grain_radius_max": 0.2},
+            "transport": {"photons": 40_000, "seed": 4, "backend": TEST_BACKEND, "device": TEST_DEVICE},
+            "observer": {"distance": "50 pc", "psf_fwhm": 0.0, "position_angle": pa}})
+        (tmp_path / "s.toml").write_text(s.to_toml())
+        fits_path = tmp_path / f"sky{int(pa)}.fits"
+        status = cli.main(["sky", str(tmp_path / "s.toml"), "--fits", str(fits_path), "--size", "16", "-q"])
+        assert status == 0, capsys.readouterr().err
+        with fits.open(fits_path) as hdul:
+            names = [h.name for h in hdul]
+            assert names.index("V_R") == names.index("U_R") + 1
+            v, sb = hdul["V_G"], hdul["SB_G"]
+            assert v.header["STOKES"] == "V" and v.header["BUNIT"] == "MJy/sr"
+            assert np.all(np.abs(v.data) <= sb.data * (1 + 1e-5) + 1e-30) and np.any(v.data != 0)
+            heads[pa] = (hdul["Q_G"].data.copy(), v.data.copy())
+    np.testing.assert_allclose(heads[90.0][0], -heads[0.0][0], atol=1e-12 * np.abs(heads[0.0][0]).max())
+    np.testing.assert_array_equal(heads[90.0][1], heads[0.0][1])
