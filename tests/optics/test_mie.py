@@ -253,8 +253,19 @@ def test_a_scene_with_mie_grains():
     for extra, key in (({"albedo": 0.5}, "bands.albedo"), ({"g": 0.5}, "bands.g")):
         with pytest.raises(SceneError, match=key):
             Scene.from_dict({**base, "bands": {**base["bands"], **extra}})
-    with pytest.raises(SceneError, match="dust.visual_extinction"):
-        Scene.from_dict({**base, "dust": {"visual_extinction": 1.0}})
+    with pytest.raises(SceneError, match="dust.hydrogen_density"):  # no dust-to-gas ratio
+        Scene.from_dict({**base, "dust": {"hydrogen_density": 100.0}})
+    with pytest.raises(SceneError, match="dust.mass_density"):  # n and k give no bulk density
+        Scene.from_dict({**base, "grid": {"shape": [8, 8, 8], "length": "0.1 pc"}, "dust": {"mass_density": 1e-23}})
+    # A_V and a mass density through the grains' own cross-sections (astronomical silicate: 3.3 g cm^-3,
+    # Draine 2003 as optool's file states it; the V row of Draine's tables at 0.547 micron)
+    sil = {"grid": {"shape": [8, 8, 8], "length": "0.1 pc"}, "bands": {"polarization": "mie"}}
+    o = mie_optics(Grains(), [550.0, 547.0])
+    a_v = Scene.from_dict({**sil, "dust": {"visual_extinction": 2.0}})
+    assert a_v.dust.tau == pytest.approx(2.0 / (2.5 * math.log10(math.e)) * o.c_ext[0] / o.c_ext[1], rel=1e-12)
+    rho = Scene.from_dict({**sil, "dust": {"mass_density": 1e-23}})
+    grains_per_cm3 = 1e-23 / (3.3 * o.grain_volume * 1e-12)
+    assert rho.dust.tau == pytest.approx(grains_per_cm3 * o.c_ext[0] * 1e-8 * 0.1 * 3.0856775814913673e18, rel=1e-9)
     with pytest.raises(SceneError, match="bands.grain_n"):  # a list of another length than the bands'
         Scene.from_dict({**base, "bands": {**base["bands"], "grain_n": [1.6, 1.6]}})
     with pytest.raises(SceneError, match="bands.grain_radius_max"):  # grains without Mie scattering

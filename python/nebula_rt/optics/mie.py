@@ -186,6 +186,32 @@ def material_table(material: str) -> np.ndarray:
     return np.asarray(rows, np.float64)
 
 
+@functools.lru_cache(maxsize=None)
+def material_density(material: str) -> float:
+    """The bulk density of a material of :data:`MATERIALS`, g cm^-3 (its data file's
+    ``bulk_density_g_cm3`` line)."""
+    text = resources.files("nebula_rt").joinpath("data", MATERIALS[material]).read_text()
+    for line in text.splitlines():
+        if line.startswith("# bulk_density_g_cm3"):
+            return float(line.split("=")[1])
+    raise ValueError(f"{MATERIALS[material]}: no bulk_density_g_cm3 line")
+
+
+#: the wavelength (nm) of A_V for dust.visual_extinction: the V filter row of Draine's tables
+#: (0.547 micron), as the Draine-model conversion takes it
+V_WAVELENGTH_NM = 547.0
+
+
+def mie_cext_cm2(grains: Grains, wavelengths_nm: Sequence[float]) -> np.ndarray:
+    """The grains' extinction cross-section per grain (cm^2) at the wavelengths (nm)."""
+    return np.asarray(mie_optics(grains, wavelengths_nm).c_ext) * 1e-8
+
+
+def grain_mass_g(grains: Grains, wavelengths_nm: Sequence[float]) -> float:
+    """The mean mass of a grain (g): the material's bulk density times the mean volume."""
+    return material_density(grains.material) * mie_optics(grains, wavelengths_nm).grain_volume * 1e-12
+
+
 @dataclass(frozen=True)
 class MieOptics:
     """The grains' optics per band (:func:`mie_optics`).

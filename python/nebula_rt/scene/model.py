@@ -273,7 +273,8 @@ class Scene:
         """bands.peak_polarization holds one value per band where it is a list; a scene that
         scatters by its own phase function (Rayleigh's, Mie's) gives no bands.g, nor bands.albedo
         where the grains give it; the grains' keys are given only for Mie scattering, whose
-        optics need the optical depth in box units (dust.tau)."""
+        grains convert dust.mass_density (with a material's bulk density) and
+        dust.visual_extinction, not dust.hydrogen_density (they give no dust-to-gas ratio)."""
         from ..optics import mie
         from ..optics.polarization import OWN_OPTICS, OWN_PHASE_FUNCTION, polarization_of
 
@@ -287,10 +288,14 @@ class Scene:
                 raise SceneError("bands.albedo", self.bands.albedo, f"must be omitted with bands.polarization = "
                                  f"'{pol.kind}' (the grains' albedo is Mie theory's)")
             key = units.physical_dust_key(self.dust)
-            if key is not None:
-                raise SceneError(f"dust.{key}", getattr(self.dust, key), "is not converted for Mie grains yet "
-                                 "(the conversion uses Draine's dust model): give dust.tau, the optical depth "
-                                 "across one box edge in the reference band")
+            if key == "hydrogen_density":
+                raise SceneError("dust.hydrogen_density", self.dust.hydrogen_density, "is not taken with Mie grains "
+                                 "(they give no dust-to-gas ratio): give dust.mass_density, dust.visual_extinction "
+                                 "or dust.tau")
+            if key == "mass_density" and self.bands.grain_n is not None:
+                raise SceneError("dust.mass_density", self.dust.mass_density, "needs the grains' bulk density, which "
+                                 "bands.grain_material gives and bands.grain_n / grain_k do not: give "
+                                 "dust.visual_extinction or dust.tau")
             pol.grains.refractive_index([b.wavelength for b in bands])  # one value per band
             return
         defaults = mie.Grains()

@@ -265,6 +265,8 @@ def dust_tau(scene, bands) -> Tuple[float, str]:
 
     key = physical_dust_key(scene.dust)
     value = float(getattr(scene.dust, key))
+    if getattr(scene.bands, "polarization", "none") == "mie":
+        return _mie_dust_tau(scene, bands, key, value)
     rv, _ = dust_model(scene.bands)
     cref, how = reference_cext(scene.bands, bands)
     if key == "visual_extinction":
@@ -280,6 +282,32 @@ def dust_tau(scene, bands) -> Tuple[float, str]:
     return tau_from_mass_density(value, m, cref, box), (
         f"rho_d {value:g} g cm^-3 / {m:.4g} g of dust per H x C_ref {cref:.4e} cm^2 per H ({how}) "
         f"x box edge {box:.4e} cm")
+
+
+def _mie_dust_tau(scene, bands, key: str, value: float) -> Tuple[float, str]:
+    """dust.tau of Mie grains (``bands.polarization = "mie"``): from their own extinction
+    cross-section per grain in the reference band, C_ref, and (A_V) at the V row's wavelength,
+    or (a mass density) the grains per cm^3 rho_d / (bulk density x mean grain volume)."""
+    from ..optics import mie
+    from ..optics.bands import reference_band_index
+    from ..optics.polarization import grains_of
+
+    grains = grains_of(scene.bands)
+    ref = bands[reference_band_index(bands)]
+    cref = float(mie.mie_cext_cm2(grains, [ref.wavelength])[0])
+    how = f"the Mie grains' C_ext {cref:.4e} cm^2 per grain at the reference band's {ref.wavelength:g} nm"
+    if key == "visual_extinction":
+        cv = float(mie.mie_cext_cm2(grains, [mie.V_WAVELENGTH_NM])[0])
+        return tau_from_visual_extinction(value, cref, cv), (
+            f"A_V = {value:g} mag / {MAG_PER_TAU:.6f} x C_ref / C_V {cv:.4e} cm^2 per grain at "
+            f"{mie.V_WAVELENGTH_NM:g} nm ({how})")
+    if key != "mass_density":
+        raise ValueError(key)
+    mass = mie.grain_mass_g(grains, [ref.wavelength])
+    box = box_length_cm(scene.grid)
+    return tau_from_mass_density(value, mass, cref, box), (
+        f"rho_d {value:g} g cm^-3 / {mass:.4e} g per grain ({mie.material_density(grains.material):g} g cm^-3 "
+        f"{grains.material}) x {how} x box edge {box:.4e} cm")
 
 
 # --- stars ------------------------------------------------------------------------------------
