@@ -1,7 +1,8 @@
-"""A polarized nebula through the plugin's proxies: Nebula Light Field with Polarization white,
-Nebula Sky Image with Method peel-off, Nebula Polarization Vectors' segments shown over it.
+"""A polarized nebula through the plugin's proxies: Nebula Light Field with Polarization white
+(or mie: MRN grains of astronomical silicate), Nebula Sky Image with Method peel-off, Nebula
+Polarization Vectors' segments shown over it.
 
-    pvpython polarization.py OUT.png PHOTONS
+    pvpython polarization.py OUT.png PHOTONS [white|mie]
 
 RESULT: the filters' last errors; the sky image's Q_ and U_ arrays and its field data; the
 vectors' points, arrays and angles, each vector's position angle about the star (the pattern
@@ -19,11 +20,15 @@ from vtkmodules.util.numpy_support import vtk_to_numpy
 
 load_plugin()
 png, photons = sys.argv[1], int(sys.argv[2])
+kind = sys.argv[3] if len(sys.argv) > 3 else "white"
+optics = dict(Polarization="white", PeakPolarization=0.6) if kind == "white" else dict(
+    Polarization="mie", GrainMaterial="astronomical-silicate", GrainRadiusMin=0.005, GrainRadiusMax=0.25,
+    GrainSizeSlope=3.5)
 star = [0.5, 0.5, 0.5, 1.0, 9000.0, 0.0]
 dust = simple.NebulaDustDensity(GridShape=[24, 24, 24], Model="uniform", UniformDensity=1.0, Floor=0.0, Stars=star,
                                 Device=_common.TEST_DEVICE)
 light = simple.NebulaLightField(dust, Stars=star, Tau=2.0, Photons=photons, Device=_common.TEST_DEVICE,
-                                Polarization="white", PeakPolarization=0.6)
+                                **optics)
 light.DensityArray = ["POINTS", "density"]
 sky = simple.NebulaSkyImage(light, ImageSize=[96, 96], Extent=1.0, Method="peel-off")
 vectors = simple.NebulaPolarizationVectors(sky, BlockSize=8, MinSignalToNoise=3.0, VectorScale=1.5)

@@ -284,6 +284,16 @@ def test_polarization_pattern_from_the_plugin(pv_env, xdisplay, tmp_path):
     assert 0.002 < white < 0.2, white  # the segments (0.7 % of the pixels), not a white screen
 
 
+def test_mie_grains_from_the_plugin(pv_env, xdisplay, tmp_path):
+    """Polarization mie with the Grain properties: the sky image adds V_ and its error (circular
+    polarization of light scattered more than once), and the pattern is centrosymmetric (MRN
+    grains polarize light perpendicular to the scattering plane, as dipoles do)."""
+    r, _ = run_pv(pv_env, xdisplay, "polarization.py", tmp_path / "mie.png", 200_000, "mie", timeout=300)
+    assert r["last_errors"] == {"light": None, "sky": None, "vectors": None}, r["last_errors"]
+    assert {"Q_G", "U_G", "V_G", "V_error_G", "Q_error_G"} <= set(r["arrays"])
+    assert r["cells"] >= 50 and max(r["tangential_deviation_deg"]) < 15.0
+
+
 def test_calibrated_sky_image_and_fits_from_the_plugin(pv_env, xdisplay, tmp_path):
     """Luminosity Unit L_sun, Spectral Types and Box Length on the light field, Units MJy/sr and the observer
     on the sky image, SaveData(.fits) through the plugin's writer: the calibrated arrays, the

@@ -297,7 +297,8 @@ class BandsConfig:
         doc="polarization = \"white\": the linear polarization of unpolarized light scattered through "
             "90 degrees (White's p_l), one number for every band or a list of one per band")
     grain_material: str = param(
-        "astronomical-silicate", type="str", choices=tuple(mie.MATERIALS), group=G_OPTICS, advanced=True,
+        "astronomical-silicate", type="str", choices=tuple(mie.MATERIALS), label="Grain Material", group=G_OPTICS,
+        advanced=True,
         doc="polarization = \"mie\": the grains' material, whose optical constants give the refractive "
             "index at each band's wavelength (astronomical-silicate: Draine 2003); unused where "
             "grain_n and grain_k are given")
@@ -313,16 +314,16 @@ class BandsConfig:
             "absorbing), one number or one per band (with grain_n)")
     grain_radius_min: float = param(
         mie.DEFAULT_RADIUS_MIN_UM, type="float", lo=mie.RADIUS_RANGE_UM[0], hi=mie.RADIUS_RANGE_UM[1],
-        unit="micron", group=G_OPTICS, advanced=True,
+        unit="micron", label="Grain Radius Min", group=G_OPTICS, advanced=True,
         doc="polarization = \"mie\": the smallest grain radius (Mathis, Rumpl & Nordsieck 1977: 0.005)")
     grain_radius_max: float = param(
         mie.DEFAULT_RADIUS_MAX_UM, type="float", lo=mie.RADIUS_RANGE_UM[0], hi=mie.RADIUS_RANGE_UM[1],
-        unit="micron", group=G_OPTICS, advanced=True,
+        unit="micron", label="Grain Radius Max", group=G_OPTICS, advanced=True,
         doc="polarization = \"mie\": the largest grain radius (MRN: 0.25); equal to grain_radius_min "
             "for grains of one size")
     grain_size_slope: float = param(
         mie.DEFAULT_SIZE_SLOPE, type="float", lo=mie.SIZE_SLOPE_RANGE[0], hi=mie.SIZE_SLOPE_RANGE[1],
-        group=G_OPTICS, advanced=True,
+        label="Grain Size Slope", group=G_OPTICS, advanced=True,
         doc="polarization = \"mie\": q of the size distribution n(a) ~ a^-q between the radii (MRN: 3.5)")
     list: Optional[List[Dict[str, Any]]] = param(
         None, type="list of dict or None", group=G_OPTICS,
