@@ -2,9 +2,10 @@
 """The cost of polarized packets: kernel packets per ms with Stokes vectors against intensity alone.
 
 The neb medium (uniform dust, optical depth 1 from the centre to a face, albedo 0.6, g 0.6, a
-star at the centre) on n^3 voxels, traced three ways per configuration: ``bands.polarization``
-none, rayleigh and white (p_l 0.5), each for the light field alone and with a peel-off image
-along -z (``--image`` pixels a side), where polarized packets also peel off Q and U. The median
+star at the centre) on n^3 voxels, traced four ways per configuration: ``bands.polarization``
+none, rayleigh, white (p_l 0.5) and mie (MRN astronomical silicate, whose own albedo 0.86 and
+g 0.55 change the paths too), each for the light field alone and with a peel-off image along
+-z (``--image`` pixels a side), where polarized packets also peel off Q and U (and V). The median
 of ``--repeat`` runs (kernels built beforehand) of the transport kernel's time
 (``timings["kernel_s"]``) and of the wall time; the absorbed fractions beside them (polarization
 changes the paths through the azimuths, not the absorption's expectation).
@@ -29,16 +30,20 @@ from nebula_rt.backends import get_backend
 from nebula_rt.errors import NebulaWarning
 from nebula_rt.observe.sky import Camera
 from nebula_rt.optics.bands import Band
+from nebula_rt.optics.mie import Grains, mie_bands
 from nebula_rt.optics.polarization import Polarization
 from nebula_rt.scene import Star
 from nebula_rt.transport import trace
 
-KINDS = {"none": Polarization(), "rayleigh": Polarization("rayleigh"), "white": Polarization("white", peak=0.5)}
+KINDS = {"none": Polarization(), "rayleigh": Polarization("rayleigh"), "white": Polarization("white", peak=0.5),
+         "mie": Polarization("mie", grains=Grains())}
 
 
 def measure(backend, n: int, photons: int, kind: str, image: int, repeat: int, method: str = "analog") -> dict:
     rho = np.ones((n, n, n), np.float32)
     bands = [Band(name="V", wavelength=550.0, extinction=1.0, albedo=0.6, g=0.6)]
+    if kind == "mie":  # MRN astronomical silicate: the grains' own albedo and g (0.86, 0.55 at 550 nm)
+        bands = mie_bands(bands, KINDS[kind].grains)
     stars = [Star(position=(0.5, 0.5, 0.5), luminosity=1.0, temperature=None, bump_radius=0.0)]
     cam = Camera(direction=(0.0, 0.0, -1.0), size=(image, image)) if image else None
     kw = dict(tau=2.0, photons=photons, backend=backend, peel=cam, polarization=KINDS[kind], method=method,

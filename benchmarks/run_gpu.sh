@@ -5,8 +5,9 @@
 #   bash benchmarks/run_gpu.sh OUTDIR [WHEELDIR] [STEPS]
 #
 # WHEELDIR holds wheels for what the machine lacks (pyopencl and its pure-Python needs,
-# colour-science, tomli-w; pmcx for the MCX comparison), fetched elsewhere with
-# `pip download --only-binary=:all: --python-version 3.12 ...`.
+# colour-science, tomli-w, astropy, speclite, PyAstronomy, miepython, dust_extinction (built
+# with `pip wheel`: no wheel on PyPI); pmcx and pmcxcl for the MCX comparison), fetched elsewhere
+# with `pip download --only-binary=:all: --python-version 3.12 --no-deps ...`.
 # STEPS (default "tests bench neb128 compare profile"; also "tests-cuda", "thick", "thick-grid", "trust", "scaling", "large", "regions", "regcaps", "profile-regions", "layout", "sorted", "probe", "ranks", "ranks-thesis", "ranks-weak", "tests-mpi", "e2e1e9", "biasing", "fit", "fitprof", "tune",
 # "stages", "kernel-probes", "polarization", "ncu-thesis", "ncu-source", "tree", "tree-targets", "tree-ascend", "trade", "presets", "empty", "fft") selects what runs. Everything printed
 # goes to OUTDIR/log.txt as well; JSON and .npz results beside it.
@@ -259,7 +260,7 @@ if [[ " $steps " == *" polarization "* ]]; then
     # polarized packets (bands.polarization): their tests on CUDA and NVIDIA OpenCL, their cost
     # against intensity alone, and the unpolarized kernel against the former commit's (a copy of
     # its python/ in .former/) on the neb medium and the thesis scene
-    pol_tests="tests/optics/test_polarized_scattering.py tests/transport/test_polarized_transport.py tests/backends/test_kernel_options.py"
+    pol_tests="tests/optics/test_polarized_scattering.py tests/optics/test_mie.py tests/transport/test_polarized_transport.py tests/backends/test_kernel_options.py"
     echo "== polarization tests, CUDA"; NEBULA_RT_TEST_BACKEND=cuda python3 -m pytest -q -p no:cacheprovider $pol_tests 2>&1 | tail -n 4
     echo "== polarization tests, NVIDIA OpenCL"; NEBULA_RT_TEST_DEVICE=NVIDIA python3 -m pytest -q -p no:cacheprovider $pol_tests 2>&1 | tail -n 4
     echo "== cost of polarization, CUDA"
