@@ -284,3 +284,21 @@ def test_series_sum_is_miepythons_own():
         r1, r2 = miepython.S1_S2(m, x, mu, norm="wiscombe")
         np.testing.assert_allclose(s1, r1, rtol=1e-10, atol=1e-12 * np.abs(r1).max())
         np.testing.assert_allclose(s2, r2, rtol=1e-10, atol=1e-12 * np.abs(r2).max())
+
+
+def test_explicit_bands_of_mie_grains():
+    """[[bands.list]] with Mie grains: name and wavelength alone; the band nearest 550 nm is the
+    reference (extinction 1, as a preset's); a band's own extinction, albedo or g is refused by
+    name rather than overwritten."""
+    from nebula_rt.scene import Scene
+
+    table = [{"name": "B", "wavelength": 440.0}, {"name": "V", "wavelength": 551.0}, {"name": "I", "wavelength": 800.0}]
+    scene = Scene.from_dict({"bands": {"polarization": "mie", "list": table}})
+    bands = scene.bands.resolve()
+    o = mie_optics(Grains(), [440.0, 551.0, 800.0])
+    np.testing.assert_allclose([b.extinction for b in bands], o.c_ext / o.c_ext[1])
+    np.testing.assert_allclose([b.albedo for b in bands], o.albedo)
+    assert Scene.loads(scene.to_toml()) == scene
+    for key, value in (("extinction", 1.2), ("albedo", 0.5), ("g", 0.3)):
+        with pytest.raises(SceneError, match=rf"bands.list\[2\].{key}"):
+            Scene.from_dict({"bands": {"polarization": "mie", "list": table[:2] + [{**table[2], key: value}]}})

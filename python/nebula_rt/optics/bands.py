@@ -198,7 +198,12 @@ def _check_name(param: str, value: Any) -> str:
     return value
 
 
-def _band_from_entry(i: int, entry: Any, albedo: Optional[float], g: Optional[float]) -> Band:
+#: the keys of a band that Mie grains give (``bands.polarization = "mie"``)
+GRAIN_KEYS = ("extinction", "albedo", "g")
+
+
+def _band_from_entry(i: int, entry: Any, albedo: Optional[float], g: Optional[float],
+                     grain_optics: bool = False) -> Band:
     prefix = f"bands.list[{i}]"
     if isinstance(entry, Band):
         entry = asdict(entry)
@@ -211,6 +216,17 @@ def _band_from_entry(i: int, entry: Any, albedo: Optional[float], g: Optional[fl
                 entry[key],
                 "unknown key; allowed keys: " + ", ".join(repr(k) for k in BAND_KEYS),
             )
+    if grain_optics:  # the grains give the rest (nebula_rt.optics.mie.mie_bands): placeholders until then
+        for key in GRAIN_KEYS:
+            if key in entry:
+                raise SceneError(f"{prefix}.{key}", entry[key], "must be omitted with bands.polarization = 'mie' "
+                                 "(the grains give each band's extinction, albedo and g)")
+        for key in ("name", "wavelength"):
+            if key not in entry:
+                raise SceneError(f"{prefix}.{key}", None, "required key is missing")
+        return Band(name=_check_name(f"{prefix}.name", entry["name"]),
+                    wavelength=_check_wavelength(f"{prefix}.wavelength", entry["wavelength"]),
+                    extinction=1.0, albedo=0.0, g=0.0)
     required = ["name", "wavelength", "extinction"]
     if albedo is None:
         required.append("albedo")
@@ -240,6 +256,7 @@ def resolve_bands(
     band_list: Optional[Sequence[Mapping[str, Any]]],
     albedo: Optional[float] = None,
     g: Optional[float] = None,
+    grain_optics: bool = False,
 ) -> List[Band]:
     """Build the validated list of bands of a scene.
 
@@ -256,6 +273,10 @@ def resolve_bands(
         If not None, the single-scattering albedo of every band, in [0, 1].
     g : float or None
         If not None, the Henyey-Greenstein asymmetry of every band, in [-1, 1].
+    grain_optics : bool
+        The dust's grains give every band's extinction, albedo and g (Mie grains): explicit
+        bands give name and wavelength alone (their other keys are refused), and come back
+        with extinction 1, albedo 0 and g 0 for :func:`nebula_rt.optics.mie.mie_bands` to set.
 
     Returns
     -------
@@ -291,7 +312,7 @@ def resolve_bands(
     n = len(band_list)
     if not (1 <= n <= MAX_BANDS):
         raise SceneError("bands.list", n, f"must contain 1 to {MAX_BANDS} bands")
-    bands = [_band_from_entry(i, entry, albedo, g) for i, entry in enumerate(band_list)]
+    bands = [_band_from_entry(i, entry, albedo, g, grain_optics) for i, entry in enumerate(band_list)]
     seen = set()
     for i, b in enumerate(bands):
         if b.name in seen:

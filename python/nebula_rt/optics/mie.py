@@ -329,15 +329,21 @@ def mie_optics(grains: Grains, wavelengths_nm: Sequence[float]) -> MieOptics:
     return _mie_optics(grains, tuple(float(w) for w in wavelengths_nm))
 
 
-def mie_bands(bands, grains: Grains):
-    """The bands with the grains' albedo, g and extinction (C_ext relative to the reference
-    band's, :func:`nebula_rt.optics.bands.reference_band_index`, which stays the reference)."""
+#: explicit bands of Mie grains take the band nearest this wavelength (nm) as the reference
+#: band, as the presets do (the band holding 550 nm)
+REFERENCE_WAVELENGTH_NM = 550.0
+
+
+def mie_bands(bands, grains: Grains, reference: Optional[int] = None):
+    """The bands with the grains' albedo, g and extinction: C_ext relative to the reference
+    band's, which stays the reference (``reference``, else
+    :func:`nebula_rt.optics.bands.reference_band_index` of the bands as given)."""
     from dataclasses import replace
 
     from .bands import reference_band_index
 
     optics = mie_optics(grains, [b.wavelength for b in bands])
-    ref = reference_band_index(bands)
+    ref = reference_band_index(bands) if reference is None else int(reference)
     rel = optics.c_ext / optics.c_ext[ref]
     return [replace(b, albedo=float(optics.albedo[i]), g=float(optics.g[i]), extinction=float(rel[i]))
             for i, b in enumerate(bands)]

@@ -328,7 +328,8 @@ class BandsConfig:
     list: Optional[List[Dict[str, Any]]] = param(
         None, type="list of dict or None", group=G_OPTICS,
         doc="Explicit bands, [[bands.list]] tables with keys name, wavelength (nm), extinction "
-            "(relative to the reference band), albedo and g")
+            "(relative to the reference band), albedo and g (polarization = \"mie\": name and wavelength "
+            "alone, the grains giving the rest, the band nearest 550 nm the reference)")
 
     def __post_init__(self) -> None:
         if self.list is not None:
@@ -338,11 +339,15 @@ class BandsConfig:
         """Return the validated bands (see :func:`nebula_rt.optics.bands.resolve_bands`); with
         ``polarization = "mie"`` their albedo, g and extinction are the grains'
         (:func:`nebula_rt.optics.mie.mie_bands`)."""
-        bands = resolve_bands(self.preset, self.list, self.albedo, self.g)
-        if self.polarization == "mie":
+        grains = self.polarization == "mie"
+        bands = resolve_bands(self.preset, self.list, self.albedo, self.g, grain_optics=grains and self.list is not None)
+        if grains:
             from ..optics.polarization import grains_of
 
-            return mie.mie_bands(bands, grains_of(self))
+            ref = None  # a preset's own reference band; explicit bands': the one nearest 550 nm
+            if self.list is not None:
+                ref = min(range(len(bands)), key=lambda i: abs(bands[i].wavelength - mie.REFERENCE_WAVELENGTH_NM))
+            return mie.mie_bands(bands, grains_of(self), reference=ref)
         return bands
 
 
