@@ -302,3 +302,57 @@ def test_explicit_bands_of_mie_grains():
     for key, value in (("extinction", 1.2), ("albedo", 0.5), ("g", 0.3)):
         with pytest.raises(SceneError, match=rf"bands.list\[2\].{key}"):
             Scene.from_dict({"bands": {"polarization": "mie", "list": table[:2] + [{**table[2], key: value}]}})
+
+
+def _field_peel(d, e, o, north, quv, grains=GRAINS, lam_nm=550.0):
+    """What a fully polarized wave scatters towards o, from its electric field (no Stokes
+    rotations or Mueller matrices): the incoming field in the packet's frame (e, d x e), the
+    phase delta = atan2(v, u) on its second component (time dependence e^{-i omega t}), split
+    into the parts parallel and perpendicular to the scattering plane (e_perp = d x o / |d x o|,
+    e_par = k x e_perp for k = d and k = o, Bohren & Huffman's basis), scattered by their
+    amplitudes S2 (parallel) and S1 (perpendicular) -- miepython's conjugated, its m being
+    n - i k -- and read in the right-handed frame (north, east = o x north, o):
+    I = |E_n|^2 + |E_e|^2, Q = |E_n|^2 - |E_e|^2, U = 2 Re E_n E_e*, V = -2 Im E_n E_e* (V > 0:
+    the field turning from north to east, counterclockwise as the observer sees it: IAU 1974),
+    per sr of the grains' scattering (S11 integrates to 1)."""
+    a = grains.radius_min
+    x = 2 * math.pi * a / (lam_nm * 1e-3)
+    m = complex(grains.n, -grains.k)
+    _, qs, _, _ = miepython.efficiencies_mx(m, x)
+    out = []
+    for di, ei, oi, ni, (q, u, v) in zip(d, e, o, north, quv):
+        field = math.sqrt((1 + q) / 2) * ei + math.sqrt((1 - q) / 2) * np.exp(1j * math.atan2(v, u)) * np.cross(di, ei)
+        mu = float(di @ oi)
+        perp = np.cross(di, oi)
+        perp /= np.linalg.norm(perp)
+        s1, s2 = (np.conj(s)[0] for s in miepython.S1_S2(m, x, np.array([mu]), norm="wiscombe"))
+        scattered = s2 * (field @ np.cross(di, perp)) * np.cross(oi, perp) + s1 * (field @ perp) * perp
+        en, ee = scattered @ ni, scattered @ np.cross(oi, ni)
+        stokes = np.array([abs(en) ** 2 + abs(ee) ** 2, abs(en) ** 2 - abs(ee) ** 2, 2 * (en * np.conj(ee)).real,
+                           -2 * (en * np.conj(ee)).imag])
+        out.append(stokes / (math.pi * x * x * qs))
+    return np.array(out)
+
+
+def test_kernel_peel_off_against_the_scattered_field(backend):
+    """Random packets (direction, reference, fully polarized states with linear and circular
+    parts) peeled off towards random observers with random north axes: the kernel's I, Q, U, V
+    are those of the scattered electric field (:func:`_field_peel`), which shares nothing with
+    the kernel's Stokes rotations and Mueller matrix. This fixes the signs: Q from north, U at 45
+    degrees towards east, V > 0 for light turning counterclockwise as the observer sees it."""
+    rng = np.random.default_rng(3)
+    n = 200
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    e = np.cross(d, rng.normal(size=(n, 3)))
+    e /= np.linalg.norm(e, axis=1, keepdims=True)
+    o = rng.normal(size=(n, 3))
+    o /= np.linalg.norm(o, axis=1, keepdims=True)
+    north = np.cross(o, rng.normal(size=(n, 3)))
+    north /= np.linalg.norm(north, axis=1, keepdims=True)
+    quv = rng.normal(size=(n, 3))
+    quv /= np.linalg.norm(quv, axis=1, keepdims=True)
+    got = probes.peel_stokes_at(backend, MIE, d, e, o, north, quv, wavelength=550.0).astype(np.float64)
+    want = _field_peel(d, e, o, north, quv)
+    np.testing.assert_allclose(got, want, atol=4e-3 * np.abs(want[:, 0]).max(), rtol=5e-3)
+    assert np.max(np.abs(want[:, 3])) > 0.05 * np.abs(want[:, 0]).max()  # circular parts that matter

@@ -86,7 +86,8 @@ def polarization_maps(i, q, u, i_err=None, q_err=None, u_err=None):
 def stokes_hdus(wcs_header, names, stokes):
     """FITS image HDUs ``Q_<band>`` and ``U_<band>`` (and ``V_<band>`` where ``stokes`` holds V)
     (MJy/sr, the intensity's WCS) of ``stokes`` (n_bands, 2 or 3, W, H) in the IAU convention
-    (V: Bohren & Huffman's sign, kernels/polarization.cl)."""
+    (V > 0: the electric vector turning counterclockwise, from north through east, as the
+    observer sees it; IAU 1974)."""
     from astropy.io import fits
 
     hdus = []

@@ -113,7 +113,8 @@ SKY_U = PointArray("U_{band}", "float32", 1, "peel-off of a polarized scene: Sto
 SKY_Q_ERROR = PointArray("Q_error_{band}", "float32", 1, "the standard error of Q_{band}")
 SKY_U_ERROR = PointArray("U_error_{band}", "float32", 1, "the standard error of U_{band}")
 SKY_V = PointArray("V_{band}", "float32", 1, "peel-off of a scene whose grains make circular polarization "
-                   "(bands.polarization = \"mie\"): Stokes V, as Q_ (Bohren & Huffman's sign)")
+                   "(bands.polarization = \"mie\"): Stokes V, as Q_; V > 0 for the electric vector "
+                   "turning counterclockwise (north through east) as the observer sees it (IAU 1974)")
 SKY_V_ERROR = PointArray("V_error_{band}", "float32", 1, "the standard error of V_{band}")
 #: the arrays a peel-off sky image adds (its errors; a polarized scene's Stokes Q and U, and V
 #: where the grains give it)
