@@ -255,7 +255,10 @@ class NebulaLightField(NebulaAlgorithm):
         if not self._override_optics:
             values.pop("bands.albedo")
             values.pop("bands.g")
-        if values.get("bands.polarization") != "mie":  # (greyed out then; inert_properties says so)
+        # (greyed out then; inert_properties says so)
+        if values.get("bands.polarization") != "white":
+            values.pop("bands.peak_polarization", None)
+        if values.get("bands.polarization") != "mie":
             for key in [k for k in values if k.startswith("bands.grain_")]:
                 values.pop(key)
         stars = stars_from_flat(self.stars())

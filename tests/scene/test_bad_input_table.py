@@ -48,6 +48,8 @@ BASE = {
 BASE_FILE = {**BASE, "dust": {"model": "file", "file": "cloud.npy"}}
 #: for the grains' keys: Mie scattering (they are refused by name with any other polarization)
 BASE_MIE = {**BASE, "bands": {"polarization": "mie"}}
+#: for White's peak polarization (refused by name with any other polarization)
+BASE_WHITE = {**BASE, "bands": {"polarization": "white"}}
 #: for the [[bands.list]] keys: two explicit bands, a flat-spectrum star
 BASE_LIST = {
     "grid": {"shape": [8, 8, 8]},
@@ -87,6 +89,8 @@ class Row:
             return BASE_LIST
         if self.key.startswith("bands.grain_"):
             return BASE_MIE
+        if self.key == "bands.peak_polarization":
+            return BASE_WHITE
         return BASE_FILE if self.key == "dust.file" else BASE
 
 
@@ -118,7 +122,7 @@ RANGES = {
     "bands.grain_radius_min": ("[0.0001, 1000]", "at most"),
     "bands.grain_radius_max": ("[0.0001, 1000]", "at least bands.grain_radius_min", "size parameter"),
     "bands.grain_size_slope": "[-10, 10]",
-    "bands.peak_polarization": ("[0, 1]", "one value per band"),
+    "bands.peak_polarization": ("[0, 1]", "one value per band", "used only with bands.polarization = 'white'"),
     "bands.list.0.name": "[A-Za-z0-9_-]", "bands.list.0.wavelength": "[1, 1e5]",
     "bands.list.0.extinction": FLOAT32_RANGE_TEXT, "bands.list.0.albedo": "[0, 1]", "bands.list.0.g": "[-1, 1]",
     "transport.photons": "[1, 2**53]", "transport.estimator": "'track-length', 'collision-filter'",
@@ -531,6 +535,8 @@ def test_c_filter_setter_refuses(row, light_field_image):
         alg.SetDevice(TEST_DEVICE)
     elif which == "light":
         alg = _light()
+        if row.key == "bands.peak_polarization":
+            alg.SetPolarization("white")  # (it applies to White's approximation alone)
     elif which == "sky":  # the observer is checked in box units too, before the ray march
         alg = NebulaSkyImage()
         alg._producer = _producer(light_field_image)

@@ -121,6 +121,8 @@ def _scene_with(key: str, value):
     table, name = key.split(".")
     if table == "stars":
         return sc.Scene.from_dict({"stars": [{"position": [0.5, 0.5, 0.5], name: value}]})
+    if name == "peak_polarization":
+        return sc.Scene.from_dict({table: {"polarization": "white", name: value}})
     if name.startswith("grain_"):
         partner = dict(GRAIN_PARTNERS.get(name, {}))
         if name == "grain_radius_min" and is_real(value) and value > 1e-4:

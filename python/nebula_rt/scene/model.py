@@ -276,10 +276,13 @@ class Scene:
         grains convert dust.mass_density (with a material's bulk density) and
         dust.visual_extinction, not dust.hydrogen_density (they give no dust-to-gas ratio)."""
         from ..optics import mie
-        from ..optics.polarization import OWN_OPTICS, OWN_PHASE_FUNCTION, polarization_of
+        from ..optics.polarization import DEFAULT_PEAK, OWN_OPTICS, OWN_PHASE_FUNCTION, polarization_of
 
         pol = polarization_of(self)
         pol.peaks(len(bands))
+        if pol.kind != "white" and self.bands.peak_polarization != DEFAULT_PEAK:
+            raise SceneError("bands.peak_polarization", self.bands.peak_polarization, "is used only with "
+                             f"bands.polarization = 'white' (here '{pol.kind}'): omit it")
         if pol.kind in OWN_PHASE_FUNCTION and self.bands.g is not None:
             raise SceneError("bands.g", self.bands.g, f"must be omitted with bands.polarization = '{pol.kind}' "
                              "(that phase function has no asymmetry parameter)")
