@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 from conftest import TEST_BACKEND, TEST_DEVICE
 
-from nebula_rt.errors import SceneError
+from nebula_rt.errors import NebulaWarning, SceneError
 from nebula_rt.observe.comparison import (
     _position_angles, compare_tables, model_values, ring_edges, ring_pixels, trace_rings)
 from nebula_rt.observe.observed_tables import ObservedTable, read_table
@@ -184,3 +184,28 @@ def test_observed_stokes_images_become_a_table_the_model_fits(tmp_path, backend)
         else:
             argv[argv.index(option) + 1] = bad
         assert cli.main(argv) == 2
+
+
+def test_fit_the_largest_grains_of_mie_dust(backend):
+    """The degree of polarization against offset constrains the grains: with Mie grains (MRN
+    astronomical silicate) P falls from about 0.3-0.4 at a largest radius of 0.1 micron to about
+    0.01 at 0.5 micron, and a fit of ``bands.grain_radius_max`` (in log) recovers the radius that
+    made the observations (another seed, twice the packets) within its errors."""
+    from nebula_rt.observe.fit import fit_observations
+
+    def mie(photons, seed, radius):
+        s = scene(photons=photons, seed=seed).to_dict()
+        s["bands"].update({"polarization": "mie", "grain_radius_max": radius})
+        s["bands"].pop("peak_polarization", None)
+        return Scene.from_dict(s)
+
+    truth = trace_rings(mie(160_000, 7, 0.15), EDGES, size=48, backend=backend, stokes=True)
+    p, perr = model_values(truth, table(np.zeros(5), np.ones(5)))
+    assert np.all(p > 0.1)
+    obs = table(p, np.maximum(2.0 * perr, 0.01))
+    with pytest.warns(NebulaWarning, match="Monte Carlo error"):
+        fit = fit_observations(mie(80_000, 3, 0.25), [obs], ["bands.grain_radius_max=0.05:0.5:log"], size=48,
+                               backend=backend)
+    best, err = float(fit.best[0]), float(max(fit.err_minus[0], fit.err_plus[0]))
+    assert abs(best - 0.15) < max(4.0 * err, 0.01), (best, err)
+    assert not any(fit.at_bound[0])
