@@ -27,8 +27,8 @@ the brackets the average over the size distribution (per grain), S11 per steradi
 integral over the sphere is 1). miepython's amplitudes are those of m = n - i k (Wiscombe's
 convention), the complex conjugates of Bohren & Huffman's, so S34 is formed from its S1 S2*.
 
-The kernel's table (kernels/polarization.cl, NRT_POLAR_MIE) holds, on ``N_ANGLES`` scattering
-angles 0-180 degrees in equal steps: mu = cos theta, the cumulative probability from mu = 1,
+The kernel's table (kernels/polarization.cl, NRT_POLAR_MIE) holds, on :func:`angles` scattering
+angles 0-180 degrees in equal steps (a quarter degree, finer for grains beyond size parameter 50): mu = cos theta, the cumulative probability from mu = 1,
 the probability density p(mu) = 2 pi S11, and S12 / S11, S33 / S11, S34 / S11. Between the
 nodes everything is linear in mu; the phase function the kernel samples and peels off is that
 piecewise-linear p, normalised to 1 exactly (its cumulative sums are exact trapezoids), so the
@@ -49,8 +49,11 @@ import numpy as np
 
 from ..errors import SceneError
 
-#: scattering angles of the kernel's table: 0 to 180 degrees in steps of 0.25 degree
+#: scattering angles of the kernel's table: 0 to 180 degrees in steps of 0.25 degree, for grains
+#: up to ANGLES_SIZE_PARAMETER; larger ones (a forward peak about 1 / x radian wide) get steps
+#: that many times finer (angles(x_max))
 N_ANGLES = 721
+ANGLES_SIZE_PARAMETER = 50.0
 #: rows of a band's table: mu, cumulative probability, p(mu) = 2 pi S11, S12/S11, S33/S11, S34/S11
 TABLE_ROWS = 6
 #: the grain materials with shipped optical constants (name -> data file)
@@ -61,8 +64,9 @@ DEFAULT_RADIUS_MAX_UM = 0.25
 DEFAULT_SIZE_SLOPE = 3.5
 #: the radii allowed (micron): from molecules' size to millimetre grains
 RADIUS_RANGE_UM = (1.0e-4, 1.0e3)
-#: the largest size parameter 2 pi a / lambda traced (the series then has ~ 10^4 terms)
-MAX_SIZE_PARAMETER = 2.0e3
+#: the largest size parameter 2 pi a / lambda traced: the table then resolves the forward peak
+#: with steps of 0.0625 degree (2881 angles), about 9 across its 1 / x radian
+MAX_SIZE_PARAMETER = 200.0
 #: the size distribution's exponents allowed
 SIZE_SLOPE_RANGE = (-10.0, 10.0)
 #: the refractive index's allowed parts
@@ -224,7 +228,7 @@ class MieOptics:
         Cross-sections per grain, micron^2.
     grain_volume : float
         The mean volume of a grain, micron^3.
-    table : ndarray, shape (n_bands, TABLE_ROWS, N_ANGLES)
+    table : ndarray, shape (n_bands, TABLE_ROWS, angles)
         The kernel's tables (module comment).
     """
 
@@ -262,22 +266,38 @@ def _amplitudes(an, bn, pi_n, tau_n):
     return np.conj(sa @ p + sb @ t), np.conj(sa @ t + sb @ p)
 
 
+def angles(x_max: float) -> int:
+    """The table's scattering angles for grains up to size parameter ``x_max``: N_ANGLES, with
+    steps ceil(x_max / ANGLES_SIZE_PARAMETER) times finer beyond ANGLES_SIZE_PARAMETER."""
+    return 1 + (N_ANGLES - 1) * max(1, math.ceil(x_max / ANGLES_SIZE_PARAMETER))
+
+
+def _size_parameter(grains: Grains, wavelength_nm: float) -> float:
+    x_max = 2.0 * math.pi * grains.radius_max / (wavelength_nm * 1e-3)
+    if x_max > MAX_SIZE_PARAMETER:
+        raise SceneError("bands.grain_radius_max", grains.radius_max,
+                         f"gives the size parameter 2 pi a / lambda = {x_max:.4g} at {wavelength_nm:g} nm; "
+                         f"at most {MAX_SIZE_PARAMETER:g} is traced (the table's angles resolve the forward "
+                         "peak up to there)")
+    return x_max
+
+
 def _band_optics(m: complex, wavelength_nm: float, grains: Grains, mu: np.ndarray):
     import miepython
 
     lam = wavelength_nm * 1e-3  # micron
     k = 2.0 * math.pi / lam
-    x_max = k * grains.radius_max
-    if x_max > MAX_SIZE_PARAMETER:
-        raise SceneError("bands.grain_radius_max", grains.radius_max,
-                         f"gives the size parameter 2 pi a / lambda = {x_max:.4g} at {wavelength_nm:g} nm; "
-                         f"at most {MAX_SIZE_PARAMETER:g} is traced")
+    x_max = _size_parameter(grains, wavelength_nm)
     a, w = grains.radii(x_max)
     m_mp = complex(m.real, -m.imag)  # miepython: m = n - i k
     qext, qsca, _, g_a = (np.atleast_1d(np.asarray(v, np.float64)) for v in miepython.efficiencies_mx(m_mp, k * a))
     geo = math.pi * a * a
     c_ext = float(np.sum(w * geo * qext))
     c_sca = float(np.sum(w * geo * qsca))
+    if not c_sca > 0.0 or not math.isfinite(c_ext):  # m = 1: the grains are the vacuum around them
+        raise SceneError("bands.grain_n", grains.n if grains.n is not None else grains.material,
+                         f"gives grains that scatter nothing at {wavelength_nm:g} nm (m = {m.real:g} + "
+                         f"{m.imag:g} i): the refractive index must differ from 1")
     g = float(np.sum(w * geo * qsca * g_a)) / c_sca
     s11 = np.zeros(mu.size)
     s12 = np.zeros(mu.size)
@@ -300,12 +320,13 @@ def _band_optics(m: complex, wavelength_nm: float, grains: Grains, mu: np.ndarra
 @functools.lru_cache(maxsize=64)
 def _mie_optics(grains: Grains, wavelengths_nm: Tuple[float, ...]) -> MieOptics:
     m = grains.refractive_index(wavelengths_nm)
-    theta = np.linspace(0.0, math.pi, N_ANGLES)
+    n_angles = angles(max(_size_parameter(grains, wl) for wl in wavelengths_nm))
+    theta = np.linspace(0.0, math.pi, n_angles)
     mu = np.cos(theta)
     mu[0], mu[-1] = 1.0, -1.0
     nb = len(wavelengths_nm)
     albedo, g, c_ext, c_sca = (np.zeros(nb) for _ in range(4))
-    table = np.zeros((nb, TABLE_ROWS, N_ANGLES))
+    table = np.zeros((nb, TABLE_ROWS, n_angles))
     for b, (mb, wl) in enumerate(zip(m, wavelengths_nm)):
         c_ext[b], c_sca[b], g[b], s11, r12, r33, r34 = _band_optics(complex(mb), float(wl), grains, mu)
         albedo[b] = c_sca[b] / c_ext[b]
