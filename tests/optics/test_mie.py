@@ -378,3 +378,15 @@ def test_kernel_peel_off_against_the_scattered_field(backend):
     want = _field_peel(d, e, o, north, quv)
     np.testing.assert_allclose(got, want, atol=4e-3 * np.abs(want[:, 0]).max(), rtol=5e-3)
     assert np.max(np.abs(want[:, 3])) > 0.05 * np.abs(want[:, 0]).max()  # circular parts that matter
+
+
+def test_small_spheres_scatter_as_dipoles(backend):
+    """Grains far smaller than the wavelength (x = 0.011) are Rayleigh scatterers: the kernel's
+    Mie table gives the matrix its rayleigh kind gives (whose formulas are tested on their own),
+    to the table's and the x^2 terms' accuracy."""
+    tiny = Polarization("mie", grains=Grains(n=1.5, k=0.0, radius_min=0.001, radius_max=0.001))
+    mu = np.linspace(-1, 1, 401)
+    mie = probes.mueller_at(backend, tiny, mu, wavelength=550.0).astype(np.float64)
+    dipole = probes.mueller_at(backend, Polarization("rayleigh"), mu).astype(np.float64)
+    np.testing.assert_allclose(mie[:, 0], dipole[:, 0], rtol=2e-4)
+    np.testing.assert_allclose(mie[:, 1:], dipole[:, 1:], atol=2e-4)
