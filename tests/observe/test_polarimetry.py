@@ -43,6 +43,19 @@ def test_polarization_errors_follow_the_scatter_of_simulated_noise():
     np.testing.assert_allclose(a, [0.0, 45.0, 90.0, 135.0])
 
 
+def test_circular_polarization_error_follows_the_scatter_of_simulated_noise():
+    """V / I's first-order error against the spread of V / I over Gaussian noise of I and V."""
+    from nebula_rt.observe.polarimetry import circular_polarization
+
+    rng = np.random.default_rng(12)
+    i, v, si, sv = np.array([10.0, 5.0, 50.0]), np.array([0.3, -0.4, 2.0]), np.array([0.3, 0.2, 2.0]), \
+        np.array([0.05, 0.08, 0.5])
+    ratio, err = circular_polarization(i, v, si, sv)
+    draws = circular_polarization(i + si * rng.standard_normal((40_000, 3)), v + sv * rng.standard_normal((40_000, 3)))[0]
+    np.testing.assert_allclose(ratio, v / i)
+    np.testing.assert_allclose(draws.std(axis=0), err, rtol=0.03)
+
+
 def test_vectors_are_block_sums_and_lines_along_their_angle():
     i = np.ones((8, 8))
     q = np.zeros((8, 8))
@@ -150,7 +163,8 @@ def test_cli_sky_writes_circular_polarization_of_mie_grains(tmp_path, capsys):
             "observer": {"distance": "50 pc", "psf_fwhm": 0.0, "position_angle": pa}})
         (tmp_path / "s.toml").write_text(s.to_toml())
         fits_path = tmp_path / f"sky{int(pa)}.fits"
-        status = cli.main(["sky", str(tmp_path / "s.toml"), "--fits", str(fits_path), "--size", "16", "-q"])
+        status = cli.main(["sky", str(tmp_path / "s.toml"), "--fits", str(fits_path), "--size", "16", "-q",
+                           "--json", str(tmp_path / "s.json")])
         assert status == 0, capsys.readouterr().err
         with fits.open(fits_path) as hdul:
             names = [h.name for h in hdul]
@@ -159,5 +173,28 @@ def test_cli_sky_writes_circular_polarization_of_mie_grains(tmp_path, capsys):
             assert v.header["STOKES"] == "V" and v.header["BUNIT"] == "MJy/sr"
             assert np.all(np.abs(v.data) <= sb.data * (1 + 1e-5) + 1e-30) and np.any(v.data != 0)
             heads[pa] = (hdul["Q_G"].data.copy(), v.data.copy())
+            net = json.loads((tmp_path / "s.json").read_text())["net_polarization"]["G"]
+            assert set(net) == {"p", "angle_deg_east_of_north", "v_over_i"} and abs(net["v_over_i"]) < net["p"]
     np.testing.assert_allclose(heads[90.0][0], -heads[0.0][0], atol=1e-12 * np.abs(heads[0.0][0]).max())
     np.testing.assert_array_equal(heads[90.0][1], heads[0.0][1])
+
+
+def test_circular_polarization_maps_of_mie_grains(backend):
+    """CalibratedSky.circular_polarization: V / I of the scattered light pixel by pixel, its
+    first-order error from V's and I's; None where the grains give no V."""
+    s = Scene.from_dict({
+        "grid": {"shape": [12, 12, 12], "length": "0.2 pc"},
+        "dust": {"model": "uniform", "tau": 3.0, "floor": 0.0},
+        "stars": [{"position": [0.35, 0.5, 0.45], "luminosity_lsun": 100.0, "temperature": 9000.0}],
+        "bands": {"preset": "thesis-rgb", "polarization": "mie", "grain_radius_min": 0.2, "grain_radius_max": 0.2},
+        "transport": {"photons": 30_000, "seed": 4, "backend": TEST_BACKEND, "device": TEST_DEVICE},
+        "observer": {"distance": "50 pc", "psf_fwhm": 0.0}})
+    cal, _ = calibrate.peel_off_sky(s, calibrate.camera_for(s, (0.0, 0.0, -1.0), 12, extent=1.0), backend)
+    ratio, err = cal.circular_polarization()
+    lit = cal.scattered > 0
+    np.testing.assert_allclose(ratio[lit], cal.stokes[:, 2][lit] / cal.scattered[lit], rtol=1e-12)
+    assert np.all(err[lit] > 0)
+    assert np.all(np.abs(ratio[lit]) <= 1 + 1e-9) and np.any(ratio[lit] != 0) and np.all(np.isnan(ratio[~lit]))
+    assert cal.polarization() is not None
+    assert calibrate.peel_off_sky(_scene(), calibrate.camera_for(_scene(), (0.0, 0.0, -1.0), 8, extent=1.0),
+                                  backend)[0].circular_polarization() is None  # Rayleigh: no V

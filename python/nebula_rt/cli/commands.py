@@ -482,6 +482,10 @@ def _sky(args, cancel) -> int:
                                          cal.stokes[:, 1].sum(axis=(1, 2)))
         summary["net_polarization"] = {n: {"p": float(p[b]), "angle_deg_east_of_north": float(chi[b])}
                                        for b, n in enumerate(cal.band_names)}
+        if cal.stokes.shape[1] > 2:  # Mie grains: the net circular polarization V / I too
+            v = cal.stokes[:, 2].sum(axis=(1, 2)) / cal.scattered.sum(axis=(1, 2))
+            for b, n in enumerate(cal.band_names):
+                summary["net_polarization"][n]["v_over_i"] = float(v[b])
 
     def publish():
         with Publication() as pub:  # the FITS, the PNG and the JSON: all or none

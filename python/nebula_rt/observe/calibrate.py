@@ -283,6 +283,17 @@ class CalibratedSky:
         return polarization_maps(self.scattered, self.stokes[:, 0], self.stokes[:, 1], self.scattered_error,
                                  None if err is None else err[:, 0], None if err is None else err[:, 1])
 
+    def circular_polarization(self):
+        """(V / I, its error), each (nb, W, H): the circular polarization of the scattered light
+        (V > 0: counterclockwise as the observer sees it, IAU), first order in the errors, NaN
+        where I <= 0; None without V (only Mie grains give it)."""
+        if self.stokes is None or self.stokes.shape[1] < 3:
+            return None
+        from .polarimetry import circular_polarization
+
+        return circular_polarization(self.scattered, self.stokes[:, 2], self.scattered_error,
+                                     None if self.stokes_error is None else self.stokes_error[:, 2])
+
     def total_flux_jy(self) -> np.ndarray:
         """(nb,) the image's flux density, Jy: the sum of the pixels times their solid angle."""
         return self.surface_brightness.sum(axis=(1, 2)) * self.pixel_solid_angle_sr * 1e6

@@ -83,6 +83,25 @@ def polarization_maps(i, q, u, i_err=None, q_err=None, u_err=None):
     return p, p_err, chi, np.where(lin2 > 0, chi_err, np.nan)
 
 
+def circular_polarization(i, v, i_err=None, v_err=None):
+    """The degree of circular polarization V / I and its first-order error (NaN where I <= 0).
+
+    Parameters
+    ----------
+    i, v : ndarray (..., W, H)
+        Intensity and Stokes V (any one unit).
+    i_err, v_err : ndarray or None
+        Their standard errors (None: 0).
+    """
+    i, v = np.asarray(i, np.float64), np.asarray(v, np.float64)
+    si = np.zeros_like(i) if i_err is None else np.asarray(i_err, np.float64)
+    sv = np.zeros_like(v) if v_err is None else np.asarray(v_err, np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.where(i > 0, v / i, np.nan)
+        err = np.where(i > 0, np.sqrt((sv / i) ** 2 + (ratio * si / i) ** 2), np.nan)
+    return ratio, err
+
+
 def stokes_hdus(wcs_header, names, stokes):
     """FITS image HDUs ``Q_<band>`` and ``U_<band>`` (and ``V_<band>`` where ``stokes`` holds V)
     (MJy/sr, the intensity's WCS) of ``stokes`` (n_bands, 2 or 3, W, H) in the IAU convention
