@@ -26,7 +26,8 @@
  *      light scattered through 90 degrees (pol[0]).
  *   3  spherical grains by Mie theory (nebula_rt.optics.mie): per band a table at pol + pol[0]
  *      of pol[1] scattering angles (0 to 180 degrees in equal steps) with the rows mu, the
- *      cumulative probability from mu = 1, p(mu) = 2 pi S11, S12 / S11, S33 / S11, S34 / S11,
+ *      cumulative probability from mu = 1, p(mu) = 2 pi S11, S12 / S11, S33 / S11, S34 / S11
+ *      (then a guide table of the cumulative probability, nrt_mie_mu),
  *      all linear in mu between the nodes: theta is sampled exactly from that piecewise-linear
  *      p (a binary search and the root of a quadratic), and S34 makes V.
  * All keep S12^2 + S33^2 + S34^2 <= S11^2 (equality for Rayleigh, for White at p_l = 1 and for
@@ -77,11 +78,17 @@ NRT_DEVICE int nrt_mie_interval(const NRT_GLOBAL float *t, int n, float mu)
 /* The scattering cosine of a Mie table from xi in [0, 1): the interval by a binary search of
    the cumulative probabilities, then within it the root t of h (p0 t + (p1 - p0) t^2 / 2) =
    xi - P_i (mu = mu_i - t h), formed as 2 c / (p0 + sqrt(p0^2 + 2 (p1 - p0) c)) (no
-   cancellation). */
+   cancellation). The search starts from the guide table after the rows (entry j: the last
+   interval with cdf <= j / NRT_MIE_GUIDE), one cell wider on each side than xi's own so that the
+   rounding of xi * NRT_MIE_GUIDE cannot leave the answer outside: the interval, the unique one
+   with cdf[i] <= xi < cdf[i + 1], is the one a search of the whole table finds. NRT_MIE_GUIDE:
+   nebula_rt.backends.kernel_params.CONSTANTS. */
 NRT_DEVICE float nrt_mie_mu(const NRT_GLOBAL float *t, int n, float xi)
 {
-    const NRT_GLOBAL float *cdf = t + n, *p = t + 2 * n;
-    int lo = 0, hi = n - 1; /* cdf[lo] <= xi < cdf[hi] */
+    const NRT_GLOBAL float *cdf = t + n, *p = t + 2 * n, *guide = t + 6 * n;
+    int j = min((int)(xi * (float)NRT_MIE_GUIDE), NRT_MIE_GUIDE - 1);
+    int lo = j > 0 ? (int)guide[j - 1] : 0;
+    int hi = j + 2 <= NRT_MIE_GUIDE ? min((int)guide[j + 2] + 1, n - 1) : n - 1; /* cdf[lo] <= xi < cdf[hi] */
     while (hi - lo > 1) {
         int mid = (lo + hi) >> 1;
         if (cdf[mid] <= xi)

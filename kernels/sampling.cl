@@ -94,6 +94,15 @@ NRT_KERNEL void mueller_at(NRT_GLOBAL float *out, const NRT_GLOBAL float *mu, co
         out[4 * i + k] = m[k];
 }
 
+/* nrt_mie_mu of the Mie table at pol + pol[0] (pol[1] angles) at given xi. */
+NRT_KERNEL void mie_mu_at(NRT_GLOBAL float *mu, const NRT_GLOBAL float *xi, const NRT_GLOBAL float *pol, nrt_u64 n)
+{
+    nrt_u64 i = NRT_GLOBAL_ID();
+    if (i >= n)
+        return;
+    mu[i] = nrt_mie_mu(pol + (int)pol[0], (int)pol[1], xi[i]);
+}
+
 /* nrt_rayleigh_mu at given xi. */
 NRT_KERNEL void rayleigh_mu_at(NRT_GLOBAL float *mu, const NRT_GLOBAL float *xi, nrt_u64 n)
 {

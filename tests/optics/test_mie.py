@@ -390,3 +390,28 @@ def test_small_spheres_scatter_as_dipoles(backend):
     dipole = probes.mueller_at(backend, Polarization("rayleigh"), mu).astype(np.float64)
     np.testing.assert_allclose(mie[:, 0], dipole[:, 0], rtol=2e-4)
     np.testing.assert_allclose(mie[:, 1:], dipole[:, 1:], atol=2e-4)
+
+
+def test_kernel_inverts_the_tables_distribution_exactly(backend):
+    """nrt_mie_mu at given variates, those next to the guide table's cell edges j / 64 included
+    (one float32 step either side), against the inverse of the piecewise-linear distribution in
+    float64 NumPy (the interval by a search of the float32 table, then the quadratic's root): the
+    guide table only shortens the search, the answer is the interval's."""
+    from nebula_rt.optics.mie import GUIDE_CELLS
+
+    grains = Grains(n=1.5, k=0.01, radius_min=1.0, radius_max=1.0)  # x = 11.4: a sharp forward peak
+    pol = Polarization("mie", grains=grains)
+    t = np.asarray(mie_optics(grains, [550.0]).table[0], np.float32).astype(np.float64)
+    edges = np.arange(1, GUIDE_CELLS) / GUIDE_CELLS
+    xi = np.concatenate([np.random.default_rng(5).random(20_000), edges,
+                         np.nextafter(edges.astype(np.float32), np.float32(0)),
+                         np.nextafter(edges.astype(np.float32), np.float32(1)), t[1, 1:-1]]).astype(np.float32)
+    got = probes.mie_mu_at(backend, pol, xi, wavelength=550.0).astype(np.float64)
+    x = xi.astype(np.float64)
+    i = np.clip(np.searchsorted(t[1], x, side="right") - 1, 0, t.shape[1] - 2)
+    h = t[0, i] - t[0, i + 1]
+    c = (x - t[1, i]) / h
+    p0, p1 = t[2, i], t[2, i + 1]
+    s = 2 * c / (p0 + np.sqrt(np.maximum(p0 * p0 + 2 * (p1 - p0) * c, 0)))
+    want = t[0, i] - np.minimum(s, 1) * h
+    np.testing.assert_allclose(got, want, atol=2e-6)

@@ -19,6 +19,8 @@ import functools
 
 import numpy as np
 
+from ..optics.mie import GUIDE_CELLS
+
 _TYPES = {"u64": ("nrt_u64", np.uint64), "i32": ("int", np.int32), "f32": ("float", np.float32)}
 
 #: nrt_trace_params: the constants of one transport run (fields: name, type, count, meaning)
@@ -96,6 +98,8 @@ CONSTANTS = (
                             "escaped, terminated)"),
     ("NRT_TALLY_WEIGHTED", 10, "64-bit words of a weighted tally block's five 128-bit weight sums "
                                "(and the biasing)"),
+    ("NRT_MIE_GUIDE", GUIDE_CELLS, "cells of a Mie table's guide table (kernels/polarization.cl, nrt_mie_mu; "
+                                   "nebula_rt.optics.mie.guide_table)"),
 )
 CONSTANT = {name: value for name, value, _ in CONSTANTS}
 

@@ -215,6 +215,16 @@ def mueller_at(backend: Backend, pol, mu: np.ndarray, g: float = 0.0, wavelength
     return backend.to_host(d_out).reshape(n, 4)
 
 
+def mie_mu_at(backend: Backend, pol, xi: np.ndarray, wavelength: float = 550.0) -> np.ndarray:
+    """Scattering cosines ``nrt_mie_mu`` of a Mie kind's table (one band at ``wavelength``, nm)
+    at given uniform variates (float32)."""
+    xi = np.ascontiguousarray(xi, np.float32).reshape(-1)
+    d_mu = backend.device_zeros(xi.size, np.float32)
+    backend.launch("sampling.cl", "mie_mu_at", xi.size, d_mu, backend.to_device(xi),
+                   backend.to_device(_polar_params(pol, wavelength)), np.uint64(xi.size))
+    return backend.to_host(d_mu)
+
+
 def rayleigh_mu_at(backend: Backend, xi: np.ndarray) -> np.ndarray:
     """Rayleigh scattering cosines ``nrt_rayleigh_mu`` at given uniform variates (float32)."""
     xi = np.ascontiguousarray(xi, np.float32).reshape(-1)

@@ -56,6 +56,20 @@ N_ANGLES = 721
 ANGLES_SIZE_PARAMETER = 50.0
 #: rows of a band's table: mu, cumulative probability, p(mu) = 2 pi S11, S12/S11, S33/S11, S34/S11
 TABLE_ROWS = 6
+#: cells of a band's guide table after its rows (kernels/polarization.cl, NRT_MIE_GUIDE): entry
+#: j is the last interval whose cumulative probability is at most j / GUIDE_CELLS, so a scattering
+#: angle's binary search starts within a few intervals of its answer
+GUIDE_CELLS = 64
+
+
+def guide_table(cdf32: np.ndarray) -> np.ndarray:
+    """(GUIDE_CELLS + 1,) float32: for j = 0..GUIDE_CELLS the largest interval i (0 .. n - 2)
+    with cdf[i] <= j / GUIDE_CELLS, from the cumulative probabilities as the kernel reads them
+    (float32)."""
+    c = np.asarray(cdf32, np.float32).astype(np.float64)
+    j = np.arange(GUIDE_CELLS + 1, dtype=np.float64) / GUIDE_CELLS
+    i = np.searchsorted(c, j, side="right") - 1
+    return np.clip(i, 0, c.size - 2).astype(np.float32)
 #: the grain materials with shipped optical constants (name -> data file)
 MATERIALS = {"astronomical-silicate": "astrosilicate_draine2003.csv"}
 #: Mathis, Rumpl & Nordsieck (1977): radii 0.005-0.25 micron, n(a) ~ a^-3.5

@@ -25,7 +25,7 @@ from typing import Optional, Sequence, Union
 import numpy as np
 
 from ..errors import SceneError
-from .mie import Grains, TABLE_ROWS, mie_optics
+from .mie import GUIDE_CELLS, Grains, TABLE_ROWS, guide_table, mie_optics
 
 #: bands.polarization: the kinds of polarized scattering, and the kernel's number of each
 #: (kernels/polarization.cl, NRT_POLAR)
@@ -117,7 +117,7 @@ class Polarization:
     def kernel_params(self, n_bands: int, wavelengths_nm: Optional[Sequence[float]] = None) -> np.ndarray:
         """Flat float32: what kernels/polarization.cl reads, PARAMS_PER_BAND floats per band,
         then (``"mie"``: the bands' wavelengths in nm needed) each band's table of
-        TABLE_ROWS x angles floats. A Mie band's pol[0] is the distance in floats from its
+        TABLE_ROWS x angles floats and its guide table (GUIDE_CELLS + 1 floats). A Mie band's pol[0] is the distance in floats from its
         parameters to its table, pol[1] the table's angles."""
         params = np.zeros((n_bands, PARAMS_PER_BAND), np.float32)
         if self.kind == "white":
@@ -126,14 +126,14 @@ class Polarization:
             return params.reshape(-1)
         if wavelengths_nm is None or len(wavelengths_nm) != n_bands:
             raise ValueError("polarization 'mie' needs the bands' wavelengths")
-        table = mie_optics(self.grains, wavelengths_nm).table
+        table = np.asarray(mie_optics(self.grains, wavelengths_nm).table, np.float32)
         n_angles = table.shape[-1]
-        size = TABLE_ROWS * n_angles
+        size = TABLE_ROWS * n_angles + GUIDE_CELLS + 1
         b = np.arange(n_bands)
         params[:, 0] = PARAMS_PER_BAND * n_bands + size * b - PARAMS_PER_BAND * b
         params[:, 1] = n_angles
-        tables = np.asarray(table, np.float32).reshape(-1)
-        return np.concatenate([params.reshape(-1), tables])
+        tables = [np.concatenate([band.reshape(-1), guide_table(band[1])]) for band in table]
+        return np.concatenate([params.reshape(-1)] + tables)
 
 NONE = Polarization()
 
