@@ -57,7 +57,7 @@ CASES = [("track-length", "plain"), ("collision-filter", "plain"),
          ("collision-filter", "packets+copied"), ("track-length", "tree"), ("collision-filter", "tree+copied"),
          ("track-length", "tree+biased"), ("track-length", "polarized+checked"),
          ("collision-filter", "polarized+copied"), ("track-length", "polarized+biased"),
-         ("track-length", "polarized+regions")]
+         ("track-length", "polarized+regions"), ("track-length", "mie+biased")]
 
 
 @pytest.fixture(scope="module")
@@ -78,7 +78,8 @@ def test_trace_is_the_same_bits_on_1_2_3_ranks(rank_runs, case):
     streamed through launches of about 300 packets and drained at the group's last;
     'packets': the error estimate by packets, the ranks' squares added as well; 'tree': an
     octree of the cloud, its leaves the cells, with weighted packets too; 'polarized': Stokes
-    vectors, the Q and U images' two's-complement sums added over the ranks)."""
+    vectors, the Q and U images' two's-complement sums added over the ranks; 'mie': Mie grains'
+    tables made by every rank, and V's image too)."""
     estimator, mode = case
     runs = {n: rank_runs[n][case] for n in (1, 2, 3)}
     one = runs[1]
@@ -91,6 +92,8 @@ def test_trace_is_the_same_bits_on_1_2_3_ranks(rank_runs, case):
         assert one["band_batches"].min() > 7  # the overflow happened and batches were split
     if "polarized" in mode:
         assert one["stokes"].shape == (2, 2, 12, 10) and np.abs(one["stokes"]).sum() > 0
+    if "mie" in mode:  # (Mie grains: V too)
+        assert one["stokes"].shape == (2, 3, 12, 10) and np.abs(one["stokes"][:, 2]).sum() > 0
     for n in (2, 3):
         for key in ("raw_sum", "raw_m2", "counts", "peel", "band_batches", "tail_hist", "stokes"):
             assert runs[n][key].tobytes() == one[key].tobytes(), (n, key)

@@ -8,7 +8,7 @@ Each ESTIMATOR:MODE is one run, saved as OUTDIR/ESTIMATOR-MODE.npz (one process 
 an MPI job's start-up costs more than a run).
 
 MODE: ``plain``, ``checked`` (headroom lowered: batches overflow and are re-traced), ``biased``
-(weighted packets, 128-bit cells), ``polarized`` (Stokes vectors: the Q and U images' signed
+(weighted packets, 128-bit cells), ``mie`` (Mie grains: Q, U and V), ``polarized`` (Stokes vectors: the Q and U images' signed
 sums added over the ranks too), ``regions`` (the transport by regions, each group streamed
 through launches of about 300 packets) or ``packets`` (the error estimate by packets: one batch,
 its squares summed over the ranks too, no peel-off image) or ``tree`` (an octree of the cloud:
@@ -67,6 +67,13 @@ def run_case(out: str, estimator: str, mode: str, device: str, comm) -> None:
         from nebula_rt.optics.polarization import Polarization
 
         kw["polarization"] = Polarization("white", peak=0.5)
+    if "mie" in parts:  # Mie grains: their tables, each rank's own, and V's image besides Q and U
+        from nebula_rt.optics.mie import Grains, mie_bands
+        from nebula_rt.optics.polarization import Polarization
+
+        grains = Grains(n=1.6, k=0.02, radius_min=0.05, radius_max=0.4)
+        kw["polarization"] = Polarization("mie", grains=grains)
+        bands = mie_bands(bands, grains)
     if "packets" in parts:  # one batch of every packet, no peel-off image (it needs batches)
         kw.update(error_estimate="packets", batch_size=0, peel=None, tau=2.5)
     backend.launch_packets = 2 * 3 * 1500  # several launches, each of several batches
