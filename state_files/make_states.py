@@ -23,12 +23,14 @@ One for an adaptive density:
                                    Colour, shown as an rgba volume with its star. Its FileName is
                                    relative to the repository, as fit_result's.
 
-One for polarization:
+Two for polarization:
 
 - polarized_nebula.pvsm            turbulent dust around a central star scattering by White's
                                    approximation (Nebula Light Field's Polarization), its sky image
                                    traced with Method peel-off, and Nebula Polarization Vectors over
                                    it in the sky view: the centrosymmetric pattern about the star.
+- mie_nebula.pvsm                  the same with Mie grains (MRN astronomical silicate: the Grain
+                                   properties), whose sky image holds Stokes V too.
 
 And one for a fit's result:
 
@@ -286,17 +288,24 @@ def build_adaptive(photons, device):
 POLARIZED_SIZE = [700, 700]
 
 
-def build_polarized(photons, device):
+#: the polarized states' scattering: White's approximation, and Mie grains (MRN astronomical silicate)
+POLARIZED_OPTICS = {"polarized_nebula": dict(Polarization="white", PeakPolarization=0.5),
+                    "mie_nebula": dict(Polarization="mie", GrainMaterial="astronomical-silicate",
+                                       GrainRadiusMin=0.005, GrainRadiusMax=0.25, GrainSizeSlope=3.5)}
+
+
+def build_polarized(photons, device, name="polarized_nebula"):
     """The polarized nebula: turbulent dust (48^3, the thesis's noise, tau 6) around a central
-    15 000 K star, scattering by White's approximation (p_l 0.5) -> Nebula Sky Image (peel-off,
-    96^2 pixels over the box) -> Nebula Polarization Vectors (blocks of 6 pixels, P >= 3 errors),
-    the picture and its vectors in the sky image's own view."""
+    15 000 K star, scattering by White's approximation (p_l 0.5) or (``mie_nebula``) by Mie
+    grains -> Nebula Sky Image (peel-off, 96^2 pixels over the box; Mie grains add V) -> Nebula
+    Polarization Vectors (blocks of 6 pixels, P >= 3 errors), the picture and its vectors in the
+    sky image's own view."""
     reset_session()
     star = [0.5, 0.5, 0.5, 1.0, 15000.0, 0.0]
     dust = simple.NebulaDustDensity(registrationName="Dust (polarized)", GridShape=[48, 48, 48], Stars=star,
                                     Device=device)
     light = simple.NebulaLightField(dust, registrationName="Light field (polarized)", Tau=6.0,
-                                    Photons=photons, Device=device, Polarization="white", PeakPolarization=0.5)
+                                    Photons=photons, Device=device, **POLARIZED_OPTICS[name])
     light.DensityArray = ["POINTS", "density"]
     sky = simple.NebulaSkyImage(light, registrationName="Sky image (peel-off)", ImageSize=[96, 96], Extent=1.0,
                                 Method="peel-off")
@@ -305,7 +314,7 @@ def build_polarized(photons, device):
     view = simple.CreateView("NebulaSkyView")
     simple.AssignViewToLayout(view)
     layout = simple.GetLayout(view)
-    simple.RenameLayout("polarized_nebula", layout)
+    simple.RenameLayout(name, layout)
     layout.PreviewMode = POLARIZED_SIZE
     view.ViewSize = POLARIZED_SIZE
     simple.Show(sky, view)
@@ -371,13 +380,15 @@ def main(argv=None):
                        args.screenshots and os.path.join(cwd, args.screenshots))
         finally:
             os.chdir(cwd)
-    if not args.only or "polarized_nebula" in args.only:
-        view, algs = build_polarized(args.photons, args.device)
+    for name in POLARIZED_OPTICS:
+        if args.only and name not in args.only:
+            continue
+        view, algs = build_polarized(args.photons, args.device, name)
         simple.Render(view)
         errors = [a.GetClientSideObject().last_error for a in algs]
         if any(errors):
-            raise SystemExit(f"polarized_nebula: {errors}")
-        save_state(view, "polarized_nebula", POLARIZED_SIZE, args.out, args.screenshots)
+            raise SystemExit(f"{name}: {errors}")
+        save_state(view, name, POLARIZED_SIZE, args.out, args.screenshots)
     for name, spec in FIGURES.items():
         if args.only and name not in args.only:
             continue

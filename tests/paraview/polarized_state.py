@@ -1,4 +1,4 @@
-"""The polarization example's state (state_files/polarized_nebula.pvsm), loaded as a user loads it.
+"""A polarization example's state (state_files/polarized_nebula.pvsm, mie_nebula.pvsm), loaded as a user loads it.
 
     pvpython polarized_state.py STATE.pvsm OUT.png
 
@@ -38,5 +38,5 @@ pa = np.degrees(np.arctan2(-(mid[:, 0] - 0.5), mid[:, 1] - 0.5)) if len(mid) els
 off = np.abs(((angle - pa - 90.0) + 90.0) % 180.0 - 90.0)
 _common.result(errors=[a.GetClientSideObject().last_error for a in (light, sky, vectors)],
                view=view.GetXMLName(), size=size, segments=int(vec.GetNumberOfCells()),
-               stokes=[n for n in ("Q_G", "U_G") if img.GetPointData().GetArray(n) is not None],
+               stokes=[n for n in ("Q_G", "U_G", "V_G") if img.GetPointData().GetArray(n) is not None],
                median_deviation_deg=float(np.median(off)) if len(off) else None, png=png)

@@ -781,6 +781,19 @@ def test_the_adaptive_example_state_loads_and_renders(pv_env, xdisplay, tmp_path
     assert centre[:, 2].mean() > centre[:, 0].mean() + 20, centre.mean(axis=0)
 
 
+def test_the_mie_example_state_loads_and_renders(pv_env, xdisplay, tmp_path):
+    """state_files/mie_nebula.pvsm: Mie grains on the light field (the Grain properties), its
+    sky image with Stokes Q, U and V, the vectors tangential about the star."""
+    png = tmp_path / "mie.png"
+    r, _ = run_pv(pv_env, xdisplay, "polarized_state.py", REPO / "state_files" / "mie_nebula.pvsm", png,
+                  timeout=300)
+    assert r["errors"] == [None, None, None] and r["view"] == "NebulaSkyView", r
+    assert r["stokes"] == ["Q_G", "U_G", "V_G"] and r["segments"] >= 50, r
+    assert r["median_deviation_deg"] < 10.0, r
+    im = read_png(png)
+    assert im.mean() > 10 and 0.002 < (im.min(axis=2) > 240).mean() < 0.2
+
+
 def test_the_polarization_example_state_loads_and_renders(pv_env, xdisplay, tmp_path):
     """state_files/polarized_nebula.pvsm from another folder: the polarized light field, its
     peel-off sky image with Stokes Q and U, and the vectors over it in the sky view, tangential
@@ -790,7 +803,7 @@ def test_the_polarization_example_state_loads_and_renders(pv_env, xdisplay, tmp_
     r, _ = run_pv(pv_env, xdisplay, "polarized_state.py", REPO / "state_files" / "polarized_nebula.pvsm", png,
                   timeout=300)
     assert r["errors"] == [None, None, None] and r["view"] == "NebulaSkyView", r
-    assert r["stokes"] == ["Q_G", "U_G"] and r["segments"] >= 50, r
+    assert r["stokes"] == ["Q_G", "U_G"] and r["segments"] >= 50, r  # (White's: no V)
     assert r["median_deviation_deg"] < 10.0, r
     im = read_png(png)
     assert list(im.shape[1::-1]) == r["size"] == [700, 700]
