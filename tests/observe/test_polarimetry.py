@@ -145,6 +145,18 @@ def test_cli_sky_writes_stokes_extensions_and_vectors(tmp_path, capsys):
     assert not (out / "rm.fits").exists() and not (out / "p.fits").exists()
 
 
+def _mie_scene(n, photons, pa=0.0):
+    """Mie grains of one size (0.2 micron) in a uniform box, its star off the centre (so V does
+    not cancel), in physical units for the calibrated sky."""
+    return Scene.from_dict({
+        "grid": {"shape": [n, n, n], "length": "0.2 pc"},
+        "dust": {"model": "uniform", "tau": 3.0, "floor": 0.0},
+        "stars": [{"position": [0.35, 0.5, 0.45], "luminosity_lsun": 100.0, "temperature": 9000.0}],
+        "bands": {"preset": "thesis-rgb", "polarization": "mie", "grain_radius_min": 0.2, "grain_radius_max": 0.2},
+        "transport": {"photons": photons, "seed": 4, "backend": TEST_BACKEND, "device": TEST_DEVICE},
+        "observer": {"distance": "50 pc", "psf_fwhm": 0.0, "position_angle": pa}})
+
+
 def test_cli_sky_writes_circular_polarization_of_mie_grains(tmp_path, capsys):
     """Mie grains: ``V_<band>`` after Q and U, the same units and WCS, |V| within the intensity;
     V does not turn with the position angle (only Q and U do)."""
@@ -154,13 +166,7 @@ def test_cli_sky_writes_circular_polarization_of_mie_grains(tmp_path, capsys):
 
     heads = {}
     for pa in (0.0, 90.0):
-        s = Scene.from_dict({
-            "grid": {"shape": [16, 16, 16], "length": "0.2 pc"},
-            "dust": {"model": "uniform", "tau": 3.0, "floor": 0.0},
-            "stars": [{"position": [0.35, 0.5, 0.45], "luminosity_lsun": 100.0, "temperature": 9000.0}],
-            "bands": {"preset": "thesis-rgb", "polarization": "mie", "grain_radius_min": 0.2, "grain_radius_max": 0.2},
-            "transport": {"photons": 40_000, "seed": 4, "backend": TEST_BACKEND, "device": TEST_DEVICE},
-            "observer": {"distance": "50 pc", "psf_fwhm": 0.0, "position_angle": pa}})
+        s = _mie_scene(16, 40_000, pa)
         (tmp_path / "s.toml").write_text(s.to_toml())
         fits_path = tmp_path / f"sky{int(pa)}.fits"
         status = cli.main(["sky", str(tmp_path / "s.toml"), "--fits", str(fits_path), "--size", "16", "-q",
@@ -182,13 +188,7 @@ def test_cli_sky_writes_circular_polarization_of_mie_grains(tmp_path, capsys):
 def test_circular_polarization_maps_of_mie_grains(backend):
     """CalibratedSky.circular_polarization: V / I of the scattered light pixel by pixel, its
     first-order error from V's and I's; None where the grains give no V."""
-    s = Scene.from_dict({
-        "grid": {"shape": [12, 12, 12], "length": "0.2 pc"},
-        "dust": {"model": "uniform", "tau": 3.0, "floor": 0.0},
-        "stars": [{"position": [0.35, 0.5, 0.45], "luminosity_lsun": 100.0, "temperature": 9000.0}],
-        "bands": {"preset": "thesis-rgb", "polarization": "mie", "grain_radius_min": 0.2, "grain_radius_max": 0.2},
-        "transport": {"photons": 30_000, "seed": 4, "backend": TEST_BACKEND, "device": TEST_DEVICE},
-        "observer": {"distance": "50 pc", "psf_fwhm": 0.0}})
+    s = _mie_scene(12, 30_000)
     cal, _ = calibrate.peel_off_sky(s, calibrate.camera_for(s, (0.0, 0.0, -1.0), 12, extent=1.0), backend)
     ratio, err = cal.circular_polarization()
     lit = cal.scattered > 0
