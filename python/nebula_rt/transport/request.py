@@ -224,10 +224,12 @@ def trace(
         benchmarks/profile_fit_trace.py). Needs ``peel`` and no ``target_error`` (which is
         J's error).
     polarization : nebula_rt.optics.polarization.Polarization
-        Packets carry a Stokes vector and scatter by this Mueller matrix (Rayleigh, or the
-        bands' Henyey-Greenstein phase function with White's linear polarization; analog or
+        Packets carry a Stokes vector and scatter by this Mueller matrix (Rayleigh, the
+        bands' Henyey-Greenstein phase function with White's linear polarization, or Mie grains,
+        whose optics the bands must carry: :func:`nebula_rt.optics.mie.mie_bands`; analog or
         weighted packets, by regions too). With ``peel``: ``result.peel_stokes``,
-        the Q and U images (n_bands, 2, W, H) in the units of ``peel_image``, IAU convention
+        the Q and U images (n_bands, 2, W, H; Mie grains: Q, U and V, (n_bands, 3, W, H)) in the
+        units of ``peel_image``, IAU convention
         (the camera's up axis as north, east = the direction to the observer x north: to the
         image's left), and ``result.peel_stokes_error`` their batch-means standard errors.
     """
