@@ -101,7 +101,7 @@ class TransportResult:
     #: polarized runs with a peel-off image (``trace(polarization=...)``): Stokes Q and U (and V
     #: for Mie grains), (n_bands, 2 or 3, W, H) in the units of ``peel_image`` (IAU convention in the camera's frame:
     #: its up axis north, east to the image's left), their batch-means standard errors, and with
-    #: ``peel_bins`` every batch's Q and U summed over each group, (batches, n_bands, 2, n_groups)
+    #: ``peel_bins`` every batch's Stokes images summed over each group, (batches, n_bands, 2 or 3, n_groups)
     peel_stokes: Optional[np.ndarray] = None
     peel_stokes_error: Optional[np.ndarray] = None
     peel_stokes_bin_batches: Optional[np.ndarray] = None
