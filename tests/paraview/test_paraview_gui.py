@@ -520,15 +520,17 @@ def test_state_file_in_the_gui_keeps_its_figure(pv_env, xdisplay, tmp_path, name
     assert sum("tau 128" in t and "albedo series" in t for t in texts) == 1, texts
 
 
-def test_the_polarization_state_in_the_gui_shows_the_vectors_over_the_picture(pv_env, xdisplay, tmp_path):
-    """``paraview --state=state_files/polarized_nebula.pvsm`` (Device pinned to the test device):
-    one sky view showing the peel-off sky image (Slice) and Nebula Polarization Vectors (their
-    segments, white, over it); the window's picture holds the lit nebula and the segments."""
-    text = (REPO / "state_files" / "polarized_nebula.pvsm").read_text()
+@pytest.mark.parametrize("name", ["polarized_nebula", "mie_nebula"])
+def test_the_polarization_state_in_the_gui_shows_the_vectors_over_the_picture(pv_env, xdisplay, tmp_path, name):
+    """``paraview --state=state_files/polarized_nebula.pvsm`` (and ``mie_nebula.pvsm``, Mie
+    grains; Device pinned to the test device): one sky view showing the peel-off sky image
+    (Slice) and Nebula Polarization Vectors (their segments, white, over it); the window's
+    picture holds the lit nebula and the segments."""
+    text = (REPO / "state_files" / f"{name}.pvsm").read_text()
     pinned = re.sub(r'(<Property name="Device" id="[^"]+" number_of_elements="1">\s*<Element index="0" value=)""',
                     lambda m: m.group(1) + quoteattr(pv_env["NEBULA_RT_TEST_DEVICE"]), text)
     assert pinned.count(pv_env["NEBULA_RT_TEST_DEVICE"]) == 2
-    state = tmp_path / "polarized_nebula.pvsm"
+    state = tmp_path / f"{name}.pvsm"
     state.write_text(pinned)
     out = run_gui(pv_env, xdisplay, tmp_path, probe("state", grab=True), args=(f"--state={state}",))
     r = step_record(out, "state")
