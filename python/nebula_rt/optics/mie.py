@@ -196,10 +196,14 @@ def _per_band(key: str, value: Number, n_bands: int) -> np.ndarray:
     return np.full(n_bands, float(value))
 
 
+def _material_text(material: str) -> str:
+    return resources.files("nebula_rt").joinpath("data", MATERIALS[material]).read_text()
+
+
 @functools.lru_cache(maxsize=None)
 def material_table(material: str) -> np.ndarray:
     """(rows, 3): wavelength (micron), n, k of a material of :data:`MATERIALS`."""
-    text = resources.files("nebula_rt").joinpath("data", MATERIALS[material]).read_text()
+    text = _material_text(material)
     rows = [ln.split(",") for ln in text.splitlines() if ln and not ln.startswith("#")][1:]
     return np.asarray(rows, np.float64)
 
@@ -208,8 +212,7 @@ def material_table(material: str) -> np.ndarray:
 def material_density(material: str) -> float:
     """The bulk density of a material of :data:`MATERIALS`, g cm^-3 (its data file's
     ``bulk_density_g_cm3`` line)."""
-    text = resources.files("nebula_rt").joinpath("data", MATERIALS[material]).read_text()
-    for line in text.splitlines():
+    for line in _material_text(material).splitlines():
         if line.startswith("# bulk_density_g_cm3"):
             return float(line.split("=")[1])
     raise ValueError(f"{MATERIALS[material]}: no bulk_density_g_cm3 line")
