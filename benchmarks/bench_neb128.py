@@ -85,8 +85,12 @@ def mcx_config(photons: int, n: int = N) -> dict:
 
 
 _MCX_CHILD = """
-import json, sys, time
+import ctypes, ctypes.util, json, sys, time
 import numpy as np
+# pmcxcl links libstdc++ statically and exports its locale facets' unique symbols: loaded first,
+# they break the iostreams of PoCL's LLVM (its build options end at the first number, and the
+# kernel fails with "stdint.h not found"). The system libstdc++ loaded before pmcxcl owns them.
+ctypes.CDLL(ctypes.util.find_library("stdc++"), mode=ctypes.RTLD_GLOBAL)
 sys.path.insert(0, {here!r})
 from bench_neb128 import mcx_config
 mcx = __import__({module!r})

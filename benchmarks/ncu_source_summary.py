@@ -35,12 +35,15 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     with open(args.csv, newline="") as f:
         lines = [ln for ln in f if ln.strip() and not ln.startswith("==")]
-    rows = list(csv.DictReader(lines))
+    # ncu heads the table with the kernel's name ("Kernel Name","trace_photons"): the header row
+    # is the first that names the columns
+    start = next((i for i, ln in enumerate(lines) if ln.startswith('"Address"') or ln.startswith('"#"')), 0)
+    rows = list(csv.DictReader(lines[start:]))
     if not rows:
         print("no rows")
         return 1
     cols = list(rows[0])
-    print("columns:", cols)
+    print("columns:", len(cols))
 
     def col(*names):
         for n in names:

@@ -9,7 +9,7 @@
 # with `pip wheel`: no wheel on PyPI); pmcx and pmcxcl for the MCX comparison), fetched elsewhere
 # with `pip download --only-binary=:all: --python-version 3.12 --no-deps ...`.
 # STEPS (default "tests bench neb128 compare profile"; also "tests-cuda", "thick", "thick-grid", "trust", "scaling", "large", "regions", "regcaps", "profile-regions", "layout", "sorted", "probe", "ranks", "ranks-thesis", "ranks-weak", "tests-mpi", "e2e1e9", "biasing", "fit", "fitprof", "tune",
-# "stages", "kernel-probes", "polarization", "ncu-thesis", "ncu-source", "tree", "tree-targets", "tree-ascend", "trade", "presets", "empty", "fft") selects what runs. Everything printed
+# "stages", "kernel-probes", "polarization", "mcx", "mcx1024", "ncu-thesis", "ncu-source", "tree", "tree-targets", "tree-ascend", "trade", "presets", "empty", "fft") selects what runs. Everything printed
 # goes to OUTDIR/log.txt as well; JSON and .npz results beside it.
 set -uo pipefail
 out="${1:?output folder}"
@@ -235,6 +235,17 @@ if [[ " $steps " == *" compare "* ]]; then
     echo "== same seed on CUDA and NVIDIA OpenCL, biased transport"
     python3 benchmarks/compare_backends.py --run cuda: --run opencl:NVIDIA --set 'transport.method="biased"' \
         --save-dir "$out" --out "$out/compare-biased.json" | grep -E '"(a|b|max_count|median|z_std)'
+fi
+if [[ " $steps " == *" mcx "* ]]; then
+    # NebulaRT, pmcx and pmcxcl (NVIDIA OpenCL) on the uniform and the lognormal medium, each
+    # configuration in its own process (about 8 min on an H200; MCX_GRIDS / MCX_PHOTONS narrow it)
+    echo "== beside MCX and MCX-CL: uniform and turbulent media"
+    python3 benchmarks/bench_mcx.py --backend cuda --grids ${MCX_GRIDS:-64 128 256 512} --photons ${MCX_PHOTONS:-1e7 1e8} \
+        --repeats 3 --out "$out/mcx-cuda.json"
+fi
+if [[ " $steps " == *" mcx1024 "* ]]; then
+    echo "== beside MCX and MCX-CL at 1024^3"
+    python3 benchmarks/bench_mcx.py --backend cuda --grids 1024 --photons 1e8 --repeats 1 --out "$out/mcx-cuda-1024.json"
 fi
 if [[ " $steps " == *" kernel-probes "* ]]; then
     # where the thesis headline's kernel time goes: the probes of kernels/transport.cl (no
