@@ -84,6 +84,10 @@
 #ifndef NRT_GROUP_TALLY
 #define NRT_GROUP_TALLY 0
 #endif
+#ifndef NRT_GROUP_LAST_OUT
+/* NRT_GROUP_TALLY's flush by the group's last work item to finish, not after a barrier */
+#define NRT_GROUP_LAST_OUT 0
+#endif
 #ifndef NRT_IDX32
 #define NRT_IDX32 0
 #endif
@@ -1939,6 +1943,9 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
     NRT_LOCAL_MEM nrt_u64 l_tally[4];
     NRT_LOCAL_MEM nrt_u64 l_hot[NRT_HOT_STARS * NRT_HOT_CELLS];
     NRT_LOCAL_MEM nrt_u64 l_hot_sq[NRT_PACKET_SQ ? NRT_HOT_STARS * NRT_HOT_CELLS : 1];
+    NRT_LOCAL_MEM nrt_u32 l_done; /* NRT_GROUP_LAST_OUT: work items past their packets */
+    if (lid == 0)
+        l_done = 0;
     /* strided: a runtime may choose groups of fewer than 4 (or NRT_HOT_STARS) work items,
        e.g. OpenCL's own choice of local size for a global size with no small factor */
     for (nrt_u64 i = lid; i < 4; i += NRT_LOCAL_SIZE())
@@ -2038,11 +2045,24 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
     }
 #if NRT_GROUP_TALLY
     /* the group's local sums go to global memory once */
+#if NRT_GROUP_LAST_OUT
+    /* by the last work item to finish: the others leave at once instead of holding their
+       warps at a barrier until the group's longest packet ends (on an H200, 20 % of the thesis
+       kernel's stall samples waited there: benchmarks/results/h200-2026-12-05/). Each item's
+       fence orders its local adds before its count; the last one's orders its reads after. */
+    NRT_FENCE_LOCAL();
+    if (NRT_ATOMIC_ADD_U32_LOCAL(&l_done, 1u) != (nrt_u32)NRT_LOCAL_SIZE() - 1u)
+        return;
+    NRT_FENCE_LOCAL();
+    const nrt_u64 flush0 = 0, flush_step = 1;
+#else
     NRT_BARRIER();
-    for (nrt_u64 i = lid; i < 4; i += NRT_LOCAL_SIZE())
+    const nrt_u64 flush0 = lid, flush_step = NRT_LOCAL_SIZE();
+#endif
+    for (nrt_u64 i = flush0; i < 4; i += flush_step)
         if (l_tally[i] != 0)
             NRT_ATOMIC_ADD_U64(&tallies[NRT_TALLY_WORDS * home_cell + i], l_tally[i]);
-    for (nrt_u64 i = lid; i < NRT_HOT_STARS * NRT_HOT_CELLS; i += NRT_LOCAL_SIZE()) {
+    for (nrt_u64 i = flush0; i < NRT_HOT_STARS * NRT_HOT_CELLS; i += flush_step) {
         /* only cells something was added to: those lie inside the grid */
         int s = (int)(i / NRT_HOT_CELLS), c = (int)(i % NRT_HOT_CELLS);
         if (s >= n_stars || (l_hot[i] == 0 && (!NRT_PACKET_SQ || l_hot_sq[NRT_PACKET_SQ ? i : 0] == 0)))

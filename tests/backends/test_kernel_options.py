@@ -172,8 +172,9 @@ def test_groups_split_into_short_launches_give_the_same_bits(cloud, monkeypatch)
 @pytest.mark.parametrize("error_estimate", ["batches", "packets"])
 def test_star_blocks_of_every_size_give_the_same_bits(cloud, error_estimate):
     """The work-group sums of the voxels around each star (NRT_HOT_HALF: blocks of 1, 3^3, 5^3
-    and 7^3 voxels) against no work-group sums: the same batch sums, squares (per-packet visit
-    squares too) and counts. The stars test the blocks' edges: one in a corner (its block
+    and 7^3 voxels), flushed after a barrier or by the group's last work item to finish
+    (NRT_GROUP_LAST_OUT), against no work-group sums: the same batch sums, squares (per-packet
+    visit squares too) and counts. The stars test the blocks' edges: one in a corner (its block
     mostly outside the grid), one on a face, two whose blocks overlap, and a fifth star beyond
     the NRT_HOT_STARS that get a block."""
     stars = [Star(position=(0.01, 0.02, 0.99), luminosity=1.0, temperature=None, bump_radius=0.0),
@@ -184,7 +185,8 @@ def test_star_blocks_of_every_size_give_the_same_bits(cloud, error_estimate):
     runs = []
     for options in ({"NRT_GROUP_TALLY": 0}, {"NRT_GROUP_TALLY": 1, "NRT_HOT_HALF": 0},
                     {"NRT_GROUP_TALLY": 1, "NRT_HOT_HALF": 1}, {"NRT_GROUP_TALLY": 1},
-                    {"NRT_GROUP_TALLY": 1, "NRT_HOT_HALF": 3}):
+                    {"NRT_GROUP_TALLY": 1, "NRT_HOT_HALF": 3},
+                    {"NRT_GROUP_TALLY": 1, "NRT_GROUP_LAST_OUT": 1}):
         be = _backend(options)
         batches = {"batch_size": 1500} if error_estimate == "batches" else {}
         runs.append(trace(cloud, _bands(), stars, tau=25.0, photons=6000, seed=9, backend=be,
