@@ -9,7 +9,7 @@
 # with `pip wheel`: no wheel on PyPI); pmcx and pmcxcl for the MCX comparison), fetched elsewhere
 # with `pip download --only-binary=:all: --python-version 3.12 --no-deps ...`.
 # STEPS (default "tests bench neb128 compare profile"; also "tests-cuda", "thick", "thick-grid", "trust", "scaling", "large", "regions", "regcaps", "profile-regions", "layout", "sorted", "probe", "ranks", "ranks-thesis", "ranks-weak", "tests-mpi", "e2e1e9", "biasing", "fit", "fitprof", "tune",
-# "stages", "kernel-probes", "polarization", "mcx", "mcx1024", "group-last-out", "ncu-thesis", "ncu-source", "tree", "tree-targets", "tree-ascend", "trade", "presets", "empty", "fft") selects what runs. Everything printed
+# "stages", "kernel-probes", "polarization", "mcx", "mcx1024", "refill", "ncu-thesis", "ncu-source", "tree", "tree-targets", "tree-ascend", "trade", "presets", "empty", "fft") selects what runs. Everything printed
 # goes to OUTDIR/log.txt as well; JSON and .npz results beside it.
 set -uo pipefail
 out="${1:?output folder}"
@@ -243,14 +243,17 @@ if [[ " $steps " == *" mcx "* ]]; then
     python3 benchmarks/bench_mcx.py --backend cuda --grids ${MCX_GRIDS:-64 128 256 512} --photons ${MCX_PHOTONS:-1e7 1e8} \
         --repeats 3 --out "$out/mcx-cuda.json"
 fi
-if [[ " $steps " == *" group-last-out "* ]]; then
-    # the group tally flushed by the group's last work item (no barrier) against after a barrier,
-    # alternated twice: the thesis scene's kernels at 128^3 and the neb medium at 128^3 and 256^3
-    echo "== NRT_GROUP_LAST_OUT, thesis 128^3 and the neb medium, CUDA"
+if [[ " $steps " == *" refill "* ]]; then
+    # work items that take their group's next packet as their last one ends (NRT_REFILL, R per
+    # work item) and the group tally flushed by the group's last work item (NRT_GROUP_LAST_OUT)
+    # against the kernel as built, in turn twice: the thesis scene's kernels at 128^3 and the neb
+    # medium at 64^3 and 128^3 (256^3 and up go by regions, which take no refill)
+    t=("" "NRT_REFILL=4" "NRT_REFILL=16" "NRT_REFILL=64" "NRT_GROUP_LAST_OUT=1" "NRT_REFILL=16 NRT_GROUP_LAST_OUT=1")
+    echo "== NRT_REFILL and NRT_GROUP_LAST_OUT, thesis 128^3 and the neb medium, CUDA"
     python3 benchmarks/profile_kernels.py --scene examples/scenes/thesis-default.toml --grids 128 --photons 2.1e6 \
-        --tuning "" "NRT_GROUP_LAST_OUT=1" "" "NRT_GROUP_LAST_OUT=1" --out "$out/last-out-thesis.json" 2>&1 | grep -v Warning
-    python3 benchmarks/profile_kernels.py --grids 128 256 --photons 2.1e7 \
-        --tuning "" "NRT_GROUP_LAST_OUT=1" --out "$out/last-out-neb.json" 2>&1 | grep -v Warning
+        --tuning "${t[@]}" "${t[@]}" --out "$out/refill-thesis.json" 2>&1 | grep -v Warning
+    python3 benchmarks/profile_kernels.py --grids 64 128 --photons 2.1e7 \
+        --tuning "${t[@]}" --out "$out/refill-neb.json" 2>&1 | grep -v Warning
 fi
 if [[ " $steps " == *" mcx1024 "* ]]; then
     echo "== beside MCX and MCX-CL at 1024^3"

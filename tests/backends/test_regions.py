@@ -66,7 +66,8 @@ def test_regions_give_the_same_bits(cloud, estimator):
     plain = _run(cloud, {"NRT_REGIONS": 0}, estimator)
     assert plain.counts[:, 0].tolist() == [9000, 9000]
     for tuning in ({"NRT_REGIONS": 1}, {"NRT_REGIONS": 2}, {"NRT_REGIONS": 3, "NRT_SORTED": 1},
-                   {"NRT_REGIONS": 2, "NRT_GROUP_TALLY": 1, "NRT_PREFETCH": 0}):
+                   {"NRT_REGIONS": 2, "NRT_GROUP_TALLY": 1, "NRT_PREFETCH": 0},
+                   {"NRT_REGIONS": 2, "NRT_REFILL": 4}):  # (the walk by regions takes no refill: asked, it is off)
         _same(_run(cloud, dict(tuning, region_tail=0), estimator), plain)
 
 
