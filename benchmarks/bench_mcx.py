@@ -3,7 +3,7 @@
 
     python benchmarks/bench_mcx.py [--backend cuda|opencl] [--device SEL] [--codes nebula pmcx pmcxcl]
                                    [--media uniform turbulent] [--grids 64 128] [--photons 1e7]
-                                   [--repeats 3] [--sigma-ln 1.0] [--out FILE]
+                                   [--repeats 3] [--sigma-ln 1.0] [--tuning KEY=VALUE ...] [--out FILE]
 
 The scene is bench_neb128's medium scaled to n^3 voxels: an isotropic source at the box centre,
 albedo 0.6, g 0.6, no reflection, and extinction 2 per box edge at density 1 (optical depth 1
@@ -49,6 +49,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from tuning import add_tuning_argument  # benchmarks/tuning.py
 
 HERE = Path(__file__).resolve().parent
 TAU = 2.0  # extinction per box edge at density 1 (optical depth 1 from the centre to a face)
@@ -110,11 +111,13 @@ def nebula_scene(medium_file: str | None, n: int, photons: int, backend: str, de
     })
 
 
-def child_nebula(medium_file, n, photons, repeats, backend_name, device) -> dict:
+def child_nebula(medium_file, n, photons, repeats, backend_name, device, tuning=()) -> dict:
     from nebula_rt.backends import get_backend
     from nebula_rt.pipeline import Pipeline
+    from tuning import apply_tuning  # benchmarks/tuning.py
 
     backend = get_backend(backend_name, device)
+    apply_tuning(backend, tuning)
     Pipeline(backend).run(nebula_scene(medium_file, n, 10_000, backend_name, device), colour=False)  # compile
     scene = nebula_scene(medium_file, n, photons, backend_name, device)
     runs = []
@@ -183,8 +186,10 @@ def child_mcx(code, medium_file, n, photons, repeats) -> dict:
 
 
 # --------------------------------------------------------------------------------------------
-def _run_child(args: list, timeout: float) -> dict:
+def _run_child(args: list, timeout: float, tuning=()) -> dict:
     cmd = [sys.executable, str(Path(__file__).resolve()), "--child", *map(str, args)]
+    if tuning:
+        cmd += ["--tuning", *tuning]
     try:
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
     except subprocess.TimeoutExpired:
@@ -219,13 +224,14 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--sigma-ln", type=float, default=1.0, help="standard deviation of ln rho (turbulent)")
     ap.add_argument("--timeout", type=float, default=1800.0, help="seconds for one configuration")
+    add_tuning_argument(ap)
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     if args.child:
         code, medium_file, n, photons, repeats, backend, device = args.child
         medium_file = None if medium_file == "-" else medium_file
         n, photons, repeats = int(n), int(float(photons)), int(repeats)
-        out = (child_nebula(medium_file, n, photons, repeats, backend, device) if code == "nebula"
+        out = (child_nebula(medium_file, n, photons, repeats, backend, device, args.tuning) if code == "nebula"
                else child_mcx(code, medium_file, n, photons, repeats))
         print("RESULT " + json.dumps(out), flush=True)
         return 0
@@ -234,7 +240,8 @@ def main(argv=None) -> int:
 
     head = {"benchmark": "mcx", "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
             **provenance(), "command": " ".join(["benchmarks/bench_mcx.py"] + (argv or sys.argv[1:])),
-            "scene": {"tau_per_box_edge": TAU, "albedo": ALBEDO, "g": G, "source": "isotropic, box centre"}}
+            "scene": {"tau_per_box_edge": TAU, "albedo": ALBEDO, "g": G, "source": "isotropic, box centre"},
+            "tuning": args.tuning}
 
     def save(groups):
         if args.out:
@@ -256,7 +263,8 @@ def main(argv=None) -> int:
                 for p in (int(x) for x in args.photons):
                     rows = []
                     for code in args.codes:
-                        r = _run_child([code, medium_file, n, p, args.repeats, args.backend, args.device], args.timeout)
+                        r = _run_child([code, medium_file, n, p, args.repeats, args.backend, args.device], args.timeout,
+                                       args.tuning if code == "nebula" else ())
                         r.setdefault("code", {"nebula": "NebulaRT"}.get(code, code))
                         rows.append(r)
                         shown = (f"{r['kernel_ms']:10.2f} ms kernel  {r['photons_per_ms']!s:>9} packets/ms  "

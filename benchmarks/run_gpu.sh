@@ -238,10 +238,11 @@ if [[ " $steps " == *" compare "* ]]; then
 fi
 if [[ " $steps " == *" mcx "* ]]; then
     # NebulaRT, pmcx and pmcxcl (NVIDIA OpenCL) on the uniform and the lognormal medium, each
-    # configuration in its own process (about 8 min on an H200; MCX_GRIDS / MCX_PHOTONS narrow it)
+    # configuration in its own process (about 8 min on an H200; MCX_GRIDS / MCX_PHOTONS narrow it;
+    # MCX_TUNING="NRT_REFILL=16 ..." sets NebulaRT's kernel options, MCX_TAG names the file)
     echo "== beside MCX and MCX-CL: uniform and turbulent media"
     python3 benchmarks/bench_mcx.py --backend cuda --grids ${MCX_GRIDS:-64 128 256 512} --photons ${MCX_PHOTONS:-1e7 1e8} \
-        --repeats 3 --out "$out/mcx-cuda.json"
+        --repeats 3 ${MCX_TUNING:+--tuning $MCX_TUNING} --out "$out/mcx-cuda${MCX_TAG:-}.json"
 fi
 if [[ " $steps " == *" refill "* ]]; then
     # work items that take their group's next packet as their last one ends (NRT_REFILL, R per
