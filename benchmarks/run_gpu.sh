@@ -248,12 +248,12 @@ if [[ " $steps " == *" refill "* ]]; then
     # work items that take their group's next packet as their last one ends (NRT_REFILL, R per
     # work item) and the group tally flushed by the group's last work item (NRT_GROUP_LAST_OUT)
     # against the kernel as built, in turn twice: the thesis scene's kernels at 128^3 and the neb
-    # medium at 64^3 and 128^3 (256^3 and up go by regions, which take no refill)
+    # medium at 64^3, 128^3 and 256^3 (by regions)
     t=("" "NRT_REFILL=4" "NRT_REFILL=16" "NRT_REFILL=64" "NRT_GROUP_LAST_OUT=1" "NRT_REFILL=16 NRT_GROUP_LAST_OUT=1")
     echo "== NRT_REFILL and NRT_GROUP_LAST_OUT, thesis 128^3 and the neb medium, CUDA"
     python3 benchmarks/profile_kernels.py --scene examples/scenes/thesis-default.toml --grids 128 --photons 2.1e6 \
         --tuning "${t[@]}" "${t[@]}" --out "$out/refill-thesis.json" 2>&1 | grep -v Warning
-    python3 benchmarks/profile_kernels.py --grids 64 128 --photons 2.1e7 \
+    python3 benchmarks/profile_kernels.py --grids 64 128 256 --photons 2.1e7 \
         --tuning "${t[@]}" --out "$out/refill-neb.json" 2>&1 | grep -v Warning
 fi
 if [[ " $steps " == *" mcx1024 "* ]]; then

@@ -614,6 +614,7 @@ NRT_DEVICE void nrt_square(const nrt_sink *k, NRT_GLOBAL nrt_u64 *band_sq, nrt_i
 #if NRT_REFILL
 #define NRT_PACKET_DONE()                                                        \
     {                                                                            \
+        nrt_refill_ended(rf);                                                    \
         fresh = 1;                                                               \
         continue;                                                                \
     }
@@ -730,6 +731,13 @@ typedef struct {
     NRT_GLOBAL nrt_u64 *acc, *sq, *tallies, *image;
     NRT_GLOBAL nrt_u32 *overflow;
     NRT_LOCAL nrt_u64 *l_hot, *l_hot_sq;
+    /* NRT_REGIONS: the pass's items (nrt_pass_item), and the packet under way's item, state
+       slot and cell, for its key (free slot, or stopped in a region) */
+    const NRT_GLOBAL nrt_u64 *emit;
+    NRT_GLOBAL nrt_packet *states;
+    NRT_GLOBAL nrt_u64 *keys_out;
+    nrt_u64 n_resume, n_fresh, fresh0, n_free, hwm, state_slots;
+    nrt_u64 it, sl, cell;
 } nrt_refill;
 
 /*
@@ -748,17 +756,40 @@ NRT_DEVICE int nrt_refill_next(nrt_refill *rf, nrt_u64 *photon, int *band, float
                                const NRT_GLOBAL float **cdf, NRT_GLOBAL nrt_u64 **band_acc, nrt_sink *sink,
                                NRT_GLOBAL nrt_u32 **overflow, NRT_GLOBAL nrt_u64 **band_image,
                                NRT_GLOBAL nrt_u64 **band_sq, const NRT_GLOBAL float **pol,
-                               NRT_GLOBAL nrt_u64 **band_stokes)
+                               NRT_GLOBAL nrt_u64 **band_stokes, const NRT_GLOBAL nrt_packet **resume,
+                               NRT_GLOBAL nrt_packet **save, nrt_u64 *item, NRT_GLOBAL float **stokes_slot)
 {
-    nrt_u64 it = rf->base + (nrt_u64)NRT_ATOMIC_ADD_U32_LOCAL(rf->next, 1u);
-    if (it >= rf->end)
-        return 0;
-    nrt_u64 t = NRT_SORTED ? (rf->order[it] & NRT_KEY_LOW) : it;
-    int lband = (int)(t / rf->count);
-    *photon = rf->photon_start + t % rf->count;
+    nrt_u64 it;
+    int lband, fresh = 1;
+    for (;;) {
+        it = rf->base + (nrt_u64)NRT_ATOMIC_ADD_U32_LOCAL(rf->next, 1u);
+        if (it >= rf->end)
+            return 0;
+#if NRT_REGIONS
+        nrt_u64 sl;
+        if (!nrt_pass_item(it, rf->order, rf->emit, rf->states, rf->n_resume, rf->n_fresh, rf->fresh0, rf->n_free,
+                           rf->hwm, rf->photon_start, rf->count, photon, &lband, &sl, &fresh)) {
+            rf->keys_out[it] = ((nrt_u64)NRT_FREE_BIN << 32) | sl; /* a free slot no new packet took */
+            continue;
+        }
+        rf->sl = sl;
+        *resume = fresh ? 0 : rf->states + sl;
+        *save = rf->states + sl;
+        *item = *photon | ((nrt_u64)lband << NRT_ITEM_BAND_SHIFT);
+        *stokes_slot = NRT_POLAR ? (NRT_GLOBAL float *)(rf->states + rf->state_slots) + 6 * sl : 0;
+#else
+        (void)resume, (void)save, (void)item, (void)stokes_slot;
+        nrt_u64 t = NRT_SORTED ? (rf->order[it] & NRT_KEY_LOW) : it;
+        lband = (int)(t / rf->count);
+        *photon = rf->photon_start + t % rf->count;
+#endif
+        break;
+    }
+    rf->it = it;
     *band = rf->band0 + lband;
     nrt_u64 slot = nrt_batch_of(*photon, rf->batch_base, rf->batch_extra) - rf->first_batch;
     nrt_u64 cell = slot * (nrt_u64)rf->n_lbands + (nrt_u64)lband;
+    rf->cell = cell;
     *sig_b = rf->optics[4 * *band], *alb_b = rf->optics[4 * *band + 1], *g_b = rf->optics[4 * *band + 2];
     *cdf = rf->star_cdf + *band * rf->n_stars;
     *band_acc = rf->acc + cell * rf->nvox;
@@ -772,8 +803,19 @@ NRT_DEVICE int nrt_refill_next(nrt_refill *rf, nrt_u64 *photon, int *band, float
     sink->l_hot = rf->l_hot;
     sink->l_hot_sq = rf->l_hot_sq;
     sink->hot_x = sink->hot_y = sink->hot_z = NRT_NO_HOT;
-    nrt_count(sink, 0);
+    if (fresh)
+        nrt_count(sink, 0);
     return 1;
+}
+
+/* NRT_REFILL by regions: the key of the item whose packet ended (its slot is free) */
+NRT_DEVICE void nrt_refill_ended(const nrt_refill *rf)
+{
+#if NRT_REGIONS
+    rf->keys_out[rf->it] = ((nrt_u64)NRT_FREE_BIN << 32) | rf->sl;
+#else
+    (void)rf;
+#endif
 }
 
 /* The walk's arguments, the grid's (below) and the tree's (tree.cl) alike. */
@@ -790,8 +832,8 @@ NRT_DEVICE int nrt_refill_next(nrt_refill *rf, nrt_u64 *photon, int *band, float
 #ifndef NRT_TREE
 #define NRT_TREE 0
 #endif
-#if NRT_REFILL && (NRT_TREE || NRT_REGIONS || NRT_BIASED)
-#error "NRT_REFILL: the grid's analog walk without regions only"
+#if NRT_REFILL && (NRT_TREE || NRT_BIASED)
+#error "NRT_REFILL: the grid's analog walk only"
 #endif
 #if NRT_TREE
 #if NRT_REGIONS || NRT_SORTED || (defined(NRT_PEEL_AXIS) && NRT_PEEL_AXIS >= 0)
@@ -837,7 +879,7 @@ NRT_DEVICE int nrt_trace_packet(NRT_TRACE_PACKET_PARAMS)
         if (fresh) {
             fresh = 0;
             if (!nrt_refill_next(rf, &photon, &band, &sig_b, &alb_b, &g_b, &cdf, &band_acc, sink, &overflow,
-                                 &band_image, &band_sq, &pol, &band_stokes))
+                                 &band_image, &band_sq, &pol, &band_stokes, &resume, &save, &item, &stokes_slot))
                 return 0;
             peel_score = 0; /* (a visit's run is 0 once the packet ends: NRT_VISIT_END) */
 #else
@@ -995,7 +1037,15 @@ NRT_DEVICE int nrt_trace_packet(NRT_TRACE_PACKET_PARAMS)
             stokes_slot[0] = stokes.q, stokes_slot[1] = stokes.u, stokes_slot[2] = stokes.v;
             stokes_slot[3] = stokes.e[0], stokes_slot[4] = stokes.e[1], stokes_slot[5] = stokes.e[2];
 #endif
+#if NRT_REFILL
+            /* its key, as the kernel's loop forms it for a walk that returns 1 */
+            rf->keys_out[rf->it] =
+                ((nrt_u64)nrt_region_bin(rf->cell, ix, iy, iz, nx, ny, nz, region_shift) << 32) | rf->sl;
+            fresh = 1;
+            continue;
+#else
             return 1;
+#endif
         }
 #endif
 #if NRT_PREFETCH
@@ -2098,11 +2148,15 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
 #else
         rf.l_hot = rf.l_hot_sq = 0;
 #endif
+        rf.emit = emit, rf.states = states, rf.keys_out = keys_out;
+        rf.n_resume = n_resume, rf.n_fresh = n_fresh, rf.fresh0 = fresh0, rf.n_free = n_free, rf.hwm = hwm;
+        rf.state_slots = prm->state_slots;
+        rf.it = rf.sl = rf.cell = 0;
         (void)stride;
         /* the first packet's arguments are nrt_refill_next's to fill */
         nrt_trace_packet(density, 0.0f, 0.0f, 0.0f, stars, star_cdf, nx, ny, nz, n_stars, seed, 0, 0UL,
                          max_scatterings, track_scale, acc, &sink, overflow, peel, peel_scale, image, 0, 0,
-                         NRT_NO_REGIONS, 0, sq, sq_shift, nvox, optics, image, 0, &rf);
+                         NRT_REGIONS ? region_shift : NRT_NO_REGIONS, 0, sq, sq_shift, nvox, optics, image, 0, &rf);
     }
 #else
     for (nrt_u64 it = NRT_GLOBAL_ID(); it < total; it += stride) {
