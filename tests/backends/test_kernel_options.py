@@ -229,16 +229,15 @@ def test_refilled_work_items_give_the_same_bits(cloud, estimator, error_estimate
     packets per work item on average) against one packet per work item: the same batch sums,
     squares (per-packet visit squares too), counts, peel-off images (I, and Q and U of
     polarized packets) and the histogram of the packets' peel-off scores, with two bands, two stars, several batches per launch and several
-    launches; with the group tally flushed after a barrier or by the last work item, and with
-    the emission sorted. R = 1, a prime (3, so groups' shares end part-way through a batch) and
-    more packets per group than a launch holds (64)."""
+    launches; with the group tally flushed by the last work item, and with the emission sorted.
+    R = 3 (a prime: groups' shares end part-way through a batch) and 64 (more packets per group
+    than a launch holds). (The barrier's flush with refill: tests/backends/test_regions.py.)"""
     # (the estimate by packets takes no peel-off image)
     camera = sky.Camera(direction=(0.3, -0.2, -1.0), size=(12, 10)) if error_estimate == "batches" else None
     pol = Polarization("white", peak=0.5) if polarization == "white" else Polarization("none")
     runs = []
-    for tuning in ({"NRT_REFILL": 0, "NRT_GROUP_TALLY": 0}, {"NRT_REFILL": 1}, {"NRT_REFILL": 3},
-                   {"NRT_REFILL": 3, "NRT_GROUP_LAST_OUT": 1}, {"NRT_REFILL": 64, "NRT_GROUP_TALLY": 0},
-                   {"NRT_REFILL": 3, "NRT_SORTED": 1}):
+    for tuning in ({"NRT_REFILL": 0, "NRT_GROUP_TALLY": 0}, {"NRT_REFILL": 3, "NRT_GROUP_LAST_OUT": 1},
+                   {"NRT_REFILL": 64, "NRT_GROUP_TALLY": 0, "NRT_SORTED": 1}):
         be = _backend(tuning)
         be.launch_packets = be.first_launch_packets = 3 * 2 * 1500
         batches = {"batch_size": 1500} if error_estimate == "batches" else {}

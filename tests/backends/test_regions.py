@@ -68,7 +68,7 @@ def test_regions_give_the_same_bits(cloud, estimator):
     assert plain.counts[:, 0].tolist() == [9000, 9000]
     for tuning in ({"NRT_REGIONS": 1}, {"NRT_REGIONS": 2}, {"NRT_REGIONS": 3, "NRT_SORTED": 1},
                    {"NRT_REGIONS": 2, "NRT_GROUP_TALLY": 1, "NRT_PREFETCH": 0},
-                   {"NRT_REGIONS": 2, "NRT_REFILL": 4}, {"NRT_REGIONS": 1, "NRT_REFILL": 3, "NRT_GROUP_TALLY": 1},
+                   {"NRT_REGIONS": 1, "NRT_REFILL": 3, "NRT_GROUP_TALLY": 1},
                    {"NRT_REGIONS": 3, "NRT_REFILL": 64, "NRT_SORTED": 1}):
         _same(_run(cloud, dict(tuning, region_tail=0), estimator), plain)
 
