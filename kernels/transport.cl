@@ -715,7 +715,8 @@ NRT_DEVICE int nrt_pass_item(nrt_u64 it, const NRT_GLOBAL nrt_u64 *order, const 
 /*
  * NRT_REFILL: a work group traces the items [base, end) of the launch, NRT_REFILL per work
  * item on average, and each work item takes the group's next item (a local counter) as soon
- * as its packet ends, inside the walk's one loop. With one packet per work item, a SIMD
+ * as its packet ends (or, by regions, stops at a region face), inside the walk's one loop; by
+ * regions an item is a stopped packet, a new one or a free slot to pass on (nrt_pass_item). With one packet per work item, a SIMD
  * group's lanes whose packets ended idle until its longest packet ends (on an H200, the
  * thesis kernel's voxel step ran with 15.8 of 32 lanes: benchmarks/results/h200-2026-12-05/);
  * here they idle only at the end of the group's share. The packets, their random numbers and
@@ -751,7 +752,8 @@ NRT_DEVICE nrt_u64 nrt_batch_of(nrt_u64 photon, nrt_u64 base, nrt_u64 extra)
 }
 
 /* The work item's next packet (0: the group's share is done): its photon, band, optics and
-   sinks, as the kernel's loop over items forms them; its emission is counted. */
+   sinks, as the kernel's loop over items forms them, and by regions the state it resumes
+   from and is saved to; a new packet's emission is counted. */
 NRT_DEVICE int nrt_refill_next(nrt_refill *rf, nrt_u64 *photon, int *band, float *sig_b, float *alb_b, float *g_b,
                                const NRT_GLOBAL float **cdf, NRT_GLOBAL nrt_u64 **band_acc, nrt_sink *sink,
                                NRT_GLOBAL nrt_u32 **overflow, NRT_GLOBAL nrt_u64 **band_image,
