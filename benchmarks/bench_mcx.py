@@ -97,18 +97,15 @@ def octant_fractions(absorbed: np.ndarray) -> list:
 # --------------------------------------------------------------------------------------------
 # children: one configuration each
 def nebula_scene(medium_file: str | None, n: int, photons: int, backend: str, device: str):
+    """bench_neb128's scene on n^3 voxels, its dust read from ``medium_file`` (None: uniform)."""
+    from bench_neb128 import nebula_scene_dict
+
     from nebula_rt.scene import Scene
 
-    dust = ({"model": "uniform", "density": 1.0, "floor": 0.0, "tau": TAU} if medium_file is None else
-            {"model": "file", "file": medium_file, "floor": 0.0, "tau": TAU})
-    return Scene.from_dict({
-        "grid": {"shape": [n, n, n]},
-        "dust": dust,
-        "stars": [{"position": [0.5, 0.5, 0.5], "luminosity": 1.0, "bump_radius": 0.0}],
-        "bands": {"list": [{"name": "V", "wavelength": 550.0, "extinction": 1.0, "albedo": ALBEDO, "g": G}]},
-        "transport": {"photons": int(photons), "max_scatterings": 1000, "seed": 1,
-                      "backend": backend, "device": device},
-    })
+    tables = nebula_scene_dict(photons, backend, device, n)
+    if medium_file is not None:
+        tables["dust"] = {"model": "file", "file": medium_file, "floor": 0.0, "tau": TAU}
+    return Scene.from_dict(tables)
 
 
 def child_nebula(medium_file, n, photons, repeats, backend_name, device, tuning=()) -> dict:
@@ -138,15 +135,13 @@ def child_nebula(medium_file, n, photons, repeats, backend_name, device, tuning=
 
 
 def mcx_config(medium_file, n: int, photons: int) -> dict:
-    """MCX's configuration: mu_t = TAU rho / n per voxel (1 mm voxels), mu_a = (1 - albedo) mu_t,
-    mu_s = albedo mu_t; a label volume for the uniform medium, (mu_a, mu_s) per voxel otherwise."""
-    mu_t = TAU / n
-    cfg = dict(nphoton=int(photons), tstart=0, tend=1e-6, tstep=1e-6, srctype="isotropic",
-               srcpos=[n / 2.0] * 3, srcdir=[0, 0, 1], issrcfrom0=1, isreflect=0, seed=1648335518,
-               prop=[[0, 0, 1, 1], [(1.0 - ALBEDO) * mu_t, ALBEDO * mu_t, G, 1.0]])
-    if medium_file is None:
-        cfg["vol"] = np.ones([n] * 3, "uint8")
-    else:
+    """bench_neb128's MCX configuration on n^3 voxels (mu_t = TAU / n per 1 mm voxel, mu_a =
+    (1 - albedo) mu_t, mu_s = albedo mu_t); for a medium file, (mu_a, mu_s) per voxel times rho."""
+    from bench_neb128 import mcx_config as uniform_config
+
+    cfg = uniform_config(photons, n)
+    if medium_file is not None:
+        mu_t = TAU / n
         rho = np.load(medium_file)
         vol = np.empty((2, n, n, n), np.float32)  # MCX reads it in Fortran order: (mu_a, mu_s) pairs
         vol[0] = rho * np.float32((1.0 - ALBEDO) * mu_t)
@@ -156,13 +151,9 @@ def mcx_config(medium_file, n: int, photons: int) -> dict:
 
 
 def child_mcx(code, medium_file, n, photons, repeats) -> dict:
-    import ctypes
-    import ctypes.util
+    from bench_neb128 import load_system_libstdcxx
 
-    # pmcxcl links libstdc++ statically and exports its locale facets' unique symbols: loaded
-    # first, they break the iostreams of PoCL's LLVM (the kernel's build options end at the first
-    # number and the build fails with "stdint.h not found"). The system libstdc++ loaded first owns them.
-    ctypes.CDLL(ctypes.util.find_library("stdc++"), mode=ctypes.RTLD_GLOBAL)
+    load_system_libstdcxx()  # before pmcxcl
     mcx = __import__(code)
     mcx.run(mcx_config(medium_file, n, 10_000))  # first call compiles (pmcx: PTX JIT; pmcxcl: the kernel)
     runs = []

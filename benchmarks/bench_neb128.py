@@ -35,7 +35,12 @@ N = 128
 def nebula_scene(photons: int, backend: str, device: str, n: int = N):
     from nebula_rt.scene import Scene
 
-    return Scene.from_dict({
+    return Scene.from_dict(nebula_scene_dict(photons, backend, device, n))
+
+
+def nebula_scene_dict(photons: int, backend: str, device: str, n: int = N) -> dict:
+    """The scene file's tables of :func:`nebula_scene` (benchmarks/bench_mcx.py swaps the dust)."""
+    return {
         "grid": {"shape": [n, n, n]},
         "dust": {"model": "uniform", "density": 1.0, "floor": 0.0, "tau": 2.0},
         # no dust bump (the scene default's r = 0.01 is MCX-less extra dust at the source:
@@ -44,7 +49,7 @@ def nebula_scene(photons: int, backend: str, device: str, n: int = N):
         "bands": {"list": [{"name": "V", "wavelength": 550.0, "extinction": 1.0, "albedo": 0.6, "g": 0.6}]},
         "transport": {"photons": int(photons), "max_scatterings": 1000, "seed": 1,
                       "backend": backend, "device": device},
-    })
+    }
 
 
 def run_nebula(photons: int, backend_name: str, device: str, repeats: int = 5, n: int = N) -> dict:
@@ -84,15 +89,23 @@ def mcx_config(photons: int, n: int = N) -> dict:
                 prop=[[0, 0, 1, 1], [0.8 / n, 1.2 / n, 0.6, 1.0]], isreflect=0, seed=1648335518)
 
 
+def load_system_libstdcxx() -> None:
+    """Load the system libstdc++ before pmcxcl is imported. pmcxcl links libstdc++ statically
+    and exports its locale facets' unique symbols: loaded first, they break the iostreams of
+    PoCL's LLVM (its build options end at the first number, and the kernel fails with
+    "stdint.h not found"). The system libstdc++ loaded first owns them."""
+    import ctypes
+    import ctypes.util
+
+    ctypes.CDLL(ctypes.util.find_library("stdc++"), mode=ctypes.RTLD_GLOBAL)
+
+
 _MCX_CHILD = """
-import ctypes, ctypes.util, json, sys, time
+import json, sys, time
 import numpy as np
-# pmcxcl links libstdc++ statically and exports its locale facets' unique symbols: loaded first,
-# they break the iostreams of PoCL's LLVM (its build options end at the first number, and the
-# kernel fails with "stdint.h not found"). The system libstdc++ loaded before pmcxcl owns them.
-ctypes.CDLL(ctypes.util.find_library("stdc++"), mode=ctypes.RTLD_GLOBAL)
 sys.path.insert(0, {here!r})
-from bench_neb128 import mcx_config
+from bench_neb128 import load_system_libstdcxx, mcx_config
+load_system_libstdcxx()
 mcx = __import__({module!r})
 mcx.run(mcx_config(10_000, {n}))  # first call JIT-compiles (pmcx has no Hopper code; pmcxcl builds its kernel)
 runs = []
