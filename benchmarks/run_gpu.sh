@@ -246,11 +246,12 @@ if [[ " $steps " == *" mcx "* ]]; then
 fi
 if [[ " $steps " == *" refill "* ]]; then
     # work items that take their group's next packet as their last one ends (NRT_REFILL, R per
-    # work item) and the group tally flushed by the group's last work item (NRT_GROUP_LAST_OUT)
-    # against the kernel as built, in turn twice: the thesis scene's kernels at 128^3 and the neb
-    # medium at 64^3, 128^3 and 256^3 (by regions)
-    t=("" "NRT_REFILL=4" "NRT_REFILL=16" "NRT_REFILL=64" "NRT_GROUP_LAST_OUT=1" "NRT_REFILL=16 NRT_GROUP_LAST_OUT=1")
-    echo "== NRT_REFILL and NRT_GROUP_LAST_OUT, thesis 128^3 and the neb medium, CUDA"
+    # work item), the lanes of a SIMD group that wait taking theirs together every K-th
+    # iteration of the walk (NRT_REFILL_EVERY), against the kernel as built, in turn twice: the
+    # thesis scene's kernels at 128^3 and the neb medium at 64^3, 128^3 and 256^3 (by regions)
+    t=("" "NRT_REFILL=4 NRT_REFILL_EVERY=8" "NRT_REFILL=4 NRT_REFILL_EVERY=16" "NRT_REFILL=4 NRT_REFILL_EVERY=32"
+       "NRT_REFILL=16 NRT_REFILL_EVERY=16" "NRT_REFILL=16 NRT_REFILL_EVERY=32" "NRT_REFILL=16 NRT_REFILL_EVERY=64")
+    echo "== NRT_REFILL and NRT_REFILL_EVERY, thesis 128^3 and the neb medium, CUDA"
     python3 benchmarks/profile_kernels.py --scene examples/scenes/thesis-default.toml --grids 128 --photons 2.1e6 \
         --tuning "${t[@]}" "${t[@]}" --out "$out/refill-thesis.json" 2>&1 | grep -v Warning
     python3 benchmarks/profile_kernels.py --grids 64 128 256 --photons 2.1e7 \

@@ -44,8 +44,6 @@ typedef long nrt_i64;
 #define NRT_ATOMIC_ADD_U64_LOCAL(p, v) atom_add((volatile __local ulong *)(p), (ulong)(v))
 #define NRT_ATOMIC_ADD_U32_LOCAL(p, v) atomic_add((volatile __local uint *)(p), (uint)(v))
 #define NRT_BARRIER() barrier(CLK_LOCAL_MEM_FENCE)
-/* orders a work item's own local-memory accesses before its later ones, as others see them */
-#define NRT_FENCE_LOCAL() mem_fence(CLK_LOCAL_MEM_FENCE)
 #define NRT_LOCAL_ID() ((nrt_u64)get_local_id(0))
 #define NRT_LOCAL_SIZE() ((nrt_u64)get_local_size(0))
 #define NRT_GROUP_FIRST_ID() ((nrt_u64)get_group_id(0) * (nrt_u64)get_local_size(0))
@@ -76,7 +74,6 @@ typedef long long nrt_i64;
 #define NRT_ATOMIC_ADD_U64_LOCAL(p, v) atomicAdd((unsigned long long *)(p), (unsigned long long)(v))
 #define NRT_ATOMIC_ADD_U32_LOCAL(p, v) atomicAdd((unsigned int *)(p), (unsigned int)(v))
 #define NRT_BARRIER() __syncthreads()
-#define NRT_FENCE_LOCAL() __threadfence_block()
 #define NRT_LOCAL_ID() ((nrt_u64)threadIdx.x)
 #define NRT_LOCAL_SIZE() ((nrt_u64)blockDim.x)
 #define NRT_GROUP_FIRST_ID() ((nrt_u64)blockIdx.x * (nrt_u64)blockDim.x)

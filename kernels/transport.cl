@@ -89,9 +89,14 @@
    on average, nrt_refill_next), each lane starting its next packet as soon as its last one ends */
 #define NRT_REFILL 0
 #endif
-#ifndef NRT_GROUP_LAST_OUT
-/* NRT_GROUP_TALLY's flush by the group's last work item to finish, not after a barrier */
-#define NRT_GROUP_LAST_OUT 0
+#ifndef NRT_REFILL_EVERY
+/* NRT_REFILL: a lane whose packet ended takes its next one at the walk's iterations 0, K, 2K,
+   ... only, so that the lanes of a SIMD group that wait take theirs together and the emission's
+   code (random-number setup, a star, a direction, the item's sinks with their 64-bit divisions)
+   runs once per K iterations for all of them, not in most iterations for one lane while the
+   others wait (K = 1: at once; on an H200 that ran the thesis kernel 1.5-2.7x slower than one
+   packet per work item, benchmarks/results/h200-2026-12-05/) */
+#define NRT_REFILL_EVERY 1
 #endif
 #ifndef NRT_IDX32
 #define NRT_IDX32 0
@@ -877,8 +882,12 @@ NRT_DEVICE int nrt_trace_packet(NRT_TRACE_PACKET_PARAMS)
        ended starts the next one inside the same iteration (nrt_refill), so the braces of the
        emission below close inside the loop */
     int fresh = 1;
+    nrt_u32 beat = 0; /* the walk's iterations: the same count on every lane of a SIMD group */
     for (;;) {
+        const int refill_beat = beat++ % (nrt_u32)NRT_REFILL_EVERY == 0u;
         if (fresh) {
+            if (!refill_beat)
+                continue;
             fresh = 0;
             if (!nrt_refill_next(rf, &photon, &band, &sig_b, &alb_b, &g_b, &cdf, &band_acc, sink, &overflow,
                                  &band_image, &band_sq, &pol, &band_stokes, &resume, &save, &item, &stokes_slot))
@@ -2089,10 +2098,9 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
     const nrt_u64 group_first = NRT_GROUP_FIRST_ID() * (nrt_u64)(NRT_REFILL > 0 ? NRT_REFILL : 1);
 #if NRT_GROUP_TALLY || NRT_REFILL
     nrt_u64 lid = NRT_LOCAL_ID();
-    NRT_LOCAL_MEM nrt_u32 l_done; /* NRT_GROUP_LAST_OUT: work items past their packets */
     NRT_LOCAL_MEM nrt_u32 l_next; /* NRT_REFILL: the group's items taken */
     if (lid == 0)
-        l_done = 0, l_next = 0;
+        l_next = 0;
 #endif
 #if NRT_GROUP_TALLY
     NRT_LOCAL_MEM nrt_u64 l_tally[4];
@@ -2229,20 +2237,8 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
 #endif /* NRT_REFILL */
 #if NRT_GROUP_TALLY
     /* the group's local sums go to global memory once */
-#if NRT_GROUP_LAST_OUT
-    /* by the last work item to finish: the others leave at once instead of holding their
-       warps at a barrier until the group's longest packet ends (on an H200, 20 % of the thesis
-       kernel's stall samples waited there: benchmarks/results/h200-2026-12-05/). Each item's
-       fence orders its local adds before its count; the last one's orders its reads after. */
-    NRT_FENCE_LOCAL();
-    if (NRT_ATOMIC_ADD_U32_LOCAL(&l_done, 1u) != (nrt_u32)NRT_LOCAL_SIZE() - 1u)
-        return;
-    NRT_FENCE_LOCAL();
-    const nrt_u64 flush0 = 0, flush_step = 1;
-#else
     NRT_BARRIER();
     const nrt_u64 flush0 = lid, flush_step = NRT_LOCAL_SIZE();
-#endif
     for (nrt_u64 i = flush0; i < 4; i += flush_step)
         if (l_tally[i] != 0)
             NRT_ATOMIC_ADD_U64(&tallies[NRT_TALLY_WORDS * home_cell + i], l_tally[i]);

@@ -173,8 +173,7 @@ def test_groups_split_into_short_launches_give_the_same_bits(cloud, monkeypatch)
 @pytest.mark.parametrize("error_estimate", ["batches", "packets"])
 def test_star_blocks_of_every_size_give_the_same_bits(cloud, error_estimate):
     """The work-group sums of the voxels around each star (NRT_HOT_HALF: blocks of 1, 3^3, 5^3
-    and 7^3 voxels), flushed after a barrier or by the group's last work item to finish
-    (NRT_GROUP_LAST_OUT), against no work-group sums: the same batch sums, squares (per-packet
+    and 7^3 voxels), against no work-group sums: the same batch sums, squares (per-packet
     visit squares too) and counts. The stars test the blocks' edges: one in a corner (its block
     mostly outside the grid), one on a face, two whose blocks overlap, and a fifth star beyond
     the NRT_HOT_STARS that get a block."""
@@ -186,8 +185,7 @@ def test_star_blocks_of_every_size_give_the_same_bits(cloud, error_estimate):
     runs = []
     for options in ({"NRT_GROUP_TALLY": 0}, {"NRT_GROUP_TALLY": 1, "NRT_HOT_HALF": 0},
                     {"NRT_GROUP_TALLY": 1, "NRT_HOT_HALF": 1}, {"NRT_GROUP_TALLY": 1},
-                    {"NRT_GROUP_TALLY": 1, "NRT_HOT_HALF": 3},
-                    {"NRT_GROUP_TALLY": 1, "NRT_GROUP_LAST_OUT": 1}):
+                    {"NRT_GROUP_TALLY": 1, "NRT_HOT_HALF": 3}):
         be = _backend(options)
         batches = {"batch_size": 1500} if error_estimate == "batches" else {}
         runs.append(trace(cloud, _bands(), stars, tau=25.0, photons=6000, seed=9, backend=be,
@@ -229,14 +227,15 @@ def test_refilled_work_items_give_the_same_bits(cloud, estimator, error_estimate
     packets per work item on average) against one packet per work item: the same batch sums,
     squares (per-packet visit squares too), counts, peel-off images (I, and Q and U of
     polarized packets) and the histogram of the packets' peel-off scores, with two bands, two stars, several batches per launch and several
-    launches; with the group tally flushed by the last work item, and with the emission sorted.
-    R = 3 (a prime: groups' shares end part-way through a batch) and 64 (more packets per group
-    than a launch holds). (The barrier's flush with refill: tests/backends/test_regions.py.)"""
+    launches; with the lanes whose packets ended taking their next ones together every 5th
+    iteration of the walk (NRT_REFILL_EVERY), and with the emission sorted. R = 3 (a prime:
+    groups' shares end part-way through a batch) and 64 (more packets per group than a launch
+    holds). (The barrier's flush with refill: tests/backends/test_regions.py.)"""
     # (the estimate by packets takes no peel-off image)
     camera = sky.Camera(direction=(0.3, -0.2, -1.0), size=(12, 10)) if error_estimate == "batches" else None
     pol = Polarization("white", peak=0.5) if polarization == "white" else Polarization("none")
     runs = []
-    for tuning in ({"NRT_REFILL": 0, "NRT_GROUP_TALLY": 0}, {"NRT_REFILL": 3, "NRT_GROUP_LAST_OUT": 1},
+    for tuning in ({"NRT_REFILL": 0, "NRT_GROUP_TALLY": 0}, {"NRT_REFILL": 3, "NRT_REFILL_EVERY": 5},
                    {"NRT_REFILL": 64, "NRT_GROUP_TALLY": 0, "NRT_SORTED": 1}):
         be = _backend(tuning)
         be.launch_packets = be.first_launch_packets = 3 * 2 * 1500

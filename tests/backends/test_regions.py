@@ -69,7 +69,7 @@ def test_regions_give_the_same_bits(cloud, estimator):
     for tuning in ({"NRT_REGIONS": 1}, {"NRT_REGIONS": 2}, {"NRT_REGIONS": 3, "NRT_SORTED": 1},
                    {"NRT_REGIONS": 2, "NRT_GROUP_TALLY": 1, "NRT_PREFETCH": 0},
                    {"NRT_REGIONS": 1, "NRT_REFILL": 3, "NRT_GROUP_TALLY": 1},
-                   {"NRT_REGIONS": 3, "NRT_REFILL": 64, "NRT_SORTED": 1}):
+                   {"NRT_REGIONS": 3, "NRT_REFILL": 64, "NRT_SORTED": 1, "NRT_REFILL_EVERY": 8}):
         _same(_run(cloud, dict(tuning, region_tail=0), estimator), plain)
 
 
@@ -118,7 +118,7 @@ def test_passes_stop_and_resume_packets(cloud, monkeypatch):
             assert sum(e[0] < 1024 for e in fresh) <= 9 * launches
     # the same passes with work items that take their group's next item (a stopped packet, a
     # new one, or a free slot to pass on) as their packet ends or stops
-    for tuning in (dict(SPLIT, NRT_REFILL=4), dict(TAIL, NRT_REFILL=3, NRT_GROUP_TALLY=1)):
+    for tuning in (dict(SPLIT, NRT_REFILL=4), dict(TAIL, NRT_REFILL=3, NRT_GROUP_TALLY=1, NRT_REFILL_EVERY=4)):
         _same(_run(cloud, tuning, peel=False), plain)
     full, tail, split = (seen[id(t)] for t in (FULL, TAIL, SPLIT))
     assert full >= 10 * 2  # packets stop again and again
