@@ -9,7 +9,7 @@
 # with `pip wheel`: no wheel on PyPI); pmcx and pmcxcl for the MCX comparison), fetched elsewhere
 # with `pip download --only-binary=:all: --python-version 3.12 --no-deps ...`.
 # STEPS (default "tests bench neb128 compare profile"; also "tests-cuda", "thick", "thick-grid", "trust", "scaling", "large", "regions", "regcaps", "profile-regions", "layout", "sorted", "probe", "ranks", "ranks-thesis", "ranks-weak", "tests-mpi", "e2e1e9", "biasing", "fit", "fitprof", "tune",
-# "stages", "kernel-probes", "polarization", "mcx", "mcx1024", "refill", "ncu-thesis", "ncu-source", "tree", "tree-targets", "tree-ascend", "trade", "presets", "empty", "fft") selects what runs. Everything printed
+# "stages", "kernel-probes", "polarization", "polarization-ocl", "mcx", "mcx1024", "refill", "ncu-thesis", "ncu-source", "tree", "tree-targets", "tree-ascend", "trade", "presets", "empty", "fft") selects what runs. Everything printed
 # goes to OUTDIR/log.txt as well; JSON and .npz results beside it.
 set -uo pipefail
 out="${1:?output folder}"
@@ -280,6 +280,11 @@ if [[ " $steps " == *" kernel-probes "* ]]; then
     echo "== transport kernel probes, neb medium, CUDA"
     python3 benchmarks/profile_kernels.py --grids 64 128 --photons 2.1e7 --tuning "" "NRT_PROBE_DEPOSIT=1" \
         "NRT_HOT_HALF=0" "NRT_HOT_HALF=1" "NRT_HOT_HALF=3" --out "$out/neb-probes.json" 2>&1 | grep -v Warning
+fi
+if [[ " $steps " == *" polarization-ocl "* ]]; then
+    echo "== cost of polarization, NVIDIA OpenCL"
+    python3 benchmarks/bench_polarization.py --backend opencl --device NVIDIA --grid 128 --photons 2.1e7 \
+        --out "$out/polarization-nvidia-opencl.json"
 fi
 if [[ " $steps " == *" polarization "* ]]; then
     # polarized packets (bands.polarization): their tests on CUDA and NVIDIA OpenCL, their cost
