@@ -8,7 +8,10 @@ Prints the SASS instructions with the most warp-level executions and stall sampl
 active per execution (thread-level over warp-level instructions), and the totals per opcode
 family (the first word of the SASS text, e.g. IMAD, FFMA, ATOM, LDG), so that the kernel's time
 can be told apart: the voxel step, the random numbers (64-bit multiplies: IMAD.HI, IMAD.WIDE),
-the deposits (RED/ATOM), the density loads (LDG).
+the deposits (RED/ATOM), the density loads (LDG). It also splits the instructions by the lanes
+active when they run (1-2, 2-8, 8-24, 24-32): code that one or two lanes of a warp run while
+the others wait (a packet's interaction, its random-number block) is told apart from the walk
+that all packets in flight take.
 """
 
 from __future__ import annotations
@@ -75,6 +78,16 @@ def main(argv=None) -> int:
     print("\nopcode family: share of warp instructions, lanes per instruction, share of stall samples")
     for name, (i, t, s) in sorted(fam.items(), key=lambda kv: -kv[1][0])[:30]:
         print(f"  {name:<10} {i / max(total_i, 1):7.2%}  {t / max(i, 1):6.2f}  {s / max(total_s, 1):7.2%}")
+    if inst and thr:
+        print("\nby lanes active: instructions, share of warp instructions, lanes, share of stall samples")
+        bins = ((0, 2), (2, 8), (8, 24), (24, 33))
+        for lo, hi in bins:
+            sel = [r for r in rows if _num(r.get(inst)) > 0 and lo <= _num(r.get(thr)) / _num(r.get(inst)) < hi]
+            i = sum(_num(r.get(inst)) for r in sel)
+            t = sum(_num(r.get(thr)) for r in sel)
+            s_ = sum(_num(r.get(stall)) for r in sel) if stall else 0.0
+            print(f"  {lo:2d}-{hi - 1 if hi == 33 else hi:<2d} lanes  {len(sel):5d}  {i / max(total_i, 1):7.2%}"
+                  f"  {t / max(i, 1):6.2f}  {s_ / max(total_s, 1):7.2%}")
     for key, label in ((inst, "warp instructions"), (stall, "stall samples")):
         if not key:
             continue
