@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""How many SIMD lanes a warp keeps busy, one packet per work item against refilled work items.
+"""How many SIMD lanes a warp keeps busy, one packet per work item against several per work item.
 
     python benchmarks/model_lanes.py [--grids 64 128 256] [--packets 200000] [--refill 1 4 16 64] [--out FILE]
 
@@ -8,12 +8,15 @@ its centre, extinction 2 per box edge, albedo 0.6, Henyey-Greenstein g 0.6) are 
 NumPy, and each packet's work W is the number of iterations of the transport kernel's one loop:
 one per voxel face its flights cross on an n^3 grid, plus one per interaction. A warp of 32
 lanes that traces one packet per lane takes as long as its longest packet, so it keeps
-mean(W) / max(W) of its lanes busy. With NRT_REFILL = R a group's 32 R packets go, in order, to
-whichever lane is free first (kernels/transport.cl, nrt_refill_next), so the warp takes the
-longest lane's sum instead. Reported per grid: W's mean and percentiles and the busy share of
-the lanes for each R. The share is the most the refill can gain in a kernel that issues as
-fast as its lanes allow; the lanes' extra divergence (a lane starting a packet while the
-others step) is not modelled.
+mean(W) / max(W) of its lanes busy. With R packets per lane a group's 32 R packets go, in
+order, to whichever lane is free first, so the warp takes the longest lane's sum instead.
+Reported per grid: W's mean and percentiles and the busy share of the lanes for each R.
+
+The one-packet share (0.48 at 128^3) matches the lanes an H200 profile measured in the
+thesis kernel's voxel step (15.8 of 32). The refill's share is the most it could gain in a
+kernel that issues as fast as its lanes allow. On the H200 such a kernel was slower
+(benchmarks/results/h200-2026-12-05/): a lane that starts a packet while the others step runs
+the emission's code alone, which this model leaves out.
 """
 
 from __future__ import annotations
@@ -82,6 +85,8 @@ def busy_share(work: np.ndarray, refill: int, lanes: int = LANES) -> float:
     """Share of lane time spent on packets: groups of lanes x refill packets, each packet to the
     lane that is free first (refill 1: one packet per lane)."""
     per = lanes * refill
+    if work.size < per:
+        raise ValueError(f"--packets {work.size}: R = {refill} needs at least {per} packets (a group of {lanes} lanes)")
     total = span = 0
     for g0 in range(0, work.size - per + 1, per):
         jobs = work[g0:g0 + per]

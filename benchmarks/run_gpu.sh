@@ -9,7 +9,7 @@
 # with `pip wheel`: no wheel on PyPI); pmcx and pmcxcl for the MCX comparison), fetched elsewhere
 # with `pip download --only-binary=:all: --python-version 3.12 --no-deps ...`.
 # STEPS (default "tests bench neb128 compare profile"; also "tests-cuda", "thick", "thick-grid", "trust", "scaling", "large", "regions", "regcaps", "profile-regions", "layout", "sorted", "probe", "ranks", "ranks-thesis", "ranks-weak", "tests-mpi", "e2e1e9", "biasing", "fit", "fitprof", "tune",
-# "stages", "kernel-probes", "polarization", "polarization-ocl", "mcx", "mcx1024", "refill", "ncu-thesis", "ncu-source", "tree", "tree-targets", "tree-ascend", "trade", "presets", "empty", "fft") selects what runs. Everything printed
+# "stages", "kernel-probes", "polarization", "polarization-ocl", "mcx", "mcx1024", "ncu-thesis", "ncu-source", "tree", "tree-targets", "tree-ascend", "trade", "presets", "empty", "fft") selects what runs. Everything printed
 # goes to OUTDIR/log.txt as well; JSON and .npz results beside it.
 set -uo pipefail
 out="${1:?output folder}"
@@ -239,23 +239,10 @@ fi
 if [[ " $steps " == *" mcx "* ]]; then
     # NebulaRT, pmcx and pmcxcl (NVIDIA OpenCL) on the uniform and the lognormal medium, each
     # configuration in its own process (about 8 min on an H200; MCX_GRIDS / MCX_PHOTONS narrow it;
-    # MCX_TUNING="NRT_REFILL=16 ..." sets NebulaRT's kernel options, MCX_TAG names the file)
+    # MCX_TUNING="NRT_GROUP_TALLY=0 ..." sets NebulaRT's kernel options, MCX_TAG names the file)
     echo "== beside MCX and MCX-CL: uniform and turbulent media"
     python3 benchmarks/bench_mcx.py --backend cuda --grids ${MCX_GRIDS:-64 128 256 512} --photons ${MCX_PHOTONS:-1e7 1e8} \
         --repeats 3 ${MCX_TUNING:+--tuning $MCX_TUNING} --out "$out/mcx-cuda${MCX_TAG:-}.json"
-fi
-if [[ " $steps " == *" refill "* ]]; then
-    # work items that take their group's next packet as their last one ends (NRT_REFILL, R per
-    # work item), the lanes of a SIMD group that wait taking theirs together every K-th
-    # iteration of the walk (NRT_REFILL_EVERY), against the kernel as built, in turn twice: the
-    # thesis scene's kernels at 128^3 and the neb medium at 64^3, 128^3 and 256^3 (by regions)
-    t=("" "NRT_REFILL=4 NRT_REFILL_EVERY=8" "NRT_REFILL=4 NRT_REFILL_EVERY=16" "NRT_REFILL=4 NRT_REFILL_EVERY=32"
-       "NRT_REFILL=16 NRT_REFILL_EVERY=16" "NRT_REFILL=16 NRT_REFILL_EVERY=32" "NRT_REFILL=16 NRT_REFILL_EVERY=64")
-    echo "== NRT_REFILL and NRT_REFILL_EVERY, thesis 128^3 and the neb medium, CUDA"
-    python3 benchmarks/profile_kernels.py --scene examples/scenes/thesis-default.toml --grids 128 --photons 2.1e6 \
-        --tuning "${t[@]}" "${t[@]}" --out "$out/refill-thesis.json" 2>&1 | grep -v Warning
-    python3 benchmarks/profile_kernels.py --grids 64 128 256 --photons 2.1e7 \
-        --tuning "${t[@]}" --out "$out/refill-neb.json" 2>&1 | grep -v Warning
 fi
 if [[ " $steps " == *" mcx1024 "* ]]; then
     echo "== beside MCX and MCX-CL at 1024^3"

@@ -84,20 +84,6 @@
 #ifndef NRT_GROUP_TALLY
 #define NRT_GROUP_TALLY 0
 #endif
-#ifndef NRT_REFILL
-/* R > 0: a work item traces packet after packet of its group's share (R packets per work item
-   on average, nrt_refill_next), each lane starting its next packet as soon as its last one ends */
-#define NRT_REFILL 0
-#endif
-#ifndef NRT_REFILL_EVERY
-/* NRT_REFILL: a lane whose packet ended takes its next one at the walk's iterations 0, K, 2K,
-   ... only, so that the lanes of a SIMD group that wait take theirs together and the emission's
-   code (random-number setup, a star, a direction, the item's sinks with their 64-bit divisions)
-   runs once per K iterations for all of them, not in most iterations for one lane while the
-   others wait (K = 1: at once; on an H200 that ran the thesis kernel 1.5-2.7x slower than one
-   packet per work item, benchmarks/results/h200-2026-12-05/) */
-#define NRT_REFILL_EVERY 1
-#endif
 #ifndef NRT_IDX32
 #define NRT_IDX32 0
 #endif
@@ -598,34 +584,21 @@ NRT_DEVICE void nrt_square(const nrt_sink *k, NRT_GLOBAL nrt_u64 *band_sq, nrt_i
    max_scatterings (each ends the walk, counted), else it scatters once more (the grid's walk
    and the tree's, kernels/tree.cl). */
 #define NRT_SCATTER_OR_END()                                                     \
-    if (1) {                                                                     \
+    do {                                                                         \
         if (nrt_rng_uniform(&rng) >= alb_b) {                                    \
             NRT_VISIT_END();                                                     \
             nrt_count(sink, 1);                                                  \
             NRT_TAIL_END();                                                      \
-            NRT_PACKET_DONE();                                                   \
+            return 0;                                                            \
         }                                                                        \
         if (scatterings >= max_scatterings) {                                    \
             NRT_VISIT_END();                                                     \
             nrt_count(sink, 3);                                                  \
             NRT_TAIL_END();                                                      \
-            NRT_PACKET_DONE();                                                   \
+            return 0;                                                            \
         }                                                                        \
         ++scatterings;                                                           \
-    } else                                                                       \
-        (void)0
-/* a packet has ended: the walk returns, or (NRT_REFILL) starts the work item's next packet
-   (NRT_SCATTER_OR_END is an if, not a do-while, so that this continue is the walk's loop's) */
-#if NRT_REFILL
-#define NRT_PACKET_DONE()                                                        \
-    {                                                                            \
-        nrt_refill_ended(rf);                                                    \
-        fresh = 1;                                                               \
-        continue;                                                                \
-    }
-#else
-#define NRT_PACKET_DONE() return 0
-#endif
+    } while (0)
 /* an analog packet ends: its peel-off score into the image's heavy-tail histogram */
 #if NRT_PEEL
 #define NRT_TAIL_END() nrt_tail_add(NRT_TAIL_OF(sink->tally), peel_score, 0UL)
@@ -717,114 +690,6 @@ NRT_DEVICE int nrt_pass_item(nrt_u64 it, const NRT_GLOBAL nrt_u64 *order, const 
 }
 #endif
 
-/*
- * NRT_REFILL: a work group traces the items [base, end) of the launch, NRT_REFILL per work
- * item on average, and each work item takes the group's next item (a local counter) as soon
- * as its packet ends (or, by regions, stops at a region face), inside the walk's one loop; by
- * regions an item is a stopped packet, a new one or a free slot to pass on (nrt_pass_item). With one packet per work item, a SIMD
- * group's lanes whose packets ended idle until its longest packet ends (on an H200, the
- * thesis kernel's voxel step ran with 15.8 of 32 lanes: benchmarks/results/h200-2026-12-05/);
- * here they idle only at the end of the group's share. The packets, their random numbers and
- * their integer deposits are those of one packet per work item: the same bits.
- */
-typedef struct {
-    NRT_LOCAL nrt_u32 *next;   /* the group's items taken so far */
-    nrt_u64 base, end;         /* the group's items */
-    nrt_u64 photon_start, count, first_batch, batch_base, batch_extra, nvox, pixels, home_cell, image_stokes;
-    int band0, n_lbands, n_bands, n_stars;
-    const NRT_GLOBAL float *optics, *star_cdf;
-    const NRT_GLOBAL nrt_u64 *order;
-    NRT_GLOBAL nrt_u64 *acc, *sq, *tallies, *image;
-    NRT_GLOBAL nrt_u32 *overflow;
-    NRT_LOCAL nrt_u64 *l_hot, *l_hot_sq;
-    /* NRT_REGIONS: the pass's items (nrt_pass_item), and the packet under way's item, state
-       slot and cell, for its key (free slot, or stopped in a region) */
-    const NRT_GLOBAL nrt_u64 *emit;
-    NRT_GLOBAL nrt_packet *states;
-    NRT_GLOBAL nrt_u64 *keys_out;
-    nrt_u64 n_resume, n_fresh, fresh0, n_free, hwm, state_slots;
-    nrt_u64 it, sl, cell;
-} nrt_refill;
-
-/*
- * Batch index of a packet in a plan of n_batches batches whose sizes differ by at most one:
- * the first `extra` batches hold base + 1 packets, the others base.
- */
-NRT_DEVICE nrt_u64 nrt_batch_of(nrt_u64 photon, nrt_u64 base, nrt_u64 extra)
-{
-    nrt_u64 big = extra * (base + 1);
-    return (photon < big) ? photon / (base + 1) : extra + (photon - big) / base;
-}
-
-/* The work item's next packet (0: the group's share is done): its photon, band, optics and
-   sinks, as the kernel's loop over items forms them, and by regions the state it resumes
-   from and is saved to; a new packet's emission is counted. */
-NRT_DEVICE int nrt_refill_next(nrt_refill *rf, nrt_u64 *photon, int *band, float *sig_b, float *alb_b, float *g_b,
-                               const NRT_GLOBAL float **cdf, NRT_GLOBAL nrt_u64 **band_acc, nrt_sink *sink,
-                               NRT_GLOBAL nrt_u32 **overflow, NRT_GLOBAL nrt_u64 **band_image,
-                               NRT_GLOBAL nrt_u64 **band_sq, const NRT_GLOBAL float **pol,
-                               NRT_GLOBAL nrt_u64 **band_stokes, const NRT_GLOBAL nrt_packet **resume,
-                               NRT_GLOBAL nrt_packet **save, nrt_u64 *item, NRT_GLOBAL float **stokes_slot)
-{
-    nrt_u64 it;
-    int lband, fresh = 1;
-    for (;;) {
-        it = rf->base + (nrt_u64)NRT_ATOMIC_ADD_U32_LOCAL(rf->next, 1u);
-        if (it >= rf->end)
-            return 0;
-#if NRT_REGIONS
-        nrt_u64 sl;
-        if (!nrt_pass_item(it, rf->order, rf->emit, rf->states, rf->n_resume, rf->n_fresh, rf->fresh0, rf->n_free,
-                           rf->hwm, rf->photon_start, rf->count, photon, &lband, &sl, &fresh)) {
-            rf->keys_out[it] = ((nrt_u64)NRT_FREE_BIN << 32) | sl; /* a free slot no new packet took */
-            continue;
-        }
-        rf->sl = sl;
-        *resume = fresh ? 0 : rf->states + sl;
-        *save = rf->states + sl;
-        *item = *photon | ((nrt_u64)lband << NRT_ITEM_BAND_SHIFT);
-        *stokes_slot = NRT_POLAR ? (NRT_GLOBAL float *)(rf->states + rf->state_slots) + 6 * sl : 0;
-#else
-        (void)resume, (void)save, (void)item, (void)stokes_slot;
-        nrt_u64 t = NRT_SORTED ? (rf->order[it] & NRT_KEY_LOW) : it;
-        lband = (int)(t / rf->count);
-        *photon = rf->photon_start + t % rf->count;
-#endif
-        break;
-    }
-    rf->it = it;
-    *band = rf->band0 + lband;
-    nrt_u64 slot = nrt_batch_of(*photon, rf->batch_base, rf->batch_extra) - rf->first_batch;
-    nrt_u64 cell = slot * (nrt_u64)rf->n_lbands + (nrt_u64)lband;
-    rf->cell = cell;
-    *sig_b = rf->optics[4 * *band], *alb_b = rf->optics[4 * *band + 1], *g_b = rf->optics[4 * *band + 2];
-    *cdf = rf->star_cdf + *band * rf->n_stars;
-    *band_acc = rf->acc + cell * rf->nvox;
-    *band_sq = rf->sq + cell * rf->nvox;
-    *overflow = rf->overflow + slot;
-    *band_image = rf->image + cell * rf->pixels;
-    *pol = rf->optics + 4 * rf->n_bands + 4 * *band;
-    *band_stokes = rf->image + rf->image_stokes + cell * rf->pixels * NRT_STOKES_IMAGES;
-    sink->tally = rf->tallies + NRT_TALLY_WORDS * cell;
-    sink->home = NRT_GROUP_TALLY ? cell == rf->home_cell : 0;
-    sink->l_hot = rf->l_hot;
-    sink->l_hot_sq = rf->l_hot_sq;
-    sink->hot_x = sink->hot_y = sink->hot_z = NRT_NO_HOT;
-    if (fresh)
-        nrt_count(sink, 0);
-    return 1;
-}
-
-/* NRT_REFILL by regions: the key of the item whose packet ended (its slot is free) */
-NRT_DEVICE void nrt_refill_ended(const nrt_refill *rf)
-{
-#if NRT_REGIONS
-    rf->keys_out[rf->it] = ((nrt_u64)NRT_FREE_BIN << 32) | rf->sl;
-#else
-    (void)rf;
-#endif
-}
-
 /* The walk's arguments, the grid's (below) and the tree's (tree.cl) alike. */
 #define NRT_TRACE_PACKET_PARAMS                                                                         \
     const NRT_GLOBAL float *density, float sig_b, float alb_b, float g_b, const NRT_GLOBAL float *stars, \
@@ -833,14 +698,10 @@ NRT_DEVICE void nrt_refill_ended(const nrt_refill *rf)
         nrt_sink *sink, NRT_GLOBAL nrt_u32 *overflow, const NRT_GLOBAL float *peel, float peel_scale,    \
         NRT_GLOBAL nrt_u64 *band_image, const NRT_GLOBAL nrt_packet *resume, NRT_GLOBAL nrt_packet *save, \
         int region_shift, nrt_u64 item, NRT_GLOBAL nrt_u64 *band_sq, int sq_shift, nrt_u64 cells,           \
-        const NRT_GLOBAL float *pol, NRT_GLOBAL nrt_u64 *band_stokes, NRT_GLOBAL float *stokes_slot,        \
-        nrt_refill *rf
+        const NRT_GLOBAL float *pol, NRT_GLOBAL nrt_u64 *band_stokes, NRT_GLOBAL float *stokes_slot
 
 #ifndef NRT_TREE
 #define NRT_TREE 0
-#endif
-#if NRT_REFILL && (NRT_TREE || NRT_BIASED)
-#error "NRT_REFILL: the grid's analog walk only"
 #endif
 #if NRT_TREE
 #if NRT_REGIONS || NRT_SORTED || (defined(NRT_PEEL_AXIS) && NRT_PEEL_AXIS >= 0)
@@ -877,25 +738,6 @@ NRT_DEVICE int nrt_trace_packet(NRT_TRACE_PACKET_PARAMS)
     int ix, iy, iz, scatterings;
     nrt_idx idx;
     float d[3], inv_d[3], p0[3], tau, t_cur, tx, ty, tz, rho;
-#if NRT_REFILL
-    /* the work item's packets, one after another in the walk's one loop: a lane whose packet
-       ended starts the next one inside the same iteration (nrt_refill), so the braces of the
-       emission below close inside the loop */
-    int fresh = 1;
-    nrt_u32 beat = 0; /* the walk's iterations: the same count on every lane of a SIMD group */
-    for (;;) {
-        const int refill_beat = beat++ % (nrt_u32)NRT_REFILL_EVERY == 0u;
-        if (fresh) {
-            if (!refill_beat)
-                continue;
-            fresh = 0;
-            if (!nrt_refill_next(rf, &photon, &band, &sig_b, &alb_b, &g_b, &cdf, &band_acc, sink, &overflow,
-                                 &band_image, &band_sq, &pol, &band_stokes, &resume, &save, &item, &stokes_slot))
-                return 0;
-            peel_score = 0; /* (a visit's run is 0 once the packet ends: NRT_VISIT_END) */
-#else
-    (void)rf;
-#endif
 #if NRT_REGIONS
     if (resume) {
         nrt_packet q = *resume;
@@ -962,11 +804,7 @@ NRT_DEVICE int nrt_trace_packet(NRT_TRACE_PACKET_PARAMS)
         ty = nrt_face_distance(p0[1], d[1], inv_d[1], iy, hy);
         tz = nrt_face_distance(p0[2], d[2], inv_d[2], iz, hz);
     }
-#if NRT_REFILL
-        } /* if (fresh) */
-#else
     for (;;) {
-#endif
         float t_next = fmin(tx, fmin(ty, tz));
         float seg = fmax(0.0f, t_next - t_cur);
         /* the neighbour across the nearest face (ties: x, then y), by selects rather than
@@ -1024,7 +862,7 @@ NRT_DEVICE int nrt_trace_packet(NRT_TRACE_PACKET_PARAMS)
             NRT_VISIT_END();
             nrt_count(sink, 2);
             NRT_TAIL_END();
-            NRT_PACKET_DONE();
+            return 0;
         }
 #if NRT_REGIONS
         /* the voxel index on the stepped axis changes its region (shift 31: never) */
@@ -1048,15 +886,7 @@ NRT_DEVICE int nrt_trace_packet(NRT_TRACE_PACKET_PARAMS)
             stokes_slot[0] = stokes.q, stokes_slot[1] = stokes.u, stokes_slot[2] = stokes.v;
             stokes_slot[3] = stokes.e[0], stokes_slot[4] = stokes.e[1], stokes_slot[5] = stokes.e[2];
 #endif
-#if NRT_REFILL
-            /* its key, as the kernel's loop forms it for a walk that returns 1 */
-            rf->keys_out[rf->it] =
-                ((nrt_u64)nrt_region_bin(rf->cell, ix, iy, iz, nx, ny, nz, region_shift) << 32) | rf->sl;
-            fresh = 1;
-            continue;
-#else
             return 1;
-#endif
         }
 #endif
 #if NRT_PREFETCH
@@ -2034,6 +1864,16 @@ NRT_DEVICE void nrt_trace_packet_biased(const NRT_GLOBAL float *density, float s
 #endif /* NRT_BIASED */
 
 /*
+ * Batch index of a packet in a plan of n_batches batches whose sizes differ by at most one:
+ * the first `extra` batches hold base + 1 packets, the others base.
+ */
+NRT_DEVICE nrt_u64 nrt_batch_of(nrt_u64 photon, nrt_u64 base, nrt_u64 extra)
+{
+    nrt_u64 big = extra * (base + 1);
+    return (photon < big) ? photon / (base + 1) : extra + (photon - big) / base;
+}
+
+/*
  * Trace packets [photon_start, photon_start + count) of bands band0 .. band0 + n_lbands - 1
  * (gid = band offset * count + i). They belong to the consecutive batches first_batch,
  * first_batch + 1, ... of the plan (prm->batch_base, prm->batch_extra); each (batch, band)
@@ -2094,15 +1934,8 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
     /* the home cell (batch slot and band) of the group: that of its first packet */
     nrt_u64 home_cell = 0, home_slot = 0;
     nrt_sink sink;
-    /* NRT_REFILL: the group's items are [group_first, group_end) */
-    const nrt_u64 group_first = NRT_GROUP_FIRST_ID() * (nrt_u64)(NRT_REFILL > 0 ? NRT_REFILL : 1);
-#if NRT_GROUP_TALLY || NRT_REFILL
-    nrt_u64 lid = NRT_LOCAL_ID();
-    NRT_LOCAL_MEM nrt_u32 l_next; /* NRT_REFILL: the group's items taken */
-    if (lid == 0)
-        l_next = 0;
-#endif
 #if NRT_GROUP_TALLY
+    nrt_u64 lid = NRT_LOCAL_ID();
     NRT_LOCAL_MEM nrt_u64 l_tally[4];
     NRT_LOCAL_MEM nrt_u64 l_hot[NRT_HOT_STARS * NRT_HOT_CELLS];
     NRT_LOCAL_MEM nrt_u64 l_hot_sq[NRT_PACKET_SQ ? NRT_HOT_STARS * NRT_HOT_CELLS : 1];
@@ -2117,7 +1950,7 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
 #endif
     }
     {
-        nrt_u64 it0 = group_first, photon0 = photon_start;
+        nrt_u64 it0 = NRT_GROUP_FIRST_ID(), photon0 = photon_start;
         int lband0 = 0;
 #if NRT_REGIONS
         nrt_u64 sl0;
@@ -2134,41 +1967,10 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
         home_cell = home_slot * (nrt_u64)n_lbands + (nrt_u64)lband0;
     }
     sink.l_tally = l_tally;
+    NRT_BARRIER();
 #else
     sink.l_tally = 0;
 #endif
-#if NRT_GROUP_TALLY || NRT_REFILL
-    NRT_BARRIER();
-#endif
-#if NRT_REFILL
-    {
-        nrt_refill rf;
-        rf.next = &l_next;
-        rf.base = group_first;
-        rf.end = group_first + NRT_LOCAL_SIZE() * (nrt_u64)NRT_REFILL;
-        rf.end = rf.end < total ? rf.end : total;
-        rf.photon_start = photon_start, rf.count = count, rf.first_batch = first_batch;
-        rf.batch_base = batch_base, rf.batch_extra = batch_extra, rf.nvox = nvox, rf.pixels = pixels;
-        rf.home_cell = home_cell, rf.image_stokes = prm->image_stokes;
-        rf.band0 = band0, rf.n_lbands = n_lbands, rf.n_bands = prm->n_bands, rf.n_stars = n_stars;
-        rf.optics = optics, rf.star_cdf = star_cdf, rf.order = order;
-        rf.acc = acc, rf.sq = sq, rf.tallies = tallies, rf.image = image, rf.overflow = overflow;
-#if NRT_GROUP_TALLY
-        rf.l_hot = l_hot, rf.l_hot_sq = l_hot_sq;
-#else
-        rf.l_hot = rf.l_hot_sq = 0;
-#endif
-        rf.emit = emit, rf.states = states, rf.keys_out = keys_out;
-        rf.n_resume = n_resume, rf.n_fresh = n_fresh, rf.fresh0 = fresh0, rf.n_free = n_free, rf.hwm = hwm;
-        rf.state_slots = prm->state_slots;
-        rf.it = rf.sl = rf.cell = 0;
-        (void)stride;
-        /* the first packet's arguments are nrt_refill_next's to fill */
-        nrt_trace_packet(density, 0.0f, 0.0f, 0.0f, stars, star_cdf, nx, ny, nz, n_stars, seed, 0, 0UL,
-                         max_scatterings, track_scale, acc, &sink, overflow, peel, peel_scale, image, 0, 0,
-                         NRT_REGIONS ? region_shift : NRT_NO_REGIONS, 0, sq, sq_shift, nvox, optics, image, 0, &rf);
-    }
-#else
     for (nrt_u64 it = NRT_GLOBAL_ID(); it < total; it += stride) {
 #if NRT_REGIONS
         nrt_u64 photon, sl;
@@ -2197,7 +1999,7 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
                                 image + prm->image_stokes + 2 * cell * pixels * NRT_STOKES_IMAGES);
 #else
         sink.tally = tallies + NRT_TALLY_WORDS * cell;
-        sink.home = NRT_GROUP_TALLY ? cell == home_cell : 0;
+        sink.home = NRT_GROUP_TALLY && cell == home_cell;
 #if NRT_GROUP_TALLY
         sink.l_hot = l_hot;
         sink.l_hot_sq = l_hot_sq;
@@ -2216,7 +2018,7 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
                                        photon | ((nrt_u64)lband << NRT_ITEM_BAND_SHIFT), sq + cell * nvox, sq_shift,
                                        nvox, optics + 4 * prm->n_bands + 4 * band,
                                        image + prm->image_stokes + cell * pixels * NRT_STOKES_IMAGES,
-                                       NRT_POLAR ? (NRT_GLOBAL float *)(states + prm->state_slots) + 6 * sl : 0, 0);
+                                       NRT_POLAR ? (NRT_GLOBAL float *)(states + prm->state_slots) + 6 * sl : 0);
         if (stopped) {
             const NRT_GLOBAL nrt_packet *q = states + sl;
             keys_out[it] = ((nrt_u64)nrt_region_bin(cell, q->ix, q->iy, q->iz, nx, ny, nz, region_shift) << 32) | sl;
@@ -2230,19 +2032,17 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
                          max_scatterings, track_scale, acc + cell * nvox, &sink,
                          overflow + slot, peel, peel_scale, image + cell * pixels, 0, 0, NRT_NO_REGIONS, 0,
                          sq + cell * nvox, sq_shift, nvox, optics + 4 * prm->n_bands + 4 * band,
-                         image + prm->image_stokes + cell * pixels * NRT_STOKES_IMAGES, 0, 0);
+                         image + prm->image_stokes + cell * pixels * NRT_STOKES_IMAGES, 0);
 #endif
 #endif
     }
-#endif /* NRT_REFILL */
 #if NRT_GROUP_TALLY
     /* the group's local sums go to global memory once */
     NRT_BARRIER();
-    const nrt_u64 flush0 = lid, flush_step = NRT_LOCAL_SIZE();
-    for (nrt_u64 i = flush0; i < 4; i += flush_step)
+    for (nrt_u64 i = lid; i < 4; i += NRT_LOCAL_SIZE())
         if (l_tally[i] != 0)
             NRT_ATOMIC_ADD_U64(&tallies[NRT_TALLY_WORDS * home_cell + i], l_tally[i]);
-    for (nrt_u64 i = flush0; i < NRT_HOT_STARS * NRT_HOT_CELLS; i += flush_step) {
+    for (nrt_u64 i = lid; i < NRT_HOT_STARS * NRT_HOT_CELLS; i += NRT_LOCAL_SIZE()) {
         /* only cells something was added to: those lie inside the grid */
         int s = (int)(i / NRT_HOT_CELLS), c = (int)(i % NRT_HOT_CELLS);
         if (s >= n_stars || (l_hot[i] == 0 && (!NRT_PACKET_SQ || l_hot_sq[NRT_PACKET_SQ ? i : 0] == 0)))

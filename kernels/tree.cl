@@ -212,7 +212,6 @@ NRT_DEVICE nrt_u64 nrt_tree_peel(const NRT_GLOBAL int *child, const NRT_GLOBAL f
 NRT_DEVICE int nrt_trace_packet(NRT_TRACE_PACKET_PARAMS)
 {
     (void)resume, (void)save, (void)region_shift, (void)item, (void)track_scale, (void)band_stokes, (void)stokes_slot;
-    (void)rf; /* (NRT_REFILL: the grid's walk only) */
 #if !NRT_PEEL
     (void)peel, (void)peel_scale, (void)band_image, (void)g_b;
 #endif

@@ -11,15 +11,13 @@ from nebula_rt.backends.kernel_source import kernel_source
 NVCC = shutil.which("nvcc")
 
 #: option sets of the transport kernel compiled beside the plain ones: the GPU default, the
-#: refilled walk (also by regions, polarized, with images and per-packet squares, and with the
-#: refill every 16th iteration), weighted packets and the tree's walk
+#: walk by regions (polarized, with images and per-packet squares), the sorted emission,
+#: weighted packets and the tree's walk
 TRANSPORT_VARIANTS = [
     ["-DNRT_TRACK_LENGTH=1", "-DNRT_ACC_RED=1", "-DNRT_PREFETCH=1", "-DNRT_GROUP_TALLY=1", "-DNRT_IDX32=1"],
-    ["-DNRT_TRACK_LENGTH=1", "-DNRT_GROUP_TALLY=1", "-DNRT_REFILL=16"],
-    ["-DNRT_TRACK_LENGTH=1", "-DNRT_GROUP_TALLY=1", "-DNRT_REFILL=16", "-DNRT_REGIONS=1", "-DNRT_POLAR=3",
-     "-DNRT_PEEL=1", "-DNRT_PACKET_SQ=1"],
-    ["-DNRT_COLLISION=1", "-DNRT_REFILL=4", "-DNRT_SORTED=1", "-DNRT_POLAR=1", "-DNRT_PEEL=1"],
-    ["-DNRT_TRACK_LENGTH=1", "-DNRT_GROUP_TALLY=1", "-DNRT_REFILL=8", "-DNRT_REFILL_EVERY=16"],
+    ["-DNRT_TRACK_LENGTH=1", "-DNRT_GROUP_TALLY=1", "-DNRT_REGIONS=1", "-DNRT_POLAR=3", "-DNRT_PEEL=1",
+     "-DNRT_PACKET_SQ=1"],
+    ["-DNRT_COLLISION=1", "-DNRT_SORTED=1", "-DNRT_POLAR=1", "-DNRT_PEEL=1"],
     ["-DNRT_TRACK_LENGTH=1", "-DNRT_BIASED=1", "-DNRT_PEEL=1", "-DNRT_POLAR=2"],
     ["-DNRT_TRACK_LENGTH=1", "-DNRT_TREE=1", "-DNRT_PEEL=1"],
 ]

@@ -19,7 +19,6 @@ from conftest import tuned_backend as _backend
 from nebula_rt.observe import sky
 from nebula_rt.backends.base import TRANSPORT_TUNING, transport_defines
 from nebula_rt.optics.bands import Band
-from nebula_rt.optics.polarization import Polarization
 from nebula_rt.scene import Star
 from nebula_rt.transport.plan import FIXED_POINT_BITS
 from nebula_rt.transport.estimate import _no_wrap
@@ -173,8 +172,8 @@ def test_groups_split_into_short_launches_give_the_same_bits(cloud, monkeypatch)
 @pytest.mark.parametrize("error_estimate", ["batches", "packets"])
 def test_star_blocks_of_every_size_give_the_same_bits(cloud, error_estimate):
     """The work-group sums of the voxels around each star (NRT_HOT_HALF: blocks of 1, 3^3, 5^3
-    and 7^3 voxels), against no work-group sums: the same batch sums, squares (per-packet
-    visit squares too) and counts. The stars test the blocks' edges: one in a corner (its block
+    and 7^3 voxels) against no work-group sums: the same batch sums, squares (per-packet visit
+    squares too) and counts. The stars test the blocks' edges: one in a corner (its block
     mostly outside the grid), one on a face, two whose blocks overlap, and a fifth star beyond
     the NRT_HOT_STARS that get a block."""
     stars = [Star(position=(0.01, 0.02, 0.99), luminosity=1.0, temperature=None, bump_radius=0.0),
@@ -217,54 +216,6 @@ def test_sorted_packet_order_gives_the_same_bits(cloud, estimator):
         np.testing.assert_array_equal(ordered.counts, plain.counts)
         if TEST_BACKEND == "cuda" or "Portable" in _backend({}).device_name:
             np.testing.assert_array_equal(ordered.peel_image, plain.peel_image)
-
-
-@pytest.mark.parametrize("estimator,error_estimate,polarization",
-                         [("track-length", "batches", "none"), ("collision-filter", "batches", "white"),
-                          ("track-length", "packets", "none")])
-def test_refilled_work_items_give_the_same_bits(cloud, estimator, error_estimate, polarization):
-    """NRT_REFILL (a work item takes its group's next packet as soon as its last one ends, R
-    packets per work item on average) against one packet per work item: the same batch sums,
-    squares (per-packet visit squares too), counts, peel-off images (I, and Q and U of
-    polarized packets) and the histogram of the packets' peel-off scores, with two bands, two stars, several batches per launch and several
-    launches; with the lanes whose packets ended taking their next ones together every 5th
-    iteration of the walk (NRT_REFILL_EVERY), and with the emission sorted. R = 3 (a prime:
-    groups' shares end part-way through a batch) and 64 (more packets per group than a launch
-    holds). (The barrier's flush with refill: tests/backends/test_regions.py.)"""
-    # (the estimate by packets takes no peel-off image)
-    camera = sky.Camera(direction=(0.3, -0.2, -1.0), size=(12, 10)) if error_estimate == "batches" else None
-    pol = Polarization("white", peak=0.5) if polarization == "white" else Polarization("none")
-    runs = []
-    for tuning in ({"NRT_REFILL": 0, "NRT_GROUP_TALLY": 0}, {"NRT_REFILL": 3, "NRT_REFILL_EVERY": 5},
-                   {"NRT_REFILL": 64, "NRT_GROUP_TALLY": 0, "NRT_SORTED": 1}):
-        be = _backend(tuning)
-        be.launch_packets = be.first_launch_packets = 3 * 2 * 1500
-        batches = {"batch_size": 1500} if error_estimate == "batches" else {}
-        runs.append(trace(cloud, _bands(), _stars(), tau=25.0, photons=9000, seed=8, estimator=estimator,
-                          error_estimate=error_estimate, backend=be, peel=camera, polarization=pol, **batches))
-    plain = runs[0]
-    assert plain.counts[:, 0].tolist() == [9000, 9000]
-    for refilled in runs[1:]:
-        np.testing.assert_array_equal(refilled.counts, plain.counts)
-        assert refilled.raw_sum.tobytes() == plain.raw_sum.tobytes()
-        assert refilled.raw_m2.tobytes() == plain.raw_m2.tobytes()
-        if camera is not None:
-            assert plain.peel_image.any() and plain.tail_hist.any()
-            np.testing.assert_array_equal(refilled.peel_image, plain.peel_image)
-            np.testing.assert_array_equal(refilled.tail_hist, plain.tail_hist)  # each packet's own peel score
-        if polarization != "none":
-            assert np.abs(plain.peel_stokes).max() > 0
-            np.testing.assert_array_equal(refilled.peel_stokes, plain.peel_stokes)
-
-
-def test_weighted_packets_take_no_refill(cloud):
-    """NRT_REFILL asked for weighted packets (their own walk, kernels/transport.cl) is off:
-    the kernel builds, and the bits are those without it."""
-    kw = dict(tau=25.0, photons=3000, seed=4, batch_size=1000, method="biased")
-    plain = trace(cloud, _bands(), _stars(), backend=_backend({}), **kw)
-    asked = trace(cloud, _bands(), _stars(), backend=_backend({"NRT_REFILL": 4}), **kw)
-    assert asked.raw_sum.tobytes() == plain.raw_sum.tobytes()
-    np.testing.assert_array_equal(asked.counts, plain.counts)
 
 
 @pytest.mark.parametrize("sort_bits", [8, 3])

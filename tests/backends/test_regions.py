@@ -61,15 +61,12 @@ def _same(a, b):
 @pytest.mark.parametrize("estimator", ["track-length", "collision-filter"])
 def test_regions_give_the_same_bits(cloud, estimator):
     """Regions of 2, 4 and 8 voxels (a packet stops up to hundreds of times), with and without
-    the sorted emission order, the work-group sums and work items that take their group's next
-    item as their packet ends or stops (NRT_REFILL): every sum, square, count and peel-off pixel
-    equals the one-go trace's, for two bands, two stars and several batches per launch."""
+    the sorted emission order and the work-group sums: every sum, square, count and peel-off
+    pixel equals the one-go trace's, for two bands, two stars and several batches per launch."""
     plain = _run(cloud, {"NRT_REGIONS": 0}, estimator)
     assert plain.counts[:, 0].tolist() == [9000, 9000]
     for tuning in ({"NRT_REGIONS": 1}, {"NRT_REGIONS": 2}, {"NRT_REGIONS": 3, "NRT_SORTED": 1},
-                   {"NRT_REGIONS": 2, "NRT_GROUP_TALLY": 1, "NRT_PREFETCH": 0},
-                   {"NRT_REGIONS": 1, "NRT_REFILL": 3, "NRT_GROUP_TALLY": 1},
-                   {"NRT_REGIONS": 3, "NRT_REFILL": 64, "NRT_SORTED": 1, "NRT_REFILL_EVERY": 8}):
+                   {"NRT_REGIONS": 2, "NRT_GROUP_TALLY": 1, "NRT_PREFETCH": 0}):
         _same(_run(cloud, dict(tuning, region_tail=0), estimator), plain)
 
 
@@ -116,10 +113,6 @@ def test_passes_stop_and_resume_packets(cloud, monkeypatch):
             assert len(fresh) > 2 * 9 * launches
             assert all(e[0] <= 1024 for e in log)
             assert sum(e[0] < 1024 for e in fresh) <= 9 * launches
-    # the same passes with work items that take their group's next item (a stopped packet, a
-    # new one, or a free slot to pass on) as their packet ends or stops
-    for tuning in (dict(SPLIT, NRT_REFILL=4), dict(TAIL, NRT_REFILL=3, NRT_GROUP_TALLY=1, NRT_REFILL_EVERY=4)):
-        _same(_run(cloud, tuning, peel=False), plain)
     full, tail, split = (seen[id(t)] for t in (FULL, TAIL, SPLIT))
     assert full >= 10 * 2  # packets stop again and again
     assert tail < full

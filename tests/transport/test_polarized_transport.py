@@ -270,13 +270,11 @@ def test_polarized_runs_conserve_energy_and_keep_their_bits_over_launches(backen
     assert np.all(np.abs(one.peel_stokes[0]) <= one.peel_image[0][None] * (1 + 1e-12))
 
 
-@pytest.mark.parametrize("tuning", [{"NRT_REGIONS": 2}, {"NRT_REGIONS": 3, "region_tail": 50},
-                                    {"NRT_REGIONS": 2, "NRT_REFILL": 4}])
+@pytest.mark.parametrize("tuning", [{"NRT_REGIONS": 2}, {"NRT_REGIONS": 3, "region_tail": 50}])
 def test_polarized_packets_by_regions_keep_their_bits(tuning):
     """The transport by regions stops packets at region faces and resumes them in later passes:
     a polarized packet's Stokes state travels with it (beside its state slot), so the sums, the
-    counts and the I, Q and U images are the bits of the run without regions (also with work
-    items that take their group's next packet as one stops: NRT_REFILL)."""
+    counts and the I, Q and U images are the bits of the run without regions."""
     from conftest import tuned_backend
 
     rho = (np.random.default_rng(3).random((24, 20, 16)) ** 2).astype(np.float32)

@@ -334,8 +334,7 @@ def test_a_tree_of_voxels_gives_the_same_bits_whatever_the_kernel_path(backend):
     runs = []
     for tuning, launch in (({"NRT_GROUP_TALLY": 0}, 1 << 30), ({"NRT_GROUP_TALLY": 1}, 1 << 30),
                            ({"NRT_GROUP_TALLY": 1}, 3 * 1500), ({"NRT_TREE_ASCEND": 1}, 1 << 30),
-                           ({"NRT_TREE_ASCEND": 0}, 1 << 30),
-                           ({"NRT_REFILL": 4}, 1 << 30)):  # (a tree's walk takes no refill: asked, it is off)
+                           ({"NRT_TREE_ASCEND": 0}, 1 << 30)):
         be = tuned_backend(tuning)
         be.launch_packets = launch
         runs.append(trace_tree(tree, one_band(0.7, 0.4), centre_star(), tau=6.0, photons=12_000,

@@ -302,14 +302,12 @@ class DeviceTransport(TransportSession):
         be = self.backend
         regions = bool(self.region_shift)
         items = n_resume + max(n_fresh, n_free) if regions else int(count) * n_lb
-        # NRT_REFILL: each work item traces that many of its group's packets on average
-        refill = int(self.defines.get("NRT_REFILL", 0))
         launch = kernel_params.pack(
             "nrt_launch", photon_start=photon_start, count=count, first_batch=first_batch, n_resume=n_resume,
             n_fresh=n_fresh, fresh0=fresh0, n_free=n_free, hwm=hwm, band0=band0, n_lbands=n_lb,
             region_shift=shift, slots=self.slots)[0]
         be.launch_trace(
-            be.transport_program, "trace_photons", -(-items // refill) if refill else items, self.d_params, launch,
+            be.transport_program, "trace_photons", items, self.d_params, launch,
             self.d_density, self.d_optics, self.d_stars, self.d_cdf,
             self.d_acc, self.d_sq, self.d_tallies, self.d_overflow, self.d_image, self.d_keys,
             self.d_emit if regions else self.d_keys, self.d_states if regions else self.d_keys, self.d_window,

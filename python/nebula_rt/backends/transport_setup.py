@@ -202,8 +202,6 @@ def transport_defines(setup: TransportSetup, tuning: dict | None = None) -> dict
     if setup.biased:  # checked 128-bit adds into global memory only
         defines["NRT_BIASED"] = 1
         opts["NRT_ACC_RED"] = opts["NRT_GROUP_TALLY"] = 0
-    if setup.biased or setup.tree is not None:
-        opts["NRT_REFILL"] = 0  # the grid's analog walk only
     if setup.packet_sq:
         defines["NRT_PACKET_SQ"] = 1
     if setup.tail_classes:
