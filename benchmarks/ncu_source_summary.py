@@ -40,7 +40,7 @@ def main(argv=None) -> int:
         lines = [ln for ln in f if ln.strip() and not ln.startswith("==")]
     # ncu heads the table with the kernel's name ("Kernel Name","trace_photons"): the header row
     # is the first that names the columns
-    start = next((i for i, ln in enumerate(lines) if ln.startswith('"Address"') or ln.startswith('"#"')), 0)
+    start = next((i for i, ln in enumerate(lines) if ln.startswith(('"Address"', '"#"'))), 0)
     rows = list(csv.DictReader(lines[start:]))
     if not rows:
         print("no rows")

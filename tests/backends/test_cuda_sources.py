@@ -5,7 +5,6 @@ import shutil
 import subprocess
 
 import pytest
-
 from nebula_rt.backends.kernel_source import kernel_source
 
 NVCC = shutil.which("nvcc")
@@ -37,7 +36,7 @@ def test_kernel_compiles_as_cuda(tmp_path, name, defines):
     src = tmp_path / (name.replace(".cl", ".cu"))
     src.write_text(kernel_source(name))
     proc = subprocess.run([NVCC, "-ptx", "-arch=sm_80", "--std=c++14", *defines, "-o", str(tmp_path / "k.ptx"), str(src)],
-                          capture_output=True, text=True)
+                          capture_output=True, text=True, check=False)
     assert proc.returncode == 0, proc.stderr
     ptx = (tmp_path / "k.ptx").read_text()
     for kernel in {"transport.cl": ["trace_photons", "fold_batches"], "density.cl": ["generate_density"],
