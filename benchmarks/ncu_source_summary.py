@@ -9,7 +9,7 @@ active per execution (thread-level over warp-level instructions), and the totals
 family (the first word of the SASS text, e.g. IMAD, FFMA, ATOM, LDG), so that the kernel's time
 can be told apart: the voxel step, the random numbers (64-bit multiplies: IMAD.HI, IMAD.WIDE),
 the deposits (RED/ATOM), the density loads (LDG). It also splits the instructions by the lanes
-active when they run (1-2, 2-8, 8-24, 24-32): code that one or two lanes of a warp run while
+active when they run (0-2, 2-8, 8-24, 24-32): code that one or two lanes of a warp run while
 the others wait (a packet's interaction, its random-number block) is told apart from the walk
 that all packets in flight take.
 """

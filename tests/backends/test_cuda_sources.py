@@ -5,6 +5,7 @@ import shutil
 import subprocess
 
 import pytest
+
 from nebula_rt.backends.kernel_source import kernel_source
 
 NVCC = shutil.which("nvcc")
