@@ -37,6 +37,8 @@ LIGHT_FIELD_PROPERTIES = (
     Property("GrainRadiusMin", "bands.grain_radius_min", enabled_by=("Polarization", 3)),
     Property("GrainRadiusMax", "bands.grain_radius_max", enabled_by=("Polarization", 3)),
     Property("GrainSizeSlope", "bands.grain_size_slope", enabled_by=("Polarization", 3)),
+    # a tabulated matrix (a file)
+    Property("GrainMatrix", "bands.grain_matrix", widget="file", enabled_by=("Polarization", 4)),
     Property("Estimator", "transport.estimator", widget="enum"),
     Property("Method", "transport.method", widget="enum"),
     Property("ErrorEstimate", "transport.error_estimate", widget="enum"),
@@ -259,8 +261,10 @@ class NebulaLightField(NebulaAlgorithm):
         if values.get("bands.polarization") != "white":
             values.pop("bands.peak_polarization", None)
         if values.get("bands.polarization") != "mie":
-            for key in [k for k in values if k.startswith("bands.grain_")]:
+            for key in [k for k in values if k.startswith("bands.grain_") and k != "bands.grain_matrix"]:
                 values.pop(key)
+        if values.get("bands.polarization") != "matrix":
+            values.pop("bands.grain_matrix", None)
         stars = stars_from_flat(self.stars())
         if self._luminosity_unit not in LUMINOSITY_UNITS:
             raise SceneError("LuminosityUnit", self._luminosity_unit, "must be one of " +

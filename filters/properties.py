@@ -35,7 +35,8 @@ class Property:
         The scene key it sets (``"transport.photons"``).
     widget : str
         How a choice or a flag is stored: ``"enum"`` (an integer index into the choices, as
-        older state files hold it), ``"bool"``, ``"auto"`` (a parameter that is ``"auto"`` or a
+        older state files hold it), ``"bool"``, ``"file"`` (a file name: the panel adds a file
+        browser), ``"auto"`` (a parameter that is ``"auto"`` or a
         number: the check box ``flag`` and this number, ``Set<flag>`` / ``Set<name>``); ""
         chooses from the declaration (a string list for choices, a number or text otherwise).
     flag : str

@@ -268,6 +268,8 @@ def bound_property(prop, default=None):
         domain = '<EnumerationDomain name="enum">%s</EnumerationDomain>' % items
     elif prop.widget == "bool":
         tag, dflt, domain = "IntVectorProperty", str(int(bool(d))), '<BooleanDomain name="bool"/>'
+    elif prop.widget == "file":  # a file name: the panel's text box with a file browser
+        tag, dflt, domain = "StringVectorProperty", quoteattr(d)[1:-1], '<FileListDomain name="files"/>'
     elif prop.choices:
         items = "".join("<String value=%s/>" % quoteattr(c) for c in prop.choices)
         tag, dflt = "StringVectorProperty", quoteattr(d)[1:-1]

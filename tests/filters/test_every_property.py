@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -39,7 +40,11 @@ UNCHANGED = {
 }
 #: values whose valid range depends on other properties (PHOTONS), or that are text
 SPECIFIC = {"BatchSize": 1000, "Distance": "140 pc", "BoxLength": "1 pc", "Offset": (0.5, 0.25, 0.0),
-            "ParticleMass": "m", "ParticleSmoothing": "h"}
+            "ParticleMass": "m", "ParticleSmoothing": "h",
+            # (a tabulated matrix needs its file: GrainMatrix's own case)
+            "Polarization": "mie",
+            "GrainMatrix": str(Path(__file__).resolve().parents[2] / "benchmarks" / "data" / "pinte2009"
+                               / "mueller_matrix_1um.dat")}
 #: field data that names the run rather than its result
 VOLATILE = {"scene", "device_memory_peak_bytes", "device", "timings"}
 PHOTONS = 5000

@@ -1,8 +1,9 @@
 """A polarized nebula through the plugin's proxies: Nebula Light Field with Polarization white
-(or mie: MRN grains of astronomical silicate), Nebula Sky Image with Method peel-off, Nebula
-Polarization Vectors' segments shown over it.
+(or mie: MRN grains of astronomical silicate; or matrix: the Pinte et al. 2009 benchmark's
+tabulated matrix), Nebula Sky Image with Method peel-off, Nebula Polarization Vectors' segments
+shown over it.
 
-    pvpython polarization.py OUT.png PHOTONS [white|mie]
+    pvpython polarization.py OUT.png PHOTONS [white|mie|matrix]
 
 RESULT: the filters' last errors; the sky image's Q_ and U_ arrays and its field data; the
 vectors' points, arrays and angles, each vector's position angle about the star (the pattern
@@ -10,6 +11,7 @@ is centrosymmetric where the light is tangentially polarized); the glyph display
 the plugin made them.
 """
 
+import os
 import sys
 
 import _common
@@ -21,9 +23,11 @@ from vtkmodules.util.numpy_support import vtk_to_numpy
 load_plugin()
 png, photons = sys.argv[1], int(sys.argv[2])
 kind = sys.argv[3] if len(sys.argv) > 3 else "white"
-optics = dict(Polarization="white", PeakPolarization=0.6) if kind == "white" else dict(
-    Polarization="mie", GrainMaterial="astronomical-silicate", GrainRadiusMin=0.005, GrainRadiusMax=0.25,
-    GrainSizeSlope=3.5)
+MATRIX = os.path.join(_common.REPO, "benchmarks", "data", "pinte2009", "mueller_matrix_1um.dat")
+optics = {"white": dict(Polarization="white", PeakPolarization=0.6),
+          "mie": dict(Polarization="mie", GrainMaterial="astronomical-silicate", GrainRadiusMin=0.005,
+                      GrainRadiusMax=0.25, GrainSizeSlope=3.5),
+          "matrix": dict(Polarization="matrix", GrainMatrix=MATRIX)}[kind]
 star = [0.5, 0.5, 0.5, 1.0, 9000.0, 0.0]
 dust = simple.NebulaDustDensity(GridShape=[24, 24, 24], Model="uniform", UniformDensity=1.0, Floor=0.0, Stars=star,
                                 Device=_common.TEST_DEVICE)
@@ -58,6 +62,8 @@ _common.result(last_errors={n: a.last_error for n, a in algs.items()},
                arrays=arrays, field_data=fd, vectors=int(vec.GetNumberOfPoints()),
                vector_arrays=[vec.GetCellData().GetArrayName(i) for i in range(vec.GetCellData().GetNumberOfArrays())],
                cells=int(vec.GetNumberOfCells()), tangential_deviation_deg=[float(x) for x in off],
+               # (tangential or radial: grains whose polarization changes sign with the angle)
+               aligned_deviation_deg=[float(min(x, 90.0 - x)) for x in off],
                segment_vs_angle_deg=float(np.max(np.abs(((seg_angle - angle) + 90.0) % 180.0 - 90.0))) if len(mid) else 0.0,
                z=[float(z) for z in pts[:, 2]], display={"Representation": str(shown.Representation),
                                                          "DiffuseColor": list(shown.DiffuseColor)})

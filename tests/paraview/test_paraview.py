@@ -294,6 +294,17 @@ def test_mie_grains_from_the_plugin(pv_env, xdisplay, tmp_path):
     assert r["cells"] >= 50 and max(r["tangential_deviation_deg"]) < 15.0
 
 
+def test_tabulated_matrix_from_the_plugin(pv_env, xdisplay, tmp_path):
+    """Polarization matrix with the Grain Matrix file (the Pinte et al. 2009 benchmark's grains):
+    the sky image adds V_ and its error, and the pattern is centrosymmetric about the star: each
+    vector tangential or radial within 15 degrees (these grains polarize light perpendicular to
+    the scattering plane at some angles and parallel to it at others)."""
+    r, _ = run_pv(pv_env, xdisplay, "polarization.py", tmp_path / "matrix.png", 200_000, "matrix", timeout=300)
+    assert r["last_errors"] == {"light": None, "sky": None, "vectors": None}, r["last_errors"]
+    assert {"Q_G", "U_G", "V_G", "V_error_G", "Q_error_G"} <= set(r["arrays"])
+    assert r["cells"] >= 20 and max(r["aligned_deviation_deg"]) < 15.0
+
+
 def test_calibrated_sky_image_and_fits_from_the_plugin(pv_env, xdisplay, tmp_path):
     """Luminosity Unit L_sun, Spectral Types and Box Length on the light field, Units MJy/sr and the observer
     on the sky image, SaveData(.fits) through the plugin's writer: the calibrated arrays, the

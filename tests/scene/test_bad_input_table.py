@@ -22,6 +22,7 @@ from __future__ import annotations
 import math
 import sys
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -48,6 +49,9 @@ BASE = {
 BASE_FILE = {**BASE, "dust": {"model": "file", "file": "cloud.npy"}}
 #: for the grains' keys: Mie scattering (they are refused by name with any other polarization)
 BASE_MIE = {**BASE, "bands": {"polarization": "mie"}}
+#: for the tabulated matrix's file: the Pinte et al. 2009 benchmark's grains
+PINTE_MATRIX = str(Path(__file__).resolve().parents[2] / "benchmarks" / "data" / "pinte2009" / "mueller_matrix_1um.dat")
+BASE_MATRIX = {**BASE, "bands": {"polarization": "matrix", "grain_matrix": PINTE_MATRIX, "albedo": 0.6475}}
 #: for White's peak polarization (refused by name with any other polarization)
 BASE_WHITE = {**BASE, "bands": {"polarization": "white"}}
 #: for the [[bands.list]] keys: two explicit bands, a flat-spectrum star
@@ -87,6 +91,8 @@ class Row:
     def base(self) -> dict:
         if self.key.startswith("bands.list"):
             return BASE_LIST
+        if self.key == "bands.grain_matrix":
+            return BASE_MATRIX
         if self.key.startswith("bands.grain_"):
             return BASE_MIE
         if self.key == "bands.peak_polarization":
@@ -115,7 +121,8 @@ RANGES = {
     # the pairs' own rule, or where a valid spectrum must have power
     "stars.0.spectrum": ("[wavelength nm, relative power] pairs", "inside 380-780 nm", "must give every band light"),
     "bands.preset": "preset", "bands.albedo": "[0, 1]", "bands.g": "[-1, 1]",
-    "bands.polarization": "'none', 'rayleigh', 'white', 'mie'",
+    "bands.polarization": "'none', 'rayleigh', 'white', 'mie', 'matrix'",
+    "bands.grain_matrix": ("string", "a text table of rows"),
     "bands.grain_material": "'astronomical-silicate'",
     "bands.grain_n": ("[0.01, 100]", "one value per band", "must be given with bands.grain_k"),
     "bands.grain_k": ("[0, 100]", "one value per band", "must be given with bands.grain_n"),
@@ -264,6 +271,11 @@ TABLE = [
     Row("bands.grain_radius_max", "one-size", "0.005", ALLOWED, "grains of one size (0.005 micron)"),
     *floats("bands.grain_size_slope", {"zero": "n(a) flat in a", "negative": "more large grains than small",
                                        "below-float32": "as good as 0"}),
+    *strings("bands.grain_matrix", allowed={PINTE_MATRIX: "the Pinte et al. 2009 benchmark's grains"}),
+    Row("bands.grain_matrix", "empty", '""'),
+    Row("bands.grain_matrix", "missing", '"missing.dat"'),
+    Row("bands.grain_matrix", "folder", '"/tmp"'),
+    Row("bands.grain_matrix", "not-a-table", f'"{__file__}"'),
     *floats("bands.peak_polarization", {"zero": "unpolarized light stays so (White's p_l = 0)",
                                         "below-float32": "p_l 1e-40: as good as 0"}),
     Row("bands.peak_polarization", "list", "[0.3, 0.4, 0.5]", ALLOWED, "one per band (thesis-rgb: 3)"),

@@ -22,6 +22,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -30,6 +31,7 @@ from conftest import centre_star, one_band
 from nebula_rt.errors import SceneError
 from nebula_rt.observe.sky import Camera
 from nebula_rt.optics.mie import Grains, mie_bands
+from nebula_rt.optics.mueller_table import read_matrix
 from nebula_rt.optics.polarization import Polarization
 from nebula_rt.transport import trace
 
@@ -67,6 +69,24 @@ def _mie_exact(mu):
     _, qs, _, _ = miepython.efficiencies_mx(m, x)
     c = 1.0 / (2 * np.pi * x * x * qs)  # S11 = (|S1|^2 + |S2|^2) / (2 k^2 C_sca)
     return np.interp(mu, fine, (a1 + a2) * c), np.interp(mu, fine, (a1 - a2) * c)
+
+
+#: a tabulated matrix (bands.polarization = "matrix"): the Pinte et al. 2009 benchmark's grains
+PINTE_MATRIX = Path(__file__).resolve().parents[2] / "benchmarks" / "data" / "pinte2009" / "mueller_matrix_1um.dat"
+
+
+def _table_exact(mu):
+    """S11 (per sr) and -S12 of the file's rows (linear in theta between them, S11 flat and S12
+    zero beyond its first and last angles), normalised here by a fine quadrature over the sphere."""
+    a = np.loadtxt(PINTE_MATRIX)
+    t = np.concatenate([[0.0], a[:, 0], [180.0]])
+    s11 = np.concatenate([a[:1, 1], a[:, 1], a[-1:, 1]])
+    s12 = np.concatenate([[0.0], a[:, 2], [0.0]])
+    fine = np.linspace(0.0, 180.0, 360_001)
+    f = np.interp(fine, t, s11) * np.sin(np.radians(fine))
+    norm = 2 * np.pi * np.sum(0.5 * (f[1:] + f[:-1])) * np.radians(fine[1] - fine[0])
+    theta = np.degrees(np.arccos(np.clip(mu, -1.0, 1.0)))
+    return np.interp(theta, t, s11) / norm, -np.interp(theta, t, s12) / norm
 
 
 def _single_scattering_oracle(cam, sigma, nodes=4, n_alpha=64, matrix=_rayleigh, albedo=1.0):
@@ -115,7 +135,7 @@ def _offsets(cam):
     return (np.hypot(x, y) / cam.pixel_size).ravel(), np.arctan2(y, x).ravel()
 
 
-@pytest.fixture(scope="module", params=["analog", "biased", "mie-analog"])
+@pytest.fixture(scope="module", params=["analog", "biased", "mie-analog", "matrix-analog"])
 def single(backend, request):
     """Analog packets, and weighted ones (forced scattering, 128-bit weights: Q and U as 128-bit
     two's complement), fewer of them: each scatters inside the box once; Rayleigh scattering,
@@ -128,6 +148,9 @@ def single(backend, request):
     if request.param.startswith("mie"):
         pol, matrix = Polarization("mie", grains=MIE_GRAINS), _mie_exact
         bands = mie_bands(one_band(), MIE_GRAINS)
+    if request.param.startswith("matrix"):
+        table = read_matrix(PINTE_MATRIX)
+        pol, matrix, bands = Polarization("matrix", matrix=table), _table_exact, one_band(albedo=0.6474786, g=table.g)
     with pytest.warns(UserWarning, match="max_scatterings = 1"):  # (the second scatterings are cut on purpose)
         res = trace(rho, bands, centre_star(), tau=SIGMA, photons=photons, seed=21,
                     max_scatterings=1, backend=backend, peel=cam, peel_bins=_pixel_groups(cam),

@@ -203,7 +203,7 @@ GRAIN_KEYS = ("extinction", "albedo", "g")
 
 
 def _band_from_entry(i: int, entry: Any, albedo: Optional[float], g: Optional[float],
-                     grain_optics: bool = False) -> Band:
+                     grain_optics: bool = False, phase_g: Optional[float] = None) -> Band:
     prefix = f"bands.list[{i}]"
     if isinstance(entry, Band):
         entry = asdict(entry)
@@ -227,6 +227,11 @@ def _band_from_entry(i: int, entry: Any, albedo: Optional[float], g: Optional[fl
         return Band(name=_check_name(f"{prefix}.name", entry["name"]),
                     wavelength=_check_wavelength(f"{prefix}.wavelength", entry["wavelength"]),
                     extinction=1.0, albedo=0.0, g=0.0)
+    if phase_g is not None:  # a tabulated phase function's g (bands.polarization = 'matrix')
+        if "g" in entry:
+            raise SceneError(f"{prefix}.g", entry["g"], "must be omitted with bands.polarization = 'matrix' "
+                             "(the table's phase function gives g)")
+        g = phase_g
     required = ["name", "wavelength", "extinction"]
     if albedo is None:
         required.append("albedo")
@@ -257,6 +262,7 @@ def resolve_bands(
     albedo: Optional[float] = None,
     g: Optional[float] = None,
     grain_optics: bool = False,
+    phase_g: Optional[float] = None,
 ) -> List[Band]:
     """Build the validated list of bands of a scene.
 
@@ -277,6 +283,9 @@ def resolve_bands(
         The dust's grains give every band's extinction, albedo and g (Mie grains): explicit
         bands give name and wavelength alone (their other keys are refused), and come back
         with extinction 1, albedo 0 and g 0 for :func:`nebula_rt.optics.mie.mie_bands` to set.
+    phase_g : float or None
+        The asymmetry of a tabulated phase function (``bands.polarization = "matrix"``):
+        every band's g; explicit bands then give no g (refused).
 
     Returns
     -------
@@ -305,6 +314,8 @@ def resolve_bands(
             bands = [replace(b, albedo=albedo) for b in bands]
         if g is not None:
             bands = [replace(b, g=g) for b in bands]
+        if phase_g is not None:
+            bands = [replace(b, g=float(phase_g)) for b in bands]
         return bands
 
     if isinstance(band_list, (str, bytes, Mapping)) or not isinstance(band_list, Sequence):
@@ -312,7 +323,7 @@ def resolve_bands(
     n = len(band_list)
     if not (1 <= n <= MAX_BANDS):
         raise SceneError("bands.list", n, f"must contain 1 to {MAX_BANDS} bands")
-    bands = [_band_from_entry(i, entry, albedo, g, grain_optics) for i, entry in enumerate(band_list)]
+    bands = [_band_from_entry(i, entry, albedo, g, grain_optics, phase_g) for i, entry in enumerate(band_list)]
     seen = set()
     for i, b in enumerate(bands):
         if b.name in seen:

@@ -62,6 +62,30 @@ TABLE_ROWS = 6
 GUIDE_CELLS = 64
 
 
+def kernel_table(mu: np.ndarray, s11: np.ndarray, r12: np.ndarray, r33: np.ndarray, r34: np.ndarray) -> np.ndarray:
+    """One band's kernel table (TABLE_ROWS, n) from a matrix on ``mu`` = cos theta (1 down to
+    -1, nodes equal in theta): mu, the cumulative probability from mu = 1, p(mu) = 2 pi S11
+    normalised so that the piecewise-linear p between the nodes integrates to 1 exactly (its
+    cumulative sums are exact trapezoids), and S12 / S11, S33 / S11, S34 / S11. ``s11`` may be
+    in any unit: only its shape is kept."""
+    p = 2.0 * math.pi * np.asarray(s11, np.float64)
+    steps = 0.5 * (p[1:] + p[:-1]) * (mu[:-1] - mu[1:])
+    total = steps.sum()
+    cdf = np.concatenate([[0.0], np.cumsum(steps) / total])
+    cdf[-1] = 1.0
+    return np.stack([mu, cdf, p / total, r12, r33, r34])
+
+
+def table_asymmetry(table: np.ndarray) -> float:
+    """The mean scattering cosine of a kernel table's piecewise-linear phase function (the one
+    the kernel samples): per interval the exact integral of mu p(mu), p linear in mu."""
+    mu, p = np.asarray(table[0], np.float64), np.asarray(table[2], np.float64)
+    a, b, pa, pb = mu[1:], mu[:-1], p[1:], p[:-1]  # each interval from a up to b
+    h = b - a
+    # integral over [a, b] of mu (pa + (pb - pa)(mu - a) / h): h (a (pa + pb) / 2 + h (pa + 2 pb) / 6)
+    return float(np.sum(h * (a * (pa + pb) / 2.0 + h * (pa + 2.0 * pb) / 6.0)))
+
+
 def guide_table(cdf32: np.ndarray) -> np.ndarray:
     """(GUIDE_CELLS + 1,) float32: for j = 0..GUIDE_CELLS the largest interval i (0 .. n - 2)
     with cdf[i] <= j / GUIDE_CELLS, from the cumulative probabilities as the kernel reads them
@@ -347,13 +371,7 @@ def _mie_optics(grains: Grains, wavelengths_nm: Tuple[float, ...]) -> MieOptics:
     for b, (mb, wl) in enumerate(zip(m, wavelengths_nm)):
         c_ext[b], c_sca[b], g[b], s11, r12, r33, r34 = _band_optics(complex(mb), float(wl), grains, mu)
         albedo[b] = c_sca[b] / c_ext[b]
-        p = 2.0 * math.pi * s11
-        # the piecewise-linear p(mu) between the nodes, normalised to 1 exactly
-        steps = 0.5 * (p[1:] + p[:-1]) * (mu[:-1] - mu[1:])
-        total = steps.sum()
-        cdf = np.concatenate([[0.0], np.cumsum(steps) / total])
-        cdf[-1] = 1.0
-        table[b] = (mu, cdf, p / total, r12, r33, r34)
+        table[b] = kernel_table(mu, s11, r12, r33, r34)
     a, w = grains.radii(2.0 * math.pi * grains.radius_max / (min(wavelengths_nm) * 1e-3))
     volume = float(np.sum(w * 4.0 / 3.0 * math.pi * a ** 3))
     for arr in (albedo, g, c_ext, c_sca, table):

@@ -11,7 +11,10 @@ vector and scatter by the matrix of the kind chosen (kernels/polarization.cl):
   p_l (``bands.peak_polarization``) the polarization at 90 degrees;
 - ``"mie"``: spherical grains (``bands.grain_*``: :class:`nebula_rt.optics.mie.Grains`), their
   full matrix from Mie theory per band, circular polarization (V) included; the bands' albedo,
-  g and extinction are then the grains' (:func:`nebula_rt.optics.mie.mie_bands`).
+  g and extinction are then the grains' (:func:`nebula_rt.optics.mie.mie_bands`);
+- ``"matrix"``: a tabulated matrix (``bands.grain_matrix``:
+  :class:`nebula_rt.optics.mueller_table.MuellerTable`) in every band, traced as Mie's tables
+  are; the bands' albedo and extinction are their own, g the table's.
 
 ``"none"`` (the default) traces intensity alone, exactly as without this module.
 """
@@ -26,19 +29,23 @@ import numpy as np
 
 from ..errors import SceneError
 from .mie import GUIDE_CELLS, Grains, TABLE_ROWS, guide_table, mie_optics
+from .mueller_table import MuellerTable
 
 #: bands.polarization: the kinds of polarized scattering, and the kernel's number of each
 #: (kernels/polarization.cl, NRT_POLAR)
-KINDS = ("none", "rayleigh", "white", "mie")
-KERNEL_KIND = {"none": 0, "rayleigh": 1, "white": 2, "mie": 3}
+KINDS = ("none", "rayleigh", "white", "mie", "matrix")
+#: (a tabulated matrix is traced by the Mie tables' code)
+KERNEL_KIND = {"none": 0, "rayleigh": 1, "white": 2, "mie": 3, "matrix": 3}
 #: the peak linear polarization p_l (White's approximation) where the scene gives none
 DEFAULT_PEAK = 0.5
 #: kinds whose phase function is not the bands' Henyey-Greenstein one
-OWN_PHASE_FUNCTION = ("rayleigh", "mie")
+OWN_PHASE_FUNCTION = ("rayleigh", "mie", "matrix")
 #: kinds whose albedo, g and extinction are the grains' (not the bands' own)
 OWN_OPTICS = ("mie",)
 #: kinds whose matrix has S34 != 0, so that light becomes circularly polarized (Stokes V)
-CIRCULAR = ("mie",)
+CIRCULAR = ("mie", "matrix")
+#: kinds whose kernel parameters are a table per band (kernels/polarization.cl, NRT_POLAR_MIE)
+TABULATED = ("mie", "matrix")
 #: 4 floats per band of the kernel's polarization parameters (after the bands' optics); the
 #: Mie tables follow them
 PARAMS_PER_BAND = 4
@@ -57,11 +64,14 @@ class Polarization:
         degrees, in [0, 1]: one value for every band or one per band.
     grains : nebula_rt.optics.mie.Grains, optional
         ``"mie"``: the grains (default: astronomical silicate with the MRN size distribution).
+    matrix : nebula_rt.optics.mueller_table.MuellerTable, optional
+        ``"matrix"``: the tabulated matrix (required).
     """
 
     kind: str = "none"
     peak: Union[float, Sequence[float]] = DEFAULT_PEAK
     grains: Optional[Grains] = None
+    matrix: Optional[MuellerTable] = None
 
     def __post_init__(self):
         if self.kind not in KINDS:
@@ -77,6 +87,9 @@ class Polarization:
             object.__setattr__(self, "peak", tuple(float(p) for p in peaks))
         if self.kind == "mie" and self.grains is None:
             object.__setattr__(self, "grains", Grains())
+        if (self.kind == "matrix") != (self.matrix is not None):
+            raise SceneError("bands.grain_matrix", None if self.matrix is None else self.matrix.source,
+                             "is needed with bands.polarization = 'matrix', and taken with it alone")
 
     @property
     def enabled(self) -> bool:
@@ -98,6 +111,8 @@ class Polarization:
         if self.kind == "mie":
             table = mie_optics(self.grains, wavelengths_nm).table
             return float(np.max(table[:, 2])) / (2.0 * math.pi)
+        if self.kind == "matrix":
+            return self.matrix.phase_max
         return None
 
     @property
@@ -118,15 +133,19 @@ class Polarization:
         """Flat float32: what kernels/polarization.cl reads, PARAMS_PER_BAND floats per band,
         then (``"mie"``: the bands' wavelengths in nm needed) each band's table of
         TABLE_ROWS x angles floats and its guide table (GUIDE_CELLS + 1 floats). A Mie band's pol[0] is the distance in floats from its
-        parameters to its table, pol[1] the table's angles."""
+        parameters to its table, pol[1] the table's angles. ``"matrix"``: the same, every band
+        the file's table."""
         params = np.zeros((n_bands, PARAMS_PER_BAND), np.float32)
         if self.kind == "white":
             params[:, 0] = self.peaks(n_bands)
-        if self.kind != "mie":
+        if self.kind not in TABULATED:
             return params.reshape(-1)
-        if wavelengths_nm is None or len(wavelengths_nm) != n_bands:
+        if self.kind == "matrix":
+            table = np.repeat(np.asarray(self.matrix.kernel_table(), np.float32)[None], n_bands, axis=0)
+        elif wavelengths_nm is None or len(wavelengths_nm) != n_bands:
             raise ValueError("polarization 'mie' needs the bands' wavelengths")
-        table = np.asarray(mie_optics(self.grains, wavelengths_nm).table, np.float32)
+        else:
+            table = np.asarray(mie_optics(self.grains, wavelengths_nm).table, np.float32)
         n_angles = table.shape[-1]
         size = TABLE_ROWS * n_angles + GUIDE_CELLS + 1
         b = np.arange(n_bands)
@@ -147,9 +166,10 @@ def grains_of(bands_config) -> Grains:
 
 def polarization_of(scene) -> Polarization:
     """The scene's :class:`Polarization` (``bands.polarization``, ``bands.peak_polarization``,
-    ``bands.grain_*``)."""
+    ``bands.grain_*``, ``bands.grain_matrix``)."""
     b = scene.bands
     kind = getattr(b, "polarization", "none") or "none"
     return Polarization(kind=kind,
                         peak=DEFAULT_PEAK if getattr(b, "peak_polarization", None) is None else b.peak_polarization,
-                        grains=grains_of(b) if kind == "mie" else None)
+                        grains=grains_of(b) if kind == "mie" else None,
+                        matrix=b.mueller_table() if kind == "matrix" else None)

@@ -60,6 +60,12 @@ class Scene:
     observer: Observer = field(default_factory=Observer)
     base_dir: Optional[Path] = field(default=None, compare=False)
 
+    def __setattr__(self, name, value):
+        super().__setattr__(name, value)
+        # bands.grain_matrix, like dust.file, is relative to the scene file's folder
+        if name in ("base_dir", "bands") and isinstance(getattr(self, "bands", None), BandsConfig):
+            self.bands._base_dir = getattr(self, "base_dir", None)
+
     # -- constructors -------------------------------------------------------
 
     @classmethod
@@ -271,8 +277,9 @@ class Scene:
 
     def _check_polarization(self, bands) -> None:
         """bands.peak_polarization holds one value per band where it is a list; a scene that
-        scatters by its own phase function (Rayleigh's, Mie's) gives no bands.g, nor bands.albedo
-        where the grains give it; the grains' keys are given only for Mie scattering, whose
+        scatters by its own phase function (Rayleigh's, Mie's, a table's) gives no bands.g, nor
+        bands.albedo where the grains give it; bands.grain_matrix only with 'matrix'; the grains'
+        keys are given only for Mie scattering, whose
         grains convert dust.mass_density (with a material's bulk density) and
         dust.visual_extinction, not dust.hydrogen_density (they give no dust-to-gas ratio)."""
         from ..optics import mie
@@ -301,6 +308,9 @@ class Scene:
                                  "dust.visual_extinction or dust.tau")
             pol.grains.refractive_index([b.wavelength for b in bands])  # one value per band
             return
+        if pol.kind != "matrix" and self.bands.grain_matrix:
+            raise SceneError("bands.grain_matrix", self.bands.grain_matrix, "is used only with bands.polarization = "
+                             f"'matrix' (here '{pol.kind}'): omit it")
         defaults = mie.Grains()
         for key, default in (("material", defaults.material), ("n", None), ("k", None),
                              ("radius_min", defaults.radius_min), ("radius_max", defaults.radius_max),

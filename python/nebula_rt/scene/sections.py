@@ -9,8 +9,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple, Union
 
+from ..errors import SceneError
 from ..limits import INT32_MAX, MAX_OFFSET, MAX_PHOTONS, MAX_TREE_DEPTH, PARTICLE_COORDINATE_MAX, TEMPERATURE_RANGE
 from ..optics.bands import ALBEDO_RANGE, G_RANGE, PRESETS, Band, resolve_bands
 from ..optics import mie
@@ -288,9 +290,10 @@ class BandsConfig:
             "function 3 (1 + cos^2) / (16 pi), polarization sin^2 / (1 + cos^2) of the scattering "
             "angle; the bands' g plays no part), white (each band's Henyey-Greenstein phase function "
             "with White's 1979 approximation of the linear polarization, peak_polarization at 90 "
-            "degrees) or mie (spherical grains, grain_*: their Mie matrix per band, and the bands' "
-            "albedo, g and extinction are the grains'). Packets then carry Stokes I, Q, U (and V: "
-            "mie), and peel-off images gain Q and U (and V) (docs/physics.md)")
+            "degrees), mie (spherical grains, grain_*: their Mie matrix per band, and the bands' "
+            "albedo, g and extinction are the grains') or matrix (a tabulated matrix, grain_matrix). "
+            "Packets then carry Stokes I, Q, U (and V: mie, matrix), and peel-off images gain Q and U "
+            "(and V) (docs/physics.md)")
     peak_polarization: Union[float, Tuple[float, ...]] = param(
         DEFAULT_PEAK_POLARIZATION, type="float or list of float", lo=0.0, hi=1.0, label="Peak Polarization",
         group=G_OPTICS, advanced=True,
@@ -325,21 +328,51 @@ class BandsConfig:
         mie.DEFAULT_SIZE_SLOPE, type="float", lo=mie.SIZE_SLOPE_RANGE[0], hi=mie.SIZE_SLOPE_RANGE[1],
         label="Grain Size Slope", group=G_OPTICS, advanced=True,
         doc="polarization = \"mie\": q of the size distribution n(a) ~ a^-q between the radii (MRN: 3.5)")
+    grain_matrix: str = param(
+        "", type="str", label="Grain Matrix", group=G_OPTICS, advanced=True,
+        doc="polarization = \"matrix\": a text table of the dust's scattering matrix, rows 'theta S11 "
+            "S12 S33 S34' (theta in degrees from 0 to 180; Bohren & Huffman's signs), used in every band: "
+            "its phase function gives g, the bands give albedo and extinction "
+            "(nebula_rt.optics.mueller_table); a relative path is relative to the scene file's folder")
     list: Optional[List[Dict[str, Any]]] = param(
         None, type="list of dict or None", group=G_OPTICS,
         doc="Explicit bands, [[bands.list]] tables with keys name, wavelength (nm), extinction "
             "(relative to the reference band), albedo and g (polarization = \"mie\": name and wavelength "
-            "alone, the grains giving the rest, the band nearest 550 nm the reference)")
+            "alone, the grains giving the rest, the band nearest 550 nm the reference; \"matrix\": no g, "
+            "the table's)")
 
     def __post_init__(self) -> None:
         if self.list is not None:
             self.preset = None
+        # the folder a relative grain_matrix is read from (the scene's base_dir; Scene sets it)
+        self._base_dir = None
+
+    def grain_matrix_path(self) -> Path:
+        """``grain_matrix`` as a path, resolved against the scene file's folder if relative."""
+        if not self.grain_matrix:
+            from ..optics.mueller_table import MATRIX_FILE
+
+            raise SceneError("bands.grain_matrix", self.grain_matrix,
+                             f"must name {MATRIX_FILE} (the dust's scattering matrix) with bands.polarization = 'matrix'")
+        p = Path(self.grain_matrix).expanduser()
+        if not p.is_absolute() and self._base_dir is not None:
+            p = Path(self._base_dir) / p
+        return p
+
+    def mueller_table(self):
+        """The :class:`~nebula_rt.optics.mueller_table.MuellerTable` of ``grain_matrix``
+        (``polarization = "matrix"``), read once per file content."""
+        from ..optics.mueller_table import read_matrix
+
+        return read_matrix(self.grain_matrix_path())
 
     def resolve(self) -> List[Band]:
         """Return the validated bands (see :func:`nebula_rt.optics.bands.resolve_bands`); with
         ``polarization = "mie"`` their albedo, g and extinction are the grains'
-        (:func:`nebula_rt.optics.mie.mie_bands`)."""
+        (:func:`nebula_rt.optics.mie.mie_bands`), with ``"matrix"`` their g the table's."""
         grains = self.polarization == "mie"
+        if self.polarization == "matrix":
+            return resolve_bands(self.preset, self.list, self.albedo, None, phase_g=self.mueller_table().g)
         bands = resolve_bands(self.preset, self.list, self.albedo, self.g, grain_optics=grains and self.list is not None)
         if grains:
             from ..optics.polarization import grains_of

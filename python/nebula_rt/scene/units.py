@@ -265,6 +265,9 @@ def dust_tau(scene, bands) -> Tuple[float, str]:
 
     key = physical_dust_key(scene.dust)
     value = float(getattr(scene.dust, key))
+    if getattr(scene.bands, "polarization", "none") == "matrix":
+        raise SceneError(f"dust.{key}", value, "is not taken with bands.polarization = 'matrix' (a tabulated "
+                                               "matrix gives no cross-section to convert it with): give dust.tau")
     if getattr(scene.bands, "polarization", "none") == "mie":
         return _mie_dust_tau(scene, bands, key, value)
     rv, _ = dust_model(scene.bands)
