@@ -9,7 +9,7 @@
 # with `pip wheel`: no wheel on PyPI); pmcx and pmcxcl for the MCX comparison), fetched elsewhere
 # with `pip download --only-binary=:all: --python-version 3.12 --no-deps ...`.
 # STEPS (default "tests bench neb128 compare profile"; also "tests-cuda", "thick", "thick-grid", "trust", "scaling", "large", "regions", "regcaps", "profile-regions", "layout", "sorted", "probe", "ranks", "ranks-thesis", "ranks-weak", "tests-mpi", "e2e1e9", "biasing", "fit", "fitprof", "tune",
-# "stages", "kernel-probes", "polarization", "polarization-ocl", "mcx", "mcx1024", "ncu-thesis", "ncu-source", "tree", "tree-targets", "tree-ascend", "trade", "presets", "empty", "fft") selects what runs. Everything printed
+# "stages", "kernel-probes", "polarization", "polarization-ocl", "mcx", "mcx1024", "ncu-thesis", "ncu-source", "tree", "tree-targets", "tree-ascend", "trade", "presets", "empty", "fft", "pinte") selects what runs. Everything printed
 # goes to OUTDIR/log.txt as well; JSON and .npz results beside it.
 set -uo pipefail
 out="${1:?output folder}"
@@ -84,6 +84,13 @@ fi
 if [[ " $steps " == *" neb128 "* ]]; then
     echo "== neb128, CUDA vs pmcx"; python3 benchmarks/bench_neb128.py --backend cuda --mcx pmcx --out "$out/neb128-cuda.json"
     echo "== neb128, NVIDIA OpenCL"; python3 benchmarks/bench_neb128.py --backend opencl --device NVIDIA --mcx none --out "$out/neb128-nvidia-opencl.json"
+fi
+if [[ " $steps " == *" pinte "* ]]; then
+    # the Pinte et al. 2009 polarization benchmark at tau 1e6 against the published cuts, CUDA
+    echo "== Pinte et al. 2009, tau 1e6, CUDA"; python3 benchmarks/bench_pinte2009.py --backend cuda --photons ${PINTE_PHOTONS:-4e8} \
+        --height ${PINTE_HEIGHT:-0.5} --images "$out/pinte-img" --out "$out/pinte-cuda.json" --plot "$out/pinte-cuda.png"
+    python3 benchmarks/bench_pinte2009.py --backend cuda --from-images "$out/pinte-img" --bin 20 --out "$out/pinte-cuda-20au.json" \
+        --plot "$out/pinte-cuda-20au.png" | tail -n 6
 fi
 if [[ " $steps " == *" tune "* ]]; then
     variants=$(cd kernels && ls transport_*.cl 2>/dev/null | tr '\n' ' ')
