@@ -38,6 +38,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import pinte2009 as pinte  # noqa: E402
+from provenance import provenance  # noqa: E402  (benchmarks/provenance.py)
 
 from nebula_rt.backends import get_backend  # noqa: E402
 from nebula_rt.errors import NebulaWarning  # noqa: E402
@@ -157,6 +158,7 @@ def main(argv=None) -> int:
               f"{tau:.6g}; midplane tau through the leaves {discretised:.4g} (defined: {args.tau:g})")
     published, positions = pinte.read_cuts()
     out = {"benchmark": "bench_pinte2009", "date": time.strftime("%Y-%m-%d %H:%M:%S"), "device": backend.device_name,
+           "command": " ".join(sys.argv), **provenance(),
            "host": platform.node(), "photons": int(args.photons), "midplane_tau": args.tau, "fraction": args.fraction,
            "height": args.height, "midplane_tau_of_the_leaves": discretised,
            "leaves": None if tree is None else tree.n_leaves, "depth": None if tree is None else tree.depth(), "method": args.method, "importance": args.importance,
