@@ -135,7 +135,7 @@ def main(argv=None) -> int:
     ap.add_argument("--photons", type=float, default=1e6)
     ap.add_argument("--tau", type=float, default=1e6, help="midplane optical depth from R_in to R_out")
     ap.add_argument("--fraction", type=float, default=0.1, help="the octree's cell edge / distance from the star")
-    ap.add_argument("--height", type=float, default=1.0, help="the octree's cell edge / the disk's scale height")
+    ap.add_argument("--height", type=float, default=0.5, help="the octree's cell edge / the disk's scale height")
     ap.add_argument("--method", default="biased")
     ap.add_argument("--importance", default="stars")
     ap.add_argument("--seed", type=int, default=1)
