@@ -14,7 +14,7 @@ from typing import Any, Dict, List, Mapping, Optional, Sequence, Union
 from .. import limits
 from ..errors import SceneError
 from ..input_files import MAX_SCENE_BYTES, read_input_text
-from . import units
+from . import units, values
 from .sections import BandsConfig, Colour, Dust, Grid, Observer, Star, Transport
 from .rules import BANDS_RULES, BAND_ENTRY_RULES, COLOUR_RULES, DUST_RULES, GRID_RULES, OBSERVER_RULES, STAR_RULES, TRANSPORT_RULES, _SCHEMA, _TABLE_NAMES, _check_dataclass, _check_star_spectra, _parse_array, _parse_table
 from .overrides import _NUMERIC_ARRAY, _apply_override, _drop_derived, _parse_toml, _parse_value
@@ -231,10 +231,7 @@ class Scene:
         """
         if not self.dust.file:
             raise SceneError("dust.file", self.dust.file, "must name a .npy, .vti, .htg, .vthb or .vtp file")
-        p = Path(self.dust.file).expanduser()
-        if not p.is_absolute() and self.base_dir is not None:
-            p = Path(self.base_dir) / p
-        return p
+        return values.scene_relative_path(self.dust.file, self.base_dir)
 
     # -- validation ---------------------------------------------------------
 

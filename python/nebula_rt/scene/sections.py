@@ -354,14 +354,12 @@ class BandsConfig:
 
             raise SceneError("bands.grain_matrix", self.grain_matrix,
                              f"must name {MATRIX_FILE} (the dust's scattering matrix) with bands.polarization = 'matrix'")
-        p = Path(self.grain_matrix).expanduser()
-        if not p.is_absolute() and self._base_dir is not None:
-            p = Path(self._base_dir) / p
-        return p
+        return values.scene_relative_path(self.grain_matrix, self._base_dir)
 
     def mueller_table(self):
         """The :class:`~nebula_rt.optics.mueller_table.MuellerTable` of ``grain_matrix``
-        (``polarization = "matrix"``), read once per file content."""
+        (``polarization = "matrix"``), read from the file at each call (its kernel table is
+        made once per content)."""
         from ..optics.mueller_table import read_matrix
 
         return read_matrix(self.grain_matrix_path())

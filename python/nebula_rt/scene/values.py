@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 import numbers
+from pathlib import Path
 from typing import Any, Mapping, Optional, Tuple, Union
 
 
@@ -151,3 +152,12 @@ WHAT = {
     "float or list of float": "a number or a list of numbers (one per band), each",
     "float or list of float or None": "a number or a list of numbers (one per band), each",
 }
+
+
+def scene_relative_path(text: str, base_dir) -> Path:
+    """A file key's path (``dust.file``, ``bands.grain_matrix``): ``~`` expanded, and a relative
+    one taken from ``base_dir`` (the scene file's folder) where there is one."""
+    p = Path(text).expanduser()
+    if not p.is_absolute() and base_dir is not None:
+        p = Path(base_dir) / p
+    return p
