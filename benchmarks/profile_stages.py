@@ -60,11 +60,30 @@ def main() -> None:
               f"transport set-up {res.timings['setup_s'] * 1e3:.1f} ms")
         for k, v in times.items():
             print(f"   {k:50s} {v:8.1f} ms")
-    # host side: which Python functions the transport and the finishing spend their time in
-    # (time in a synchronising call includes the device work it waits for)
+    # the fixed cost: the same pipeline with 1000 packets per band (the kernels take almost
+    # nothing, so what is left is the host's work, the small kernels and the copies), and where
+    # its time goes by function (the device waits show as the synchronising calls' own time)
+    small = scene.with_overrides(["transport.photons=1000"])
     import cProfile
     import pstats
 
+    for rep in range(3):
+        light = None
+        t0 = time.perf_counter()
+        light = pl.Pipeline(backend).run(small)
+        sync()
+        total = (time.perf_counter() - t0) * 1e3
+        print(f"fixed cost {rep}: {total:.2f} ms end to end with 1000 packets per band; "
+              + ", ".join(f"{k} {v * 1e3:.2f} ms" for k, v in light.timings.items()))
+    prof = cProfile.Profile()
+    prof.enable()
+    light = pl.Pipeline(backend).run(small)
+    sync()
+    prof.disable()
+    print("-- the fixed cost: functions by own time")
+    pstats.Stats(prof).sort_stats("tottime").print_stats(25)
+    # host side: which Python functions the transport and the finishing spend their time in
+    # (time in a synchronising call includes the device work it waits for)
     for name, fn in [("transport", lambda: pl.compute_light(scene, rho, backend, on_device=True)),
                      ("finish", lambda: pl.finish_light_field(scene, rho, res, J, rel, colour=True))]:
         prof = cProfile.Profile()

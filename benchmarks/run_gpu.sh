@@ -87,8 +87,21 @@ if [[ " $steps " == *" neb128 "* ]]; then
 fi
 if [[ " $steps " == *" pinte "* ]]; then
     # the Pinte et al. 2009 polarization benchmark at tau 1e6 against the published cuts, CUDA
-    echo "== Pinte et al. 2009, tau 1e6, CUDA"; python3 benchmarks/bench_pinte2009.py --backend cuda --photons ${PINTE_PHOTONS:-4e8} \
-        --height ${PINTE_HEIGHT:-0.5} --images "$out/pinte-img" --out "$out/pinte-cuda.json" --plot "$out/pinte-cuda.png"
+    # PINTE_PHOTONS per inclination; without it, a probe at 87.1 degrees (1e6 packets) sizes the run
+    # to PINTE_SECONDS (default 400) of kernel time for both inclinations, at most 4e8 packets each.
+    # At most PINTE_SCATTERINGS (default 10, as the PoCL runs) scatterings per packet: in the
+    # tau 1e6 disk, forced scattering would otherwise keep a packet for up to 1000
+    photons=${PINTE_PHOTONS:-}
+    common="--backend cuda --height ${PINTE_HEIGHT:-0.5} --max-scatterings ${PINTE_SCATTERINGS:-10}"
+    if [[ -z "$photons" ]]; then
+        echo "== Pinte et al. 2009, probe"; timeout 200 python3 benchmarks/bench_pinte2009.py $common --photons 1e6 --inclinations 87.1 \
+            --out "$out/pinte-probe.json" | tail -n 5
+        photons=$(python3 -c "import json; k = json.load(open('$out/pinte-probe.json'))['inclinations']['87.1']['kernel_s']; print(f'{min(4e8, 1e6 / k * ${PINTE_SECONDS:-400} / 2):.3g}')") || photons=""
+    fi
+    if [[ -n "$photons" ]]; then
+        echo "== Pinte et al. 2009, tau 1e6, CUDA, $photons packets"; python3 benchmarks/bench_pinte2009.py $common --photons $photons \
+            --images "$out/pinte-img" --out "$out/pinte-cuda.json" --plot "$out/pinte-cuda.png"
+    fi
     python3 benchmarks/bench_pinte2009.py --backend cuda --from-images "$out/pinte-img" --bin 20 --out "$out/pinte-cuda-20au.json" \
         --plot "$out/pinte-cuda-20au.png" | tail -n 6
 fi

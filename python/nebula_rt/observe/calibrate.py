@@ -271,17 +271,20 @@ class CalibratedSky:
     stokes: Optional[np.ndarray] = None
     stokes_error: Optional[np.ndarray] = None
 
-    def polarization(self):
+    def polarization(self, debias: str = "none"):
         """(P, P error, chi, chi error), each (nb, W, H): the degree of linear polarization of
         the scattered light and its angle east of north in degrees
-        (:func:`nebula_rt.observe.polarimetry.polarization_maps`); None for an unpolarized scene."""
+        (:func:`nebula_rt.observe.polarimetry.polarization_maps`; ``debias="mas"``: P by the
+        modified asymptotic estimator, without the Ricean bias of the raw ratio where P is
+        within a few of its errors); None for an unpolarized scene."""
         if self.stokes is None:
             return None
         from .polarimetry import polarization_maps
 
         err = self.stokes_error
         return polarization_maps(self.scattered, self.stokes[:, 0], self.stokes[:, 1], self.scattered_error,
-                                 None if err is None else err[:, 0], None if err is None else err[:, 1])
+                                 None if err is None else err[:, 0], None if err is None else err[:, 1],
+                                 debias=debias)
 
     def circular_polarization(self):
         """(V / I, its error), each (nb, W, H): the circular polarization of the scattered light

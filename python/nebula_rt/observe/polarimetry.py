@@ -10,8 +10,13 @@ Q = P I cos 2chi, U = P I sin 2chi. They are PSF-convolved and calibrated as the
 pixels' errors taken as independent.
 
 The degree of linear polarization of the scattered light, P = sqrt(Q^2 + U^2) / I, and the angle
-chi = atan2(U, Q) / 2 come with first-order errors (P's is biased high where P is below a few
-of its errors: the Ricean bias of a positive quantity, not corrected here).
+chi = atan2(U, Q) / 2 come with first-order errors. P is a positive quantity made of two noisy
+ones, so where it is below a few of its errors it is biased high (the Ricean bias: 0.27 of the
+error at a signal-to-noise of 2, half the error at 1). ``debias="mas"`` gives instead the
+modified asymptotic estimator of Plaszczynski et al. (2014, MNRAS 439, 4048; the estimator
+Montier et al. 2015, A&A 574, A136, recommend for maps), which is unbiased to 0.05 of the
+error from a signal-to-noise of 2 on and never negative; its error is the same first-order one
+(the paper: its variance reaches the components' from a signal-to-noise of 2).
 """
 
 from __future__ import annotations
@@ -50,7 +55,31 @@ def errors_to_celestial(errors, position_angle_deg: float) -> np.ndarray:
     return np.sqrt(out)
 
 
-def polarization_maps(i, q, u, i_err=None, q_err=None, u_err=None):
+#: the estimators of the degree of polarization ``polarization_maps`` takes
+DEBIAS = ("none", "mas")
+
+
+def mas_estimate(p, q, u, q_err, u_err):
+    """The modified asymptotic estimator (MAS) of a degree of polarization (Plaszczynski et
+    al. 2014, MNRAS 439, 4048): p - b^2 (1 - exp(-p^2 / b^2)) / (2 p), 0 where p = 0.
+
+    b^2 is the noise variance across the measured (q, u) vector,
+    (q^2 sigma_u^2 + u^2 sigma_q^2) / (q^2 + u^2), the paper's form for independent errors of q
+    and u (for equal errors, their common variance). q, u and their errors are in any one unit
+    with p = sqrt(q^2 + u^2) (normalised Stokes parameters and P, or Q, U and the polarized
+    intensity). Where b = 0 (no noise) p is returned unchanged.
+    """
+    p, q, u = (np.asarray(a, np.float64) for a in (p, q, u))
+    sq, su = (np.broadcast_to(np.asarray(e, np.float64), p.shape) for e in (q_err, u_err))
+    lin2 = q * q + u * u
+    with np.errstate(divide="ignore", invalid="ignore"):
+        b2 = np.where(lin2 > 0, (q * q * su * su + u * u * sq * sq) / lin2, 0.0)
+        # -expm1(-x) = 1 - exp(-x) without cancellation where p is far below b
+        shift = np.where((b2 > 0) & (p > 0), -0.5 * b2 * np.expm1(-(p * p) / b2) / p, 0.0)
+    return np.where(np.isnan(p), np.nan, p - shift)
+
+
+def polarization_maps(i, q, u, i_err=None, q_err=None, u_err=None, debias: str = "none"):
     """Degree and angle of linear polarization with first-order errors.
 
     Parameters
@@ -59,15 +88,21 @@ def polarization_maps(i, q, u, i_err=None, q_err=None, u_err=None):
         Intensity and Stokes Q, U (any one unit).
     i_err, q_err, u_err : ndarray or None
         Their standard errors (None: 0).
+    debias : {"none", "mas"}
+        The estimator of P: the raw ratio, or the modified asymptotic estimator
+        (:func:`mas_estimate` of Q / I and U / I with the errors of Q and U over I), which
+        removes the Ricean bias where P is within a few of its errors.
 
     Returns
     -------
     p, p_err : ndarray
-        sqrt(Q^2 + U^2) / I (NaN where I <= 0) and its error.
+        sqrt(Q^2 + U^2) / I (or its MAS estimate; NaN where I <= 0) and its first-order error.
     chi_deg, chi_err_deg : ndarray
         The angle atan2(U, Q) / 2 in degrees, in [0, 180) (east of north for IAU Q and U), and
         its error (NaN where Q = U = 0).
     """
+    if debias not in DEBIAS:
+        raise ValueError(f"debias = {debias!r}: one of {', '.join(map(repr, DEBIAS))}")
     i, q, u = (np.asarray(a, np.float64) for a in (i, q, u))
     zero = np.zeros_like(i)
     si, sq, su = (zero if e is None else np.asarray(e, np.float64) for e in (i_err, q_err, u_err))
@@ -80,6 +115,9 @@ def polarization_maps(i, q, u, i_err=None, q_err=None, u_err=None):
         chi = np.mod(0.5 * np.degrees(np.arctan2(u, q)), 180.0)
         chi_err = np.degrees(0.5 * np.sqrt(q * q * su * su + u * u * sq * sq) / lin2)
     chi = np.where(lin2 > 0, chi, np.nan)
+    if debias == "mas":
+        with np.errstate(divide="ignore", invalid="ignore"):
+            p = np.where(i > 0, mas_estimate(p, q / i, u / i, sq / i, su / i), np.nan)
     return p, p_err, chi, np.where(lin2 > 0, chi_err, np.nan)
 
 
