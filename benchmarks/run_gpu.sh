@@ -100,9 +100,10 @@ if [[ " $steps " == *" pinte "* ]]; then
     fi
     if [[ -n "$photons" ]]; then
         echo "== Pinte et al. 2009, tau 1e6, CUDA, $photons packets"; python3 benchmarks/bench_pinte2009.py $common --photons $photons \
-            --images "$out/pinte-img" --out "$out/pinte-cuda.json" --plot "$out/pinte-cuda.png"
+            --inclinations ${PINTE_INCLINATIONS:-69.5,87.1} --images "$out/pinte-img" --out "$out/pinte-cuda.json" --plot "$out/pinte-cuda.png"
     fi
-    python3 benchmarks/bench_pinte2009.py --backend cuda --from-images "$out/pinte-img" --bin 20 --out "$out/pinte-cuda-20au.json" \
+    python3 benchmarks/bench_pinte2009.py --backend cuda --from-images "$out/pinte-img" --inclinations ${PINTE_INCLINATIONS:-69.5,87.1} \
+        --bin 20 --out "$out/pinte-cuda-20au.json" \
         --plot "$out/pinte-cuda-20au.png" | tail -n 6
 fi
 if [[ " $steps " == *" tune "* ]]; then
