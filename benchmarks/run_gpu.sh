@@ -9,7 +9,7 @@
 # with `pip wheel`: no wheel on PyPI); pmcx and pmcxcl for the MCX comparison), fetched elsewhere
 # with `pip download --only-binary=:all: --python-version 3.12 --no-deps ...`.
 # STEPS (default "tests bench neb128 compare profile"; also "tests-cuda", "thick", "thick-grid", "trust", "scaling", "large", "regions", "regcaps", "profile-regions", "layout", "sorted", "probe", "ranks", "ranks-thesis", "ranks-weak", "tests-mpi", "e2e1e9", "biasing", "fit", "fitprof", "tune",
-# "stages", "kernel-probes", "polarization", "polarization-ocl", "mcx", "mcx1024", "ncu-thesis", "ncu-source", "tree", "tree-targets", "tree-ascend", "trade", "presets", "empty", "fft", "pinte") selects what runs. Everything printed
+# "stages", "timeline", "kernel-probes", "polarization", "polarization-ocl", "mcx", "mcx1024", "ncu-thesis", "ncu-source", "tree", "tree-targets", "tree-ascend", "trade", "presets", "empty", "fft", "pinte") selects what runs. Everything printed
 # goes to OUTDIR/log.txt as well; JSON and .npz results beside it.
 set -uo pipefail
 out="${1:?output folder}"
@@ -113,6 +113,10 @@ if [[ " $steps " == *" tune "* ]]; then
 fi
 if [[ " $steps " == *" stages "* ]]; then
     echo "== stage profile, thesis 128^3, CUDA"; python3 benchmarks/profile_stages.py
+fi
+if [[ " $steps " == *" timeline "* ]]; then
+    # the thesis headline call by call, as issued and with the device synchronised around each
+    echo "== timeline, thesis 128^3, CUDA"; python3 benchmarks/profile_timeline.py --backend cuda --out "$out/timeline-cuda.json"
 fi
 if [[ " $steps " == *" trade "* ]]; then
     echo "== speed vs accuracy, CUDA"; python3 benchmarks/trade_study.py --backend cuda --out "$out/trade-study-cuda.json"
