@@ -14,8 +14,8 @@ chi = atan2(U, Q) / 2 come with first-order errors. P is a positive quantity mad
 ones, so where it is below a few of its errors it is biased high (the Ricean bias: 0.27 of the
 error at a signal-to-noise of 2, half the error at 1). ``debias="mas"`` gives instead the
 modified asymptotic estimator of Plaszczynski et al. (2014, MNRAS 439, 4048; the estimator
-Montier et al. 2015, A&A 574, A136, recommend for maps), which is unbiased to 0.05 of the
-error from a signal-to-noise of 2 on and never negative; its error is the same first-order one
+Montier et al. 2015, A&A 574, A136, recommend for maps), which is unbiased to about 0.05 of
+the error from a signal-to-noise of 2 on and never negative; its error is the same first-order one
 (the paper: its variance reaches the components' from a signal-to-noise of 2).
 """
 
