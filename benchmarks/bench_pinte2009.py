@@ -19,7 +19,9 @@ narrow spikes). Reported per cut: the differences' median and 90th percentile, t
 max(0.05, the codes' spread) (or twice the stated error), the rms of the differences over the
 stated errors (about 1 where they agree within NebulaRT's noise), and the same against the image
 mirrored about the disk's major axis (which side of the disk is up in the figure is read from
-it, not stated). ``--from-images`` compares saved images again (another bin width) without tracing.
+it, not stated). ``--from-images`` compares saved images again (another bin width) without tracing, and
+combines the images of runs with other seeds (``--seed``), so a count of packets no single
+command can trace within a time limit is reached in parts.
 
     python benchmarks/bench_pinte2009.py --backend cuda --photons 1e8 --out pinte.json
     python benchmarks/bench_pinte2009.py --backend opencl --device Portable --photons 3e5 --fraction 0.1
@@ -85,6 +87,29 @@ def cut_profile(img, err, axis: str, offset_au: float, flip: bool = False, bin_a
     return edges, p, perr
 
 
+def combined_images(paths):
+    """(I, Q, U), (their errors) of the images saved by runs of other seeds (``--images``):
+    each run's images are means over its packets, so they combine as a mean weighted by the
+    runs' packets, their independent errors in quadrature with the same weights. Several
+    files must each say how many packets they hold; the same seed twice is refused (the same
+    packets are not independent)."""
+    runs = [np.load(p) for p in paths]
+    if len(runs) == 1:
+        f = runs[0]
+        return (f["i"], f["q"], f["u"]), (f["ei"], f["eq"], f["eu"])
+    if any("photons" not in f for f in runs):
+        raise SystemExit("--from-images: combining runs needs images saved with their packet counts "
+                         "(bench_pinte2009.py --images, from this version on)")
+    seeds = [int(f["seed"]) for f in runs]
+    if len(set(seeds)) < len(seeds):
+        raise SystemExit(f"--from-images: the runs' seeds {seeds} repeat; runs of one seed hold the same packets")
+    w = np.array([float(f["photons"]) for f in runs])
+    w = w / w.sum()
+    img = tuple(sum(wk * f[k] for wk, f in zip(w, runs)) for k in ("i", "q", "u"))
+    err = tuple(np.sqrt(sum((wk * f[k]) ** 2 for wk, f in zip(w, runs))) for k in ("ei", "eq", "eu"))
+    return img, err
+
+
 def compare(edges, p, perr, published):
     """Agreement with the published consensus averaged over the same bins (those whose
     published points all have at least two codes and lie within EDGE_AU): the z-scores'
@@ -148,7 +173,9 @@ def main(argv=None) -> int:
     ap.add_argument("--bin", type=float, default=BIN_AU, help="bin width along the cuts, AU")
     ap.add_argument("--debias", default="mas", choices=DEBIAS,
                     help="P of each bin: the modified asymptotic estimator (mas) or the raw ratio (none)")
-    ap.add_argument("--from-images", default="", help="compare the images an earlier run saved (--images) instead of tracing")
+    ap.add_argument("--from-images", default="",
+                    help="compare the images earlier runs saved (--images) instead of tracing: one prefix, or "
+                         "several (comma-separated) of runs with other seeds, combined")
     args = ap.parse_args(argv)
     backend = get_backend(args.backend, args.device)
     tree, tau, discretised = None, pinte.tau_per_box(args.tau), None
@@ -170,8 +197,7 @@ def main(argv=None) -> int:
     curves = {}
     for inc in (float(v) for v in args.inclinations.split(",")):
         if args.from_images:
-            f = np.load(f"{args.from_images}-{inc}.npz")
-            img, err = (f["i"], f["q"], f["u"]), (f["ei"], f["eq"], f["eu"])
+            img, err = combined_images([f"{prefix}-{inc}.npz" for prefix in args.from_images.split(",")])
         else:
             res, img, err, wall = run(backend, tree, tau, inc, int(args.photons), args.seed, args.method,
                                       args.importance, args.max_scatterings)
@@ -180,7 +206,8 @@ def main(argv=None) -> int:
             out["inclinations"][str(inc)] = {"wall_s": wall, "kernel_s": kernel, "method": res.method,
                                              "counts": [str(c) for c in res.counts[0]]}
         if args.images and not args.from_images:
-            np.savez_compressed(f"{args.images}-{inc}.npz", i=img[0], q=img[1], u=img[2], ei=err[0], eq=err[1], eu=err[2])
+            np.savez_compressed(f"{args.images}-{inc}.npz", i=img[0], q=img[1], u=img[2], ei=err[0], eq=err[1], eu=err[2],
+                                photons=int(args.photons), seed=args.seed)
         for k, (axis, off, kinc) in positions.items():
             if abs(kinc - inc) > 0.05:
                 continue

@@ -92,7 +92,10 @@ if [[ " $steps " == *" pinte "* ]]; then
     # At most PINTE_SCATTERINGS (default 10, as the PoCL runs) scatterings per packet: in the
     # tau 1e6 disk, forced scattering would otherwise keep a packet for up to 1000
     photons=${PINTE_PHOTONS:-}
-    common="--backend cuda --height ${PINTE_HEIGHT:-0.5} --max-scatterings ${PINTE_SCATTERINGS:-10}"
+    # PINTE_SEED (default 1): runs of other seeds add up (bench_pinte2009.py --from-images
+    # PREFIX1,PREFIX2,...), so the packets the benchmark needs can be traced in several commands
+    common="--backend cuda --height ${PINTE_HEIGHT:-0.5} --max-scatterings ${PINTE_SCATTERINGS:-10} --seed ${PINTE_SEED:-1}"
+    img="$out/pinte-img-s${PINTE_SEED:-1}"
     if [[ -z "$photons" ]]; then
         echo "== Pinte et al. 2009, probe"; timeout 200 python3 benchmarks/bench_pinte2009.py $common --photons 1e6 --inclinations 87.1 \
             --out "$out/pinte-probe.json" | tail -n 5
@@ -100,9 +103,9 @@ if [[ " $steps " == *" pinte "* ]]; then
     fi
     if [[ -n "$photons" ]]; then
         echo "== Pinte et al. 2009, tau 1e6, CUDA, $photons packets"; python3 benchmarks/bench_pinte2009.py $common --photons $photons \
-            --inclinations ${PINTE_INCLINATIONS:-69.5,87.1} --images "$out/pinte-img" --out "$out/pinte-cuda.json" --plot "$out/pinte-cuda.png"
+            --inclinations ${PINTE_INCLINATIONS:-69.5,87.1} --images "$img" --out "$out/pinte-cuda.json" --plot "$out/pinte-cuda.png"
     fi
-    python3 benchmarks/bench_pinte2009.py --backend cuda --from-images "$out/pinte-img" --inclinations ${PINTE_INCLINATIONS:-69.5,87.1} \
+    python3 benchmarks/bench_pinte2009.py --backend cuda --from-images "$img" --inclinations ${PINTE_INCLINATIONS:-69.5,87.1} \
         --bin 20 --out "$out/pinte-cuda-20au.json" \
         --plot "$out/pinte-cuda-20au.png" | tail -n 6
 fi
