@@ -13,15 +13,16 @@ Along each cut, P of the summed I, Q and U in bins of the cut (``--bin`` AU) and
 row (or column) on it and its two neighbours (the published cuts' lines in the figure are 3
 pixels wide), by the modified asymptotic estimator (``--debias mas``, the default: the raw
 sqrt(Q^2 + U^2) / I is biased high where it is within a few of its errors; ``none``: the raw
-ratio), with its batch-means error (first order, from the peel-off errors), against the published consensus averaged over the same bins, where every published
-point of the bin has at least two codes and |x| <= 380 AU (the disk's edge at 400 AU makes
-narrow spikes). Reported per cut: the differences' median and 90th percentile, the share within
-max(0.05, the codes' spread) (or twice the stated error), the rms of the differences over the
-stated errors (about 1 where they agree within NebulaRT's noise), and the same against the image
-mirrored about the disk's major axis (which side of the disk is up in the figure is read from
-it, not stated). ``--from-images`` compares saved images again (another bin width) without tracing, and
-combines the images of runs with other seeds (``--seed``), so a count of packets no single
-command can trace within a time limit is reached in parts.
+ratio), with its batch-means error (first order, from the peel-off errors), against the
+published consensus averaged over the same bins, where every published point of the bin has at
+least two codes and |x| <= 380 AU (the disk's edge at 400 AU makes narrow spikes). Reported per
+cut: the differences' median and 90th percentile, the share within max(0.05, the codes' spread)
+(or twice the stated error), the rms of the differences over the stated errors (about 1 where
+they agree within NebulaRT's noise), and the same against the image mirrored about the disk's
+major axis (which side of the disk is up in the figure is read from it, not stated).
+``--from-images`` compares saved images again (another bin width) without tracing, and combines the
+images of runs with other seeds (``--seed``), so a count of packets no single command can trace
+within a time limit is reached in parts.
 
     python benchmarks/bench_pinte2009.py --backend cuda --photons 1e8 --out pinte.json
     python benchmarks/bench_pinte2009.py --backend opencl --device Portable --photons 3e5 --fraction 0.1
