@@ -9,7 +9,7 @@
 # with `pip wheel`: no wheel on PyPI); pmcx and pmcxcl for the MCX comparison), fetched elsewhere
 # with `pip download --only-binary=:all: --python-version 3.12 --no-deps ...`.
 # STEPS (default "tests bench neb128 compare profile"; also "tests-cuda", "thick", "thick-grid", "trust", "scaling", "large", "regions", "regcaps", "profile-regions", "layout", "sorted", "probe", "ranks", "ranks-thesis", "ranks-weak", "tests-mpi", "e2e1e9", "biasing", "fit", "fitprof", "tune",
-# "stages", "timeline", "kernel-probes", "polarization", "polarization-ocl", "mcx", "mcx1024", "ncu-thesis", "ncu-source", "tree", "tree-targets", "tree-ascend", "trade", "presets", "empty", "fft", "pinte") selects what runs. Everything printed
+# "stages", "timeline", "kernel-probes", "small-regions", "polarization", "polarization-ocl", "mcx", "mcx1024", "ncu-thesis", "ncu-source", "tree", "tree-targets", "tree-ascend", "trade", "presets", "empty", "fft", "pinte") selects what runs. Everything printed
 # goes to OUTDIR/log.txt as well; JSON and .npz results beside it.
 set -uo pipefail
 out="${1:?output folder}"
@@ -298,6 +298,23 @@ if [[ " $steps " == *" kernel-probes "* ]]; then
     echo "== transport kernel probes, neb medium, CUDA"
     python3 benchmarks/profile_kernels.py --grids 64 128 --photons 2.1e7 --tuning "" "NRT_PROBE_DEPOSIT=1" \
         "NRT_HOT_HALF=0" "NRT_HOT_HALF=1" "NRT_HOT_HALF=3" --out "$out/neb-probes.json" 2>&1 | grep -v Warning
+fi
+if [[ " $steps " == *" small-regions "* ]]; then
+    # regions of 8-64 voxels at 128^3 and 256^3 as a compaction of the walks: a pass stops each
+    # packet at a region face and the next pass's warps hold only packets still walking (one
+    # packet per work item leaves about half of a warp's lanes idle); state memory for every
+    # packet of the launch, so that no packet waits for a slot
+    big="region_state_bytes=805306368"
+    echo "== small regions, thesis 128^3, CUDA"
+    python3 benchmarks/profile_kernels.py --scene examples/scenes/thesis-default.toml --grids 128 --photons 2.1e6 \
+        --free-running --tuning "" "NRT_REGIONS=3 region_tail=4096 $big" "NRT_REGIONS=4 region_tail=4096 $big" \
+        "NRT_REGIONS=5 region_tail=4096 $big" "NRT_REGIONS=4 region_tail=65536 $big" "NRT_REGIONS=4 region_tail=4096" \
+        --out "$out/small-regions-thesis.json" 2>&1 | grep -v Warning
+    echo "== small regions, neb medium, CUDA"
+    python3 benchmarks/profile_kernels.py --grids 128 256 --photons 2.1e7 --free-running \
+        --tuning "" "NRT_REGIONS=3 region_tail=4096 $big" "NRT_REGIONS=4 region_tail=4096 $big" \
+        "NRT_REGIONS=5 region_tail=4096 $big" "NRT_REGIONS=6 region_tail=4096 $big" \
+        --out "$out/small-regions-neb.json" 2>&1 | grep -v Warning
 fi
 if [[ " $steps " == *" polarization-ocl "* ]]; then
     echo "== cost of polarization, NVIDIA OpenCL"
