@@ -51,6 +51,7 @@ typedef long nrt_i64;
 #define NRT_GROUP_FIRST_ID() ((nrt_u64)get_group_id(0) * (nrt_u64)get_local_size(0))
 typedef uchar nrt_u8;
 #define NRT_FLOAT_AS_UINT(x) as_uint(x)
+#define NRT_UINT_AS_FLOAT(x) as_float(x)
 #define NRT_FREXPF(x, e) frexp((float)(x), (e))
 /* leading zero bits of a nonzero 64-bit integer */
 #define NRT_CLZ64(x) ((int)clz((ulong)(x)))
@@ -87,6 +88,7 @@ typedef long long nrt_i64;
 #define NRT_GROUP_FIRST_ID() ((nrt_u64)blockIdx.x * (nrt_u64)blockDim.x)
 typedef unsigned char nrt_u8;
 #define NRT_FLOAT_AS_UINT(x) __float_as_uint(x)
+#define NRT_UINT_AS_FLOAT(x) __uint_as_float(x)
 #define NRT_FREXPF(x, e) frexpf((x), (e))
 #define NRT_CLZ64(x) __clzll((long long)(x))
 /* (sqrt is mapped to sqrtf below, for the float code) */

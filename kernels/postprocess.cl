@@ -8,8 +8,9 @@
  *       error written over the centred sums of squares it comes from;
  *   finish_voxels, pass 0:  the emissivity, the opacity byte of rgba, and a brightness key
  *       per voxel for the exposure;
- *   key_histogram:          histograms of the keys' bit patterns, from which the host picks
- *       the exposure percentile exactly (two passes of 2^16 bins: a radix select);
+ *   key_histogram, select_rank_bins, key_histogram_low, select_level: the exposure
+ *       percentile, exactly, by a radix select on the device (two passes of 2^16 bins), the
+ *       exposure left in device memory for pass 1: no round trip to the host;
  *   finish_voxels, pass 1:  the colour bytes of rgba at the chosen exposure (the colour is
  *       recomputed from J rather than stored: reading J again costs less memory than a
  *       float colour buffer on large grids).
@@ -101,15 +102,16 @@ NRT_KERNEL void light_cells(const NRT_GLOBAL double *s1, const NRT_GLOBAL float 
  * balance included.
  *   pass 0: the emissivity (float32, band-major, x fastest), the opacity byte of rgba and the
  *       brightness key of the exposure;
- *   pass 1: the colour bytes of rgba at the chosen exposure (recomputed from J rather than
- *       stored: a float colour buffer would cost more memory than reading J again).
+ *   pass 1: the colour bytes of rgba at the exposure dsel[2] (select_level's, or the scene's),
+ *       recomputed from J rather than stored: a float colour buffer would cost more memory
+ *       than reading J again.
  */
 NRT_KERNEL void finish_voxels(const NRT_GLOBAL float *J32, const NRT_GLOBAL float *density,
                               const NRT_GLOBAL double *band_params,
                               const NRT_GLOBAL double *to_rgb, int n_bands, nrt_u64 nvox,
                               int pass, int colour,
                               double sigma_ref_scale, double voxel_edge, double opacity_scale,
-                              double exposure, NRT_GLOBAL float *emis32, NRT_GLOBAL float *key,
+                              const NRT_GLOBAL double *dsel, NRT_GLOBAL float *emis32, NRT_GLOBAL float *key,
                               NRT_GLOBAL nrt_u8 *rgba)
 {
     nrt_u64 v = NRT_GLOBAL_ID();
@@ -157,7 +159,7 @@ NRT_KERNEL void finish_voxels(const NRT_GLOBAL float *J32, const NRT_GLOBAL floa
         return;
     }
     /* pass 1: expose; an over-exposed colour is scaled down as a whole (keeps its hue) */
-    double x[3];
+    double exposure = dsel[2], x[3]; /* (select_level's result, or the scene's exposure) */
     for (int c = 0; c < 3; ++c)
         x[c] = nrt_dmax(rgb[c] * exposure, 0.0);
     double mxe = nrt_dmax(nrt_dmax(x[0], nrt_dmax(x[1], x[2])), 1.0);
@@ -166,15 +168,19 @@ NRT_KERNEL void finish_voxels(const NRT_GLOBAL float *J32, const NRT_GLOBAL floa
 }
 
 /*
- * Radix-select histograms of the brightness keys. Keys are non-negative floats (with the
- * sign bit as the visibility flag), whose bit patterns sort like their values, so the high
- * 16 bits pick a bin and the low 16 bits the value inside it.
- *   hi_bin < 0: hist[bits >> 16] counts positive finite keys, hist[65536] the zeros;
- *   hi_bin >= 0: hist[bits & 0xffff] counts the positive keys whose high bits are hi_bin.
+ * The auto exposure's radix select. Keys are non-negative floats (with the sign bit as the
+ * visibility flag), whose bit patterns sort like their values, so the high 16 bits pick a bin
+ * and the low 16 bits the value inside it. The order statistics are those of the positive
+ * finite keys of the visible voxels (or of every voxel when no visible voxel has a finite
+ * key), interpolated linearly between ranks as numpy.percentile does, in the host's double
+ * arithmetic (nebula_rt.transport.finish.percentile_of_keys).
+ *
+ * key_histogram: hist[bits >> 16] counts the positive finite keys, hist[65536] the zeros;
  * all_voxels 0 takes only visible voxels, 1 every voxel.
  */
-NRT_KERNEL void key_histogram(const NRT_GLOBAL float *key, nrt_u64 n, int all_voxels, int hi_bin,
-                              NRT_GLOBAL nrt_u32 *hist)
+#define NRT_KEY_BINS 65536u
+
+NRT_KERNEL void key_histogram(const NRT_GLOBAL float *key, nrt_u64 n, int all_voxels, NRT_GLOBAL nrt_u32 *hist)
 {
     nrt_u64 v = NRT_GLOBAL_ID();
     if (v >= n)
@@ -185,11 +191,135 @@ NRT_KERNEL void key_histogram(const NRT_GLOBAL float *key, nrt_u64 n, int all_vo
     bits &= 0x7FFFFFFFu;
     if (bits >= 0x7F800000u) /* inf or nan: no exposure from these */
         return;
-    if (hi_bin < 0) {
-        NRT_ATOMIC_ADD_U32(&hist[bits == 0u ? 65536u : (bits >> 16)], 1u);
-    } else if (bits != 0u && (int)(bits >> 16) == hi_bin) {
-        NRT_ATOMIC_ADD_U32(&hist[bits & 0xFFFFu], 1u);
+    NRT_ATOMIC_ADD_U32(&hist[bits == 0u ? NRT_KEY_BINS : (bits >> 16)], 1u);
+}
+
+/* Work items of the one-group select kernels that sum chunks of bins (any group size works:
+   the items past this, or all but item 0 of a smaller group, only wait at the barriers) */
+#define NRT_SELECT_ITEMS 256
+
+/* The first bin b with cum[b] > r, cum the running sum of hist[0 .. NRT_KEY_BINS) (numpy's
+   searchsorted(cum, r, side="right")), and r less the keys before that bin; chunk sums of
+   NRT_KEY_BINS / items bins each in l_sum. */
+NRT_DEVICE nrt_u32 nrt_rank_bin(const NRT_GLOBAL nrt_u32 *hist, const NRT_LOCAL nrt_u64 *l_sum, nrt_u32 items,
+                                nrt_u64 r, nrt_u64 *r_in)
+{
+    nrt_u32 per = NRT_KEY_BINS / items, c = 0;
+    nrt_u64 before = 0;
+    while (c + 1 < items && before + l_sum[c] <= r)
+        before += l_sum[c++];
+    nrt_u32 b = c * per;
+    while (b + 1 < (c + 1) * per && before + hist[b] <= r)
+        before += hist[b++];
+    *r_in = r - before;
+    return b;
+}
+
+/* One group's chunk sums of hist[0 .. NRT_KEY_BINS) into l_sum (items of them, a power of 2);
+   returns items. */
+NRT_DEVICE nrt_u32 nrt_chunk_sums(const NRT_GLOBAL nrt_u32 *hist, NRT_LOCAL nrt_u64 *l_sum)
+{
+    nrt_u32 lid = (nrt_u32)NRT_LOCAL_ID(), items = 1;
+    while (items * 2 <= (nrt_u32)NRT_LOCAL_SIZE() && items * 2 <= NRT_SELECT_ITEMS)
+        items *= 2;
+    if (lid < items) {
+        nrt_u32 per = NRT_KEY_BINS / items;
+        nrt_u64 s = 0;
+        for (nrt_u32 b = lid * per; b < (lid + 1) * per; ++b)
+            s += hist[b];
+        l_sum[lid] = s;
     }
+    NRT_BARRIER();
+    return items;
+}
+
+/*
+ * select_rank_bins (one work group): from the high-bits histograms of the visible voxels and
+ * of every voxel, the ranks k and k + 1 of the percentile (fraction = percentile / 100) among
+ * npos positive keys and the bins that hold them. sel: all_voxels, npos, bin of rank k, rank
+ * within it, the same for rank k + 1; dsel[0] the interpolation weight idx - k.
+ */
+NRT_KERNEL void select_rank_bins(const NRT_GLOBAL nrt_u32 *hist_vis, const NRT_GLOBAL nrt_u32 *hist_all,
+                                 double fraction, NRT_GLOBAL nrt_u64 *sel, NRT_GLOBAL double *dsel)
+{
+    NRT_LOCAL_MEM nrt_u64 l_sum[NRT_SELECT_ITEMS];
+    NRT_LOCAL_MEM int l_all;
+    if (NRT_LOCAL_ID() == 0) {
+        nrt_u64 seen = 0; /* nothing visible (not even a zero key): expose for every voxel */
+        for (nrt_u32 b = 0; b <= NRT_KEY_BINS && seen == 0; ++b)
+            seen += hist_vis[b];
+        l_all = seen == 0;
+    }
+    NRT_BARRIER();
+    const NRT_GLOBAL nrt_u32 *hist = l_all ? hist_all : hist_vis;
+    nrt_u32 items = nrt_chunk_sums(hist, l_sum);
+    if (NRT_LOCAL_ID() != 0)
+        return;
+    nrt_u64 npos = 0;
+    for (nrt_u32 c = 0; c < items; ++c)
+        npos += l_sum[c];
+    sel[0] = (nrt_u64)l_all;
+    sel[1] = npos;
+    dsel[0] = 0.0;
+    if (npos == 0)
+        return;
+    double idx = fraction * (double)(npos - 1);
+    nrt_u64 k = (nrt_u64)floor(idx), k1 = k + 1 < npos ? k + 1 : npos - 1;
+    dsel[0] = idx - (double)k;
+    nrt_u64 r_in;
+    sel[2] = nrt_rank_bin(hist, l_sum, items, k, &r_in);
+    sel[3] = r_in;
+    sel[4] = nrt_rank_bin(hist, l_sum, items, k1, &r_in);
+    sel[5] = r_in;
+}
+
+/* key_histogram_low: hist[r * 65536 + (bits & 0xffff)] counts the keys (as select_rank_bins
+   chose them) whose high bits are the bin of rank r (r = 0: k, 1: k + 1). */
+NRT_KERNEL void key_histogram_low(const NRT_GLOBAL float *key, nrt_u64 n, const NRT_GLOBAL nrt_u64 *sel,
+                                  NRT_GLOBAL nrt_u32 *hist)
+{
+    nrt_u64 v = NRT_GLOBAL_ID();
+    if (v >= n || sel[1] == 0)
+        return;
+    nrt_u32 bits = NRT_FLOAT_AS_UINT(key[v]);
+    if ((bits >> 31) && !sel[0])
+        return;
+    bits &= 0x7FFFFFFFu;
+    if (bits == 0u || bits >= 0x7F800000u)
+        return;
+    if ((nrt_u64)(bits >> 16) == sel[2])
+        NRT_ATOMIC_ADD_U32(&hist[bits & 0xFFFFu], 1u);
+    if ((nrt_u64)(bits >> 16) == sel[4])
+        NRT_ATOMIC_ADD_U32(&hist[NRT_KEY_BINS + (bits & 0xFFFFu)], 1u);
+}
+
+/* select_level (one work group): the percentile's level from the low-bits histograms, into
+   dsel[1] (-1: no positive key; a level is positive), and the exposure 1 / level (1 where there is no positive
+   level) into dsel[2], where pass 1 of finish_voxels reads it. */
+NRT_KERNEL void select_level(const NRT_GLOBAL nrt_u32 *hist, const NRT_GLOBAL nrt_u64 *sel, NRT_GLOBAL double *dsel)
+{
+    NRT_LOCAL_MEM nrt_u64 l_sum[NRT_SELECT_ITEMS];
+    double v[2];
+    nrt_u32 items = 0;
+    for (int r = 0; r < 2; ++r) {
+        items = nrt_chunk_sums(hist + (nrt_u64)r * NRT_KEY_BINS, l_sum);
+        if (NRT_LOCAL_ID() == 0 && sel[1] > 0) {
+            nrt_u64 r_in;
+            nrt_u32 lo = nrt_rank_bin(hist + (nrt_u64)r * NRT_KEY_BINS, l_sum, items, sel[3 + 2 * r], &r_in);
+            v[r] = (double)NRT_UINT_AS_FLOAT(((nrt_u32)sel[2 + 2 * r] << 16) | lo);
+        }
+        NRT_BARRIER(); /* (l_sum is summed again for the second rank) */
+    }
+    if (NRT_LOCAL_ID() != 0)
+        return;
+    if (sel[1] == 0) {
+        dsel[1] = -1.0;
+        dsel[2] = 1.0;
+        return;
+    }
+    double frac = dsel[0], level = frac == 0.0 ? v[0] : v[0] + frac * (v[1] - v[0]);
+    dsel[1] = level;
+    dsel[2] = level > 0.0 ? 1.0 / level : 1.0;
 }
 
 /*

@@ -45,5 +45,6 @@ def test_kernel_compiles_as_cuda(tmp_path, name, defines):
     ptx = (tmp_path / "k.ptx").read_text()
     for kernel in {"transport.cl": ["trace_photons", "fold_batches"], "density.cl": ["generate_density"],
                    "sampling.cl": ["philox_blocks", "hg_at"],
-                   "postprocess.cl": ["finish_voxels", "key_histogram"]}[name]:
+                   "postprocess.cl": ["finish_voxels", "key_histogram", "select_rank_bins",
+                                      "key_histogram_low", "select_level"]}[name]:
         assert f".entry {kernel}" in ptx

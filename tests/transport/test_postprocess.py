@@ -91,6 +91,36 @@ def test_exposure_radix_select_is_exact(backend, case, q):
     assert 1.0 / got == pytest.approx(expect, rel=1e-12, abs=0)
 
 
+@pytest.mark.parametrize("group", [8, 64, 256])
+def test_exposure_select_with_any_group_size(backend, monkeypatch, group):
+    """The one-group select kernels split the 2^16 bins into chunks, one per work item of the
+    group, and then walk the chunks: the same order statistics for every group size (the
+    backends launch one item on OpenCL and 256 on CUDA; here the OpenCL launch is given the
+    group explicitly). Keys with many ranks in one chunk and ranks at chunk edges."""
+    if backend.name != "opencl":
+        pytest.skip("the group size is set through pyopencl's launch (CUDA launches 256 items: tests-cuda)")
+    import pyopencl as cl
+
+    launch = backend.launch
+
+    def grouped(prog, name, n, *args, defines=None):
+        if name not in ("select_rank_bins", "select_level"):
+            return launch(prog, name, n, *args, defines=defines)
+        k = backend.kernel(prog, name, defines)
+        local = min(group, k.get_work_group_info(cl.kernel_work_group_info.WORK_GROUP_SIZE, backend.device))
+        args = [a.data if hasattr(a, "data") and not isinstance(a, np.generic) else a for a in args]
+        k(backend.queue, (local,), (local,), *args)
+
+    monkeypatch.setattr(backend, "launch", grouped)
+    rng = np.random.default_rng(3)
+    keys = np.concatenate([10.0 ** rng.uniform(-8, 3, 3000), rng.choice([1.0, 2.0, 0.75], 2000)])
+    keys[rng.random(keys.size) < 0.2] *= -1
+    keys = keys.astype(np.float32)
+    for q in (0.0, 7.5, 50.0, 95.0, 100.0):
+        got = postprocess.percentile_of_keys(backend, backend.to_device(keys), keys.size, q)
+        assert got == pytest.approx(_reference_percentile(keys, q), rel=1e-12, abs=0)
+
+
 def test_exposure_without_positive_keys(backend):
     keys = np.array([0.0, -0.0, np.nan, -np.inf], np.float32)
     assert postprocess.auto_exposure_on_device(backend, backend.to_device(keys), keys.size, 95.0) == 1.0

@@ -181,21 +181,30 @@ def finish(ds: DeviceSums, band_params: np.ndarray, *, batches, collision: bool,
     const = (np.float64(c.sigma_ref_scale if c else 0.0), np.float64(c.voxel_edge if c else 0.0),
              np.float64(c.opacity_scale if c else 0.0))
 
-    def run(pass_, exposure):
+    def run(pass_, exposure_at):
         be.launch("postprocess.cl", "finish_voxels", nvox, J32, ds.density, d_params, d_rgb,
                   np.int32(nb), np.uint64(nvox), np.int32(pass_), np.int32(c is not None), *const,
-                  np.float64(exposure), emis32, key, rgba)
+                  exposure_at, emis32, key, rgba)
 
-    run(0, 1.0)
+    run(0, dummy64)
     copies.append(be.to_host_async(emis32, hosts[2]))
     exposure = float("nan")
-    h_rgba = None
+    h_rgba = d_exposure = None
     if c is not None:
-        exposure = auto_exposure_on_device(be, key, nvox, c.percentile) if c.exposure == "auto" else float(c.exposure)
-        run(1, exposure)
-        h_rgba = be.to_host(rgba, be.host_empty((nz, ny, nx, 4), np.uint8)).transpose(2, 1, 0, 3)
+        # the auto exposure stays on the device for pass 1: a read-back here would wait behind
+        # the outputs' copies, which share the bus with it
+        if c.exposure == "auto":
+            d_exposure = select_on_device(be, key, nvox, c.percentile)
+        else:  # (the select's layout: the exposure third)
+            d_exposure = be.to_device(np.array([0.0, 0.0, c.exposure], np.float64))
+        run(1, d_exposure)
+        h_rgba = be.host_empty((nz, ny, nx, 4), np.uint8)
+        copies.append(be.to_host_async(rgba, h_rgba.reshape(-1)))
     for handle in copies:
         be.wait_copy(handle)
+    if d_exposure is not None:
+        exposure = float(be.to_host(d_exposure)[2])
+        h_rgba = h_rgba.transpose(2, 1, 0, 3)
     out = [h.transpose(0, 3, 2, 1) for h in hosts]
     nbytes = sum(int(x.nbytes) for x in (J32, rel32, emis32, key, rgba, d_params, d_rgb))
     stage_b = (0 if release else sums_bytes) + 4 * nvox + sum(int(x.nbytes) for x in (J32, rel32, emis32, key, rgba))
@@ -246,19 +255,30 @@ def filter_collisions_opencl(ds: DeviceSums, band_params: np.ndarray, batches, r
     return J, rel
 
 
-def _histogram(be, key, n, all_voxels, hi_bin):
-    hist = be.device_zeros(_HI_BINS + 1, np.uint32)
-    be.launch("postprocess.cl", "key_histogram", n, key, np.uint64(n), np.int32(all_voxels),
-              np.int32(hi_bin), hist)
-    return be.to_host(hist).astype(np.int64)
+def select_on_device(be, key, n: int, percentile: float):
+    """Queue the radix select of the ``percentile`` of the positive keys of the visible voxels
+    (sign bit clear), or of every voxel if none is visible (kernels/postprocess.cl: two
+    histogram passes of 2^16 bins and two one-group kernels that find the ranks' bins and the
+    level), with no round trip to the host. Returns the device array ``dsel`` (float64):
+    [1] the level (-1 when no key is positive), [2] the exposure 1 / level (1 when there is
+    no positive level), which pass 1 of ``finish_voxels`` reads in place."""
+    hist_vis, hist_all = be.device_zeros(_HI_BINS + 1, np.uint32), be.device_zeros(_HI_BINS + 1, np.uint32)
+    for all_voxels, hist in ((0, hist_vis), (1, hist_all)):
+        be.launch("postprocess.cl", "key_histogram", n, key, np.uint64(n), np.int32(all_voxels), hist)
+    sel, dsel = be.device_zeros(6, np.uint64), be.device_zeros(3, np.float64)
+    be.launch("postprocess.cl", "select_rank_bins", 1, hist_vis, hist_all, np.float64(float(percentile) / 100.0),
+              sel, dsel)
+    low = be.device_zeros(2 * _HI_BINS, np.uint32)
+    be.launch("postprocess.cl", "key_histogram_low", n, key, np.uint64(n), sel, low)
+    be.launch("postprocess.cl", "select_level", 1, low, sel, dsel)
+    return dsel
 
 
 def auto_exposure_on_device(be, key, n: int, percentile: float) -> float:
     """1 / (the ``percentile`` of the positive brightness keys of the visible voxels, or of all
     voxels if none is visible), interpolated linearly between order statistics as
     ``numpy.percentile`` does; 1.0 when no key is positive (:func:`percentile_of_keys`)."""
-    level = percentile_of_keys(be, key, n, percentile)
-    return 1.0 / level if level is not None and level > 0.0 else 1.0
+    return float(be.to_host(select_on_device(be, key, n, percentile))[2])
 
 
 def percentile_of_keys(be, key, n: int, percentile: float):
@@ -266,35 +286,13 @@ def percentile_of_keys(be, key, n: int, percentile: float):
     voxels if none is visible, as ``numpy.percentile`` interpolates it; None when no key is
     positive.
 
-    The order statistics are found exactly by a radix select on the keys' bit patterns: a
-    histogram of the high 16 bits finds the bin holding the rank, a histogram of the low 16
-    bits inside that bin the value. Only histograms (256 KiB) come to the host.
+    The order statistics are found exactly by a radix select on the keys' bit patterns, on the
+    device (:func:`select_on_device`): a histogram of the high 16 bits finds the bin holding
+    each rank, a histogram of the low 16 bits inside that bin the value. The level (8 bytes)
+    comes to the host.
     """
-    all_voxels = 0
-    hist = _histogram(be, key, n, 0, -1)
-    if hist.sum() == 0:  # nothing visible: expose for every voxel
-        all_voxels = 1
-        hist = _histogram(be, key, n, 1, -1)
-    pos = hist[:_HI_BINS]
-    npos = int(pos.sum())
-    if npos == 0:
-        return None
-    cum = np.cumsum(pos)
-    low_cache: dict[int, np.ndarray] = {}
-
-    def order_statistic(r: int) -> float:
-        hi = int(np.searchsorted(cum, r, side="right"))
-        r_in = r - (int(cum[hi - 1]) if hi else 0)
-        if hi not in low_cache:
-            low_cache[hi] = np.cumsum(_histogram(be, key, n, all_voxels, hi)[:_HI_BINS])
-        lo = int(np.searchsorted(low_cache[hi], r_in, side="right"))
-        return float(np.array([(hi << 16) | lo], np.uint32).view(np.float32)[0])
-
-    idx = float(percentile) / 100.0 * (npos - 1)
-    k = int(math.floor(idx))
-    frac = idx - k
-    v0 = order_statistic(k)
-    return v0 if frac == 0.0 else v0 + frac * (order_statistic(min(k + 1, npos - 1)) - v0)
+    level = float(be.to_host(select_on_device(be, key, n, percentile))[1])
+    return None if level < 0.0 else level
 
 
 #: voxels each work item of lit_partial_sums adds up
