@@ -307,10 +307,10 @@ if [[ " $steps " == *" defer "* ]]; then
         -k deferred 2>&1 | tail -n 3
     echo "== deferred interactions, thesis 128^3, CUDA"
     python3 benchmarks/profile_kernels.py --scene examples/scenes/thesis-default.toml --grids 128 --photons 2.1e6 \
-        --tuning "" "NRT_DEFER=2" "NRT_DEFER=4" "NRT_DEFER=8" "NRT_DEFER=4 NRT_DEFER_WAIT=16" "" \
+        --tuning "" "NRT_DEFER=2" "NRT_DEFER=4" "NRT_DEFER=8" \
         --out "$out/defer-thesis.json" 2>&1 | grep -v Warning
     echo "== deferred interactions, neb medium, CUDA"
-    python3 benchmarks/profile_kernels.py --grids 64 128 256 --photons 2.1e7 --tuning "" "NRT_DEFER=4" "NRT_DEFER=8" \
+    python3 benchmarks/profile_kernels.py --grids 128 256 --photons 2.1e7 --tuning "" "NRT_DEFER=4" \
         --out "$out/defer-neb.json" 2>&1 | grep -v Warning
 fi
 if [[ " $steps " == *" small-regions "* ]]; then
@@ -321,13 +321,11 @@ if [[ " $steps " == *" small-regions "* ]]; then
     big="region_state_bytes=805306368"
     echo "== small regions, thesis 128^3, CUDA"
     python3 benchmarks/profile_kernels.py --scene examples/scenes/thesis-default.toml --grids 128 --photons 2.1e6 \
-        --free-running --tuning "" "NRT_REGIONS=3 region_tail=4096 $big" "NRT_REGIONS=4 region_tail=4096 $big" \
-        "NRT_REGIONS=5 region_tail=4096 $big" "NRT_REGIONS=4 region_tail=65536 $big" "NRT_REGIONS=4 region_tail=4096" \
+        --free-running --tuning "" "NRT_REGIONS=4 region_tail=4096 $big" "NRT_REGIONS=5 region_tail=4096 $big" \
         --out "$out/small-regions-thesis.json" 2>&1 | grep -v Warning
     echo "== small regions, neb medium, CUDA"
     python3 benchmarks/profile_kernels.py --grids 128 256 --photons 2.1e7 --free-running \
-        --tuning "" "NRT_REGIONS=3 region_tail=4096 $big" "NRT_REGIONS=4 region_tail=4096 $big" \
-        "NRT_REGIONS=5 region_tail=4096 $big" "NRT_REGIONS=6 region_tail=4096 $big" \
+        --tuning "" "NRT_REGIONS=4 region_tail=4096 $big" "NRT_REGIONS=5 region_tail=4096 $big" \
         --out "$out/small-regions-neb.json" 2>&1 | grep -v Warning
 fi
 if [[ " $steps " == *" polarization-ocl "* ]]; then
