@@ -194,83 +194,106 @@ NRT_KERNEL void key_histogram(const NRT_GLOBAL float *key, nrt_u64 n, int all_vo
     NRT_ATOMIC_ADD_U32(&hist[bits == 0u ? NRT_KEY_BINS : (bits >> 16)], 1u);
 }
 
-/* Work items of the one-group select kernels that sum chunks of bins (any group size works:
-   the items past this, or all but item 0 of a smaller group, only wait at the barriers) */
-#define NRT_SELECT_ITEMS 256
+/* The select's chunks: 256 chunks of 256 bins of a 2^16-bin histogram. Each one-group kernel
+   below finds a rank's chunk from the chunk sums, then its bin inside the chunk, both scans
+   over local memory (a serial walk of the 2^16 bins in global memory, or a work item's serial
+   sum of its own chunk, took 1.7 ms on an H100). */
+#define NRT_CHUNK 256u
+#define NRT_CHUNKS 256u
 
-/* The first bin b with cum[b] > r, cum the running sum of hist[0 .. NRT_KEY_BINS) (numpy's
-   searchsorted(cum, r, side="right")), and r less the keys before that bin; chunk sums of
-   NRT_KEY_BINS / items bins each in l_sum. */
-NRT_DEVICE nrt_u32 nrt_rank_bin(const NRT_GLOBAL nrt_u32 *hist, const NRT_LOCAL nrt_u64 *l_sum, nrt_u32 items,
-                                nrt_u64 r, nrt_u64 *r_in)
+/* bin_chunk_sums: chunks[chunk0 + b / 256] += hist[b] for the bins b < n (n a multiple of
+   256: several histograms side by side give their chunks side by side). */
+NRT_KERNEL void bin_chunk_sums(const NRT_GLOBAL nrt_u32 *hist, nrt_u64 n, NRT_GLOBAL nrt_u32 *chunks, int chunk0)
 {
-    nrt_u32 per = NRT_KEY_BINS / items, c = 0;
-    nrt_u64 before = 0;
-    while (c + 1 < items && before + l_sum[c] <= r)
-        before += l_sum[c++];
-    nrt_u32 b = c * per;
-    while (b + 1 < (c + 1) * per && before + hist[b] <= r)
-        before += hist[b++];
-    *r_in = r - before;
-    return b;
+    nrt_u64 b = NRT_GLOBAL_ID();
+    if (b >= n)
+        return;
+    nrt_u32 h = hist[b];
+    if (h != 0u)
+        NRT_ATOMIC_ADD_U32(&chunks[(nrt_u64)chunk0 + b / NRT_CHUNK], h);
 }
 
-/* One group's chunk sums of hist[0 .. NRT_KEY_BINS) into l_sum (items of them, a power of 2);
-   returns items. */
-NRT_DEVICE nrt_u32 nrt_chunk_sums(const NRT_GLOBAL nrt_u32 *hist, NRT_LOCAL nrt_u64 *l_sum)
+/* (Every work item of the group calls this.) The first bin b of hist (2^16 bins, their chunk
+   sums in chunks) at which the running sum passes r (numpy's searchsorted(cumsum, r,
+   side="right")) into l_pos[0], and r less the keys of the bins before b into l_pos[1]. */
+NRT_DEVICE void nrt_rank_bin(const NRT_GLOBAL nrt_u32 *hist, const NRT_GLOBAL nrt_u32 *chunks, nrt_u64 r,
+                             NRT_LOCAL nrt_u32 *l_bins, NRT_LOCAL nrt_u64 *l_pos)
 {
-    nrt_u32 lid = (nrt_u32)NRT_LOCAL_ID(), items = 1;
-    while (items * 2 <= (nrt_u32)NRT_LOCAL_SIZE() && items * 2 <= NRT_SELECT_ITEMS)
-        items *= 2;
-    if (lid < items) {
-        nrt_u32 per = NRT_KEY_BINS / items;
-        nrt_u64 s = 0;
-        for (nrt_u32 b = lid * per; b < (lid + 1) * per; ++b)
-            s += hist[b];
-        l_sum[lid] = s;
+    nrt_u32 lid = (nrt_u32)NRT_LOCAL_ID(), items = (nrt_u32)NRT_LOCAL_SIZE();
+    for (nrt_u32 j = lid; j < NRT_CHUNKS; j += items)
+        l_bins[j] = chunks[j];
+    NRT_BARRIER();
+    if (lid == 0) {
+        nrt_u32 c = 0;
+        nrt_u64 before = 0;
+        while (c + 1 < NRT_CHUNKS && before + l_bins[c] <= r)
+            before += l_bins[c++];
+        l_pos[0] = c;
+        l_pos[1] = before;
     }
     NRT_BARRIER();
-    return items;
+    nrt_u64 c = l_pos[0];
+    for (nrt_u32 j = lid; j < NRT_CHUNK; j += items)
+        l_bins[j] = hist[c * NRT_CHUNK + j];
+    NRT_BARRIER();
+    if (lid == 0) {
+        nrt_u32 b = 0;
+        nrt_u64 before = l_pos[1];
+        while (b + 1 < NRT_CHUNK && before + l_bins[b] <= r)
+            before += l_bins[b++];
+        l_pos[0] = c * NRT_CHUNK + b;
+        l_pos[1] = r - before;
+    }
+    NRT_BARRIER();
 }
 
 /*
- * select_rank_bins (one work group): from the high-bits histograms of the visible voxels and
- * of every voxel, the ranks k and k + 1 of the percentile (fraction = percentile / 100) among
- * npos positive keys and the bins that hold them. sel: all_voxels, npos, bin of rank k, rank
- * within it, the same for rank k + 1; dsel[0] the interpolation weight idx - k.
+ * select_rank_bins (one work group, of any size): from the high-bits histograms of the
+ * visible voxels and of every voxel (their chunk sums in chunks[0 .. 256) and [256 .. 512)),
+ * the ranks k and k + 1 of the percentile (fraction = percentile / 100) among the npos
+ * positive keys, and the bins that hold them. sel: all_voxels, npos, the bin of rank k and
+ * the rank within it, the same for rank k + 1; dsel[0]: the interpolation weight idx - k.
  */
 NRT_KERNEL void select_rank_bins(const NRT_GLOBAL nrt_u32 *hist_vis, const NRT_GLOBAL nrt_u32 *hist_all,
-                                 double fraction, NRT_GLOBAL nrt_u64 *sel, NRT_GLOBAL double *dsel)
+                                 const NRT_GLOBAL nrt_u32 *chunks, double fraction, NRT_GLOBAL nrt_u64 *sel,
+                                 NRT_GLOBAL double *dsel)
 {
-    NRT_LOCAL_MEM nrt_u64 l_sum[NRT_SELECT_ITEMS];
-    NRT_LOCAL_MEM int l_all;
-    if (NRT_LOCAL_ID() == 0) {
-        nrt_u64 seen = 0; /* nothing visible (not even a zero key): expose for every voxel */
-        for (nrt_u32 b = 0; b <= NRT_KEY_BINS && seen == 0; ++b)
-            seen += hist_vis[b];
-        l_all = seen == 0;
+    NRT_LOCAL_MEM nrt_u32 l_bins[NRT_CHUNK];
+    NRT_LOCAL_MEM nrt_u64 l_pos[2];
+    NRT_LOCAL_MEM nrt_u64 l_count[2];
+    int lid0 = NRT_LOCAL_ID() == 0;
+    if (lid0) {
+        /* nothing visible (not even a zero key): expose for every voxel */
+        nrt_u64 seen = hist_vis[NRT_KEY_BINS];
+        for (nrt_u32 c = 0; c < NRT_CHUNKS; ++c)
+            seen += chunks[c];
+        nrt_u64 all = seen == 0, npos = 0;
+        for (nrt_u32 c = 0; c < NRT_CHUNKS; ++c)
+            npos += chunks[all * NRT_CHUNKS + c];
+        l_count[0] = all;
+        l_count[1] = npos;
+        sel[0] = all;
+        sel[1] = npos;
+        dsel[0] = 0.0;
     }
     NRT_BARRIER();
-    const NRT_GLOBAL nrt_u32 *hist = l_all ? hist_all : hist_vis;
-    nrt_u32 items = nrt_chunk_sums(hist, l_sum);
-    if (NRT_LOCAL_ID() != 0)
-        return;
-    nrt_u64 npos = 0;
-    for (nrt_u32 c = 0; c < items; ++c)
-        npos += l_sum[c];
-    sel[0] = (nrt_u64)l_all;
-    sel[1] = npos;
-    dsel[0] = 0.0;
-    if (npos == 0)
-        return;
-    double idx = fraction * (double)(npos - 1);
-    nrt_u64 k = (nrt_u64)floor(idx), k1 = k + 1 < npos ? k + 1 : npos - 1;
-    dsel[0] = idx - (double)k;
-    nrt_u64 r_in;
-    sel[2] = nrt_rank_bin(hist, l_sum, items, k, &r_in);
-    sel[3] = r_in;
-    sel[4] = nrt_rank_bin(hist, l_sum, items, k1, &r_in);
-    sel[5] = r_in;
+    /* every item reaches every barrier: the searches run even without a positive key (PoCL
+       mishandled a return before the barriers, though the same for the whole group) */
+    nrt_u64 all = l_count[0], npos = l_count[1];
+    const NRT_GLOBAL nrt_u32 *hist = all ? hist_all : hist_vis;
+    double idx = fraction * (double)(npos > 0 ? npos - 1 : 0);
+    nrt_u64 k = (nrt_u64)floor(idx), k1 = k + 1 < npos ? k + 1 : k;
+    nrt_rank_bin(hist, chunks + all * NRT_CHUNKS, k, l_bins, l_pos);
+    if (lid0 && npos > 0) {
+        sel[2] = l_pos[0];
+        sel[3] = l_pos[1];
+        dsel[0] = idx - (double)k;
+    }
+    nrt_rank_bin(hist, chunks + all * NRT_CHUNKS, k1, l_bins, l_pos);
+    if (lid0 && npos > 0) {
+        sel[4] = l_pos[0];
+        sel[5] = l_pos[1];
+    }
 }
 
 /* key_histogram_low: hist[r * 65536 + (bits & 0xffff)] counts the keys (as select_rank_bins
@@ -293,22 +316,19 @@ NRT_KERNEL void key_histogram_low(const NRT_GLOBAL float *key, nrt_u64 n, const 
         NRT_ATOMIC_ADD_U32(&hist[NRT_KEY_BINS + (bits & 0xFFFFu)], 1u);
 }
 
-/* select_level (one work group): the percentile's level from the low-bits histograms, into
-   dsel[1] (-1: no positive key; a level is positive), and the exposure 1 / level (1 where there is no positive
-   level) into dsel[2], where pass 1 of finish_voxels reads it. */
-NRT_KERNEL void select_level(const NRT_GLOBAL nrt_u32 *hist, const NRT_GLOBAL nrt_u64 *sel, NRT_GLOBAL double *dsel)
+/* select_level (one work group, of any size): the percentile's level from the low-bits
+   histograms (their chunk sums side by side in chunks), into dsel[1] (-1: no positive key; a
+   level is positive), and the exposure 1 / level (1 where there is no positive level) into
+   dsel[2], where pass 1 of finish_voxels reads it. */
+NRT_KERNEL void select_level(const NRT_GLOBAL nrt_u32 *hist, const NRT_GLOBAL nrt_u32 *chunks,
+                             const NRT_GLOBAL nrt_u64 *sel, NRT_GLOBAL double *dsel)
 {
-    NRT_LOCAL_MEM nrt_u64 l_sum[NRT_SELECT_ITEMS];
+    NRT_LOCAL_MEM nrt_u32 l_bins[NRT_CHUNK];
+    NRT_LOCAL_MEM nrt_u64 l_pos[2];
     double v[2];
-    nrt_u32 items = 0;
-    for (int r = 0; r < 2; ++r) {
-        items = nrt_chunk_sums(hist + (nrt_u64)r * NRT_KEY_BINS, l_sum);
-        if (NRT_LOCAL_ID() == 0 && sel[1] > 0) {
-            nrt_u64 r_in;
-            nrt_u32 lo = nrt_rank_bin(hist + (nrt_u64)r * NRT_KEY_BINS, l_sum, items, sel[3 + 2 * r], &r_in);
-            v[r] = (double)NRT_UINT_AS_FLOAT(((nrt_u32)sel[2 + 2 * r] << 16) | lo);
-        }
-        NRT_BARRIER(); /* (l_sum is summed again for the second rank) */
+    for (int r = 0; r < 2; ++r) { /* (every item reaches every barrier, as in select_rank_bins) */
+        nrt_rank_bin(hist + (nrt_u64)r * NRT_KEY_BINS, chunks + (nrt_u64)r * NRT_CHUNKS, sel[3 + 2 * r], l_bins, l_pos);
+        v[r] = (double)NRT_UINT_AS_FLOAT(((nrt_u32)sel[2 + 2 * r] << 16) | (nrt_u32)l_pos[0]);
     }
     if (NRT_LOCAL_ID() != 0)
         return;

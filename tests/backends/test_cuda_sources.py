@@ -46,5 +46,5 @@ def test_kernel_compiles_as_cuda(tmp_path, name, defines):
     for kernel in {"transport.cl": ["trace_photons", "fold_batches"], "density.cl": ["generate_density"],
                    "sampling.cl": ["philox_blocks", "hg_at"],
                    "postprocess.cl": ["finish_voxels", "key_histogram", "select_rank_bins",
-                                      "key_histogram_low", "select_level"]}[name]:
+                                      "key_histogram_low", "select_level", "bin_chunk_sums"]}[name]:
         assert f".entry {kernel}" in ptx

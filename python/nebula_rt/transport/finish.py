@@ -26,6 +26,8 @@ from ..backends.session import M2_SCALE
 
 #: Bins of one radix-select pass (16 bits of the float32 key) plus one for exact zeros.
 _HI_BINS = 1 << 16
+#: chunks of 256 bins of a pass (kernels/postprocess.cl, NRT_CHUNKS)
+_CHUNKS = 256
 
 
 @dataclass
@@ -263,14 +265,18 @@ def select_on_device(be, key, n: int, percentile: float):
     [1] the level (-1 when no key is positive), [2] the exposure 1 / level (1 when there is
     no positive level), which pass 1 of ``finish_voxels`` reads in place."""
     hist_vis, hist_all = be.device_zeros(_HI_BINS + 1, np.uint32), be.device_zeros(_HI_BINS + 1, np.uint32)
+    chunks = be.device_zeros(2 * _CHUNKS, np.uint32)  # (of the visible voxels', then of all voxels')
     for all_voxels, hist in ((0, hist_vis), (1, hist_all)):
         be.launch("postprocess.cl", "key_histogram", n, key, np.uint64(n), np.int32(all_voxels), hist)
+        be.launch("postprocess.cl", "bin_chunk_sums", _HI_BINS, hist, np.uint64(_HI_BINS), chunks,
+                  np.int32(all_voxels * _CHUNKS))
     sel, dsel = be.device_zeros(6, np.uint64), be.device_zeros(3, np.float64)
-    be.launch("postprocess.cl", "select_rank_bins", 1, hist_vis, hist_all, np.float64(float(percentile) / 100.0),
-              sel, dsel)
-    low = be.device_zeros(2 * _HI_BINS, np.uint32)
+    be.launch("postprocess.cl", "select_rank_bins", 1, hist_vis, hist_all, chunks,
+              np.float64(float(percentile) / 100.0), sel, dsel)
+    low, low_chunks = be.device_zeros(2 * _HI_BINS, np.uint32), be.device_zeros(2 * _CHUNKS, np.uint32)
     be.launch("postprocess.cl", "key_histogram_low", n, key, np.uint64(n), sel, low)
-    be.launch("postprocess.cl", "select_level", 1, low, sel, dsel)
+    be.launch("postprocess.cl", "bin_chunk_sums", 2 * _HI_BINS, low, np.uint64(2 * _HI_BINS), low_chunks, np.int32(0))
+    be.launch("postprocess.cl", "select_level", 1, low, low_chunks, sel, dsel)
     return dsel
 
 
