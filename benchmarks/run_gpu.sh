@@ -9,7 +9,7 @@
 # with `pip wheel`: no wheel on PyPI); pmcx and pmcxcl for the MCX comparison), fetched elsewhere
 # with `pip download --only-binary=:all: --python-version 3.12 --no-deps ...`.
 # STEPS (default "tests bench neb128 compare profile"; also "tests-cuda", "thick", "thick-grid", "trust", "scaling", "large", "regions", "regcaps", "profile-regions", "layout", "sorted", "probe", "ranks", "ranks-thesis", "ranks-weak", "tests-mpi", "e2e1e9", "biasing", "fit", "fitprof", "tune",
-# "stages", "timeline", "kernel-probes", "small-regions", "defer", "polarization", "polarization-ocl", "mcx", "mcx1024", "ncu-thesis", "ncu-source", "tree", "tree-targets", "tree-ascend", "trade", "presets", "empty", "fft", "pinte") selects what runs. Everything printed
+# "stages", "timeline", "kernel-probes", "small-regions", "defer", "stages-former", "polarization", "polarization-ocl", "mcx", "mcx1024", "ncu-thesis", "ncu-source", "tree", "tree-targets", "tree-ascend", "trade", "presets", "empty", "fft", "pinte") selects what runs. Everything printed
 # goes to OUTDIR/log.txt as well; JSON and .npz results beside it.
 set -uo pipefail
 out="${1:?output folder}"
@@ -298,6 +298,15 @@ if [[ " $steps " == *" kernel-probes "* ]]; then
     echo "== transport kernel probes, neb medium, CUDA"
     python3 benchmarks/profile_kernels.py --grids 64 128 --photons 2.1e7 --tuning "" "NRT_PROBE_DEPOSIT=1" \
         "NRT_HOT_HALF=0" "NRT_HOT_HALF=1" "NRT_HOT_HALF=3" --out "$out/neb-probes.json" 2>&1 | grep -v Warning
+fi
+if [[ " $steps " == *" stages-former "* ]]; then
+    # the stage profile as built and with the former commit's python/ (its kernels as
+    # nebula_rt/kernels) in .former/, in turn on the same GPU
+    for v in "" former "" former; do
+        echo "== stage profile, thesis 128^3, CUDA, ${v:-as built}"
+        PYTHONPATH=${v:+.former/python:}$PYTHONPATH python3 benchmarks/profile_stages.py 2>&1 \
+            | grep -E "^run |^   [a-z]|^fixed cost" | grep -v "^   ncalls"
+    done
 fi
 if [[ " $steps " == *" defer "* ]]; then
     # interactions deferred by warp votes (kernels/transport.cl, NRT_DEFER): the same bits
