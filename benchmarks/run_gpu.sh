@@ -9,7 +9,7 @@
 # with `pip wheel`: no wheel on PyPI); pmcx and pmcxcl for the MCX comparison), fetched elsewhere
 # with `pip download --only-binary=:all: --python-version 3.12 --no-deps ...`.
 # STEPS (default "tests bench neb128 compare profile"; also "tests-cuda", "thick", "thick-grid", "trust", "scaling", "large", "regions", "regcaps", "profile-regions", "layout", "sorted", "probe", "ranks", "ranks-thesis", "ranks-weak", "tests-mpi", "e2e1e9", "biasing", "fit", "fitprof", "tune",
-# "stages", "timeline", "kernel-probes", "small-regions", "defer", "stages-former", "polarization", "polarization-ocl", "mcx", "mcx1024", "ncu-thesis", "ncu-source", "tree", "tree-targets", "tree-ascend", "trade", "presets", "empty", "fft", "pinte") selects what runs. Everything printed
+# "stages", "timeline", "kernel-probes", "small-regions", "stages-former", "polarization", "polarization-ocl", "mcx", "mcx1024", "ncu-thesis", "ncu-source", "tree", "tree-targets", "tree-ascend", "trade", "presets", "empty", "fft", "pinte") selects what runs. Everything printed
 # goes to OUTDIR/log.txt as well; JSON and .npz results beside it.
 set -uo pipefail
 out="${1:?output folder}"
@@ -307,20 +307,6 @@ if [[ " $steps " == *" stages-former "* ]]; then
         PYTHONPATH=${v:+.former/python:}$PYTHONPATH python3 benchmarks/profile_stages.py 2>&1 \
             | grep -E "^run |^   [a-z]|^fixed cost" | grep -v "^   ncalls"
     done
-fi
-if [[ " $steps " == *" defer "* ]]; then
-    # interactions deferred by warp votes (kernels/transport.cl, NRT_DEFER): the same bits
-    # (CUDA test), and kernel packets per ms on the thesis scene and the neb medium
-    echo "== deferred interactions, same bits, CUDA"
-    NEBULA_RT_TEST_BACKEND=cuda python3 -m pytest -q -p no:cacheprovider tests/backends/test_kernel_options.py \
-        -k deferred 2>&1 | tail -n 3
-    echo "== deferred interactions, thesis 128^3, CUDA"
-    python3 benchmarks/profile_kernels.py --scene examples/scenes/thesis-default.toml --grids 128 --photons 2.1e6 \
-        --tuning "" "NRT_DEFER=2" "NRT_DEFER=4" "NRT_DEFER=8" \
-        --out "$out/defer-thesis.json" 2>&1 | grep -v Warning
-    echo "== deferred interactions, neb medium, CUDA"
-    python3 benchmarks/profile_kernels.py --grids 128 256 --photons 2.1e7 --tuning "" "NRT_DEFER=4" \
-        --out "$out/defer-neb.json" 2>&1 | grep -v Warning
 fi
 if [[ " $steps " == *" small-regions "* ]]; then
     # regions of 8-64 voxels at 128^3 and 256^3 as a compaction of the walks: a pass stops each

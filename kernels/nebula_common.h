@@ -24,8 +24,6 @@
 #pragma OPENCL EXTENSION cl_khr_int64_base_atomics : enable
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 #define NRT_KERNEL __kernel
-/* SIMD-group votes (CUDA warps); OpenCL C 1.2 has none */
-#define NRT_SIMD_VOTES 0
 #define NRT_GLOBAL __global
 #define NRT_CONSTANT __constant
 #define NRT_DEVICE static inline
@@ -59,12 +57,6 @@ typedef uchar nrt_u8;
 #define NRT_DSQRT(x) sqrt((double)(x))
 #elif defined(__CUDACC__) || defined(__CUDACC_RTC__)
 #define NRT_KERNEL extern "C" __global__
-/* SIMD-group votes: the lanes of the warp executing here (NRT_SIMD_ACTIVE) and how many of
-   them hold a predicate (NRT_SIMD_COUNT; every lane of m must execute it) */
-#define NRT_SIMD_VOTES 1
-#define NRT_SIMD_ACTIVE() __activemask()
-#define NRT_SIMD_COUNT(m, pred) __popc(__ballot_sync((m), (pred)))
-#define NRT_SIMD_LANES(m) __popc(m)
 #define NRT_GLOBAL
 #define NRT_CONSTANT __constant__
 #define NRT_DEVICE static __device__ __forceinline__

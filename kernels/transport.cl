@@ -162,21 +162,6 @@
 #define NRT_PROBE_HOT_Y 0
 #define NRT_PROBE_HOT_Z 0
 #endif
-/*
- * NRT_DEFER k > 0 (CUDA; SIMD-group votes): a lane whose flight ends in its voxel waits, its
- * state unchanged, while fewer than 1/k of its warp's active lanes have an interaction to make
- * (or until it has waited NRT_DEFER_WAIT steps), so that the interaction's code (the
- * scattering's random numbers, the new direction, the face distances) runs for several lanes
- * at once instead of for one while the others wait. Only the order in which lanes make their
- * steps changes, not what any packet does: integer deposits add alike in any order, so the
- * result is the same bits. OpenCL (no votes): no effect.
- */
-#ifndef NRT_DEFER
-#define NRT_DEFER 0
-#endif
-#ifndef NRT_DEFER_WAIT
-#define NRT_DEFER_WAIT 64
-#endif
 #if NRT_PROBE_UNIFORM
 #define NRT_RHO(density, i) ((density)[0])
 #else
@@ -819,9 +804,6 @@ NRT_DEVICE int nrt_trace_packet(NRT_TRACE_PACKET_PARAMS)
         ty = nrt_face_distance(p0[1], d[1], inv_d[1], iy, hy);
         tz = nrt_face_distance(p0[2], d[2], inv_d[2], iz, hz);
     }
-#if NRT_DEFER && NRT_SIMD_VOTES
-    int waited = 0; /* steps this lane has waited with its interaction (NRT_DEFER) */
-#endif
     for (;;) {
         float t_next = fmin(tx, fmin(ty, tz));
         float seg = fmax(0.0f, t_next - t_cur);
@@ -839,19 +821,7 @@ NRT_DEVICE int nrt_trace_packet(NRT_TRACE_PACKET_PARAMS)
 #endif
         float sigma = sig_b * rho;
         float tau_seg = sigma * seg;
-        int meets = sigma > 0.0f && tau_seg >= tau;
-#if NRT_DEFER && NRT_SIMD_VOTES
-        {
-            nrt_u32 m = NRT_SIMD_ACTIVE();
-            int ready = NRT_SIMD_COUNT(m, meets) * NRT_DEFER >= NRT_SIMD_LANES(m) || NRT_SIMD_COUNT(m, waited >= NRT_DEFER_WAIT) > 0;
-            if (meets && !ready) {
-                ++waited; /* the same step again next iteration: nothing of the packet changed */
-                continue;
-            }
-            waited = 0;
-        }
-#endif
-        if (meets) {
+        if (sigma > 0.0f && tau_seg >= tau) {
             /* the interaction happens inside this voxel */
             float t = tau / sigma;
 #if NRT_TRACK_LENGTH

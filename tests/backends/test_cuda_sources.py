@@ -12,7 +12,7 @@ NVCC = shutil.which("nvcc")
 
 #: option sets of the transport kernel compiled beside the plain ones: the GPU default, the
 #: walk by regions (polarized, with images and per-packet squares), the sorted emission,
-#: weighted packets, the tree's walk and the deferred interaction
+#: weighted packets and the tree's walk
 TRANSPORT_VARIANTS = [
     ["-DNRT_TRACK_LENGTH=1", "-DNRT_ACC_RED=1", "-DNRT_PREFETCH=1", "-DNRT_GROUP_TALLY=1", "-DNRT_IDX32=1"],
     ["-DNRT_TRACK_LENGTH=1", "-DNRT_GROUP_TALLY=1", "-DNRT_REGIONS=1", "-DNRT_POLAR=3", "-DNRT_PEEL=1",
@@ -20,9 +20,6 @@ TRANSPORT_VARIANTS = [
     ["-DNRT_COLLISION=1", "-DNRT_SORTED=1", "-DNRT_POLAR=1", "-DNRT_PEEL=1"],
     ["-DNRT_TRACK_LENGTH=1", "-DNRT_BIASED=1", "-DNRT_PEEL=1", "-DNRT_POLAR=2"],
     ["-DNRT_TRACK_LENGTH=1", "-DNRT_TREE=1", "-DNRT_PEEL=1"],
-    # the interaction deferred by warp votes (NRT_DEFER), with regions and per-packet squares
-    ["-DNRT_TRACK_LENGTH=1", "-DNRT_GROUP_TALLY=1", "-DNRT_PREFETCH=1", "-DNRT_DEFER=4", "-DNRT_REGIONS=1",
-     "-DNRT_PACKET_SQ=1"],
 ]
 
 

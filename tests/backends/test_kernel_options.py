@@ -197,30 +197,6 @@ def test_star_blocks_of_every_size_give_the_same_bits(cloud, error_estimate):
         np.testing.assert_array_equal(res.raw_m2, ref.raw_m2)
 
 
-@pytest.mark.parametrize("error_estimate", ["batches", "packets"])
-def test_deferred_interactions_give_the_same_bits(cloud, error_estimate):
-    """Interactions deferred by warp votes (NRT_DEFER: a lane waits while fewer than 1/k of its
-    warp's lanes have one to make, or until it has waited NRT_DEFER_WAIT steps) change only the
-    order of the lanes' steps: the same batch sums, squares (per-packet visit squares too) and
-    counts as without, for k = 1, 2 and 8 and a wait of 1 and 64 steps. Dense dust (tau 25
-    across 20 voxels), so that lanes often wait. The deferral needs SIMD-group votes, which
-    CUDA has (tests-cuda in benchmarks/run_gpu.sh); OpenCL C 1.2 has none, and there the
-    option must build and change nothing."""
-    runs = []
-    for options in ({}, {"NRT_DEFER": 1}, {"NRT_DEFER": 2}, {"NRT_DEFER": 8},
-                    {"NRT_DEFER": 8, "NRT_DEFER_WAIT": 1}):
-        be = _backend(options)
-        batches = {"batch_size": 1500} if error_estimate == "batches" else {}
-        runs.append(trace(cloud, _bands(), _stars(), tau=25.0, photons=6000, seed=5, backend=be,
-                          error_estimate=error_estimate, **batches))
-    ref = runs[0]
-    assert ref.counts[:, 0].tolist() == [6000, 6000]
-    for res in runs[1:]:
-        np.testing.assert_array_equal(res.counts, ref.counts)
-        np.testing.assert_array_equal(res.raw_sum, ref.raw_sum)
-        np.testing.assert_array_equal(res.raw_m2, ref.raw_m2)
-
-
 @pytest.mark.parametrize("estimator", ["track-length", "collision-filter"])
 def test_sorted_packet_order_gives_the_same_bits(cloud, estimator):
     """NRT_SORTED (packets traced in the order of cell, star and first direction, a counting
