@@ -294,8 +294,8 @@ def percentile_of_keys(be, key, n: int, percentile: float):
 
     The order statistics are found exactly by a radix select on the keys' bit patterns, on the
     device (:func:`select_on_device`): a histogram of the high 16 bits finds the bin holding
-    each rank, a histogram of the low 16 bits inside that bin the value. The level (8 bytes)
-    comes to the host.
+    each rank, a histogram of the low 16 bits inside that bin the value. Only the select's
+    three float64 results come to the host.
     """
     level = float(be.to_host(select_on_device(be, key, n, percentile))[1])
     return None if level < 0.0 else level
