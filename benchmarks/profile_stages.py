@@ -28,7 +28,7 @@ def main() -> None:
 
     from nebula_rt.density import generate_density
     from nebula_rt.pipeline import stages as pl
-    from nebula_rt.pipeline.rgba import mean_optical_depth, mean_optical_depth_soon
+    from nebula_rt.pipeline import rgba
     from nebula_rt.backends import get_backend
     from nebula_rt.scene import Scene
 
@@ -51,7 +51,10 @@ def main() -> None:
         light = None  # free the previous run's host buffers (pinned memory goes back to the pool)
         t0 = time.perf_counter()
         rho = step("density", lambda: generate_density(scene, backend))
-        mean = mean_optical_depth_soon(rho)  # as the pipeline does: summed while the device traces
+        # as the pipeline does: summed on the device with the extremes (a former version: on a
+        # host thread while the device traces)
+        mean = (backend.density_mean(rho) if hasattr(backend, "density_mean")
+                else rgba.mean_optical_depth_soon(rho))
         res, J, rel = step("transport", lambda: pl.compute_light(scene, rho, backend, on_device=True))
         light = step("finish on the device (+ arrays to the host)",
                      lambda: pl.finish_light_field(scene, rho, res, J, rel, colour=True, mean_density=mean))
@@ -108,7 +111,10 @@ def main() -> None:
         ("one float32 band to pinned host memory (8 MiB)",
          lambda: backend.to_host(cp.zeros(nvox, cp.float32), backend.host_empty(nvox, np.float32))),
         ("one float32 band to pageable host memory (8 MiB)", lambda: cp.zeros(nvox, cp.float32).get()),
-        ("the density's mean on the host (overlapped in the pipeline)", lambda: mean_optical_depth(rho)),
+        ("the density's mean on the host (a density read from a file)", lambda: rgba.mean_optical_depth(rho)),
+        ("the density's extremes and mean on the device (uncached)",
+         lambda: backend.device_density_stats(backend.resident_density(rho), rho.size)
+         if hasattr(backend, "device_density_stats") else backend.device_extremes(backend.resident_density(rho))),
         ("auto exposure radix select",
          lambda: pp.auto_exposure_on_device(backend, cp.random.random(nvox, dtype=cp.float32), nvox, 95.0)),
     ]:

@@ -106,3 +106,47 @@ NRT_KERNEL void sample_noise(const NRT_GLOBAL float *xyz, NRT_GLOBAL float *nois
     noise[gid] = nrt_simplex3(x, y, z);
     turb[gid] = nrt_turbulence(x, y, z);
 }
+
+/*
+ * The exact sum of n float32 values, for the density's mean (the colour's auto opacity): each
+ * value is its significand m (24 bits, the hidden bit included where the exponent field e is
+ * not 0) times 2^(max(e, 1) - 150), so bins[256 s + e] (s the sign bit) += m sums every value
+ * of a sign and exponent exactly in 64-bit integers (up to 2^40 values), in any order. The
+ * host adds the 512 bins exactly (nebula_rt.exact_sum): the device's and the host's
+ * sums of the same array are the same number, so the mean has the same bits on every path.
+ * Each work item sums a run of NRT_SIGNIFICAND_RUN consecutive values in a register while
+ * their bin stays the same (neighbouring voxels mostly share an exponent), the group in local
+ * memory; every item reaches every barrier.
+ */
+#define NRT_SIGNIFICAND_BINS 512u
+#define NRT_SIGNIFICAND_RUN 64u
+
+NRT_KERNEL void significand_sums(const NRT_GLOBAL float *v, nrt_u64 n, NRT_GLOBAL nrt_u64 *bins)
+{
+    NRT_LOCAL_MEM nrt_u64 l_bins[NRT_SIGNIFICAND_BINS];
+    nrt_u64 lid = NRT_LOCAL_ID(), items = NRT_LOCAL_SIZE();
+    for (nrt_u64 b = lid; b < NRT_SIGNIFICAND_BINS; b += items)
+        l_bins[b] = 0;
+    NRT_BARRIER();
+    nrt_u64 first = NRT_GLOBAL_ID() * NRT_SIGNIFICAND_RUN;
+    nrt_u64 last = first + NRT_SIGNIFICAND_RUN < n ? first + NRT_SIGNIFICAND_RUN : n;
+    nrt_u32 bin = 0u;
+    nrt_u64 run = 0;
+    for (nrt_u64 i = first; i < last; ++i) {
+        nrt_u32 bits = NRT_FLOAT_AS_UINT(v[i]);
+        nrt_u32 key = bits >> 23;
+        nrt_u64 m = (nrt_u64)((bits & 0x7FFFFFu) | ((key & 0xFFu) != 0u ? 0x800000u : 0u));
+        if (key != bin && run != 0) {
+            NRT_ATOMIC_ADD_U64_LOCAL(&l_bins[bin], run);
+            run = 0;
+        }
+        bin = key;
+        run += m;
+    }
+    if (run != 0)
+        NRT_ATOMIC_ADD_U64_LOCAL(&l_bins[bin], run);
+    NRT_BARRIER();
+    for (nrt_u64 b = lid; b < NRT_SIGNIFICAND_BINS; b += items)
+        if (l_bins[b] != 0)
+            NRT_ATOMIC_ADD_U64(&bins[b], l_bins[b]);
+}

@@ -40,7 +40,7 @@ def test_kernel_compiles_as_cuda(tmp_path, name, defines):
                           capture_output=True, text=True, check=False)
     assert proc.returncode == 0, proc.stderr
     ptx = (tmp_path / "k.ptx").read_text()
-    for kernel in {"transport.cl": ["trace_photons", "fold_batches"], "density.cl": ["generate_density"],
+    for kernel in {"transport.cl": ["trace_photons", "fold_batches"], "density.cl": ["generate_density", "significand_sums"],
                    "sampling.cl": ["philox_blocks", "hg_at"],
                    "postprocess.cl": ["finish_voxels", "key_histogram", "select_rank_bins",
                                       "key_histogram_low", "select_level", "bin_chunk_sums"]}[name]:

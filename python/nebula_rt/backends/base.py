@@ -12,6 +12,7 @@ import weakref
 
 import numpy as np
 
+from .. import exact_sum
 from .capacity import check_grid, region_bytes
 from .session import DeviceTransport
 # re-exported: what a transport run asks of a device (its module is below this one and the session)
@@ -209,16 +210,48 @@ class Backend(abc.ABC):
         the backend reduces on the device (:meth:`device_extremes`), once per density: the
         density stage's finiteness check and the transport's limits share it (on the host, the
         two reductions took 0.54 s at 1024^3). None otherwise."""
+        stats = self._density_stats(host)
+        return None if stats is None else stats[0]
+
+    def density_mean(self, host: np.ndarray) -> float | None:
+        """The mean of ``host``, correctly rounded (:mod:`nebula_rt.exact_sum`: the same
+        bits as :func:`~nebula_rt.exact_sum.mean_float32` on the host), summed on the
+        device where it has a resident copy, once per density; None otherwise. (The thesis
+        headline's host sum took 3 ms and, on a worker thread while the device traced, held the
+        interpreter from the transport's set-up.)"""
+        stats = self._density_stats(host)
+        return None if stats is None else stats[1]
+
+    def _density_stats(self, host: np.ndarray):
+        """((min, max) or None, mean) of the resident density ``host``, reduced once per density
+        (:meth:`device_density_stats`), or None without a resident copy."""
         dev = self.resident_density(host)
         if dev is None:
             return None
-        cached = getattr(self, "_density_extremes", None)
+        cached = getattr(self, "_density_stats_of", None)
         if cached is not None and cached[0] is dev:
             return cached[1]
-        extremes = self.device_extremes(dev)
-        if extremes is not None:
-            self._density_extremes = (dev, extremes)
-        return extremes
+        extremes, bins = self.device_density_stats(dev, int(host.size))
+        stats = (extremes, exact_sum.exact_mean(bins, host.size))
+        self._density_stats_of = (dev, stats)
+        return stats
+
+    def device_density_stats(self, dev, n: int):
+        """((min, max) or None, the 512 significand sums) of the first ``n`` values of a float32
+        device array: :meth:`device_extremes` and :meth:`significand_sums`. A backend may read
+        both back at once."""
+        return self.device_extremes(dev), self.significand_sums(dev, n)
+
+    def significand_sums(self, dev, n: int) -> np.ndarray:
+        """The 512 bins (uint64) of :func:`nebula_rt.exact_sum.significand_sums` of the
+        first ``n`` values of a float32 device array, summed on the device
+        (``kernels/density.cl``: ``significand_sums``)."""
+        out = self.device_zeros(exact_sum.SIGNIFICAND_BINS, np.uint64)
+        self.launch("density.cl", "significand_sums", max(1, -(-int(n) // exact_sum.SIGNIFICAND_RUN)), dev,
+                    np.uint64(n), out)
+        bins = np.empty(exact_sum.SIGNIFICAND_BINS, np.uint64)
+        self.to_host(out, bins)
+        return bins
 
     # --- device arrays, for the post-processing on the device -------------------------------
     # Device arrays are CuPy arrays (CUDA) or pyopencl.array.Array (OpenCL), always flat.

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .. import exact_sum
 from ..errors import BackendUnavailableError
 from .kernel_source import kernel_source
 from .base import Backend
@@ -217,6 +218,18 @@ class CUDABackend(Backend):
         # about 80 ms at 512^3 and 0.6 s at 1024^3
         cp = self.cp
         return float(cp.min(dev)), float(cp.max(dev))
+
+    def device_density_stats(self, dev, n):
+        # the extremes' bits after the significand sums: one read-back instead of three
+        cp = self.cp
+        nb = exact_sum.SIGNIFICAND_BINS
+        out = cp.zeros(nb + 2, cp.uint64)
+        self.launch("density.cl", "significand_sums", max(1, -(-int(n) // exact_sum.SIGNIFICAND_RUN)), dev,
+                    np.uint64(n), out)
+        out[nb:] = cp.stack([cp.min(dev[:n]), cp.max(dev[:n])]).view(cp.uint32).astype(cp.uint64)
+        host = out.get()
+        low, high = host[nb:].astype(np.uint32).view(np.float32)
+        return (float(low), float(high)), host[:nb]
 
     def launch(self, prog_name, kernel_name, n, *args, defines=None):
         self.kernel(prog_name, kernel_name, defines)(_grid(max(int(n), 1)), (BLOCK,), args)

@@ -7,6 +7,7 @@ from typing import Optional
 
 import numpy as np
 
+from .. import exact_sum
 from ..optics import colour_convert
 from . import output_contract as contract
 from ..array_api import array_module, to_numpy
@@ -38,12 +39,17 @@ def mean_optical_depth(density, sigma_scale: float = 1.0) -> float:
     (extinction per box unit at density 1) x the mean density, which is also the mean over the
     box's columns, along any axis, of their optical depths.
 
-    Summed in float64, one z slice at a time in the VTK point order (x fastest), whatever the
-    array's dtype and memory layout: the light field's colour (from the density stage) and Nebula
-    Colour's (from the output's density array) find the same bits, with one slice of memory."""
+    A float32 density (the pipeline's and the output's) is summed exactly and its mean rounded
+    once (:mod:`nebula_rt.exact_sum`), as the device sums it with the density's extremes
+    (:meth:`~nebula_rt.backends.base.Backend.density_mean`): the light field's colour and Nebula
+    Colour's (from the output's density array) find the same bits. Other arrays (Nebula
+    Colour's optical depths from the emissivity, float64) are summed in float64, one z slice at
+    a time in the VTK point order (x fastest), with one slice of memory."""
     rho = to_numpy(density)
     if rho.size == 0:
         return 0.0
+    if rho.dtype == np.float32:
+        return float(sigma_scale) * exact_sum.mean_float32(rho)
     total = 0.0
     for k in range(rho.shape[2]):
         total += float(np.sum(np.ravel(np.asarray(rho[:, :, k], dtype=np.float64), order="F")))
@@ -93,38 +99,20 @@ def _dominant_source(stars):
     return star.spectral_source()
 
 
-def mean_optical_depth_soon(density):
-    """:func:`mean_optical_depth` of ``density`` at ``sigma_scale`` 1, summed on a worker thread:
-    a :class:`concurrent.futures.Future` for :func:`scene_opacity_factor`'s ``mean_density``.
-
-    The pipeline starts it when the density is made, so the host sum (3 ms of the thesis
-    headline's finishing on an H200's host) runs while the device traces (NumPy's reductions
-    release the GIL). The same function, so the same bits."""
-    global _MEAN_POOL
-    if _MEAN_POOL is None:
-        from concurrent.futures import ThreadPoolExecutor
-
-        _MEAN_POOL = ThreadPoolExecutor(max_workers=1, thread_name_prefix="nebula-rt-mean-density")
-    return _MEAN_POOL.submit(mean_optical_depth, density)
-
-
-_MEAN_POOL = None
-
-
 def scene_opacity_factor(scene, bands, rho, mean_density=None) -> float:
     """The factor on the reference band's optical depth in a scene's rgba alpha
     (:func:`opacity_factor` of ``colour.opacity_scale`` and the density ``rho``).
 
-    ``mean_density``: ``mean_optical_depth(rho)`` (at ``sigma_scale`` 1) already summed, or its
-    future (:func:`mean_optical_depth_soon`); the factor has the same bits either way."""
+    ``mean_density``: ``mean_optical_depth(rho)`` (at ``sigma_scale`` 1) already summed
+    (:meth:`~nebula_rt.backends.base.Backend.density_mean`); the factor has the same bits either
+    way."""
     if scene.colour.opacity_scale != "auto":
         return float(scene.colour.opacity_scale)
     sigma_ref_scale = scene.dust.tau * bands[reference_band_index(bands)].extinction
     if mean_density is None:
         mean_tau = mean_optical_depth(rho, sigma_ref_scale)
     else:
-        mean = mean_density.result() if hasattr(mean_density, "result") else mean_density
-        mean_tau = float(sigma_ref_scale) * float(mean)  # = mean_optical_depth(rho, sigma_ref_scale)
+        mean_tau = float(sigma_ref_scale) * float(mean_density)  # = mean_optical_depth(rho, sigma_ref_scale)
     return opacity_factor(scene.colour.opacity_scale, mean_tau)
 
 

@@ -29,7 +29,7 @@ from ..transport.result import TransportResult
 from ..transport.estimate import batch_standard_error, light_from_sums
 from ..transport.request import TransportRequest, scene_backend
 
-from .rgba import AUTO_EXPOSURE_MIN_ALPHA, AUTO_EXPOSURE_PERCENTILE, _dominant_source, _dominant_temperature, _voxel_edge, colour_matrix, colour_rgba, mean_optical_depth_soon, scene_opacity_factor
+from .rgba import AUTO_EXPOSURE_MIN_ALPHA, AUTO_EXPOSURE_PERCENTILE, _dominant_source, _dominant_temperature, _voxel_edge, colour_matrix, colour_rgba, scene_opacity_factor
 
 
 @dataclass
@@ -258,7 +258,8 @@ class Pipeline:
         need_colour = colour and not (hit is not None and hit[0] == ckey)
         mean_density = None
         if need_colour and scene.colour.opacity_scale == "auto" and not isinstance(rho, Octree):
-            mean_density = mean_optical_depth_soon(rho)  # summed on the host while the device traces
+            # summed on the device with the density's extremes (None: on the host when finishing)
+            mean_density = self.backend_for(scene).density_mean(rho)
         res, J, rel = self.light(scene, progress, cancel, dkey)
         t2 = time.perf_counter()
         light = finish_light_field(scene, rho, res, J, rel, colour=need_colour, mean_density=mean_density)
@@ -341,8 +342,8 @@ def finish_light_field(scene, rho, res: TransportResult, J=None, rel=None, colou
     (:func:`nebula_rt.transport.finish.finish`), else with the NumPy reference functions.
 
     ``J``, ``rel``: the (filtered) light from :func:`compute_light`, or None to take it from the
-    device sums. ``mean_density``: the density's mean already summed, or its future
-    (:func:`~nebula_rt.pipeline.rgba.mean_optical_depth_soon`), for the auto opacity.
+    device sums. ``mean_density``: the density's mean already summed
+    (:meth:`~nebula_rt.backends.base.Backend.density_mean`), for the auto opacity.
     """
     if isinstance(rho, Octree):
         return finish_tree_light_field(scene, rho, res, colour)
