@@ -86,6 +86,46 @@ class Recorder:
             self.backend.__dict__.pop(name, None)
 
 
+#: library functions timed as spans of host time (module, attribute), so the listing shows
+#: which step of the run the backend calls and the gaps between them belong to
+SPANS = (("nebula_rt.pipeline.stages", "scene_density"), ("nebula_rt.transport.resources", "check"),
+         ("nebula_rt.pipeline.stages", "compute_light"), ("nebula_rt.transport.run", "plan_transport"),
+         ("nebula_rt.transport.run", "run_transport"), ("nebula_rt.transport.run", "estimate_light"),
+         ("nebula_rt.transport.run", "warn_if_heavy_tailed"), ("nebula_rt.pipeline.stages", "finish_light_field"),
+         ("nebula_rt.transport.finish", "finish"), ("nebula_rt.pipeline.stages", "scene_opacity_factor"))
+
+
+class Spans:
+    """Wraps the :data:`SPANS` functions (those present in the library as imported); each call
+    appends (name, host start, host end) in ms from ``t0``."""
+
+    def __init__(self, t0: float):
+        import importlib
+
+        self.t0, self.rows, self.saved = t0, [], []
+        for mod_name, attr in SPANS:
+            mod = importlib.import_module(mod_name)
+            fn = getattr(mod, attr, None)
+            if fn is None:
+                continue
+            self.saved.append((mod, attr, fn))
+            setattr(mod, attr, self._wrap(f"{mod_name.rsplit('.', 1)[-1]}.{attr}", fn))
+
+    def _wrap(self, name, fn):
+        @functools.wraps(fn)
+        def call(*args, **kwargs):
+            t = time.perf_counter()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                self.rows.append((name, (t - self.t0) * 1e3, (time.perf_counter() - self.t0) * 1e3))
+        return call
+
+    def restore(self):
+        for mod, attr, fn in self.saved:
+            setattr(mod, attr, fn)
+
+
 def _size(name, args) -> str:
     """The bytes a copy or allocation moves, for the listing."""
     import numpy as np
@@ -107,16 +147,18 @@ def run_once(scene, backend, serial: bool) -> dict:
     sync = synchronizer(backend)
     sync()
     rec = Recorder(backend, serial)
+    spans = Spans(0.0)
     try:
-        rec.t0 = time.perf_counter()
+        rec.t0 = spans.t0 = time.perf_counter()
         light = Pipeline(backend).run(scene)
         sync()
         wall = (time.perf_counter() - rec.t0) * 1e3
     finally:
         rec.restore()
+        spans.restore()
     stages = {k: v * 1e3 for k, v in light.timings.items()}
     del light
-    return {"wall_ms": wall, "stages_ms": stages, "calls": rec.rows}
+    return {"wall_ms": wall, "stages_ms": stages, "calls": rec.rows, "spans": sorted(spans.rows, key=lambda r: r[1])}
 
 
 def summary(run: dict) -> dict:
@@ -171,6 +213,9 @@ def main(argv=None) -> int:
             print(f"-- the first {args.list} calls in order (ms from the start: entry, time in the call)")
             for name, detail, a, b in run["calls"][:args.list]:
                 print(f"   {a:8.3f} {b - a:8.3f}  {name} {detail}")
+            print("-- the library's steps (ms from the start: entry, time in the step, nested ones included)")
+            for name, a, b in run["spans"]:
+                print(f"   {a:8.3f} {b - a:8.3f}  [{name}]")
     if args.out:
         with open(args.out, "w") as fh:
             json.dump(out, fh, indent=1)
