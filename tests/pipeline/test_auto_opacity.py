@@ -99,3 +99,28 @@ def test_no_dust_keeps_a_transparent_volume(backend):
     """tau 0: nothing to scale (k = 1), every alpha 0, no error."""
     light = run(backend, tau=0.0)
     assert light.rgba[..., 3].max() == 0 and light.field_data()["opacity_scale"] == 1.0
+
+
+@pytest.mark.parametrize("stretch", ["linear", "asinh"])
+def test_a_density_file_has_its_mean_summed_on_the_device(backend, tmp_path, monkeypatch, stretch):
+    """A density read from a file has no device copy made with it: the finishing sums the
+    transport's copy on the device (not the host), and the factor is the host's exact mean's,
+    bit for bit, as the output's density gives it to Nebula Colour."""
+    from nebula_rt import exact_sum
+
+    rng = np.random.default_rng(2)
+    rho = rng.lognormal(-1.0, 1.5, SHAPE).astype(np.float32)
+    np.save(tmp_path / "rho.npy", rho)
+    scene = Scene.from_dict({"grid": {"shape": list(SHAPE)},
+                             "dust": {"model": "file", "file": str(tmp_path / "rho.npy"), "tau": 5.0},
+                             "colour": {"stretch": stretch}, "transport": {"photons": 4000}})
+    def no_host_sums(values):
+        raise AssertionError("the pipeline summed the density on the host")
+
+    monkeypatch.setattr(exact_sum, "significand_sums", no_host_sums)
+    light = Pipeline(backend).run(scene)
+    monkeypatch.undo()
+    sigma_scale = 5.0 * scene.bands.resolve()[light.reference_band].extinction
+    want = AUTO_OPACITY_MEAN_TAU / mean_optical_depth(light.density, sigma_scale)  # (floored at dust.floor)
+    assert light.field_data()["opacity_scale"] == light.opacity_scale == want
+

@@ -15,6 +15,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
+from .. import exact_sum
 from ..transport import filtering, finish as postprocess, resources
 from . import output_contract as contract
 from ..array_api import array_module, to_numpy
@@ -353,7 +354,7 @@ def finish_light_field(scene, rho, res: TransportResult, J=None, rel=None, colou
         light, emissivity, rho_x = assemble_light_field(scene, rho, res, J, rel, with_device_emissivity=True)
         if colour:
             light.rgba, light.exposure = colour_rgba(scene, bands, rho_x, emissivity, res)
-            light.opacity_scale = scene_opacity_factor(scene, bands, rho_x)
+            light.opacity_scale = scene_opacity_factor(scene, bands, rho, mean_density)  # (the float32 density's)
         light.memory = _memory(res, 0)
         return light
     params = np.stack([res.j_scale, res.sigma_scale, [b.albedo for b in bands]], axis=1)
@@ -361,6 +362,8 @@ def finish_light_field(scene, rho, res: TransportResult, J=None, rel=None, colou
     # the device's colour pass has the linear curve only; another stretch colours on the host
     host_colour = colour and scene.colour.stretch != "linear"
     colour = colour and not host_colour
+    if (colour or host_colour) and mean_density is None and scene.colour.opacity_scale == "auto":
+        mean_density = _device_mean(ds)
     if colour:
         ref = reference_band_index(bands)
         cfg = scene.colour
@@ -401,8 +404,17 @@ def finish_light_field(scene, rho, res: TransportResult, J=None, rel=None, colou
     if host_colour:
         rho_h = np.asarray(rho, np.float64)
         light.rgba, light.exposure = colour_rgba(scene, bands, rho_h, light.emissivity.astype(np.float64), res)
-        light.opacity_scale = scene_opacity_factor(scene, bands, rho_h)
+        light.opacity_scale = scene_opacity_factor(scene, bands, rho, mean_density)  # (the float32 density's)
     return light
+
+
+def _device_mean(ds) -> Optional[float]:
+    """The exact mean of the density the transport traced, summed on the device (its copy
+    stays with the sums: a density read from a file as well as a generated one); None
+    without it."""
+    if ds.density is None:
+        return None
+    return exact_sum.exact_mean(ds.backend.significand_sums(ds.density, ds.nvox), ds.nvox)
 
 
 def finish_tree_light_field(scene, tree: Octree, res: TransportResult, colour: bool = True) -> LightField:
