@@ -9,7 +9,7 @@
 # with `pip wheel`: no wheel on PyPI); pmcx and pmcxcl for the MCX comparison), fetched elsewhere
 # with `pip download --only-binary=:all: --python-version 3.12 --no-deps ...`.
 # STEPS (default "tests bench neb128 compare profile"; also "tests-cuda", "thick", "thick-grid", "trust", "scaling", "large", "regions", "regcaps", "profile-regions", "layout", "sorted", "probe", "ranks", "ranks-thesis", "ranks-weak", "tests-mpi", "e2e1e9", "biasing", "fit", "fitprof", "tune",
-# "stages", "timeline", "kernel-probes", "small-regions", "stages-former", "timeline-former", "polarization", "polarization-ocl", "mcx", "mcx1024", "ncu-thesis", "ncu-source", "tree", "tree-targets", "tree-ascend", "trade", "presets", "empty", "fft", "pinte") selects what runs. Everything printed
+# "stages", "timeline", "kernel-probes", "small-regions", "stages-former", "timeline-former", "density", "polarization", "polarization-ocl", "mcx", "mcx1024", "ncu-thesis", "ncu-source", "tree", "tree-targets", "tree-ascend", "trade", "presets", "empty", "fft", "pinte") selects what runs. Everything printed
 # goes to OUTDIR/log.txt as well; JSON and .npz results beside it.
 set -uo pipefail
 out="${1:?output folder}"
@@ -307,6 +307,10 @@ if [[ " $steps " == *" stages-former "* ]]; then
         PYTHONPATH=${v:+.former/python:}$PYTHONPATH python3 benchmarks/profile_stages.py 2>&1 \
             | grep -E "^run |^   [a-z]|^fixed cost" | grep -v "^   ncalls"
     done
+fi
+if [[ " $steps " == *" density "* ]]; then
+    # the density kernel alone, the noise's tables in constant and in global memory
+    echo "== density kernel, thesis turbulence, CUDA"; python3 benchmarks/profile_density.py --out "$out/density-cuda.json"
 fi
 if [[ " $steps " == *" timeline-former "* ]]; then
     # the headline's calls as issued, as built and with .former/ (see stages-former), in turn

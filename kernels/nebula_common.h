@@ -372,12 +372,21 @@ NRT_DEVICE nrt_u64 nrt_fixed_stochastic(float wgt, float scale, nrt_u64 seed, nr
 /* ------------------------------------------------------------------------------------------ */
 /* Simplex noise (Gustavson 2005, "Simplex noise demystified"), turbulence, cubic bump         */
 /* ------------------------------------------------------------------------------------------ */
-NRT_CONSTANT int nrt_grad3[12][3] = {{1, 1, 0}, {-1, 1, 0}, {1, -1, 0}, {-1, -1, 0},
+/* The noise's tables: in CUDA's constant memory by default (NRT_TABLES_GLOBAL 1: global memory
+   through the caches). Constant memory serves one address per warp at a time, and the
+   permutation is read at data-dependent places. OpenCL C 1.2 allows program-scope arrays only
+   in __constant. */
+#if defined(NRT_TABLES_GLOBAL) && NRT_TABLES_GLOBAL && !defined(__OPENCL_VERSION__)
+#define NRT_TABLE __device__ const
+#else
+#define NRT_TABLE NRT_CONSTANT
+#endif
+NRT_TABLE int nrt_grad3[12][3] = {{1, 1, 0}, {-1, 1, 0}, {1, -1, 0}, {-1, -1, 0},
                                      {1, 0, 1}, {-1, 0, 1}, {1, 0, -1}, {-1, 0, -1},
                                      {0, 1, 1}, {0, -1, 1}, {0, 1, -1}, {0, -1, -1}};
 
 /* Ken Perlin's permutation, doubled so that perm[i + perm[j]] never needs a wrap. */
-NRT_CONSTANT int nrt_perm[512] = {
+NRT_TABLE int nrt_perm[512] = {
     151, 160, 137, 91,  90,  15,  131, 13,  201, 95,  96,  53,  194, 233, 7,   225, 140, 36,  103,
     30,  69,  142, 8,   99,  37,  240, 21,  10,  23,  190, 6,   148, 247, 120, 234, 75,  0,   26,
     197, 62,  94,  252, 219, 203, 117, 35,  11,  32,  57,  177, 33,  88,  237, 149, 56,  87,  174,

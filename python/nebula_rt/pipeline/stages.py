@@ -223,15 +223,16 @@ class Pipeline:
         key = key if key is not None else self.density_key(scene)
         return self._cached("density", key, lambda: scene_density(scene, self.backend_for(scene)))
 
-    def light(self, scene, progress=None, cancel=None,
-              density_key: Optional[str] = None) -> tuple[TransportResult, np.ndarray, np.ndarray]:
-        """Stage 2: transport and, for collision-filter, the smoothing. Returns (result, J, rel)."""
+    def light(self, scene, progress=None, cancel=None, density_key: Optional[str] = None,
+              _resources_checked: bool = False) -> tuple[TransportResult, np.ndarray, np.ndarray]:
+        """Stage 2: transport and, for collision-filter, the smoothing. Returns (result, J, rel).
+        (``_resources_checked``: :meth:`run` checked the scene's memory before the density.)"""
         dkey = density_key if density_key is not None else self.density_key(scene)
         return self._cached(
             "transport",
             self.transport_key(scene, dkey),
             lambda: compute_light(scene, self.density(scene, dkey), self.backend_for(scene), progress, cancel,
-                                  on_device=True, comm=self.comm),
+                                  on_device=True, comm=self.comm, resources_checked=_resources_checked),
         )
 
     def run(self, scene, progress: Optional[Callable[[int, int], None]] = None,
@@ -261,7 +262,7 @@ class Pipeline:
         if need_colour and scene.colour.opacity_scale == "auto" and not isinstance(rho, Octree):
             # summed on the device with the density's extremes (None: on the host when finishing)
             mean_density = self.backend_for(scene).density_mean(rho)
-        res, J, rel = self.light(scene, progress, cancel, dkey)
+        res, J, rel = self.light(scene, progress, cancel, dkey, _resources_checked=True)
         t2 = time.perf_counter()
         light = finish_light_field(scene, rho, res, J, rel, colour=need_colour, mean_density=mean_density)
         if need_colour:
@@ -288,18 +289,21 @@ def _memory(res: TransportResult, finish_bytes: int, finish_peak: int = 0) -> di
 
 
 def compute_light(scene, density: np.ndarray, backend: Backend, progress=None, cancel=None, on_device=False,
-                  comm=None):
+                  comm=None, resources_checked: bool = False):
     """Transport through ``density`` (and the collision filter if the scene asks for it).
 
     Returns (TransportResult, J, rel_error). Without ``on_device``: J and rel_error are NumPy
     float64 (n_bands, nx, ny, nz). With ``on_device``: the sums stay on the device
     (``result.device_sums``) and J, rel_error are None, except for the collision filter, whose
     smoothed J and error are CuPy arrays on CUDA, flat device arrays on OpenCL with pyvkfft
-    (VkFFT), else NumPy arrays filtered on the host.
+    (VkFFT), else NumPy arrays filtered on the host. ``resources_checked``: the caller checked
+    the scene's memory on this backend (:func:`nebula_rt.transport.resources.check`: 0.3-0.5
+    ms of the thesis headline's host time) and nothing has been allocated since.
     """
 
     t = scene.transport
-    resources.check(scene, backend)
+    if not resources_checked:
+        resources.check(scene, backend)
     if isinstance(density, Octree):  # J per leaf, estimated on the host (finish_tree_light_field)
         if t.estimator == "collision-filter":
             raise SceneError("transport.estimator", t.estimator,
