@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """The density kernel alone on a GPU (CUDA): the thesis's turbulence with its star's bump, the
-noise's tables in constant memory (as built) and in global memory (``NRT_TABLES_GLOBAL``),
-with the bits of both compared. A development aid for the headline's density stage.
+noise's tables in global memory (as built) and in constant memory (``NRT_TABLES_CONSTANT``,
+as before), with the bits of both compared. A development aid for the headline's density stage.
 
     python benchmarks/profile_density.py [--grids 128 256] [--repeats 20] [--out d.json]
 """
@@ -43,7 +43,7 @@ def main(argv=None) -> int:
            "device": be.device_name, "command": " ".join(sys.argv), "runs": []}
     for n in args.grids:
         arrays = {}
-        for label, defines in (("constant tables", None), ("global tables", {"NRT_TABLES_GLOBAL": 1})):
+        for label, defines in (("constant tables", {"NRT_TABLES_CONSTANT": 1}), ("global tables", None)):
             d = be.device_zeros(n**3, np.float32)
             kernel_args = (d, np.int32(n), np.int32(n), np.int32(n), np.int32(MODEL_TURBULENCE),
                            np.float32(dust.offset[0]), np.float32(dust.offset[1]), np.float32(dust.offset[2]),

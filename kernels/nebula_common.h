@@ -372,14 +372,16 @@ NRT_DEVICE nrt_u64 nrt_fixed_stochastic(float wgt, float scale, nrt_u64 seed, nr
 /* ------------------------------------------------------------------------------------------ */
 /* Simplex noise (Gustavson 2005, "Simplex noise demystified"), turbulence, cubic bump         */
 /* ------------------------------------------------------------------------------------------ */
-/* The noise's tables: in CUDA's constant memory by default (NRT_TABLES_GLOBAL 1: global memory
-   through the caches). Constant memory serves one address per warp at a time, and the
-   permutation is read at data-dependent places. OpenCL C 1.2 allows program-scope arrays only
-   in __constant. */
-#if defined(NRT_TABLES_GLOBAL) && NRT_TABLES_GLOBAL && !defined(__OPENCL_VERSION__)
-#define NRT_TABLE __device__ const
-#else
+/* The noise's tables: on CUDA in global memory, read through the caches. Constant memory
+   serves one address per warp at a time, and the permutation is read at data-dependent
+   places: the thesis's density at 128^3 took 0.80 ms from constant memory and 0.18 ms from
+   global memory on an H100, the same bits (benchmarks/profile_density.py;
+   NRT_TABLES_CONSTANT 1 puts them back). OpenCL C 1.2 allows program-scope arrays only in
+   __constant. */
+#if defined(__OPENCL_VERSION__) || (defined(NRT_TABLES_CONSTANT) && NRT_TABLES_CONSTANT)
 #define NRT_TABLE NRT_CONSTANT
+#else
+#define NRT_TABLE __device__ const
 #endif
 NRT_TABLE int nrt_grad3[12][3] = {{1, 1, 0}, {-1, 1, 0}, {1, -1, 0}, {-1, -1, 0},
                                      {1, 0, 1}, {-1, 0, 1}, {1, 0, -1}, {-1, 0, -1},

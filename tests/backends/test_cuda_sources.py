@@ -30,7 +30,7 @@ TRANSPORT_VARIANTS = [
     ("transport.cl", ["-DNRT_TRACK_LENGTH=1", "-DNRT_PEEL=1"]),
     *[("transport.cl", d) for d in TRANSPORT_VARIANTS],
     ("density.cl", []),
-    ("density.cl", ["-DNRT_TABLES_GLOBAL=1"]),
+    ("density.cl", ["-DNRT_TABLES_CONSTANT=1"]),
     ("sampling.cl", []),
     ("postprocess.cl", []),
 ])
