@@ -9,7 +9,6 @@ as before), with the bits of both compared. A development aid for the headline's
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 import time
@@ -19,7 +18,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).parent))
-from provenance import provenance  # noqa: E402  (benchmarks/provenance.py)
+from provenance import provenance, save
 
 
 def main(argv=None) -> int:
@@ -29,7 +28,6 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="")
     args = ap.parse_args(argv)
     import cupy as cp
-
     from nebula_rt.backends import get_backend
     from nebula_rt.backends.base import MODEL_TURBULENCE
     from nebula_rt.density.bumps import BUMP_SUBSAMPLES, stars_array
@@ -64,9 +62,7 @@ def main(argv=None) -> int:
         same = np.array_equal(arrays["constant tables"].view(np.uint32), arrays["global tables"].view(np.uint32))
         print(f"{n}^3 same bits: {same}")
         out["runs"][-1]["same_bits"] = bool(same)
-    if args.out:
-        with open(args.out, "w") as fh:
-            json.dump(out, fh, indent=1)
+    save(out, args.out)
     return 0
 
 

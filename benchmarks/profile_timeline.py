@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import functools
-import json
 import sys
 import time
 from collections import defaultdict
@@ -29,7 +28,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).parent))
-from provenance import provenance  # noqa: E402  (benchmarks/provenance.py)
+from provenance import provenance, save  # noqa: E402  (benchmarks/provenance.py)
 
 #: the backend's calls that reach the device (nebula_rt.backends.base.Backend)
 CALLS = ("generate_density", "transport_session", "to_device", "device_zeros", "host_empty", "to_host",
@@ -216,9 +215,7 @@ def main(argv=None) -> int:
             print("-- the library's steps (ms from the start: entry, time in the step, nested ones included)")
             for name, a, b in run["spans"]:
                 print(f"   {a:8.3f} {b - a:8.3f}  [{name}]")
-    if args.out:
-        with open(args.out, "w") as fh:
-            json.dump(out, fh, indent=1)
+    save(out, args.out)
     return 0
 
 

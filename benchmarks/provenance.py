@@ -61,6 +61,15 @@ def provenance(root: Path = ROOT) -> dict:
     return {"commit": commit(root), "sources_sha256": sources_sha256(root)}
 
 
+def save(result: dict, path) -> None:
+    """Write a benchmark's result as indented JSON to ``path`` (nothing for an empty path)."""
+    if path:
+        import json
+
+        with open(path, "w") as fh:
+            json.dump(result, fh, indent=1)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rev", default=None, help="a commit: the digest of its sources instead of the checkout's")
