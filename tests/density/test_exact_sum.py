@@ -8,7 +8,6 @@ from fractions import Fraction
 
 import numpy as np
 import pytest
-
 from nebula_rt import exact_sum
 from nebula_rt.scene import Scene
 
