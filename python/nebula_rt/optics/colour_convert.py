@@ -30,7 +30,6 @@ import functools
 import math
 from typing import Union
 
-import colour
 import numpy as np
 
 from ..array_api import array_module
@@ -61,8 +60,29 @@ SRGB_LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
 _CMFS_NAME = "CIE 1931 2 Degree Standard Observer"
 
-#: CIE XYZ -> linear sRGB (Rec. 709 primaries, D65 white), from colour-science.
-XYZ_TO_LINEAR_SRGB = np.asarray(colour.RGB_COLOURSPACES["sRGB"].matrix_XYZ_to_RGB, dtype=np.float64)
+def _colour():
+    """colour-science, imported where first needed: ``import colour`` also imports its plotting
+    and with it matplotlib (1.5-2.7 s on 2 cores), which every process importing NebulaRT paid
+    before it did anything (ParaView's start with the plugin, each command line run, a
+    transport without a colour stage)."""
+    import colour
+
+    return colour
+
+
+@functools.lru_cache(maxsize=None)
+def xyz_to_srgb_matrix() -> np.ndarray:
+    """CIE XYZ -> linear sRGB (Rec. 709 primaries, D65 white), from colour-science (read-only)."""
+    m = np.asarray(_colour().RGB_COLOURSPACES["sRGB"].matrix_XYZ_to_RGB, dtype=np.float64).copy()
+    m.flags.writeable = False
+    return m
+
+
+def __getattr__(name: str):
+    # XYZ_TO_LINEAR_SRGB, the module constant it was, made when first asked for
+    if name == "XYZ_TO_LINEAR_SRGB":
+        return xyz_to_srgb_matrix()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def _wavelength_grid(lo: int, hi: int) -> np.ndarray:
@@ -80,6 +100,7 @@ def _cmfs_1nm() -> tuple[np.ndarray, np.ndarray]:
     cmf : ndarray, shape (471, 3)
         xbar, ybar, zbar (dimensionless).
     """
+    colour = _colour()
     shape = colour.SpectralShape(CMF_RANGE_NM[0], CMF_RANGE_NM[1], 1)
     cmfs = colour.MSDS_CMFS[_CMFS_NAME].copy().align(shape)
     return np.asarray(cmfs.wavelengths, dtype=np.float64), np.asarray(cmfs.values, dtype=np.float64)
@@ -325,7 +346,7 @@ def xyz_to_linear_srgb(xyz) -> np.ndarray:
     xyz = xp.asarray(xyz, dtype=xp.float64)
     # Same result as colour.XYZ_to_RGB(..., chromatic_adaptation_transform=None,
     # apply_cctf_encoding=False) but a plain matmul, which is faster for 1e6 voxels.
-    return xyz @ xp.asarray(XYZ_TO_LINEAR_SRGB).T
+    return xyz @ xp.asarray(xyz_to_srgb_matrix()).T
 
 
 def gamut_map(rgb) -> np.ndarray:
@@ -574,7 +595,7 @@ def bands_to_srgb8(
     # Fold the per-band division by the star and XYZ -> RGB into one (3, nb)
     # matrix so the per-voxel work is a single small matrix product.
     m_xyz = band_to_xyz_matrix(bands, temperature) / star[None, :]
-    m_rgb = np.asarray(colour.RGB_COLOURSPACES["sRGB"].matrix_XYZ_to_RGB, dtype=np.float64) @ m_xyz
+    m_rgb = xyz_to_srgb_matrix() @ m_xyz
     spatial = values.shape[1:]
     flat = values.reshape(nb, -1)  # (nb, N), a view when contiguous
     rgb = (m_rgb @ flat).T.reshape(spatial + (3,))

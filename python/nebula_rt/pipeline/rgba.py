@@ -151,7 +151,7 @@ def colour_matrix(wavelengths_nm, band_luminosity, temperature: Optional[float],
                          "must be finite and > 0 in every band: a band without starlight has no "
                          "colour (the stars' spectra must emit in every band)")
     m = colour_convert.band_to_xyz_matrix(np.asarray(wavelengths_nm, np.float64), temperature)
-    to_rgb = colour_convert.XYZ_TO_LINEAR_SRGB @ m / lum[None, :]
+    to_rgb = colour_convert.xyz_to_srgb_matrix() @ m / lum[None, :]
     if white_point != "D65":
         if white_point == "star":
             white = colour_convert.xyz_to_linear_srgb(m @ np.ones(len(wavelengths_nm)))
