@@ -382,3 +382,18 @@ def test_the_tests_mirror_the_domains():
     assert {f"tests/{d}" for d in folders} <= set(path)
     assert sorted(p.name for p in tests.glob("test_*.py")) == [
         "test_dependencies.py", "test_layering.py", "test_mpi.py", "test_public_api.py"]
+
+
+def test_importing_the_library_leaves_colour_science_for_the_first_colour():
+    """``import colour`` imports its plotting and matplotlib (1.5-2.7 s on 2 cores): the
+    library, its command line and the VTK layer ParaView's plugin imports at start-up leave
+    it until a colour is converted, which then imports it."""
+    code = ("import sys\n"
+            "import nebula_rt, nebula_rt.pipeline, nebula_rt.cli.commands, nebula_rt.observe, nebula_rt.filters\n"
+            "print(sorted(m for m in ('colour', 'matplotlib') if m in sys.modules))\n"
+            "from nebula_rt.optics import colour_convert\n"
+            "colour_convert.XYZ_TO_LINEAR_SRGB\n"
+            "print('colour' in sys.modules)\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split() == ["[]", "True"], r.stdout
