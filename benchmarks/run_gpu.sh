@@ -309,8 +309,11 @@ if [[ " $steps " == *" stages-former "* ]]; then
     done
 fi
 if [[ " $steps " == *" density "* ]]; then
-    # the density kernel alone, the noise's tables in constant and in global memory
+    # the density kernel alone, the noise's tables in constant memory and where each backend
+    # reads them now (CUDA: global memory; OpenCL: each group's local copy)
     echo "== density kernel, thesis turbulence, CUDA"; python3 benchmarks/profile_density.py --out "$out/density-cuda.json"
+    echo "== density kernel, thesis turbulence, NVIDIA OpenCL"
+    python3 benchmarks/profile_density.py --backend opencl --device NVIDIA --out "$out/density-opencl.json"
 fi
 if [[ " $steps " == *" timeline-former "* ]]; then
     # the headline's calls as issued, as built and with .former/ (see stages-former), in turn

@@ -47,7 +47,7 @@ NRT_DEVICE float nrt_bump_average(int i, int j, int k, float hx, float hy, float
 /* The base density (no bumps, no floor) at the centre of cell (i, j, k) of an n x n x n grid
  * ((i + 0.5) h + offset, h = 1 / n): generate_density's voxels and density_cells' octree cells
  * share it, so a tree's finest cells have the uniform grid's bits. */
-NRT_DEVICE float nrt_base_density(int i, int j, int k, float hx, float hy, float hz, int model,
+NRT_DEVICE float nrt_base_density(NRT_NOISE_PARAM int i, int j, int k, float hx, float hy, float hz, int model,
                                   float ox, float oy, float oz, float scale, float uniform_density)
 {
     if (model != NRT_MODEL_TURBULENCE)
@@ -55,7 +55,7 @@ NRT_DEVICE float nrt_base_density(int i, int j, int k, float hx, float hy, float
     float x = ((float)i + 0.5f) * hx + ox;
     float y = ((float)j + 0.5f) * hy + oy;
     float z = ((float)k + 0.5f) * hz + oz;
-    return scale * fmax(0.0f, nrt_turbulence(x, y, z));
+    return scale * fmax(0.0f, nrt_turbulence(NRT_NOISE_ARG x, y, z));
 }
 
 NRT_KERNEL void generate_density(NRT_GLOBAL float *out, int nx, int ny, int nz, int model,
@@ -64,6 +64,7 @@ NRT_KERNEL void generate_density(NRT_GLOBAL float *out, int nx, int ny, int nz, 
                                  const NRT_GLOBAL float *stars, /* x, y, z, bump radius */
                                  int n_stars, int subsamples)
 {
+    NRT_NOISE_TABLES();
     nrt_u64 gid = NRT_GLOBAL_ID();
     nrt_u64 n = (nrt_u64)nx * (nrt_u64)ny * (nrt_u64)nz;
     if (gid >= n)
@@ -72,7 +73,7 @@ NRT_KERNEL void generate_density(NRT_GLOBAL float *out, int nx, int ny, int nz, 
     int j = (int)((gid / (nrt_u64)nx) % (nrt_u64)ny);
     int k = (int)(gid / ((nrt_u64)nx * (nrt_u64)ny));
     float hx = 1.0f / (float)nx, hy = 1.0f / (float)ny, hz = 1.0f / (float)nz;
-    float base = nrt_base_density(i, j, k, hx, hy, hz, model, ox, oy, oz, scale, uniform_density);
+    float base = nrt_base_density(NRT_NOISE_ARG i, j, k, hx, hy, hz, model, ox, oy, oz, scale, uniform_density);
     float bump = 0.0f;
     for (int s = 0; s < n_stars; ++s) {
         bump += nrt_bump_average(i, j, k, hx, hy, hz, stars[4 * s], stars[4 * s + 1],
@@ -87,11 +88,12 @@ NRT_KERNEL void density_cells(const NRT_GLOBAL int *ijk, nrt_u64 n_cells, int n,
                               float ox, float oy, float oz, float scale, float uniform_density,
                               NRT_GLOBAL float *out)
 {
+    NRT_NOISE_TABLES();
     nrt_u64 gid = NRT_GLOBAL_ID();
     if (gid >= n_cells)
         return;
     float h = 1.0f / (float)n;
-    out[gid] = nrt_base_density(ijk[3 * gid], ijk[3 * gid + 1], ijk[3 * gid + 2], h, h, h, model,
+    out[gid] = nrt_base_density(NRT_NOISE_ARG ijk[3 * gid], ijk[3 * gid + 1], ijk[3 * gid + 2], h, h, h, model,
                                 ox, oy, oz, scale, uniform_density);
 }
 
@@ -99,12 +101,13 @@ NRT_KERNEL void density_cells(const NRT_GLOBAL int *ijk, nrt_u64 n_cells, int n,
 NRT_KERNEL void sample_noise(const NRT_GLOBAL float *xyz, NRT_GLOBAL float *noise,
                              NRT_GLOBAL float *turb, int n)
 {
+    NRT_NOISE_TABLES();
     nrt_u64 gid = NRT_GLOBAL_ID();
     if (gid >= (nrt_u64)n)
         return;
     float x = xyz[3 * gid], y = xyz[3 * gid + 1], z = xyz[3 * gid + 2];
-    noise[gid] = nrt_simplex3(x, y, z);
-    turb[gid] = nrt_turbulence(x, y, z);
+    noise[gid] = nrt_simplex3(NRT_NOISE_ARG x, y, z);
+    turb[gid] = nrt_turbulence(NRT_NOISE_ARG x, y, z);
 }
 
 /*

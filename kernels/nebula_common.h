@@ -372,16 +372,38 @@ NRT_DEVICE nrt_u64 nrt_fixed_stochastic(float wgt, float scale, nrt_u64 seed, nr
 /* ------------------------------------------------------------------------------------------ */
 /* Simplex noise (Gustavson 2005, "Simplex noise demystified"), turbulence, cubic bump         */
 /* ------------------------------------------------------------------------------------------ */
-/* The noise's tables: on CUDA in global memory, read through the caches. Constant memory
-   serves one address per warp at a time, and the permutation is read at data-dependent
-   places: the thesis's density at 128^3 took 0.80 ms from constant memory and 0.18 ms from
-   global memory on an H100, the same bits (benchmarks/profile_density.py;
-   NRT_TABLES_CONSTANT 1 puts them back). OpenCL C 1.2 allows program-scope arrays only in
-   __constant. */
+/* The noise's tables. Constant memory serves one address per warp at a time, and the
+   permutation is read at data-dependent places: on an H100 the thesis's density at 128^3 took
+   0.80 ms with the tables there and 0.18 ms from global memory, the same bits
+   (benchmarks/profile_density.py). So CUDA reads them from global memory through the caches
+   (NRT_TABLES_CONSTANT 1 puts them back). OpenCL C 1.2 allows program-scope arrays only in
+   __constant: there each work group copies them into its local memory first
+   (NRT_NOISE_TABLES, at the top of a kernel, before any item returns) and the noise reads
+   them through the pointer NRT_NOISE_ARG passes on (NRT_NOISE_LOCAL 0: from __constant, as
+   before). */
 #if defined(__OPENCL_VERSION__) || (defined(NRT_TABLES_CONSTANT) && NRT_TABLES_CONSTANT)
 #define NRT_TABLE NRT_CONSTANT
 #else
 #define NRT_TABLE __device__ const
+#endif
+#if defined(__OPENCL_VERSION__) && !(defined(NRT_NOISE_LOCAL) && !NRT_NOISE_LOCAL)
+#define NRT_NOISE_WORDS (512 + 36) /* the permutation, then the 12 gradients' 3 components */
+#define NRT_NOISE_PARAM __local const int *noise_tables,
+#define NRT_NOISE_ARG noise_tables,
+#define NRT_PERM(i) noise_tables[i]
+#define NRT_GRAD(g, c) noise_tables[512 + 3 * (g) + (c)]
+#define NRT_NOISE_TABLES()                                                                 \
+    __local int noise_tables_l[NRT_NOISE_WORDS];                                           \
+    for (nrt_u64 t_ = NRT_LOCAL_ID(); t_ < NRT_NOISE_WORDS; t_ += NRT_LOCAL_SIZE())        \
+        noise_tables_l[t_] = t_ < 512 ? nrt_perm[t_] : nrt_grad3[(t_ - 512) / 3][(t_ - 512) % 3]; \
+    NRT_BARRIER();                                                                         \
+    __local const int *noise_tables = noise_tables_l
+#else
+#define NRT_NOISE_PARAM
+#define NRT_NOISE_ARG
+#define NRT_PERM(i) nrt_perm[i]
+#define NRT_GRAD(g, c) nrt_grad3[g][c]
+#define NRT_NOISE_TABLES() ((void)0)
 #endif
 NRT_TABLE int nrt_grad3[12][3] = {{1, 1, 0}, {-1, 1, 0}, {1, -1, 0}, {-1, -1, 0},
                                      {1, 0, 1}, {-1, 0, 1}, {1, 0, -1}, {-1, 0, -1},
@@ -418,17 +440,17 @@ NRT_TABLE int nrt_perm[512] = {
     115, 121, 50,  45,  127, 4,   150, 254, 138, 236, 205, 93,  222, 114, 67,  29,  24,  72,  243,
     141, 128, 195, 78,  66,  215, 61,  156, 180};
 
-NRT_DEVICE float nrt_simplex_corner(int gi, float x, float y, float z)
+NRT_DEVICE float nrt_simplex_corner(NRT_NOISE_PARAM int gi, float x, float y, float z)
 {
     float t = 0.6f - x * x - y * y - z * z;
     if (t < 0.0f)
         return 0.0f;
     t *= t;
-    return t * t * (nrt_grad3[gi][0] * x + nrt_grad3[gi][1] * y + nrt_grad3[gi][2] * z);
+    return t * t * (NRT_GRAD(gi, 0) * x + NRT_GRAD(gi, 1) * y + NRT_GRAD(gi, 2) * z);
 }
 
 /* 3D simplex noise in [-1, 1]. */
-NRT_DEVICE float nrt_simplex3(float xin, float yin, float zin)
+NRT_DEVICE float nrt_simplex3(NRT_NOISE_PARAM float xin, float yin, float zin)
 {
     const float F3 = 1.0f / 3.0f;
     const float G3 = 1.0f / 6.0f;
@@ -463,12 +485,14 @@ NRT_DEVICE float nrt_simplex3(float xin, float yin, float zin)
           z2 = z0 - (float)k2 + 2.0f * G3;
     float x3 = x0 - 1.0f + 3.0f * G3, y3 = y0 - 1.0f + 3.0f * G3, z3 = z0 - 1.0f + 3.0f * G3;
     int ii = i & 255, jj = j & 255, kk = k & 255;
-    int gi0 = nrt_perm[ii + nrt_perm[jj + nrt_perm[kk]]] % 12;
-    int gi1 = nrt_perm[ii + i1 + nrt_perm[jj + j1 + nrt_perm[kk + k1]]] % 12;
-    int gi2 = nrt_perm[ii + i2 + nrt_perm[jj + j2 + nrt_perm[kk + k2]]] % 12;
-    int gi3 = nrt_perm[ii + 1 + nrt_perm[jj + 1 + nrt_perm[kk + 1]]] % 12;
-    return 32.0f * (nrt_simplex_corner(gi0, x0, y0, z0) + nrt_simplex_corner(gi1, x1, y1, z1) +
-                    nrt_simplex_corner(gi2, x2, y2, z2) + nrt_simplex_corner(gi3, x3, y3, z3));
+    int gi0 = NRT_PERM(ii + NRT_PERM(jj + NRT_PERM(kk))) % 12;
+    int gi1 = NRT_PERM(ii + i1 + NRT_PERM(jj + j1 + NRT_PERM(kk + k1))) % 12;
+    int gi2 = NRT_PERM(ii + i2 + NRT_PERM(jj + j2 + NRT_PERM(kk + k2))) % 12;
+    int gi3 = NRT_PERM(ii + 1 + NRT_PERM(jj + 1 + NRT_PERM(kk + 1))) % 12;
+    return 32.0f * (nrt_simplex_corner(NRT_NOISE_ARG gi0, x0, y0, z0) +
+                    nrt_simplex_corner(NRT_NOISE_ARG gi1, x1, y1, z1) +
+                    nrt_simplex_corner(NRT_NOISE_ARG gi2, x2, y2, z2) +
+                    nrt_simplex_corner(NRT_NOISE_ARG gi3, x3, y3, z3));
 }
 
 /*
@@ -484,14 +508,14 @@ NRT_CONSTANT float nrt_turb_exponents[NRT_TURB_OCTAVES] = {0.05f, 2.0f, 4.0f, 6.
 #define NRT_OCTAVE_SHIFT_Y 27.1828183f
 #define NRT_OCTAVE_SHIFT_Z 14.1421356f
 
-NRT_DEVICE float nrt_turbulence(float x, float y, float z)
+NRT_DEVICE float nrt_turbulence(NRT_NOISE_PARAM float x, float y, float z)
 {
     float sum = 0.0f;
     for (int o = 0; o < NRT_TURB_OCTAVES; ++o) {
         /* exp2 of the exponent, exact for the integral ones */
         float f = exp2(nrt_turb_exponents[o]);
         float so = (float)o;
-        sum += nrt_simplex3(f * x + so * NRT_OCTAVE_SHIFT_X, f * y + so * NRT_OCTAVE_SHIFT_Y,
+        sum += nrt_simplex3(NRT_NOISE_ARG f * x + so * NRT_OCTAVE_SHIFT_X, f * y + so * NRT_OCTAVE_SHIFT_Y,
                             f * z + so * NRT_OCTAVE_SHIFT_Z) / f;
     }
     return sum;
