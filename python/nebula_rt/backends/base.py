@@ -247,11 +247,16 @@ class Backend(abc.ABC):
         first ``n`` values of a float32 device array, summed on the device
         (``kernels/density.cl``: ``significand_sums``)."""
         out = self.device_zeros(exact_sum.SIGNIFICAND_BINS, np.uint64)
-        self.launch("density.cl", "significand_sums", max(1, -(-int(n) // exact_sum.SIGNIFICAND_RUN)), dev,
-                    np.uint64(n), out)
+        self._sum_significands(dev, n, out)
         bins = np.empty(exact_sum.SIGNIFICAND_BINS, np.uint64)
         self.to_host(out, bins)
         return bins
+
+    def _sum_significands(self, dev, n: int, out) -> None:
+        """Add the significand sums of the first ``n`` values of ``dev`` into ``out[:512]``
+        (zeroed by the caller), queued."""
+        self.launch("density.cl", "significand_sums", max(1, -(-int(n) // exact_sum.SIGNIFICAND_RUN)), dev,
+                    np.uint64(n), out)
 
     # --- device arrays, for the post-processing on the device -------------------------------
     # Device arrays are CuPy arrays (CUDA) or pyopencl.array.Array (OpenCL), always flat.

@@ -224,8 +224,7 @@ class CUDABackend(Backend):
         cp = self.cp
         nb = exact_sum.SIGNIFICAND_BINS
         out = cp.zeros(nb + 2, cp.uint64)
-        self.launch("density.cl", "significand_sums", max(1, -(-int(n) // exact_sum.SIGNIFICAND_RUN)), dev,
-                    np.uint64(n), out)
+        self._sum_significands(dev, n, out)
         out[nb:] = cp.stack([cp.min(dev[:n]), cp.max(dev[:n])]).view(cp.uint32).astype(cp.uint64)
         host = out.get()
         low, high = host[nb:].astype(np.uint32).view(np.float32)

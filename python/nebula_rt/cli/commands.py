@@ -215,14 +215,14 @@ def _render(args, cancel) -> int:
             if args.png:
                 import numpy as np
 
-                from ..pipeline.rgba import colour_rgba
+                from ..pipeline.rgba import colour_rgba, scene_opacity_factor
                 from ..filters.render import render_rgba_png
 
                 rgba = light.rgba
                 if rgba is None:  # one band: no colour stage ran; the PNG asks for one (star's colour)
                     rho = light.density.astype(np.float64)
                     rgba, _ = colour_rgba(scene, light.bands, rho, light.emissivity.astype(np.float64),
-                                          light.transport)
+                                          light.transport, scene_opacity_factor(scene, light.bands, light.density))
                 render_rgba_png(pub.stage(args.png), rgba, light.spacing, light.origin)
                 cancel.check("run")
             pub.publish()  # both outputs or neither

@@ -116,9 +116,12 @@ def scene_opacity_factor(scene, bands, rho, mean_density=None) -> float:
     return opacity_factor(scene.colour.opacity_scale, mean_tau)
 
 
-def colour_rgba(scene, bands, rho, emissivity, res: TransportResult) -> tuple[np.ndarray, float]:
-    """Stage 3 for a scene: see :func:`rgba_from_emissivity` (the opacity factor is
-    :func:`scene_opacity_factor`'s). Returns (rgba, exposure used)."""
+def colour_rgba(scene, bands, rho, emissivity, res: TransportResult,
+                opacity_scale: Optional[float] = None) -> tuple[np.ndarray, float]:
+    """Stage 3 for a scene: see :func:`rgba_from_emissivity`. ``opacity_scale``: the factor
+    already found (:func:`scene_opacity_factor` of the float32 density, whose mean the output's
+    readers find again), else :func:`scene_opacity_factor` of ``rho``. Returns (rgba, exposure
+    used)."""
     ref = reference_band_index(bands)
     cfg = scene.colour
     sigma_ref_scale = scene.dust.tau * bands[ref].extinction
@@ -130,7 +133,7 @@ def colour_rgba(scene, bands, rho, emissivity, res: TransportResult) -> tuple[np
         temperature=_dominant_source(scene.stars),
         exposure=cfg.exposure,
         white_point=cfg.white_point,
-        opacity_scale=scene_opacity_factor(scene, bands, rho),
+        opacity_scale=scene_opacity_factor(scene, bands, rho) if opacity_scale is None else opacity_scale,
         stretch=cfg.stretch,
         asinh_q=cfg.asinh_q,
     )

@@ -356,9 +356,9 @@ def finish_light_field(scene, rho, res: TransportResult, J=None, rel=None, colou
     ds = res.device_sums
     if ds is None:
         light, emissivity, rho_x = assemble_light_field(scene, rho, res, J, rel, with_device_emissivity=True)
-        if colour:
-            light.rgba, light.exposure = colour_rgba(scene, bands, rho_x, emissivity, res)
-            light.opacity_scale = scene_opacity_factor(scene, bands, rho, mean_density)  # (the float32 density's)
+        if colour:  # (the opacity from the float32 density)
+            light.opacity_scale = scene_opacity_factor(scene, bands, rho, mean_density)
+            light.rgba, light.exposure = colour_rgba(scene, bands, rho_x, emissivity, res, light.opacity_scale)
         light.memory = _memory(res, 0)
         return light
     params = np.stack([res.j_scale, res.sigma_scale, [b.albedo for b in bands]], axis=1)
@@ -406,9 +406,9 @@ def finish_light_field(scene, rho, res: TransportResult, J=None, rel=None, colou
     )
     light.memory = _memory(res, out.device_bytes, out.peak_device_bytes)
     if host_colour:
-        rho_h = np.asarray(rho, np.float64)
-        light.rgba, light.exposure = colour_rgba(scene, bands, rho_h, light.emissivity.astype(np.float64), res)
         light.opacity_scale = scene_opacity_factor(scene, bands, rho, mean_density)  # (the float32 density's)
+        light.rgba, light.exposure = colour_rgba(scene, bands, np.asarray(rho, np.float64),
+                                                 light.emissivity.astype(np.float64), res, light.opacity_scale)
     return light
 
 
@@ -458,9 +458,9 @@ def finish_tree_light_field(scene, tree: Octree, res: TransportResult, colour: b
         exposure=float("nan"),
         reference_band=reference_band_index(bands),
     )
-    if colour:
-        light.rgba, light.exposure = colour_rgba(scene, bands, rho_x, emissivity, res)
-        light.opacity_scale = scene_opacity_factor(scene, bands, rho_x)
+    if colour:  # (the opacity from the output's float32 density, as Nebula Colour finds it)
+        light.opacity_scale = scene_opacity_factor(scene, bands, light.density)
+        light.rgba, light.exposure = colour_rgba(scene, bands, rho_x, emissivity, res, light.opacity_scale)
     light.memory = _memory(res, 0)
     return light
 
