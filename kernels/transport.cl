@@ -2232,14 +2232,16 @@ NRT_KERNEL void scan_bins(NRT_GLOBAL nrt_u32 *bins, int n_bins)
  * lose the variance to cancellation once the batch totals agree to 8 digits). The slots hold
  * cells 0..n-1 of this launch's bands, which are cells cell0 .. cell0 + n - 1 of the sums;
  * the k0 batches folded before are in the sums. A slot whose overflow flag is set is cleared
- * without folding (the host re-traces that batch in halves). Each cell is folded by one work
+ * without folding (the host re-traces that batch in halves). clear 0: the slots are not traced
+ * into again (the run's last fold), so only an overflowed slot is cleared (writing the zeros
+ * back was about a third of the fold's memory traffic). Each cell is folded by one work
  * item in a fixed order, so the sums are deterministic. With NRT_ACC_RED the deposits were not
  * checked as they were added: a cell at or past the headroom limit raises *seen (the host then
  * re-runs with checked adds).
  */
 NRT_KERNEL void fold_batches(NRT_GLOBAL nrt_u64 *acc, NRT_GLOBAL double *sum1, NRT_GLOBAL float *m2,
                              const NRT_GLOBAL nrt_u32 *overflow, int n_slots, nrt_u64 n,
-                             nrt_u64 cell0, int k0, NRT_GLOBAL nrt_u32 *seen)
+                             nrt_u64 cell0, int k0, NRT_GLOBAL nrt_u32 *seen, int clear)
 {
     nrt_u64 gid = NRT_GLOBAL_ID();
     if (gid >= n)
@@ -2273,14 +2275,14 @@ NRT_KERNEL void fold_batches(NRT_GLOBAL nrt_u64 *acc, NRT_GLOBAL double *sum1, N
             }
             k += 1.0;
         }
-        if (a != 0) {
+        changed |= a != 0;
+        if (a != 0 && (clear || overflow[g])) {
 #if NRT_BIASED
             acc[2 * i] = 0;
             acc[2 * i + 1] = 0;
 #else
             acc[i] = 0;
 #endif
-            changed = 1;
         }
     }
     /* cells that no batch has reached yet are left untouched (no memory traffic) */

@@ -63,17 +63,38 @@ def test_launch_struct_reaches_the_kernel_by_value(backend):
         assert backend.to_host(d_out).tobytes() == sent.tobytes()
 
 
-def _fold(backend, slots: np.ndarray, s1=None, m2=None, k0: int = 0):
-    """Run the device fold on given slot contents (n_slots, n) -> (sum, centred squares)."""
+def _fold(backend, slots: np.ndarray, s1=None, m2=None, k0: int = 0, clear: bool = True, overflow=None):
+    """Run the device fold on given slot contents (n_slots, n) -> (sum, centred squares, the
+    slots after it)."""
     n_slots, n = slots.shape
     d_acc = backend.to_device(slots.astype(np.uint64).reshape(-1))
     d_s1 = backend.to_device(np.zeros(n) if s1 is None else s1)
     d_m2 = backend.to_device(np.zeros(n, np.float32) if m2 is None else m2)
-    d_over = backend.device_zeros(max(n_slots, 1), np.uint32)
+    d_over = backend.to_device(np.zeros(max(n_slots, 1), np.uint32) if overflow is None
+                               else np.asarray(overflow, np.uint32))
     d_seen = backend.device_zeros(1, np.uint32)
     backend.launch("transport.cl", "fold_batches", n, d_acc, d_s1, d_m2, d_over, np.int32(n_slots),
-                   np.uint64(n), np.uint64(0), np.int32(k0), d_seen, defines={"NRT_TRACK_LENGTH": 1})
-    return (backend.to_host(d_s1), backend.to_host(d_m2), backend.to_host(d_acc))
+                   np.uint64(n), np.uint64(0), np.int32(k0), d_seen, np.int32(clear),
+                   defines={"NRT_TRACK_LENGTH": 1})
+    return (backend.to_host(d_s1), backend.to_host(d_m2), backend.to_host(d_acc).reshape(n_slots, n))
+
+
+def test_the_last_fold_leaves_the_slots_but_clears_an_overflowed_one(backend):
+    """The run's last fold (clear 0) gives the statistics of a clearing fold, bit for bit,
+    leaves the slots as they were (nothing traces into them again), and still clears a slot
+    that overflowed (the host re-traces its batch in halves into a slot)."""
+    rng = np.random.default_rng(3)
+    slots = rng.integers(0, 2**40, size=(4, 300)).astype(np.uint64)
+    slots[:, :7] = 0  # cells no batch reached
+    over = [0, 1, 0, 0]
+    s1, m2, after = _fold(backend, slots, overflow=over)
+    s1_kept, m2_kept, kept = _fold(backend, slots, clear=False, overflow=over)
+    assert s1_kept.tobytes() == s1.tobytes() and m2_kept.tobytes() == m2.tobytes()
+    assert not after.any()
+    assert not kept[1].any()
+    assert kept[[0, 2, 3]].tobytes() == slots[[0, 2, 3]].tobytes()
+    # the overflowed batch is not folded: the sum is the other three batches'
+    assert s1[7] == float(sum(int(slots[g, 7]) for g in (0, 2, 3)))
 
 
 def test_fold_variance_survives_nearly_equal_batch_totals(backend):

@@ -520,7 +520,7 @@ class DeviceTransport(TransportSession):
         be.upload(self.d_overflow, flags.astype(np.uint32))
         return buf[cells + pix:cells + pix + nt].reshape(tallies.shape).copy(), flags
 
-    def fold(self, n_slots, bands=None, folded_before: int = 0, packets: int = 0):
+    def fold(self, n_slots, bands=None, folded_before: int = 0, packets: int = 0, clear: bool = True):
         if self.packet_sq:
             if n_slots != 1 or folded_before:
                 raise RuntimeError("the error estimate by packets folds its one batch once")
@@ -533,7 +533,7 @@ class DeviceTransport(TransportSession):
         self.backend.launch(self.backend.transport_program, "fold_batches", n,
                             self.d_acc, self.d_sum1, self.d_m2, self.d_overflow, np.int32(n_slots),
                             np.uint64(n), np.uint64(band0 * self.nvox), np.int32(folded_before),
-                            self.d_seen, defines=self.defines)
+                            self.d_seen, np.int32(bool(clear)), defines=self.defines)
 
     def _finish_packets(self, packets: int):
         """The run's one batch (the error estimate by packets) as the statistics the fold

@@ -245,9 +245,12 @@ def run_transport(plan: TransportPlan, backend: Backend, *, progress=None, cance
                 out.tail_hist[b0:b0 + nlb] += tallies[k][:, setup.tally_base:].reshape(nlb, setup.tail_hists, TAIL_BINS)
             band_done[b0:b0 + nlb] += b_count
 
-    def fold_group(group, n, tallies, overflow, ranges):
-        """Fold a group's first ``n`` slots on the device and its tallies on the host."""
-        session.fold(n, group, int(folded[group[0]]), packets=sum(c for _, c in ranges))
+    def fold_group(group, n, tallies, overflow, ranges, last=False):
+        """Fold a group's first ``n`` slots on the device and its tallies on the host
+        (``last``: no launch follows unless a slot overflowed, so the slots that did not stay
+        as they are)."""
+        session.fold(n, group, int(folded[group[0]]), packets=sum(c for _, c in ranges),
+                     clear=not (last and not redo and not np.any(overflow[:n])))
         images = session.take_images(n, group)[:len(ranges)] if plan.peel is not None else None
         take(tallies, overflow, images, ranges, group)
 
@@ -270,7 +273,8 @@ def run_transport(plan: TransportPlan, backend: Backend, *, progress=None, cance
                     fold_group(group, finished, tallies, overflow, batches[first:first + finished])
                     cut = batches.start(first + finished) - start
                     break
-                fold_group(group, n, tallies, overflow, batches[first:first + n])
+                fold_group(group, n, tallies, overflow, batches[first:first + n],
+                           last=first + n >= len(batches) and gi == len(groups) - 1)
             if cut is not None:
                 if cut == 0 and len(groups) > 1:
                     raise TimeLimitError(
