@@ -9,7 +9,7 @@
 # with `pip wheel`: no wheel on PyPI); pmcx and pmcxcl for the MCX comparison), fetched elsewhere
 # with `pip download --only-binary=:all: --python-version 3.12 --no-deps ...`.
 # STEPS (default "tests bench neb128 compare profile"; also "tests-cuda", "thick", "thick-grid", "trust", "scaling", "large", "regions", "regcaps", "profile-regions", "layout", "sorted", "probe", "ranks", "ranks-thesis", "ranks-weak", "tests-mpi", "e2e1e9", "biasing", "fit", "fitprof", "tune",
-# "stages", "timeline", "kernel-probes", "small-regions", "stages-former", "timeline-former", "density", "polarization", "polarization-ocl", "mcx", "mcx1024", "ncu-thesis", "ncu-source", "tree", "tree-targets", "tree-ascend", "trade", "presets", "empty", "fft", "pinte") selects what runs. Everything printed
+# "stages", "timeline", "headline", "kernel-probes", "small-regions", "stages-former", "timeline-former", "density", "polarization", "polarization-ocl", "mcx", "mcx1024", "ncu-thesis", "ncu-source", "tree", "tree-targets", "tree-ascend", "trade", "presets", "empty", "fft", "pinte") selects what runs. Everything printed
 # goes to OUTDIR/log.txt as well; JSON and .npz results beside it.
 set -uo pipefail
 out="${1:?output folder}"
@@ -314,6 +314,18 @@ if [[ " $steps " == *" density "* ]]; then
     echo "== density kernel, thesis turbulence, CUDA"; python3 benchmarks/profile_density.py --out "$out/density-cuda.json"
     echo "== density kernel, thesis turbulence, NVIDIA OpenCL"
     python3 benchmarks/profile_density.py --backend opencl --device NVIDIA --out "$out/density-opencl.json"
+fi
+if [[ " $steps " == *" headline "* ]]; then
+    # the thesis headline end to end, repeated: as built with the light made while the
+    # transport folds and after it (interleaved in one process), and the former commit's
+    # python/ and kernels (.former/, see stages-former), each twice in turn
+    for i in 1 2; do
+        for v in "" former; do
+            echo "== headline end to end, thesis 128^3, CUDA, ${v:-as built}"
+            PYTHONPATH=${v:+.former/python:}$PYTHONPATH python3 benchmarks/bench_headline.py --backend cuda \
+                --label "${v:-as built}" ${v:+--modes while} --out "$out/headline-${v:-built}-$i.json" 2>&1 | grep -v Warning
+        done
+    done
 fi
 if [[ " $steps " == *" timeline-former "* ]]; then
     # the headline's calls as issued, as built and with .former/ (see stages-former), in turn

@@ -4,10 +4,12 @@
  * Only the final arrays travel to the host, and the sums' memory is reused as the outputs
  * appear (peak: the sums and J, then the outputs):
  *
- *   light_cells:            J and its relative error (float32, band-major, x fastest), the
- *       error written over the centred sums of squares it comes from;
- *   finish_voxels, pass 0:  the emissivity, the opacity byte of rgba, and a brightness key
- *       per voxel for the exposure;
+ *   light_cells:            J, its relative error and the emissivity (float32, band-major,
+ *       x fastest), the error written over the centred sums of squares it comes from; by
+ *       bands, so that a band's arrays travel to the host while the next band is folded
+ *       (emissivity_cells: the emissivity after the sums are freed, on large grids);
+ *   finish_voxels, pass 0:  the opacity byte of rgba and a brightness key per voxel for the
+ *       exposure;
  *   key_histogram, select_rank_bins, key_histogram_low, select_level: the exposure
  *       percentile, exactly, by a radix select on the device (two passes of 2^16 bins), the
  *       exposure left in device memory for pass 1: no round trip to the host;
@@ -55,9 +57,18 @@ NRT_DEVICE nrt_u8 nrt_srgb8(double x)
     return (nrt_u8)v;
 }
 
+/* The emissivity of band k's cell: albedo x sigma x the float32 J (the output's own
+   precision, which the float64 sums do not improve). */
+NRT_DEVICE float nrt_emissivity(const NRT_GLOBAL double *band_params, int k, double rho, float j32)
+{
+    return (float)(band_params[4 * k + 2] * (band_params[4 * k + 1] * rho) * (double)j32);
+}
+
 /*
- * light_cells: J and its relative error per cell (n = n_bands * nvox) as float32, the first
- * pass of the finishing. band_params: per band 4 doubles: J scale (J = sum x scale, or for
+ * light_cells: J, its relative error and (with_emis) the emissivity per cell i0 .. n - 1
+ * (cells: n_bands * nvox, band-major; a range of whole bands, so that one band can be
+ * finished while the next is folded) as float32, the first pass of the finishing.
+ * band_params: per band 4 doubles: J scale (J = sum x scale, or for
  * the collision estimator J = sum / sigma x scale), extinction per box unit at density 1
  * (tau k_b), albedo, batches folded.
  * mode 0: from the sum s1 of the batch totals and their centred sum of squares m2 (float32
@@ -68,20 +79,21 @@ NRT_DEVICE nrt_u8 nrt_srgb8(double x)
 NRT_KERNEL void light_cells(const NRT_GLOBAL double *s1, const NRT_GLOBAL float *m2,
                             const NRT_GLOBAL double *j64, const NRT_GLOBAL double *rel64,
                             const NRT_GLOBAL float *density, const NRT_GLOBAL double *band_params,
-                            nrt_u64 nvox, nrt_u64 n, int mode, int collision,
-                            NRT_GLOBAL float *J32, NRT_GLOBAL float *rel32)
+                            nrt_u64 nvox, nrt_u64 i0, nrt_u64 n, int mode, int collision, int with_emis,
+                            NRT_GLOBAL float *J32, NRT_GLOBAL float *rel32, NRT_GLOBAL float *emis32)
 {
-    nrt_u64 i = NRT_GLOBAL_ID();
+    nrt_u64 i = i0 + NRT_GLOBAL_ID();
     if (i >= n)
         return;
     int k = (int)(i / nvox);
+    double rho = (double)density[i - (nrt_u64)k * nvox];
     double J, rel;
     if (mode == 0) {
         double x1 = s1[i];
         double se = nrt_batch_se(x1, (double)m2[i] * NRT_M2_UP, band_params[4 * k + 3]);
         rel = (x1 > 0.0) ? se / x1 : 1.0;
         if (collision) {
-            double sig = band_params[4 * k + 1] * (double)density[i - (nrt_u64)k * nvox];
+            double sig = band_params[4 * k + 1] * rho;
             J = (sig > 0.0) ? x1 / sig : 0.0;
             J *= band_params[4 * k];
         } else {
@@ -91,17 +103,32 @@ NRT_KERNEL void light_cells(const NRT_GLOBAL double *s1, const NRT_GLOBAL float 
         J = j64[i];
         rel = rel64[i];
     }
-    J32[i] = (float)J;
+    float j32 = (float)J;
+    J32[i] = j32;
     rel32[i] = (float)rel;
+    if (with_emis)
+        emis32[i] = nrt_emissivity(band_params, k, rho, j32);
+}
+
+/* emissivity_cells: the emissivity of cells i0 .. n - 1 from the float32 J, where the
+   finishing makes it after the sums' memory is freed (large grids). */
+NRT_KERNEL void emissivity_cells(const NRT_GLOBAL float *J32, const NRT_GLOBAL float *density,
+                                 const NRT_GLOBAL double *band_params, nrt_u64 nvox, nrt_u64 i0, nrt_u64 n,
+                                 NRT_GLOBAL float *emis32)
+{
+    nrt_u64 i = i0 + NRT_GLOBAL_ID();
+    if (i >= n)
+        return;
+    int k = (int)(i / nvox);
+    emis32[i] = nrt_emissivity(band_params, k, (double)density[i - (nrt_u64)k * nvox], J32[i]);
 }
 
 /*
  * finish_voxels: per voxel, over all bands, from the float32 J (emissivity = albedo x sigma x
- * J of the float32 J: the output's own precision, which the float64 sums do not improve).
+ * J of the float32 J, as light_cells stores it).
  * to_rgb: 3 x n_bands (row-major), band emissivity / (L_b sigma_ref) -> linear sRGB, white
  * balance included.
- *   pass 0: the emissivity (float32, band-major, x fastest), the opacity byte of rgba and the
- *       brightness key of the exposure;
+ *   pass 0: the opacity byte of rgba and the brightness key of the exposure;
  *   pass 1: the colour bytes of rgba at the exposure dsel[2] (select_level's, or the scene's),
  *       recomputed from J rather than stored: a float colour buffer would cost more memory
  *       than reading J again.
@@ -111,8 +138,7 @@ NRT_KERNEL void finish_voxels(const NRT_GLOBAL float *J32, const NRT_GLOBAL floa
                               const NRT_GLOBAL double *to_rgb, int n_bands, nrt_u64 nvox,
                               int pass, int colour,
                               double sigma_ref_scale, double voxel_edge, double opacity_scale,
-                              const NRT_GLOBAL double *dsel, NRT_GLOBAL float *emis32, NRT_GLOBAL float *key,
-                              NRT_GLOBAL nrt_u8 *rgba)
+                              const NRT_GLOBAL double *dsel, NRT_GLOBAL float *key, NRT_GLOBAL nrt_u8 *rgba)
 {
     nrt_u64 v = NRT_GLOBAL_ID();
     if (v >= nvox)
@@ -123,8 +149,6 @@ NRT_KERNEL void finish_voxels(const NRT_GLOBAL float *J32, const NRT_GLOBAL floa
         nrt_u64 i = (nrt_u64)k * nvox + v;
         double sig_k = band_params[4 * k + 1], alb = band_params[4 * k + 2];
         double emis = alb * (sig_k * rho) * (double)J32[i];
-        if (pass == 0)
-            emis32[i] = (float)emis;
         if (colour) {
             rgb[0] += emis * to_rgb[k];
             rgb[1] += emis * to_rgb[n_bands + k];

@@ -65,12 +65,13 @@ def test_memory_is_allocated_for_requested_outputs_and_reported(backend):
     assert 12 * nb * nvox <= m0["finish_device_bytes"] < 12 * nb * nvox + 4096
     assert m1["finish_device_bytes"] - m0["finish_device_bytes"] >= 8 * nvox - 16
     # transport: slots x 8 B + sums 12 B per cell (float64 sum, float32 centred squares) +
-    # density, as reported by the session
-    slots = no_colour.transport.device_bytes - 12 * nb * nvox - 4 * nvox
+    # density, as reported by the session, and J and the emissivity (8 B per cell) made band by
+    # band during the last fold (transport.plan.light_while_folding)
+    slots = no_colour.transport.device_bytes - 12 * nb * nvox - 4 * nvox - 8 * nb * nvox
     assert slots > 0 and slots % (8 * nb * nvox + 32 * nb + 4) == 0
-    # finishing: first the sums and J (the error is written over the squares), then the
-    # outputs once the float64 sums are freed
-    first = 12 * nb * nvox + 4 * nvox + 4 * nb * nvox
+    # finishing: first the sums, J and the emissivity (the error is written over the
+    # squares), then the outputs once the float64 sums are freed
+    first = 12 * nb * nvox + 4 * nvox + 8 * nb * nvox
     then = 4 * nvox + 12 * nb * nvox + 8 * nvox
     assert m1["device_peak_bytes"] == max(m1["transport_device_bytes"], first, then)
     assert m1["host_peak_rss_bytes"] > 0

@@ -171,6 +171,10 @@ class Backend(abc.ABC):
     first_launch_packets: int = 1 << 21
     #: overrides of ``TRANSPORT_TUNING`` for this backend (benchmarks)
     transport_tuning: dict = {}
+    #: a run finished on the device makes its light band by band during its last fold where
+    #: it may (nebula_rt.transport.plan.light_while_folding); False: after the transport, all
+    #: bands at once (the same bits; benchmarks compare the two)
+    light_while_folding: bool = True
     #: grids of at least this many voxels trace their packets sorted by first direction
     #: (NRT_SORTED) unless ``transport_tuning`` says otherwise; 0: never
     sort_min_voxels: int = 0

@@ -371,7 +371,8 @@ class OpenCLBackend(Backend):
     def to_host(self, dev, out=None):
         if out is None:
             return dev.get()
-        cl.enqueue_copy(self.queue, out.reshape(-1), dev.data)
+        # (base_data and offset: a slice of an array as well as a whole one)
+        cl.enqueue_copy(self.queue, out.reshape(-1), dev.base_data, src_offset=dev.offset)
         self.queue.finish()
         return out
 
@@ -383,8 +384,8 @@ class OpenCLBackend(Backend):
         ready = cl.enqueue_marker(self.queue)
         self.queue.flush()
         assert out.flags.c_contiguous and out.nbytes == dev.nbytes
-        return cl.enqueue_copy(self._copy_queue, out.reshape(-1), dev.data, is_blocking=False,
-                               wait_for=[ready]), dev
+        return cl.enqueue_copy(self._copy_queue, out.reshape(-1), dev.base_data, src_offset=dev.offset,
+                               is_blocking=False, wait_for=[ready]), dev
 
     def wait_copy(self, handle):
         if handle is not None:

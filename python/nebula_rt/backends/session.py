@@ -21,6 +21,7 @@ their squares, 16 n_b, and turns them into the statistics in place (:meth:`_fini
 from __future__ import annotations
 
 import time
+from typing import Optional
 
 import numpy as np
 
@@ -520,7 +521,8 @@ class DeviceTransport(TransportSession):
         be.upload(self.d_overflow, flags.astype(np.uint32))
         return buf[cells + pix:cells + pix + nt].reshape(tallies.shape).copy(), flags
 
-    def fold(self, n_slots, bands=None, folded_before: int = 0, packets: int = 0, clear: bool = True):
+    def fold(self, n_slots, bands=None, folded_before: int = 0, packets: int = 0, clear: bool = True,
+             band: Optional[int] = None):
         if self.packet_sq:
             if n_slots != 1 or folded_before:
                 raise RuntimeError("the error estimate by packets folds its one batch once")
@@ -529,10 +531,13 @@ class DeviceTransport(TransportSession):
         if not self.setup.light_field:
             return  # no J: the images and tallies are folded on the host
         band0, n_lb = bands if bands is not None else (0, self.setup.n_bands)
-        n = n_lb * self.nvox
+        stride = n_lb * self.nvox
+        # all the group's bands, or (``band``: its index in the group) one band's cells
+        j, n = (0, stride) if band is None else (int(band), self.nvox)
         self.backend.launch(self.backend.transport_program, "fold_batches", n,
                             self.d_acc, self.d_sum1, self.d_m2, self.d_overflow, np.int32(n_slots),
-                            np.uint64(n), np.uint64(band0 * self.nvox), np.int32(folded_before),
+                            np.uint64(n), np.uint64(stride), np.uint64(j * self.nvox),
+                            np.uint64((band0 + j) * self.nvox), np.int32(folded_before),
                             self.d_seen, np.int32(bool(clear)), defines=self.defines)
 
     def _finish_packets(self, packets: int):

@@ -244,12 +244,13 @@ class TransportSession(abc.ABC):
 
     @abc.abstractmethod
     def fold(self, n_slots: int, bands: tuple[int, int] | None = None, folded_before: int = 0,
-             packets: int = 0, clear: bool = True) -> None:
+             packets: int = 0, clear: bool = True, band: int | None = None) -> None:
         """Fold slots 0..n_slots-1 (in order, except those that overflowed) of the group's
         bands into their running sums and centred sums of squares (``folded_before`` batches
         are in them already) and clear the slots (``clear`` False: only those that overflowed,
         for the run's last fold, after which no launch traces into them; ``packets``: the
-        run's packets per band, for the error estimate by packets)."""
+        run's packets per band, for the error estimate by packets; ``band``: only the cells of
+        the group's band of this index)."""
 
     @abc.abstractmethod
     def overflow_seen(self) -> bool:

@@ -46,6 +46,9 @@ class DeviceSums:
         Their centred sum of squares sum (x - mean)^2, stored times 2^-64
         (``session.M2_SCALE``).
     density : device array, float32, nx * ny * nz
+    light : LightOutputs or None
+        The light the transport made from these sums while it folded (bands in order; the
+        relative error written over ``m2``): :func:`finish` takes it from there.
     """
 
     backend: object
@@ -54,6 +57,7 @@ class DeviceSums:
     sum1: object
     m2: object
     density: object
+    light: Optional["LightOutputs"] = None
 
     @property
     def nvox(self) -> int:
@@ -65,6 +69,9 @@ class DeviceSums:
 
         if self.sum1 is None:
             raise RuntimeError("the device sums were released by postprocess.finish(release=True)")
+        if self.light is not None:
+            raise RuntimeError("the device sums were turned into light while the transport folded them "
+                               "(the relative error is where their squares were)")
         shape = (self.n_bands,) + tuple(self.shape[::-1])
         if type(self.sum1).__module__.startswith("cupy"):
             s1, m2 = self.sum1, self.m2.astype(self.sum1.dtype) * M2_SCALE
@@ -114,6 +121,102 @@ def _band_params(band_params, batches) -> np.ndarray:
     return params
 
 
+class LightOutputs:
+    """J, its relative error and the emissivity of a run's device sums (float32 device arrays,
+    :func:`light_cells`), made band by band, each band's copies to the host started as soon
+    as it is made: so the transport can finish a band while it folds the next
+    (:func:`nebula_rt.transport.run.run_transport`), and the copies overlap the folds and the
+    host's work up to the colour pass, instead of starting after them.
+
+    ``release``: the relative error is written over the centred sums of squares ``m2`` (the
+    sums are spent afterwards). ``light``: (J, rel_error) already computed (filtered), as
+    :func:`finish` takes it. ``params``: (n_bands, 4) of :func:`_band_params`, or None to give
+    each band's row to :meth:`bands`. ``emissivity_now`` False: the emissivity is made by
+    :meth:`emissivity` once the caller has freed the sums (the device peak of a large grid).
+    """
+
+    def __init__(self, be, s1, m2, density, shape, n_bands: int, *, collision: bool, release: bool,
+                 light=None, params=None, emissivity_now: bool = True):
+        self.backend, self.shape, self.n_bands, self.collision = be, tuple(shape), int(n_bands), bool(collision)
+        nx, ny, nz = self.shape
+        self.nvox = nx * ny * nz
+        n = self.n_bands * self.nvox
+        self.params = np.zeros((self.n_bands, 4), np.float64) if params is None else np.asarray(params, np.float64)
+        dummy64, dummy32 = be.device_zeros(1, np.float64), be.device_zeros(1, np.float32)
+        self.J32 = be.device_zeros(n, np.float32)
+        if light is None:
+            self.mode, self.s1, self.m2, self.j64, self.r64 = 0, s1, m2, dummy64, dummy64
+            self.rel32 = m2 if release else be.device_zeros(n, np.float32)
+        else:
+            self.mode, self.s1, self.m2 = 1, dummy64, dummy32
+            if getattr(light[0], "ndim", 0) == 1:  # already in device layout
+                self.j64, self.r64 = light[0], light[1]
+            else:
+                xp = array_module(light[0])
+                self.j64 = _device_layout(xp, xp.asarray(light[0], dtype=xp.float64))
+                self.r64 = _device_layout(xp, xp.asarray(light[1], dtype=xp.float64))
+                if xp is np:
+                    self.j64, self.r64 = be.to_device(self.j64), be.to_device(self.r64)
+            self.rel32 = be.device_zeros(n, np.float32)
+        self.own_rel = self.rel32 is not m2
+        self.emis32 = be.device_zeros(n, np.float32) if emissivity_now else None
+        self.density = density
+        self.hosts = [be.host_empty((self.n_bands, nz, ny, nx), np.float32) for _ in range(3)]
+        self.copies: list = []
+        self.done = 0  # bands made so far (in order)
+
+    @property
+    def device_bytes(self) -> int:
+        """Device memory of the outputs this made (J and the emissivity; the error's too
+        unless it went over the squares)."""
+        return sum(int(a.nbytes) for a in (self.J32, self.emis32, self.rel32 if self.own_rel else None)
+                   if a is not None)
+
+    def bands(self, b0: int, count: int, params=None) -> None:
+        """Make bands ``b0 .. b0 + count - 1`` (the next ones; ``params``: their rows of the
+        band parameters, where the constructor had none) and start their copies."""
+        if b0 != self.done or b0 + count > self.n_bands:
+            raise ValueError(f"bands {b0}..{b0 + count - 1} out of order (made: {self.done} of {self.n_bands})")
+        if params is not None:
+            self.params[b0:b0 + count] = params
+        be, nvox = self.backend, self.nvox
+        d_params = be.to_device(self.params)
+        lo, hi = b0 * nvox, (b0 + count) * nvox
+        emis = self.emis32 is not None
+        be.launch("postprocess.cl", "light_cells", hi - lo, self.s1, self.m2, self.j64, self.r64, self.density,
+                  d_params, np.uint64(nvox), np.uint64(lo), np.uint64(hi), np.int32(self.mode),
+                  np.int32(self.collision), np.int32(emis), self.J32, self.rel32,
+                  self.emis32 if emis else self.J32)
+        # J, the error and the emissivity are final now: their copies overlap what follows
+        for arr, h in zip((self.J32, self.rel32, self.emis32) if emis else (self.J32, self.rel32), self.hosts):
+            self.copies.append(be.to_host_async(arr[lo:hi], h[b0:b0 + count].reshape(-1)))
+        self.done = b0 + count
+
+    def emissivity(self) -> None:
+        """Make every band's emissivity from the float32 J (after :meth:`bands`, where the
+        constructor deferred it) and start its copy."""
+        if self.emis32 is not None:
+            return
+        be, n = self.backend, self.n_bands * self.nvox
+        self.emis32 = be.device_zeros(n, np.float32)
+        be.launch("postprocess.cl", "emissivity_cells", n, self.J32, self.density, be.to_device(self.params),
+                  np.uint64(self.nvox), np.uint64(0), np.uint64(n), self.emis32)
+        self.copies.append(be.to_host_async(self.emis32, self.hosts[2].reshape(-1)))
+
+    def wait(self) -> list:
+        """The host arrays (J, relative error, emissivity), (n_bands, nx, ny, nz), once their
+        copies have arrived."""
+        for handle in self.copies:
+            self.backend.wait_copy(handle)
+        self.copies = []
+        return [h.transpose(0, 3, 2, 1) for h in self.hosts]
+
+    def discard(self) -> None:
+        """Wait for the copies under way (their host memory must outlive them) and drop them."""
+        self.wait()
+        self.hosts = []
+
+
 def finish(ds: DeviceSums, band_params: np.ndarray, *, batches, collision: bool,
            light=None, colour: Optional[ColourSetup] = None, release: bool = False) -> FinishedArrays:
     """Turn device sums (or a filtered J and error) into the output arrays.
@@ -121,6 +224,9 @@ def finish(ds: DeviceSums, band_params: np.ndarray, *, batches, collision: bool,
     Parameters
     ----------
     ds : DeviceSums
+        With ``ds.light`` (a :class:`LightOutputs` the transport made while it folded), J, the
+        error and the emissivity are taken from it; ``band_params`` and ``batches`` must then
+        be the ones it was made with.
     band_params : ndarray (n_bands, 3)
         J scale, extinction per box unit at density 1 (tau k_b), albedo, per band.
     batches : int or ndarray (n_bands,)
@@ -144,55 +250,48 @@ def finish(ds: DeviceSums, band_params: np.ndarray, *, batches, collision: bool,
     """
     be = ds.backend
     nb, nvox = ds.n_bands, ds.nvox
-    nx, ny, nz = ds.shape
     n = nb * nvox
-    d_params = be.to_device(_band_params(band_params, batches))
-    c = colour
-    d_rgb = be.to_device(np.ascontiguousarray(c.to_rgb, np.float64) if c else np.zeros(3 * nb))
-    dummy64, dummy32 = be.device_zeros(1, np.float64), be.device_zeros(1, np.float32)
-    J32 = be.device_zeros(n, np.float32)
-    if light is None:
-        mode, s1, m2, j64, r64 = 0, ds.sum1, ds.m2, dummy64, dummy64
-        rel32 = ds.m2 if release else be.device_zeros(n, np.float32)
+    params = _band_params(band_params, batches)
+    outs = ds.light
+    if outs is not None:
+        done = outs.done
+        if light is not None or outs.collision != bool(collision) or not np.array_equal(outs.params[:done],
+                                                                                         params[:done]):
+            raise ValueError("the transport made this light with other band parameters")
+        if done < nb:
+            outs.bands(done, nb - done, params[done:])
     else:
-        mode, s1, m2 = 1, dummy64, dummy32
-        if getattr(light[0], "ndim", 0) == 1:  # already in device layout
-            j64, r64 = light[0], light[1]
-        else:
-
-            xp = array_module(light[0])
-            j64 = _device_layout(xp, xp.asarray(light[0], dtype=xp.float64))
-            r64 = _device_layout(xp, xp.asarray(light[1], dtype=xp.float64))
-            if xp is np:
-                j64, r64 = be.to_device(j64), be.to_device(r64)
-        rel32 = be.device_zeros(n, np.float32)
-    be.launch("postprocess.cl", "light_cells", n, s1, m2, j64, r64, ds.density, d_params,
-              np.uint64(nvox), np.uint64(n), np.int32(mode), np.int32(bool(collision)), J32, rel32)
+        outs = LightOutputs(be, ds.sum1, ds.m2, ds.density, ds.shape, nb, collision=collision, release=release,
+                            light=light, params=params, emissivity_now=False)
+        outs.bands(0, nb)
+    c = colour
+    d_params = be.to_device(params)
+    d_rgb = be.to_device(np.ascontiguousarray(c.to_rgb, np.float64) if c else np.zeros(3 * nb))
     sums_bytes = 0 if ds.sum1 is None else 12 * n
-    own_rel = rel32 is not ds.m2
-    stage_a = sums_bytes + 4 * nvox + 4 * n + (4 * n if own_rel else 0) + (16 * n if mode == 1 else 0)
-    del s1, m2, j64, r64, light
-    if release:
+    # (J and, made while the transport folded, the emissivity beside the sums)
+    stage_a = (sums_bytes + 4 * nvox + (8 * n if ds.light is not None else 4 * n) + (4 * n if outs.own_rel else 0)
+               + (16 * n if outs.mode == 1 else 0))
+    del light
+    outs.s1 = outs.m2 = outs.j64 = outs.r64 = None  # (read by light_cells only)
+    if release or ds.light is not None:
         ds.sum1 = ds.m2 = None  # the float64 sums go before the outputs come
-    # J and the error are final now: their copies overlap the emissivity, exposure and colour
-    hosts = [be.host_empty((nb, nz, ny, nx), np.float32) for _ in range(3)]
-    copies = [be.to_host_async(arr, h) for arr, h in zip((J32, rel32), hosts)]
-    emis32 = be.device_zeros(n, np.float32)
-    key = be.device_zeros(nvox if c else 1, np.float32)
-    rgba = be.device_zeros(4 * nvox if c else 1, np.uint8)
-    const = (np.float64(c.sigma_ref_scale if c else 0.0), np.float64(c.voxel_edge if c else 0.0),
-             np.float64(c.opacity_scale if c else 0.0))
-
-    def run(pass_, exposure_at):
-        be.launch("postprocess.cl", "finish_voxels", nvox, J32, ds.density, d_params, d_rgb,
-                  np.int32(nb), np.uint64(nvox), np.int32(pass_), np.int32(c is not None), *const,
-                  exposure_at, emis32, key, rgba)
-
-    run(0, dummy64)
-    copies.append(be.to_host_async(emis32, hosts[2]))
+    ds.light = None
+    outs.emissivity()
+    J32 = outs.J32
     exposure = float("nan")
     h_rgba = d_exposure = None
+    key = be.device_zeros(nvox if c else 1, np.float32)
+    rgba = be.device_zeros(4 * nvox if c else 1, np.uint8)
+    copies = []
     if c is not None:
+        const = (np.float64(c.sigma_ref_scale), np.float64(c.voxel_edge), np.float64(c.opacity_scale))
+
+        def run(pass_, exposure_at):
+            be.launch("postprocess.cl", "finish_voxels", nvox, J32, ds.density, d_params, d_rgb,
+                      np.int32(nb), np.uint64(nvox), np.int32(pass_), np.int32(1), *const,
+                      exposure_at, key, rgba)
+
+        run(0, be.device_zeros(1, np.float64))
         # the auto exposure stays on the device for pass 1: a read-back here would wait behind
         # the outputs' copies, which share the bus with it
         if c.exposure == "auto":
@@ -200,16 +299,17 @@ def finish(ds: DeviceSums, band_params: np.ndarray, *, batches, collision: bool,
         else:  # (the select's layout: the exposure third)
             d_exposure = be.to_device(np.array([0.0, 0.0, c.exposure], np.float64))
         run(1, d_exposure)
-        h_rgba = be.host_empty((nz, ny, nx, 4), np.uint8)
+        h_rgba = be.host_empty(tuple(ds.shape[::-1]) + (4,), np.uint8)
         copies.append(be.to_host_async(rgba, h_rgba.reshape(-1)))
+    out = outs.wait()
     for handle in copies:
         be.wait_copy(handle)
     if d_exposure is not None:
         exposure = float(be.to_host(d_exposure)[2])
         h_rgba = h_rgba.transpose(2, 1, 0, 3)
-    out = [h.transpose(0, 3, 2, 1) for h in hosts]
-    nbytes = sum(int(x.nbytes) for x in (J32, rel32, emis32, key, rgba, d_params, d_rgb))
-    stage_b = (0 if release else sums_bytes) + 4 * nvox + sum(int(x.nbytes) for x in (J32, rel32, emis32, key, rgba))
+    nbytes = sum(int(x.nbytes) for x in (J32, outs.rel32, outs.emis32, key, rgba, d_params, d_rgb))
+    stage_b = ((0 if release else sums_bytes) + 4 * nvox
+               + sum(int(x.nbytes) for x in (J32, outs.rel32, outs.emis32, key, rgba)))
     return FinishedArrays(J=out[0], rel_error=out[1], emissivity=out[2], rgba=h_rgba, exposure=exposure,
                           device_bytes=nbytes, peak_device_bytes=int(max(stage_a, stage_b)))
 

@@ -16,6 +16,7 @@ from ..optics.mie import mie_bands
 from ..optics.polarization import OWN_OPTICS
 from .. import limits
 from ..backends import Backend, TransportSetup
+from ..backends.capacity import region_bytes
 from ..backends.regions import region_capacity
 from ..density.octree import Octree
 from . import tree as tree_run
@@ -456,11 +457,39 @@ class Tallies:
     #: the heavy-tail histograms' counts summed over the folded batches, uint64 (n_bands,
     #: histograms, TAIL_BINS): the image's, then J's depth classes (nebula_rt.transport.tails)
     tail_hist: Optional[np.ndarray] = None
+    #: the light made band by band as the last fold went (:func:`light_while_folding`), a
+    #: :class:`~nebula_rt.transport.finish.LightOutputs`, or None
+    light: object = None
 
     @property
     def photons(self) -> int:
         """Packets per band folded in every band."""
         return int(self.band_done.min())
+
+
+def light_while_folding(estimator: str, n_cells: int, spare_bytes: int, *, light_field: bool = True,
+                        packets: bool = False, peel: bool = False, tree: bool = False,
+                        targeted: bool = False) -> bool:
+    """Whether a run whose sums are finished on the device makes its light (J, error,
+    emissivity: :class:`~nebula_rt.transport.finish.LightOutputs`) band by band during its
+    last fold, so that each band's copies to the host overlap the folds of the next bands and
+    the host's work up to the colour pass (the thesis headline's finishing started its
+    copies about 1.3 ms after its trace ended, and they took 1.5 ms). Only where the light
+    comes straight from the sums (the track-length estimator, without a filter), the run
+    folds batches on the device (not the estimate by packets) and nothing reads the squares
+    after the fold (no error target), without peel-off images or a tree, and where J and the
+    emissivity (8 B per cell beside the slots and sums) fit the slot memory the run leaves
+    unused (``spare_bytes``: :func:`spare_slot_bytes`), so the device peak stays within the
+    memory target."""
+    return (estimator == "track-length" and light_field and not (packets or peel or tree or targeted)
+            and 8 * int(n_cells) <= int(spare_bytes))
+
+
+def spare_slot_bytes(backend, nvox: int, launches: "LaunchPlan", cell_bytes: int = 8) -> int:
+    """The part of the backend's slot memory budget a run of ``launches`` leaves unused: its
+    batch slots and the transport by regions' state take the rest."""
+    slots = int(cell_bytes) * launches.bands_per_launch * int(nvox) * launches.slots
+    return int(backend.slot_memory_budget) - region_bytes(backend, int(nvox), cell_bytes == 16) - slots
 
 
 def plan_transport(density, request, backend: Backend, *, checked_adds: bool = False,

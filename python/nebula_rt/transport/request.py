@@ -108,11 +108,13 @@ class TransportRequest:
 
     def trace(self, density, backend: Backend, *, progress: Optional[Callable[[int, int], None]] = None,
               cancel: Optional[Callable[[], bool]] = None, on_device: bool = False, comm=None,
-              _acc_limit_bits: int = 63, _checked_adds: bool = False) -> TransportResult:
+              _acc_limit_bits: int = 63, _checked_adds: bool = False, make_light: bool = False) -> TransportResult:
         """Trace the request through ``density`` on ``backend`` (see :func:`trace` for
-        ``progress``, ``cancel``, ``on_device``, ``comm``)."""
+        ``progress``, ``cancel``, ``on_device``, ``comm``; ``make_light``: the device sums
+        are finished next, see :func:`~nebula_rt.transport.run.trace_request`)."""
         return trace_request(density, self, backend, progress=progress, cancel=cancel, on_device=on_device,
-                             comm=comm, _acc_limit_bits=_acc_limit_bits, _checked_adds=_checked_adds)
+                             comm=comm, _acc_limit_bits=_acc_limit_bits, _checked_adds=_checked_adds,
+                             make_light=make_light)
 
 
 def trace(

@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 from ..backends.capacity import _gib, check_grid, host_available_bytes, region_bytes  # noqa: F401  (public here too)
 from ..errors import ResourceError
 from .filtering import kernel_half_widths
-from .plan import plan_launches
+from .plan import light_while_folding, plan_launches, spare_slot_bytes
 
 #: bytes per FFT point of the collision filter's convolutions (20 complex128 half-spectra)
 FFT_BYTES_PER_POINT = 20 * 8
@@ -108,9 +108,15 @@ def estimate(scene, backend, peel_pixels: int = 0) -> Estimate:
         "region passes": region_bytes(backend, nvox, t.method == "biased"),
         # error-targeted runs: a brightness key per voxel and partial sums per 256 voxels
         "error checks": (4 * nvox + 16 * (nvox // 256 + 1)) if target > 0 else 0,
+        # J and the emissivity made band by band during the last fold (the error goes over
+        # the squares)
+        "light made while folding": 8 * ncell if light_while_folding(
+            t.estimator, ncell, spare_slot_bytes(backend, nvox, launches, cell), packets=packets,
+            peel=bool(peel_pixels), targeted=target > 0) else 0,
     }
     # the finishing (postprocess.finish, release=True): first the sums and J, then the sums'
-    # float64 half gone and the emissivity, key and rgba made
+    # float64 half gone and the emissivity, key and rgba made (J and the emissivity made while
+    # the transport folded are in its part)
     finishing = {
         "density": 4 * nvox,
         "running sums": 16 * ncell if packets else 12 * ncell,

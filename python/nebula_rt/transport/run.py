@@ -39,11 +39,12 @@ import numpy as np
 from ..backends import Backend
 from ..errors import AccumulatorOverflowError, CancelledError, TimeLimitError
 from ..backends.parallel import Serial, any_rank, device_reducer, share
-from .finish import DeviceSums
+from .finish import DeviceSums, LightOutputs, _band_params
 from .tails import (
     IMAGE_ERROR_LIMIT, J_ERROR_LIMIT, TAIL_BINS, check_histograms, class_cells)
 
-from .plan import BIASED_TALLY_NAMES, MIN_BATCHES, Tallies, TransportPlan, WEIGHT_UNIT, plan_transport
+from .plan import (BIASED_TALLY_NAMES, MIN_BATCHES, Tallies, TransportPlan, WEIGHT_UNIT, light_while_folding,
+                   plan_transport, spare_slot_bytes)
 from .result import TransportResult, exact_packet_energy, terminated_bias, warn_if_heavy_tailed, warn_if_terminated
 from .estimate import _PeelSums, _current_error, _j_scale, light_from_sums
 from . import tree as tree_run
@@ -152,10 +153,13 @@ class _Launcher:
 # launches, the ranks' sums) is read and changed by every step, in this order; cut into
 # pieces, each would take and return that same state.
 def run_transport(plan: TransportPlan, backend: Backend, *, progress=None, cancel=None,
-                  started: Optional[float] = None, comm=None) -> Tallies:
+                  started: Optional[float] = None, comm=None, make_light: bool = False) -> Tallies:
     """The tracing stage: trace the plan's batches, folding each launch's slots into the
     device sums, until every batch is in, the error target is met or the time limit
     (counted from ``started``) comes. Returns the :class:`Tallies`; its session stays open.
+    ``make_light``: the sums will be finished on the device; where
+    :func:`~nebula_rt.transport.plan.light_while_folding` allows, the last fold goes band by
+    band and makes each band's light as it is folded (``Tallies.light``).
 
     ``comm`` (:mod:`nebula_rt.backends.parallel`) with several ranks: each rank traces its share of
     every group's packets, the ranks' slots and tallies are added before each fold, and the
@@ -191,6 +195,13 @@ def run_transport(plan: TransportPlan, backend: Backend, *, progress=None, cance
     if distributed:
         mapped = reducer is None and backend.map_host(session.d_acc, 1) is not None
         out.reduce_path = reducer.kind if reducer is not None else ("mapped" if mapped else "copied")
+    make_light = (make_light and not distributed and getattr(backend, "light_while_folding", True)
+                  and light_while_folding(plan.estimator, nb * int(np.prod(shape)),
+                                          spare_slot_bytes(backend, int(np.prod(shape)), launches,
+                                                           16 if setup.biased else 8),
+                                          light_field=setup.light_field, packets=setup.packet_sq,
+                                          peel=plan.peel is not None, tree=setup.tree is not None,
+                                          targeted=targeted))
     deadline = t0 + plan.time_limit if plan.time_limit > 0 else math.inf
     done = 0  # packets per band traced (all bands)
     # several ranks: no rank stops on its own within a group (the others would wait for it)
@@ -248,9 +259,23 @@ def run_transport(plan: TransportPlan, backend: Backend, *, progress=None, cance
     def fold_group(group, n, tallies, overflow, ranges, last=False):
         """Fold a group's first ``n`` slots on the device and its tallies on the host
         (``last``: no launch follows unless a slot overflowed, so the slots that did not stay
-        as they are)."""
-        session.fold(n, group, int(folded[group[0]]), packets=sum(c for _, c in ranges),
-                     clear=not (last and not redo and not np.any(overflow[:n])))
+        as they are; with ``make_light`` the group's bands are then folded and made into light
+        one by one)."""
+        final = last and not redo and not np.any(overflow[:n])
+        before = int(folded[group[0]])
+        if final and make_light:
+            take(tallies, overflow, None, ranges, group)  # (a band's J scale needs its packets)
+            b0, nlb = group
+            if out.light is None:
+                out.light = LightOutputs(backend, session.d_sum1, session.d_m2, session.d_density, shape, nb,
+                                         collision=False, release=True)
+                out.device_bytes += out.light.device_bytes  # (beside the slots and sums)
+            rows = light_params(plan, band_done, folded)
+            for j in range(nlb):
+                session.fold(n, group, before, clear=False, band=j)
+                out.light.bands(b0 + j, 1, rows[b0 + j:b0 + j + 1])
+            return
+        session.fold(n, group, before, packets=sum(c for _, c in ranges), clear=not final)
         images = session.take_images(n, group)[:len(ranges)] if plan.peel is not None else None
         take(tallies, overflow, images, ranges, group)
 
@@ -328,11 +353,29 @@ def run_transport(plan: TransportPlan, backend: Backend, *, progress=None, cance
                 "finished within the time limit; raise it or lower transport.batch_size"
             )
     except BaseException:
+        if out.light is not None:
+            out.light.discard()
         session.close()
         raise
     out.counts = counts if setup.biased else np.array(counts.tolist(), dtype=np.int64)
     out.kernel_s = launcher.kernel_s
     return out
+
+
+def _packet_energies(plan: TransportPlan, band_done) -> np.ndarray:
+    """Each band's packet energy (exact, from the packets folded: a band whose overflowed
+    batch the time limit left unfinished has fewer)."""
+    return np.array([exact_packet_energy(L, int(n)) for L, n in zip(plan.band_luminosity, band_done)])
+
+
+def light_params(plan: TransportPlan, band_done, folded) -> np.ndarray:
+    """(n_bands, 4) float64: the finishing's parameters of a track-length run's bands (J
+    scale, extinction per box unit at density 1, albedo, batches folded) as
+    :func:`~nebula_rt.transport.finish.finish` forms them from the result."""
+    fs = plan.setup.fold_scale
+    j_scale = _j_scale(_packet_energies(plan, band_done), plan.estimator, plan.setup.track_scale * fs,
+                       plan.nvox_inv, plan.setup.collision_scale * fs)
+    return _band_params(np.stack([j_scale, plan.sigma_scale, plan.albedo], axis=1), folded)
 
 
 def estimate_light(plan: TransportPlan, tallies: Tallies, backend: Backend, *, on_device: bool = False) -> TransportResult:
@@ -342,8 +385,7 @@ def estimate_light(plan: TransportPlan, tallies: Tallies, backend: Backend, *, o
     session, folded, band_done = tallies.session, tallies.folded, tallies.band_done
     shape, nb, estimator = plan.shape, plan.n_bands, plan.estimator
     photons = tallies.photons
-    # per band: a band whose overflowed batch the time limit left unfinished has fewer
-    q = np.array([exact_packet_energy(L, int(n)) for L, n in zip(plan.band_luminosity, band_done)])
+    q = _packet_energies(plan, band_done)
     fs = plan.setup.fold_scale  # statistics units per cell unit
     if plan.setup.packet_sq:  # the error estimate by packets: batches of one packet
         folded = band_done.copy()
@@ -382,7 +424,8 @@ def estimate_light(plan: TransportPlan, tallies: Tallies, backend: Backend, *, o
         raise ValueError("a run on a tree estimates J on the host (on_device=False)")
     elif on_device:
         s1, s2, d_rho = session.release_sums()
-        device_sums = DeviceSums(backend, shape, nb, s1, s2, d_rho)
+        device_sums = DeviceSums(backend, shape, nb, s1, s2, d_rho, light=tallies.light)
+        tallies.light = None
         J = rel = None
     else:
         device_sums = None
@@ -432,26 +475,35 @@ def estimate_light(plan: TransportPlan, tallies: Tallies, backend: Backend, *, o
 def trace_request(density: np.ndarray, request, backend: Backend, *,
                   progress: Optional[Callable[[int, int], None]] = None,
                   cancel: Optional[Callable[[], bool]] = None, on_device: bool = False, comm=None,
-                  _acc_limit_bits: int = 63, _checked_adds: bool = False) -> TransportResult:
+                  _acc_limit_bits: int = 63, _checked_adds: bool = False, make_light: bool = False) -> TransportResult:
     """Trace ``request`` (a :class:`~nebula_rt.transport.request.TransportRequest`) through
     ``density`` on ``backend``: plan, run, estimate, and the warnings about trust (see
-    :func:`nebula_rt.transport.trace` for every parameter).
+    :func:`nebula_rt.transport.trace` for every parameter; ``make_light``: the device sums
+    go to :func:`~nebula_rt.transport.finish.finish` next, which may take the light made as
+    they were folded, ``result.device_sums.light``).
 
     ``_acc_limit_bits`` (tests: a lower headroom limit) and ``_checked_adds`` (every deposit
     checked from the start) exercise the overflow paths.
     """
     t0 = time.perf_counter()
     plan = plan_transport(density, request, backend, checked_adds=_checked_adds, acc_limit_bits=_acc_limit_bits)
-    tallies = run_transport(plan, backend, progress=progress, cancel=cancel, started=t0, comm=comm)
+    make_light = make_light and on_device
+    tallies = run_transport(plan, backend, progress=progress, cancel=cancel, started=t0, comm=comm,
+                            make_light=make_light)
     try:
         if plan.setup.unchecked_adds and tallies.session.overflow_seen():
             # a cell reached the headroom limit unnoticed during a launch: trace again with
             # every add checked (same packets, same bits as a checked run)
+            if tallies.light is not None:
+                tallies.light.discard()
             tallies.session.close()
             plan = plan_transport(density, request, backend, checked_adds=True, acc_limit_bits=_acc_limit_bits)
-            tallies = run_transport(plan, backend, progress=progress, cancel=cancel, started=t0, comm=comm)
+            tallies = run_transport(plan, backend, progress=progress, cancel=cancel, started=t0, comm=comm,
+                                    make_light=make_light)
         result = estimate_light(plan, tallies, backend, on_device=on_device)
     finally:
+        if tallies.light is not None:  # (not handed on: an error came first)
+            tallies.light.discard()
         tallies.session.close()
     warn_if_terminated(result.counts, list(plan.band_names), plan.setup.max_scatterings)
     warn_if_heavy_tailed(result, list(plan.band_names))
