@@ -187,6 +187,16 @@ typedef nrt_u64 nrt_idx;
 #define NRT_NO_HOT (-(1 << 30))
 #define NRT_NO_VOXEL ((nrt_idx)(-1))
 
+/* CUDA: the global pointer x as computed, opaque to the optimiser (which would otherwise form it
+   again from its operands at every use, under the transport kernel's register cap: 9 instructions
+   per deposit instead of 1), and still known to point to global memory (REDG, not a generic
+   atomic that tests the address space first) */
+#if defined(__CUDACC__) || defined(__CUDACC_RTC__)
+#define NRT_OPAQUE_PTR(x) do { asm volatile("" : "+l"(x)); __builtin_assume(__isGlobal(x)); } while (0)
+#else
+#define NRT_OPAQUE_PTR(x) ((void)0)
+#endif
+
 /* Add v to a fixed-point cell, raising *overflow if the cell reaches the headroom limit. */
 NRT_DEVICE void nrt_acc_add_checked(NRT_GLOBAL nrt_u64 *cell, nrt_u64 v, NRT_GLOBAL nrt_u32 *overflow)
 {
@@ -197,12 +207,13 @@ NRT_DEVICE void nrt_acc_add_checked(NRT_GLOBAL nrt_u64 *cell, nrt_u64 v, NRT_GLO
         NRT_ATOMIC_OR_U32(overflow, 1u);
 }
 
-/* A transport deposit: checked, or (NRT_ACC_RED) a reduction checked by the fold. */
+/* A transport deposit: checked, or (NRT_ACC_RED) a reduction checked by the fold (a zero adds
+   nothing: no test for it, one branch less per step). */
 NRT_DEVICE void nrt_acc_add(NRT_GLOBAL nrt_u64 *cell, nrt_u64 v, NRT_GLOBAL nrt_u32 *overflow)
 {
 #if NRT_ACC_RED
-    if (v != 0)
-        NRT_ATOMIC_ADD_U64(cell, v);
+    (void)overflow;
+    NRT_ATOMIC_ADD_U64(cell, v);
 #else
     nrt_acc_add_checked(cell, v, overflow);
 #endif
@@ -250,11 +261,10 @@ NRT_DEVICE void nrt_voxel_of(const float *p, int nx, int ny, int nz, int *ix, in
 /* Distance (box units) from p along d to the exit face of voxel [i h, (i+1) h) on one axis. */
 NRT_DEVICE float nrt_face_distance(float p, float d, float inv_d, int i, float h)
 {
-    if (d > 0.0f)
-        return ((float)(i + 1) * h - p) * inv_d;
-    if (d < 0.0f)
-        return ((float)i * h - p) * inv_d;
-    return NRT_INF_F;
+    /* by selects (the same bits as branching on the sign of d): the face is i + 1 going up, i
+       going down; none along d = 0 */
+    float t = ((float)(i + (d > 0.0f ? 1 : 0)) * h - p) * inv_d;
+    return fabs(d) > 0.0f ? t : NRT_INF_F;
 }
 
 /*
@@ -463,11 +473,40 @@ typedef struct {
     int home;                   /* the packet belongs to the group's home cell */
 } nrt_sink;
 
+/*
+ * v added to a 64-bit cell of local memory as two 32-bit atomic adds, the low word's carry
+ * passed to the high word by the add that made it (the same sum, modulo 2^64, once every add
+ * is done): GPUs have no 64-bit atomic add in shared memory (CUDA emulates one with a
+ * compare-and-swap loop, which the lanes of a warp adding to one cell run once per lane).
+ * The cells are read as 64-bit words only after the group's barrier. nrt_local_add adds the
+ * high word unconditionally (straight-line code); nrt_local_count adds 1, the high word only
+ * on a carry.
+ */
+#if defined(__OPENCL_VERSION__) && !defined(__ENDIAN_LITTLE__)
+#define nrt_local_add(cell, v) NRT_ATOMIC_ADD_U64_LOCAL(cell, v)
+#define nrt_local_count(cell) NRT_ATOMIC_ADD_U64_LOCAL(cell, 1UL)
+#else
+NRT_DEVICE void nrt_local_add(NRT_LOCAL nrt_u64 *cell, nrt_u64 v)
+{
+    NRT_LOCAL nrt_u32 *w = (NRT_LOCAL nrt_u32 *)cell; /* little-endian: the low word first */
+    nrt_u32 lo = (nrt_u32)v;
+    nrt_u32 old = NRT_ATOMIC_ADD_U32_LOCAL(w, lo);
+    NRT_ATOMIC_ADD_U32_LOCAL(w + 1, (nrt_u32)(v >> 32) + (nrt_u32)(old + lo < old));
+}
+
+NRT_DEVICE void nrt_local_count(NRT_LOCAL nrt_u64 *cell)
+{
+    NRT_LOCAL nrt_u32 *w = (NRT_LOCAL nrt_u32 *)cell;
+    if (NRT_ATOMIC_ADD_U32_LOCAL(w, 1u) == 0xFFFFFFFFu)
+        NRT_ATOMIC_ADD_U32_LOCAL(w + 1, 1u);
+}
+#endif
+
 NRT_DEVICE void nrt_count(const nrt_sink *k, int which)
 {
 #if NRT_GROUP_TALLY
     if (k->home) {
-        NRT_ATOMIC_ADD_U64_LOCAL(&k->l_tally[which], 1UL);
+        nrt_local_count(&k->l_tally[which]);
         return;
     }
 #endif
@@ -495,8 +534,7 @@ NRT_DEVICE void nrt_deposit(const nrt_sink *k, NRT_GLOBAL nrt_u64 *band_acc, nrt
 {
 #if NRT_GROUP_TALLY
     if (hot >= 0) {
-        if (v != 0)
-            NRT_ATOMIC_ADD_U64_LOCAL(&k->l_hot[hot], v);
+        nrt_local_add(&k->l_hot[hot], v);
         return;
     }
 #else
@@ -513,6 +551,23 @@ NRT_DEVICE void nrt_deposit(const nrt_sink *k, NRT_GLOBAL nrt_u64 *band_acc, nrt
         NRT_ATOMIC_ADD_U64(&band_acc[idx ^ ((nrt_idx)1 << NRT_PROBE_MIRROR_BIT)], (v >> 16) * (v >> 16));
 #endif
     nrt_acc_add(&band_acc[idx], v, overflow);
+}
+
+/* nrt_deposit into voxel (ix, iy, iz) (flat index idx), the star block's test inline (no
+   cell of -1 to select and test again) */
+NRT_DEVICE void nrt_deposit_voxel(const nrt_sink *k, NRT_GLOBAL nrt_u64 *band_acc, nrt_idx idx, int ix, int iy,
+                                  int iz, nrt_u64 v, NRT_GLOBAL nrt_u32 *overflow)
+{
+#if NRT_GROUP_TALLY
+    nrt_u32 dx = (nrt_u32)(ix - k->hot_x), dy = (nrt_u32)(iy - k->hot_y), dz = (nrt_u32)(iz - k->hot_z);
+    if (dx < (nrt_u32)NRT_HOT_SIDE && dy < (nrt_u32)NRT_HOT_SIDE && dz < (nrt_u32)NRT_HOT_SIDE) {
+        nrt_local_add(&k->l_hot[dx + (nrt_u32)NRT_HOT_SIDE * (dy + (nrt_u32)NRT_HOT_SIDE * dz)], v);
+        return;
+    }
+#else
+    (void)ix, (void)iy, (void)iz;
+#endif
+    nrt_deposit(k, band_acc, idx, -1, v, overflow);
 }
 
 /*
@@ -575,10 +630,23 @@ NRT_DEVICE void nrt_square(const nrt_sink *k, NRT_GLOBAL nrt_u64 *band_sq, nrt_i
             nrt_deposit(sink, band_acc, (i_), nrt_hot_cell(sink, ix, iy, iz), (v_), overflow); \
     } while (0)
 #define NRT_VISIT_END() ((void)0)
+#elif !NRT_TREE
+/* (the deposits of a visit summed in the packet, added once as it leaves the voxel: an
+   interaction's deposit joins the visit's last one; the same integer sums) */
+#define NRT_MERGE 1
+#define NRT_SCORE(i_, v_) (pend += (v_))
+#define NRT_VISIT_END()                                                          \
+    do {                                                                         \
+        nrt_deposit_voxel(sink, band_acc, idx, ix, iy, iz, pend, overflow);      \
+        pend = 0;                                                                \
+    } while (0)
 #else
 /* (every deposit and square is of the current voxel: ix, iy, iz are idx's) */
-#define NRT_SCORE(i_, v_) nrt_deposit(sink, band_acc, (i_), nrt_hot_cell(sink, ix, iy, iz), (v_), overflow)
+#define NRT_SCORE(i_, v_) nrt_deposit_voxel(sink, band_acc, (i_), ix, iy, iz, (v_), overflow)
 #define NRT_VISIT_END() ((void)0)
+#endif
+#ifndef NRT_MERGE
+#define NRT_MERGE 0
 #endif
 /* An analog packet's interaction: absorbed with probability 1 - albedo, or terminated past
    max_scatterings (each ends the walk, counted), else it scatters once more (the grid's walk
@@ -720,6 +788,9 @@ NRT_DEVICE int nrt_trace_packet(NRT_TRACE_PACKET_PARAMS)
 {
     (void)cells; /* (NRT_TREE's walk: where the tree's nodes start in the density buffer) */
     nrt_u64 peel_score = 0; /* NRT_PEEL: the packet's peel-off units (heavy-tail diagnostic) */
+#if NRT_MERGE
+    nrt_u64 pend = 0; /* the packet's deposits during the visit of its voxel under way */
+#endif
 #if NRT_PACKET_SQ
     nrt_u64 run = 0; /* the packet's deposits during the visit of its voxel under way */
 #else
@@ -734,7 +805,6 @@ NRT_DEVICE int nrt_trace_packet(NRT_TRACE_PACKET_PARAMS)
 #endif
     (void)band_stokes, (void)stokes_slot; /* (NRT_PEEL with NRT_POLAR; NRT_REGIONS with NRT_POLAR) */
     const float hx = 1.0f / (float)nx, hy = 1.0f / (float)ny, hz = 1.0f / (float)nz;
-    const nrt_idx stride_y = (nrt_idx)nx, stride_z = (nrt_idx)nx * (nrt_idx)ny;
     int ix, iy, iz, scatterings;
     nrt_idx idx;
     float d[3], inv_d[3], p0[3], tau, t_cur, tx, ty, tz, rho;
@@ -809,19 +879,23 @@ NRT_DEVICE int nrt_trace_packet(NRT_TRACE_PACKET_PARAMS)
         float seg = fmax(0.0f, t_next - t_cur);
         /* the neighbour across the nearest face (ties: x, then y), by selects rather than
            branches: the lanes of a SIMD group step along different axes */
-        int ax = (tx <= ty && tx <= tz) ? 0 : ((ty <= tz) ? 1 : 2);
-        float d_ax = ax == 0 ? d[0] : (ax == 1 ? d[1] : d[2]);
+        int on_x = tx <= ty && tx <= tz;
+        int on_y = !on_x && ty <= tz;
+        int on_z = !on_x && !on_y;
+        float d_ax = on_x ? d[0] : (on_y ? d[1] : d[2]);
         int up = d_ax > 0.0f;
-        int i_next = (ax == 0 ? ix : (ax == 1 ? iy : iz)) + (up ? 1 : -1);
-        int leaving = i_next < 0 || i_next >= (ax == 0 ? nx : (ax == 1 ? ny : nz));
-        nrt_idx stride = ax == 0 ? (nrt_idx)1 : (ax == 1 ? stride_y : stride_z);
-        nrt_idx jdx = leaving ? idx : (up ? idx + stride : idx - stride);
+        int i_next = (on_x ? ix : (on_y ? iy : iz)) + (up ? 1 : -1);
+        /* (unsigned: below 0 or past the last voxel in one compare) */
+        int leaving = (nrt_u32)i_next >= (nrt_u32)(on_x ? nx : (on_y ? ny : nz));
+        int jx = on_x ? i_next : ix, jy = on_y ? i_next : iy, jz = on_z ? i_next : iz;
+        nrt_idx jdx = leaving ? idx : nrt_voxel_index(jx, jy, jz, nx, ny);
 #if NRT_PREFETCH
         float rho_next = NRT_RHO(density, jdx);
 #endif
         float sigma = sig_b * rho;
         float tau_seg = sigma * seg;
-        if (sigma > 0.0f && tau_seg >= tau) {
+        int interact = sigma > 0.0f && tau_seg >= tau;
+        if (interact) {
             /* the interaction happens inside this voxel */
             float t = tau / sigma;
 #if NRT_TRACK_LENGTH
@@ -866,11 +940,20 @@ NRT_DEVICE int nrt_trace_packet(NRT_TRACE_PACKET_PARAMS)
         }
 #if NRT_REGIONS
         /* the voxel index on the stepped axis changes its region (shift 31: never) */
-        int crossing = ((i_next ^ (ax == 0 ? ix : (ax == 1 ? iy : iz))) >> region_shift) != 0;
+        int crossing = ((i_next ^ (on_x ? ix : (on_y ? iy : iz))) >> region_shift) != 0;
 #endif
         NRT_VISIT_END();
         idx = jdx;
-        nrt_cross_face(ax, i_next, p0, d_ax, inv_d, hx, hy, hz, &ix, &iy, &iz, &tx, &ty, &tz);
+        {
+            /* into the neighbour: only the stepped axis' face distance is formed again */
+            float t_ax = nrt_face_distance(on_x ? p0[0] : (on_y ? p0[1] : p0[2]), d_ax,
+                                           on_x ? inv_d[0] : (on_y ? inv_d[1] : inv_d[2]), i_next,
+                                           on_x ? hx : (on_y ? hy : hz));
+            ix = jx, iy = jy, iz = jz;
+            tx = on_x ? t_ax : tx;
+            ty = on_y ? t_ax : ty;
+            tz = on_z ? t_ax : tz;
+        }
 #if NRT_REGIONS
         if (crossing) {
             nrt_packet q;
@@ -2010,9 +2093,11 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
         if (fresh)
             nrt_count(&sink, 0);
 #if NRT_REGIONS
+        NRT_GLOBAL nrt_u64 *band_acc = acc + cell * nvox;
+        NRT_OPAQUE_PTR(band_acc);
         int stopped = nrt_trace_packet(density, optics[4 * band], optics[4 * band + 1], optics[4 * band + 2], stars,
                                        star_cdf + band * n_stars, nx, ny, nz, n_stars, seed, band, photon,
-                                       max_scatterings, track_scale, acc + cell * nvox, &sink,
+                                       max_scatterings, track_scale, band_acc, &sink,
                                        overflow + slot, peel, peel_scale, image + cell * pixels,
                                        fresh ? 0 : states + sl, states + sl, region_shift,
                                        photon | ((nrt_u64)lband << NRT_ITEM_BAND_SHIFT), sq + cell * nvox, sq_shift,
@@ -2027,9 +2112,12 @@ NRT_KERNEL void trace_photons(const NRT_GLOBAL nrt_trace_params *prm,
         }
 #else
         (void)fresh;
+        /* the band slot's first cell: formed once per packet, not again at each deposit */
+        NRT_GLOBAL nrt_u64 *band_acc = acc + cell * nvox;
+        NRT_OPAQUE_PTR(band_acc);
         nrt_trace_packet(density, optics[4 * band], optics[4 * band + 1], optics[4 * band + 2], stars,
                          star_cdf + band * n_stars, nx, ny, nz, n_stars, seed, band, photon,
-                         max_scatterings, track_scale, acc + cell * nvox, &sink,
+                         max_scatterings, track_scale, band_acc, &sink,
                          overflow + slot, peel, peel_scale, image + cell * pixels, 0, 0, NRT_NO_REGIONS, 0,
                          sq + cell * nvox, sq_shift, nvox, optics + 4 * prm->n_bands + 4 * band,
                          image + prm->image_stokes + cell * pixels * NRT_STOKES_IMAGES, 0);
