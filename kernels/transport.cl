@@ -2317,10 +2317,8 @@ NRT_KERNEL void scan_bins(NRT_GLOBAL nrt_u32 *bins, int n_bins)
  * statistics of the batch totals, and clear them: the sum (float64; exact while below 2^53)
  * and the centred sum of squares M2 = sum (x - mean)^2 (Welford's update, formed in float64,
  * stored in float32 x 2^-64: 4 bytes where a raw sum of squares would need float64 and still
- * lose the variance to cancellation once the batch totals agree to 8 digits). A slot holds
- * `stride` cells (this launch's bands); cells slot0 .. slot0 + n - 1 of each slot (all of them,
- * or one band's, so that a band's light can be finished while the next band is folded) are
- * cells cell0 .. cell0 + n - 1 of the sums;
+ * lose the variance to cancellation once the batch totals agree to 8 digits). The slots hold
+ * cells 0..n-1 of this launch's bands, which are cells cell0 .. cell0 + n - 1 of the sums;
  * the k0 batches folded before are in the sums. A slot whose overflow flag is set is cleared
  * without folding (the host re-traces that batch in halves). clear 0: the slots are not traced
  * into again (the run's last fold), so only an overflowed slot is cleared (writing the zeros
@@ -2331,8 +2329,7 @@ NRT_KERNEL void scan_bins(NRT_GLOBAL nrt_u32 *bins, int n_bins)
  */
 NRT_KERNEL void fold_batches(NRT_GLOBAL nrt_u64 *acc, NRT_GLOBAL double *sum1, NRT_GLOBAL float *m2,
                              const NRT_GLOBAL nrt_u32 *overflow, int n_slots, nrt_u64 n,
-                             nrt_u64 stride, nrt_u64 slot0, nrt_u64 cell0, int k0,
-                             NRT_GLOBAL nrt_u32 *seen, int clear)
+                             nrt_u64 cell0, int k0, NRT_GLOBAL nrt_u32 *seen, int clear)
 {
     nrt_u64 gid = NRT_GLOBAL_ID();
     if (gid >= n)
@@ -2342,7 +2339,7 @@ NRT_KERNEL void fold_batches(NRT_GLOBAL nrt_u64 *acc, NRT_GLOBAL double *sum1, N
     double k = (double)k0;
     int past = 0, changed = 0;
     for (int g = 0; g < n_slots; ++g) {
-        nrt_u64 i = (nrt_u64)g * stride + slot0 + gid;
+        nrt_u64 i = (nrt_u64)g * n + gid;
 #if NRT_BIASED
         /* a 128-bit cell: low word, high word */
         nrt_u64 a = acc[2 * i] | acc[2 * i + 1];

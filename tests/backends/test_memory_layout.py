@@ -74,7 +74,7 @@ def _fold(backend, slots: np.ndarray, s1=None, m2=None, k0: int = 0, clear: bool
                                else np.asarray(overflow, np.uint32))
     d_seen = backend.device_zeros(1, np.uint32)
     backend.launch("transport.cl", "fold_batches", n, d_acc, d_s1, d_m2, d_over, np.int32(n_slots),
-                   np.uint64(n), np.uint64(n), np.uint64(0), np.uint64(0), np.int32(k0), d_seen, np.int32(clear),
+                   np.uint64(n), np.uint64(0), np.int32(k0), d_seen, np.int32(clear),
                    defines={"NRT_TRACK_LENGTH": 1})
     return (backend.to_host(d_s1), backend.to_host(d_m2), backend.to_host(d_acc).reshape(n_slots, n))
 

@@ -21,7 +21,6 @@ their squares, 16 n_b, and turns them into the statistics in place (:meth:`_fini
 from __future__ import annotations
 
 import time
-from typing import Optional
 
 import numpy as np
 
@@ -521,8 +520,7 @@ class DeviceTransport(TransportSession):
         be.upload(self.d_overflow, flags.astype(np.uint32))
         return buf[cells + pix:cells + pix + nt].reshape(tallies.shape).copy(), flags
 
-    def fold(self, n_slots, bands=None, folded_before: int = 0, packets: int = 0, clear: bool = True,
-             band: Optional[int] = None):
+    def fold(self, n_slots, bands=None, folded_before: int = 0, packets: int = 0, clear: bool = True):
         if self.packet_sq:
             if n_slots != 1 or folded_before:
                 raise RuntimeError("the error estimate by packets folds its one batch once")
@@ -531,13 +529,10 @@ class DeviceTransport(TransportSession):
         if not self.setup.light_field:
             return  # no J: the images and tallies are folded on the host
         band0, n_lb = bands if bands is not None else (0, self.setup.n_bands)
-        stride = n_lb * self.nvox
-        # all the group's bands, or (``band``: its index in the group) one band's cells
-        j, n = (0, stride) if band is None else (int(band), self.nvox)
+        n = n_lb * self.nvox
         self.backend.launch(self.backend.transport_program, "fold_batches", n,
                             self.d_acc, self.d_sum1, self.d_m2, self.d_overflow, np.int32(n_slots),
-                            np.uint64(n), np.uint64(stride), np.uint64(j * self.nvox),
-                            np.uint64((band0 + j) * self.nvox), np.int32(folded_before),
+                            np.uint64(n), np.uint64(band0 * self.nvox), np.int32(folded_before),
                             self.d_seen, np.int32(bool(clear)), defines=self.defines)
 
     def _finish_packets(self, packets: int):
@@ -560,8 +555,20 @@ class DeviceTransport(TransportSession):
         self.d_m2 = self.d_sq.view(np.float32)[:n]
         self.d_acc = self.d_sq = None
 
+    def read_overflow_seen(self):
+        be = self.backend
+        # one page-locked word per backend, reused by its runs (which follow each other)
+        host = be.__dict__.get("_seen_host")
+        if host is None:
+            host = be.__dict__["_seen_host"] = be.host_empty((1,), np.uint32)
+        self._seen_read = (host, be.to_host_async(self.d_seen, host))
+
     def overflow_seen(self):
-        return bool(self.backend.to_host(self.d_seen)[0])
+        read, self._seen_read = getattr(self, "_seen_read", None), None
+        if read is None:
+            return bool(self.backend.to_host(self.d_seen)[0])
+        self.backend.wait_copy(read[1])
+        return bool(read[0][0])
 
     def sums_on_device(self):
         """(sum, centred sum of squares) as (n_bands, nx, ny, nz) float64 arrays of the

@@ -259,25 +259,21 @@ def run_transport(plan: TransportPlan, backend: Backend, *, progress=None, cance
     def fold_group(group, n, tallies, overflow, ranges, last=False):
         """Fold a group's first ``n`` slots on the device and its tallies on the host
         (``last``: no launch follows unless a slot overflowed, so the slots that did not stay
-        as they are; with ``make_light`` the group's bands are then folded and made into light
-        one by one)."""
+        as they are; with ``make_light`` the group's light is then made and its copies to the
+        host started)."""
         final = last and not redo and not np.any(overflow[:n])
-        before = int(folded[group[0]])
+        session.fold(n, group, int(folded[group[0]]), packets=sum(c for _, c in ranges), clear=not final)
+        images = session.take_images(n, group)[:len(ranges)] if plan.peel is not None else None
+        take(tallies, overflow, images, ranges, group)
         if final and make_light:
-            take(tallies, overflow, None, ranges, group)  # (a band's J scale needs its packets)
-            b0, nlb = group
+            if setup.unchecked_adds and group[0] + group[1] == nb:  # (before the copies: see there)
+                session.read_overflow_seen()
             if out.light is None:
                 out.light = LightOutputs(backend, session.d_sum1, session.d_m2, session.d_density, shape, nb,
                                          collision=False, release=True)
                 out.device_bytes += out.light.device_bytes  # (beside the slots and sums)
-            rows = light_params(plan, band_done, folded)
-            for j in range(nlb):
-                session.fold(n, group, before, clear=False, band=j)
-                out.light.bands(b0 + j, 1, rows[b0 + j:b0 + j + 1])
-            return
-        session.fold(n, group, before, packets=sum(c for _, c in ranges), clear=not final)
-        images = session.take_images(n, group)[:len(ranges)] if plan.peel is not None else None
-        take(tallies, overflow, images, ranges, group)
+            b0, nlb = group
+            out.light.bands(b0, nlb, light_params(plan, band_done, folded)[b0:b0 + nlb])
 
     try:
         # batches in groups of consecutive ones, each group's bands traced in one or more
