@@ -5,9 +5,9 @@
  * appear (peak: the sums and J, then the outputs):
  *
  *   light_cells:            J, its relative error and the emissivity (float32, band-major,
- *       x fastest), the error written over the centred sums of squares it comes from; by
- *       bands, so that a band's arrays travel to the host while the next band is folded
- *       (emissivity_cells: the emissivity after the sums are freed, on large grids);
+ *       x fastest), the error written over the centred sums of squares it comes from, for
+ *       a range of bands (emissivity_cells: the emissivity after the sums are freed, where
+ *       the light is made after the transport);
  *   finish_voxels, pass 0:  the opacity byte of rgba and a brightness key per voxel for the
  *       exposure;
  *   key_histogram, select_rank_bins, key_histogram_low, select_level: the exposure
@@ -66,8 +66,8 @@ NRT_DEVICE float nrt_emissivity(const NRT_GLOBAL double *band_params, int k, dou
 
 /*
  * light_cells: J, its relative error and (with_emis) the emissivity per cell i0 .. n - 1
- * (cells: n_bands * nvox, band-major; a range of whole bands, so that one band can be
- * finished while the next is folded) as float32, the first pass of the finishing.
+ * (cells: n_bands * nvox, band-major; a range of whole bands) as float32, the first pass of
+ * the finishing.
  * band_params: per band 4 doubles: J scale (J = sum x scale, or for
  * the collision estimator J = sum / sigma x scale), extinction per box unit at density 1
  * (tau k_b), albedo, batches folded.

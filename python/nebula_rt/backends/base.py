@@ -171,7 +171,7 @@ class Backend(abc.ABC):
     first_launch_packets: int = 1 << 21
     #: overrides of ``TRANSPORT_TUNING`` for this backend (benchmarks)
     transport_tuning: dict = {}
-    #: a run finished on the device makes its light band by band during its last fold where
+    #: a run finished on the device makes its light as its last fold ends where
     #: it may (nebula_rt.transport.plan.light_while_folding); False: after the transport, all
     #: bands at once (the same bits; benchmarks compare the two)
     light_while_folding: bool = True

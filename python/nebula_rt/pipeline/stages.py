@@ -310,7 +310,7 @@ def compute_light(scene, density: np.ndarray, backend: Backend, progress=None, c
                              '"track-length" on an adaptive density (the collision filter smooths a uniform grid)')
         on_device = False
     # on the device, the sums are finished by finish_light_field, which takes the light the
-    # transport may make band by band as it folds (the copies start sooner)
+    # transport may make as its last fold ends (the copies start sooner)
     res = TransportRequest.from_scene(scene).trace(density, backend, progress=progress, cancel=cancel,
                                                   on_device=on_device, comm=comm, make_light=on_device)
     if t.estimator == "collision-filter":

@@ -47,8 +47,8 @@ class DeviceSums:
         (``session.M2_SCALE``).
     density : device array, float32, nx * ny * nz
     light : LightOutputs or None
-        The light the transport made from these sums while it folded (bands in order; the
-        relative error written over ``m2``): :func:`finish` takes it from there.
+        The light the transport made from these sums as its last fold ended (the relative
+        error written over ``m2``): :func:`finish` takes it from there.
     """
 
     backend: object
@@ -123,10 +123,10 @@ def _band_params(band_params, batches) -> np.ndarray:
 
 class LightOutputs:
     """J, its relative error and the emissivity of a run's device sums (float32 device arrays,
-    :func:`light_cells`), made band by band, each band's copies to the host started as soon
-    as it is made: so the transport can finish a band while it folds the next
-    (:func:`nebula_rt.transport.run.run_transport`), and the copies overlap the folds and the
-    host's work up to the colour pass, instead of starting after them.
+    ``light_cells`` of kernels/postprocess.cl), made by groups of bands in order, each group's
+    copies to the host started as soon as it is made: so the transport can make the light as
+    its last fold ends (:func:`nebula_rt.transport.run.run_transport`), and the copies
+    overlap the host's work up to the colour pass instead of starting after it.
 
     ``release``: the relative error is written over the centred sums of squares ``m2`` (the
     sums are spent afterwards). ``light``: (J, rel_error) already computed (filtered), as
@@ -224,7 +224,7 @@ def finish(ds: DeviceSums, band_params: np.ndarray, *, batches, collision: bool,
     Parameters
     ----------
     ds : DeviceSums
-        With ``ds.light`` (a :class:`LightOutputs` the transport made while it folded), J, the
+        With ``ds.light`` (a :class:`LightOutputs` the transport made as it folded), J, the
         error and the emissivity are taken from it; ``band_params`` and ``batches`` must then
         be the ones it was made with.
     band_params : ndarray (n_bands, 3)

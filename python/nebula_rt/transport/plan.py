@@ -457,7 +457,7 @@ class Tallies:
     #: the heavy-tail histograms' counts summed over the folded batches, uint64 (n_bands,
     #: histograms, TAIL_BINS): the image's, then J's depth classes (nebula_rt.transport.tails)
     tail_hist: Optional[np.ndarray] = None
-    #: the light made band by band as the last fold went (:func:`light_while_folding`), a
+    #: the light made as the last fold ended (:func:`light_while_folding`), a
     #: :class:`~nebula_rt.transport.finish.LightOutputs`, or None
     light: object = None
 
@@ -471,10 +471,10 @@ def light_while_folding(estimator: str, n_cells: int, spare_bytes: int, *, light
                         packets: bool = False, peel: bool = False, tree: bool = False,
                         targeted: bool = False) -> bool:
     """Whether a run whose sums are finished on the device makes its light (J, error,
-    emissivity: :class:`~nebula_rt.transport.finish.LightOutputs`) band by band during its
-    last fold, so that each band's copies to the host overlap the folds of the next bands and
-    the host's work up to the colour pass (the thesis headline's finishing started its
-    copies about 1.3 ms after its trace ended, and they took 1.5 ms). Only where the light
+    emissivity: :class:`~nebula_rt.transport.finish.LightOutputs`) as soon as its last fold
+    ends, in the transport, so that the copies to the host overlap the host's work up to the
+    colour pass (the thesis headline's finishing started its copies about 1.3 ms after its
+    trace ended, and they took 1.5 ms). Only where the light
     comes straight from the sums (the track-length estimator, without a filter), the run
     folds batches on the device (not the estimate by packets) and nothing reads the squares
     after the fold (no error target), without peel-off images or a tree, and where J and the

@@ -108,7 +108,7 @@ def estimate(scene, backend, peel_pixels: int = 0) -> Estimate:
         "region passes": region_bytes(backend, nvox, t.method == "biased"),
         # error-targeted runs: a brightness key per voxel and partial sums per 256 voxels
         "error checks": (4 * nvox + 16 * (nvox // 256 + 1)) if target > 0 else 0,
-        # J and the emissivity made band by band during the last fold (the error goes over
+        # J and the emissivity made as the last fold ends (the error goes over
         # the squares)
         "light made while folding": 8 * ncell if light_while_folding(
             t.estimator, ncell, spare_slot_bytes(backend, nvox, launches, cell), packets=packets,
