@@ -176,10 +176,14 @@ typedef nrt_u64 nrt_idx;
    the star's voxel (clipped by the grid's faces: cells outside it stay zero). Dropping the
    deposits into 3^3 / 5^3 / 17^3 voxels around the star made the thesis scene's kernel 10 / 13
    / 16 % faster on an H200 (NRT_PROBE_HOT_HALF; benchmarks/results/h200-2026-12-04c/): the
-   adds of every packet in flight to the same few addresses queue in the L2's atomic units. */
+   adds of every packet in flight to the same few addresses queue in the L2's atomic units.
+   Blocks of 7^3 (half 3): kernel packets per ms on an H100, thesis 128^3 / neb 128^3, 628k /
+   629k with 5^3, 635k / 637k with 7^3, 630k with 9^3, once the local adds were two 32-bit
+   atomics instead of a compare-and-swap loop (benchmarks/results/h100-2026-12-05c/; with the
+   loop, on an H200, 5^3 and 7^3 were equal). 11 KiB of local memory per group. */
 #define NRT_HOT_STARS 4
 #ifndef NRT_HOT_HALF
-#define NRT_HOT_HALF 2
+#define NRT_HOT_HALF 3
 #endif
 #define NRT_HOT_SIDE (2 * NRT_HOT_HALF + 1)
 #define NRT_HOT_CELLS (NRT_HOT_SIDE * NRT_HOT_SIDE * NRT_HOT_SIDE)
