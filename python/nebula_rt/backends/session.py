@@ -245,6 +245,9 @@ class DeviceTransport(TransportSession):
             if self.sorted:
                 self.d_keys = self._emission_order(self.d_keys, photon_start, count, first_batch, band0, n_lb)
             self._launch_trace(photon_start, count, first_batch, band0, n_lb)
+        work, self.while_tracing = self.while_tracing, None
+        if work is not None:  # host work that overlaps the launch
+            work()
         tallies = be.to_host(self.d_tallies).reshape(self.slots, self.bands_per_launch,
                                                      self.tally_words)  # synchronises
         overflow = be.to_host(self.d_overflow)

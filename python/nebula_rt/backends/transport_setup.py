@@ -221,6 +221,9 @@ class TransportSession(abc.ABC):
 
     slots: int = 1
     bands_per_launch: int = 1
+    #: a callable the next :meth:`run_group` calls once its launch is queued, before it waits for
+    #: the device: host work that overlaps the trace (then reset to None)
+    while_tracing = None
 
     @abc.abstractmethod
     def run_group(self, photon_start: int, count: int, batch_base: int, batch_extra: int,

@@ -202,6 +202,15 @@ def run_transport(plan: TransportPlan, backend: Backend, *, progress=None, cance
                                           light_field=setup.light_field, packets=setup.packet_sq,
                                           peel=plan.peel is not None, tree=setup.tree is not None,
                                           targeted=targeted))
+    if make_light:
+        def make_light_arrays():
+            """The light's arrays, made while the device traces the first launch rather than
+            after the last fold (or, on the host, before the first launch)."""
+            out.light = LightOutputs(backend, session.d_sum1, session.d_m2, session.d_density, shape, nb,
+                                     collision=False, release=True)
+            out.device_bytes += out.light.device_bytes  # (beside the slots and sums)
+
+        session.while_tracing = make_light_arrays
     deadline = t0 + plan.time_limit if plan.time_limit > 0 else math.inf
     done = 0  # packets per band traced (all bands)
     # several ranks: no rank stops on its own within a group (the others would wait for it)
@@ -268,10 +277,6 @@ def run_transport(plan: TransportPlan, backend: Backend, *, progress=None, cance
         if final and make_light:
             if setup.unchecked_adds and group[0] + group[1] == nb:  # (before the copies: see there)
                 session.read_overflow_seen()
-            if out.light is None:
-                out.light = LightOutputs(backend, session.d_sum1, session.d_m2, session.d_density, shape, nb,
-                                         collision=False, release=True)
-                out.device_bytes += out.light.device_bytes  # (beside the slots and sums)
             b0, nlb = group
             out.light.bands(b0, nlb, light_params(plan, band_done, folded)[b0:b0 + nlb])
 
@@ -420,7 +425,10 @@ def estimate_light(plan: TransportPlan, tallies: Tallies, backend: Backend, *, o
         raise ValueError("a run on a tree estimates J on the host (on_device=False)")
     elif on_device:
         s1, s2, d_rho = session.release_sums()
-        device_sums = DeviceSums(backend, shape, nb, s1, s2, d_rho, light=tallies.light)
+        light = tallies.light if tallies.light is not None and tallies.light.done else None
+        device_sums = DeviceSums(backend, shape, nb, s1, s2, d_rho, light=light)
+        if tallies.light is not None and light is None:  # (its arrays made, the light not: a
+            tallies.light.discard()  # batch traced again after the last fold, or a time limit)
         tallies.light = None
         J = rel = None
     else:
