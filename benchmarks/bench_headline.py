@@ -25,39 +25,22 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).parent))
 
+from profile_timeline import add_headline_arguments, headline_setup, synchronizer  # noqa: E402
 from provenance import provenance, save  # noqa: E402  (benchmarks/provenance.py)
-
-
-def synchronizer(backend):
-    if getattr(backend, "name", "") == "cuda":
-        import cupy as cp
-
-        return cp.cuda.Device().synchronize
-    return backend.queue.finish
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--backend", default="cuda")
-    ap.add_argument("--device", default="")
-    ap.add_argument("--scene", default=str(ROOT / "examples/scenes/thesis-default.toml"))
-    ap.add_argument("--grid", type=int, default=128)
-    ap.add_argument("--photons", type=float, default=2.1e6)
+    add_headline_arguments(ap)
     ap.add_argument("--repeats", type=int, default=15)
     ap.add_argument("--modes", nargs="+", default=["while", "after"], choices=["while", "after"])
     ap.add_argument("--label", default="as built", help="what the library on the path is (for the listing)")
     ap.add_argument("--out", default="")
     args = ap.parse_args(argv)
-    from nebula_rt.backends import get_backend
     from nebula_rt.pipeline import Pipeline
-    from nebula_rt.scene import Scene
 
-    backend = get_backend(args.backend, args.device)
+    backend, scene = headline_setup(args)
     sync = synchronizer(backend)
-    scene = Scene.load(args.scene).with_overrides(
-        [f"grid.shape=[{args.grid},{args.grid},{args.grid}]", f"transport.photons={int(args.photons)}",
-         f'transport.backend="{args.backend}"', f'transport.device="{args.device}"'])
-    Pipeline(backend).run(scene.with_overrides(["transport.photons=1000"]))  # compile, warm the pools
     for mode in args.modes:
         backend.light_while_folding = mode == "while"
         Pipeline(backend).run(scene)

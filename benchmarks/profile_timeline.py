@@ -176,16 +176,19 @@ def summary(run: dict) -> dict:
             "by_call": sorted(((k, n, t) for k, (n, t) in per.items()), key=lambda r: -r[2])}
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def add_headline_arguments(ap) -> None:
+    """The backend and the scene of a headline benchmark (the thesis scene at 128^3 with 2.1M
+    packets per band unless told otherwise)."""
     ap.add_argument("--backend", default="cuda")
     ap.add_argument("--device", default="")
     ap.add_argument("--scene", default=str(ROOT / "examples/scenes/thesis-default.toml"))
     ap.add_argument("--grid", type=int, default=128)
     ap.add_argument("--photons", type=float, default=2.1e6)
-    ap.add_argument("--list", type=int, default=60, help="calls of the run as issued to print in order")
-    ap.add_argument("--out", default="")
-    args = ap.parse_args(argv)
+
+
+def headline_setup(args):
+    """(backend, scene) of :func:`add_headline_arguments`' options, the kernels compiled and
+    the memory pools warmed by a run with 1000 packets per band."""
     from nebula_rt.backends import get_backend
     from nebula_rt.pipeline import Pipeline
     from nebula_rt.scene import Scene
@@ -195,6 +198,18 @@ def main(argv=None) -> int:
         [f"grid.shape=[{args.grid},{args.grid},{args.grid}]", f"transport.photons={int(args.photons)}",
          f'transport.backend="{args.backend}"', f'transport.device="{args.device}"'])
     Pipeline(backend).run(scene.with_overrides(["transport.photons=1000"]))  # compile, warm the pools
+    return backend, scene
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_headline_arguments(ap)
+    ap.add_argument("--list", type=int, default=60, help="calls of the run as issued to print in order")
+    ap.add_argument("--out", default="")
+    args = ap.parse_args(argv)
+    from nebula_rt.pipeline import Pipeline
+
+    backend, scene = headline_setup(args)
     Pipeline(backend).run(scene)
     out = {"benchmark": "profile_timeline", "date": time.strftime("%Y-%m-%d %H:%M:%S"), **provenance(),
            "device": backend.device_name, "command": " ".join(sys.argv), "grid": args.grid,
