@@ -164,6 +164,12 @@ class LightOutputs:
         self.hosts = [be.host_empty((self.n_bands, nz, ny, nx), np.float32) for _ in range(3)]
         self.copies: list = []
         self.done = 0  # bands made so far (in order)
+        self.d_params = None  # the parameters on the device, once uploaded
+
+    def preset(self, params) -> None:
+        """Set every band's parameters and upload them now (while the device traces)."""
+        self.params[:] = params
+        self.d_params = self.backend.to_device(self.params)
 
     @property
     def device_bytes(self) -> int:
@@ -174,13 +180,17 @@ class LightOutputs:
 
     def bands(self, b0: int, count: int, params=None) -> None:
         """Make bands ``b0 .. b0 + count - 1`` (the next ones; ``params``: their rows of the
-        band parameters, where the constructor had none) and start their copies."""
+        band parameters, where neither the constructor nor :meth:`preset` gave them) and
+        start their copies."""
         if b0 != self.done or b0 + count > self.n_bands:
             raise ValueError(f"bands {b0}..{b0 + count - 1} out of order (made: {self.done} of {self.n_bands})")
         if params is not None:
             self.params[b0:b0 + count] = params
+            self.d_params = None
         be, nvox = self.backend, self.nvox
-        d_params = be.to_device(self.params)
+        if self.d_params is None:
+            self.d_params = be.to_device(self.params)
+        d_params = self.d_params
         lo, hi = b0 * nvox, (b0 + count) * nvox
         emis = self.emis32 is not None
         be.launch("postprocess.cl", "light_cells", hi - lo, self.s1, self.m2, self.j64, self.r64, self.density,

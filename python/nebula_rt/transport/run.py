@@ -209,6 +209,9 @@ def run_transport(plan: TransportPlan, backend: Backend, *, progress=None, cance
             out.light = LightOutputs(backend, session.d_sum1, session.d_m2, session.d_density, shape, nb,
                                      collision=False, release=True)
             out.device_bytes += out.light.device_bytes  # (beside the slots and sums)
+            # the parameters of a run whose every batch folds (the only run whose light is made
+            # in the transport: fold_group checks them against the counts)
+            out.light.preset(light_params(plan, np.full(nb, photons), np.full(nb, len(batches))))
 
         session.while_tracing = make_light_arrays
     deadline = t0 + plan.time_limit if plan.time_limit > 0 else math.inf
@@ -272,13 +275,16 @@ def run_transport(plan: TransportPlan, backend: Backend, *, progress=None, cance
         host started)."""
         final = last and not redo and not np.any(overflow[:n])
         session.fold(n, group, int(folded[group[0]]), packets=sum(c for _, c in ranges), clear=not final)
+        b0, nlb = group
+        if final and make_light:  # the light's launch and copies first, the host's bookkeeping after
+            if setup.unchecked_adds and b0 + nlb == nb:  # (before the copies: see there)
+                session.read_overflow_seen()
+            out.light.bands(b0, nlb)
         images = session.take_images(n, group)[:len(ranges)] if plan.peel is not None else None
         take(tallies, overflow, images, ranges, group)
-        if final and make_light:
-            if setup.unchecked_adds and group[0] + group[1] == nb:  # (before the copies: see there)
-                session.read_overflow_seen()
-            b0, nlb = group
-            out.light.bands(b0, nlb, light_params(plan, band_done, folded)[b0:b0 + nlb])
+        if final and make_light and not np.array_equal(out.light.params[b0:b0 + nlb],
+                                                       light_params(plan, band_done, folded)[b0:b0 + nlb]):
+            raise RuntimeError("the light was made with band parameters other than the run's")
 
     try:
         # batches in groups of consecutive ones, each group's bands traced in one or more
