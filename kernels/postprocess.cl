@@ -344,6 +344,15 @@ NRT_KERNEL void key_histogram_low(const NRT_GLOBAL float *key, nrt_u64 n, const 
    histograms (their chunk sums side by side in chunks), into dsel[1] (-1: no positive key; a
    level is positive), and the exposure 1 / level (1 where there is no positive level) into
    dsel[2], where pass 1 of finish_voxels reads it. */
+/* The value of a non-negative finite float32 key's bit pattern as a double, formed from its
+   significand and exponent in integers: a float-to-double conversion of a denormal key gives 0
+   where the compiler flushes denormals (CUDA's build does). */
+NRT_DEVICE double nrt_key_value(nrt_u32 bits)
+{
+    nrt_u32 e = (bits >> 23) & 0xFFu, m = bits & 0x7FFFFFu;
+    return e == 0u ? ldexp((double)m, -149) : ldexp((double)(m | 0x800000u), (int)e - 150);
+}
+
 NRT_KERNEL void select_level(const NRT_GLOBAL nrt_u32 *hist, const NRT_GLOBAL nrt_u32 *chunks,
                              const NRT_GLOBAL nrt_u64 *sel, NRT_GLOBAL double *dsel)
 {
@@ -352,7 +361,7 @@ NRT_KERNEL void select_level(const NRT_GLOBAL nrt_u32 *hist, const NRT_GLOBAL nr
     double v[2];
     for (int r = 0; r < 2; ++r) { /* (every item reaches every barrier, as in select_rank_bins) */
         nrt_rank_bin(hist + (nrt_u64)r * NRT_KEY_BINS, chunks + (nrt_u64)r * NRT_CHUNKS, sel[3 + 2 * r], l_bins, l_pos);
-        v[r] = (double)NRT_UINT_AS_FLOAT(((nrt_u32)sel[2 + 2 * r] << 16) | (nrt_u32)l_pos[0]);
+        v[r] = nrt_key_value(((nrt_u32)sel[2 + 2 * r] << 16) | (nrt_u32)l_pos[0]);
     }
     if (NRT_LOCAL_ID() != 0)
         return;
