@@ -209,7 +209,7 @@ class LightOutputs:
             return
         be, n = self.backend, self.n_bands * self.nvox
         self.emis32 = be.device_zeros(n, np.float32)
-        be.launch("postprocess.cl", "emissivity_cells", n, self.J32, self.density, be.to_device(self.params),
+        be.launch("postprocess.cl", "emissivity_cells", n, self.J32, self.density, self.d_params,
                   np.uint64(self.nvox), np.uint64(0), np.uint64(n), self.emis32)
         self.copies.append(be.to_host_async(self.emis32, self.hosts[2].reshape(-1)))
 
@@ -275,7 +275,7 @@ def finish(ds: DeviceSums, band_params: np.ndarray, *, batches, collision: bool,
                             light=light, params=params, emissivity_now=False)
         outs.bands(0, nb)
     c = colour
-    d_params = be.to_device(params)
+    d_params = outs.d_params  # (uploaded by outs.bands: the same parameters)
     d_rgb = be.to_device(np.ascontiguousarray(c.to_rgb, np.float64) if c else np.zeros(3 * nb))
     sums_bytes = 0 if ds.sum1 is None else 12 * n
     # (J and, made while the transport folded, the emissivity beside the sums)

@@ -158,8 +158,8 @@ def run_transport(plan: TransportPlan, backend: Backend, *, progress=None, cance
     device sums, until every batch is in, the error target is met or the time limit
     (counted from ``started``) comes. Returns the :class:`Tallies`; its session stays open.
     ``make_light``: the sums will be finished on the device; where
-    :func:`~nebula_rt.transport.plan.light_while_folding` allows, the last fold goes band by
-    band and makes each band's light as it is folded (``Tallies.light``).
+    :func:`~nebula_rt.transport.plan.light_while_folding` allows, the light is made as the
+    last fold ends and its copies to the host started (``Tallies.light``).
 
     ``comm`` (:mod:`nebula_rt.backends.parallel`) with several ranks: each rank traces its share of
     every group's packets, the ranks' slots and tallies are added before each fold, and the
@@ -205,7 +205,7 @@ def run_transport(plan: TransportPlan, backend: Backend, *, progress=None, cance
     if make_light:
         def make_light_arrays():
             """The light's arrays, made while the device traces the first launch rather than
-            after the last fold (or, on the host, before the first launch)."""
+            after the last fold."""
             out.light = LightOutputs(backend, session.d_sum1, session.d_m2, session.d_density, shape, nb,
                                      collision=False, release=True)
             out.device_bytes += out.light.device_bytes  # (beside the slots and sums)
