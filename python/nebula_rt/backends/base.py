@@ -318,6 +318,11 @@ class Backend(abc.ABC):
         (The kernels exposed for tests and diagnostics run through this:
         :mod:`nebula_rt.backends.probes`.)"""
 
+    def trace_local_size(self, prog_name: str, kernel_name: str, defines: dict | None = None) -> int:
+        """Work items per group that :meth:`launch_trace` gives ``kernel_name`` (the binned
+        deposits size their per-group buffers by it)."""
+        raise NotImplementedError(f"{type(self).__name__} launches with the runtime's group size")
+
     def launch_trace(self, prog_name: str, kernel_name: str, n: int, *args, defines: dict | None = None) -> None:
         """Run the transport kernel over ``n`` packets, in the work-group size and grid the
         backend traces best with. Default: :meth:`launch`."""

@@ -233,6 +233,10 @@ class CUDABackend(Backend):
     def launch(self, prog_name, kernel_name, n, *args, defines=None):
         self.kernel(prog_name, kernel_name, defines)(_grid(max(int(n), 1)), (BLOCK,), args)
 
+    def trace_local_size(self, prog_name, kernel_name, defines=None) -> int:
+        """Threads per block ``launch_trace`` gives kernel ``kernel_name``."""
+        return int(self.trace_block)
+
     def launch_trace(self, prog_name, kernel_name, n, *args, defines=None):
         tb = self.trace_block
         k = self.kernel(prog_name, kernel_name, defines)

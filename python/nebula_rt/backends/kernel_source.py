@@ -30,8 +30,8 @@ def read_kernel_file(name: str) -> str:
 def kernel_source(name: str) -> str:
     """Return kernel ``name`` (e.g. ``"transport.cl"``) with its local includes inlined."""
 
-    def _inline(match: re.Match) -> str:
-        return read_kernel_file(match.group(1))
+    def _inline(match: re.Match) -> str:  # (nested: binned.cl includes transport.cl, which includes the header)
+        return _INCLUDE.sub(_inline, read_kernel_file(match.group(1)))
 
     text = _INCLUDE.sub(_inline, read_kernel_file(name))
     text = text.replace("/* NRT_PARAM_STRUCTS */", kernel_params.all_structs())

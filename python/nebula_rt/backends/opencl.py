@@ -409,10 +409,15 @@ class OpenCLBackend(Backend):
         args = [a.data if isinstance(a, array_type) else a for a in args]
         self.kernel(prog_name, kernel_name, defines)(self.queue, (max(int(n), 1),), None, *args)
 
+    def trace_local_size(self, prog_name, kernel_name, defines=None) -> int:
+        """Work items per group ``launch_trace`` gives kernel ``kernel_name``."""
+        k = self.kernel(prog_name, kernel_name, defines)
+        most = k.get_work_group_info(cl.kernel_work_group_info.WORK_GROUP_SIZE, self.device)
+        return int(min(self.TRACE_LOCAL_SIZE, most))
+
     def launch_trace(self, prog_name, kernel_name, n, *args, defines=None):
         array_type = _cl_array().Array
         args = [a.data if isinstance(a, array_type) else a for a in args]
         k = self.kernel(prog_name, kernel_name, defines)
-        most = k.get_work_group_info(cl.kernel_work_group_info.WORK_GROUP_SIZE, self.device)
-        local = int(min(self.TRACE_LOCAL_SIZE, most))
+        local = self.trace_local_size(prog_name, kernel_name, defines)
         k(self.queue, (self.work_items(max(int(n), 1), local),), (local,), *args)

@@ -28,6 +28,7 @@ from . import kernel_params
 from ..array_api import to_numpy
 from .regions import (NO_REGIONS, MAX_REGION_PASSES, LOCAL_SORT_BINS, EMISSION_MAX_BINS, packet_state_bytes,
                       region_shift_of, region_state_bytes)
+from .binned import BinnedDeposits
 from .transport_setup import TransportSession, TransportSetup, transport_defines
 
 #: centred sums of squares are stored as float32 x 2^-64 (kernels/transport.cl)
@@ -141,12 +142,13 @@ class DeviceTransport(TransportSession):
         self.d_image = be.device_zeros(max(1, self.image_stokes + self.slots * self.bands_per_launch * self.stokes_words),
                                        np.uint64)
         tuning = dict(be.transport_tuning)
-        if setup.tree is not None:
-            tuning["NRT_SORTED"] = 0  # (the emission order's keys are a grid's)
+        binned = int(tuning.pop("binned_deposits", 0))
+        if setup.tree is not None or binned:
+            tuning["NRT_SORTED"] = 0  # (the emission order's keys are a grid's; binned: no walk)
         elif "NRT_SORTED" not in tuning and self.nvox >= getattr(be, "sort_min_voxels", 0) > 0:
             tuning["NRT_SORTED"] = 1  # large grids: a warp's first flights side by side
         # (regions keep the deposits of a pass in cache: without deposits, none)
-        self.region_shift = region_shift_of(be, setup, tuning) if setup.light_field else 0
+        self.region_shift = region_shift_of(be, setup, tuning) if setup.light_field and not binned else 0
         if self.region_shift and "NRT_REGIONS" not in tuning:
             # larger regions where the bins of every cell and region would pass the sort's
             # local bins (e.g. three bands at 1024^3), whose counts would go key by key
@@ -174,6 +176,8 @@ class DeviceTransport(TransportSession):
                  + (("emission_keys",) if self.sorted else ()))
         for name in names + (("counting_sort_pass", "scan_bins") if self.region_shift or self.sorted else ()):
             be.kernel(be.transport_program, name, self.defines)
+        #: binned deposits (backends/binned.py) trace the launches instead of trace_photons
+        self.binned = BinnedDeposits(self, direct=binned == 2) if binned else None
 
     def _region_bins(self, shift: int) -> int:
         """Bins of the region sort: one per cell (slot and band) and region of 2^shift voxels
@@ -239,7 +243,9 @@ class DeviceTransport(TransportSession):
             be.fill_zero(self.d_tallies)
             be.fill_zero(self.d_overflow)
             self._stream = None  # packets of an abandoned group (a cancelled run) are dropped
-        if self.region_shift:
+        if self.binned is not None:
+            self.binned.run(int(photon_start), int(count), int(first_batch), int(band0), int(n_lb))
+        elif self.region_shift:
             self._trace_by_regions(int(photon_start), int(count), first_batch, band0, n_lb, drain)
         else:
             if self.sorted:

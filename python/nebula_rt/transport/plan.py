@@ -16,6 +16,7 @@ from ..optics.mie import mie_bands
 from ..optics.polarization import OWN_OPTICS
 from .. import limits
 from ..backends import Backend, TransportSetup
+from ..backends.binned import enabled as binned_deposits
 from ..backends.capacity import region_bytes
 from ..backends.regions import region_capacity
 from ..density.octree import Octree
@@ -351,7 +352,9 @@ def plan_launches(photons: int, batch_size: int, targeted: bool, shape, n_bands:
 
     if resolve_error_estimate(error_estimate, biased=cell_bytes == 16, peel=peel, targeted=targeted,
                               time_limit=time_limit, batch_size=batch_size, launches=launches, scales=scales,
-                              nvox=nvox, in_flight=region_capacity(backend, nvox, cell_bytes == 16, stokes > 1),
+                              # (binned deposits: no regions, so "auto" takes batches)
+                              nvox=nvox, in_flight=0 if binned_deposits(backend) else
+                              region_capacity(backend, nvox, cell_bytes == 16, stokes > 1),
                               scatter_depth=scatter_depth,
                               fraction=getattr(backend, "auto_packets_fraction", AUTO_PACKETS_BATCH_FRACTION)):
         return LaunchPlan(BatchPlan(int(photons), 1), 0, int(n_bands), 1, int(n_bands), scales)

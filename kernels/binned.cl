@@ -1,0 +1,330 @@
+/*
+ * Binned deposits (the backend's transport tuning "deposits": "binned"; docs/physics.md): the
+ * track-length estimator of analog packets on a grid, with the flights sampled by delta
+ * tracking instead of a walk through the voxels, and their track lengths added block by block
+ * in local memory instead of one global atomic add per voxel visit.
+ *
+ * Why: the walk's global adds are its limit (benchmarks/results/h100-2026-12-05d: the same
+ * visits added with the same atomics but no walk ran no faster), and from 256^3 up binning them
+ * by block went 2-3x past it.
+ *
+ * How, for one cell (batch slot and band) of a launch, packets photon_start .. + count:
+ *   - a flight is sampled by delta tracking (Woodcock) against each block's largest density
+ *     (blocks of NRT_BLOCK^3 voxels, rho_max): a tentative collision at the block's majorant
+ *     is real with probability rho / rho_max, else the flight goes on; where a block's density
+ *     is uniform every tentative collision is real;
+ *   - the flight is cut where it crosses a block face; each piece (start, length, direction:
+ *     a 32-byte record) belongs to one block;
+ *   - NRT_BIN_MODE 0 (count): each work group counts its pieces per block (local memory, or
+ *     its own row of `ghist` where the blocks pass NRT_BIN_LOCAL), then adds its counts to the
+ *     blocks' totals, keeping the offsets (group_off) the totals had;
+ *   - NRT_BIN_MODE 1 (write): the same walk (the same random numbers: the same pieces) writes
+ *     each record at its block's bucket start + the group's offset + its running count;
+ *   - NRT_BIN_MODE 2 (direct): each piece drawn at once with a global atomic add per visit
+ *     (the check of the other two: the same sums, bit for bit);
+ *   - binned_draw: one work group per chunk of a block's records draws them into the block's
+ *     cells in local memory (64-bit sums as two 32-bit words with the carry), then adds each
+ *     nonzero cell to the slot once (checked against the headroom).
+ * Every visit's deposit is nrt_fixed(length, track_scale), and integer sums do not depend on
+ * the order: the same bits for any launch split, device or number of ranks. The random numbers
+ * are spent differently from the walk's (kernels/transport.cl), so the two give different bits
+ * for the same seed, each an unbiased estimate of the same J.
+ */
+#include "transport.cl"
+
+#ifndef NRT_BIN_MODE
+#define NRT_BIN_MODE 0
+#endif
+#ifndef NRT_BLOCK
+#define NRT_BLOCK 16
+#endif
+/* blocks per axis (ceil(n / NRT_BLOCK)) and in all */
+#define NRT_BX ((NRT_NX + NRT_BLOCK - 1) / NRT_BLOCK)
+#define NRT_BY ((NRT_NY + NRT_BLOCK - 1) / NRT_BLOCK)
+#define NRT_BZ ((NRT_NZ + NRT_BLOCK - 1) / NRT_BLOCK)
+#define NRT_NBLOCKS (NRT_BX * NRT_BY * NRT_BZ)
+#define NRT_BLOCK_CELLS (NRT_BLOCK * NRT_BLOCK * NRT_BLOCK)
+#ifndef NRT_BIN_GLOBAL
+#define NRT_BIN_GLOBAL 0 /* 1: the groups' counts per block in global memory (ghist) */
+#endif
+#define NRT_REC_WORDS 8
+
+/* a record as two 16-byte stores and loads (records start at multiples of 32 bytes) */
+#if defined(__OPENCL_VERSION__)
+#define NRT_STORE4(ptr, a, b, c, d) vstore4((float4)((a), (b), (c), (d)), 0, (ptr))
+#define NRT_LOAD4(ptr) vload4(0, (ptr))
+#else
+#define NRT_STORE4(ptr, a, b, c, d) (*(float4 *)(ptr) = make_float4((a), (b), (c), (d)))
+#define NRT_LOAD4(ptr) (*(const float4 *)(ptr))
+#endif
+
+NRT_DEVICE int nrt_clampi(int v, int lo, int hi)
+{
+    return v < lo ? lo : (v > hi ? hi : v);
+}
+
+/*
+ * The visits of the piece from p along d of length len (box units) inside block (bx, by, bz):
+ * a DDA from p's voxel (clamped into the block and the grid: p lies on the block's face up to
+ * rounding), each visit's deposit v = nrt_fixed(length, scale) handed to DEPOSIT with its voxel
+ * (ix, iy, iz). A step out of the block or the grid by rounding ends the piece (what is left,
+ * below a float32 ulp of len, is not added).
+ */
+#define NRT_DRAW_PIECE(DEPOSIT)                                                                   \
+    do {                                                                                          \
+        const int x0 = bx * NRT_BLOCK, y0 = by * NRT_BLOCK, z0 = bz * NRT_BLOCK;                  \
+        const int x1 = min(x0 + NRT_BLOCK, NRT_NX), y1 = min(y0 + NRT_BLOCK, NRT_NY),             \
+                  z1 = min(z0 + NRT_BLOCK, NRT_NZ);                                               \
+        const float inv0 = 1.0f / d0, inv1 = 1.0f / d1, inv2 = 1.0f / d2;                         \
+        int ix = nrt_clampi((int)floor(p0 * (float)NRT_NX), x0, x1 - 1);                          \
+        int iy = nrt_clampi((int)floor(p1 * (float)NRT_NY), y0, y1 - 1);                          \
+        int iz = nrt_clampi((int)floor(p2 * (float)NRT_NZ), z0, z1 - 1);                          \
+        float tx = nrt_face_distance(p0, d0, inv0, ix, hx);                                       \
+        float ty = nrt_face_distance(p1, d1, inv1, iy, hy);                                       \
+        float tz = nrt_face_distance(p2, d2, inv2, iz, hz);                                       \
+        float t_cur = 0.0f;                                                                       \
+        for (;;) {                                                                                \
+            float t_next = fmin(tx, fmin(ty, tz));                                                \
+            int end = t_next >= len;                                                              \
+            float t_end = end ? len : t_next;                                                     \
+            nrt_u64 v = nrt_fixed(fmax(0.0f, t_end - t_cur), scale);                              \
+            DEPOSIT;                                                                              \
+            if (end)                                                                              \
+                break;                                                                            \
+            t_cur = t_end;                                                                        \
+            int on_x = tx <= ty && tx <= tz;                                                      \
+            int on_y = !on_x && ty <= tz;                                                         \
+            int ax = on_x ? 0 : (on_y ? 1 : 2);                                                   \
+            float d_ax = on_x ? d0 : (on_y ? d1 : d2);                                            \
+            int i_next = (on_x ? ix : (on_y ? iy : iz)) + (d_ax > 0.0f ? 1 : -1);                 \
+            if (i_next < (on_x ? x0 : (on_y ? y0 : z0)) || i_next >= (on_x ? x1 : (on_y ? y1 : z1))) \
+                break;                                                                            \
+            const float p_[3] = {p0, p1, p2}, inv_[3] = {inv0, inv1, inv2};                       \
+            nrt_cross_face(ax, i_next, p_, d_ax, inv_, hx, hy, hz, &ix, &iy, &iz, &tx, &ty, &tz); \
+        }                                                                                         \
+    } while (0)
+
+NRT_DEVICE void nrt_draw_global(NRT_GLOBAL nrt_u64 *band_acc, NRT_GLOBAL nrt_u32 *overflow, int bx, int by,
+                                int bz, float p0, float p1, float p2, float d0, float d1, float d2, float len,
+                                float scale, float hx, float hy, float hz)
+{
+    NRT_DRAW_PIECE(nrt_acc_add_checked(&band_acc[nrt_voxel_index(ix, iy, iz, NRT_NX, NRT_NY)], v, overflow));
+}
+
+NRT_DEVICE void nrt_draw_local(NRT_LOCAL nrt_u64 *cells, int bx, int by, int bz, float p0, float p1, float p2,
+                               float d0, float d1, float d2, float len, float scale, float hx, float hy, float hz)
+{
+    NRT_DRAW_PIECE(nrt_local_add(&cells[((iz - z0) * NRT_BLOCK + (iy - y0)) * NRT_BLOCK + (ix - x0)], v));
+}
+
+/* One piece of a flight in block b from q along d for len: counted, written or drawn. */
+#if NRT_BIN_MODE == 2
+#define NRT_PIECE(b, q0, q1, q2, len_)                                                                       \
+    nrt_draw_global(band_acc, overflow + slot, (b)[0], (b)[1], (b)[2], (q0), (q1), (q2), d[0], d[1], d[2], \
+                    (len_), track_scale, hx, hy, hz)
+#else
+#define NRT_PIECE(b, q0, q1, q2, len_)                                                                     \
+    do {                                                                                                   \
+        int blk_ = ((b)[2] * NRT_BY + (b)[1]) * NRT_BX + (b)[0];                                           \
+        nrt_u32 slot_ = NRT_HIST_ADD(blk_);                                                                \
+        NRT_WRITE_RECORD(blk_, slot_, (q0), (q1), (q2), (len_));                                           \
+    } while (0)
+#if NRT_BIN_MODE == 1
+#define NRT_WRITE_RECORD(blk, k, q0, q1, q2, len_)                                                         \
+    do {                                                                                                   \
+        NRT_GLOBAL float *r_ = rec + (nrt_u64)NRT_REC_WORDS * ((nrt_u64)bucket[blk] + my_off[blk] + (k));  \
+        NRT_STORE4(r_, q0, q1, q2, len_);                                                                  \
+        NRT_STORE4(r_ + 4, d[0], d[1], d[2], 0.0f);                                                        \
+    } while (0)
+#else
+#define NRT_WRITE_RECORD(blk, k, q0, q1, q2, len_) ((void)(k))
+#endif
+#endif
+
+/*
+ * The walk of packets photon_start .. photon_start + count - 1 of band `band`, all of batch
+ * slot `slot` (cell = slot * n_lbands + band offset: tallies and, direct, deposits). One work
+ * item per packet.
+ */
+NRT_KERNEL void binned_walk(const NRT_GLOBAL nrt_trace_params *prm, nrt_u64 photon_start, nrt_u64 count, int band,
+                            nrt_u64 cell, nrt_u64 slot, const NRT_GLOBAL float *density,
+                            const NRT_GLOBAL float *rho_max, const NRT_GLOBAL float *optics,
+                            const NRT_GLOBAL float *stars, const NRT_GLOBAL float *star_cdf,
+                            NRT_GLOBAL nrt_u64 *acc, NRT_GLOBAL nrt_u64 *tallies, NRT_GLOBAL nrt_u32 *overflow,
+                            NRT_GLOBAL nrt_u32 *block_count, NRT_GLOBAL nrt_u32 *group_off,
+                            const NRT_GLOBAL nrt_u32 *bucket, NRT_GLOBAL float *rec, NRT_GLOBAL nrt_u32 *ghist)
+{
+    const nrt_u64 group = NRT_GROUP_FIRST_ID() / NRT_LOCAL_SIZE();
+    NRT_LOCAL_MEM nrt_u64 l_tally[4];
+#if NRT_BIN_MODE != 2 && !NRT_BIN_GLOBAL
+    NRT_LOCAL_MEM nrt_u32 hist[NRT_NBLOCKS];
+    for (int b = (int)NRT_LOCAL_ID(); b < NRT_NBLOCKS; b += (int)NRT_LOCAL_SIZE())
+        hist[b] = 0;
+#define NRT_HIST_ADD(blk) NRT_ATOMIC_ADD_U32_LOCAL(&hist[blk], 1u)
+#define NRT_HIST_READ(blk) hist[blk]
+    (void)ghist;
+#else
+    /* the group's own row of counts (count) or running slots (write), zeroed by the host */
+    NRT_GLOBAL nrt_u32 *my_hist = ghist + group * NRT_NBLOCKS;
+#define NRT_HIST_ADD(blk) NRT_ATOMIC_ADD_U32(&my_hist[blk], 1u)
+#define NRT_HIST_READ(blk) NRT_ATOMIC_ADD_U32(&my_hist[blk], 0u)
+#endif
+    for (nrt_u64 i = NRT_LOCAL_ID(); i < 4; i += NRT_LOCAL_SIZE())
+        l_tally[i] = 0;
+    NRT_BARRIER();
+#if NRT_BIN_MODE == 1
+    const NRT_GLOBAL nrt_u32 *my_off = group_off + group * NRT_NBLOCKS;
+#endif
+    const nrt_u64 nvox = prm->cells, seed = prm->seed;
+    const int n_stars = prm->n_stars, max_scatterings = prm->max_scatterings;
+    const float track_scale = prm->track_scale;
+    const float hx = 1.0f / (float)NRT_NX, hy = 1.0f / (float)NRT_NY, hz = 1.0f / (float)NRT_NZ;
+    const float bh[3] = {(float)NRT_BLOCK * hx, (float)NRT_BLOCK * hy, (float)NRT_BLOCK * hz};
+    const int bmax[3] = {NRT_BX - 1, NRT_BY - 1, NRT_BZ - 1};
+    const float sig_b = optics[4 * band], alb_b = optics[4 * band + 1], g_b = optics[4 * band + 2];
+    NRT_GLOBAL nrt_u64 *band_acc = acc + cell * nvox;
+    (void)band_acc, (void)overflow, (void)block_count, (void)group_off, (void)bucket, (void)rec, (void)track_scale;
+    const nrt_u64 it = NRT_GLOBAL_ID();
+    if (it < count) {
+        const nrt_u64 photon = photon_start + it;
+        nrt_rng rng;
+        nrt_rng_init(&rng, seed, (nrt_u64)band, photon);
+        int s = nrt_choose_star(&rng, star_cdf + band * n_stars, n_stars);
+        float p[3] = {stars[4 * s], stars[4 * s + 1], stars[4 * s + 2]}, d[3];
+        nrt_sample_isotropic(&rng, d);
+        nrt_local_count(&l_tally[0]);
+        int scatterings = 0;
+        for (;;) {
+            const float inv[3] = {1.0f / d[0], 1.0f / d[1], 1.0f / d[2]};
+            /* the box's exit */
+            float t_exit = NRT_INF_F;
+            for (int a = 0; a < 3; ++a) {
+                float f = d[a] > 0.0f ? 1.0f : 0.0f;
+                t_exit = fabs(d[a]) > 0.0f ? fmin(t_exit, (f - p[a]) * inv[a]) : t_exit;
+            }
+            t_exit = fmax(t_exit, 0.0f);
+            int b[3];
+            float tb[3];
+            for (int a = 0; a < 3; ++a) {
+                b[a] = nrt_clampi((int)floor(p[a] / bh[a]), 0, bmax[a]);
+                tb[a] = nrt_face_distance(p[a], d[a], inv[a], b[a], bh[a]);
+            }
+            /* delta tracking block by block: len is where the flight ends (the box's exit
+               unless a real collision comes first) */
+            float len = t_exit, t = 0.0f, t0 = 0.0f;
+            int escaped = 1;
+            for (;;) {
+                const float t_next = fmin(tb[0], fmin(tb[1], tb[2]));
+                const float rmax = rho_max[(b[2] * NRT_BY + b[1]) * NRT_BX + b[0]];
+                const float t_end = fmin(t_next, t_exit);
+                if (sig_b * rmax > 0.0f) {
+                    const float inv_maj = 1.0f / (sig_b * rmax);
+                    for (;;) {
+                        t += nrt_sample_tau(&rng) * inv_maj;
+                        if (t >= t_end)
+                            break;
+                        float q[3] = {p[0] + d[0] * t, p[1] + d[1] * t, p[2] + d[2] * t};
+                        int vx = nrt_clampi((int)floor(q[0] * (float)NRT_NX), b[0] * NRT_BLOCK,
+                                            min(b[0] * NRT_BLOCK + NRT_BLOCK, NRT_NX) - 1);
+                        int vy = nrt_clampi((int)floor(q[1] * (float)NRT_NY), b[1] * NRT_BLOCK,
+                                            min(b[1] * NRT_BLOCK + NRT_BLOCK, NRT_NY) - 1);
+                        int vz = nrt_clampi((int)floor(q[2] * (float)NRT_NZ), b[2] * NRT_BLOCK,
+                                            min(b[2] * NRT_BLOCK + NRT_BLOCK, NRT_NZ) - 1);
+                        float rho = density[nrt_voxel_index(vx, vy, vz, NRT_NX, NRT_NY)];
+                        if (nrt_rng_uniform(&rng) * rmax < rho) {
+                            len = t, escaped = 0;
+                            break;
+                        }
+                    }
+                }
+                if (escaped)
+                    t = t_end; /* (memoryless: the overshoot dropped, the next block samples afresh) */
+                const float t1 = fmin(t_next, len);
+                if (t1 > t0)
+                    NRT_PIECE(b, p[0] + d[0] * t0, p[1] + d[1] * t0, p[2] + d[2] * t0, t1 - t0);
+                if (t_next >= len)
+                    break;
+                t0 = t1;
+                int on_x = tb[0] <= tb[1] && tb[0] <= tb[2];
+                int on_y = !on_x && tb[1] <= tb[2];
+                int a = on_x ? 0 : (on_y ? 1 : 2);
+                int nb = b[a] + (d[a] > 0.0f ? 1 : -1);
+                if (nb < 0 || nb > bmax[a])
+                    break; /* (rounding: the box's exit a hair beyond the last block's face) */
+                b[a] = nb;
+                tb[a] = nrt_face_distance(p[a], d[a], inv[a], nb, bh[a]);
+            }
+            if (escaped) {
+                nrt_local_count(&l_tally[2]);
+                break;
+            }
+            p[0] = p[0] + d[0] * len, p[1] = p[1] + d[1] * len, p[2] = p[2] + d[2] * len;
+            /* scatter with probability albedo (analog Russian roulette), else absorbed */
+            if (nrt_rng_uniform(&rng) >= alb_b) {
+                nrt_local_count(&l_tally[1]);
+                break;
+            }
+            if (scatterings >= max_scatterings) {
+                nrt_local_count(&l_tally[3]);
+                break;
+            }
+            ++scatterings;
+            float mu, st;
+            nrt_sample_hg(g_b, nrt_rng_uniform(&rng), &mu, &st);
+            nrt_rotate(d, mu, st, 2.0f * NRT_PI_F * nrt_rng_uniform(&rng));
+        }
+    }
+    NRT_BARRIER();
+#if NRT_BIN_MODE != 1 /* (the writing walk repeats the counting walk's packets) */
+    for (nrt_u64 i = NRT_LOCAL_ID(); i < 4; i += NRT_LOCAL_SIZE())
+        if (l_tally[i] != 0)
+            NRT_ATOMIC_ADD_U64(&tallies[NRT_TALLY_WORDS * cell + i], l_tally[i]);
+#endif
+#if NRT_BIN_MODE == 0
+    for (int b = (int)NRT_LOCAL_ID(); b < NRT_NBLOCKS; b += (int)NRT_LOCAL_SIZE()) {
+        nrt_u32 c = NRT_HIST_READ(b);
+        group_off[group * NRT_NBLOCKS + b] = c ? NRT_ATOMIC_ADD_U32(&block_count[b], c) : 0u;
+    }
+#endif
+}
+
+/*
+ * Draw chunks k = group, group + groups, ... < n_chunks: chunk k is records chunk_start[k] ..
+ * + chunk_len[k] (at most NRT_CHUNK) of block chunk_block[k], into the block's cells in local
+ * memory, then added to cell `cell`'s slot (band_acc) once, checked against the headroom.
+ */
+NRT_KERNEL void binned_draw(const NRT_GLOBAL nrt_trace_params *prm, nrt_u64 cell, nrt_u64 slot,
+                            const NRT_GLOBAL nrt_u32 *chunk_block, const NRT_GLOBAL nrt_u32 *chunk_start,
+                            const NRT_GLOBAL nrt_u32 *chunk_len, nrt_u64 n_chunks, const NRT_GLOBAL float *rec,
+                            NRT_GLOBAL nrt_u64 *acc, NRT_GLOBAL nrt_u32 *overflow)
+{
+    NRT_LOCAL_MEM nrt_u64 cells[NRT_BLOCK_CELLS];
+    const float track_scale = prm->track_scale;
+    const float hx = 1.0f / (float)NRT_NX, hy = 1.0f / (float)NRT_NY, hz = 1.0f / (float)NRT_NZ;
+    NRT_GLOBAL nrt_u64 *band_acc = acc + cell * prm->cells;
+    const nrt_u64 groups = NRT_GLOBAL_SIZE() / NRT_LOCAL_SIZE();
+    for (nrt_u64 k = NRT_GROUP_FIRST_ID() / NRT_LOCAL_SIZE(); k < n_chunks; k += groups) {
+        for (int c = (int)NRT_LOCAL_ID(); c < NRT_BLOCK_CELLS; c += (int)NRT_LOCAL_SIZE())
+            cells[c] = 0;
+        NRT_BARRIER();
+        const int blk = (int)chunk_block[k];
+        const int bx = blk % NRT_BX, by = (blk / NRT_BX) % NRT_BY, bz = blk / (NRT_BX * NRT_BY);
+        const nrt_u64 start = chunk_start[k];
+        const int n = (int)chunk_len[k];
+        for (int i = (int)NRT_LOCAL_ID(); i < n; i += (int)NRT_LOCAL_SIZE()) {
+            const NRT_GLOBAL float *r = rec + (nrt_u64)NRT_REC_WORDS * (start + (nrt_u64)i);
+            const float4 a = NRT_LOAD4(r), e = NRT_LOAD4(r + 4);
+            nrt_draw_local(cells, bx, by, bz, a.x, a.y, a.z, e.x, e.y, e.z, a.w, track_scale, hx, hy, hz);
+        }
+        NRT_BARRIER();
+        for (int c = (int)NRT_LOCAL_ID(); c < NRT_BLOCK_CELLS; c += (int)NRT_LOCAL_SIZE()) {
+            nrt_u64 v = cells[c];
+            if (v) {
+                int x = bx * NRT_BLOCK + c % NRT_BLOCK, y = by * NRT_BLOCK + (c / NRT_BLOCK) % NRT_BLOCK,
+                    z = bz * NRT_BLOCK + c / (NRT_BLOCK * NRT_BLOCK);
+                nrt_acc_add_checked(&band_acc[nrt_voxel_index(x, y, z, NRT_NX, NRT_NY)], v, overflow + slot);
+            }
+        }
+        NRT_BARRIER(); /* (the next chunk zeroes the cells) */
+    }
+}
