@@ -8,21 +8,23 @@
  * visits added with the same atomics but no walk ran no faster), and from 256^3 up binning them
  * by block went 2-3x past it.
  *
- * How, for one cell (batch slot and band) of a launch, packets photon_start .. + count:
+ * How, for a sub-launch of one band's packets photon_start .. + count (one or more batch
+ * slots; a bin is a slot's block):
  *   - a flight is sampled by delta tracking (Woodcock) against each block's largest density
  *     (blocks of NRT_BLOCK^3 voxels, rho_max): a tentative collision at the block's majorant
  *     is real with probability rho / rho_max, else the flight goes on; where a block's density
  *     is uniform every tentative collision is real;
  *   - the flight is cut where it crosses a block face; each piece (start, length, direction:
  *     a 32-byte record) belongs to one block;
- *   - NRT_BIN_MODE 0 (count): each work group counts its pieces per block (local memory, or
- *     its own row of `ghist` where the blocks pass NRT_BIN_LOCAL), then adds its counts to the
- *     blocks' totals, keeping the offsets (group_off) the totals had;
+ *   - NRT_BIN_MODE 0 (count): each work group counts its pieces per bin of the two slots its
+ *     consecutive packets lie in (local memory, or its own rows of `ghist` for large grids),
+ *     then adds its counts to the bins' totals, keeping the offsets (group_off) the totals
+ *     had; the pieces of packets in any other slot are drawn at once with global atomics;
  *   - NRT_BIN_MODE 1 (write): the same walk (the same random numbers: the same pieces) writes
- *     each record at its block's bucket start + the group's offset + its running count;
+ *     each record at its bin's bucket start + the group's offset + its running count;
  *   - NRT_BIN_MODE 2 (direct): each piece drawn at once with a global atomic add per visit
  *     (the check of the other two: the same sums, bit for bit);
- *   - binned_draw: one work group per chunk of a block's records draws them into the block's
+ *   - binned_draw: one work group per chunk of a bin's records draws them into the block's
  *     cells in local memory (64-bit sums as two 32-bit words with the carry), then adds each
  *     nonzero cell to the slot once (checked against the headroom).
  * Every visit's deposit is nrt_fixed(length, track_scale), and integer sums do not depend on
@@ -117,63 +119,83 @@ NRT_DEVICE void nrt_draw_local(NRT_LOCAL nrt_u64 *cells, int bx, int by, int bz,
     NRT_DRAW_PIECE(nrt_local_add(&cells[((iz - z0) * NRT_BLOCK + (iy - y0)) * NRT_BLOCK + (ix - x0)], v));
 }
 
-/* One piece of a flight in block b from q along d for len: counted, written or drawn. */
+/* One piece of a flight in block b from q along d for len: counted, written or drawn. Pieces
+   of a packet outside the group's two slots (batches smaller than a group's packets) are drawn
+   at once with global atomics: the same sums. */
+#define NRT_DRAW_NOW(b, q0, q1, q2, len_)                                                                   \
+    nrt_draw_global(acc + cell * nvox, overflow + slot, (b)[0], (b)[1], (b)[2], (q0), (q1), (q2), d[0], d[1], \
+                    d[2], (len_), track_scale, hx, hy, hz)
 #if NRT_BIN_MODE == 2
-#define NRT_PIECE(b, q0, q1, q2, len_)                                                                       \
-    nrt_draw_global(band_acc, overflow + slot, (b)[0], (b)[1], (b)[2], (q0), (q1), (q2), d[0], d[1], d[2], \
-                    (len_), track_scale, hx, hy, hz)
+#define NRT_PIECE(b, q0, q1, q2, len_) NRT_DRAW_NOW(b, q0, q1, q2, len_)
 #else
 #define NRT_PIECE(b, q0, q1, q2, len_)                                                                     \
     do {                                                                                                   \
         int blk_ = ((b)[2] * NRT_BY + (b)[1]) * NRT_BX + (b)[0];                                           \
-        nrt_u32 slot_ = NRT_HIST_ADD(blk_);                                                                \
-        NRT_WRITE_RECORD(blk_, slot_, (q0), (q1), (q2), (len_));                                           \
+        if (w > 1) {                                                                                       \
+            if (NRT_BIN_MODE == 0)                                                                         \
+                NRT_DRAW_NOW(b, q0, q1, q2, len_);                                                         \
+        } else {                                                                                           \
+            nrt_u32 k_ = NRT_HIST_ADD(w * NRT_NBLOCKS + blk_);                                             \
+            NRT_WRITE_RECORD(w, blk_, k_, (q0), (q1), (q2), (len_));                                       \
+        }                                                                                                  \
     } while (0)
 #if NRT_BIN_MODE == 1
-#define NRT_WRITE_RECORD(blk, k, q0, q1, q2, len_)                                                         \
+#define NRT_WRITE_RECORD(w, blk, k, q0, q1, q2, len_)                                                      \
     do {                                                                                                   \
-        NRT_GLOBAL float *r_ = rec + (nrt_u64)NRT_REC_WORDS * ((nrt_u64)bucket[blk] + my_off[blk] + (k));  \
+        NRT_GLOBAL float *r_ = rec + (nrt_u64)NRT_REC_WORDS * ((nrt_u64)bucket[(slot - slot0) * NRT_NBLOCKS + (blk)] \
+                                                              + my_off[(w) * NRT_NBLOCKS + (blk)] + (k));  \
         NRT_STORE4(r_, q0, q1, q2, len_);                                                                  \
         NRT_STORE4(r_ + 4, d[0], d[1], d[2], 0.0f);                                                        \
     } while (0)
 #else
-#define NRT_WRITE_RECORD(blk, k, q0, q1, q2, len_) ((void)(k))
+#define NRT_WRITE_RECORD(w, blk, k, q0, q1, q2, len_) ((void)(k))
 #endif
 #endif
+/* the two slots of a work group's window: its counts (local, or its own rows in global
+   memory), its tallies */
+#define NRT_WINDOW (2 * NRT_NBLOCKS)
 
 /*
- * The walk of packets photon_start .. photon_start + count - 1 of band `band`, all of batch
- * slot `slot` (cell = slot * n_lbands + band offset: tallies and, direct, deposits). One work
- * item per packet.
+ * The walk of packets photon_start .. photon_start + count - 1 of band `band` (band offset
+ * lband of the launch's n_lb), which belong to batch slots slot0 .. slot0 + n_slots - 1 (slot =
+ * batch - first_batch; cell = slot n_lb + lband: tallies, deposits; bin = (slot - slot0)
+ * NRT_NBLOCKS + block). Work group g takes the `per_item` x group-size packets from
+ * g per_item (group size), each work item every group-size-th of them, so a group's packets
+ * are consecutive and lie in at most two slots where a batch holds at least a group's
+ * packets: its window, whose counts per block the group keeps.
  */
-NRT_KERNEL void binned_walk(const NRT_GLOBAL nrt_trace_params *prm, nrt_u64 photon_start, nrt_u64 count, int band,
-                            nrt_u64 cell, nrt_u64 slot, const NRT_GLOBAL float *density,
-                            const NRT_GLOBAL float *rho_max, const NRT_GLOBAL float *optics,
-                            const NRT_GLOBAL float *stars, const NRT_GLOBAL float *star_cdf,
-                            NRT_GLOBAL nrt_u64 *acc, NRT_GLOBAL nrt_u64 *tallies, NRT_GLOBAL nrt_u32 *overflow,
-                            NRT_GLOBAL nrt_u32 *block_count, NRT_GLOBAL nrt_u32 *group_off,
+NRT_KERNEL void binned_walk(const NRT_GLOBAL nrt_trace_params *prm, nrt_u64 photon_start, nrt_u64 count,
+                            int per_item, int band, int lband, int n_lb, nrt_u64 first_batch, nrt_u64 slot0,
+                            const NRT_GLOBAL float *density, const NRT_GLOBAL float *rho_max,
+                            const NRT_GLOBAL float *optics, const NRT_GLOBAL float *stars,
+                            const NRT_GLOBAL float *star_cdf, NRT_GLOBAL nrt_u64 *acc, NRT_GLOBAL nrt_u64 *tallies,
+                            NRT_GLOBAL nrt_u32 *overflow, NRT_GLOBAL nrt_u32 *bin_count, NRT_GLOBAL nrt_u32 *group_off,
                             const NRT_GLOBAL nrt_u32 *bucket, NRT_GLOBAL float *rec, NRT_GLOBAL nrt_u32 *ghist)
 {
-    const nrt_u64 group = NRT_GROUP_FIRST_ID() / NRT_LOCAL_SIZE();
-    NRT_LOCAL_MEM nrt_u64 l_tally[4];
+    const nrt_u64 group = NRT_GROUP_FIRST_ID() / NRT_LOCAL_SIZE(), gsize = NRT_LOCAL_SIZE();
+    const nrt_u64 batch_base = prm->batch_base, batch_extra = prm->batch_extra;
+    /* the group's packets and the first slot of its window */
+    const nrt_u64 g0 = group * gsize * (nrt_u64)per_item;
+    const nrt_u64 s_a = g0 < count ? nrt_batch_of(photon_start + g0, batch_base, batch_extra) - first_batch : 0;
+    NRT_LOCAL_MEM nrt_u64 l_tally[2 * 4];
 #if NRT_BIN_MODE != 2 && !NRT_BIN_GLOBAL
-    NRT_LOCAL_MEM nrt_u32 hist[NRT_NBLOCKS];
-    for (int b = (int)NRT_LOCAL_ID(); b < NRT_NBLOCKS; b += (int)NRT_LOCAL_SIZE())
+    NRT_LOCAL_MEM nrt_u32 hist[NRT_WINDOW];
+    for (int b = (int)NRT_LOCAL_ID(); b < NRT_WINDOW; b += (int)gsize)
         hist[b] = 0;
-#define NRT_HIST_ADD(blk) NRT_ATOMIC_ADD_U32_LOCAL(&hist[blk], 1u)
-#define NRT_HIST_READ(blk) hist[blk]
+#define NRT_HIST_ADD(i) NRT_ATOMIC_ADD_U32_LOCAL(&hist[i], 1u)
+#define NRT_HIST_READ(i) hist[i]
     (void)ghist;
 #else
-    /* the group's own row of counts (count) or running slots (write), zeroed by the host */
-    NRT_GLOBAL nrt_u32 *my_hist = ghist + group * NRT_NBLOCKS;
-#define NRT_HIST_ADD(blk) NRT_ATOMIC_ADD_U32(&my_hist[blk], 1u)
-#define NRT_HIST_READ(blk) NRT_ATOMIC_ADD_U32(&my_hist[blk], 0u)
+    /* the group's own rows of counts (count) or running slots (write), zeroed by the host */
+    NRT_GLOBAL nrt_u32 *my_hist = ghist + group * NRT_WINDOW;
+#define NRT_HIST_ADD(i) NRT_ATOMIC_ADD_U32(&my_hist[i], 1u)
+#define NRT_HIST_READ(i) NRT_ATOMIC_ADD_U32(&my_hist[i], 0u)
 #endif
-    for (nrt_u64 i = NRT_LOCAL_ID(); i < 4; i += NRT_LOCAL_SIZE())
+    for (nrt_u64 i = NRT_LOCAL_ID(); i < 2 * 4; i += gsize)
         l_tally[i] = 0;
     NRT_BARRIER();
 #if NRT_BIN_MODE == 1
-    const NRT_GLOBAL nrt_u32 *my_off = group_off + group * NRT_NBLOCKS;
+    const NRT_GLOBAL nrt_u32 *my_off = group_off + group * NRT_WINDOW;
 #endif
     const nrt_u64 nvox = prm->cells, seed = prm->seed;
     const int n_stars = prm->n_stars, max_scatterings = prm->max_scatterings;
@@ -182,17 +204,28 @@ NRT_KERNEL void binned_walk(const NRT_GLOBAL nrt_trace_params *prm, nrt_u64 phot
     const float bh[3] = {(float)NRT_BLOCK * hx, (float)NRT_BLOCK * hy, (float)NRT_BLOCK * hz};
     const int bmax[3] = {NRT_BX - 1, NRT_BY - 1, NRT_BZ - 1};
     const float sig_b = optics[4 * band], alb_b = optics[4 * band + 1], g_b = optics[4 * band + 2];
-    NRT_GLOBAL nrt_u64 *band_acc = acc + cell * nvox;
-    (void)band_acc, (void)overflow, (void)block_count, (void)group_off, (void)bucket, (void)rec, (void)track_scale;
-    const nrt_u64 it = NRT_GLOBAL_ID();
-    if (it < count) {
+    (void)bin_count, (void)group_off, (void)bucket, (void)rec, (void)slot0;
+    for (int k = 0; k < per_item; ++k) {
+        const nrt_u64 it = g0 + (nrt_u64)k * gsize + NRT_LOCAL_ID();
+        if (it >= count)
+            break;
         const nrt_u64 photon = photon_start + it;
+        const nrt_u64 slot = nrt_batch_of(photon, batch_base, batch_extra) - first_batch;
+        const nrt_u64 cell = slot * (nrt_u64)n_lb + (nrt_u64)lband;
+        const nrt_u64 w = slot - s_a; /* 0, 1: the window; more: drawn at once */
+#define NRT_TALLY(t)                                                               \
+        do {                                                                       \
+            if (w < 2)                                                             \
+                nrt_local_count(&l_tally[4 * w + (t)]);                            \
+            else if (NRT_BIN_MODE != 1)                                            \
+                NRT_ATOMIC_ADD_U64(&tallies[NRT_TALLY_WORDS * cell + (t)], 1UL);   \
+        } while (0)
         nrt_rng rng;
         nrt_rng_init(&rng, seed, (nrt_u64)band, photon);
         int s = nrt_choose_star(&rng, star_cdf + band * n_stars, n_stars);
         float p[3] = {stars[4 * s], stars[4 * s + 1], stars[4 * s + 2]}, d[3];
         nrt_sample_isotropic(&rng, d);
-        nrt_local_count(&l_tally[0]);
+        NRT_TALLY(0);
         int scatterings = 0;
         for (;;) {
             const float inv[3] = {1.0f / d[0], 1.0f / d[1], 1.0f / d[2]};
@@ -255,17 +288,17 @@ NRT_KERNEL void binned_walk(const NRT_GLOBAL nrt_trace_params *prm, nrt_u64 phot
                 tb[a] = nrt_face_distance(p[a], d[a], inv[a], nb, bh[a]);
             }
             if (escaped) {
-                nrt_local_count(&l_tally[2]);
+                NRT_TALLY(2);
                 break;
             }
             p[0] = p[0] + d[0] * len, p[1] = p[1] + d[1] * len, p[2] = p[2] + d[2] * len;
             /* scatter with probability albedo (analog Russian roulette), else absorbed */
             if (nrt_rng_uniform(&rng) >= alb_b) {
-                nrt_local_count(&l_tally[1]);
+                NRT_TALLY(1);
                 break;
             }
             if (scatterings >= max_scatterings) {
-                nrt_local_count(&l_tally[3]);
+                NRT_TALLY(3);
                 break;
             }
             ++scatterings;
@@ -276,38 +309,41 @@ NRT_KERNEL void binned_walk(const NRT_GLOBAL nrt_trace_params *prm, nrt_u64 phot
     }
     NRT_BARRIER();
 #if NRT_BIN_MODE != 1 /* (the writing walk repeats the counting walk's packets) */
-    for (nrt_u64 i = NRT_LOCAL_ID(); i < 4; i += NRT_LOCAL_SIZE())
+    for (nrt_u64 i = NRT_LOCAL_ID(); i < 2 * 4; i += gsize)
         if (l_tally[i] != 0)
-            NRT_ATOMIC_ADD_U64(&tallies[NRT_TALLY_WORDS * cell + i], l_tally[i]);
+            NRT_ATOMIC_ADD_U64(&tallies[NRT_TALLY_WORDS * ((s_a + i / 4) * (nrt_u64)n_lb + (nrt_u64)lband) + i % 4],
+                               l_tally[i]);
 #endif
 #if NRT_BIN_MODE == 0
-    for (int b = (int)NRT_LOCAL_ID(); b < NRT_NBLOCKS; b += (int)NRT_LOCAL_SIZE()) {
-        nrt_u32 c = NRT_HIST_READ(b);
-        group_off[group * NRT_NBLOCKS + b] = c ? NRT_ATOMIC_ADD_U32(&block_count[b], c) : 0u;
+    for (int i = (int)NRT_LOCAL_ID(); i < NRT_WINDOW; i += (int)gsize) {
+        nrt_u32 c = NRT_HIST_READ(i);
+        nrt_u64 bin = (s_a + (nrt_u64)(i / NRT_NBLOCKS) - slot0) * NRT_NBLOCKS + (nrt_u64)(i % NRT_NBLOCKS);
+        group_off[group * NRT_WINDOW + i] = c ? NRT_ATOMIC_ADD_U32(&bin_count[bin], c) : 0u;
     }
 #endif
 }
 
 /*
  * Draw chunks k = group, group + groups, ... < n_chunks: chunk k is records chunk_start[k] ..
- * + chunk_len[k] (at most NRT_CHUNK) of block chunk_block[k], into the block's cells in local
- * memory, then added to cell `cell`'s slot (band_acc) once, checked against the headroom.
+ * + chunk_len[k] of bin chunk_bin[k] (slot slot0 + bin / NRT_NBLOCKS, block bin % NRT_NBLOCKS),
+ * into the block's cells in local memory, then added to the cell's slot once, checked against
+ * the headroom.
  */
-NRT_KERNEL void binned_draw(const NRT_GLOBAL nrt_trace_params *prm, nrt_u64 cell, nrt_u64 slot,
-                            const NRT_GLOBAL nrt_u32 *chunk_block, const NRT_GLOBAL nrt_u32 *chunk_start,
+NRT_KERNEL void binned_draw(const NRT_GLOBAL nrt_trace_params *prm, nrt_u64 slot0, int lband, int n_lb,
+                            const NRT_GLOBAL nrt_u32 *chunk_bin, const NRT_GLOBAL nrt_u32 *chunk_start,
                             const NRT_GLOBAL nrt_u32 *chunk_len, nrt_u64 n_chunks, const NRT_GLOBAL float *rec,
                             NRT_GLOBAL nrt_u64 *acc, NRT_GLOBAL nrt_u32 *overflow)
 {
     NRT_LOCAL_MEM nrt_u64 cells[NRT_BLOCK_CELLS];
     const float track_scale = prm->track_scale;
     const float hx = 1.0f / (float)NRT_NX, hy = 1.0f / (float)NRT_NY, hz = 1.0f / (float)NRT_NZ;
-    NRT_GLOBAL nrt_u64 *band_acc = acc + cell * prm->cells;
     const nrt_u64 groups = NRT_GLOBAL_SIZE() / NRT_LOCAL_SIZE();
     for (nrt_u64 k = NRT_GROUP_FIRST_ID() / NRT_LOCAL_SIZE(); k < n_chunks; k += groups) {
         for (int c = (int)NRT_LOCAL_ID(); c < NRT_BLOCK_CELLS; c += (int)NRT_LOCAL_SIZE())
             cells[c] = 0;
         NRT_BARRIER();
-        const int blk = (int)chunk_block[k];
+        const nrt_u64 bin = chunk_bin[k], slot = slot0 + bin / NRT_NBLOCKS;
+        const int blk = (int)(bin % NRT_NBLOCKS);
         const int bx = blk % NRT_BX, by = (blk / NRT_BX) % NRT_BY, bz = blk / (NRT_BX * NRT_BY);
         const nrt_u64 start = chunk_start[k];
         const int n = (int)chunk_len[k];
@@ -317,6 +353,7 @@ NRT_KERNEL void binned_draw(const NRT_GLOBAL nrt_trace_params *prm, nrt_u64 cell
             nrt_draw_local(cells, bx, by, bz, a.x, a.y, a.z, e.x, e.y, e.z, a.w, track_scale, hx, hy, hz);
         }
         NRT_BARRIER();
+        NRT_GLOBAL nrt_u64 *band_acc = acc + (slot * (nrt_u64)n_lb + (nrt_u64)lband) * prm->cells;
         for (int c = (int)NRT_LOCAL_ID(); c < NRT_BLOCK_CELLS; c += (int)NRT_LOCAL_SIZE()) {
             nrt_u64 v = cells[c];
             if (v) {

@@ -101,19 +101,28 @@ def reference(binned, cloud):
     return run(cloud, binned)
 
 
-@pytest.mark.parametrize("case", ["direct adds", "global counts", "small sub-launches", "small chunks"])
+@pytest.mark.parametrize("case", ["direct adds", "global counts", "small sub-launches", "small chunks",
+                                  "several packets per work item", "batches smaller than a group"])
 def test_the_same_sums_every_way(case, reference, cloud, monkeypatch):
     """Every piece added at once with global 64-bit atomics (tuning 2), the counts per block
-    in global memory, sub-launches of 700 packets and chunks of 64 records: the same sums and
-    tallies as the binned drawing, bit for bit."""
+    in global memory, sub-launches of 700 packets (several batches each, and batches split
+    between two), chunks of 64 records, work items tracing several packets each, and batches
+    of 40 packets (a work group's packets then lie in more than the two slots it bins; the
+    pieces of the others are added at once): the same sums and tallies as the binned drawing,
+    bit for bit."""
     tuning = {"binned_deposits": 2 if case == "direct adds" else 1}
+    kw = {}
     if case == "global counts":
         monkeypatch.setattr(binned_module, "LOCAL_BLOCKS", 0)
     elif case == "small sub-launches":
         monkeypatch.setattr(binned_module, "MAX_PACKETS", 700)
     elif case == "small chunks":
         monkeypatch.setattr(binned_module, "CHUNK", 64)
-    other = run(cloud, tuned_backend(tuning))
+    elif case == "several packets per work item":
+        monkeypatch.setattr(binned_module, "GROUP_BYTES", 1)
+    elif case == "batches smaller than a group":
+        kw = dict(batch_size=40)
+    other = run(cloud, tuned_backend(tuning), **kw)
     np.testing.assert_array_equal(other.raw_sum, reference.raw_sum)
     assert np.array_equal(other.counts, reference.counts)
 

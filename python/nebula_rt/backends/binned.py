@@ -5,9 +5,9 @@ estimator on a grid this way (``benchmarks/bench_mcx.py --tuning binned_deposits
 by delta tracking against each block's largest density, their track lengths cut into pieces at
 the faces of blocks of :data:`BLOCK`^3 voxels, the pieces binned by block and drawn block by
 block in local memory (the kernel file's comment says how, docs/physics.md why). Each launch's
-packets go cell by cell (batch slot and band), in sub-launches of at most
-:data:`MAX_PACKETS`: a counting walk, the buckets laid out on the host from its counts, the
-same walk writing the records, then the drawing.
+packets go band by band in sub-launches of at most :data:`MAX_PACKETS` (one or more batch
+slots): a counting walk, the buckets laid out on the host from its counts (while the next
+sub-launch's counting walk runs), the same walk writing the records, then the drawing.
 
 The batch slots, tallies, headroom flags, folds and everything after them are the walk's: only
 how the deposits reach the slots differs. The random numbers are spent differently, so a seed
@@ -23,9 +23,12 @@ import numpy as np
 BLOCK = 16
 #: records one work group of the drawing takes at a time
 CHUNK = 4096
-#: blocks whose counts per work group fit local memory (32 KiB); beyond, each group's counts
-#: go to a row of its own in global memory
-LOCAL_BLOCKS = 8192
+#: blocks whose counts per work group, for the two batch slots its packets may lie in, fit
+#: local memory (32 KiB); beyond, each group's counts go to rows of its own in global memory
+LOCAL_BLOCKS = 4096
+#: bytes the work groups' offsets per block may take (and their counts, for large grids): a
+#: walk's work items take several packets each where one each would pass this
+GROUP_BYTES = 64 << 20
 #: packets of one sub-launch (its records: about 1.5 per block a packet crosses, 32 bytes each)
 MAX_PACKETS = 1 << 21
 RECORD_WORDS = 8  # float32 words of a record (start, length, direction, padding)
@@ -70,12 +73,6 @@ def block_maxima(density: np.ndarray, block: int = BLOCK) -> np.ndarray:
     return np.ascontiguousarray(m.transpose(2, 1, 0)).reshape(-1)  # x fastest
 
 
-def batch_start(k: int, base: int, extra: int) -> int:
-    """First packet of batch k (the first ``extra`` batches hold base + 1, kernels/transport.cl,
-    nrt_batch_of)."""
-    return k * (base + 1) if k < extra else extra * (base + 1) + (k - extra) * base
-
-
 def batch_of(photon: int, base: int, extra: int) -> int:
     big = extra * (base + 1)
     return photon // (base + 1) if photon < big else extra + (photon - big) // base
@@ -98,11 +95,16 @@ class BinnedDeposits:
         self.defines = {k: v for k, v in s.defines.items() if k not in ("NRT_SORTED", "NRT_REGIONS")}
         self.defines.update(NRT_NX=nx, NRT_NY=ny, NRT_NZ=nz, NRT_BLOCK=BLOCK, NRT_BIN_GLOBAL=int(self.global_counts))
         self.d_rho_max = be.to_device(block_maxima(s.setup.density))
-        self.local = {m: be.trace_local_size(PROGRAM, "binned_walk", self._defines(m)) for m in MODES}
+        self.local = be.trace_local_size(PROGRAM, "binned_walk", self._defines("count"))
+        for mode in MODES:
+            be.kernel(PROGRAM, "binned_walk", self._defines(mode))
         be.kernel(PROGRAM, "binned_draw", self._defines("count"))
-        self.d_block_count = be.device_zeros(self.n_blocks, np.uint32)
-        self.d_group_off = be.device_zeros(1, np.uint32)
-        self.d_hist = be.device_zeros(1, np.uint32)
+        self.draw_local = be.trace_local_size(PROGRAM, "binned_draw", self._defines("count"))
+        # the counting walk of the next sub-launch runs while the host lays out this one's
+        # buckets: its bins' totals and the groups' offsets come in two sets
+        self.d_bin_count = [be.device_zeros(1, np.uint32) for _ in range(2)]
+        self.d_group_off = [be.device_zeros(1, np.uint32) for _ in range(2)]
+        self.d_hist = [be.device_zeros(1, np.uint32) for _ in range(3)]  # 2 x counts, slots
         self.d_records = be.device_zeros(RECORD_WORDS, np.float32)
         #: records per packet of the last sub-launch (a diagnostic for benchmarks)
         self.records_per_packet = 0.0
@@ -110,67 +112,94 @@ class BinnedDeposits:
     def _defines(self, mode: str) -> dict:
         return dict(self.defines, NRT_BIN_MODE=MODES[mode])
 
-    def _grow(self, name: str, n: int, dtype):
-        buf = getattr(self, name)
-        if buf.size < n:
-            setattr(self, name, None)
-            setattr(self, name, self.backend.device_zeros(int(n * 1.25) + 1, dtype))
-        return getattr(self, name)
+    def _grown(self, buf, n: int, dtype):
+        """``buf``, or a larger one where it holds fewer than ``n`` elements."""
+        return buf if buf.size >= n else self.backend.device_zeros(int(n * 1.25) + 1, dtype)
 
-    def run(self, photon_start: int, count: int, first_batch: int, band0: int, n_lb: int):
-        """Trace packets photon_start .. + count of bands band0 .. + n_lb (the launch's cells:
-        slot = batch - first_batch, cell = slot n_lb + band offset)."""
+    def _sub_launches(self, photon_start, count, first_batch, band0, n_lb):
+        """(photon start, count, band offset, first slot, slots) of the sub-launches: each of
+        one band, at most MAX_PACKETS packets, whole or part batches."""
         s = self.session
         base, extra = int(s.params["batch_base"][0]), int(s.params["batch_extra"][0])
+        out = []
         for lband in range(n_lb):
-            p, end = int(photon_start), int(photon_start) + int(count)
+            p, end = photon_start, photon_start + count
             while p < end:
-                k = batch_of(p, base, extra)
-                stop = min(end, batch_start(k + 1, base, extra), p + MAX_PACKETS)
-                slot = k - int(first_batch)
-                self._cell(p, stop - p, band0 + lband, slot * n_lb + lband, slot)
+                stop = min(end, p + MAX_PACKETS)
+                k0, k1 = batch_of(p, base, extra), batch_of(stop - 1, base, extra)
+                out.append((p, stop - p, lband, k0 - first_batch, k1 - k0 + 1))
                 p = stop
+        return out
 
-    def _walk(self, mode: str, photon_start, n, band, cell, slot, bucket=None):
-        s, be = self.session, self.backend
-        groups = -(-n // self.local[mode])
-        if mode == "count":
-            self._grow("d_group_off", groups * self.n_blocks, np.uint32)
-        if self.global_counts and mode != "direct":
-            be.fill_zero(self._grow("d_hist", groups * self.n_blocks, np.uint32))
-        be.launch_trace(PROGRAM, "binned_walk", n, s.d_params, np.uint64(photon_start), np.uint64(n), np.int32(band),
-                        np.uint64(cell), np.uint64(slot), s.d_density, self.d_rho_max, s.d_optics, s.d_stars, s.d_cdf,
-                        s.d_acc, s.d_tallies, s.d_overflow, self.d_block_count, self.d_group_off,
-                        self.d_block_count if bucket is None else bucket, self.d_records, self.d_hist,
-                        defines=self._defines(mode))
-
-    def _cell(self, photon_start, n, band, cell, slot):
-        be = self.backend
+    def run(self, photon_start: int, count: int, first_batch: int, band0: int, n_lb: int):
+        """Trace packets photon_start .. + count of bands band0 .. + n_lb into the launch's
+        cells (slot = batch - first_batch, cell = slot n_lb + band offset)."""
+        subs = self._sub_launches(int(photon_start), int(count), int(first_batch), int(band0), int(n_lb))
         if self.direct:
-            self._walk("direct", photon_start, n, band, cell, slot)
+            for p, n, lband, slot0, _ in subs:
+                self._walk("direct", 0, p, n, band0, lband, n_lb, first_batch, slot0, 1)
             return
-        be.fill_zero(self.d_block_count)
-        self._walk("count", photon_start, n, band, cell, slot)
-        counts = be.to_host(self.d_block_count).astype(np.int64)  # (waits for the counting walk)
-        total = int(counts.sum())
+        pending = self._count(0, subs[0], band0, n_lb, first_batch)
+        for j, sub in enumerate(subs):
+            totals = self.backend.to_host(self.d_bin_count[j % 2][:pending]).astype(np.int64)  # (waits)
+            nxt = self._count((j + 1) % 2, subs[j + 1], band0, n_lb, first_batch) if j + 1 < len(subs) else 0
+            self._write_and_draw(j % 2, sub, totals, band0, n_lb, first_batch)
+            pending = nxt
+
+    def _per_item(self, n: int, bins: int) -> int:
+        """Packets per work item of a walk: 1, or as many as keep the groups' offsets (and, for
+        large grids, their counts) within GROUP_BYTES."""
+        groups = -(-n // self.local)
+        return max(1, -(-groups * 2 * self.n_blocks * 4 // GROUP_BYTES))
+
+    def _walk(self, mode, j, p, n, band0, lband, n_lb, first_batch, slot0, per_item, bucket=None):
+        s, be = self.session, self.backend
+        groups = -(-n // (self.local * per_item))
+        if mode == "count":
+            self.d_group_off[j] = self._grown(self.d_group_off[j], groups * 2 * self.n_blocks, np.uint32)
+        h = j if mode == "count" else 2
+        if self.global_counts and mode != "direct":
+            self.d_hist[h] = self._grown(self.d_hist[h], groups * 2 * self.n_blocks, np.uint32)
+            be.fill_zero(self.d_hist[h])
+        be.launch_trace(PROGRAM, "binned_walk", groups * self.local, s.d_params, np.uint64(p), np.uint64(n),
+                        np.int32(per_item), np.int32(band0 + lband), np.int32(lband), np.int32(n_lb),
+                        np.uint64(first_batch), np.uint64(slot0), s.d_density, self.d_rho_max, s.d_optics,
+                        s.d_stars, s.d_cdf, s.d_acc, s.d_tallies, s.d_overflow, self.d_bin_count[j],
+                        self.d_group_off[j], self.d_bin_count[j] if bucket is None else bucket, self.d_records,
+                        self.d_hist[h], defines=self._defines(mode))
+
+    def _count(self, j, sub, band0, n_lb, first_batch) -> int:
+        """Queue the counting walk of sub-launch ``sub`` into set ``j``; returns its bins."""
+        p, n, lband, slot0, n_slots = sub
+        bins = n_slots * self.n_blocks
+        self.d_bin_count[j] = self._grown(self.d_bin_count[j], bins, np.uint32)
+        self.backend.fill_zero(self.d_bin_count[j])
+        self._walk("count", j, p, n, band0, lband, n_lb, first_batch, slot0, self._per_item(n, bins))
+        return bins
+
+    def _write_and_draw(self, j, sub, totals, band0, n_lb, first_batch):
+        """The buckets laid out from the counting walk's ``totals`` per bin, the records
+        written, then drawn."""
+        be = self.backend
+        p, n, lband, slot0, n_slots = sub
+        total = int(totals.sum())
         self.records_per_packet = total / max(1, n)
         if total == 0:
             return
         if total >= 2**32:
             raise ValueError(f"{total} records of one sub-launch pass 32-bit offsets")
-        starts = np.zeros(self.n_blocks, np.int64)
-        np.cumsum(counts[:-1], out=starts[1:])
-        self._grow("d_records", total * RECORD_WORDS, np.float32)
-        n_chunks = -(-counts // CHUNK)
-        blocks = np.repeat(np.arange(self.n_blocks, dtype=np.uint32), n_chunks)
-        index = np.arange(blocks.size) - np.repeat(np.cumsum(n_chunks) - n_chunks, n_chunks)
-        chunk_start = (starts[blocks] + index * CHUNK).astype(np.uint32)
-        chunk_len = np.minimum(CHUNK, counts[blocks] - index * CHUNK).astype(np.uint32)
+        starts = np.zeros(totals.size, np.int64)
+        np.cumsum(totals[:-1], out=starts[1:])
+        self.d_records = self._grown(self.d_records, total * RECORD_WORDS, np.float32)
+        n_chunks = -(-totals // CHUNK)
+        bins = np.repeat(np.arange(totals.size, dtype=np.uint32), n_chunks)
+        index = np.arange(bins.size) - np.repeat(np.cumsum(n_chunks) - n_chunks, n_chunks)
+        chunk_start = (starts[bins] + index * CHUNK).astype(np.uint32)
+        chunk_len = np.minimum(CHUNK, totals[bins] - index * CHUNK).astype(np.uint32)
         bucket = be.to_device(starts.astype(np.uint32))
-        self._walk("write", photon_start, n, band, cell, slot, bucket)
+        self._walk("write", j, p, n, band0, lband, n_lb, first_batch, slot0, self._per_item(n, totals.size), bucket)
         s = self.session
-        d_blocks, d_start, d_len = be.to_device(blocks), be.to_device(chunk_start), be.to_device(chunk_len)
-        local = be.trace_local_size(PROGRAM, "binned_draw", self._defines("count"))
-        be.launch_trace(PROGRAM, "binned_draw", blocks.size * local, s.d_params, np.uint64(cell), np.uint64(slot),
-                        d_blocks, d_start, d_len, np.uint64(blocks.size), self.d_records, s.d_acc, s.d_overflow,
+        be.launch_trace(PROGRAM, "binned_draw", bins.size * self.draw_local, s.d_params, np.uint64(slot0),
+                        np.int32(lband), np.int32(n_lb), be.to_device(bins), be.to_device(chunk_start),
+                        be.to_device(chunk_len), np.uint64(bins.size), self.d_records, s.d_acc, s.d_overflow,
                         defines=self._defines("count"))
