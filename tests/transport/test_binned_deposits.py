@@ -182,3 +182,21 @@ def test_auto_error_estimate_takes_batches():
         res[len(tuning)] = trace(rho, one_band(), centre_star(), tau=0.5, photons=20_000, seed=2, backend=be)
     assert res[0].error_estimate == "packets"  # the walk by regions
     assert res[1].error_estimate == "batches" and res[1].batches > 1
+
+
+def test_memory_estimate_covers_the_binned_buffers():
+    """The resource estimate counts the binned deposits' buffers (records, counts, offsets),
+    which the run reports among its device bytes: it covers what the run holds and is not
+    more than twice it (the test of the estimate for the walk, tests/transport/test_resources.py)."""
+    from nebula_rt.pipeline import Pipeline
+    from nebula_rt.scene import Scene
+    from nebula_rt.transport import resources
+
+    be = tuned_backend({"binned_deposits": 1})
+    s = Scene.default().with_overrides(["transport.photons=4000", "grid.shape=[24,20,16]"])
+    est = resources.estimate(s, be)
+    assert est.device["binned deposits"] > 0 and est.device["region passes"] == 0
+    held = Pipeline(be).run(s).memory["device_peak_bytes"]
+    assert held <= est.device_bytes <= 2 * held + (1 << 20), (held, est.device)
+    # (the run counts them: it holds more than the walk's run of the same scene)
+    assert held > Pipeline(tuned_backend({})).run(s).memory["device_peak_bytes"]

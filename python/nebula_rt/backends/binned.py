@@ -73,6 +73,25 @@ def block_maxima(density: np.ndarray, block: int = BLOCK) -> np.ndarray:
     return np.ascontiguousarray(m.transpose(2, 1, 0)).reshape(-1)  # x fastest
 
 
+def estimated_bytes(shape, batch_packets: int, packets: int) -> int:
+    """Device bytes binned deposits are estimated to add to a run of ``packets`` per band on a
+    grid of ``shape`` with batches of ``batch_packets`` packets (for
+    ``nebula_rt.transport.resources``): the blocks' majorants; the bins' totals (two sets, a
+    sub-launch's slots each); the work groups' offsets (at most GROUP_BYTES a set, two sets; for
+    large grids their counts too, three more); and the records of a sub-launch (at most
+    MAX_PACKETS packets), taken as 1.5 pieces per block along
+    the box's longest axis and 2 more per packet (the neb medium measured 0.8 and 0.5 of this
+    at 64^3 and 512^3). Each buffer is grown by a quarter as it is."""
+    axis = max(-(-int(n) // BLOCK) for n in shape)
+    n_blocks = int(np.prod([-(-int(n) // BLOCK) for n in shape]))
+    sub = max(1, min(MAX_PACKETS, int(packets)))
+    slots = sub // max(1, int(batch_packets)) + 2
+    offsets = min(GROUP_BYTES, -(-sub // 32) * 2 * n_blocks * 4)  # (groups of at least 32)
+    sets = 2 + (3 if n_blocks > LOCAL_BLOCKS else 0)
+    records = sub * (1.5 * axis + 2) * RECORD_WORDS * 4
+    return int(4 * n_blocks + 1.25 * (2 * 4 * slots * n_blocks + sets * offsets + records))
+
+
 def batch_of(photon: int, base: int, extra: int) -> int:
     big = extra * (base + 1)
     return photon // (base + 1) if photon < big else extra + (photon - big) // base
@@ -108,6 +127,11 @@ class BinnedDeposits:
         self.d_records = be.device_zeros(RECORD_WORDS, np.float32)
         #: records per packet of the last sub-launch (a diagnostic for benchmarks)
         self.records_per_packet = 0.0
+
+    def device_bytes(self) -> int:
+        """Device memory the binned launches hold now."""
+        bufs = (self.d_rho_max, *self.d_bin_count, *self.d_group_off, *self.d_hist, self.d_records)
+        return int(sum(b.size * b.dtype.itemsize for b in bufs))
 
     def _defines(self, mode: str) -> dict:
         return dict(self.defines, NRT_BIN_MODE=MODES[mode])

@@ -644,7 +644,8 @@ class DeviceTransport(TransportSession):
                 + 4 * self.nvox * (1 if self.setup.peel_columns is None else 2)
                 + 8 * self.tally_words * self.bands_per_launch * self.slots + 4 * self.slots
                 + 8 * self.words * self.slots * self.bands_per_launch * self.pixels
-                + 8 * self.slots * self.bands_per_launch * self.stokes_words + regions)
+                + 8 * self.slots * self.bands_per_launch * self.stokes_words + regions
+                + (self.binned.device_bytes() if self.binned is not None else 0))
 
     def close(self):
         for name in ("d_acc", "d_sq", "d_sum1", "d_m2", "d_density", "d_image", "d_keys", "_h_stage", "d_states",

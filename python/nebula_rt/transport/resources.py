@@ -26,6 +26,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+from ..backends import binned
 from ..backends.capacity import _gib, check_grid, host_available_bytes, region_bytes  # noqa: F401  (public here too)
 from ..errors import ResourceError
 from .filtering import kernel_half_widths
@@ -104,8 +105,11 @@ def estimate(scene, backend, peel_pixels: int = 0) -> Estimate:
         "running sums": 8 * ncell if packets else 12 * ncell,
         "peel-off images": cell * slots * per_launch * int(peel_pixels),
         "tallies and parameters": (84 if cell == 16 else 36) * per_launch * slots + 4096,
-        # transport by regions: the stopped packets' states and keys, per-bin counts
-        "region passes": region_bytes(backend, nvox, t.method == "biased"),
+        # transport by regions: the stopped packets' states and keys, per-bin counts (binned
+        # deposits, a tuning: none, but their records, counts and offsets)
+        "region passes": 0 if binned.enabled(backend) else region_bytes(backend, nvox, t.method == "biased"),
+        "binned deposits": binned.estimated_bytes(shape, launches.batches.base + 1, photons)
+        if binned.enabled(backend) else 0,
         # error-targeted runs: a brightness key per voxel and partial sums per 256 voxels
         "error checks": (4 * nvox + 16 * (nvox // 256 + 1)) if target > 0 else 0,
         # J and the emissivity made as the last fold ends (the error goes over
