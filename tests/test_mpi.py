@@ -57,7 +57,8 @@ CASES = [("track-length", "plain"), ("collision-filter", "plain"),
          ("collision-filter", "packets+copied"), ("track-length", "tree"), ("collision-filter", "tree+copied"),
          ("track-length", "tree+biased"), ("track-length", "polarized+checked"),
          ("collision-filter", "polarized+copied"), ("track-length", "polarized+biased"),
-         ("track-length", "polarized+regions"), ("track-length", "mie+biased")]
+         ("track-length", "polarized+regions"), ("track-length", "mie+biased"),
+         ("track-length", "binned+checked+copied")]
 
 
 @pytest.fixture(scope="module")
@@ -79,7 +80,8 @@ def test_trace_is_the_same_bits_on_1_2_3_ranks(rank_runs, case):
     'packets': the error estimate by packets, the ranks' squares added as well; 'tree': an
     octree of the cloud, its leaves the cells, with weighted packets too; 'polarized': Stokes
     vectors, the Q and U images' two's-complement sums added over the ranks; 'mie': Mie grains'
-    tables made by every rank, and V's image too)."""
+    tables made by every rank, and V's image too; 'binned': binned deposits, without the
+    peel-off image)."""
     estimator, mode = case
     runs = {n: rank_runs[n][case] for n in (1, 2, 3)}
     one = runs[1]

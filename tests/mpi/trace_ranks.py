@@ -12,7 +12,7 @@ MODE: ``plain``, ``checked`` (headroom lowered: batches overflow and are re-trac
 sums added over the ranks too), ``regions`` (the transport by regions, each group streamed
 through launches of about 300 packets) or ``packets`` (the error estimate by packets: one batch,
 its squares summed over the ranks too, no peel-off image) or ``tree`` (an octree of the cloud:
-the packets walk its leaves), joined by ``+`` with ``copied``: the slots are summed in a
+the packets walk its leaves) or ``binned`` (binned deposits, without the peel-off image), joined by ``+`` with ``copied``: the slots are summed in a
 host copy, as on a GPU, instead of in the mapped device memory of PoCL (``Backend.map_host``).
 With ``NEBULA_RT_TEST_BACKEND=cuda`` the ranks trace on CUDA (a GPU per local rank where there
 are enough) and add their slots on the device (``nebula_rt.backends.parallel.device_reducer``); the
@@ -81,6 +81,9 @@ def run_case(out: str, estimator: str, mode: str, device: str, comm) -> None:
     if "regions" in parts:  # by regions of 4 voxels, each group in launches of about 300 packets
         backend.transport_tuning.update({"NRT_REGIONS": 2, "region_tail": 50})
         transport_mod._Launcher._budget = lambda self, nb: 600  # packets (all bands) per launch
+    if "binned" in parts:  # binned deposits (a tuning): no peel-off image, the walk's slots
+        backend.transport_tuning = dict(backend.transport_tuning, binned_deposits=1)
+        kw["peel"] = None
     medium = cloud
     if "tree" in parts:  # an octree of the cloud (roots of 4^3 voxels, blocks within 30 % merged)
         from nebula_rt.density.octree import coarsen
