@@ -8,7 +8,7 @@
 # colour-science, tomli-w, astropy, speclite, PyAstronomy, miepython, dust_extinction (built
 # with `pip wheel`: no wheel on PyPI); pmcx and pmcxcl for the MCX comparison), fetched elsewhere
 # with `pip download --only-binary=:all: --python-version 3.12 --no-deps ...`.
-# STEPS (default "tests bench neb128 compare profile"; also "tests-cuda", "thick", "thick-grid", "trust", "scaling", "large", "regions", "regcaps", "profile-regions", "layout", "sorted", "probe", "ranks", "ranks-thesis", "ranks-weak", "tests-mpi", "e2e1e9", "biasing", "fit", "fitprof", "tune",
+# STEPS (default "tests bench neb128 compare profile"; also "tests-cuda", "binned", "thick", "thick-grid", "trust", "scaling", "large", "regions", "regcaps", "profile-regions", "layout", "sorted", "probe", "ranks", "ranks-thesis", "ranks-weak", "tests-mpi", "e2e1e9", "biasing", "fit", "fitprof", "tune",
 # "stages", "timeline", "headline", "kernel-probes", "small-regions", "stages-former", "timeline-former", "density", "polarization", "polarization-ocl", "mcx", "mcx1024", "ncu-thesis", "ncu-source", "tree", "tree-targets", "tree-ascend", "trade", "presets", "empty", "fft", "pinte") selects what runs. Everything printed
 # goes to OUTDIR/log.txt as well; JSON and .npz results beside it.
 set -uo pipefail
@@ -256,6 +256,23 @@ if [[ " $steps " == *" e2e1e9 "* ]]; then
     echo "== 512^3, 1e9 photons, end to end (target: 5 s), and the atomic adds beside it"
     python3 benchmarks/bench_large_grids.py --grids 512 --photons 1e9 --bands 1 --repeats 2 --repeat-below-s 100 --skip mcx \
         --out "$out/e2e-512-1e9.json" 2>&1 | tail -n 16
+fi
+if [[ " $steps " == *" binned "* ]]; then
+    # binned deposits (the transport tuning) beside the walk, the probe of the method and pmcxcl
+    echo "== binned deposits: CUDA tests"
+    NEBULA_RT_TEST_BACKEND=cuda python3 -m pytest -q -p no:cacheprovider tests/transport/test_binned_deposits.py 2>&1 | tail -n 3
+    echo "== the walk and pmcxcl"
+    python3 benchmarks/bench_mcx.py --backend cuda --codes nebula pmcxcl --media uniform turbulent --grids 64 128 256 512 \
+        --photons 2.1e7 --out "$out/mcx-walk.json" | grep -v saved
+    echo "== binned deposits"
+    python3 benchmarks/bench_mcx.py --backend cuda --codes nebula --media uniform turbulent --grids 64 128 256 512 \
+        --photons 2.1e7 --tuning binned_deposits=1 --out "$out/mcx-binned.json" | grep -v saved
+    echo "== the probe"
+    python3 benchmarks/probe_binned_deposits.py --backend cuda --media uniform turbulent --grids 64 128 256 512 --blocks 16 \
+        --photons 2.1e7 --modes binned --out "$out/probe.json" | grep grid
+    echo "== 512^3 x 1e9, binned deposits"
+    python3 benchmarks/bench_large_grids.py --grids 512 --photons 1e9 --bands 1 --repeats 1 --skip mcx micro \
+        --tuning binned_deposits=1 --out "$out/e2e-512-1e9-binned.json" 2>&1 | tail -n 4
 fi
 if [[ " $steps " == *" compare "* ]]; then
     echo "== same seed on CUDA and NVIDIA OpenCL"
