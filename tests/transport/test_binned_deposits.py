@@ -68,14 +68,17 @@ def test_overflow_is_detected_and_recovered(binned, cloud):
 
 
 # --- against the walk ----------------------------------------------------------------------------
-def test_j_agrees_with_the_walk_within_the_stated_errors(binned, backend, cloud):
+@pytest.mark.parametrize("majorant", [16, 4])
+def test_j_agrees_with_the_walk_within_the_stated_errors(majorant, backend, cloud):
     """Two stars, three bands, a turbulent cloud: the binned J and the walk's differ per lit
     voxel by z = dJ / sqrt(e_b^2 + e_w^2). With two batch-means errors of 16 batches each, z is
     Student's t with about 30 degrees of freedom (Welch-Satterthwaite for equal variances):
     |z| < 1 and < 2 at rates 0.675 and 0.945. The bounds are the binomial 5-sigma of the voxels
     counted as if independent, widened by 0.03 for their correlation through shared packets
-    (three seed pairs gave 0.671-0.680 and 0.944-0.950)."""
+    (three seed pairs gave 0.671-0.683 and 0.944-0.950). Delta tracking's majorants on the
+    blocks (16^3) and on cells of 4^3 voxels."""
     kw = dict(photons=60_000, batch_size=60_000 // 16)
+    binned = tuned_backend({"binned_deposits": 1, "binned_majorant": majorant})
     a, b = run(cloud, binned, seed=11, **kw), run(cloud, backend, seed=12, **kw)
     assert np.all(a.counts[:, 0] == b.counts[:, 0])
     ea, eb = a.J * a.rel_error, b.J * b.rel_error
@@ -200,3 +203,15 @@ def test_memory_estimate_covers_the_binned_buffers():
     assert held <= est.device_bytes <= 2 * held + (1 << 20), (held, est.device)
     # (the run counts them: it holds more than the walk's run of the same scene)
     assert held > Pipeline(tuned_backend({})).run(s).memory["device_peak_bytes"]
+
+
+@pytest.mark.filterwarnings("ignore::nebula_rt.errors.NebulaWarning")  # terminates packets on purpose
+def test_majorant_cells_of_4_voxels_keep_the_physics(cloud):
+    """Majorant cells of 4^3 voxels (the tuning binned_majorant): energy conserved exactly and
+    the track-length absorption within 5 sigma of the count (the physics module's checks), and
+    a majorant that does not divide the block is refused."""
+    be = tuned_backend({"binned_deposits": 1, "binned_majorant": 4})
+    physics.test_energy_conservation_is_exact(be, cloud)
+    physics.test_path_length_absorption_matches_counted(be, cloud)
+    with pytest.raises(ValueError, match="binned_majorant = 5: a divisor of 16"):
+        run(cloud, tuned_backend({"binned_deposits": 1, "binned_majorant": 5}))

@@ -2,9 +2,9 @@
 
 A backend whose transport tuning holds ``binned_deposits: 1`` traces the analog track-length
 estimator on a grid this way (``benchmarks/bench_mcx.py --tuning binned_deposits=1``): flights
-by delta tracking against each block's largest density, their track lengths cut into pieces at
-the faces of blocks of :data:`BLOCK`^3 voxels, the pieces binned by block and drawn block by
-block in local memory (the kernel file's comment says how, docs/physics.md why). Each launch's
+by delta tracking against the largest density of each cell of :data:`MAJORANT`^3 voxels, their
+track lengths cut into pieces at the faces of blocks of :data:`BLOCK`^3 voxels, the pieces
+binned by block and drawn block by block in local memory (the kernel file's comment says how, docs/physics.md why). Each launch's
 packets go band by band in sub-launches of at most :data:`MAX_PACKETS` (one or more batch
 slots): a counting walk, the buckets laid out on the host from its counts (while the next
 sub-launch's counting walk runs), the same walk writing the records, then the drawing.
@@ -21,6 +21,11 @@ import numpy as np
 
 #: voxels along a block's edge (the drawing's local sums: BLOCK^3 64-bit cells, 32 KiB)
 BLOCK = 16
+#: voxels along the edge of a majorant cell of delta tracking (a divisor of BLOCK; the tuning
+#: ``binned_majorant`` overrides it). On the lognormal medium 4^3 cells make about 3.5x fewer
+#: tentative collisions than 16^3 ones for 4x the cell crossings (docs/physics.md): on PoCL
+#: the two cost the same; the GPUs are to be measured
+MAJORANT = 16
 #: records one work group of the drawing takes at a time
 CHUNK = 4096
 #: blocks whose counts per work group, for the two batch slots its packets may lie in, fit
@@ -40,6 +45,15 @@ def enabled(backend) -> bool:
     """Whether ``backend`` traces with binned deposits (its transport tuning ``binned_deposits``:
     1, or 2 for every piece added at once with global atomics, a check of the drawing)."""
     return bool(int((getattr(backend, "transport_tuning", None) or {}).get("binned_deposits", 0)))
+
+
+def majorant_of(backend) -> int:
+    """Voxels along a majorant cell's edge on ``backend`` (its tuning ``binned_majorant``, else
+    MAJORANT), checked to divide BLOCK."""
+    m = int((getattr(backend, "transport_tuning", None) or {}).get("binned_majorant", MAJORANT))
+    if m < 1 or BLOCK % m:
+        raise ValueError(f"transport tuning binned_majorant = {m}: a divisor of {BLOCK}")
+    return m
 
 
 def refusal(setup) -> str | None:
@@ -62,9 +76,9 @@ def refusal(setup) -> str | None:
     return "; ".join(reasons) or None
 
 
-def block_maxima(density: np.ndarray, block: int = BLOCK) -> np.ndarray:
+def block_maxima(density: np.ndarray, block: int) -> np.ndarray:
     """Each block's largest density (float32, blocks x fastest), the grid padded with zeros
-    to whole blocks: delta tracking's majorant."""
+    to whole blocks: delta tracking's majorant per cell of ``block``^3 voxels."""
     d = np.asarray(density, np.float32)
     nb = [-(-n // block) for n in d.shape]
     padded = np.zeros([b * block for b in nb], np.float32)
@@ -73,23 +87,27 @@ def block_maxima(density: np.ndarray, block: int = BLOCK) -> np.ndarray:
     return np.ascontiguousarray(m.transpose(2, 1, 0)).reshape(-1)  # x fastest
 
 
-def estimated_bytes(shape, batch_packets: int, packets: int) -> int:
-    """Device bytes binned deposits are estimated to add to a run of ``packets`` per band on a
-    grid of ``shape`` with batches of ``batch_packets`` packets (for
-    ``nebula_rt.transport.resources``): the blocks' majorants; the bins' totals (two sets, a
-    sub-launch's slots each); the work groups' offsets (at most GROUP_BYTES a set, two sets; for
-    large grids their counts too, three more); and the records of a sub-launch (at most
-    MAX_PACKETS packets), taken as 1.5 pieces per block along
-    the box's longest axis and 2 more per packet (the neb medium measured 0.8 and 0.5 of this
-    at 64^3 and 512^3). Each buffer is grown by a quarter as it is."""
+def estimated_bytes(shape, batch_packets: int, packets: int, majorant: int = MAJORANT) -> int:
+    """Device bytes binned deposits are estimated to add to a run (for
+    ``nebula_rt.transport.resources``) of ``packets`` per band on a grid of ``shape``, in
+    batches of ``batch_packets``, with majorant cells of ``majorant``^3 voxels:
+    - the majorant cells' densities;
+    - the bins' totals (two sets, a sub-launch's slots each);
+    - the work groups' offsets (at most GROUP_BYTES a set, two sets; for large grids their
+      counts too, three more sets);
+    - the records of a sub-launch (at most MAX_PACKETS packets), taken as 1.5 pieces per block
+      along the box's longest axis and 2 more per packet (the neb medium measured 0.8 and 0.5
+      of this at 64^3 and 512^3).
+    Each buffer is grown by a quarter as it is."""
     axis = max(-(-int(n) // BLOCK) for n in shape)
     n_blocks = int(np.prod([-(-int(n) // BLOCK) for n in shape]))
+    n_cells = int(np.prod([-(-int(n) // majorant) for n in shape]))
     sub = max(1, min(MAX_PACKETS, int(packets)))
     slots = sub // max(1, int(batch_packets)) + 2
     offsets = min(GROUP_BYTES, -(-sub // 32) * 2 * n_blocks * 4)  # (groups of at least 32)
     sets = 2 + (3 if n_blocks > LOCAL_BLOCKS else 0)
     records = sub * (1.5 * axis + 2) * RECORD_WORDS * 4
-    return int(4 * n_blocks + 1.25 * (2 * 4 * slots * n_blocks + sets * offsets + records))
+    return int(4 * n_cells + 1.25 * (2 * 4 * slots * n_blocks + sets * offsets + records))
 
 
 def batch_of(photon: int, base: int, extra: int) -> int:
@@ -109,11 +127,13 @@ class BinnedDeposits:
         if why:
             raise ValueError(f"transport tuning binned_deposits = 1 cannot trace this run: {why}")
         nx, ny, nz = s.shape
+        self.majorant = majorant_of(be)
         self.n_blocks = int(np.prod([-(-n // BLOCK) for n in s.shape]))
         self.global_counts = self.n_blocks > LOCAL_BLOCKS
         self.defines = {k: v for k, v in s.defines.items() if k not in ("NRT_SORTED", "NRT_REGIONS")}
-        self.defines.update(NRT_NX=nx, NRT_NY=ny, NRT_NZ=nz, NRT_BLOCK=BLOCK, NRT_BIN_GLOBAL=int(self.global_counts))
-        self.d_rho_max = be.to_device(block_maxima(s.setup.density))
+        self.defines.update(NRT_NX=nx, NRT_NY=ny, NRT_NZ=nz, NRT_BLOCK=BLOCK, NRT_MAJ=self.majorant,
+                            NRT_BIN_GLOBAL=int(self.global_counts))
+        self.d_rho_max = be.to_device(block_maxima(s.setup.density, self.majorant))
         self.local = be.trace_local_size(PROGRAM, "binned_walk", self._defines("count"))
         for mode in MODES:
             be.kernel(PROGRAM, "binned_walk", self._defines(mode))

@@ -108,7 +108,8 @@ def estimate(scene, backend, peel_pixels: int = 0) -> Estimate:
         # transport by regions: the stopped packets' states and keys, per-bin counts (binned
         # deposits, a tuning: none, but their records, counts and offsets)
         "region passes": 0 if binned.enabled(backend) else region_bytes(backend, nvox, t.method == "biased"),
-        "binned deposits": binned.estimated_bytes(shape, launches.batches.base + 1, photons)
+        "binned deposits": binned.estimated_bytes(shape, launches.batches.base + 1, photons,
+                                                  binned.majorant_of(backend))
         if binned.enabled(backend) else 0,
         # error-targeted runs: a brightness key per voxel and partial sums per 256 voxels
         "error checks": (4 * nvox + 16 * (nvox // 256 + 1)) if target > 0 else 0,
