@@ -267,6 +267,9 @@ if [[ " $steps " == *" binned "* ]]; then
     echo "== binned deposits"
     python3 benchmarks/bench_mcx.py --backend cuda --codes nebula --media uniform turbulent --grids 64 128 256 512 \
         --photons 2.1e7 --tuning binned_deposits=1 --out "$out/mcx-binned.json" | grep -v saved
+    echo "== binned deposits, majorants on 4^3 cells"
+    python3 benchmarks/bench_mcx.py --backend cuda --codes nebula --media uniform turbulent --grids 64 128 256 512 \
+        --photons 2.1e7 --tuning binned_deposits=1 binned_majorant=4 --out "$out/mcx-binned-maj4.json" | grep -v saved
     echo "== the probe"
     python3 benchmarks/probe_binned_deposits.py --backend cuda --media uniform turbulent --grids 64 128 256 512 --blocks 16 \
         --photons 2.1e7 --modes binned --out "$out/probe.json" | grep grid
