@@ -4,9 +4,9 @@ A backend whose transport tuning holds ``binned_deposits: 1`` traces the analog 
 estimator on a grid this way (``benchmarks/bench_mcx.py --tuning binned_deposits=1``): flights
 by delta tracking against the largest density of each cell of :data:`MAJORANT`^3 voxels, their
 track lengths cut into pieces at the faces of blocks of :data:`BLOCK`^3 voxels, the pieces
-binned by block and drawn block by block in local memory (the kernel file's comment says how, docs/physics.md why). Each launch's
-packets go band by band in sub-launches of at most :data:`MAX_PACKETS` (one or more batch
-slots): a counting walk, the buckets laid out on the host from its counts (while the next
+binned by block and drawn block by block in local memory (the kernel file's comment says how,
+docs/physics.md why). Each launch's packets go band by band in sub-launches of at most
+:data:`MAX_PACKETS` (one or more batch slots): a counting walk, the buckets laid out on the host from its counts (while the next
 sub-launch's counting walk runs), the same walk writing the records, then the drawing.
 
 The batch slots, tallies, headroom flags, folds and everything after them are the walk's: only
@@ -111,6 +111,9 @@ def estimated_bytes(shape, batch_packets: int, packets: int, majorant: int = MAJ
 
 
 def batch_of(photon: int, base: int, extra: int) -> int:
+    """Batch of packet ``photon``: the kernels' nrt_batch_of (kernels/transport.cl) on the host,
+    for the layout of ``nebula_rt.transport.plan.BatchPlan`` (the first ``extra`` batches hold
+    base + 1 packets)."""
     big = extra * (base + 1)
     return photon // (base + 1) if photon < big else extra + (photon - big) // base
 
@@ -190,7 +193,7 @@ class BinnedDeposits:
             self._write_and_draw(j % 2, sub, totals, band0, n_lb, first_batch)
             pending = nxt
 
-    def _per_item(self, n: int, bins: int) -> int:
+    def _per_item(self, n: int) -> int:
         """Packets per work item of a walk: 1, or as many as keep the groups' offsets (and, for
         large grids, their counts) within GROUP_BYTES."""
         groups = -(-n // self.local)
@@ -218,7 +221,7 @@ class BinnedDeposits:
         bins = n_slots * self.n_blocks
         self.d_bin_count[j] = self._grown(self.d_bin_count[j], bins, np.uint32)
         self.backend.fill_zero(self.d_bin_count[j])
-        self._walk("count", j, p, n, band0, lband, n_lb, first_batch, slot0, self._per_item(n, bins))
+        self._walk("count", j, p, n, band0, lband, n_lb, first_batch, slot0, self._per_item(n))
         return bins
 
     def _write_and_draw(self, j, sub, totals, band0, n_lb, first_batch):
@@ -241,7 +244,7 @@ class BinnedDeposits:
         chunk_start = (starts[bins] + index * CHUNK).astype(np.uint32)
         chunk_len = np.minimum(CHUNK, totals[bins] - index * CHUNK).astype(np.uint32)
         bucket = be.to_device(starts.astype(np.uint32))
-        self._walk("write", j, p, n, band0, lband, n_lb, first_batch, slot0, self._per_item(n, totals.size), bucket)
+        self._walk("write", j, p, n, band0, lband, n_lb, first_batch, slot0, self._per_item(n), bucket)
         s = self.session
         be.launch_trace(PROGRAM, "binned_draw", bins.size * self.draw_local, s.d_params, np.uint64(slot0),
                         np.int32(lband), np.int32(n_lb), be.to_device(bins), be.to_device(chunk_start),
