@@ -6,8 +6,9 @@ by delta tracking against the largest density of each cell of :data:`MAJORANT`^3
 track lengths cut into pieces at the faces of blocks of :data:`BLOCK`^3 voxels, the pieces
 binned by block and drawn block by block in local memory (the kernel file's comment says how,
 docs/physics.md why). Each launch's packets go band by band in sub-launches of at most
-:data:`MAX_PACKETS` (one or more batch slots): a counting walk, the buckets laid out on the host from its counts (while the next
-sub-launch's counting walk runs), the same walk writing the records, then the drawing.
+:data:`MAX_PACKETS` (one or more batch slots): a counting walk, the buckets laid out on the
+host from its counts (while the next sub-launch's counting walk runs), the same walk writing
+the records, then the drawing.
 
 The batch slots, tallies, headroom flags, folds and everything after them are the walk's: only
 how the deposits reach the slots differs. The random numbers are spent differently, so a seed
