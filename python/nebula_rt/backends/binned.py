@@ -39,19 +39,22 @@ GROUP_BYTES = 64 << 20
 MAX_PACKETS = 1 << 21
 RECORD_WORDS = 8  # float32 words of a record (start, length, direction, padding)
 PROGRAM = "binned.cl"
+#: the transport tuning keys: 1 binned deposits, 2 every piece added at once with global
+#: atomics (a check of the drawing); the majorant cells' edge in voxels
+TUNING, MAJORANT_TUNING = "binned_deposits", "binned_majorant"
 MODES = {"count": 0, "write": 1, "direct": 2}
 
 
 def enabled(backend) -> bool:
     """Whether ``backend`` traces with binned deposits (its transport tuning ``binned_deposits``:
     1, or 2 for every piece added at once with global atomics, a check of the drawing)."""
-    return bool(int((getattr(backend, "transport_tuning", None) or {}).get("binned_deposits", 0)))
+    return bool(int((getattr(backend, "transport_tuning", None) or {}).get(TUNING, 0)))
 
 
 def majorant_of(backend) -> int:
     """Voxels along a majorant cell's edge on ``backend`` (its tuning ``binned_majorant``, else
     MAJORANT), checked to divide BLOCK."""
-    m = int((getattr(backend, "transport_tuning", None) or {}).get("binned_majorant", MAJORANT))
+    m = int((getattr(backend, "transport_tuning", None) or {}).get(MAJORANT_TUNING, MAJORANT))
     if m < 1 or BLOCK % m:
         raise ValueError(f"transport tuning binned_majorant = {m}: a divisor of {BLOCK}")
     return m

@@ -28,7 +28,7 @@ from . import kernel_params
 from ..array_api import to_numpy
 from .regions import (NO_REGIONS, MAX_REGION_PASSES, LOCAL_SORT_BINS, EMISSION_MAX_BINS, packet_state_bytes,
                       region_shift_of, region_state_bytes)
-from .binned import BinnedDeposits
+from .binned import TUNING as binned_tuning, BinnedDeposits
 from .transport_setup import TransportSession, TransportSetup, transport_defines
 
 #: centred sums of squares are stored as float32 x 2^-64 (kernels/transport.cl)
@@ -142,7 +142,7 @@ class DeviceTransport(TransportSession):
         self.d_image = be.device_zeros(max(1, self.image_stokes + self.slots * self.bands_per_launch * self.stokes_words),
                                        np.uint64)
         tuning = dict(be.transport_tuning)
-        binned = int(tuning.pop("binned_deposits", 0))
+        binned = int(tuning.pop(binned_tuning, 0))
         if setup.tree is not None or binned:
             tuning["NRT_SORTED"] = 0  # (the emission order's keys are a grid's; binned: no walk)
         elif "NRT_SORTED" not in tuning and self.nvox >= getattr(be, "sort_min_voxels", 0) > 0:
